@@ -1,0 +1,34 @@
+"""cornell: a Cornell box (2 m) with a square ceiling light, one glossy and one diffuse block; sanity scene with an analytic check."""
+import numpy as np
+
+from slc.scenes import CameraPath, SceneBuilder, diffuse, rough_conductor
+
+LIGHT_HALF = 0.25       # the ceiling light is a 0.5 m x 0.5 m square
+LIGHT_HEIGHT = 1.98     # just below the ceiling (y = 2)
+LIGHT_RADIANCE = (12.0, 11.0, 9.0)
+
+
+def build(**options):
+    b = SceneBuilder("cornell")
+    white, red, green = diffuse([0.73, 0.73, 0.73]), diffuse([0.65, 0.05, 0.05]), diffuse([0.12, 0.45, 0.15])
+    # walls of the box [-1, 1] x [0, 2] x [-1, 1], open at +z (the camera side)
+    b.add_quad([0, 0, 0], [1, 0, 0], [0, 0, -1], bsdf=white, name="floor")
+    b.add_quad([0, 2, 0], [1, 0, 0], [0, 0, 1], bsdf=white, name="ceiling")
+    b.add_quad([0, 1, -1], [1, 0, 0], [0, 1, 0], bsdf=white, name="back")
+    b.add_quad([-1, 1, 0], [0, 1, 0], [0, 0, 1], bsdf=red, name="left")
+    b.add_quad([1, 1, 0], [0, 0, 1], [0, 1, 0], bsdf=green, name="right")
+    b.add_box([-0.65, 0, -0.6], [-0.05, 1.2, 0.0], bsdf=rough_conductor(0.15, "Al"), name="tall_block")
+    b.add_box([0.1, 0, 0.05], [0.7, 0.6, 0.65], bsdf=diffuse([0.7, 0.7, 0.6]), name="short_block")
+    # the light faces down: cross(u, v) = cross(x, z) = -y
+    b.add_quad([0, LIGHT_HEIGHT, 0], [LIGHT_HALF, 0, 0], [0, 0, LIGHT_HALF], bsdf=diffuse([0, 0, 0]),
+               emission=LIGHT_RADIANCE, name="light")
+    paths = [
+        CameraPath([([0, 1, 3.4], [0, 1, 0]), ([0.5, 1.2, 3.0], [0, 0.9, 0]), ([-0.4, 1.1, 3.2], [0, 1, 0])],
+                   frames=64, fov=45, name="front"),
+        CameraPath([([0.7, 1.6, 0.9], [-0.3, 0.3, -0.5]), ([-0.7, 1.5, 0.8], [0.3, 0.3, -0.4]),
+                    ([0.0, 1.7, 0.7], [0, 0, -0.6])], frames=64, fov=55, name="above"),
+        CameraPath([([-0.8, 0.4, 0.9], [0.5, 0.8, -0.8]), ([0.8, 0.5, 0.9], [-0.5, 0.9, -0.8]),
+                    ([0.0, 0.3, 0.95], [0.0, 1.2, -1.0])], frames=64, fov=60, name="low"),
+    ]
+    return b.build(paths, exposure=1.0, unit=1.0, meeting_center=[0, 0.8, -0.2],
+                   description=__doc__.strip())

@@ -1,0 +1,70 @@
+"""RT-N: N random light samples per pixel, one shadow ray each."""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from ..lights import direct_sample, finite, rng
+from ..methods import Method, register
+
+
+class RandomLightSampling(Method):
+    r"""Random light sampling with N samples per pixel (``rt16``, ``rt48``, ``rtN``).
+
+    .. math:: L_o(x) \approx \frac{1}{N}\sum_{k=1}^{N} f_r(x, \omega_k, \omega_o)
+              \frac{L_e(y_k)\,G(x, y_k)\,V(x, y_k)}{p(y_k)}
+
+    Each sample picks an emitter uniformly and a point on it
+    (``scene.sample_emitter_direction``), traces one shadow ray and evaluates
+    the BSDF (cosine included). Emitted radiance of directly seen emitters is
+    added by the pipeline (:func:`slc.gbuffer.compose`).
+
+    Parameters: ``n`` (samples per pixel, default 16). Memory: none beyond
+    the frame (per-viewer output buffer of 12 bytes per pixel is counted).
+    """
+
+    def __init__(self, scene, n: int = 16, **kw):
+        super().__init__(scene, **kw)
+        self.n = int(n)
+        self.name = f"rt{self.n}"
+        self._pixels = 0
+
+    def settings(self):
+        return {"n": self.n}
+
+    def shade(self, gb, frame: int, viewer_index: int) -> mi.Color3f:
+        sc = self.scene.mi_scene
+        sampler = rng(gb.size, self.seed_for(frame, viewer_index), stream=1)
+        si, active = gb.si, gb.valid
+        bsdf = si.bsdf()
+        ctx = mi.BSDFContext()
+        n_opaque = dr.opaque(mi.UInt32, self.n)
+
+        # ------------------ N light samples in a symbolic loop ------------------
+        def cond(i, L, sampler):
+            return i < n_opaque
+
+        def body(i, L, sampler):
+            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
+            L += direct_sample(sc, si, bsdf, u, active, ctx)
+            return i + 1, L, sampler
+
+        _, L, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
+                                labels=("i", "L", "sampler"))
+        return finite(L / float(max(self.n, 1)))
+
+    def render(self, ctx, gbuffers, timer):
+        outs = []
+        self._pixels = sum(g.size for g in gbuffers)
+        with timer.stage("shade") as st:
+            for v, gb in enumerate(gbuffers):
+                outs.append(self.shade(gb, ctx.frame, v))
+            st.outputs(*outs)
+        return outs
+
+    def memory_bytes(self) -> int:
+        return 12 * self._pixels
+
+
+register("rt", lambda scene, n=16, **kw: RandomLightSampling(scene, n=n, **kw), pattern=r"rt(\d+)",
+         help="rtN: N random light samples per pixel with shadow rays")

@@ -1,0 +1,183 @@
+"""The ``slc`` command line.
+
+    slc scenes                      list scenes
+    slc methods                     list methods
+    slc render --scene S --method M --viewers N --res WxH --frames F --out DIR
+    slc run EXPERIMENT [--quick] [--out DIR] [--scene NAME]... [experiment options]
+    slc bench rays                  RT-N shadow-ray throughput vs raw ray_test
+
+Every command takes ``--variant`` (or ``SLC_VARIANT``). Bad input (missing
+file, unknown scene/method/experiment, a scene without emitters) prints one
+line ``slc: error: ...`` and exits with status 2, writing no results.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import click
+
+from . import backend
+
+
+def _errors():
+    from .experiment import ExperimentError
+    from .methods import MethodError
+    from .scenes import SceneError
+    return (SceneError, MethodError, ExperimentError, backend.BackendError, FileNotFoundError)
+
+
+def _fail(msg: str):
+    click.echo(f"slc: error: {msg}", err=True)
+    sys.exit(2)
+
+
+def _parse_res(res: str) -> tuple[int, int]:
+    try:
+        w, h = res.lower().split("x")
+        w, h = int(w), int(h)
+        assert w > 0 and h > 0
+        return w, h
+    except Exception:
+        _fail(f"bad resolution '{res}' (expected WxH, e.g. 320x180)")
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("--variant", default=None, help="Mitsuba variant (cuda_ad_rgb or llvm_ad_rgb); default: auto")
+def cli(variant):
+    """slc: shared caches of incoming light for many viewers."""
+    try:
+        backend.init(variant)
+    except backend.BackendError as e:
+        _fail(str(e))
+
+
+@cli.command("scenes")
+def scenes_cmd():
+    """List the built-in scenes."""
+    from . import scenes
+    for name, desc in scenes.describe_builtins():
+        click.echo(f"{name:10s} {desc}")
+    click.echo("(or any Mitsuba 3 scene: --scene path/to/scene.xml)")
+
+
+@cli.command("methods")
+def methods_cmd():
+    """List the available methods."""
+    from . import methods
+    for name, desc in sorted(methods.available().items()):
+        click.echo(f"{name:10s} {desc}")
+
+
+@cli.command("render")
+@click.option("--scene", "scene_name", default="cornell", show_default=True)
+@click.option("--method", default="rt16", show_default=True)
+@click.option("--viewers", default=1, show_default=True, type=int)
+@click.option("--rig", default="single", show_default=True, help="single, random, overlap, stereo, meeting")
+@click.option("--overlap", default=1.0, show_default=True, type=float, help="overlap rig: target fraction 0..1")
+@click.option("--res", default="320x180", show_default=True)
+@click.option("--frames", default=8, show_default=True, type=int)
+@click.option("--warmup", default=2, show_default=True, type=int)
+@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--gt/--no-gt", default=False, show_default=True, help="compare the last frame with ground truth")
+@click.option("--out", default="out/render", show_default=True)
+def render_cmd(scene_name, method, viewers, rig, overlap, res, frames, warmup, seed, gt, out):
+    """Render a sequence with one method; write images and timings."""
+    from . import io, methods, scenes, views
+    from .pipeline import RunConfig, run_sequence
+    w, h = _parse_res(res)
+    if viewers < 1 or frames < 1:
+        _fail("--viewers and --frames must be at least 1")
+    s = scenes.load(scene_name)
+    m = methods.create(method, s, seed=seed)
+    try:
+        vs = views.make_rig(s, rig, viewers, overlap)
+    except ValueError as e:
+        _fail(str(e))
+    cfg = RunConfig(width=w, height=h, frames=frames, warmup=min(warmup, frames - 1), seed=seed,
+                    eval_frames=[frames - 1] if gt else [])
+    from tqdm import tqdm
+    with tqdm(total=frames, desc=f"{s.name}/{m.name}", unit="frame", disable=None) as bar:
+        r = run_sequence(s, m, vs, cfg, progress=bar)
+    outd = Path(out)
+    for vname, img in r.last.items():
+        io.write_hdr_and_png(outd / f"{s.name}_{m.name}_{vname}", img, s.exposure)
+    for vname, im in r.images.items():
+        io.comparison_strip(outd / f"{s.name}_{m.name}_{vname}_strip.png", im["gt"], im["img"],
+                                im["flip_map"], s.exposure)
+    row = {"scene": s.name, **r.row(), "per_frame_ms": r.per_frame_ms}
+    io.write_json(outd / "timings.json", row)
+    click.echo(f"{s.name} {m.name} viewers={len(vs)}: {r.time_ms:.2f} ms/frame (median after {cfg.warmup} warm-up)"
+               + "".join(f", {k} {v:.4f}" for k, v in r.metrics.items()))
+    click.echo(f"wrote {outd}")
+
+
+@cli.command("run", context_settings={"ignore_unknown_options": True, "allow_extra_args": True})
+@click.argument("experiment_name")
+@click.argument("args", nargs=-1, type=click.UNPROCESSED)
+def run_cmd(experiment_name, args):
+    """Run an experiment (single-viewer, ...); options after the name."""
+    from . import experiment
+    mod = experiment.load(experiment_name)
+    _run_module(mod, list(args), prog=f"slc run {experiment_name}")
+
+
+def _run_module(mod, argv, prog):
+    p = argparse.ArgumentParser(prog=prog, description=(mod.__doc__ or "").strip().splitlines()[0])
+    if hasattr(mod, "add_arguments"):
+        mod.add_arguments(p)
+    opts = p.parse_args(argv)
+    mod.run(opts)
+
+
+@cli.group("bench")
+def bench_grp():
+    """Micro-benchmarks."""
+
+
+@bench_grp.command("rays")
+@click.option("--scene", "scene_name", default="atrium", show_default=True)
+@click.option("--res", default="320x180", show_default=True)
+@click.option("--n", default=16, show_default=True, type=int, help="samples (rays) per pixel")
+@click.option("--repeats", default=5, show_default=True, type=int)
+def bench_rays(scene_name, res, n, repeats):
+    """RT-N throughput next to Mitsuba's raw scene.ray_test on the same rays."""
+    from .bench import bench_rays as run
+    w, h = _parse_res(res)
+    r = run(scene_name, w, h, n, repeats)
+    click.echo(f"scene {r['scene']} {w}x{h}, {r['rays']} shadow rays per pass:")
+    click.echo(f"  raw scene.ray_test      : {r['raw_ms']:8.2f} ms  {r['raw_mrays']:7.1f} Mrays/s")
+    click.echo(f"  rt{n} (sample+ray+BSDF) : {r['ours_ms']:8.2f} ms  {r['ours_mrays']:7.1f} Mrays/s")
+    click.echo(f"  ratio ours/raw          : {r['ratio']:.2f}x (target <= 1.5x)")
+
+
+def main(argv=None):
+    try:
+        cli.main(args=argv, prog_name="slc", standalone_mode=False)
+    except click.exceptions.Abort:
+        _fail("aborted")
+    except click.ClickException as e:
+        e.show()
+        sys.exit(2)
+    except _errors() as e:
+        _fail(str(e))
+    except SystemExit as e:
+        raise e
+    return 0
+
+
+def run_experiment_standalone(path: str) -> int:
+    """Entry point of ``python experiments/NAME.py [options]``."""
+    from . import experiment
+    try:
+        mod = experiment.load(Path(path).stem)
+        _run_module(mod, sys.argv[1:], prog=Path(path).name)
+    except _errors() as e:
+        click.echo(f"{Path(path).name}: error: {e}", err=True)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

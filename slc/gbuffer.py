@@ -1,0 +1,135 @@
+"""The G-buffer: one primary hit per pixel centre, shared by every method.
+
+Every method, the ground truth included, shades exactly these surface
+points, so measured errors are errors of direct illumination alone.
+
+Camera rays are generated here (not by a Mitsuba sensor) from opaque
+camera parameters, so a moving camera never recompiles a kernel.
+
+Motion vectors reproject each hit into the previous frame's camera
+(camera motion only: a moving object's own motion is not included, which
+the temporal reuse of ReSTIR then rejects by its depth/normal tests).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .scenes import Camera, Scene
+
+
+@dataclass
+class GBuffer:
+    """Primary hits of one viewer, flattened row-major (index = y * W + x).
+
+    Fields: ``si`` (SurfaceInteraction3f; its ``wi`` is the local direction
+    towards the camera), ``valid`` (a surface was hit), ``emitted`` (radiance
+    emitted towards the camera by a hit emitter, or the environment seen
+    through a miss), ``depth`` (ray distance), ``motion`` (previous pixel
+    position minus current, in pixels), ``shape_index``/``prim_index``/
+    ``prim_uv`` (a stable triangle id and barycentrics for cache lookups),
+    ``footprint`` (world-space width of the pixel on the surface).
+    """
+    width: int
+    height: int
+    camera: Camera
+    si: mi.SurfaceInteraction3f
+    valid: mi.Bool
+    emitted: mi.Color3f
+    depth: mi.Float
+    motion: mi.Vector2f
+    shape_index: mi.UInt32
+    prim_index: mi.UInt32
+    prim_uv: mi.Point2f
+    footprint: mi.Float
+    viewer: str = ""
+
+    @property
+    def size(self) -> int:
+        return self.width * self.height
+
+
+def _opaque_camera(cam: Camera, width: int, height: int):
+    f, r, u = cam.basis()
+    th = math.tan(math.radians(cam.fov) / 2)
+    aspect = width / height
+    vals = dict(o=cam.origin, f=f, r=r * th * aspect, u=u * th)
+    out = {}
+    for k, v in vals.items():
+        out[k] = mi.Vector3f(*[dr.opaque(mi.Float, float(x)) for x in v])
+    return out
+
+
+def camera_rays(cam: Camera, width: int, height: int) -> mi.Ray3f:
+    """One ray per pixel centre."""
+    c = _opaque_camera(cam, width, height)
+    idx = dr.arange(mi.UInt32, width * height)
+    x = mi.Float(idx % width) + 0.5
+    y = mi.Float(idx // width) + 0.5
+    sx = 2.0 * x / width - 1.0
+    sy = 1.0 - 2.0 * y / height
+    d = dr.normalize(c["f"] + sx * c["r"] + sy * c["u"])
+    return mi.Ray3f(mi.Point3f(c["o"]), d)
+
+
+def project(cam: Camera, width: int, height: int, p: mi.Point3f):
+    """Pixel coordinates (continuous, pixel centres at +0.5) of world points,
+    and a mask of points in front of the camera."""
+    c = _opaque_camera(cam, width, height)
+    v = p - c["o"]
+    z = dr.dot(v, c["f"])
+    front = z > 1e-6
+    zs = dr.select(front, z, 1.0)
+    sx = dr.dot(v, c["r"]) / (zs * dr.squared_norm(c["r"]))
+    sy = dr.dot(v, c["u"]) / (zs * dr.squared_norm(c["u"]))
+    x = (sx + 1.0) * 0.5 * width
+    y = (1.0 - sy) * 0.5 * height
+    return mi.Vector2f(x, y), front
+
+
+def render_gbuffer(scene: Scene, cam: Camera, width: int, height: int,
+                   prev_cam: Camera | None = None, viewer: str = "") -> GBuffer:
+    sc = scene.mi_scene
+    ray = camera_rays(cam, width, height)
+    pi = sc.ray_intersect_preliminary(ray, coherent=True)
+    si = pi.compute_surface_interaction(ray)
+    valid = si.is_valid()
+    emitted = mi.Color3f(si.emitter(sc).eval(si))
+    emitted = dr.select(dr.isfinite(emitted[0] + emitted[1] + emitted[2]), emitted, 0.0)
+    depth = dr.select(valid, si.t, 0.0)
+    idx = dr.arange(mi.UInt32, width * height)
+    cur = mi.Vector2f(mi.Float(idx % width) + 0.5, mi.Float(idx // width) + 0.5)
+    if prev_cam is not None:
+        prev, front = project(prev_cam, width, height, si.p)
+        motion = dr.select(valid & front, prev - cur, mi.Vector2f(0.0))
+    else:
+        motion = mi.Vector2f(0.0)
+    th = math.tan(math.radians(cam.fov) / 2)
+    cos_n = dr.abs(dr.dot(si.n, -ray.d))
+    footprint = dr.select(valid, si.t * (2.0 * th / height) / dr.maximum(cos_n, 0.05), 0.0)
+    gb = GBuffer(width, height, cam, si, valid, emitted, depth, motion,
+                 dr.select(valid, pi.shape_index, 0), dr.select(valid, pi.prim_index, 0),
+                 mi.Point2f(pi.prim_uv), footprint, viewer)
+    dr.eval(gb.si, gb.valid, gb.emitted, gb.depth, gb.motion, gb.shape_index, gb.prim_index,
+            gb.prim_uv, gb.footprint)
+    return gb
+
+
+def to_image(gb: GBuffer, value: mi.Color3f) -> np.ndarray:
+    """(H, W, 3) float32 numpy image of a per-pixel colour."""
+    a = np.array(value, dtype=np.float32)
+    if a.ndim == 2 and a.shape[0] == 3:
+        a = a.T
+    return a.reshape(gb.height, gb.width, 3)
+
+
+def compose(gb: GBuffer, direct: mi.Color3f) -> mi.Color3f:
+    """Final image value: emitted radiance seen directly plus direct light at
+    valid hits; NaN/Inf are replaced by 0 (never reach an image)."""
+    L = gb.emitted + dr.select(gb.valid, direct, 0.0)
+    ok = dr.isfinite(L[0]) & dr.isfinite(L[1]) & dr.isfinite(L[2])
+    return dr.select(ok, dr.maximum(L, 0.0), 0.0)

@@ -1,0 +1,123 @@
+"""The frame loop shared by the CLI, the experiments and the notebooks.
+
+For each frame: pose the scene (:meth:`Scene.set_frame`), build one G-buffer
+per viewer, hand all of them to the method (timed by stage; G-buffer
+generation and tone mapping are not timed, as in the papers), compose with
+directly seen emission, and on evaluation frames compare every viewer's
+image with the 2048-sample ground truth at the same points.
+"""
+from __future__ import annotations
+
+import statistics
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import gbuffer as gbuf
+from .groundtruth import GT_SAMPLES, ground_truth
+from .methods import FrameContext, Method
+from .metrics import evaluate
+from .timing import StageTimer
+
+
+@dataclass
+class RunConfig:
+    """Settings of one sequence run.
+
+    ``eval_frames``: frames compared with the ground truth (default: the last
+    frame only). ``warmup``: frames whose timings are discarded."""
+    width: int = 320
+    height: int = 180
+    frames: int = 32
+    warmup: int = 4
+    eval_frames: list[int] | None = None
+    seed: int = 0
+    gt_spp: int = GT_SAMPLES
+    keep_images: bool = True
+    start_frame: int = 0
+
+    def evaluated(self) -> list[int]:
+        if self.eval_frames is None:
+            return [self.frames - 1]
+        return [f for f in self.eval_frames if 0 <= f < self.frames]
+
+
+@dataclass
+class RunResult:
+    method: str
+    viewers: int
+    time_ms: float
+    stages: dict
+    metrics: dict
+    memory_mb: float
+    per_frame_ms: list = field(default_factory=list)
+    images: dict = field(default_factory=dict)  # viewer -> {"gt", "img", "flip_map"} of the last evaluated frame
+    last: dict = field(default_factory=dict)    # viewer -> composed image of the last frame
+    stats: dict = field(default_factory=dict)
+
+    def row(self) -> dict:
+        r = {"method": self.method, "viewers": self.viewers, "time_ms": self.time_ms,
+             "memory_mb": self.memory_mb, "stages_ms": self.stages}
+        r.update(self.metrics)
+        r.update(self.stats)
+        return r
+
+
+def gbuffers_for(scene, viewers, frame: int, width: int, height: int) -> list:
+    scene.set_frame(frame)
+    out = []
+    for v in viewers:
+        prev = v.camera(frame - 1) if frame > 0 else None
+        out.append(gbuf.render_gbuffer(scene, v.camera(frame), width, height, prev, v.name))
+    return out
+
+
+def run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress=None) -> RunResult:
+    """Render ``cfg.frames`` frames with ``method`` for all ``viewers``."""
+    timer = StageTimer()
+    method.reset()
+    evals = set(cfg.evaluated())
+    acc: dict[str, list] = {}
+    images = {}
+    stats_acc: dict[str, list] = {}
+    last = {}
+    for i in range(cfg.frames):
+        f = cfg.start_frame + i
+        gbs = gbuffers_for(scene, viewers, f, cfg.width, cfg.height)
+        ctx = FrameContext(frame=f, time=scene.time or 0.0, seed=cfg.seed)
+        timer.begin_frame()
+        direct = method.render(ctx, gbs, timer)
+        timer.end_frame()
+        for k, v in method.stats().items():
+            if isinstance(v, (int, float)):
+                stats_acc.setdefault(k, []).append(float(v))
+        if i in evals:
+            for v, (gb, d) in enumerate(zip(gbs, direct)):
+                img = gbuf.to_image(gb, gbuf.compose(gb, d))
+                gt = ground_truth(scene, gb, f, gb.viewer, spp=cfg.gt_spp)
+                m = evaluate(gt, img, scene.exposure, with_map=True)
+                fmap = m.pop("flip_map")
+                for k, val in m.items():
+                    acc.setdefault(k, []).append(val)
+                if cfg.keep_images:
+                    images[gb.viewer or f"v{v}"] = {"gt": gt, "img": img, "flip_map": fmap, "frame": f}
+        if cfg.keep_images and i == cfg.frames - 1:
+            last = {gb.viewer: gbuf.to_image(gb, gbuf.compose(gb, d)) for gb, d in zip(gbs, direct)}
+        if progress is not None:
+            progress.update(1)
+    summ = timer.summary(cfg.warmup)
+    metrics = {k: _mean(v) for k, v in acc.items()}
+    stats = {k: float(np.mean(v[cfg.warmup:] if len(v) > cfg.warmup else v)) for k, v in stats_acc.items()}
+    return RunResult(method=method.name, viewers=len(viewers), time_ms=summ.get("total", 0.0),
+                     stages={k: v for k, v in summ.items() if k != "total"}, metrics=metrics,
+                     memory_mb=method.memory_bytes() / 2 ** 20,
+                     per_frame_ms=[fr.get("total", 0.0) for fr in timer.frames], images=images, last=last,
+                     stats=stats)
+
+
+def _mean(vals):
+    vals = [float(v) for v in vals]
+    if any(np.isinf(v) for v in vals):
+        finite = [v for v in vals if np.isfinite(v)]
+        return float("inf") if not finite else statistics.mean(finite)
+    return statistics.mean(vals) if vals else float("nan")

@@ -1,0 +1,456 @@
+"""Scenes: built-in procedural scenes, Sponza, and any Mitsuba 3 XML file.
+
+A :class:`Scene` wraps a ``mi.Scene`` with what the experiments need on top:
+animation as a function of time (:meth:`Scene.set_time`), camera paths, a
+fixed exposure for tone mapping and the scene's unit (scene units per metre).
+
+Built-in scene definitions live in the repository's top-level ``scenes/``
+folder, one Python file per scene with a ``build(**options) -> Scene``
+function (see ``docs/adding-a-scene.md``). :func:`load` resolves a name from
+that folder, a path to a ``.py`` definition or a path to a ``.xml`` scene.
+
+Animation never recompiles kernels: moving things are triangle meshes whose
+``vertex_positions`` buffers are rewritten each frame (the kernels read them
+from memory), never transforms baked into a kernel.
+"""
+from __future__ import annotations
+
+import importlib.util
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from . import backend
+
+backend.init()
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SCENES_DIR = REPO_ROOT / "scenes"
+SHARED_DIR = REPO_ROOT.parent / "shared"
+
+FPS = 30.0
+SUPPORTED_EMITTERS = ("area", "point", "spot", "envmap", "constant", "directional")
+
+
+class SceneError(ValueError):
+    """A scene cannot be loaded (one-line reason for the user)."""
+
+
+# -----------------------------------------------------------------------------
+# Cameras and camera paths
+# -----------------------------------------------------------------------------
+
+@dataclass
+class Camera:
+    """A pinhole camera: position, look-at target, up vector, vertical fov."""
+    origin: np.ndarray
+    target: np.ndarray
+    up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
+    fov: float = 60.0  # vertical field of view in degrees
+
+    def basis(self):
+        """(forward, right, up) unit vectors."""
+        f = np.asarray(self.target, float) - np.asarray(self.origin, float)
+        f /= max(np.linalg.norm(f), 1e-12)
+        r = np.cross(f, self.up)
+        if np.linalg.norm(r) < 1e-8:  # looking along up: pick any right vector
+            r = np.cross(f, [1.0, 0.0, 0.0]) if abs(f[0]) < 0.9 else np.cross(f, [0.0, 0.0, 1.0])
+        r /= np.linalg.norm(r)
+        u = np.cross(r, f)
+        return f, r, u
+
+    def yawed(self, degrees: float) -> "Camera":
+        """The same camera turned about the world up axis by ``degrees``."""
+        a = math.radians(degrees)
+        d = np.asarray(self.target, float) - np.asarray(self.origin, float)
+        c, s = math.cos(a), math.sin(a)
+        rot = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+        return Camera(np.array(self.origin, float), np.asarray(self.origin, float) + rot @ d,
+                      np.array(self.up, float), self.fov)
+
+
+def _catmull_rom(p0, p1, p2, p3, t):
+    t2, t3 = t * t, t * t * t
+    return 0.5 * ((2 * p1) + (-p0 + p2) * t + (2 * p0 - 5 * p1 + 4 * p2 - p3) * t2
+                  + (-p0 + 3 * p1 - 3 * p2 + p3) * t3)
+
+
+@dataclass
+class CameraPath:
+    """Keyframed camera path, interpolated by a Catmull-Rom spline.
+
+    ``keys`` are (origin, target) pairs; ``frames`` is the path length in
+    frames (keys are spread evenly over it). Frames past the end hold the
+    last pose, so any frame index is valid."""
+    keys: list
+    frames: int = 64
+    fov: float = 60.0
+    name: str = "path"
+
+    def at(self, frame: float) -> Camera:
+        k = [(np.asarray(o, float), np.asarray(t, float)) for o, t in self.keys]
+        if len(k) == 1:
+            return Camera(k[0][0].copy(), k[0][1].copy(), fov=self.fov)
+        s = min(max(frame, 0.0), self.frames - 1) / max(self.frames - 1, 1) * (len(k) - 1)
+        i = min(int(s), len(k) - 2)
+        t = s - i
+        idx = [max(i - 1, 0), i, i + 1, min(i + 2, len(k) - 1)]
+        o = _catmull_rom(*[k[j][0] for j in idx], t)
+        g = _catmull_rom(*[k[j][1] for j in idx], t)
+        return Camera(o, g, fov=self.fov)
+
+
+def random_path(rng: np.random.Generator, lo, hi, look_lo, look_hi, n_keys=5,
+                frames=64, fov=60.0, name="random") -> CameraPath:
+    """A smooth path through ``n_keys`` random points of the box [lo, hi],
+    looking at random points of [look_lo, look_hi]."""
+    lo, hi, look_lo, look_hi = map(lambda a: np.asarray(a, float), (lo, hi, look_lo, look_hi))
+    keys = [(rng.uniform(lo, hi), rng.uniform(look_lo, look_hi)) for _ in range(n_keys)]
+    return CameraPath(keys, frames=frames, fov=fov, name=name)
+
+
+# -----------------------------------------------------------------------------
+# Scene
+# -----------------------------------------------------------------------------
+
+@dataclass
+class Animated:
+    """A triangle mesh moved rigidly: ``transform(t)`` gives a 4x4 matrix
+    applied to the rest-pose vertices (and normals) at time ``t`` (seconds)."""
+    shape_id: str
+    rest_positions: np.ndarray  # (V, 3)
+    transform: Callable[[float], np.ndarray]
+    rest_normals: np.ndarray | None = None
+
+
+class Scene:
+    """A Mitsuba scene plus animation, camera paths and display settings.
+
+    Parameters
+    ----------
+    name: registry name.
+    mi_scene: the loaded ``mi.Scene``.
+    camera_paths: at least three uncorrelated paths for built-in scenes.
+    animated: rigidly moving meshes (lights or objects).
+    exposure: multiplier applied before the tone map (fixed per scene so that
+        every method and the ground truth are mapped alike).
+    unit: scene units per metre (stereo interocular distance = 0.064 * unit).
+    """
+
+    def __init__(self, name: str, mi_scene: mi.Scene, camera_paths: list[CameraPath],
+                 animated: list[Animated] | None = None, exposure: float = 1.0,
+                 unit: float = 1.0, description: str = "", meeting_center=None):
+        self.name = name
+        self.mi_scene = mi_scene
+        self.camera_paths = camera_paths
+        self.animated = animated or []
+        self.exposure = exposure
+        self.unit = unit
+        self.description = description
+        bb = mi_scene.bbox()
+        self.bbox_min = np.array(bb.min, float).ravel()
+        self.bbox_max = np.array(bb.max, float).ravel()
+        self.meeting_center = (np.asarray(meeting_center, float) if meeting_center is not None
+                               else 0.5 * (self.bbox_min + self.bbox_max))
+        self.time = None
+        self._params = mi.traverse(mi_scene) if self.animated else None
+        check_emitters(mi_scene, name)
+
+    @property
+    def dynamic(self) -> bool:
+        return bool(self.animated)
+
+    def shape_ids(self) -> list[str]:
+        return [s.id() for s in self.mi_scene.shapes()]
+
+    def set_time(self, t: float) -> None:
+        """Pose every animated mesh at time ``t`` (seconds). Kernels are not
+        recompiled: only vertex buffers change (the BVH is rebuilt)."""
+        if not self.animated or self.time == t:
+            self.time = t
+            return
+        for a in self.animated:
+            M = np.asarray(a.transform(t), float)
+            P = a.rest_positions @ M[:3, :3].T + M[:3, 3]
+            self._params[f"{a.shape_id}.vertex_positions"] = mi.Float(P.astype(np.float32).ravel())
+            if a.rest_normals is not None and f"{a.shape_id}.vertex_normals" in self._params:
+                N = a.rest_normals @ np.linalg.inv(M[:3, :3]).T
+                N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
+                self._params[f"{a.shape_id}.vertex_normals"] = mi.Float(N.astype(np.float32).ravel())
+        self._params.update()
+        self.time = t
+
+    def set_frame(self, frame: int) -> None:
+        self.set_time(frame / FPS)
+
+    def path(self, i: int) -> CameraPath:
+        """Camera path ``i``; beyond the scene's own paths, a deterministic
+        random path through the scene's box (seeded by ``i``)."""
+        if i < len(self.camera_paths):
+            return self.camera_paths[i]
+        lo, hi = self.bbox_min, self.bbox_max
+        ext = hi - lo
+        rng = np.random.default_rng(1000 + i)
+        base = self.camera_paths[0] if self.camera_paths else None
+        fov = base.fov if base else 60.0
+        frames = base.frames if base else 64
+        return random_path(rng, lo + 0.2 * ext, hi - 0.2 * ext, lo + 0.3 * ext, hi - 0.3 * ext,
+                           frames=frames, fov=fov, name=f"random{i}")
+
+
+def check_emitters(mi_scene: mi.Scene, name: str) -> None:
+    """Raise SceneError when the scene has no emitter or an unsupported one."""
+    ems = mi_scene.emitters()
+    if len(ems) == 0:
+        raise SceneError(f"scene '{name}' has no emitters (direct illumination needs at least one light)")
+    for e in ems:
+        cls = e.class_name()
+        plugin = {"AreaLight": "area", "PointLight": "point", "SpotLight": "spot",
+                  "EnvironmentMapEmitter": "envmap", "ConstantBackgroundEmitter": "constant",
+                  "DirectionalEmitter": "directional"}.get(cls)
+        if plugin is None:
+            raise SceneError(f"scene '{name}': emitter type '{cls}' is not supported "
+                             f"(supported: {', '.join(SUPPORTED_EMITTERS)})")
+
+
+# -----------------------------------------------------------------------------
+# Building procedural scenes
+# -----------------------------------------------------------------------------
+
+def diffuse(rgb):
+    return {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(map(float, rgb))}}
+
+
+def rough_conductor(roughness=0.15, material="Al", rgb=None):
+    d = {"type": "roughconductor", "distribution": "ggx", "alpha": float(roughness)}
+    if rgb is None:
+        d["material"] = material
+    else:
+        d["material"] = "none"
+        d["specular_reflectance"] = {"type": "rgb", "value": list(map(float, rgb))}
+    return d
+
+
+def principled(rgb, roughness=0.2, metallic=0.0, specular=0.5):
+    return {"type": "principled", "base_color": {"type": "rgb", "value": list(map(float, rgb))},
+            "roughness": float(roughness), "metallic": float(metallic), "specular": float(specular)}
+
+
+class SceneBuilder:
+    """Collects triangle meshes (numpy or trimesh) and lights into a scene.
+
+    Every shape is a ``mi.Mesh`` so that it can be moved without recompiling
+    kernels and re-parameterised by the on-surface cache."""
+
+    def __init__(self, name: str):
+        self.name = name
+        self.shapes: dict[str, dict | mi.Mesh] = {}
+        self.animated: list[Animated] = []
+        self.extra: dict[str, dict] = {}
+        self._n = 0
+
+    def _id(self, prefix):
+        self._n += 1
+        return f"{prefix}_{self._n:03d}"
+
+    def add_mesh(self, vertices, faces, bsdf=None, emission=None, name="mesh",
+                 smooth=False, transform: Callable[[float], np.ndarray] | None = None) -> str:
+        """Add a triangle mesh. ``emission`` (RGB radiance) makes it an area
+        light; ``transform(t)`` animates it rigidly. Returns its shape id."""
+        V = np.ascontiguousarray(vertices, dtype=np.float32)
+        F = np.ascontiguousarray(faces, dtype=np.uint32)
+        sid = self._id(name)
+        normals = None
+        if smooth:
+            normals = _vertex_normals(V, F)
+        props = mi.Properties()
+        props["bsdf"] = mi.load_dict(bsdf if bsdf is not None else diffuse([0.5, 0.5, 0.5]))
+        if emission is not None:
+            props["emitter"] = mi.load_dict({"type": "area", "radiance": {
+                "type": "rgb", "value": list(map(float, emission))}})
+        mesh = mi.Mesh(sid, len(V), len(F), props, has_vertex_normals=smooth, has_vertex_texcoords=False)
+        p = mi.traverse(mesh)
+        p["vertex_positions"] = mi.Float(V.ravel())
+        p["faces"] = mi.UInt32(F.ravel())
+        if smooth:
+            p["vertex_normals"] = mi.Float(normals.ravel())
+        p.update()
+        self.shapes[sid] = mesh
+        if transform is not None:
+            self.animated.append(Animated(sid, V.astype(np.float64), transform,
+                                          normals.astype(np.float64) if normals is not None else None))
+        return sid
+
+    def add_trimesh(self, tm, **kw) -> str:
+        return self.add_mesh(np.asarray(tm.vertices), np.asarray(tm.faces), **kw)
+
+    def add_box(self, lo, hi, **kw) -> str:
+        import trimesh
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        tm = trimesh.creation.box(extents=hi - lo)
+        tm.apply_translation(0.5 * (lo + hi))
+        return self.add_trimesh(tm, **kw)
+
+    def add_quad(self, center, u, v, **kw) -> str:
+        """A rectangle ``center +- u +- v`` facing ``cross(u, v)``."""
+        c, u, v = (np.asarray(a, float) for a in (center, u, v))
+        V = np.array([c - u - v, c + u - v, c + u + v, c - u + v])
+        return self.add_mesh(V, np.array([[0, 1, 2], [0, 2, 3]]), **kw)
+
+    def add_sphere(self, center, radius, subdivisions=2, **kw) -> str:
+        import trimesh
+        tm = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+        tm.apply_translation(np.asarray(center, float))
+        kw.setdefault("smooth", True)
+        return self.add_trimesh(tm, **kw)
+
+    def add_cylinder(self, p0, p1, radius, sections=12, **kw) -> str:
+        import trimesh
+        tm = trimesh.creation.cylinder(radius=radius, segment=np.array([p0, p1], float), sections=sections)
+        return self.add_trimesh(tm, **kw)
+
+    def add_point_light(self, position, intensity, name="point"):
+        self.extra[self._id(name)] = {"type": "point", "position": list(map(float, position)),
+                                      "intensity": {"type": "rgb", "value": list(map(float, intensity))}}
+
+    def add_envmap(self, filename=None, scale=1.0, rgb=None, to_world=None):
+        if filename is not None:
+            d = {"type": "envmap", "filename": str(filename), "scale": float(scale)}
+            if to_world is not None:
+                d["to_world"] = to_world
+        else:
+            d = {"type": "constant", "radiance": {"type": "rgb", "value": list(map(float, rgb))}}
+        self.extra["envmap"] = d
+
+    def build(self, camera_paths, exposure=1.0, unit=1.0, description="", meeting_center=None) -> Scene:
+        d = {"type": "scene", "integrator": {"type": "direct"}}
+        d.update(self.shapes)
+        d.update(self.extra)
+        sc = mi.load_dict(d)
+        scene = Scene(self.name, sc, camera_paths, self.animated, exposure=exposure, unit=unit,
+                      description=description, meeting_center=meeting_center)
+        scene.set_time(0.0)
+        return scene
+
+
+def _vertex_normals(V, F):
+    n = np.zeros_like(V, dtype=np.float64)
+    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    for k in range(3):
+        np.add.at(n, F[:, k], fn)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    return n.astype(np.float32)
+
+
+def translate(t):
+    M = np.eye(4)
+    M[:3, 3] = t
+    return M
+
+
+def rotate(axis, degrees):
+    a = np.asarray(axis, float)
+    a /= np.linalg.norm(a)
+    th = math.radians(degrees)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    M = np.eye(4)
+    M[:3, :3] = np.eye(3) + math.sin(th) * K + (1 - math.cos(th)) * K @ K
+    return M
+
+
+def about(center, M):
+    """The transform ``M`` applied about the point ``center``."""
+    return translate(center) @ M @ translate(-np.asarray(center, float))
+
+
+# -----------------------------------------------------------------------------
+# Registry and loading
+# -----------------------------------------------------------------------------
+
+def builtin_names() -> list[str]:
+    if not SCENES_DIR.is_dir():
+        return []
+    return sorted(p.stem for p in SCENES_DIR.glob("*.py") if not p.stem.startswith("_"))
+
+
+def describe_builtins() -> list[tuple[str, str]]:
+    out = []
+    for n in builtin_names():
+        mod = _import_definition(SCENES_DIR / f"{n}.py")
+        first = (mod.__doc__ or "").strip().splitlines()[0] if mod.__doc__ else ""
+        out.append((n, first.split(":", 1)[1].strip() if first.startswith(f"{n}:") else first))
+    return out
+
+
+def _import_definition(path: Path):
+    spec = importlib.util.spec_from_file_location(f"slc_scene_{path.stem}", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    if not hasattr(mod, "build"):
+        raise SceneError(f"scene definition {path} has no build() function")
+    return mod
+
+
+_cache: dict = {}
+
+
+def load(name_or_path: str, **options) -> Scene:
+    """Load a built-in scene by name, a ``.py`` definition or a ``.xml`` file.
+
+    Raises :class:`SceneError` with a one-line message on any problem."""
+    key = (str(name_or_path), tuple(sorted(options.items())))
+    p = Path(str(name_or_path))
+    if p.suffix == ".xml":
+        return load_xml(p)
+    if p.suffix == ".py":
+        if not p.exists():
+            raise SceneError(f"scene file not found: {p}")
+        return _import_definition(p).build(**options)
+    if str(name_or_path) not in builtin_names():
+        known = ", ".join(builtin_names())
+        raise SceneError(f"unknown scene '{name_or_path}' (built-in scenes: {known}; or give a .xml path)")
+    return _import_definition(SCENES_DIR / f"{name_or_path}.py").build(**options)
+
+
+def load_xml(path: Path, exposure: float = 1.0) -> Scene:
+    """Any Mitsuba 3 XML scene. Camera paths: the XML's sensor (held still)
+    plus orbits around the scene's bounding box."""
+    path = Path(path)
+    if not path.exists():
+        raise SceneError(f"scene file not found: {path}")
+    try:
+        sc = mi.load_file(str(path))
+    except Exception as e:  # Mitsuba raises RuntimeError with a long message
+        msg = str(e).strip().splitlines()
+        raise SceneError(f"cannot parse scene {path}: {msg[-1] if msg else type(e).__name__}") from None
+    check_emitters(sc, path.name)
+    paths = []
+    bb = sc.bbox()
+    lo, hi = np.array(bb.min, float).ravel(), np.array(bb.max, float).ravel()
+    c, ext = 0.5 * (lo + hi), hi - lo
+    if len(sc.sensors()) > 0:
+        s = sc.sensors()[0]
+        T = np.array(s.world_transform().matrix, float).reshape(4, 4) if hasattr(s, "world_transform") else None
+        if T is not None and T.ndim == 2:
+            o = T[:3, 3]
+            fwd = T[:3, 2]
+            fov = 60.0
+            try:
+                fov = float(mi.traverse(s).get("x_fov", [60.0])[0]) * 9 / 16
+            except Exception:
+                pass
+            paths.append(CameraPath([(o, o + fwd), (o, o + fwd)], frames=64, fov=fov, name="sensor"))
+    r = 0.6 * float(np.linalg.norm(ext))
+    for k in range(3):
+        keys = []
+        for j in range(6):
+            a = 2 * math.pi * (j / 6.0 + k / 3.0)
+            keys.append((c + np.array([r * math.cos(a), 0.15 * ext[1] * (k - 1), r * math.sin(a)]), c))
+        paths.append(CameraPath(keys, frames=64, fov=50.0, name=f"orbit{k}"))
+    return Scene(path.stem, sc, paths, exposure=exposure, unit=1.0,
+                 description=f"Mitsuba XML scene {path}")
