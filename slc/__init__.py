@@ -2,11 +2,17 @@
 
 Importing the package selects the Mitsuba variant (see :mod:`slc.backend`):
 ``cuda_ad_rgb`` where a CUDA device exists, else ``llvm_ad_rgb``;
-``SLC_VARIANT`` overrides. A missing libLLVM >= 16 raises a one-line
-:class:`slc.backend.BackendError`.
+``SLC_VARIANT`` overrides. A missing or too old libLLVM (< 16) stops the
+import with a one-line :class:`slc.backend.BackendError` saying how to
+install it.
 """
 from . import backend
 
 __version__ = "0.1.0"
 
-backend.init()
+try:
+    backend.init()
+except backend.BackendError:
+    import sys
+    sys.tracebacklimit = 0  # print the one-line reason, not a traceback
+    raise

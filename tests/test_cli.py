@@ -1,0 +1,89 @@
+"""Bad input gets one clear line and exit code 2, and no partial results."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SLC = [sys.executable, "-m", "slc.cli"]
+
+
+def run(args, cwd=None):
+    return subprocess.run(SLC + args, capture_output=True, text=True, cwd=cwd or ROOT, timeout=600)
+
+
+NO_EMITTER_XML = """<scene version="3.0.0">
+  <shape type="rectangle"><bsdf type="diffuse"/></shape>
+</scene>"""
+UNSUPPORTED_XML = """<scene version="3.0.0">
+  <shape type="rectangle"><bsdf type="diffuse"/></shape>
+  <emitter type="projector"><float name="scale" value="1"/></emitter>
+</scene>"""
+GOOD_XML = """<scene version="3.0.0">
+  <shape type="rectangle"><bsdf type="diffuse"/></shape>
+  <shape type="sphere"><point name="center" x="0" y="0" z="2"/><float name="radius" value="0.2"/>
+    <emitter type="area"><rgb name="radiance" value="20"/></emitter></shape>
+</scene>"""
+
+
+@pytest.fixture()
+def xmls(tmp_path):
+    paths = {}
+    for name, text in [("none", NO_EMITTER_XML), ("unsupported", UNSUPPORTED_XML), ("good", GOOD_XML),
+                       ("broken", "<scene version='3.0.0'><shape type='nonexistent_plugin'/></scene>"),
+                       ("garbage", "this is < not xml")]:
+        p = tmp_path / f"{name}.xml"
+        p.write_text(text)
+        paths[name] = p
+    return paths
+
+
+def _one_line_error(r, *words):
+    assert r.returncode == 2, (r.returncode, r.stdout, r.stderr)
+    lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1, r.stderr
+    assert "Traceback" not in r.stderr
+    for w in words:
+        assert w.lower() in lines[0].lower(), lines[0]
+
+
+@pytest.mark.parametrize("case,words", [
+    ("missing", ["not found"]), ("none", ["no emitters"]), ("unsupported", ["projector", "not supported"]),
+    ("broken", ["cannot parse"]), ("garbage", ["cannot parse"])])
+def test_bad_scene_files(xmls, tmp_path, case, words):
+    path = tmp_path / "missing.xml" if case == "missing" else xmls[case]
+    out = tmp_path / "out"
+    r = run(["run", "single-viewer", "--quick", "--scene", str(path), "--out", str(out)])
+    _one_line_error(r, *words)
+    assert not (out / "single-viewer" / "results.json").exists()
+    assert not any(out.rglob("*")) if out.exists() else True
+
+
+def test_unknown_scene_method_experiment(tmp_path):
+    _one_line_error(run(["render", "--scene", "nowhere", "--out", str(tmp_path)]), "unknown scene", "nowhere")
+    _one_line_error(run(["render", "--scene", "cornell", "--method", "magic", "--out", str(tmp_path)]),
+                    "unknown method", "magic")
+    _one_line_error(run(["run", "no-such-experiment"]), "unknown experiment")
+    _one_line_error(run(["render", "--res", "banana"]), "resolution")
+    _one_line_error(run(["--variant", "nonsense_rgb", "scenes"]), "variant")
+    r = run(["run", "single-viewer", "--quick", "--methods", "rt4", "nope", "--out", str(tmp_path / "o")])
+    _one_line_error(r, "unknown method", "nope")
+    assert not (tmp_path / "o").exists()
+
+
+def test_good_xml_scene_renders(xmls, tmp_path):
+    r = run(["render", "--scene", str(xmls["good"]), "--method", "rt4", "--res", "32x18", "--frames", "2",
+             "--out", str(tmp_path)])
+    assert r.returncode == 0, r.stderr
+    t = json.loads((tmp_path / "timings.json").read_text())
+    assert t["method"] == "rt4" and t["time_ms"] > 0
+    assert list(tmp_path.glob("*.exr")) and list(tmp_path.glob("*.png"))
+
+
+def test_scenes_and_methods_listing():
+    r = run(["scenes"])
+    assert r.returncode == 0 and "cornell" in r.stdout and "atrium" in r.stdout
+    r = run(["methods"])
+    assert r.returncode == 0 and "rt" in r.stdout

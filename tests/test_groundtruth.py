@@ -1,0 +1,52 @@
+"""Ground truth and RT-N against closed forms and each other."""
+import numpy as np
+
+from helpers import plane_under_rect_light, rect_irradiance
+from slc import gbuffer, groundtruth, methods, scenes, views
+from slc.metrics import rel_mse
+from slc.pipeline import gbuffers_for
+
+
+def test_ground_truth_matches_closed_form_irradiance():
+    half, h, L, rho = 0.25, 1.0, 10.0, 0.5
+    s = plane_under_rect_light(half, h, L, rho)
+    gb = gbuffers_for(s, views.single(s), 0, 48, 48)[0]
+    img = groundtruth.ground_truth(s, gb, 0, "v", use_cache=False)
+    p = np.array(gb.si.p).T.reshape(48, 48, 3) if np.array(gb.si.p).shape[0] == 3 else np.array(gb.si.p).reshape(48, 48, 3)
+    valid = np.array(gb.valid).reshape(48, 48) & (np.abs(p[..., 1]) < 1e-4)
+    E = rect_irradiance(p[..., 0], p[..., 2], -half, half, -half, half, h, L)
+    expected = rho / np.pi * E
+    got = img[..., 0]
+    assert valid.sum() > 1000
+    rel = np.abs(got[valid].mean() - expected[valid].mean()) / expected[valid].mean()
+    assert rel < 0.01, rel
+    # per pixel, the 2048-sample estimate stays close to the closed form as well
+    per_pixel = np.abs(got[valid] - expected[valid]) / expected[valid]
+    assert np.median(per_pixel) < 0.02
+
+
+def test_rt16_vs_rt64_relative_mse_ratio():
+    s = scenes.load("cornell")
+    gb = gbuffers_for(s, views.single(s), 0, 64, 48)[0]
+    gt = groundtruth.ground_truth(s, gb, 0, "front")
+    errs = {}
+    for n in (16, 64):
+        vals = []
+        for seed in range(3):
+            m = methods.create(f"rt{n}", s, seed=seed)
+            img = gbuffer.to_image(gb, gbuffer.compose(gb, m.shade(gb, 0, 0)))
+            vals.append(rel_mse(gt, img))
+        errs[n] = np.mean(vals)
+    ratio = errs[16] / errs[64]
+    assert 3.0 < ratio < 5.5, (errs, ratio)
+
+
+def test_ground_truth_is_cached(tmp_path, monkeypatch):
+    monkeypatch.setenv("SLC_CACHE", str(tmp_path))
+    s = scenes.load("cornell")
+    gb = gbuffers_for(s, views.single(s), 0, 16, 16)[0]
+    a = groundtruth.ground_truth(s, gb, 0, "v", spp=64)
+    files = list((tmp_path / "gt").glob("*.npy"))
+    assert len(files) == 1 and "cornell" in files[0].name and "16x16" in files[0].name
+    b = groundtruth.ground_truth(s, gb, 0, "v", spp=64)
+    assert np.array_equal(a, b)
