@@ -152,14 +152,21 @@ class Scene:
         self.exposure = exposure
         self.unit = unit
         self.description = description
-        bb = mi_scene.bbox()
-        self.bbox_min = np.array(bb.min, float).ravel()
-        self.bbox_max = np.array(bb.max, float).ravel()
+        self._update_bbox()
         self.meeting_center = (np.asarray(meeting_center, float) if meeting_center is not None
                                else 0.5 * (self.bbox_min + self.bbox_max))
         self.time = None
         self._params = mi.traverse(mi_scene) if self.animated else None
         check_emitters(mi_scene, name)
+
+    def _update_bbox(self) -> None:
+        """Bounding box of the non-emissive geometry (far lights such as a
+        moon would otherwise make the box useless for placing viewers)."""
+        boxes = [sh.bbox() for sh in self.mi_scene.shapes() if not sh.is_emitter()]
+        if not boxes:
+            boxes = [self.mi_scene.bbox()]
+        self.bbox_min = np.min([np.array(b.min, float).ravel() for b in boxes], axis=0)
+        self.bbox_max = np.max([np.array(b.max, float).ravel() for b in boxes], axis=0)
 
     @property
     def dynamic(self) -> bool:
@@ -335,6 +342,7 @@ class SceneBuilder:
         scene = Scene(self.name, sc, camera_paths, self.animated, exposure=exposure, unit=unit,
                       description=description, meeting_center=meeting_center)
         scene.set_time(0.0)
+        scene._update_bbox()  # animated meshes are now in their t = 0 pose
         return scene
 
 
