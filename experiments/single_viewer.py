@@ -3,7 +3,8 @@
 One viewer per scene on a camera path; every method shades the same
 G-buffer points; caches are carried across frames; quality is measured
 against 2048-sample ground truth on the evaluated frames and time is the
-median DI time per frame after warm-up.
+median DI time per frame after warm-up. A sweep of settings per scene
+feeds the speed-against-error plot.
 
     python experiments/single_viewer.py --quick
     slc run single-viewer --quick [--scene atrium] [--methods rt16 rt48]
@@ -20,106 +21,88 @@ if __name__ == "__main__" and __package__ is None:  # runnable alone
 NAME = "single-viewer"
 
 FULL = dict(scenes=["atrium", "street", "village", "garden", "sponza"], width=320, height=180,
-            frames=32, warmup=4, eval_frames=[15, 23, 31], sweep=["rt4", "rt8", "rt32"])
+            frames=32, warmup=4, eval_frames=[15, 23, 31],
+            sweep=["rt4", "rt8", "rt32", "slc:update_rays=4", "slc:max_cones=2", "slc:bias=0.5", "slc:bias=2"])
 QUICK = dict(scenes=["atrium"], width=160, height=90, frames=12, warmup=3, eval_frames=[7, 11],
-             sweep=[])
+             sweep=["rt4"])
 BASE_METHODS = ["rt16", "rt48", "restir", "slc"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--quick", action="store_true", help="small preset (a few minutes on 2 cores)")
-    p.add_argument("--scene", action="append", help="scene name or .xml path (repeatable)")
-    p.add_argument("--methods", nargs="+", help="methods (default: rt16 rt48 and slc/restir when available)")
+    from slc.experiment import add_common_arguments
+    add_common_arguments(p)
     p.add_argument("--sweep", nargs="*", help="extra settings for the speed-against-error plot")
-    p.add_argument("--out", default="out", help="output folder (results go to OUT/single-viewer)")
-    p.add_argument("--res", help="WxH (default 320x180, quick 160x90)")
-    p.add_argument("--frames", type=int, help="frames per sequence")
-    p.add_argument("--seed", type=int, default=0)
-
-
-def default_methods():
-    from slc import methods
-    avail = methods.available()
-    return [m for m in BASE_METHODS if m.startswith("rt") or m in avail]
 
 
 def run(opts) -> dict:
     from tqdm import tqdm
 
-    from slc import experiment, io, methods, scenes, views
-    from slc.pipeline import RunConfig, run_sequence
+    from slc import experiment as ex
+    from slc import views
+    from slc.pipeline import RunConfig
 
-    preset = dict(QUICK if opts.quick else FULL)
-    if opts.res:
-        w, _, h = opts.res.lower().partition("x")
-        preset["width"], preset["height"] = int(w), int(h)
-    if opts.frames:
-        preset["frames"] = opts.frames
-        preset["eval_frames"] = [f for f in preset["eval_frames"] if f < opts.frames] or [opts.frames - 1]
-        preset["warmup"] = min(preset["warmup"], max(opts.frames - 1, 0))
-    scene_names = opts.scene or preset["scenes"]
-    method_specs = opts.methods or default_methods()
-    sweep = preset["sweep"] if opts.sweep is None else opts.sweep
+    preset = ex.apply_common(opts, QUICK if opts.quick else FULL)
+    method_specs = opts.methods or ex.available_methods(BASE_METHODS)
+    sweep = ex.available_methods(preset["sweep"]) if opts.sweep is None else opts.sweep
+    sweep = [s for s in sweep if s not in method_specs]
     out = Path(opts.out) / NAME
-
-    # ----------------- validate everything before any work -----------------
-    loaded = []
-    for name in scene_names:
-        try:
-            loaded.append(scenes.load(name))
-        except scenes.SceneError as e:
-            if name == "sponza" and not opts.scene:  # optional in the default list
-                print(f"note: skipping sponza ({e})", file=sys.stderr)
-                continue
-            raise
-    for s in loaded:
-        for spec in method_specs + sweep:
-            methods.create(spec, s)
+    loaded = ex.load_and_validate(opts.scene or preset["scenes"], method_specs + sweep, bool(opts.scene))
 
     cfg = RunConfig(width=preset["width"], height=preset["height"], frames=preset["frames"],
                     warmup=preset["warmup"], eval_frames=preset["eval_frames"], seed=opts.seed)
     rows = []
-    total = len(loaded) * len(method_specs + sweep) * cfg.frames
-    with tqdm(total=total, desc=NAME, unit="frame", disable=None) as bar:
+    with tqdm(total=len(loaded) * len(method_specs + sweep) * cfg.frames, desc=NAME, unit="frame",
+              disable=None) as bar:
         for s in loaded:
-            viewers = views.single(s)
             scene_rows = []
             for spec in method_specs + sweep:
-                m = methods.create(spec, s, seed=opts.seed)
-                bar.set_postfix_str(f"{s.name}/{spec}")
-                res = run_sequence(s, m, viewers, cfg, progress=bar)
-                row = {"scene": s.name, **res.row(), "rig": "single", "resolution": f"{cfg.width}x{cfg.height}",
-                       "setting": spec, "label": m.label or m.name, "family": m.name.rstrip("0123456789") or m.name,
-                       "sweep": spec in sweep and spec not in method_specs}
+                row = ex.run_case(s, spec, views.single(s), cfg, bar, seed=opts.seed, rig="single",
+                                  sweep=spec in sweep)
+                row["family"] = row["method"].rstrip("0123456789") or row["method"]
+                ex.save_strip(out, s, row["label"], row.pop("_result"))
                 rows.append(row)
                 scene_rows.append(row)
-                for vname, im in res.images.items():
-                    stem = out / "images" / f"{s.name}_{(m.label or m.name).replace(':', '_')}"
-                    io.write_hdr_and_png(stem, im["img"], s.exposure)
-                    io.write_hdr_and_png(out / "images" / f"{s.name}_gt", im["gt"], s.exposure)
-                    io.comparison_strip(stem.with_name(stem.name + "_strip.png"), im["gt"], im["img"],
-                                        im["flip_map"], s.exposure)
-                    break  # one viewer
-            experiment.speed_error_plot(out / f"speed_error_{s.name}.png", scene_rows,
-                                        f"{s.name}: time vs FLIP ({cfg.width}x{cfg.height})")
+            ex.speed_error_plot(out / f"speed_error_{s.name}.png", scene_rows,
+                                f"{s.name}: time vs FLIP ({cfg.width}x{cfg.height})")
 
     config = {"quick": bool(opts.quick), "scenes": [s.name for s in loaded], "methods": method_specs,
               "sweep": sweep, "width": cfg.width, "height": cfg.height, "frames": cfg.frames,
               "warmup": cfg.warmup, "eval_frames": cfg.evaluated(), "seed": cfg.seed, "gt_spp": cfg.gt_spp}
-    results = experiment.results_object(NAME, config, rows)
-    main_rows = [r for r in rows if not r["sweep"]]
+    results = ex.results_object(NAME, config, rows)
     md = (f"# {NAME}\n\n{cfg.width}x{cfg.height}, {cfg.frames} frames ({cfg.warmup} warm-up), "
           f"quality on frames {cfg.evaluated()} against {cfg.gt_spp}-sample ground truth; "
-          f"time = median DI ms per frame.\n\n" + experiment.markdown_table(main_rows) + "\n")
+          f"time = median DI ms per frame.\n\n" + ex.markdown_table([r for r in rows if not r["sweep"]]) + "\n")
+    md += _targets(rows)
     sweep_rows = [r for r in rows if r["sweep"]]
     if sweep_rows:
-        md += "\n## Speed-against-error sweep\n\n" + experiment.markdown_table(
+        md += "\n## Speed-against-error sweep\n\n" + ex.markdown_table(
             sweep_rows, [("scene", "scene"), ("setting", "setting"), ("time_ms", "t [ms]"), ("flip", "FLIP"),
                          ("psnr", "PSNR"), ("ssim", "SSIM")]) + "\n"
-    experiment.write_results(out, results, md)
+    ex.write_results(out, results, md)
     print(md)
     print(f"results: {out / 'results.json'}")
     return results
+
+
+def _targets(rows) -> str:
+    """The issue's targets as ratios measured in this run."""
+    lines = []
+    by = {(r["scene"], r["setting"]): r for r in rows}
+    for scene in sorted({r["scene"] for r in rows}):
+        slc_r, rt48, restir = by.get((scene, "slc")), by.get((scene, "rt48")), by.get((scene, "restir"))
+        if slc_r and rt48:
+            t = slc_r["time_ms"] / rt48["time_ms"] if rt48["time_ms"] else float("nan")
+            f = slc_r["flip"] / rt48["flip"] if rt48["flip"] else float("nan")
+            best_ssim = max(r["ssim"] for r in rows if r["scene"] == scene and not r["sweep"])
+            lines.append(f"- {scene}: slc/rt48 time {t:.2f}x (target <= {0.67 if scene == 'street' else 0.33:.2f}x), "
+                         f"FLIP {f:.2f}x (target <= 1.05x), best SSIM: {'slc' if slc_r['ssim'] >= best_ssim else 'not slc'}")
+        if slc_r and restir:
+            lines.append(f"- {scene}: restir/slc time {restir['time_ms'] / max(slc_r['time_ms'], 1e-9):.2f}x "
+                         f"(paper: 1.5-2x), FLIP slc {slc_r['flip']:.4f} vs restir {restir['flip']:.4f}")
+        if restir and rt48:
+            lines.append(f"- {scene}: restir/rt48 time {restir['time_ms'] / max(rt48['time_ms'], 1e-9):.2f}x, "
+                         f"FLIP restir {restir['flip']:.4f} vs rt48 {rt48['flip']:.4f}")
+    return ("\n## Targets (ratios measured in this run)\n\n" + "\n".join(lines) + "\n") if lines else ""
 
 
 if __name__ == "__main__":

@@ -105,3 +105,170 @@ def speed_error_plot(path: Path, rows: list[dict], title: str, x="time_ms", y="f
     fig.tight_layout()
     io._atomic(path, lambda p: fig.savefig(p, dpi=120, format="png"))
     plt.close(fig)
+
+
+# -----------------------------------------------------------------------------
+# Pieces shared by the experiment scripts
+# -----------------------------------------------------------------------------
+
+def add_common_arguments(p, default_out: str = "out") -> None:
+    p.add_argument("--quick", action="store_true", help="small preset (a few minutes on 2 cores)")
+    p.add_argument("--scene", action="append", help="scene name or .xml path (repeatable)")
+    p.add_argument("--methods", nargs="+", help="methods to compare (default: the experiment's)")
+    p.add_argument("--out", default=default_out, help="output folder (results go to OUT/EXPERIMENT)")
+    p.add_argument("--res", help="WxH")
+    p.add_argument("--frames", type=int, help="frames per sequence")
+    p.add_argument("--seed", type=int, default=0)
+
+
+def apply_common(opts, preset: dict) -> dict:
+    """Override a preset by --res/--frames; returns a new dict."""
+    preset = dict(preset)
+    if getattr(opts, "res", None):
+        w, _, h = opts.res.lower().partition("x")
+        try:
+            preset["width"], preset["height"] = int(w), int(h)
+        except ValueError:
+            raise ExperimentError(f"bad resolution '{opts.res}' (expected WxH, e.g. 320x180)") from None
+    if getattr(opts, "frames", None):
+        f = opts.frames
+        if f < 1:
+            raise ExperimentError("--frames must be at least 1")
+        preset["frames"] = f
+        preset["eval_frames"] = [x for x in preset.get("eval_frames", []) if x < f] or [f - 1]
+        preset["warmup"] = min(preset.get("warmup", 0), max(f - 1, 0))
+    return preset
+
+
+def available_methods(wanted: list[str]) -> list[str]:
+    """``wanted`` without the methods that are not implemented (yet)."""
+    from . import methods
+    avail = methods.available()
+    out = []
+    for spec in wanted:
+        name = methods.parse_spec(spec)[0]
+        if any(e.pattern.fullmatch(name) for e in methods._REGISTRY.values()) or name in avail:
+            out.append(spec)
+    return out
+
+
+def load_and_validate(scene_names: list[str], method_specs: list[str], explicit_scenes: bool) -> list:
+    """Load every scene and instantiate every method once before any work,
+    so bad input stops the run before anything is written. Sponza is skipped
+    with a note when it was only in the default list and is absent."""
+    import sys
+    from . import methods, scenes
+    loaded = []
+    for name in scene_names:
+        try:
+            loaded.append(scenes.load(name))
+        except scenes.SceneError as e:
+            if name == "sponza" and not explicit_scenes:
+                print(f"note: skipping sponza ({e})", file=sys.stderr)
+                continue
+            raise
+    for s in loaded:
+        for spec in method_specs:
+            methods.create(spec, s)
+    return loaded
+
+
+def run_case(scene, spec: str, viewers, cfg, bar=None, seed: int = 0, **extra) -> dict:
+    """One (scene, method, viewers) sequence -> a results row."""
+    from . import methods
+    from .pipeline import run_sequence
+    m = methods.create(spec, scene, seed=seed)
+    if bar is not None:
+        bar.set_postfix_str(f"{scene.name}/{spec}/{len(viewers)}v")
+    res = run_sequence(scene, m, viewers, cfg, progress=bar)
+    row = {"scene": scene.name, **res.row(), "setting": spec, "label": m.label or m.name,
+           "resolution": f"{cfg.width}x{cfg.height}", **extra}
+    row["_result"] = res
+    return row
+
+
+def strip_private(rows: list[dict]) -> list[dict]:
+    return [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
+
+
+def time_vs_viewers_plot(path: Path, rows: list[dict], title: str, group=("method",), x="viewers",
+                         y="time_ms", ylabel="time per frame [ms]") -> None:
+    """One line per group (e.g. method and overlap), ``y`` against ``x``;
+    points labelled with the measured overlap when rows carry it."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6, 4))
+    groups: dict[tuple, list] = {}
+    for r in rows:
+        groups.setdefault(tuple(r.get(g) for g in group), []).append(r)
+    for key, rs in sorted(groups.items(), key=lambda kv: str(kv[0])):
+        rs = sorted(rs, key=lambda r: r[x])
+        label = " ".join(f"{g}={k}" if g != "method" else str(k) for g, k in zip(group, key))
+        ax.plot([r[x] for r in rs], [r[y] for r in rs], "o-", label=label)
+        for r in rs:
+            if r.get("measured_overlap") is not None and r.get(x, 1) > 1:
+                ax.annotate(f"{r['measured_overlap']:.0f}%", (r[x], r[y]), fontsize=6,
+                            textcoords="offset points", xytext=(2, 2))
+    ax.set_xlabel(x)
+    ax.set_ylabel(ylabel)
+    ax.set_xscale("log", base=2)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    io._atomic(path, lambda p: fig.savefig(p, dpi=120, format="png"))
+    plt.close(fig)
+
+
+def save_strip(out: Path, scene, label: str, res) -> None:
+    """EXR/PNG of the first evaluated viewer and its comparison strip."""
+    for vname, im in res.images.items():
+        stem = out / "images" / f"{scene.name}_{label.replace(':', '_').replace(',', '_')}"
+        io.write_hdr_and_png(stem, im["img"], scene.exposure)
+        io.write_hdr_and_png(out / "images" / f"{scene.name}_gt", im["gt"], scene.exposure)
+        io.comparison_strip(stem.with_name(stem.name + "_strip.png"), im["gt"], im["img"], im["flip_map"],
+                            scene.exposure)
+        break
+
+
+def ratio(a, b):
+    """a / b, None when b is 0 or missing."""
+    try:
+        return a / b if b else None
+    except TypeError:
+        return None
+
+
+def run_cases(cases, cfg, desc: str, seed: int = 0) -> list[dict]:
+    """Run (scene, spec, viewers, extra-fields) cases with one progress bar."""
+    from tqdm import tqdm
+    rows = []
+    with tqdm(total=len(cases) * cfg.frames, desc=desc, unit="frame", disable=None) as bar:
+        for s, spec, vs, extra in cases:
+            row = run_case(s, spec, vs, cfg, bar, seed=seed, **extra)
+            row.pop("_result")
+            rows.append(row)
+    return rows
+
+
+def finish(name: str, out: Path, opts, cfg, loaded, specs, rows, md_body: str, extra_config=None) -> dict:
+    """Write results.json / results.md for a multi-viewer experiment and print the table."""
+    config = {"quick": bool(opts.quick), "methods": specs, "scenes": [s.name for s in loaded],
+              "width": cfg.width, "height": cfg.height, "frames": cfg.frames, "warmup": cfg.warmup,
+              "eval_frames": cfg.evaluated(), "eval_viewers": cfg.eval_viewers, "seed": cfg.seed,
+              **(extra_config or {})}
+    header = (f"# {name}\n\n{cfg.width}x{cfg.height}, {cfg.frames} frames ({cfg.warmup} warm-up); time = median DI ms "
+              f"per frame for all viewers together; quality of the first {cfg.eval_viewers} viewer(s) on frames "
+              f"{cfg.evaluated()} against 2048-sample ground truth; measured overlap = % of visible surface cells "
+              f"seen by more than one viewer.\n\n")
+    md = header + md_body
+    results = results_object(name, config, strip_private(rows))
+    write_results(out, results, md)
+    print(md)
+    return results
+
+
+MULTI_COLUMNS = [("scene", "scene"), ("method", "method"), ("rig", "rig"), ("viewers", "viewers"),
+                 ("measured_overlap", "measured overlap %"), ("time_ms", "t [ms]"), ("flip", "FLIP"),
+                 ("psnr", "PSNR"), ("ssim", "SSIM"), ("memory_mb", "memory [MB]")]

@@ -18,6 +18,7 @@ from .groundtruth import GT_SAMPLES, ground_truth
 from .methods import FrameContext, Method
 from .metrics import evaluate
 from .timing import StageTimer
+from .views import measure_overlap
 
 
 @dataclass
@@ -35,6 +36,8 @@ class RunConfig:
     gt_spp: int = GT_SAMPLES
     keep_images: bool = True
     start_frame: int = 0
+    eval_viewers: int | None = None   # compare only the first k viewers with the ground truth
+    measure_overlap: bool = True      # screen-independent overlap of the viewers' visible surface
 
     def evaluated(self) -> list[int]:
         if self.eval_frames is None:
@@ -90,9 +93,13 @@ def run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress=None) 
         timer.end_frame()
         for k, v in method.stats().items():
             if isinstance(v, (int, float)):
-                stats_acc.setdefault(k, []).append(float(v))
+                # a cache's own overlap of entries is kept apart from the pipeline's measure
+                stats_acc.setdefault("cache_overlap" if k == "measured_overlap" else k, []).append(float(v))
+        if cfg.measure_overlap and len(gbs) > 1 and i >= cfg.warmup:
+            stats_acc.setdefault("measured_overlap", []).append(measure_overlap(gbs))
         if i in evals:
-            for v, (gb, d) in enumerate(zip(gbs, direct)):
+            k = len(gbs) if cfg.eval_viewers is None else min(cfg.eval_viewers, len(gbs))
+            for v, (gb, d) in enumerate(zip(gbs[:k], direct[:k])):
                 img = gbuf.to_image(gb, gbuf.compose(gb, d))
                 gt = ground_truth(scene, gb, f, gb.viewer, spp=cfg.gt_spp)
                 m = evaluate(gt, img, scene.exposure, with_map=True)
@@ -107,7 +114,8 @@ def run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress=None) 
             progress.update(1)
     summ = timer.summary(cfg.warmup)
     metrics = {k: _mean(v) for k, v in acc.items()}
-    stats = {k: float(np.mean(v[cfg.warmup:] if len(v) > cfg.warmup else v)) for k, v in stats_acc.items()}
+    stats = {k: float(np.mean(v if k == "measured_overlap" else (v[cfg.warmup:] if len(v) > cfg.warmup else v)))
+             for k, v in stats_acc.items()}
     return RunResult(method=method.name, viewers=len(viewers), time_ms=summ.get("total", 0.0),
                      stages={k: v for k, v in summ.items() if k != "total"}, metrics=metrics,
                      memory_mb=method.memory_bytes() / 2 ** 20,

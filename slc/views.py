@@ -49,6 +49,55 @@ def independent(scene: Scene, n: int, first_path: int = 0) -> list[Viewer]:
     return out
 
 
+def random_viewers(scene: Scene, n: int, frames: int = 64, seed: int = 0) -> list[Viewer]:
+    """N viewers on uncorrelated random paths through the scene's box that
+    all start looking at ``scene.meeting_center`` (the paper's Fig. 12 set-up)."""
+    from .scenes import CameraPath
+    lo, hi = scene.bbox_min, scene.bbox_max
+    ext = hi - lo
+    c = np.asarray(scene.meeting_center, float)
+    out = []
+    for i in range(n):
+        rng = np.random.default_rng(10_000 + 97 * seed + i)
+        keys = []
+        for k in range(5):
+            o = rng.uniform(lo + 0.15 * ext, hi - 0.15 * ext)
+            o[1] = rng.uniform(lo[1] + 0.08 * ext[1], lo[1] + 0.35 * ext[1])
+            t = c if k == 0 else rng.uniform(lo + 0.25 * ext, hi - 0.25 * ext)
+            keys.append((o, t))
+        p = CameraPath(keys, frames=frames, fov=scene.path(0).fov, name=f"rnd{i}")
+        out.append(Viewer(f"r{i:02d}", p.at, "random"))
+    return out
+
+
+def measure_overlap(gbuffers) -> float:
+    """Percent of surface cells seen by more than one viewer, among all cells
+    seen by anyone. A cell is the hit position quantised to the median pixel
+    footprint, so the figure is comparable across methods (cache methods also
+    report the overlap of their own entries)."""
+    import drjit as dr
+    if len(gbuffers) < 2:
+        return 0.0
+    keys, foot = [], []
+    for gb in gbuffers:
+        v = np.array(gb.valid, bool)
+        f = np.array(gb.footprint, np.float64)[v]
+        if f.size:
+            foot.append(np.median(f))
+    cell = max(float(np.median(foot)) if foot else 1.0, 1e-6)
+    for gb in gbuffers:
+        v = np.array(gb.valid, bool)
+        p = np.array(gb.si.p, np.float64)
+        p = (p.T if p.shape[0] == 3 else p)[v]
+        q = np.floor(p / cell).astype(np.int64)
+        k = (q[:, 0] * 73856093) ^ (q[:, 1] * 19349663) ^ (q[:, 2] * 83492791)
+        keys.append(np.unique(k))
+    allk = np.concatenate(keys)
+    _, counts = np.unique(allk, return_counts=True)
+    del dr
+    return 100.0 * float(np.mean(counts > 1)) if counts.size else 0.0
+
+
 def horizontal_fov(vfov_deg: float, aspect: float) -> float:
     return math.degrees(2 * math.atan(math.tan(math.radians(vfov_deg) / 2) * aspect))
 
@@ -106,7 +155,7 @@ def make_rig(scene: Scene, rig: str, viewers: int, overlap: float = 1.0) -> list
     if rig == "single":
         return single(scene) if viewers == 1 else independent(scene, viewers)
     if rig == "random":
-        return independent(scene, viewers)
+        return random_viewers(scene, viewers)
     if rig == "overlap":
         return overlap_rig(scene, viewers, overlap)
     if rig == "stereo":

@@ -1,0 +1,58 @@
+"""meeting: 16 viewers on a circle looking at a common centre (the SLC
+abstract's cloud-rendering case: a virtual meeting).
+
+    slc run meeting --quick
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+if __name__ == "__main__" and __package__ is None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+NAME = "meeting"
+FULL = dict(scenes=["atrium", "cornell"], viewers=[1, 16], width=320, height=180, frames=16, warmup=4,
+            eval_frames=[15], eval_viewers=2)
+QUICK = dict(scenes=["atrium"], viewers=[1, 16], width=96, height=54, frames=8, warmup=3, eval_frames=[7],
+             eval_viewers=1)
+METHODS = ["slc", "rt48"]
+
+
+def add_arguments(p):
+    from slc.experiment import add_common_arguments
+    add_common_arguments(p)
+    p.add_argument("--viewers", type=int, nargs="+", help="viewer counts")
+
+
+def run(opts):
+    from slc import experiment as ex
+    from slc import views
+    from slc.pipeline import RunConfig
+
+    pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
+    counts = opts.viewers or pr["viewers"]
+    specs = opts.methods or ex.available_methods(METHODS)
+    loaded = ex.load_and_validate(opts.scene or pr["scenes"], specs, bool(opts.scene))
+    cfg = RunConfig(width=pr["width"], height=pr["height"], frames=pr["frames"], warmup=pr["warmup"],
+                    eval_frames=pr["eval_frames"], eval_viewers=pr["eval_viewers"], seed=opts.seed)
+    cases = [(s, spec, views.meeting(s, n), {"rig": "meeting"}) for s in loaded for spec in specs for n in counts]
+    rows = ex.run_cases(cases, cfg, NAME, opts.seed)
+    out = Path(opts.out) / NAME
+    for s in loaded:
+        ex.time_vs_viewers_plot(out / f"time_vs_viewers_{s.name}.png", [r for r in rows if r["scene"] == s.name],
+                                f"{s.name}: meeting rig")
+    md = ex.markdown_table(rows, ex.MULTI_COLUMNS) + "\n\n## Targets (ratios measured in this run)\n\n"
+    n = max(counts)
+    for s in loaded:
+        get = {r["setting"]: r for r in rows if r["scene"] == s.name and r["viewers"] == n}
+        if "slc" in get and "rt48" in get:
+            md += (f"- {s.name}, {n} viewers: slc is {ex.ratio(get['rt48']['time_ms'], get['slc']['time_ms']):.2f}x "
+                   f"faster than rt48 (target >= 10x; paper up to 20x); FLIP slc {get['slc']['flip']:.4f} vs "
+                   f"rt48 {get['rt48']['flip']:.4f}\n")
+    return ex.finish(NAME, out, opts, cfg, loaded, specs, rows, md, {"viewers": counts})
+
+
+if __name__ == "__main__":
+    from slc.cli import run_experiment_standalone
+    sys.exit(run_experiment_standalone(__file__))

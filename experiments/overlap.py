@@ -1,0 +1,104 @@
+"""overlap: multi-viewer scaling under controlled overlap (SLC paper, Fig. 11).
+
+All viewers share one position on one camera path and are turned about the
+up axis so that neighbouring views overlap by a target fraction of the
+screen; the overlap actually reached (the share of visible surface cells
+seen by more than one viewer) is measured and reported. The cache is shared
+by all viewers; the per-viewer baselines do not depend on the overlap, so
+they are run at 0% and 100% only.
+
+    slc run overlap --quick
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+if __name__ == "__main__" and __package__ is None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+NAME = "overlap"
+FULL = dict(scenes=["street", "atrium"], viewers=[1, 2, 4, 8, 16], overlaps=[0, 20, 40, 60, 80, 100],
+            width=320, height=180, frames=16, warmup=4, eval_frames=[15], eval_viewers=2)
+QUICK = dict(scenes=["atrium"], viewers=[1, 4, 16], overlaps=[0, 50, 100],
+             width=96, height=54, frames=8, warmup=3, eval_frames=[7], eval_viewers=1)
+METHODS = ["slc", "rt48", "restir"]
+CACHE_METHODS = ("slc", "sh")
+
+
+def add_arguments(p):
+    from slc.experiment import add_common_arguments
+    add_common_arguments(p)
+    p.add_argument("--viewers", type=int, nargs="+", help="viewer counts")
+    p.add_argument("--overlaps", type=int, nargs="+", help="target overlaps in percent")
+
+
+def run(opts):
+    from tqdm import tqdm
+
+    from slc import experiment as ex
+    from slc import views
+    from slc.methods import parse_spec
+    from slc.pipeline import RunConfig
+
+    pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
+    counts, overlaps = opts.viewers or pr["viewers"], opts.overlaps or pr["overlaps"]
+    specs = opts.methods or ex.available_methods(METHODS)
+    loaded = ex.load_and_validate(opts.scene or pr["scenes"], specs, bool(opts.scene))
+    cfg = RunConfig(width=pr["width"], height=pr["height"], frames=pr["frames"], warmup=pr["warmup"],
+                    eval_frames=pr["eval_frames"], eval_viewers=pr["eval_viewers"], seed=opts.seed)
+    out = Path(opts.out) / NAME
+    cases = []
+    for s in loaded:
+        for spec in specs:
+            cache = parse_spec(spec)[0] in CACHE_METHODS
+            for o in (overlaps if cache else sorted({min(overlaps), max(overlaps)})):
+                for n in counts:
+                    if n == 1 and o != max(overlaps):
+                        continue  # one viewer has no overlap: run it once
+                    cases.append((s, spec, n, o))
+    rows = []
+    with tqdm(total=len(cases) * cfg.frames, desc=NAME, unit="frame", disable=None) as bar:
+        for s, spec, n, o in cases:
+            vs = views.overlap_rig(s, n, o / 100.0, aspect=cfg.width / cfg.height)
+            row = ex.run_case(s, spec, vs, cfg, bar, seed=opts.seed, rig="overlap", overlap=o)
+            row.pop("_result")
+            rows.append(row)
+    # one viewer belongs to every overlap curve
+    for r in [r for r in rows if r["viewers"] == 1]:
+        for o in overlaps:
+            if o != r["overlap"] and parse_spec(r["setting"])[0] in CACHE_METHODS:
+                rows.append({**r, "overlap": o, "derived": True})
+    for s in loaded:
+        ex.time_vs_viewers_plot(out / f"time_vs_viewers_{s.name}.png", [r for r in rows if r["scene"] == s.name],
+                                f"{s.name}: controlled overlap ({cfg.width}x{cfg.height})",
+                                group=("method", "overlap"))
+    md = [f"# {NAME}\n", f"{cfg.width}x{cfg.height}, {cfg.frames} frames ({cfg.warmup} warm-up); time = median "
+          f"DI ms per frame for all viewers; quality of the first {cfg.eval_viewers} viewer(s) on frames "
+          f"{cfg.evaluated()}; measured overlap = % of visible surface cells seen by more than one viewer.\n",
+          ex.markdown_table([r for r in rows if not r.get("derived")], ex.DEFAULT_COLUMNS[:3] + [
+              ("overlap", "target overlap %"), ("measured_overlap", "measured %"), ("cache_overlap", "cache entries %")]
+              + ex.DEFAULT_COLUMNS[3:]), "\n## Targets (ratios measured in this run)\n"]
+    for s in loaded:
+        for spec in specs:
+            one = [r for r in rows if r["scene"] == s.name and r["setting"] == spec and r["viewers"] == 1]
+            top = [r for r in rows if r["scene"] == s.name and r["setting"] == spec and r["viewers"] == max(counts)
+                   and r["overlap"] == max(overlaps)]
+            if one and top and max(counts) > 1:
+                md.append(f"- {s.name} {spec}: {max(counts)} viewers at {max(overlaps)}% overlap cost "
+                          f"{ex.ratio(top[0]['time_ms'], one[0]['time_ms']):.2f}x one viewer"
+                          + (" (target <= 1.5x)" if parse_spec(spec)[0] in CACHE_METHODS else ""))
+    md = "\n".join(md) + "\n"
+    config = {"quick": bool(opts.quick), "viewers": counts, "overlaps": overlaps, "methods": specs,
+              "scenes": [s.name for s in loaded], "width": cfg.width, "height": cfg.height,
+              "frames": cfg.frames, "warmup": cfg.warmup, "eval_frames": cfg.evaluated(),
+              "eval_viewers": cfg.eval_viewers, "seed": cfg.seed}
+    results = ex.results_object(NAME, config, [r for r in ex.strip_private(rows)])
+    ex.write_results(out, results, md)
+    print(md)
+    return results
+
+
+if __name__ == "__main__":
+    from slc.cli import run_experiment_standalone
+    sys.exit(run_experiment_standalone(__file__))

@@ -1,0 +1,67 @@
+"""stereo: 16 single viewers, 8 stereo pairs, 16 stereo pairs (SLC paper, Figs. 15-16).
+
+Eyes are 6.4 cm apart (in scene units); ``viewers`` counts images, so 16
+stereo pairs are 32 viewers.
+
+    slc run stereo --quick
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+if __name__ == "__main__" and __package__ is None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+NAME = "stereo"
+FULL = dict(scenes=["atrium"], singles=16, pairs=[8, 16], width=320, height=180, frames=16, warmup=4,
+            eval_frames=[15], eval_viewers=2)
+QUICK = dict(scenes=["atrium"], singles=16, pairs=[8, 16], width=64, height=36, frames=6, warmup=2,
+             eval_frames=[5], eval_viewers=1)
+METHODS = ["slc", "rt48", "restir"]
+
+
+def add_arguments(p):
+    from slc.experiment import add_common_arguments
+    add_common_arguments(p)
+
+
+def run(opts):
+    from slc import experiment as ex
+    from slc import views
+    from slc.pipeline import RunConfig
+
+    pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
+    specs = opts.methods or ex.available_methods(METHODS)
+    loaded = ex.load_and_validate(opts.scene or pr["scenes"], specs, bool(opts.scene))
+    cfg = RunConfig(width=pr["width"], height=pr["height"], frames=pr["frames"], warmup=pr["warmup"],
+                    eval_frames=pr["eval_frames"], eval_viewers=pr["eval_viewers"], seed=opts.seed)
+    cases = []
+    for s in loaded:
+        for spec in specs:
+            cases.append((s, spec, views.independent(s, pr["singles"]), {"rig": "single", "pairs": 0}))
+            for p in pr["pairs"]:
+                cases.append((s, spec, views.stereo(s, p), {"rig": "stereo", "pairs": p}))
+    rows = ex.run_cases(cases, cfg, NAME, opts.seed)
+    out = Path(opts.out) / NAME
+    for s in loaded:
+        ex.time_vs_viewers_plot(out / f"time_{s.name}.png", [r for r in rows if r["scene"] == s.name],
+                                f"{s.name}: single viewers vs stereo pairs", group=("method", "rig"))
+    md = ex.markdown_table(rows, ex.MULTI_COLUMNS) + "\n\n## Targets (ratios measured in this run)\n\n"
+    for s in loaded:
+        for spec in specs:
+            g = {(r["rig"], r["viewers"]): r for r in rows if r["scene"] == s.name and r["setting"] == spec}
+            single = g.get(("single", pr["singles"]))
+            for p in pr["pairs"]:
+                st = g.get(("stereo", 2 * p))
+                if single and st:
+                    tgt = " (target <= 1.4x; paper 1.36x)" if p == 16 and spec == "slc" else (
+                        " (paper: about 0.74x)" if p == 8 and spec == "slc" else "")
+                    md += (f"- {s.name} {spec}: {p} stereo pairs ({2 * p} images) cost "
+                           f"{ex.ratio(st['time_ms'], single['time_ms']):.2f}x of {pr['singles']} single viewers{tgt}\n")
+    return ex.finish(NAME, out, opts, cfg, loaded, specs, rows, md, {"singles": pr["singles"], "pairs": pr["pairs"]})
+
+
+if __name__ == "__main__":
+    from slc.cli import run_experiment_standalone
+    sys.exit(run_experiment_standalone(__file__))
