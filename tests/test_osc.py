@@ -1,0 +1,345 @@
+"""On-surface cache: islands, atlas, requests/dedupe/allocation, texel
+surface points, update queue, eviction, mip levels, memory."""
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from slc.gbuffer import render_gbuffer
+from slc.osc import INVALID, OnSurfaceCache, build_mesh_islands, charts_overlap, island_deviation
+from slc.osc.islands import face_adjacency
+from slc.scenes import Camera, CameraPath, SceneBuilder, diffuse, load
+from slc.timing import StageTimer
+
+W, H = 96, 64
+
+
+def cam(o, t, fov=45.0):
+    return Camera(np.array(o, float), np.array(t, float), fov=fov)
+
+
+@pytest.fixture(scope="module")
+def cornell():
+    return load("cornell")
+
+
+@pytest.fixture(scope="module")
+def icosphere_mesh():
+    import trimesh
+    tm = trimesh.creation.icosphere(subdivisions=6, radius=1.0)   # 81920 triangles, closed
+    return np.asarray(tm.vertices), np.asarray(tm.faces)
+
+
+@pytest.fixture(scope="module")
+def sphere_scene():
+    b = SceneBuilder("osc_sphere")
+    b.add_sphere([0, 0, 0], 1.0, subdivisions=6, bsdf=diffuse([0.6, 0.6, 0.6]))
+    b.add_quad([0, 3, 0], [0.5, 0, 0], [0, 0, 0.5], bsdf=diffuse([0, 0, 0]), emission=[5, 5, 5],
+               name="light")
+    c = CameraPath([([0, 0.5, 3.5], [0, 0, 0])], frames=8, fov=40)
+    return b.build([c, c, c])
+
+
+def flipped(g):
+    """The same G-buffer with the image turned by 180 degrees (same surface
+    points and footprints, other pixels)."""
+    import dataclasses
+    idx = mi.UInt32(np.arange(g.size)[::-1].copy())
+    kw = {}
+    for f in dataclasses.fields(g):
+        v = getattr(g, f.name)
+        if f.name in ("width", "height", "camera", "viewer"):
+            kw[f.name] = v
+        else:
+            kw[f.name] = dr.gather(type(v), v, idx)
+    return type(g)(**kw)
+
+
+def gb(scene, o, t, w=W, h=H, fov=45.0):
+    return render_gbuffer(scene, cam(o, t, fov), w, h)
+
+
+# ----------------------------------------------------------------------------- islands
+
+def test_icosphere_islands_bounds_and_speed(icosphere_mesh):
+    V, F = icosphere_mesh
+    assert len(F) == 81920
+    # (no timing assertion: about 0.8 s on 2 cores, see docs/osc.md)
+    isl = build_mesh_islands(V, F, texel_size=0.004, max_angle=30.0, max_triangles=128)
+    fi = isl.face_island
+    # every triangle in exactly one island
+    assert fi.shape == (len(F),) and fi.min() >= 0 and fi.max() == isl.n_islands - 1
+    counts = np.bincount(fi)
+    assert counts.min() >= 1 and counts.max() <= 128
+    # normal bound, recomputed independently: angle to the area-weighted mean normal
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    S = np.zeros((isl.n_islands, 3))
+    np.add.at(S, fi, n)
+    m = S / np.linalg.norm(S, axis=1, keepdims=True)
+    nu = n / np.linalg.norm(n, axis=1, keepdims=True)
+    ang = np.degrees(np.arctan2(np.linalg.norm(np.cross(nu, m[fi]), axis=1), (nu * m[fi]).sum(1)))
+    assert ang.max() <= 30.0 + 1e-6
+    dev, _ = island_deviation(V, F, fi)
+    assert np.allclose(dev, isl.max_deviation)
+    # islands are connected
+    E = face_adjacency(V, F)
+    inner = E[fi[E[:, 0]] == fi[E[:, 1]]]
+    g = sp.coo_matrix((np.ones(len(inner)), (inner[:, 0], inner[:, 1])), shape=(len(F), len(F)))
+    ncomp, _ = connected_components(g, directed=False)
+    assert ncomp == isl.n_islands
+    # islands are not trivially small: the matching merges most of them
+    assert np.median(counts) >= 32
+
+
+def test_atlas_charts_do_not_overlap(icosphere_mesh):
+    V, F = icosphere_mesh
+    isl = build_mesh_islands(V, F, texel_size=0.004)
+    assert not charts_overlap(isl)
+    ca = isl.corner_atlas
+    off = isl.atlas_offset[isl.face_island]
+    d = isl.dims[isl.face_island]
+    # every corner lies in its own chart, every chart in the atlas
+    assert np.all(ca >= off[:, None, :] - 1e-6)
+    assert np.all(ca <= (off + d)[:, None, :] + 1e-6)
+    assert np.all(isl.atlas_offset + isl.dims <= np.array(isl.atlas_size))
+    # the projection keeps orientation (no flipped triangles) and about the texel scale
+    uv = isl.corner_uv
+    area2d = 0.5 * np.abs((uv[:, 1, 0] - uv[:, 0, 0]) * (uv[:, 2, 1] - uv[:, 0, 1])
+                          - (uv[:, 2, 0] - uv[:, 0, 0]) * (uv[:, 1, 1] - uv[:, 0, 1]))
+    area3d = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
+    ratio = area2d * 0.004 ** 2 / area3d
+    assert ratio.min() >= math.cos(math.radians(30)) - 1e-6 and ratio.max() <= 1 + 1e-6
+
+
+def test_closed_icosphere_cache_does_not_crash(sphere_scene):
+    cache = OnSurfaceCache(sphere_scene)
+    assert cache.n_triangles == 81920 + 2
+    g = gb(sphere_scene, [0, 0.5, 3.5], [0, 0, 0])
+    fr = cache.begin_frame(0, [g], StageTimer())
+    assert fr.n_active > 100
+    assert np.all(np.array(fr.si.is_valid()))
+
+
+# ----------------------------------------------------------------------------- requests
+
+def _pixel_points(g, fr, v=0):
+    slot = np.array(fr.pixel_slot[v])
+    ok = slot != INVALID
+    idx = np.array(fr.pixel_index[v])
+    return ok, slot, idx
+
+
+def test_dedupe_unique_sorted_and_pixel_index(cornell):
+    cache = OnSurfaceCache(cornell)
+    g1 = gb(cornell, [0, 1, 3.4], [0, 1, 0])
+    g2 = gb(cornell, [0.4, 1.1, 3.0], [0, 0.9, 0])
+    fr = cache.begin_frame(0, [g1, g2], StageTimer())
+    act = np.array(fr.active)
+    assert len(act) > 0 and np.all(np.diff(act.astype(np.int64)) > 0)
+    allslots = np.concatenate([np.array(s) for s in fr.pixel_slot])
+    assert np.array_equal(np.unique(allslots[allslots != INVALID]), act)
+    for v, g in enumerate([g1, g2]):
+        ok, slot, idx = _pixel_points(g, fr, v)
+        assert np.array_equal(ok, np.array(g.valid))
+        assert np.array_equal(act[idx[ok]], slot[ok])
+        assert np.all(idx[~ok] == INVALID)
+    s = cache.stats()
+    assert s["entries_requested"] == len(act)
+    assert 0 < s["fill_ratio"] <= 1
+    assert s["entries_allocated"] == s["blocks"] * 64
+    assert 0 < s["measured_overlap"] < 100
+
+
+def test_same_surface_same_slot_and_viewer_independent_point(cornell):
+    a, b = [0, 1, 3.4], [0.05, 1.0, 3.4]          # a small sideways step: same footprints
+    ga, gb_ = gb(cornell, a, [0, 1, 0]), gb(cornell, b, [0.05, 1, 0])
+    # one cache, both viewers: identical G-buffers give identical slots
+    cache = OnSurfaceCache(cornell)
+    fr = cache.begin_frame(0, [ga, ga, gb_], StageTimer())
+    assert np.array_equal(np.array(fr.pixel_slot[0]), np.array(fr.pixel_slot[1]))
+    # a viewer that sees the same surface points at other pixels (the image
+    # flipped) gets the same slots for the same points
+    flip = flipped(ga)
+    fr = cache.begin_frame(1, [ga, flip], StageTimer())
+    sa, sf = np.array(fr.pixel_slot[0]), np.array(fr.pixel_slot[1])
+    assert np.array_equal(sf, sa.reshape(H, W)[::-1, ::-1].ravel())
+    assert cache.stats()["measured_overlap"] == 100.0
+    # two caches, one viewer each: the entry (by its texel key) has the same point
+    c1, c2 = OnSurfaceCache(cornell), OnSurfaceCache(cornell)
+    f1 = c1.begin_frame(0, [ga], StageTimer())
+    f2 = c2.begin_frame(0, [gb_], StageTimer())
+
+    def keyed(c, f):
+        info = c.entry_info(f.active)
+        keys = info["island"].astype(np.int64) << 40 | info["level"].astype(np.int64) << 35 | \
+            info["tx"].astype(np.int64) << 17 | info["ty"].astype(np.int64)
+        return dict(zip(keys.tolist(), np.array(f.si.p).T.tolist())), dict(zip(keys.tolist(), np.array(f.si.n).T.tolist()))
+    p1, n1 = keyed(c1, f1)
+    p2, n2 = keyed(c2, f2)
+    common = set(p1) & set(p2)
+    assert len(common) > 0.5 * min(len(p1), len(p2))
+    assert all(p1[k] == p2[k] for k in common)       # bit-identical
+    assert all(n1[k] == n2[k] for k in common)
+
+
+def test_texel_point_on_surface_and_near_pixels(sphere_scene, cornell):
+    for scene, o, t in ((cornell, [0.3, 1.2, 3.0], [0, 0.8, 0]), (sphere_scene, [0, 0.5, 3.5], [0, 0, 0])):
+        cache = OnSurfaceCache(scene)
+        g = gb(scene, o, t)
+        fr = cache.begin_frame(0, [g], StageTimer())
+        si = fr.si
+        # on the triangle: barycentrics inside, distance to the triangle plane ~ 0
+        tri = np.array(dr.gather(mi.UInt32, cache.slot_tri, fr.active))
+        b = np.array(dr.gather(mi.Point2f, cache.slot_b, fr.active)).T
+        assert np.all(b >= -1e-6) and np.all(b.sum(1) <= 1 + 1e-6)
+        p = np.array(si.p).T
+        shapes = np.array(dr.gather(mi.UInt32, cache.d_isl_shape, fr.island))
+        dist = np.zeros(len(p))
+        for k in np.unique(shapes):
+            V, F = cache.mesh_data[int(k)]
+            sel = shapes == k
+            f = F[tri[sel] - cache._np_tri_base[k]].astype(np.int64)
+            n = np.cross(V[f[:, 1]] - V[f[:, 0]], V[f[:, 2]] - V[f[:, 0]])
+            n /= np.linalg.norm(n, axis=1, keepdims=True)
+            dist[sel] = np.abs(((p[sel] - V[f[:, 0]]) * n).sum(1))
+        assert dist.max() < 1e-5
+        # the entry point is within about a texel of every pixel hit that asked for it
+        ok, slot, idx = _pixel_points(g, fr)
+        pp = np.array(g.si.p).T[ok]
+        tw = np.array(fr.texel_world)[idx[ok]]
+        d = np.linalg.norm(pp - p[idx[ok]], axis=1) / tw
+        assert np.percentile(d, 99) <= 1.0, np.percentile(d, [50, 99, 100])
+        assert d.max() <= 1.5
+        # the texel point's normal is the surface's (the pixel's triangle side)
+        assert np.all(np.array(si.is_valid()))
+        assert all(x is not None for x in si.bsdf())
+
+
+def test_update_queue_rays_and_motion(cornell):
+    cache = OnSurfaceCache(cornell)
+    g = gb(cornell, [0, 1, 3.4], [0, 1, 0])
+    timer = StageTimer()
+    for f in range(8):
+        fr = cache.begin_frame(f, [g], timer)
+        assert np.all(np.array(fr.rays) == 8)
+        assert np.all(np.array(fr.is_new) == (f == 0))
+    fr = cache.begin_frame(8, [g], timer)
+    assert np.all(np.array(fr.rays) == 1)
+    n = fr.n_active
+    mask = np.zeros(n, bool)
+    mask[::3] = True
+    cache.mark_motion(fr.active, mi.Bool(mask))
+    for f in range(9, 17):
+        fr = cache.begin_frame(f, [g], timer)
+        r = np.array(fr.rays)
+        assert np.all(r[mask] == 8) and np.all(r[~mask] == 1)
+    timer.begin_frame()
+    fr = cache.begin_frame(17, [g], timer)
+    stages = timer.end_frame()
+    assert np.all(np.array(fr.rays) == 1)
+    assert set(stages) >= {"requests", "allocate", "queue"}
+
+
+def test_eviction_frees_blocks_and_memory(cornell):
+    K = 3
+    cache = OnSurfaceCache(cornell, evict_after=K)
+    cache.set_entry_bytes(36)
+    ga = gb(cornell, [0, 1, 3.4], [0, 1, 0])            # the whole box
+    gs = gb(cornell, [0.4, 0.3, 1.2], [0.4, 0.3, 0.35])  # the short block only, close up
+    cache.begin_frame(0, [ga], None)
+    m_full = cache.memory_bytes()
+    b_full = cache.stats()["blocks"]
+    assert m_full == b_full * 64 * 36 + cache.table_bytes()
+    evicted = 0
+    for f in range(1, K + 2):
+        cache.begin_frame(f, [gs], None)
+        evicted += cache.stats()["evicted"]
+    assert evicted > 0
+    s = cache.stats()
+    assert s["blocks"] < b_full
+    assert cache.memory_bytes() < m_full
+    # evicted entries come back as new
+    fr = cache.begin_frame(K + 2, [ga], None)
+    assert np.array(fr.is_new).any()
+    cache.reset()
+    assert cache.stats()["blocks"] == 0
+
+
+def test_mip_level_grows_with_distance(cornell):
+    cache = OnSurfaceCache(cornell)
+    med = []
+    for z in (0.2, 1.0, 3.0):
+        g = gb(cornell, [0, 1, z], [0, 1, -1], fov=30)     # looking at the back wall
+        fr = cache.begin_frame(0, [g], None)
+        lv = np.array(fr.pixel_level[0])[np.array(g.valid)]
+        med.append(np.median(lv))
+    assert med[0] < med[1] < med[2]
+    # the formula
+    fp = mi.Float([cache.texel_size * 0.7, cache.texel_size * 4, cache.texel_size * 1e6])
+    isl = mi.UInt32(0, 0, 0)
+    lv = np.array(cache.level_of(fp, isl))
+    maxl = int(np.array(cache.d_isl_maxl)[0])
+    assert lv[0] == 0 and lv[1] == min(2, maxl) and lv[2] == maxl
+
+
+def test_lod_seed_from_coarser_entry(cornell):
+    cache = OnSurfaceCache(cornell)
+    far = gb(cornell, [0, 1, 3.4], [0, 1, -1], fov=30)
+    near = gb(cornell, [0, 1, 1.0], [0, 1, -1], fov=30)
+    cache.begin_frame(0, [far], None)
+    fr = cache.begin_frame(1, [near], None)
+    new = np.array(fr.is_new)
+    seed = np.array(fr.seed_slot)
+    assert new.any()
+    assert np.all(seed[~new] == INVALID)
+    has = new & (seed != INVALID)
+    assert has.sum() > 0.5 * new.sum()
+    a = cache.entry_info(np.array(fr.active)[has])
+    s = cache.entry_info(seed[has])
+    d = s["level"].astype(np.int64) - a["level"]
+    assert np.all(d >= 1) and np.array_equal(s["island"], a["island"])
+    assert np.array_equal(s["tx"], a["tx"] >> d) and np.array_equal(s["ty"], a["ty"] >> d)
+
+
+def test_memory_independent_of_identical_viewers(cornell):
+    g = gb(cornell, [0, 1, 3.4], [0, 1, 0])
+    c1, c2 = OnSurfaceCache(cornell), OnSurfaceCache(cornell)
+    c1.begin_frame(0, [g], None)
+    c2.begin_frame(0, [g, g], None)
+    assert c1.memory_bytes() == c2.memory_bytes() > 0
+    assert c1.stats()["measured_overlap"] == 0.0
+    assert c2.stats()["measured_overlap"] == 100.0
+
+
+def test_block_size_two_and_pool_growth(cornell):
+    g = gb(cornell, [0, 1, 3.4], [0, 1, 0])
+    c8 = OnSurfaceCache(cornell)
+    c8.begin_frame(0, [g], None)
+    c2 = OnSurfaceCache(cornell, block_size=2, max_blocks=16)
+    fr = c2.begin_frame(0, [g], None)
+    assert fr.grown and c2.capacity >= fr.n_active
+    s2, s8 = c2.stats(), c8.stats()
+    assert s2["entries_requested"] == s8["entries_requested"]
+    assert s2["fill_ratio"] > s8["fill_ratio"]
+    assert s2["entries_allocated"] < s8["entries_allocated"]
+    # a fixed pool that is too small reports the overflow instead
+    with pytest.warns(UserWarning):
+        c = OnSurfaceCache(cornell, max_blocks=4, grow=False)
+        fr = c.begin_frame(0, [g], None)
+    assert c.stats()["overflow_blocks"] > 0 and c.stats()["blocks"] == 4
+    slots = np.array(fr.pixel_slot[0])
+    assert np.all(slots[slots != INVALID] < c.capacity)
+
+
+def test_nothing_in_view(cornell):
+    cache = OnSurfaceCache(cornell)
+    fr = cache.begin_frame(0, [], None)
+    assert fr.n_active == 0 and cache.stats()["blocks"] == 0
+    sky = gb(cornell, [0, 1, 5], [0, 1, 10])            # looking out of the open box
+    fr = cache.begin_frame(1, [sky], None)
+    assert fr.n_active == 0 and np.all(np.array(fr.pixel_slot[0]) == INVALID)
+    cache.mark_motion(mi.UInt32([INVALID, 5]), mi.Bool([True, True]))   # ignored / harmless
