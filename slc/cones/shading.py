@@ -1,0 +1,64 @@
+"""Shading from the cones: per pixel, ``nS`` directions uniform in each cone's
+solid angle, BSDF evaluation (cosine included), no rays:
+
+    L_o = sum_c sum_s f_r(x, w_{c,s}, w_o) cos(w_{c,s}) L_c / nS
+
+with ``L_c`` the cone's estimate of the integral of incoming radiance over its
+solid angle (see docs/cones.md). The directions are a fixed stratified
+(spherical-Fibonacci) pattern in the cone, the same for every pixel and frame, so
+shading adds no noise. A cone of zero angle (point light) samples its axis.
+"""
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+
+from .packing import gather_words, unpack
+
+GOLDEN = 0.6180339887498949
+
+
+def cone_samples(Dw, A, s_idx: mi.UInt32, nS: int):
+    """Direction ``s_idx`` of ``nS`` of the stratified pattern in cone (Dw, A) (world)."""
+    u = (mi.Float(s_idx) + 0.5) * (1.0 / nS)
+    x = mi.Float(s_idx) * GOLDEN
+    ph = 2.0 * math.pi * (x - dr.floor(x))
+    h = 2.0 * dr.square(dr.sin(0.5 * A))            # 1 - cos(alpha), precise for tiny alpha
+    x = u * h                                       # 1 - cos(theta)
+    ct = 1.0 - x
+    st = dr.sqrt(dr.maximum(x * (2.0 - x), 0.0))
+    sp, cp = dr.sincos(ph)
+    return mi.Frame3f(Dw).to_world(mi.Vector3f(st * cp, st * sp, ct))
+
+
+def shade_pixels(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.SurfaceInteraction3f,
+                 texel_frame: mi.Frame3f, max_cones: int, n_samples: int = 16) -> mi.Color3f:
+    """Direct illumination of the pixels ``si`` from the entries ``slot`` (nearest-texel
+    fetch); ``texel_frame`` is the local frame of each pixel's entry (the frame its cone
+    directions are stored in). Entries without cones and inactive pixels give 0."""
+    K = max_cones
+    D, A, L, C, n = unpack(gather_words(storage, slot, K, active), K)
+    Dw = [dr.normalize(texel_frame.to_world(D[i])) for i in range(K)]
+    bsdf = si.bsdf()
+    ctx = mi.BSDFContext()
+    nS = max(int(n_samples), 1)
+    n_op = dr.opaque(mi.UInt32, nS)
+
+    def cond(s, acc):
+        return s < n_op
+
+    def body(s, acc):
+        for i in range(K):
+            m = active & (n > i)
+            wi = cone_samples(Dw[i], A[i], s, nS)
+            f = mi.Color3f(bsdf.eval(ctx, si, si.to_local(wi), m))
+            acc += dr.select(m, f * L[i], 0.0)
+        return s + 1, acc
+
+    _, acc = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(slot))), cond=cond, body=body,
+                           labels=("s", "acc"))
+    acc = acc * (1.0 / nS)
+    ok = active & dr.isfinite(acc[0]) & dr.isfinite(acc[1]) & dr.isfinite(acc[2])
+    return dr.select(ok, acc, 0.0)

@@ -1,0 +1,361 @@
+"""Cone update kernels: insertion of light samples (cases A-D), the end of
+an update cycle (C reduction, C increment, running mean of the radiance),
+and the shrink test for moving / vanished lights.
+
+All functions work on *unpacked* cone state held in registers, vectorized
+over entries (one lane per active entry). The state of one lane is
+
+- ``D``: list of ``max_cones`` unit :class:`mi.Vector3f` (local frame of the entry),
+- ``A``: list of opening angles (half-angles, radians, :class:`mi.Float`),
+- ``L``: list of :class:`mi.Color3f`, the cone's running estimate of
+  ``E_c = integral over the cone's solid angle of L_i`` (no cosine),
+- ``S``: list of :class:`mi.Color3f`, this cycle's sum of sample weights per cone,
+- ``n``: :class:`mi.UInt32` number of cones (cones ``0 .. n-1`` are live, contiguous),
+- ``C``: :class:`mi.Float` accumulation count,
+- ``beta``: :class:`mi.Float` largest cone turn of this cycle (radians).
+
+Angles between directions are always ``atan2(|a x b|, a . b)``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+INF = float("inf")
+
+
+@dataclass
+class ConeParams:
+    """Tunable constants of the update (defaults are the documented decisions)."""
+    max_cones: int = 3
+    inside_tol: float = 2e-3        # rad; case A tolerance (covers fp16 direction quantization)
+    beta_min_deg: float = 1.0       # C is reduced only when a cone turned by more than this (degrees)
+    c_min: float = 2.0              # ... and C is above this
+    epsilon: float = 0.1            # shrink test at (1 - epsilon) * alpha from the axis
+    alpha_delta: float = 1e-3       # rad; cones narrower than this are never shrink-tested (delta lights)
+    alpha_small: float = math.radians(2.0)   # rad; cones below are tested on their axis and dropped on a miss
+    shrink_period: int = 4          # settled entries (1 ray) run the shrink test every k-th frame
+    seed_c_max: float = 4.0         # C given to an entry seeded from a coarser one
+    c_max: float = 255.0            # 8-bit encoding
+
+
+# ----------------------------------------------------------------------------- geometry
+
+def angle_between(a, b):
+    """Angle between two unit vectors, robust for (anti)parallel inputs."""
+    return dr.atan2(dr.norm(dr.cross(a, b)), dr.dot(a, b))
+
+
+def perpendicular(d):
+    return mi.Frame3f(d).s
+
+
+def rotate_towards(d, s, ang):
+    """Rotate unit ``d`` by ``ang`` radians towards ``s`` (away when negative),
+    in the plane of ``d`` and ``s``; any plane when they are (anti)parallel."""
+    t = s - d * dr.dot(d, s)
+    tn = dr.norm(t)
+    t = dr.select(tn > 1e-7, t / dr.maximum(tn, 1e-30), perpendicular(d))
+    sn, cs = dr.sincos(ang)
+    return dr.normalize(d * cs + t * sn)
+
+
+def cone_direction(d, theta, phi):
+    """Direction at angle ``theta`` from the axis ``d``, azimuth ``phi``."""
+    fr = mi.Frame3f(d)
+    st, ct = dr.sincos(theta)
+    sp, cp = dr.sincos(phi)
+    return dr.normalize(fr.to_world(mi.Vector3f(st * cp, st * sp, ct)))
+
+
+def merge_cones(Da, Aa, Db, Ab):
+    """Smallest cone containing both cones: (D, alpha, turn of a, turn of b)."""
+    th = angle_between(Da, Db)
+    a_has_b = th + Ab <= Aa
+    b_has_a = th + Aa <= Ab
+    Am = dr.minimum(0.5 * (th + Aa + Ab), math.pi)
+    Dm = rotate_towards(Da, Db, dr.maximum(Am - Aa, 0.0))
+    Dm = dr.select(a_has_b, Da, dr.select(b_has_a, Db, Dm))
+    Am = dr.select(a_has_b, Aa, dr.select(b_has_a, Ab, Am))
+    return Dm, Am, angle_between(Da, Dm), angle_between(Db, Dm)
+
+
+def widen_cone(D, A, s):
+    """Smallest cone containing cone (D, A) and direction ``s``: (D', A', turn)."""
+    th = angle_between(D, s)
+    grow = dr.maximum(th - A, 0.0)
+    turn = 0.5 * grow
+    return rotate_towards(D, s, turn), dr.minimum(A + turn, math.pi), turn
+
+
+def shrink_cone(D, A, s):
+    """The paper's shrink away from a test direction ``s`` inside the cone:
+    ``delta = alpha - angle(D, s)``; alpha -= delta; D turns away from s by delta/2.
+    Returns (D', A', delta)."""
+    delta = dr.maximum(A - angle_between(D, s), 0.0)
+    return rotate_towards(D, s, -0.5 * delta), A - delta, delta
+
+
+def c_reduction(C, beta, p: ConeParams):
+    """``C / min(max(1 + beta_deg * 0.05, 1.01), 3)`` when beta (degrees) and C exceed
+    their thresholds; ``beta`` is in radians on input."""
+    bd = beta * (180.0 / math.pi)
+    div = dr.minimum(dr.maximum(1.0 + bd * 0.05, 1.01), 3.0)
+    red = (bd > p.beta_min_deg) & (C > p.c_min)
+    return dr.select(red, C / div, C), red
+
+
+# ----------------------------------------------------------------------------- state
+
+def _pick(lst, idx):
+    r = lst[0]
+    for i in range(1, len(lst)):
+        r = dr.select(idx == i, lst[i], r)
+    return r
+
+
+def empty_state(size: int, K: int):
+    D = [mi.Vector3f(0.0, 0.0, 1.0) for _ in range(K)]
+    A = [dr.zeros(mi.Float, size) for _ in range(K)]
+    L = [dr.zeros(mi.Color3f, size) for _ in range(K)]
+    return D, A, L, dr.zeros(mi.Float, size), dr.zeros(mi.UInt32, size)
+
+
+# ----------------------------------------------------------------------------- insertion
+
+def insert_sample(D, A, L, S, n, beta, s, w, ok, p: ConeParams):
+    """Insert one light sample (local direction ``s``, weight ``w`` = L_e G / pdf * V)
+    where ``ok``. Returns (D, A, L, S, n, beta, case) with case 0 none, 1 A, 2 B, 3 C, 4 D."""
+    K = p.max_cones
+    D, A, L, S = list(D), list(A), list(L), list(S)
+    th = [angle_between(D[i], s) for i in range(K)]
+    live = [n > i for i in range(K)]
+
+    # (A) inside a live cone: the one with the nearest axis
+    best, idx_in = mi.Float(INF), mi.UInt32(K)
+    for i in range(K):
+        better = live[i] & (th[i] <= A[i] + p.inside_tol) & (th[i] < best)
+        best = dr.select(better, th[i], best)
+        idx_in = dr.select(better, i, idx_in)
+    caseA = ok & (idx_in < K)
+    caseB = ok & ~caseA & (n < K)
+    full = ok & ~caseA & ~caseB
+
+    # nearest cone axis and closest pair of axes
+    jn, thj = mi.UInt32(0), mi.Float(INF)
+    for i in range(K):
+        better = live[i] & (th[i] < thj)
+        thj = dr.select(better, th[i], thj)
+        jn = dr.select(better, i, jn)
+    pa, pb, pmin = mi.UInt32(0), mi.UInt32(1 if K > 1 else 0), mi.Float(INF)
+    for a in range(K):
+        for b in range(a + 1, K):
+            ang = angle_between(D[a], D[b])
+            better = live[b] & (ang < pmin)
+            pmin = dr.select(better, ang, pmin)
+            pa = dr.select(better, a, pa)
+            pb = dr.select(better, b, pb)
+    caseC = full & (thj < pmin)
+    caseD = full & ~caseC
+
+    # (C) widen the nearest cone
+    Dj, Aj = _pick(D, jn), _pick(A, jn)
+    Dw, Aw, turn_c = widen_cone(Dj, Aj, s)
+    # (D) merge the closest pair into slot pa, new cone in slot pb
+    Dm, Am, ta, tb = merge_cones(_pick(D, pa), _pick(A, pa), _pick(D, pb), _pick(A, pb))
+    Lm = _pick(L, pa) + _pick(L, pb)
+    Sm = _pick(S, pa) + _pick(S, pb)
+    turn_d = dr.minimum(ta, tb)
+
+    for i in range(K):
+        a_i = caseA & (idx_in == i)
+        b_i = caseB & (n == i)
+        c_i = caseC & (jn == i)
+        m_i = caseD & (pa == i)
+        d_i = caseD & (pb == i)
+        new_i = b_i | d_i
+        S[i] = dr.select(a_i | c_i, S[i] + w, S[i])
+        D[i] = dr.select(c_i, Dw, D[i])
+        A[i] = dr.select(c_i, Aw, A[i])
+        D[i] = dr.select(m_i, Dm, D[i])
+        A[i] = dr.select(m_i, Am, A[i])
+        L[i] = dr.select(m_i, Lm, L[i])
+        S[i] = dr.select(m_i, Sm, S[i])
+        D[i] = dr.select(new_i, s, D[i])
+        A[i] = dr.select(new_i, 0.0, A[i])
+        L[i] = dr.select(new_i, mi.Color3f(0.0), L[i])
+        S[i] = dr.select(new_i, w, S[i])
+    n = dr.select(caseB, n + 1, n)
+    beta = dr.select(caseC, dr.maximum(beta, turn_c), beta)
+    beta = dr.select(caseD, dr.maximum(beta, turn_d), beta)
+    case = dr.select(caseA, 1, dr.select(caseB, 2, dr.select(caseC, 3, dr.select(caseD, 4, 0))))
+    return D, A, L, S, n, beta, mi.UInt32(case)
+
+
+def end_cycle(L, S, C, n, beta, n_samples, p: ConeParams):
+    """Close an update cycle: reduce C once (if a cone turned), increment it,
+    and fold this cycle's estimate ``S_c / n_samples`` into each cone's running mean
+    ``L <- L (1 - 1/C) + est / C``. Returns (L, C, reduced)."""
+    K = p.max_cones
+    C, red = c_reduction(C, beta, p)
+    C = dr.minimum(C + 1.0, p.c_max)
+    inv = 1.0 / dr.maximum(C, 1.0)
+    ns = dr.maximum(mi.Float(n_samples), 1.0)
+    out = []
+    for i in range(K):
+        Li = L[i] * (1.0 - inv) + (S[i] / ns) * inv
+        out.append(dr.select(n > i, Li, mi.Color3f(0.0)))
+    return out, C, red
+
+
+def compact(D, A, L, S, keep, K):
+    """Remove cones where ``keep`` is false, keeping the order; returns (D, A, L, S, n)."""
+    rank = []
+    r = mi.UInt32(0)
+    for i in range(K):
+        rank.append(r)
+        r = r + dr.select(keep[i], 1, 0)
+    nD, nA, nL, nS = [], [], [], []
+    for q in range(K):
+        d, a, l, s_ = mi.Vector3f(0, 0, 1), mi.Float(0.0), mi.Color3f(0.0), mi.Color3f(0.0)
+        for i in range(q, K):
+            m = keep[i] & (rank[i] == q)
+            d = dr.select(m, D[i], d)
+            a = dr.select(m, A[i], a)
+            l = dr.select(m, L[i], l)
+            s_ = dr.select(m, S[i], s_)
+        nD.append(d), nA.append(a), nL.append(l), nS.append(s_)
+    return nD, nA, nL, nS, r
+
+
+def shrink_step(D, A, L, S, n, beta, test_dirs, hit, tested, p: ConeParams):
+    """Apply the shrink-test outcome of every cone: ``test_dirs[i]`` the tested local
+    direction, ``hit[i]`` whether it found an emitter, ``tested[i]`` whether cone i was
+    tested. Small cones (alpha < alpha_small) that miss are dropped, larger ones shrink.
+    Returns (D, A, L, S, n, beta, dropped_any, shrunk_any)."""
+    K = p.max_cones
+    D, A = list(D), list(A)
+    keep, dropped, shrunk = [], mi.Bool(False), mi.Bool(False)
+    for i in range(K):
+        miss = tested[i] & ~hit[i] & (n > i)
+        small = A[i] < p.alpha_small
+        drop = miss & small
+        shr = miss & ~small
+        Dn, An, delta = shrink_cone(D[i], A[i], test_dirs[i])
+        D[i] = dr.select(shr, Dn, D[i])
+        A[i] = dr.select(shr, dr.maximum(An, 0.0), A[i])
+        beta = dr.select(shr, dr.maximum(beta, 0.5 * delta), beta)
+        keep.append((n > i) & ~drop)
+        dropped |= drop
+        shrunk |= shr
+    D, A, L, S, n = compact(D, A, L, S, keep, K)
+    return D, A, L, S, n, beta, dropped, shrunk
+
+
+def shrink_test_dirs(D, A, n, u, p: ConeParams):
+    """Per cone: (test direction, tested mask). Cones narrower than alpha_delta are not
+    tested; cones below alpha_small are tested on the axis; others at (1 - epsilon) alpha
+    with azimuth ``2 pi u[i]``."""
+    dirs, tested = [], []
+    for i in range(p.max_cones):
+        th = dr.select(A[i] < p.alpha_small, 0.0, (1.0 - p.epsilon) * A[i])
+        dirs.append(cone_direction(D[i], th, 2.0 * math.pi * u[i]))
+        tested.append((n > i) & (A[i] >= p.alpha_delta))
+    return dirs, tested
+
+
+# ----------------------------------------------------------------------------- the update kernel
+
+INVALID = 0xFFFFFFFF
+
+
+def entry_rng(slot: mi.UInt32, frame: int, seed: int) -> mi.PCG32:
+    """PCG32 stream per entry keyed by (slot, frame, seed) only: the random numbers of
+    an entry do not depend on which other entries are active or on the viewers.
+    The key is opaque so that a new frame never recompiles the kernel."""
+    key = dr.opaque(mi.UInt32, (int(seed) * 0x9E3779B1 + int(frame) * 0x85EBCA77 + 0x165667B1) & 0xFFFFFFFF)
+    v0, v1 = mi.sample_tea_32(mi.UInt32(slot), key, 6)
+    state = mi.UInt64(v0) | (mi.UInt64(v1) << 32)
+    return mi.PCG32(size=dr.width(slot), initstate=state, initseq=mi.UInt64(slot))
+
+
+def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: mi.SurfaceInteraction3f,
+                   rays: mi.UInt32, is_new: mi.Bool, seed_slot: mi.UInt32, frame: int, seed: int,
+                   p: ConeParams, stats: dict | None = None):
+    """One update cycle of every active entry (one lane per entry, samples processed
+    sequentially in a loop so no update is lost). Reads and writes the packed
+    ``storage`` (``capacity * words_per_entry`` UInt32). Returns (storage, motion mask
+    per active entry)."""
+    from .packing import gather_words, pack, scatter_words, unpack
+    K = p.max_cones
+    N = dr.width(active)
+    if N == 0:
+        return storage, mi.Bool()
+    active = mi.UInt32(active)
+    valid = si.is_valid()
+
+    # ----------------------------------------------- unpack (or reset / seed new entries)
+    D, A, L, C, n = unpack(gather_words(storage, active, K), K)
+    seed_slot = mi.UInt32(seed_slot)
+    has_seed = mi.Bool(is_new) & (seed_slot != INVALID)
+    sD, sA, sL, sC, sn = unpack(gather_words(storage, dr.select(has_seed, seed_slot, 0), K, has_seed), K)
+    eD, eA, eL, eC, en = empty_state(N, K)
+    for i in range(K):
+        D[i] = dr.select(has_seed, sD[i], dr.select(is_new, eD[i], D[i]))
+        A[i] = dr.select(has_seed, sA[i], dr.select(is_new, eA[i], A[i]))
+        L[i] = dr.select(has_seed, sL[i], dr.select(is_new, eL[i], L[i]))
+    C = dr.select(has_seed, dr.minimum(sC, p.seed_c_max), dr.select(is_new, eC, C))
+    n = dr.select(has_seed, sn, dr.select(is_new, en, n))
+
+    frame_l = si.sh_frame
+    sampler = entry_rng(active, frame, seed)
+    rays = mi.UInt32(rays)
+    S = [dr.zeros(mi.Color3f, N) for _ in range(K)]
+    beta = dr.zeros(mi.Float, N)
+
+    # ----------------------------------------------- light samples, one at a time per entry
+    def cond(k, D, A, L, S, n, beta, sampler):
+        return k < rays
+
+    def body(k, D, A, L, S, n, beta, sampler):
+        u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
+        ds, w = scene.sample_emitter_direction(si, u, False, valid)
+        w = mi.Color3f(w)
+        ok = valid & (ds.pdf > 0.0) & (dr.max(w) > 0.0) & dr.all(dr.isfinite(w))
+        ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), ok)
+        s = dr.normalize(frame_l.to_local(ds.d))
+        D, A, L, S, n, beta, _ = insert_sample(D, A, L, S, n, beta, s, w, ok, p)
+        return k + 1, D, A, L, S, n, beta, sampler
+
+    _, D, A, L, S, n, beta, sampler = dr.while_loop(
+        state=(mi.UInt32(0), D, A, L, S, n, beta, sampler), cond=cond, body=body,
+        labels=("k", "D", "A", "L", "S", "n", "beta", "sampler"))
+
+    # ----------------------------------------------- shrink test: one ray per cone
+    period = max(int(p.shrink_period), 1)
+    do_shrink = valid & ((rays > 1) | (((active + mi.UInt32(frame % period)) % period) == 0))
+    us = [sampler.next_float32() for _ in range(K)]
+    dirs, tested = shrink_test_dirs(D, A, n, us, p)
+    hits = []
+    for i in range(K):
+        tested[i] = tested[i] & do_shrink
+        ray = si.spawn_ray(frame_l.to_world(dirs[i]))
+        si2 = scene.ray_intersect(ray, tested[i])
+        em = si2.emitter(scene, tested[i])
+        Le = mi.Color3f(em.eval(si2, tested[i]))
+        hits.append(tested[i] & (dr.max(Le) > 0.0))
+    D, A, L, S, n, beta, dropped, shrunk = shrink_step(D, A, L, S, n, beta, dirs, hits, tested, p)
+
+    # ----------------------------------------------- close the cycle and pack
+    L, C, reduced = end_cycle(L, S, C, n, beta, rays, p)
+    motion = valid & (reduced | dropped | (beta * (180.0 / math.pi) > p.beta_min_deg))
+    words = pack(D, A, L, C, n, K)
+    dr.eval(*words, motion, shrunk, dropped)
+    if stats is not None:
+        stats["shrunk"] = shrunk
+        stats["dropped"] = dropped
+    scatter_words(storage, words, active, K)
+    return storage, motion
