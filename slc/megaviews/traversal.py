@@ -1,0 +1,432 @@
+r"""Concurrent scene-view hierarchy traversal (Sec. 3.2), and the baselines.
+
+``render_maps(scene_h, view_h, R)`` renders one dual-paraboloid depth map
+per view node. The pair queue ``(s_i, v_j)`` starts at the roots and is
+processed breadth-first, one Dr.Jit kernel set per level; every pair is,
+in one step, either
+
+1. **culled** (Fig. 4/5): with ``vs = c_s - p_v``, ``alpha = angle(vs, n_v)``
+   and ``psi = theta_v + phi_v < pi``, the pair is culled when
+   ``alpha > psi`` and ``f_s = |vs| sin(min(alpha - psi, pi/2)) > r_s + r_v``
+   (distance to the cone of directions, enlarged by the view-node radius:
+   every child view lies within ``r_v`` of ``p_v``, so this never culls
+   what a child sees);
+2. **rendered shared** (Fig. 6): the conservative projected size
+   (:func:`.paraboloid.projected_size`, distance shortened by ``r_v``) is
+   below one texel and ``r_v <= r_s``; the node's mean point is splatted
+   (``scatter_reduce`` min of the distance to ``p_v``) into the map of
+   ``v_j``, shared by all its views. Pairs of two leaves are always
+   rendered; when they project to more than a texel they are splatted into
+   a coarser mip level (multi-pixel filling, mipmap splatting,
+   pushed down afterwards; the level is chosen from the voxel's half edge
+   seen from ``p_v``, rounded down);
+3. **subdivided** (Fig. 8): the view node if the children of ``s_i`` are
+   smaller than ``v_j`` (or ``s_i`` is a leaf), else the scene node; the
+   children of the chosen node are paired with the other node
+   (``dr.compress`` compacts the queue).
+
+Multi-pass: when a level's children would exceed ``budget_pairs``, the
+subdivided pairs are split into chunks that fit and processed one after
+the other, depth-first over chunks (the pair-queue peak is then bounded by
+the budget times the traversal depth).
+
+Fusion (Sec. 3.2, Image Queries): top-down over the view levels every
+child map takes the minimum of its own depth and its parent's, whose depth
+is re-measured from the child's centre (the paper's rectification).
+Direct queries without fusion walk the leaf's ancestors instead.
+
+Baselines on the same kernels: **ManyLoDs** [HREB11] is the same traversal
+with a flat view set (every view its own leaf, radius 0), so it only ever
+subdivides the scene node, one step per iteration; **brute force** pairs
+every scene leaf with every view (frustum culling per pair, multi-pixel
+filling for leaves larger than a texel), chunked by the budget.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from . import paraboloid as pb
+from .hierarchy import SceneHierarchy, ViewHierarchy
+
+INV_SQRT3 = 1.0 / math.sqrt(3.0)  # sphere radius -> half edge of the cubic voxel
+PAIR_BYTES = 8          # two 32-bit node ids, as in the paper (64 bits per pair)
+DEFAULT_BUDGET = 1 << 24  # pairs (128 MB of pair queue)
+
+
+@dataclass
+class TraversalStats:
+    pairs: int = 0            # pairs processed (all levels, all passes)
+    culled: int = 0
+    rendered: int = 0
+    multi_pixel: int = 0      # leaf pairs splatted into a coarser mip level
+    shared_views: int = 0     # sum over rendered pairs of the views in v_j
+    peak_pairs: int = 0       # pair-queue peak (live pairs, all pending chunks)
+    passes: int = 1           # chunks processed (1 = no multi-pass split)
+    levels: int = 0
+
+    @property
+    def views_per_render(self) -> float:
+        return self.shared_views / max(self.rendered, 1)
+
+    def as_dict(self) -> dict:
+        d = dict(self.__dict__)
+        d["views_per_render"] = self.views_per_render
+        d["pair_queue_mb"] = self.peak_pairs * PAIR_BYTES / 2 ** 20
+        return d
+
+
+@dataclass
+class Maps:
+    """Depth maps (dual paraboloid, mip pyramid per map) of ``slots`` view
+    nodes. ``slot_of_view``/``centre_of_view``: where view ``k`` reads."""
+    layout: pb.Layout
+    depth: mi.Float
+    slots: int
+    view_h: ViewHierarchy
+    fused: bool = False
+    stats: TraversalStats = field(default_factory=TraversalStats)
+    record: list | None = None
+
+    def memory_bytes(self) -> int:
+        return 4 * self.slots * self.layout.texels
+
+    def leaf_maps_bytes(self) -> int:
+        """Fused single-level maps of the leaf view nodes (paper's figure)."""
+        n_leaf = int(np.sum(self.view_h.child_count_np == 0))
+        return 4 * n_leaf * self.layout.base
+
+    def level0(self) -> np.ndarray:
+        """(slots, 2, R, R) numpy copy of level 0 (tests, figures)."""
+        R = self.layout.R
+        d = np.array(self.depth, np.float32).reshape(self.slots, self.layout.texels)
+        return d[:, :2 * R * R].reshape(self.slots, 2, R, R)
+
+
+# -----------------------------------------------------------------------------
+# Pair classification (one step)
+# -----------------------------------------------------------------------------
+
+def cull_test(cs, rs, pv, rv, nv, psi):
+    """Conservative frustum culling of scene spheres against view nodes (Fig. 4)."""
+    vs = cs - pv
+    d = dr.norm(vs)
+    alpha = dr.atan2(dr.norm(dr.cross(vs, nv)), dr.dot(vs, nv))
+    fs = d * dr.sin(dr.minimum(alpha - psi, 0.5 * math.pi))
+    return (psi < math.pi) & (alpha > psi) & (fs > rs + rv)
+
+
+def _splat(depth, layout: pb.Layout, slot, p, pv, r_surf, active, multi_pixel: bool = True):
+    """Splat point ``p`` (a node of surface half-extent ``r_surf``) into the
+    map ``slot`` (centre ``pv``): level 0 when it projects below a texel,
+    else (multi-pixel filling) mip level floor(log2 size) of its projected
+    size seen from ``pv``, capped so that a splat never covers more than a
+    quarter of a face side. Returns the mip level used."""
+    vs = p - pv
+    dist = dr.norm(vs)
+    if multi_pixel:
+        size = pb.projected_size(vs, r_surf, mi.Float(0.0), layout.R)
+        top = max(layout.levels - 3, 0)
+        m = dr.clip(dr.floor(dr.log2(dr.maximum(size, 1.0))), 0.0, float(top))
+        m = dr.select(size >= 1e8, 0.0, m)  # view inside the node's extent: a point splat
+        mu = mi.UInt32(m)
+    else:
+        mu = dr.zeros(mi.UInt32, dr.width(dist))
+    Rm = mi.UInt32(layout.R) >> mu
+    face, tx, ty = pb.texel(vs, Rm)
+    off = dr.gather(mi.UInt32, mi.UInt32(layout.offset[:-1]), mu)
+    idx = slot * layout.texels + off + (face * Rm + ty) * Rm + tx
+    dr.scatter_reduce(dr.ReduceOp.Min, depth, dist, idx, active)
+    return mu
+
+
+class Traversal:
+    """Runs the concurrent traversal of ``scene_h`` x ``view_h`` into maps of
+    resolution ``R`` (see module docstring). Parameters: ``cull`` (default
+    True), ``budget_pairs`` (multi-pass threshold, default 16M pairs),
+    ``record`` (keep every processed pair, for tests)."""
+
+    def __init__(self, scene_h: SceneHierarchy, view_h: ViewHierarchy, R: int = 16, cull: bool = True,
+                 budget_pairs: int = DEFAULT_BUDGET, record: bool = False, multi_pixel: bool = True):
+        self.S, self.V = scene_h, view_h
+        self.multi_pixel = bool(multi_pixel)
+        self.layout = pb.Layout(R)
+        self.cull = bool(cull)
+        self.budget = int(max(budget_pairs, 64))
+        self.record = [] if record else None
+
+    # ---------------- one level: classify, render, collect subdivisions ----------------
+    def _step(self, depth, qs, qv, st: TraversalStats):
+        S, V, lay = self.S, self.V, self.layout
+        cs = dr.gather(mi.Point3f, S.centre, qs)
+        rs = dr.gather(mi.Float, S.radius, qs)
+        ps = dr.gather(mi.Point3f, S.pos, qs)
+        s_cnt = dr.gather(mi.UInt32, S.child_count, qs)
+        pv = dr.gather(mi.Point3f, V.centre, qv)
+        rv = dr.gather(mi.Float, V.radius, qv)
+        nv = mi.Vector3f(dr.gather(mi.Point3f, V.dir, qv))
+        psi = dr.gather(mi.Float, V.theta, qv) + dr.gather(mi.Float, V.phi, qv)
+        v_cnt = dr.gather(mi.UInt32, V.child_count, qv)
+
+        # ------------------------------- Culling -------------------------------
+        culled = cull_test(cs, rs, pv, rv, nv, psi) if self.cull else dr.zeros(mi.Bool, dr.width(qs))
+
+        # --------------------------- Shared rendering ---------------------------
+        size = pb.projected_size(cs - pv, rs, rv, lay.R)
+        s_leaf, v_leaf = s_cnt == 0, v_cnt == 0
+        render = ~culled & (((size < 1.0) & (rv <= rs)) | (s_leaf & v_leaf))
+        mu = _splat(depth, lay, qv, ps, pv, rs * INV_SQRT3, render, self.multi_pixel)
+
+        # ------------------------------ Subdivision ------------------------------
+        subdiv = ~culled & ~render
+        sub_v = ~v_leaf & (s_leaf | (0.5 * rs < rv))
+        nviews = dr.gather(mi.UInt32, V.n_views, qv)
+        c_cull = dr.count(culled)
+        c_rend = dr.count(render)
+        c_multi = dr.count(render & (mu > 0))
+        c_share = dr.sum(dr.select(render, mi.UInt64(nviews), 0))
+        c_sub = dr.count(subdiv)
+        dr.eval(depth, c_cull, c_rend, c_multi, c_share, c_sub, subdiv, sub_v)
+        st.culled += int(c_cull[0])
+        st.rendered += int(c_rend[0])
+        st.multi_pixel += int(c_multi[0])
+        st.shared_views += int(c_share[0])
+        if int(c_sub[0]) == 0:
+            return None
+        sel = dr.compress(subdiv)
+        ss, sv, sub = dr.gather(mi.UInt32, qs, sel), dr.gather(mi.UInt32, qv, sel), dr.gather(mi.Bool, sub_v, sel)
+        first = dr.select(sub, dr.gather(mi.UInt32, V.first_child, sv), dr.gather(mi.UInt32, S.first_child, ss))
+        cnt = dr.select(sub, dr.gather(mi.UInt32, V.child_count, sv), dr.gather(mi.UInt32, S.child_count, ss))
+        dr.eval(ss, sv, sub, first, cnt)
+        return ss, sv, sub, first, cnt
+
+    @staticmethod
+    def _expand(ss, sv, sub, first, cnt):
+        m = dr.width(ss)
+        j = dr.arange(mi.UInt32, 8 * m)
+        p, k = j >> 3, j & 7
+        valid = k < dr.gather(mi.UInt32, cnt, p)
+        sel = dr.compress(valid)
+        p, k = dr.gather(mi.UInt32, p, sel), dr.gather(mi.UInt32, k, sel)
+        child = dr.gather(mi.UInt32, first, p) + k
+        is_v = dr.gather(mi.Bool, sub, p)
+        ns = dr.select(is_v, dr.gather(mi.UInt32, ss, p), child)
+        nv = dr.select(is_v, child, dr.gather(mi.UInt32, sv, p))
+        dr.eval(ns, nv)
+        return ns, nv
+
+    def run(self) -> Maps:
+        V, lay = self.V, self.layout
+        st = TraversalStats(passes=0)
+        depth = dr.full(mi.Float, pb.EMPTY, V.size * lay.texels)
+        roots = mi.UInt32(np.asarray(V.roots_np, np.uint32))
+        # work stack: ("queue", qs, qv) or ("expand", ss, sv, sub, first, cnt)
+        n0 = dr.width(roots)
+        chunks = [(a, min(a + self.budget, n0)) for a in range(0, n0, self.budget)]
+        stack = [("queue", dr.zeros(mi.UInt32, b - a), dr.gather(mi.UInt32, roots, dr.arange(mi.UInt32, a, b)))
+                 for a, b in reversed(chunks)]
+        live = n0
+        while stack:
+            item = stack.pop()
+            if item[0] == "expand":
+                _, ss, sv, sub, first, cnt = item
+                live -= dr.width(ss)
+                qs, qv = self._expand(ss, sv, sub, first, cnt)
+                live += dr.width(qs)
+            else:
+                _, qs, qv = item
+                st.passes += 1
+            st.peak_pairs = max(st.peak_pairs, live)
+            n = dr.width(qs)
+            st.pairs += n
+            st.levels += 1
+            if self.record is not None:
+                self.record.append(np.stack([np.array(qs, np.int64), np.array(qv, np.int64)], 1))
+            out = self._step(depth, qs, qv, st)
+            live -= n
+            if out is None:
+                continue
+            ss, sv, sub, first, cnt = out
+            m = dr.width(ss)
+            live += m
+            st.peak_pairs = max(st.peak_pairs, live)
+            pre = np.cumsum(np.array(cnt, np.int64))
+            total = int(pre[-1])
+            st.peak_pairs = max(st.peak_pairs, live + total)
+            if total <= self.budget:
+                stack.append(("expand", ss, sv, sub, first, cnt))
+                continue
+            # ------------------- multi-pass: split into chunks -------------------
+            k = int(math.ceil(total / self.budget))
+            bounds = np.searchsorted(pre, np.arange(1, k) * (total / k))
+            bounds = np.unique(np.concatenate([[0], bounds, [m]]))
+            parts = []
+            for a, b in zip(bounds[:-1], bounds[1:]):
+                if b <= a:
+                    continue
+                r = dr.arange(mi.UInt32, int(a), int(b))
+                parts.append(("expand",) + tuple(dr.gather(type(x), x, r) for x in (ss, sv, sub, first, cnt)))
+            st.passes += len(parts) - 1
+            stack.extend(reversed(parts))
+        st.passes = max(st.passes, 1)
+        maps = Maps(lay, depth, V.size, V, stats=st, record=self.record)
+        return maps
+
+
+# -----------------------------------------------------------------------------
+# Brute force: every scene leaf into every view
+# -----------------------------------------------------------------------------
+
+def brute_force(scene_h: SceneHierarchy, view_h: ViewHierarchy, R: int = 16, cull: bool = True,
+                budget_pairs: int = DEFAULT_BUDGET, multi_pixel: bool = True) -> Maps:
+    """Every scene leaf splatted into every (flat) view's map, with exact
+    per-view frustum culling and multi-pixel filling (mip splats)."""
+    if not view_h.flat:
+        raise ValueError("brute force needs a flat view set")
+    S, V = scene_h, view_h
+    lay = pb.Layout(R)
+    st = TraversalStats(passes=0)
+    depth = dr.full(mi.Float, pb.EMPTY, V.size * lay.texels)
+    leaf0 = int(S.tree.level_start[S.depth])
+    nl = S.size - leaf0
+    per = max(1, min(V.size, budget_pairs // max(nl, 1)))
+    for v0 in range(0, V.size, per):
+        nv_ = min(per, V.size - v0)
+        j = dr.arange(mi.UInt32, nl * nv_)
+        qs = leaf0 + j % nl
+        qv = v0 + j // nl
+        cs = dr.gather(mi.Point3f, S.centre, qs)
+        rs = dr.gather(mi.Float, S.radius, qs)
+        ps = dr.gather(mi.Point3f, S.pos, qs)
+        pv = dr.gather(mi.Point3f, V.centre, qv)
+        nvd = mi.Vector3f(dr.gather(mi.Point3f, V.dir, qv))
+        psi = dr.gather(mi.Float, V.phi, qv)
+        culled = cull_test(cs, rs, pv, 0.0, nvd, psi) if cull else dr.zeros(mi.Bool, dr.width(qs))
+        size = pb.projected_size(cs - pv, rs, mi.Float(0.0), lay.R)
+        mu = _splat(depth, lay, qv, ps, pv, rs * INV_SQRT3, ~culled, multi_pixel)
+        c_multi, c_cull = dr.count(~culled & (mu > 0)), dr.count(culled)
+        dr.eval(depth, c_multi, c_cull)
+        st.pairs += nl * nv_
+        st.culled += int(c_cull[0])
+        st.rendered += nl * nv_ - int(c_cull[0])
+        st.multi_pixel += int(c_multi[0])
+        st.peak_pairs = max(st.peak_pairs, nl * nv_)
+        st.passes += 1
+    st.shared_views = st.rendered
+    st.levels = 1
+    return Maps(lay, depth, V.size, V, stats=st)
+
+
+# -----------------------------------------------------------------------------
+# Push (mipmap hole filling) and fusion
+# -----------------------------------------------------------------------------
+
+def push(maps: Maps) -> None:
+    """Push-only pyramid pass: every texel of level m-1 takes the minimum of
+    itself and its parent texel of level m (coarse to fine)."""
+    lay, n = maps.layout, maps.slots
+    for m in range(lay.levels - 1, 0, -1):
+        Rf = lay.res[m - 1]
+        per = 2 * Rf * Rf
+        j = dr.arange(mi.UInt32, n * per)
+        slot, t = j // per, j % per
+        face, rem = t // (Rf * Rf), t % (Rf * Rf)
+        ty, tx = rem // Rf, rem % Rf
+        Rc = lay.res[m]
+        fine = slot * lay.texels + lay.offset[m - 1] + t
+        coarse = slot * lay.texels + lay.offset[m] + (face * Rc + (ty >> 1)) * Rc + (tx >> 1)
+        v = dr.minimum(dr.gather(mi.Float, maps.depth, fine), dr.gather(mi.Float, maps.depth, coarse))
+        dr.scatter(maps.depth, v, fine)
+        dr.eval(maps.depth)
+
+
+def fuse(maps: Maps) -> None:
+    """Top-down fusion of the level-0 maps along the view hierarchy, with the
+    parent's depth re-measured from the child's centre of projection."""
+    V, lay = maps.view_h, maps.layout
+    if V.flat:
+        maps.fused = True
+        return
+    R, base = lay.R, lay.base
+    for l in range(1, V.depth + 1):
+        a, b = int(V.level_start[l]), int(V.level_start[l + 1])
+        j = dr.arange(mi.UInt32, (b - a) * base)
+        node = a + j // base
+        t = j % base
+        par = dr.gather(mi.UInt32, V.parent, node)
+        dp = dr.gather(mi.Float, maps.depth, par * lay.texels + t)
+        dc_i = node * lay.texels + t
+        dc = dr.gather(mi.Float, maps.depth, dc_i)
+        has = dp < 0.5 * pb.EMPTY
+        face, rem = t // (R * R), t % (R * R)
+        d = pb.direction(face, rem % R, rem // R, R)
+        q = dr.gather(mi.Point3f, V.centre, par) + d * dp
+        corrected = dr.norm(q - dr.gather(mi.Point3f, V.centre, node))
+        dr.scatter(maps.depth, dr.minimum(dc, corrected), dc_i, has)
+        dr.eval(maps.depth)
+    maps.fused = True
+
+
+# -----------------------------------------------------------------------------
+# Queries
+# -----------------------------------------------------------------------------
+
+def lookup(maps: Maps, view: mi.UInt32, x: mi.Point3f, active, bias: mi.Float, fused: bool = True):
+    """Visibility of points ``x`` from views ``view`` through the maps:
+    ``|x - p| <= depth(texel) + bias``. With ``fused`` one lookup in the
+    leaf map; otherwise every ancestor's map is read (no fusion needed)."""
+    V, lay = maps.view_h, maps.layout
+    node = dr.gather(mi.UInt32, V.leaf_of_view, view, active)
+    if fused or V.flat:
+        p = dr.gather(mi.Point3f, V.centre, node, active)
+        vs = x - p
+        face, tx, ty = pb.texel(vs, lay.R)
+        d = dr.gather(mi.Float, maps.depth, node * lay.texels + (face * lay.R + ty) * lay.R + tx, active)
+        return active & (dr.norm(vs) <= d + bias)
+    vis = mi.Bool(active)
+    alive = mi.Bool(active)
+    steps = dr.opaque(mi.UInt32, V.depth + 1)
+
+    def cond(i, node, vis, alive):
+        return alive & (i < steps)
+
+    def body(i, node, vis, alive):
+        p = dr.gather(mi.Point3f, V.centre, node, alive)
+        vs = x - p
+        face, tx, ty = pb.texel(vs, lay.R)
+        d = dr.gather(mi.Float, maps.depth, node * lay.texels + (face * lay.R + ty) * lay.R + tx, alive)
+        vis &= ~alive | (dr.norm(vs) <= d + bias)
+        alive &= node != 0
+        node = dr.gather(mi.UInt32, V.parent, node, alive)
+        return i + 1, node, vis, alive
+
+    _, _, vis, _ = dr.while_loop(state=(mi.UInt32(0), node, vis, alive), cond=cond, body=body)
+    return vis
+
+
+def render_maps(scene_h: SceneHierarchy, view_h: ViewHierarchy, R: int = 16, mode: str = "megaviews",
+                cull: bool = True, budget_pairs: int = DEFAULT_BUDGET, fusion: bool = True,
+                record: bool = False, timer=None, multi_pixel: bool = True) -> Maps:
+    """Shadow/depth maps of all views: ``mode`` is ``megaviews`` (octree
+    view hierarchy), ``manylods`` or ``brute`` (flat view sets)."""
+    from contextlib import nullcontext
+
+    def stage(name):
+        return timer.stage(name) if timer is not None else nullcontext()
+
+    with stage("traverse"):
+        if mode == "brute":
+            maps = brute_force(scene_h, view_h, R, cull, budget_pairs, multi_pixel)
+        else:
+            maps = Traversal(scene_h, view_h, R, cull, budget_pairs, record, multi_pixel).run()
+    with stage("push"):
+        if maps.stats.multi_pixel > 0:
+            push(maps)
+    with stage("fuse"):
+        if fusion:
+            fuse(maps)
+    return maps

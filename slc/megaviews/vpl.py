@@ -1,0 +1,331 @@
+r"""Instant radiosity with MegaViews shadow maps (Sec. 5.1).
+
+VPLs
+    ``generate(scene, n, bounces)``: ``n / bounces`` light paths from
+    ``scene.sample_emitter_ray``; one VPL is left at every hit (1-bounce:
+    the first hit only; multi-bounce: the path continues by BSDF sampling).
+    A VPL keeps its surface interaction (for its BSDF) and its flux
+    :math:`\Phi_k` = path weight / paths. Its view is the hemisphere
+    (``phi = pi/2``) around the normal on the side the light came from.
+
+Gathering (per pixel, subsampled, hierarchical culling)
+    .. math:: L(x) \approx \frac{C(x)}{S}\sum_{s=1}^{S}
+              f_x(\omega_{xk})\cos\theta_x\, f_k(\omega_{kx})\cos\theta_k\,
+              \frac{\Phi_k}{\max(d^2, d_{min}^2)}\, V_k(x)
+
+    The view hierarchy is cut at level ``cull_level``; nodes whose cone
+    (with their radius, the culling test of the traversal) cannot see
+    ``x`` are culled; ``C(x)`` counts the VPLs of the remaining nodes and
+    the ``S`` samples are drawn systematically (one random offset per
+    pixel) from them, so the estimate is unbiased over the VPLs that can
+    contribute. ``V_k(x)`` is the depth test in VPL ``k``'s dual-paraboloid
+    map (:func:`.traversal.lookup`) with a bias of
+    ``bias_leaf * r_leaf + bias_slope * |x - p_k| * 2 / R``.
+
+Filtering
+    A cross-bilateral filter (spatial Gaussian, depth and normal edge stops
+    from the G-buffer) on the demodulated estimate (divided by the diffuse
+    reflectance, multiplied back after).
+
+Reference
+    ``indirect_reference``: a small path tracer, one diffuse indirect
+    bounce at the G-buffer points (BSDF-sampled direction, then next-event
+    estimation at the hit), cached on disk like :mod:`slc.groundtruth`.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..lights import finite, rng, sample_light, visible
+from . import traversal as tv
+from .hierarchy import ViewHierarchy
+
+
+@dataclass
+class VPLSet:
+    si: mi.SurfaceInteraction3f   # one per VPL (its BSDF is evaluated at gathering)
+    flux: mi.Color3f
+    position: np.ndarray          # (N, 3)
+    normal: np.ndarray            # (N, 3): the side the light arrived from
+    bounce: np.ndarray            # (N,) 1 = first hit from the light
+
+    @property
+    def n(self) -> int:
+        return len(self.position)
+
+
+def generate(mi_scene: mi.Scene, n: int, bounces: int = 1, seed: int = 0) -> VPLSet:
+    """Exactly ``n`` VPLs when the light paths hit enough surfaces (paths are
+    traced with a margin for escaping rays and the first ``n`` valid VPLs
+    kept), one VPL per bounce. The flux stays normalised by the number of
+    paths traced, so the estimate is unbiased whatever is dropped."""
+    if bounces > 1:  # VPLs are ordered by bounce: keep them all
+        return _generate(mi_scene, n, bounces, seed)
+    vs = _generate(mi_scene, int(n * 1.5) + 16, bounces, seed)
+    if vs.n <= n:
+        return vs
+    idx = dr.arange(mi.UInt32, n)
+    keep = vs.position.shape[0]
+    frac = float(keep) / float(n)   # drop VPLs uniformly: rescale the flux of the kept ones
+    return VPLSet(dr.gather(mi.SurfaceInteraction3f, vs.si, idx), dr.gather(mi.Color3f, vs.flux, idx) * frac,
+                  vs.position[:n], vs.normal[:n], vs.bounce[:n])
+
+
+def _generate(mi_scene: mi.Scene, n: int, bounces: int = 1, seed: int = 0) -> VPLSet:
+    bounces = max(int(bounces), 1)
+    paths = max(int(n) // bounces, 1)
+    sampler = rng(paths, seed, stream=31)
+    u = [sampler.next_float32() for _ in range(5)]
+    ray, w, _ = mi_scene.sample_emitter_ray(mi.Float(0.0), u[0], mi.Point2f(u[1], u[2]), mi.Point2f(u[3], u[4]),
+                                           mi.Bool(True))
+    thr = mi.Color3f(w) / float(paths)
+    active = dr.isfinite(thr[0] + thr[1] + thr[2])
+    ctx = mi.BSDFContext(mi.TransportMode.Importance)
+    sis, fluxes, valids = [], [], []
+    for b in range(bounces):
+        si = mi_scene.ray_intersect(ray, active)
+        ok = active & si.is_valid()
+        ok &= ~si.shape.is_emitter()
+        sis.append(si)
+        fluxes.append(thr)
+        valids.append(ok)
+        if b + 1 < bounces:
+            bsdf = si.bsdf()
+            bs, bw = bsdf.sample(ctx, si, sampler.next_float32(), mi.Point2f(sampler.next_float32(),
+                                                                             sampler.next_float32()), ok)
+            thr = finite(thr * mi.Color3f(bw))
+            active = ok & (bs.pdf > 0.0) & (dr.max(thr) > 0.0)
+            ray = si.spawn_ray(si.to_world(bs.wo))
+    # ----------------------- compact the valid VPLs -----------------------
+    all_si, all_flux, all_b = [], [], []
+    for b, (si, fl, ok) in enumerate(zip(sis, fluxes, valids)):
+        idx = dr.compress(ok)
+        all_si.append(dr.gather(mi.SurfaceInteraction3f, si, idx))
+        all_flux.append(dr.gather(mi.Color3f, fl, idx))
+        all_b.append(np.full(dr.width(idx), b + 1))
+    if len(all_si) == 1:
+        si, flux = all_si[0], all_flux[0]
+    else:
+        sizes = [dr.width(f) for f in all_flux]
+        idx_np = np.concatenate([np.arange(s) for s in sizes])
+        src = np.concatenate([np.full(s, i) for i, s in enumerate(sizes)])
+        si, flux = all_si[0], all_flux[0]
+        # concatenate by scattering into fresh arrays
+        total = int(sum(sizes))
+        si = dr.zeros(mi.SurfaceInteraction3f, total)
+        flux = dr.zeros(mi.Color3f, total)
+        off = 0
+        for s_, f_, k in zip(all_si, all_flux, sizes):
+            dst = dr.arange(mi.UInt32, off, off + k)
+            dr.scatter(si, s_, dst)
+            dr.scatter(flux, f_, dst)
+            off += k
+        del idx_np, src
+    dr.eval(si, flux)
+    P = np.array(si.p, np.float64).T.reshape(-1, 3) if np.array(si.p).shape[0] == 3 else np.array(si.p)
+    N = np.array(si.n, np.float64)
+    N = N.T if N.shape[0] == 3 and N.ndim == 2 else N
+    N = N.reshape(-1, 3)
+    wi_world = np.array(si.to_world(si.wi), np.float64)
+    wi_world = (wi_world.T if wi_world.shape[0] == 3 else wi_world).reshape(-1, 3)
+    side = np.sign(np.sum(N * wi_world, axis=1))
+    N = N * np.where(side == 0, 1.0, side)[:, None]
+    P = np.asarray(P).reshape(-1, 3)
+    return VPLSet(si, flux, P, N, np.concatenate(all_b) if all_b else np.zeros(0))
+
+
+# -----------------------------------------------------------------------------
+# Gathering
+# -----------------------------------------------------------------------------
+
+def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cull_level: int = 2,
+           cull_tree: ViewHierarchy | None = None, fused: bool = True, bias_leaf: float = 2.0,
+           bias_slope: float = 2.0, d_min: float | None = None, shadows: bool = True) -> mi.Color3f:
+    """Subsampled VPL gathering at the G-buffer points (see module docstring)."""
+    V = cull_tree if cull_tree is not None else maps.view_h
+    if V.flat:
+        raise ValueError("gathering needs an octree view hierarchy for culling")
+    order = mi.UInt32(np.asarray(V.tree.order, np.uint32))
+    lc = int(min(cull_level, V.depth))
+    a, b = int(V.level_start[lc]), int(V.level_start[lc + 1])
+    first_np = V.tree.first_point[a:b]
+    cnt_np = V.tree.point_count[a:b]
+    first = mi.UInt32(first_np.astype(np.uint32))
+    count = mi.UInt32(cnt_np.astype(np.uint32))
+    ncentre = dr.gather(mi.Point3f, V.centre, dr.arange(mi.UInt32, a, b))
+    nradius = dr.gather(mi.Float, V.radius, dr.arange(mi.UInt32, a, b))
+    ndir = mi.Vector3f(dr.gather(mi.Point3f, V.dir, dr.arange(mi.UInt32, a, b)))
+    npsi = dr.gather(mi.Float, V.theta, dr.arange(mi.UInt32, a, b)) + V.phi_value
+    K = dr.opaque(mi.UInt32, b - a)
+    S = dr.opaque(mi.UInt32, int(samples))
+    si, active = gb.si, gb.valid
+    x = si.p
+    eps = mi.Float(scene_h.leaf_radius)
+    R = maps.layout.R
+    dmin = float(d_min if d_min is not None else 0.05 * scene_h.tree.edge)
+    bsdf_x = si.bsdf()
+    ctx = mi.BSDFContext()
+
+    # ----------------- pass 1: C(x), VPLs of the non-culled nodes -----------------
+    def c_cond(i, C):
+        return active & (i < K)
+
+    def c_body(i, C):
+        c = tv.cull_test(x, eps, dr.gather(mi.Point3f, ncentre, i), dr.gather(mi.Float, nradius, i),
+                         dr.gather(mi.Vector3f, ndir, i), dr.gather(mi.Float, npsi, i))
+        C += dr.select(c, 0, dr.gather(mi.UInt32, count, i))
+        return i + 1, C
+
+    _, C = dr.while_loop(state=(mi.UInt32(0), mi.UInt32(0)), cond=c_cond, body=c_body)
+
+    # --------------- pass 2: systematic samples over the kept VPLs ---------------
+    sampler = rng(gb.size, seed, stream=77)
+    xi = sampler.next_float32()
+    Cf = mi.Float(C)
+    step = Cf / mi.Float(S)
+
+    def cond(i, s, cum, L):
+        return active & (C > 0) & (i < K) & (s < S)
+
+    def body(i, s, cum, L):
+        c = tv.cull_test(x, eps, dr.gather(mi.Point3f, ncentre, i), dr.gather(mi.Float, nradius, i),
+                         dr.gather(mi.Vector3f, ndir, i), dr.gather(mi.Float, npsi, i))
+        n_i = dr.select(c, 0, dr.gather(mi.UInt32, count, i))
+        t = (mi.Float(s) + xi) * step
+        inside = t < mi.Float(cum + n_i)
+        # ---- emit sample s from node i ----
+        local = dr.minimum(mi.UInt32(dr.maximum(t - mi.Float(cum), 0.0)), dr.maximum(n_i, 1) - 1)
+        k = dr.gather(mi.UInt32, order, dr.gather(mi.UInt32, first, i) + local, inside)
+        si_k = dr.gather(mi.SurfaceInteraction3f, vpls.si, k, inside)
+        phi_k = dr.gather(mi.Color3f, vpls.flux, k, inside)
+        d = si_k.p - x
+        dist2 = dr.squared_norm(d)
+        dist = dr.sqrt(dist2)
+        w = d / dr.maximum(dist, 1e-12)
+        fx = mi.Color3f(bsdf_x.eval(ctx, si, si.to_local(w), inside))
+        bsdf_k = si_k.bsdf()
+        fk = mi.Color3f(bsdf_k.eval(ctx, si_k, si_k.to_local(-w), inside))
+        contrib = fx * fk * phi_k / dr.maximum(dist2, dmin * dmin)
+        ok = inside & (dr.max(contrib) > 0.0)
+        if shadows:
+            bias = bias_leaf * eps + bias_slope * dist * (2.0 / R)
+            ok = tv.lookup(maps, k, x, ok, bias, fused)
+        L += dr.select(ok, contrib, 0.0)
+        s = dr.select(inside, s + 1, s)
+        cum = dr.select(inside, cum, cum + n_i)
+        i = dr.select(inside, i, i + 1)
+        return i, s, cum, L
+
+    _, _, _, L = dr.while_loop(state=(mi.UInt32(0), mi.UInt32(0), mi.UInt32(0), mi.Color3f(0.0)),
+                               cond=cond, body=body)
+    return finite(dr.select(active, L * Cf / mi.Float(S), 0.0))
+
+
+# -----------------------------------------------------------------------------
+# Cross-bilateral filter
+# -----------------------------------------------------------------------------
+
+def bilateral(gb, L: mi.Color3f, radius: int = 4, sigma_s: float = 2.5, sigma_d: float = 0.05,
+              normal_power: float = 16.0) -> mi.Color3f:
+    """Cross-bilateral filter of ``L`` guided by the G-buffer (depth, normal),
+    on the estimate demodulated by the diffuse reflectance."""
+    W, H = gb.width, gb.height
+    si, valid = gb.si, gb.valid
+    rho = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, valid))
+    demod = dr.max(rho) > 0.02
+    E = dr.select(demod, L / dr.maximum(rho, 1e-3), L)
+    idx = dr.arange(mi.UInt32, W * H)
+    px, py = mi.Int32(idx % W), mi.Int32(idx // W)
+    depth, n = gb.depth, mi.Vector3f(si.n.x, si.n.y, si.n.z)
+    acc, wsum = mi.Color3f(0.0), mi.Float(0.0)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            qx, qy = px + dx, py + dy
+            inb = (qx >= 0) & (qx < W) & (qy >= 0) & (qy < H) & valid
+            q = mi.UInt32(dr.clip(qy, 0, H - 1) * W + dr.clip(qx, 0, W - 1))
+            vq = dr.gather(mi.Bool, valid, q, inb)
+            dq = dr.gather(mi.Float, depth, q, inb)
+            nq = dr.gather(mi.Vector3f, n, q, inb)
+            Eq = dr.gather(mi.Color3f, E, q, inb)
+            rel = (dq - depth) / dr.maximum(depth * sigma_d, 1e-6)
+            wn = dr.power(dr.maximum(dr.dot(nq, n), 0.0), normal_power)
+            w = math.exp(-(dx * dx + dy * dy) / (2 * sigma_s ** 2)) * dr.exp(-0.5 * rel * rel) * wn
+            w = dr.select(inb & vq, w, 0.0)
+            acc += w * Eq
+            wsum += w
+    Ef = dr.select(wsum > 1e-8, acc / dr.maximum(wsum, 1e-8), E)
+    return finite(dr.select(valid, dr.select(demod, Ef * rho, Ef), 0.0))
+
+
+# -----------------------------------------------------------------------------
+# Reference: one indirect bounce, path traced, cached on disk
+# -----------------------------------------------------------------------------
+
+_REF_VERSION = "mv-ref-v1"
+
+
+def _trace_indirect(mi_scene, gb, spp: int, seed: int) -> mi.Color3f:
+    si, active = gb.si, gb.valid
+    bsdf = si.bsdf()
+    ctx = mi.BSDFContext()
+    sampler = rng(gb.size, seed, stream=55)
+    n = dr.opaque(mi.UInt32, spp)
+
+    def cond(i, L, sampler):
+        return i < n
+
+    def body(i, L, sampler):
+        # ------------------------- BSDF-sampled bounce -------------------------
+        bs, bw = bsdf.sample(ctx, si, sampler.next_float32(),
+                             mi.Point2f(sampler.next_float32(), sampler.next_float32()), active)
+        ok = active & (bs.pdf > 0.0)
+        si2 = mi_scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), ok)
+        ok &= si2.is_valid() & ~si2.shape.is_emitter()
+        # ------------------- next-event estimation at the hit -------------------
+        ds, w, ok2 = sample_light(mi_scene, si2, mi.Point2f(sampler.next_float32(), sampler.next_float32()), ok)
+        ok2 = visible(mi_scene, si2, ds, ok2)
+        f2 = mi.Color3f(si2.bsdf().eval(ctx, si2, si2.to_local(ds.d), ok2))
+        L += dr.select(ok2, mi.Color3f(bw) * f2 * w, 0.0)
+        return i + 1, L, sampler
+
+    _, L, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body)
+    return finite(L / float(max(spp, 1)))
+
+
+def indirect_reference(scene, gb, spp: int = 256, seed: int = 11, use_cache: bool = True) -> np.ndarray:
+    """(H, W, 3) one-bounce indirect light at the G-buffer points, cached."""
+    from ..groundtruth import cache_dir
+    cam = gb.camera
+    key = hashlib.sha1(json.dumps([_REF_VERSION, scene.name, gb.width, gb.height, spp, seed,
+                                   np.round(cam.origin, 6).tolist(), np.round(cam.target, 6).tolist(),
+                                   float(cam.fov), None if scene.time is None else round(float(scene.time), 6)]
+                                  ).encode()).hexdigest()[:16]
+    path = cache_dir().parent / "megaviews" / f"{scene.name}_{gb.width}x{gb.height}_s{spp}_{key}.npy"
+    if use_cache and path.exists():
+        try:
+            return np.load(path)
+        except (OSError, ValueError):
+            pass
+    L = _trace_indirect(scene.mi_scene, gb, spp, seed)
+    img = to_image(gb, L)
+    if use_cache:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".tmp{os.getpid()}.npy")
+        np.save(tmp, img)
+        os.replace(tmp, path)
+    return img
+
+
+def to_image(gb, L) -> np.ndarray:
+    a = np.array(L, np.float32)
+    if a.ndim == 2 and a.shape[0] == 3:
+        a = a.T
+    return a.reshape(gb.height, gb.width, 3)
