@@ -207,3 +207,36 @@ def test_settings_and_presets(cornell):
     for bad in ("restir:bias=maybe", "restir:preset=nope", "restir:foo=1"):
         with pytest.raises(MethodError):
             methods.create(bad, cornell)
+
+
+def test_neighbour_count_limit(cornell):
+    """Accepted neighbours are kept in a 32-bit mask between the two spatial
+    passes: more than 32 neighbours is a setting error."""
+    assert methods.create("restir:spatial=32,boost=32", cornell).boost == 32
+    for bad in ("restir:spatial=33", "restir:boost=40"):
+        with pytest.raises(MethodError):
+            methods.create(bad, cornell)
+
+
+def test_no_kernel_recompilation_after_warmup(cornell):
+    """Per-frame values (seeds, camera origin) are opaque: after two
+    warm-up frames with temporal history, rendering compiles no new JIT
+    kernel (every launched kernel is a cache hit)."""
+    import drjit as dr
+    vs = views.single(cornell)
+    m = methods.create("restir:spatial=5", cornell, seed=7)
+    for f in range(3):
+        m.render(FrameContext(f, float(f)), gbuffers_for(cornell, vs, f, W, H), NullTimer())
+    gbs = gbuffers_for(cornell, vs, 3, W, H)
+    dr.sync_thread()
+    dr.kernel_history()                                  # drop older entries
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        m.render(FrameContext(3, 3.0), gbs, NullTimer())
+        dr.sync_thread()
+        hist = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    jit = [h for h in hist if h["type"] == dr.KernelType.JIT]
+    assert jit, "no kernel launched"
+    assert all(h["cache_hit"] for h in jit), [h.get("hash") for h in jit if not h["cache_hit"]]

@@ -21,6 +21,9 @@ from ..methods import Method, MethodError, register
 # Emitter kinds (the measure in which a stored sample lives)
 AREA, DELTA_POS, INFINITE = 0, 1, 2
 
+# Neighbours per pixel are recorded in a 32-bit mask between the two spatial passes
+MAX_NEIGHBOURS = 32
+
 # Bytes of one reservoir: y (12), n (12), light index (4), W (4), M (4)
 RESERVOIR_BYTES = 36
 # Previous-frame surface kept for temporal reuse: position (12), normal (12), depth (4)
@@ -113,14 +116,17 @@ class ReSTIR(Method):
     3. *spatial* (``spatial`` neighbours, 0 disables): neighbours uniform
        in a disk of ``radius`` pixels at 1080p, scaled by height/1080 (at
        least 2 px), same depth/normal tests; pixels whose temporal reuse
-       failed take ``boost`` neighbours (RTXDI's disocclusion boost).
+       failed take ``max(spatial, boost)`` neighbours (RTXDI's disocclusion
+       boost). Two symbolic loops over the per-pixel count (at most 32):
+       resampling, then Z over the accepted neighbours (RTXDI's bit mask).
     4. *shade*: one shadow ray to the final sample.
 
     Bias correction ``bias``: ``off`` (Z = sum of M, biased where
     neighbours differ), ``basic`` (Z = sum of the M of reservoirs whose
     surface has :math:`\hat p(y) > 0`, the 1/Z weights of Bitterli et al.,
-    no visibility), ``raytraced`` (``basic`` plus a shadow ray per reused
-    reservoir). Pairwise MIS is not implemented.
+    no visibility). Pairwise MIS and ray-traced bias correction are not
+    implemented (a shadow-ray test in Z is inconsistent with the unshadowed
+    target, see ``docs/restir.md``).
 
     Parameters and defaults (RTXDI library defaults): ``local=8``,
     ``env=1``, ``bsdf=1``, ``temporal=1``, ``mcap=20``, ``depth=0.1``,
@@ -156,6 +162,8 @@ class ReSTIR(Method):
         self.radius, self.bias, self.visibility = float(radius), bias, bool(int(visibility))
         if min(self.n_local, self.n_env, self.n_bsdf, self.spatial, self.boost) < 0:
             raise MethodError("restir: candidate and neighbour counts must be >= 0")
+        if max(self.spatial, self.boost) > MAX_NEIGHBOURS:
+            raise MethodError(f"restir: at most {MAX_NEIGHBOURS} spatial/boost neighbours (a 32-bit mask)")
         self._setup_lights()
         self.reset()
 
@@ -222,17 +230,26 @@ class ReSTIR(Method):
 
     # --------------------------- Target function ---------------------------
 
-    def _eval(self, si, bsdf, y, n, light, active):
-        """Unshadowed contribution f_r L_e G of stored samples at ``si``:
-        (colour, p_hat = luminance, world direction, distance, kind)."""
-        ctx = mi.BSDFContext()
+    def _direction(self, si, y, light, active):
+        """Unit direction from ``si`` to a stored sample, its distance (inf
+        for infinite lights) and the emitter kind."""
         kind = dr.gather(mi.UInt32, self._kind, light, active)
-        em = dr.gather(mi.EmitterPtr, self._emitters, light, active)
         inf = kind == INFINITE
         to = mi.Vector3f(y) - si.p
         dist = dr.norm(to)
-        ok = active & (inf | (dist > 0.0))
         d = dr.select(inf, mi.Vector3f(y), to / dr.select(dist > 0.0, dist, 1.0))
+        return d, dist, kind
+
+    def _eval(self, si, bsdf, y, n, light, active, with_pdf: bool = False):
+        """Unshadowed contribution f_r L_e G of stored samples at ``si``:
+        (colour, p_hat = luminance, world direction, distance, kind,
+        DirectionSample3f), plus the BSDF's solid-angle pdf of the direction
+        when ``with_pdf`` (one ``eval_pdf`` call instead of two)."""
+        ctx = mi.BSDFContext()
+        d, dist, kind = self._direction(si, y, light, active)
+        em = dr.gather(mi.EmitterPtr, self._emitters, light, active)
+        inf = kind == INFINITE
+        ok = active & (inf | (dist > 0.0))
         ds = dr.zeros(mi.DirectionSample3f)
         ds.p = dr.select(inf, si.p + d, mi.Point3f(y))
         ds.n = mi.Normal3f(n)
@@ -242,10 +259,15 @@ class ReSTIR(Method):
         ds.delta = dr.gather(mi.Bool, self._delta, light, active)
         Le = mi.Color3f(em.eval_direction(si, ds, ok))
         G = dr.select(kind == AREA, dr.abs(dr.dot(mi.Vector3f(n), d)) / dr.select(ok & ~inf, dr.square(dist), 1.0), 1.0)
-        f = mi.Color3f(bsdf.eval(ctx, si, si.to_local(d), ok))
-        c = dr.select(ok, f * Le * G, 0.0)
+        if with_pdf:
+            f, p_bsdf = bsdf.eval_pdf(ctx, si, si.to_local(d), ok)
+        else:
+            f, p_bsdf = bsdf.eval(ctx, si, si.to_local(d), ok), None
+        c = dr.select(ok, mi.Color3f(f) * Le * G, 0.0)
         c = finite(c)
         p_hat = dr.maximum(mi.luminance(c), 0.0)
+        if with_pdf:
+            return c, p_hat, d, dist, kind, ds, dr.select(ok, p_bsdf, 0.0)
         return c, p_hat, d, dist, kind, ds
 
     def _visible(self, si, d, dist, kind, active):
@@ -258,15 +280,19 @@ class ReSTIR(Method):
         ray.d = dr.select(inf, ray.d, ray_to.d)
         return active & ~self.scene.mi_scene.ray_test(ray, active)
 
-    def _pdf_sum(self, si, bsdf, light, kind, d, dist, n, ds, active):
+    def _pdf_sum(self, si, bsdf, light, kind, d, dist, n, ds, active, p_dir=None, p_bsdf=None):
         """sum_t N_t p_t(y): candidate densities of the three techniques in the
-        sample's measure (area / solid angle / discrete)."""
+        sample's measure (area / solid angle / discrete). ``p_dir`` (the
+        light's solid-angle pdf, e.g. ``ds.pdf`` of the sampling call) and
+        ``p_bsdf`` (from ``eval_pdf``) are computed here when not given."""
         ctx = mi.BSDFContext()
         em = ds.emitter
         delta = ds.delta
         cos_y = dr.abs(dr.dot(mi.Vector3f(n), d))
         to_area = dr.select(kind == AREA, cos_y / dr.select(dist > 0.0, dr.square(dist), 1.0), 1.0)
-        p_dir = dr.select(delta, 0.0, em.pdf_direction(si, ds, active & ~delta))
+        if p_dir is None:
+            p_dir = em.pdf_direction(si, ds, active & ~delta)
+        p_dir = dr.select(delta, 0.0, p_dir)
         total = dr.zeros(mi.Float, dr.width(light))
         if self._L and self.n_local:
             p_l = dr.select(delta, 1.0, p_dir * to_area) / self._L
@@ -275,7 +301,9 @@ class ReSTIR(Method):
             p_e = dr.select(delta, 1.0, p_dir) / self._E
             total += dr.select(kind == INFINITE, float(self.n_env) * p_e, 0.0)
         if self.n_bsdf:
-            p_b = bsdf.pdf(ctx, si, si.to_local(d), active & ~delta) * to_area
+            if p_bsdf is None:
+                p_bsdf = bsdf.pdf(ctx, si, si.to_local(d), active & ~delta)
+            p_b = p_bsdf * to_area
             hit_able = ~delta & (kind == AREA)
             if self._env_index >= 0:
                 hit_able |= ~delta & (light == self._env_index)
@@ -293,9 +321,10 @@ class ReSTIR(Method):
         sampler = rng(n, seed, stream=11)
         res = _Stream(n)
 
-        def add(y, nrm, light, ok, u_sel):
-            c, p_hat, d, dist, kind, ds = self._eval(si, bsdf, y, nrm, light, ok)
-            denom = self._pdf_sum(si, bsdf, light, kind, d, dist, nrm, ds, ok & (p_hat > 0.0))
+        def add(y, nrm, light, ok, u_sel, p_dir=None):
+            _, p_hat, d, dist, kind, ds, p_bsdf = self._eval(si, bsdf, y, nrm, light, ok, with_pdf=True)
+            denom = self._pdf_sum(si, bsdf, light, kind, d, dist, nrm, ds, ok & (p_hat > 0.0),
+                                  p_dir=p_dir, p_bsdf=p_bsdf)
             good = ok & (p_hat > 0.0) & (denom > 0.0)
             w = dr.select(good, p_hat / dr.select(good, denom, 1.0), 0.0)
             res.update(y, nrm, light, p_hat, w, u_sel, good)
@@ -316,7 +345,7 @@ class ReSTIR(Method):
                 u = mi.Point2f(smp.next_float32(), smp.next_float32())
                 ds, _ = em.sample_direction(si, u, active)
                 ok = active & (ds.pdf > 0.0)
-                add(mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32())
+                add(mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32(), p_dir=ds.pdf)
                 return i + 1, res.y, res.n, res.light, res.p_hat, res.w_sum, smp
 
             out = dr.while_loop(state=state, cond=cond, body=body,
@@ -332,7 +361,7 @@ class ReSTIR(Method):
                 u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
                 ds, _ = em.sample_direction(si, u, active)
                 ok = active & (ds.pdf > 0.0)
-                add(mi.Point3f(ds.d), dr.zeros(mi.Vector3f, n), light, ok, sampler.next_float32())
+                add(mi.Point3f(ds.d), dr.zeros(mi.Vector3f, n), light, ok, sampler.next_float32(), p_dir=ds.pdf)
 
         # ---------------- BSDF candidates ----------------
         for _ in range(self.n_bsdf):
@@ -341,7 +370,8 @@ class ReSTIR(Method):
             bs, _ = bsdf.sample(ctx, si, u1, u2, active)
             ok = active & (bs.pdf > 0.0)
             wo = si.to_world(bs.wo)
-            si2 = sc.ray_intersect(si.spawn_ray(wo), ok)
+            # position, geometric normal and shape suffice (no UVs, partials, shading frame)
+            si2 = sc.ray_intersect(si.spawn_ray(wo), ray_flags=mi.RayFlags.Minimal, coherent=False, active=ok)
             hit = ok & si2.is_valid()
             em = si2.emitter(sc, hit)
             hit_em = hit & (em != None)  # noqa: E711 (EmitterPtr comparison)
@@ -360,7 +390,7 @@ class ReSTIR(Method):
         # ---------------- Finalize (M = 1) and initial visibility ----------------
         r = res.finalize(mi.Float(1.0), mi.Float(1.0), active)
         if self.visibility:
-            _, _, d, dist, kind, _ = self._eval(si, bsdf, r.y, r.n, r.light, active & (r.W > 0.0))
+            d, dist, kind = self._direction(si, r.y, r.light, active & (r.W > 0.0))
             vis = self._visible(si, d, dist, kind, active & (r.W > 0.0))
             r.W = dr.select(vis, r.W, 0.0)
         return r, res.p_hat
@@ -403,7 +433,7 @@ class ReSTIR(Method):
         # ---------------- Resampling: current + history ----------------
         st = _Stream(n)
         st.update(r.y, r.n, r.light, p_cur, p_cur * r.W * r.M, sampler.next_float32(), active)
-        _, p_here, _, _, _, _ = self._eval(si, bsdf, rp.y, rp.n, rp.light, ok)
+        _, p_here, _, _, _, _ = self._eval(si, bsdf, rp.y, rp.n, rp.light, ok & (rp.W > 0.0))
         st.update(rp.y, rp.n, rp.light, p_here, p_here * rp.W * M_p, sampler.next_float32(), ok)
         M = r.M + M_p
 
@@ -413,71 +443,96 @@ class ReSTIR(Method):
         else:
             Z = dr.select(st.p_hat > 0.0, r.M, 0.0)
             bsdf_p = si_p.bsdf()
-            _, p_prev, d, dist, kind, _ = self._eval(si_p, bsdf_p, st.y, st.n, st.light, ok)
-            count = ok & (p_prev > 0.0)
-            if self.bias == "raytraced":
-                count = self._visible(si_p, d, dist, kind, count)
-            Z += dr.select(count, M_p, 0.0)
+            # only where a sample was selected (W = 0 otherwise, whatever Z)
+            sel = ok & (st.p_hat > 0.0) & (st.w_sum > 0.0)
+            _, p_prev, _, _, _, _ = self._eval(si_p, bsdf_p, st.y, st.n, st.light, sel)
+            Z += dr.select(sel & (p_prev > 0.0), M_p, 0.0)
         return st.finalize(Z, M, active), ok, st.p_hat
 
     # ------------------------------ Stage 3: spatial ------------------------------
 
+    def _neighbour(self, smp, x0, y0, R: float, W_: int, H_: int):
+        """Next neighbour of the sequence ``smp``: a pixel uniform in the disk
+        of radius ``R`` around (x0, y0), rounded; (index, in-bounds mask).
+        The pixel itself does not count as a neighbour."""
+        u1, u2 = smp.next_float32(), smp.next_float32()
+        rad = R * dr.sqrt(u1)
+        phi = 2.0 * math.pi * u2
+        qx = x0 + mi.Int32(dr.round(rad * dr.cos(phi)))
+        qy = y0 + mi.Int32(dr.round(rad * dr.sin(phi)))
+        inb = (qx >= 0) & (qy >= 0) & (qx < W_) & (qy < H_) & ((qx != x0) | (qy != y0))
+        return mi.UInt32(dr.select(inb, qy * W_ + qx, 0)), inb
+
     def spatial_reuse(self, gb, r: Reservoir, p_cur, reused, seed: int):
+        """Merge neighbours' reservoirs (read from the temporal output ``r``).
+
+        Two symbolic loops over a per-pixel neighbour count ``k``: the first
+        resamples and records the accepted neighbours in a bit mask, the
+        second (``bias=basic``) replays the same neighbour sequence up to
+        the last accepted one and sums Z over the accepted neighbours whose
+        surface has p_hat(y) > 0 for the selected y."""
         n = gb.size
         si, active = gb.si, gb.valid
         bsdf = si.bsdf()
         W_, H_ = gb.width, gb.height
         R = max(self.radius * H_ / 1080.0, 2.0)
-        k_lane = mi.UInt32(self.spatial)
-        if self.temporal and self.boost > self.spatial:
-            k_lane = dr.select(reused, self.spatial, self.boost)
-        k_max = max(self.spatial, self.boost if self.temporal else 0)
         idx = dr.arange(mi.UInt32, n)
         x0, y0 = mi.Int32(idx % W_), mi.Int32(idx // W_)
-        depth0, n0 = gb.depth, si.sh_frame.n
+        depth0, n0 = gb.depth, mi.Vector3f(si.sh_frame.n)
 
-        def neighbours():
-            """The same neighbour sequence on every call (replayed for Z)."""
-            smp = rng(n, seed, stream=13)
-            for i in range(k_max):
-                u1, u2 = smp.next_float32(), smp.next_float32()
-                rad = R * dr.sqrt(u1)
-                phi = 2.0 * math.pi * u2
-                qx = x0 + mi.Int32(dr.round(rad * dr.cos(phi)))
-                qy = y0 + mi.Int32(dr.round(rad * dr.sin(phi)))
-                inb = (qx >= 0) & (qy >= 0) & (qx < W_) & (qy < H_) & ((qx != x0) | (qy != y0))
-                q = mi.UInt32(dr.select(inb, qy * W_ + qx, 0))
-                ok = active & (mi.UInt32(i) < k_lane) & inb & dr.gather(mi.Bool, gb.valid, q, active & inb)
-                ok &= self._similar(n0, dr.gather(mi.Vector3f, mi.Vector3f(si.sh_frame.n), q, ok),
-                                    depth0, dr.gather(mi.Float, gb.depth, q, ok))
-                yield q, ok
+        # ---------------- Per-pixel neighbour count ----------------
+        # spatial everywhere; max(spatial, boost) where temporal history was
+        # rejected (disocclusion boost); none on invalid pixels.
+        k = dr.full(mi.UInt32, self.spatial, n)
+        if self.temporal and self.boost > self.spatial:
+            k = dr.select(reused, k, self.boost)
+        k = dr.select(active, k, 0)
 
-        # ---------------- Resampling: self + neighbours ----------------
+        # ---------------- Pass 1: resampling self + neighbours ----------------
         sel = rng(n, seed, stream=14)
         st = _Stream(n)
         st.update(r.y, r.n, r.light, p_cur, p_cur * r.W * r.M, sel.next_float32(), active)
         M = mi.Float(r.M)
-        for q, ok in neighbours():
+        state = (mi.UInt32(0), rng(n, seed, stream=13), sel, st.y, st.n, st.light, st.p_hat, st.w_sum,
+                 M, mi.UInt32(0))
+
+        def body(i, smp, sel, y, nrm, light, p_hat, w_sum, M, used):
+            st.y, st.n, st.light, st.p_hat, st.w_sum = y, nrm, light, p_hat, w_sum
+            q, ok = self._neighbour(smp, x0, y0, R, W_, H_)
+            ok &= dr.gather(mi.Bool, gb.valid, q, ok)
+            ok &= self._similar(n0, dr.gather(mi.Vector3f, n0, q, ok), depth0, dr.gather(mi.Float, gb.depth, q, ok))
             rq = dr.gather(Reservoir, r, q, ok)
             ok &= rq.M > 0.0
-            _, p_here, _, _, _, _ = self._eval(si, bsdf, rq.y, rq.n, rq.light, ok)
+            # the target is only needed for a non-zero resampling weight; M counts regardless
+            _, p_here, _, _, _, _ = self._eval(si, bsdf, rq.y, rq.n, rq.light, ok & (rq.W > 0.0))
             st.update(rq.y, rq.n, rq.light, p_here, p_here * rq.W * rq.M, sel.next_float32(), ok)
-            M += dr.select(ok, rq.M, 0.0)
+            M = M + dr.select(ok, rq.M, 0.0)
+            used = used | dr.select(ok, mi.UInt32(1) << i, 0)
+            return i + 1, smp, sel, st.y, st.n, st.light, st.p_hat, st.w_sum, M, used
 
-        # ---------------- Bias correction (replay the neighbours) ----------------
+        out = dr.while_loop(state=state, cond=lambda i, *_: i < k, body=body,
+                            labels=("i", "smp", "sel", "y", "n", "light", "p_hat", "w_sum", "M", "used"))
+        _, _, _, st.y, st.n, st.light, st.p_hat, st.w_sum, M, used = out
+
+        # ---------------- Pass 2: bias correction (replay the neighbours) ----------------
         if self.bias == "off":
             Z = M
         else:
             Z = dr.select(st.p_hat > 0.0, r.M, 0.0)
-            for q, ok in neighbours():
+            # Only up to the last accepted neighbour, only where a sample was selected
+            k2 = dr.select(active & (st.p_hat > 0.0) & (st.w_sum > 0.0), 32 - dr.lzcnt(used), 0)
+            y_s, n_s, l_s = mi.Point3f(st.y), mi.Vector3f(st.n), mi.UInt32(st.light)
+
+            def body_z(i, smp, Z):
+                q, _ = self._neighbour(smp, x0, y0, R, W_, H_)
+                ok = ((used >> i) & 1) != 0
                 Mq = dr.gather(mi.Float, r.M, q, ok)
-                ok &= Mq > 0.0
                 si_q = dr.gather(mi.SurfaceInteraction3f, si, q, ok)
-                _, p_q, d, dist, kind, _ = self._eval(si_q, si_q.bsdf(), st.y, st.n, st.light, ok)
-                count = ok & (p_q > 0.0)
-                if self.bias == "raytraced":
-                    count = self._visible(si_q, d, dist, kind, count)
-                Z += dr.select(count, Mq, 0.0)
+                _, p_q, _, _, _, _ = self._eval(si_q, si_q.bsdf(), y_s, n_s, l_s, ok)
+                return i + 1, smp, Z + dr.select(ok & (p_q > 0.0), Mq, 0.0)
+
+            _, _, Z = dr.while_loop(state=(mi.UInt32(0), rng(n, seed, stream=13), Z),
+                                    cond=lambda i, *_: i < k2, body=body_z, labels=("i", "smp", "Z"))
         return st.finalize(Z, M, active), st.p_hat
 
     # ------------------------------ Stage 4: shade ------------------------------
