@@ -40,6 +40,7 @@ class ConeParams:
     shrink_period: int = 4          # settled entries (1 ray) run the shrink test every k-th frame
     seed_c_max: float = 4.0         # C given to an entry seeded from a coarser one
     c_max: float = 255.0            # 8-bit encoding
+    multi_cycles: float = 8.0       # multi-sample cycles (new / moving entries) cap C at this many cycles
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -196,17 +197,29 @@ def insert_sample(D, A, L, S, n, beta, s, w, ok, p: ConeParams):
 
 
 def end_cycle(L, S, C, n, beta, n_samples, p: ConeParams):
-    """Close an update cycle: reduce C once (if a cone turned), increment it,
-    and fold this cycle's estimate ``S_c / n_samples`` into each cone's running mean
-    ``L <- L (1 - 1/C) + est / C``. Returns (L, C, reduced)."""
+    """Close an update cycle: reduce C once (if a cone turned), add the cycle's
+    sample count to it (the paper: "increasing C with the exact samples in every
+    cycle"), and fold the samples into each cone's running mean. With
+    ``n_s`` samples and their per-cone weight sum ``S_c`` this is the paper's
+    per-sample update ``L <- L (1 - 1/C) + L_s / C`` applied ``n_s`` times
+    (a sample outside a cone counts as zero for it):
+
+        C' = min(C + n_s, 255),   L_c <- L_c (1 - n_s / C') + S_c / C'.
+
+    Every sample's weight enters exactly one cone, so the sum over cones is the
+    running mean of all samples (energy is kept through inserts and merges).
+    Returns (L, C, reduced)."""
     K = p.max_cones
     C, red = c_reduction(C, beta, p)
-    C = dr.minimum(C + 1.0, p.c_max)
-    inv = 1.0 / dr.maximum(C, 1.0)
     ns = dr.maximum(mi.Float(n_samples), 1.0)
+    # cycles with several samples (new entries, detected motion) keep at most
+    # ``multi_cycles`` cycles of memory; settled 1-sample cycles go up to 255
+    C = dr.minimum(C + ns, dr.select(ns > 1.0, dr.minimum(p.multi_cycles * ns, p.c_max), p.c_max))
+    inv = 1.0 / dr.maximum(C, 1.0)
+    keep = dr.maximum(1.0 - ns * inv, 0.0)
     out = []
     for i in range(K):
-        Li = L[i] * (1.0 - inv) + (S[i] / ns) * inv
+        Li = L[i] * keep + S[i] * inv
         out.append(dr.select(n > i, Li, mi.Color3f(0.0)))
     return out, C, red
 
@@ -289,12 +302,35 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     sequentially in a loop so no update is lost). Reads and writes the packed
     ``storage`` (``capacity * words_per_entry`` UInt32). Returns (storage, motion mask
     per active entry)."""
-    from .packing import gather_words, pack, scatter_words, unpack
+    from .packing import scatter_words
+    if dr.width(active) == 0:
+        return storage, mi.Bool()
+    N = dr.width(active)
+    # Entries with 8 samples side by side, so that a SIMD packet's loop does not
+    # run 8 iterations for 1-sample lanes (random numbers are keyed by slot, so
+    # the order changes nothing in the results).
+    order = dr.argsort(mi.UInt32(rays), descending=True)
+    act = dr.gather(mi.UInt32, active, order)
+    words, motion_o, shrunk_o, dropped_o = _updated_words(
+        scene, storage, act, dr.gather(type(si), si, order), dr.gather(mi.UInt32, rays, order),
+        dr.gather(mi.Bool, is_new, order), dr.gather(mi.UInt32, seed_slot, order), frame, seed, p)
+    motion = dr.zeros(mi.Bool, N)
+    dr.scatter(motion, motion_o, order)
+    if stats is not None:
+        stats["shrunk"] = shrunk_o
+        stats["dropped"] = dropped_o
+    # Every intermediate that read ``storage`` died with _updated_words' locals, so
+    # the scatter below writes in place (a live reader would force a full copy).
+    scatter_words(storage, words, act, p.max_cones)
+    return storage, motion
+
+
+def _updated_words(scene, storage, active, si, rays, is_new, seed_slot, frame, seed, p: ConeParams):
+    """The update kernel proper: unpack, insert samples, shrink, end the cycle,
+    pack. Returns the evaluated (words, motion, shrunk, dropped)."""
+    from .packing import gather_words, pack, unpack
     K = p.max_cones
     N = dr.width(active)
-    if N == 0:
-        return storage, mi.Bool()
-    active = mi.UInt32(active)
     valid = si.is_valid()
 
     # ----------------------------------------------- unpack (or reset / seed new entries)
@@ -336,7 +372,8 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
 
     # ----------------------------------------------- shrink test: one ray per cone
     period = max(int(p.shrink_period), 1)
-    do_shrink = valid & ((rays > 1) | (((active + mi.UInt32(frame % period)) % period) == 0))
+    phase = dr.opaque(mi.UInt32, frame % period)  # opaque: no recompilation per frame
+    do_shrink = valid & ((rays > 1) | (((active + phase) % period) == 0))
     us = [sampler.next_float32() for _ in range(K)]
     dirs, tested = shrink_test_dirs(D, A, n, us, p)
     hits = []
@@ -354,8 +391,4 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     motion = valid & (reduced | dropped | (beta * (180.0 / math.pi) > p.beta_min_deg))
     words = pack(D, A, L, C, n, K)
     dr.eval(*words, motion, shrunk, dropped)
-    if stats is not None:
-        stats["shrunk"] = shrunk
-        stats["dropped"] = dropped
-    scatter_words(storage, words, active, K)
-    return storage, motion
+    return words, motion, shrunk, dropped
