@@ -115,25 +115,19 @@ class SurfaceLightCones(Method):
                 self.storage, motion = update_entries(
                     self.scene.mi_scene, self.storage, fr.active, fr.si, self._rays(fr.rays), fr.is_new,
                     fr.seed_slot, ctx.frame, self.seed, self.params, st_info)
+                self.cache.mark_motion(fr.active, motion)
                 st.outputs(self.storage)
-        if n_active > 0:
-            self.cache.mark_motion(fr.active, motion)
         with timer.stage("shade") as st:
             outs = []
             if n_active > 0:
-                # local frame of each pixel's entry: the texel's own frame (fr.si), found
-                # through an inverse map slot -> active index
-                inv = dr.zeros(mi.UInt32, max(int(self.cache.capacity), 1))
-                dr.scatter(inv, dr.arange(mi.UInt32, n_active), fr.active)
-                fs = fr.si.sh_frame
-            for gb, slot in zip(gbuffers, fr.pixel_slot):
+                fs = fr.si.sh_frame   # each entry's own local frame (the cones live in it)
+            for v, (gb, slot) in enumerate(zip(gbuffers, fr.pixel_slot)):
                 if n_active == 0:
                     outs.append(dr.zeros(mi.Color3f, gb.size))
                     continue
                 slot = mi.UInt32(slot)
                 ok = mi.Bool(gb.valid) & (slot != INVALID)
-                idx = dr.gather(mi.UInt32, inv, slot, ok)
-                tf = dr.gather(mi.Frame3f, fs, idx, ok)
+                tf = dr.gather(mi.Frame3f, fs, fr.pixel_index[v], ok)
                 outs.append(shade_pixels(self.storage, slot, ok, gb.si, tf, K, self.shade_samples))
             st.outputs(*outs)
         self._last = {"active_entries": n_active, "motion_entries": motion,

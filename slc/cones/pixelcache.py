@@ -24,6 +24,7 @@ class PixelFrame:
     rays: mi.UInt32
     is_new: mi.Bool
     seed_slot: mi.UInt32
+    pixel_index: list      # per viewer: each pixel's index into ``active``
 
 
 class PixelSlotCache:
@@ -58,9 +59,13 @@ class PixelSlotCache:
         dr.scatter(self._motion, dr.select(mot > 0, mot - 1, 0), active)
         slots = [dr.select(mi.Bool(g.valid), idx, INVALID) for g in gbuffers]
         self._frames += 1
+        # rank of each valid pixel among the valid ones = its index into ``active``
+        rank = dr.zeros(mi.UInt32, N)
+        dr.scatter(rank, dr.arange(mi.UInt32, dr.width(active)), active)
+        index = [dr.select(mi.Bool(g.valid), rank, INVALID) for g in gbuffers]
         fr = PixelFrame(slots, active, si, mi.UInt32(rays), mi.Bool(is_new),
-                        dr.full(mi.UInt32, INVALID, dr.width(active)))
-        dr.eval(fr.active, fr.si, fr.rays, fr.is_new, self._updates, self._motion, *slots)
+                        dr.full(mi.UInt32, INVALID, dr.width(active)), index)
+        dr.eval(fr.active, fr.si, fr.rays, fr.is_new, self._updates, self._motion, *slots, *index)
         return fr
 
     def mark_motion(self, slots, mask):
