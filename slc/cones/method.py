@@ -47,17 +47,22 @@ class SurfaceLightCones(Method):
 
     def __init__(self, scene, max_cones: int = 3, shade_samples: int = 16, rays_new: int = 8,
                  rays_settled: int = 1, bias: float = 1.0, block: int = 8, evict_after: int = 60,
-                 epsilon: float = 0.1, shrink_period: int = 4, beta_min: float = 1.0, cache=None, **kw):
+                 epsilon: float = 0.1, shrink_period: int = 4, beta_min: float = 1.0, fetch: str = "nearest",
+                 cache=None, **kw):
         super().__init__(scene, **kw)
         if not 1 <= int(max_cones) <= 4:
             raise MethodError(f"slc: max_cones must be 1-4 (got {max_cones})")
         if not 0.0 < float(epsilon) < 1.0:
             raise MethodError(f"slc: epsilon must be in (0, 1) (got {epsilon})")
         self.params = ConeParams(max_cones=int(max_cones), epsilon=float(epsilon),
-                                 shrink_period=int(shrink_period), beta_min_deg=float(beta_min))
+                                 shrink_period=int(shrink_period), beta_min_deg=float(beta_min),
+                                 rays_settled=float(rays_settled))
         self.shade_samples = int(shade_samples)
         self.rays_new, self.rays_settled = int(rays_new), int(rays_settled)
         self.bias, self.block, self.evict_after = float(bias), int(block), int(evict_after)
+        if fetch not in ("nearest", "bilinear"):
+            raise MethodError(f"slc: fetch must be 'nearest' or 'bilinear' (got {fetch})")
+        self.fetch = fetch
         self._cache_arg = cache
         self.cache = None
         self.storage = None
@@ -98,7 +103,7 @@ class SurfaceLightCones(Method):
         rays = mi.UInt32(rays)
         if self.rays_new == 8 and self.rays_settled == 1:
             return rays
-        return dr.select(rays > 1, self.rays_new, self.rays_settled)
+        return dr.select(rays > 1, mi.UInt32(self.rays_new), mi.UInt32(self.rays_settled))
 
     # ------------------------------------------------------------------ frame
     def render(self, ctx, gbuffers, timer):
@@ -128,11 +133,31 @@ class SurfaceLightCones(Method):
                 slot = mi.UInt32(slot)
                 ok = mi.Bool(gb.valid) & (slot != INVALID)
                 tf = dr.gather(mi.Frame3f, fs, fr.pixel_index[v], ok)
-                outs.append(shade_pixels(self.storage, slot, ok, gb.si, tf, K, self.shade_samples))
+                if self.fetch == "bilinear" and hasattr(self.cache, "bilinear_taps"):
+                    outs.append(self._shade_bilinear(gb, slot, ok, tf, K))
+                else:
+                    outs.append(shade_pixels(self.storage, slot, ok, gb.si, tf, K, self.shade_samples))
             st.outputs(*outs)
         self._last = {"active_entries": n_active, "motion_entries": motion,
                       "shrunk_entries": st_info.get("shrunk"), "dropped_entries": st_info.get("dropped")}
         return outs
+
+    def _shade_bilinear(self, gb, slot, ok, tf, K):
+        """Bilinear fetch: the 4 entries around the pixel's cache coordinate, each
+        shaded with ``shade_samples / 4`` directions per cone and weighted
+        bilinearly (the same number of BSDF evaluations as a nearest fetch). The
+        cones of every tap are read in the frame of the pixel's own entry (taps
+        lie on the same island, so their normals agree to within its bound).
+        Pixels with no usable tap fall back to the nearest entry."""
+        taps, weights = self.cache.bilinear_taps(gb)
+        nS = max(self.shade_samples // 4, 1)
+        acc = dr.zeros(mi.Color3f, gb.size)
+        for s_j, w_j in zip(taps, weights):
+            m = ok & (w_j > 0.0)
+            acc += w_j * shade_pixels(self.storage, s_j, m, gb.si, tf, K, nS)
+        total = weights[0] + weights[1] + weights[2] + weights[3]
+        near = shade_pixels(self.storage, slot, ok & (total <= 0.0), gb.si, tf, K, self.shade_samples)
+        return dr.select(total > 0.0, acc, near)
 
     def memory_bytes(self) -> int:
         return int(self.cache.memory_bytes()) if self.cache is not None else 0

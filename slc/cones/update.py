@@ -40,7 +40,8 @@ class ConeParams:
     shrink_period: int = 4          # settled entries (1 ray) run the shrink test every k-th frame
     seed_c_max: float = 4.0         # C given to an entry seeded from a coarser one
     c_max: float = 255.0            # 8-bit encoding
-    multi_cycles: float = 8.0       # multi-sample cycles (new / moving entries) cap C at this many cycles
+    multi_cycles: float = 8.0       # cycles of new / moving entries cap C at this many cycles
+    rays_settled: float = 1.0       # samples per cycle of a settled entry (set by the method)
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -212,9 +213,9 @@ def end_cycle(L, S, C, n, beta, n_samples, p: ConeParams):
     K = p.max_cones
     C, red = c_reduction(C, beta, p)
     ns = dr.maximum(mi.Float(n_samples), 1.0)
-    # cycles with several samples (new entries, detected motion) keep at most
-    # ``multi_cycles`` cycles of memory; settled 1-sample cycles go up to 255
-    C = dr.minimum(C + ns, dr.select(ns > 1.0, dr.minimum(p.multi_cycles * ns, p.c_max), p.c_max))
+    # cycles with more samples than a settled entry gets (new entries, detected
+    # motion) keep at most ``multi_cycles`` cycles of memory; settled ones go up to 255
+    C = dr.minimum(C + ns, dr.select(ns > p.rays_settled, dr.minimum(p.multi_cycles * ns, p.c_max), p.c_max))
     inv = 1.0 / dr.maximum(C, 1.0)
     keep = dr.maximum(1.0 - ns * inv, 0.0)
     out = []
@@ -306,6 +307,7 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     if dr.width(active) == 0:
         return storage, mi.Bool()
     N = dr.width(active)
+    rays = mi.UInt32(rays)
     # Entries with 8 samples side by side, so that a SIMD packet's loop does not
     # run 8 iterations for 1-sample lanes (random numbers are keyed by slot, so
     # the order changes nothing in the results).

@@ -377,6 +377,46 @@ class OnSurfaceCache:
         within = ((ty & (B - 1)) << sh) | (tx & (B - 1))
         return valid, vb, within, lvl
 
+    def bilinear_taps(self, gb):
+        """The 4 entries around each pixel's cache coordinate at the pixel's level
+        (texel centres at +0.5), with bilinear weights: ``(slots[4], weights[4])``.
+        A tap whose block is not mapped, or whose entry was never updated, gets
+        weight 0; the weights of the others are renormalised (all zero when none
+        is usable). Taps are clamped to the island's texel rectangle, so they
+        never read another island."""
+        B, sh = self.block_size, self.block_shift
+        sidx = mi.UInt32(gb.shape_index)
+        valid = mi.Bool(gb.valid) & (sidx < self.n_shapes)
+        valid &= dr.gather(mi.Bool, self.d_has_cache, sidx, valid)
+        tri = dr.gather(mi.UInt32, self.d_tri_base, sidx, valid) + mi.UInt32(gb.prim_index)
+        isl = dr.gather(mi.UInt32, self.d_tri_island, tri, valid)
+        uv = self._bary_uv(tri, gb.prim_uv, valid)
+        lvl = self.level_of(gb.footprint, isl, valid)
+        k = isl * self.levels + lvl
+        wl = mi.Int32(dr.gather(mi.UInt32, self.d_lvl_w, k, valid))
+        hl = mi.Int32(dr.gather(mi.UInt32, self.d_lvl_h, k, valid))
+        base = dr.gather(mi.UInt32, self.d_lvl_base, k, valid)
+        nbx = dr.gather(mi.UInt32, self.d_lvl_nbx, k, valid)
+        scale = dr.rcp(mi.Float(mi.UInt32(1) << lvl))
+        fx, fy = uv.x * scale - 0.5, uv.y * scale - 0.5
+        x0, y0 = dr.floor(fx), dr.floor(fy)
+        ax, ay = fx - x0, fy - y0
+        slots, weights = [], []
+        for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+            tx = mi.UInt32(dr.clip(mi.Int32(x0) + dx, 0, wl - 1))
+            ty = mi.UInt32(dr.clip(mi.Int32(y0) + dy, 0, hl - 1))
+            vb = base + (ty >> sh) * nbx + (tx >> sh)
+            ph = self._phys(vb, valid)
+            ok = valid & (ph != INVALID)
+            slot = dr.select(ok, ph * self.block_texels + (((ty & (B - 1)) << sh) | (tx & (B - 1))), INVALID)
+            ok &= (dr.gather(mi.UInt32, self.slot_state, slot, ok) & _UPD_MASK) > 0
+            w = (ax if dx else 1.0 - ax) * (ay if dy else 1.0 - ay)
+            slots.append(dr.select(ok, slot, INVALID))
+            weights.append(dr.select(ok, w, 0.0))
+        total = weights[0] + weights[1] + weights[2] + weights[3]
+        inv = dr.select(total > 0.0, dr.rcp(dr.maximum(total, 1e-20)), 0.0)
+        return slots, [w * inv for w in weights]
+
     def _bary_uv(self, tri, prim_uv, active):
         """Island-local level-0 texel coordinates of a hit: Mitsuba's
         barycentrics p = (1-u-v) p0 + u p1 + v p2."""
