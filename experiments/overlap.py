@@ -27,9 +27,8 @@ CACHE_METHODS = ("slc", "sh")
 
 
 def add_arguments(p):
-    from slc.experiment import add_common_arguments
-    add_common_arguments(p)
-    p.add_argument("--viewers", type=int, nargs="+", help="viewer counts")
+    from slc.experiment import add_viewer_arguments
+    add_viewer_arguments(p)
     p.add_argument("--overlaps", type=int, nargs="+", help="target overlaps in percent")
 
 
@@ -39,14 +38,9 @@ def run(opts):
     from slc import experiment as ex
     from slc import views
     from slc.methods import parse_spec
-    from slc.pipeline import RunConfig
 
-    pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
+    pr, specs, loaded, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     counts, overlaps = opts.viewers or pr["viewers"], opts.overlaps or pr["overlaps"]
-    specs = opts.methods or ex.available_methods(METHODS)
-    loaded = ex.load_and_validate(opts.scene or pr["scenes"], specs, bool(opts.scene))
-    cfg = RunConfig(width=pr["width"], height=pr["height"], frames=pr["frames"], warmup=pr["warmup"],
-                    eval_frames=pr["eval_frames"], eval_viewers=pr["eval_viewers"], seed=opts.seed)
     out = Path(opts.out) / NAME
     cases = []
     for s in loaded:

@@ -22,22 +22,16 @@ METHODS = ["slc", "rt48", "restir"]
 
 
 def add_arguments(p):
-    from slc.experiment import add_common_arguments
-    add_common_arguments(p)
-    p.add_argument("--viewers", type=int, nargs="+", help="viewer counts")
+    from slc.experiment import add_viewer_arguments
+    add_viewer_arguments(p)
 
 
 def run(opts):
     from slc import experiment as ex
     from slc import views
-    from slc.pipeline import RunConfig
 
-    pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
+    pr, specs, loaded, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     counts = opts.viewers or pr["viewers"]
-    specs = opts.methods or ex.available_methods(METHODS)
-    loaded = ex.load_and_validate(opts.scene or pr["scenes"], specs, bool(opts.scene))
-    cfg = RunConfig(width=pr["width"], height=pr["height"], frames=pr["frames"], warmup=pr["warmup"],
-                    eval_frames=pr["eval_frames"], eval_viewers=pr["eval_viewers"], seed=opts.seed)
     cases = [(s, spec, views.random_viewers(s, n), {"rig": "random"}) for s in loaded for spec in specs
              for n in counts]
     rows = ex.run_cases(cases, cfg, NAME, opts.seed)

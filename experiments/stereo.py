@@ -29,13 +29,8 @@ def add_arguments(p):
 def run(opts):
     from slc import experiment as ex
     from slc import views
-    from slc.pipeline import RunConfig
 
-    pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
-    specs = opts.methods or ex.available_methods(METHODS)
-    loaded = ex.load_and_validate(opts.scene or pr["scenes"], specs, bool(opts.scene))
-    cfg = RunConfig(width=pr["width"], height=pr["height"], frames=pr["frames"], warmup=pr["warmup"],
-                    eval_frames=pr["eval_frames"], eval_viewers=pr["eval_viewers"], seed=opts.seed)
+    pr, specs, loaded, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     cases = []
     for s in loaded:
         for spec in specs:

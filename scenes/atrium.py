@@ -11,7 +11,7 @@ quad at y = 13.6 facing down; the three lamps are emissive icospheres
 import numpy as np
 import trimesh
 
-from slc.scenes import CameraPath, SceneBuilder, diffuse, principled, rough_conductor
+from slc.scenes import box_mesh, merge_meshes, CameraPath, SceneBuilder, diffuse, principled, rough_conductor
 
 W_X, W_Z, H = 12.0, 8.0, 14.0          # outer half extents and wall height
 C_X, C_Z = 8.4, 3.6                    # court half extents (column line)
@@ -24,19 +24,8 @@ TOP_Y, TOP_HALF = 13.6, (4.0, 2.0)
 TOP_RADIANCE = (10.0, 9.5, 9.0)
 
 
-def _box(lo, hi):
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    tm = trimesh.creation.box(extents=hi - lo)
-    tm.apply_translation(0.5 * (lo + hi))
-    return tm
-
-
 def _cyl(x, z, y0, y1, r, sections=16):
     return trimesh.creation.cylinder(radius=r, segment=np.array([[x, y0, z], [x, y1, z]]), sections=sections)
-
-
-def _merge(parts):
-    return trimesh.util.concatenate(parts)
 
 
 def _column_positions():
@@ -72,17 +61,17 @@ def _arches(y_spring, y_top, depth=0.5, r=0.32):
                 p0, p1 = a + along * s0, a + along * s1
                 lo = np.minimum(p0, p1) - np.abs(perp)
                 hi = np.maximum(p0, p1) + np.abs(perp)
-                parts.append(_box([lo[0], h0, lo[1]], [hi[0], y_top, hi[1]]))
+                parts.append(box_mesh([lo[0], h0, lo[1]], [hi[0], y_top, hi[1]]))
     return parts
 
 
 def _ring_slab(y0, y1, inner_x, inner_z):
     """A slab covering the outer rectangle minus the court opening."""
     return [
-        _box([-W_X, y0, inner_z], [W_X, y1, W_Z]),
-        _box([-W_X, y0, -W_Z], [W_X, y1, -inner_z]),
-        _box([-W_X, y0, -inner_z], [-inner_x, y1, inner_z]),
-        _box([inner_x, y0, -inner_z], [W_X, y1, inner_z]),
+        box_mesh([-W_X, y0, inner_z], [W_X, y1, W_Z]),
+        box_mesh([-W_X, y0, -W_Z], [W_X, y1, -inner_z]),
+        box_mesh([-W_X, y0, -inner_z], [-inner_x, y1, inner_z]),
+        box_mesh([inner_x, y0, -inner_z], [W_X, y1, inner_z]),
     ]
 
 
@@ -98,45 +87,45 @@ def build(**options):
 
     # floor: a glossy court paving and diffuse hallway floors
     b.add_quad([0, 0, 0], [C_X, 0, 0], [0, 0, -C_Z], bsdf=floor_glossy, name="court_floor")
-    b.add_trimesh(_merge(_ring_slab(-0.2, 0.0, C_X, C_Z)), bsdf=stone, name="hall_floor")
+    b.add_trimesh(merge_meshes(_ring_slab(-0.2, 0.0, C_X, C_Z)), bsdf=stone, name="hall_floor")
     # outer walls (inner faces visible) with a few pilasters
-    walls = [_box([-W_X - 0.5, 0, -W_Z - 0.5], [W_X + 0.5, H, -W_Z]),
-             _box([-W_X - 0.5, 0, W_Z], [W_X + 0.5, H, W_Z + 0.5]),
-             _box([-W_X - 0.5, 0, -W_Z], [-W_X, H, W_Z]),
-             _box([W_X, 0, -W_Z], [W_X + 0.5, H, W_Z])]
+    walls = [box_mesh([-W_X - 0.5, 0, -W_Z - 0.5], [W_X + 0.5, H, -W_Z]),
+             box_mesh([-W_X - 0.5, 0, W_Z], [W_X + 0.5, H, W_Z + 0.5]),
+             box_mesh([-W_X - 0.5, 0, -W_Z], [-W_X, H, W_Z]),
+             box_mesh([W_X, 0, -W_Z], [W_X + 0.5, H, W_Z])]
     for x in np.linspace(-C_X, C_X, 5):
         for s in (-1, 1):
-            walls.append(_box([x - 0.4, 0, s * W_Z - (0.3 if s > 0 else 0.0)],
+            walls.append(box_mesh([x - 0.4, 0, s * W_Z - (0.3 if s > 0 else 0.0)],
                               [x + 0.4, FLOORS[1][1], s * W_Z + (0.3 if s < 0 else 0.0)]))
-    b.add_trimesh(_merge(walls), bsdf=wall, name="walls")
+    b.add_trimesh(merge_meshes(walls), bsdf=wall, name="walls")
     # slabs between storeys, parapets on the gallery and the roof cornice
     slabs = _ring_slab(FLOORS[0][1], FLOORS[1][0], C_X - 0.3, C_Z - 0.3)
     slabs += _ring_slab(FLOORS[1][1], FLOORS[1][1] + SLAB, C_X - 0.3, C_Z - 0.3)
-    b.add_trimesh(_merge(slabs), bsdf=slab, name="slabs")
+    b.add_trimesh(merge_meshes(slabs), bsdf=slab, name="slabs")
     parapet = []
     for s in (-1, 1):
-        parapet.append(_box([-C_X, FLOORS[1][0], s * C_Z - 0.12], [C_X, FLOORS[1][0] + 1.0, s * C_Z + 0.12]))
-        parapet.append(_box([s * C_X - 0.12, FLOORS[1][0], -C_Z], [s * C_X + 0.12, FLOORS[1][0] + 1.0, C_Z]))
-    b.add_trimesh(_merge(parapet), bsdf=marble, name="parapet")
+        parapet.append(box_mesh([-C_X, FLOORS[1][0], s * C_Z - 0.12], [C_X, FLOORS[1][0] + 1.0, s * C_Z + 0.12]))
+        parapet.append(box_mesh([s * C_X - 0.12, FLOORS[1][0], -C_Z], [s * C_X + 0.12, FLOORS[1][0] + 1.0, C_Z]))
+    b.add_trimesh(merge_meshes(parapet), bsdf=marble, name="parapet")
     # railing on top of the parapet: glossy metal
     rail = []
     for s in (-1, 1):
-        rail.append(_box([-C_X, FLOORS[1][0] + 1.0, s * C_Z - 0.06], [C_X, FLOORS[1][0] + 1.1, s * C_Z + 0.06]))
-        rail.append(_box([s * C_X - 0.06, FLOORS[1][0] + 1.0, -C_Z], [s * C_X + 0.06, FLOORS[1][0] + 1.1, C_Z]))
-    b.add_trimesh(_merge(rail), bsdf=bronze, name="rail")
+        rail.append(box_mesh([-C_X, FLOORS[1][0] + 1.0, s * C_Z - 0.06], [C_X, FLOORS[1][0] + 1.1, s * C_Z + 0.06]))
+        rail.append(box_mesh([s * C_X - 0.06, FLOORS[1][0] + 1.0, -C_Z], [s * C_X + 0.06, FLOORS[1][0] + 1.1, C_Z]))
+    b.add_trimesh(merge_meshes(rail), bsdf=bronze, name="rail")
 
     # colonnades: lower columns (glossy marble), upper columns (diffuse stone), with bases and capitals
     lower, upper, caps = [], [], []
     for (x, z) in _column_positions():
         lower.append(_cyl(x, z, 0.3, 3.7, 0.32, sections=20))
-        caps += [_box([x - 0.45, 0.0, z - 0.45], [x + 0.45, 0.3, z + 0.45]),
-                 _box([x - 0.45, 3.7, z - 0.45], [x + 0.45, 3.95, z + 0.45])]
+        caps += [box_mesh([x - 0.45, 0.0, z - 0.45], [x + 0.45, 0.3, z + 0.45]),
+                 box_mesh([x - 0.45, 3.7, z - 0.45], [x + 0.45, 3.95, z + 0.45])]
         upper.append(_cyl(x, z, FLOORS[1][0], 8.8, 0.24, sections=16))
-        caps.append(_box([x - 0.35, 8.8, z - 0.35], [x + 0.35, 9.0, z + 0.35]))
-    b.add_trimesh(_merge(lower), bsdf=marble, name="columns_lower")
-    b.add_trimesh(_merge(upper), bsdf=stone, name="columns_upper")
-    b.add_trimesh(_merge(caps), bsdf=stone, name="capitals")
-    b.add_trimesh(_merge(_arches(3.95, FLOORS[0][1]) + _arches(9.0, FLOORS[1][1])), bsdf=wall, name="arches")
+        caps.append(box_mesh([x - 0.35, 8.8, z - 0.35], [x + 0.35, 9.0, z + 0.35]))
+    b.add_trimesh(merge_meshes(lower), bsdf=marble, name="columns_lower")
+    b.add_trimesh(merge_meshes(upper), bsdf=stone, name="columns_upper")
+    b.add_trimesh(merge_meshes(caps), bsdf=stone, name="capitals")
+    b.add_trimesh(merge_meshes(_arches(3.95, FLOORS[0][1]) + _arches(9.0, FLOORS[1][1])), bsdf=wall, name="arches")
     # a bronze fountain basin in the middle of the court
     basin = trimesh.creation.annulus(r_min=1.1, r_max=1.4, height=0.6, sections=32)
     basin.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))

@@ -1,5 +1,4 @@
 """cornell: a Cornell box (2 m) with a square ceiling light, one glossy and one diffuse block; sanity scene with an analytic check."""
-import numpy as np
 
 from slc.scenes import CameraPath, SceneBuilder, diffuse, rough_conductor
 

@@ -13,7 +13,7 @@ dusk-blue environment.
 import numpy as np
 import trimesh
 
-from slc.scenes import SHARED_DIR, CameraPath, SceneBuilder, diffuse, principled, rough_conductor
+from slc.scenes import box_mesh, merge_meshes, SHARED_DIR, CameraPath, SceneBuilder, diffuse, principled, rough_conductor
 
 HALF, WALL_H = 10.0, 4.5
 ARCADE_D, ARCADE_H = 3.0, 3.6            # arcade depth and ceiling height
@@ -23,17 +23,6 @@ ENV_CONSTANT = (0.08, 0.10, 0.16)
 LAMP_RADIUS = 0.12
 LAMP_RADIANCE = (320.0, 250.0, 160.0)
 LANTERN_RADIANCE = (90.0, 60.0, 30.0)
-
-
-def _box(lo, hi):
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    tm = trimesh.creation.box(extents=hi - lo)
-    tm.apply_translation(0.5 * (lo + hi))
-    return tm
-
-
-def _merge(parts):
-    return trimesh.util.concatenate(parts)
 
 
 def _leaves(rng, center, radii, n, size=(0.09, 0.05)):
@@ -82,26 +71,26 @@ def build(**options):
     # floor: glossy terracotta tiles in the courtyard, stone under the arcade
     b.add_quad([0, 0, 0], [HALF, 0, 0], [0, 0, -HALF], bsdf=tiles, name="floor")
     # walls (outer) and arcade: pillars, lintels, roof slab
-    walls = [_box([-HALF - 0.4, 0, -HALF - 0.4], [HALF + 0.4, WALL_H, -HALF]),
-             _box([-HALF - 0.4, 0, HALF], [HALF + 0.4, WALL_H, HALF + 0.4]),
-             _box([-HALF - 0.4, 0, -HALF], [-HALF, WALL_H, HALF]),
-             _box([HALF, 0, -HALF], [HALF + 0.4, WALL_H, HALF])]
-    b.add_trimesh(_merge(walls), bsdf=plaster, name="walls")
+    walls = [box_mesh([-HALF - 0.4, 0, -HALF - 0.4], [HALF + 0.4, WALL_H, -HALF]),
+             box_mesh([-HALF - 0.4, 0, HALF], [HALF + 0.4, WALL_H, HALF + 0.4]),
+             box_mesh([-HALF - 0.4, 0, -HALF], [-HALF, WALL_H, HALF]),
+             box_mesh([HALF, 0, -HALF], [HALF + 0.4, WALL_H, HALF])]
+    b.add_trimesh(merge_meshes(walls), bsdf=plaster, name="walls")
     pillars, arcade = [], []
     edge = -HALF + ARCADE_D
     for x in np.linspace(edge, HALF - 1.0, 6):           # north arcade along x
-        pillars.append(_box([x - 0.22, 0, edge - 0.22], [x + 0.22, ARCADE_H, edge + 0.22]))
+        pillars.append(box_mesh([x - 0.22, 0, edge - 0.22], [x + 0.22, ARCADE_H, edge + 0.22]))
     for z in np.linspace(edge + 3.0, HALF - 1.0, 4):     # west arcade along z
-        pillars.append(_box([edge - 0.22, 0, z - 0.22], [edge + 0.22, ARCADE_H, z + 0.22]))
-    arcade.append(_box([edge - 0.3, ARCADE_H, -HALF], [HALF, ARCADE_H + 0.5, edge + 0.3]))
-    arcade.append(_box([-HALF, ARCADE_H, edge + 0.3], [edge + 0.3, ARCADE_H + 0.5, HALF]))
-    b.add_trimesh(_merge(pillars), bsdf=stone, name="pillars")
-    b.add_trimesh(_merge(arcade), bsdf=plaster, name="arcade_roof")
+        pillars.append(box_mesh([edge - 0.22, 0, z - 0.22], [edge + 0.22, ARCADE_H, z + 0.22]))
+    arcade.append(box_mesh([edge - 0.3, ARCADE_H, -HALF], [HALF, ARCADE_H + 0.5, edge + 0.3]))
+    arcade.append(box_mesh([-HALF, ARCADE_H, edge + 0.3], [edge + 0.3, ARCADE_H + 0.5, HALF]))
+    b.add_trimesh(merge_meshes(pillars), bsdf=stone, name="pillars")
+    b.add_trimesh(merge_meshes(arcade), bsdf=plaster, name="arcade_roof")
     # a low stone planter ring and a fountain in the middle
     fountain = trimesh.creation.annulus(r_min=1.3, r_max=1.6, height=0.5, sections=32)
     fountain.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))
     fountain.apply_translation([2.0, 0.25, 2.0])
-    b.add_trimesh(_merge([fountain, trimesh.creation.cylinder(radius=0.2, segment=[[2, 0, 2], [2, 1.3, 2]],
+    b.add_trimesh(merge_meshes([fountain, trimesh.creation.cylinder(radius=0.2, segment=[[2, 0, 2], [2, 1.3, 2]],
                                                               sections=16)]), bsdf=stone, name="fountain")
 
     # trees and bushes: trunks + thousands of leaves
@@ -117,7 +106,7 @@ def build(**options):
     bushes = [(8.5, -8.0), (3.0, -8.5), (8.8, 0.5), (8.5, 8.5), (3.5, 8.8), (-8.5, 8.5), (-8.0, -1.0), (-4.0, -8.3)]
     for (x, z) in bushes:
         leaves_b.append(_leaves(rng, [x, 0.55, z], [0.8, 0.55, 0.8], 260, size=(0.07, 0.04)))
-    b.add_trimesh(_merge(trunks), bsdf=bark, name="trunks")
+    b.add_trimesh(merge_meshes(trunks), bsdf=bark, name="trunks")
     b.add_mesh(*_concat(leaves_a), bsdf=leaf_a, name="leaves_trees")
     b.add_mesh(*_concat(leaves_b), bsdf=leaf_b, name="leaves_bushes")
 
@@ -126,8 +115,8 @@ def build(**options):
     for (x, z) in [(-4.0, -5.5), (-1.0, -6.0), (2.5, -5.5), (-6.0, 1.0), (-6.0, 4.0)]:
         legs.append(trimesh.creation.cylinder(radius=0.04, segment=[[x, 0, z], [x, 0.72, z]], sections=8))
         tops.append(trimesh.creation.cylinder(radius=0.4, segment=[[x, 0.72, z], [x, 0.76, z]], sections=20))
-    b.add_trimesh(_merge(legs), bsdf=iron, name="table_legs")
-    b.add_trimesh(_merge(tops), bsdf=tabletop, name="table_tops")
+    b.add_trimesh(merge_meshes(legs), bsdf=iron, name="table_legs")
+    b.add_trimesh(merge_meshes(tops), bsdf=tabletop, name="table_tops")
 
     # lamps: spheres hanging in the arcade and on posts, two lanterns
     posts = []
@@ -145,7 +134,7 @@ def build(**options):
         else:
             posts.append(trimesh.creation.cylinder(radius=0.01, segment=[[x, c[1] + LAMP_RADIUS, z],
                                                                            [x, ARCADE_H, z]], sections=4))
-    b.add_trimesh(_merge(posts), bsdf=iron, name="lamp_posts")
+    b.add_trimesh(merge_meshes(posts), bsdf=iron, name="lamp_posts")
     for i, (x, z) in enumerate([(9.4, -3.0), (-2.0, 9.4)]):
         b.add_box([x - 0.15, 1.8, z - 0.15], [x + 0.15, 2.2, z + 0.15], bsdf=dark, emission=LANTERN_RADIANCE,
                   name=f"lantern{i}")

@@ -13,22 +13,11 @@ import math
 import numpy as np
 import trimesh
 
-from slc.scenes import CameraPath, SceneBuilder, diffuse, principled, rough_conductor, translate
+from slc.scenes import box_mesh, merge_meshes, CameraPath, SceneBuilder, diffuse, principled, rough_conductor, translate
 
 HX, HZ, HH = 20.0, 12.0, 9.0
 LIGHT_RADIUS = 0.12
 N_LIGHTS = 12
-
-
-def _box(lo, hi):
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    tm = trimesh.creation.box(extents=hi - lo)
-    tm.apply_translation(0.5 * (lo + hi))
-    return tm
-
-
-def _merge(parts):
-    return trimesh.util.concatenate(parts)
 
 
 def _orbit(center, rx, rz, y, omega, phase, bob):
@@ -55,21 +44,21 @@ def build(**options):
 
     # the hall: floor (faces up), walls and roof as boxes
     b.add_quad([0, 0, 0], [HX, 0, 0], [0, 0, -HZ], bsdf=floor, name="floor")
-    shell = [_box([-HX - 0.5, 0, -HZ - 0.5], [HX + 0.5, HH, -HZ]), _box([-HX - 0.5, 0, HZ], [HX + 0.5, HH, HZ + 0.5]),
-             _box([-HX - 0.5, 0, -HZ], [-HX, HH, HZ]), _box([HX, 0, -HZ], [HX + 0.5, HH, HZ]),
-             _box([-HX - 0.5, HH, -HZ - 0.5], [HX + 0.5, HH + 0.4, HZ + 0.5])]
-    b.add_trimesh(_merge(shell), bsdf=wall, name="shell")
+    shell = [box_mesh([-HX - 0.5, 0, -HZ - 0.5], [HX + 0.5, HH, -HZ]), box_mesh([-HX - 0.5, 0, HZ], [HX + 0.5, HH, HZ + 0.5]),
+             box_mesh([-HX - 0.5, 0, -HZ], [-HX, HH, HZ]), box_mesh([HX, 0, -HZ], [HX + 0.5, HH, HZ]),
+             box_mesh([-HX - 0.5, HH, -HZ - 0.5], [HX + 0.5, HH + 0.4, HZ + 0.5])]
+    b.add_trimesh(merge_meshes(shell), bsdf=wall, name="shell")
     # steel columns along the long walls and roof trusses across the hall
     frame = []
     for x in np.linspace(-HX + 2, HX - 2, 7):
         for s in (-1, 1):
             z = s * (HZ - 0.3)
-            frame.append(_box([x - 0.25, 0, z - 0.3], [x + 0.25, HH, z + 0.3]))
-        frame.append(_box([x - 0.15, HH - 0.9, -HZ], [x + 0.15, HH - 0.6, HZ]))
+            frame.append(box_mesh([x - 0.25, 0, z - 0.3], [x + 0.25, HH, z + 0.3]))
+        frame.append(box_mesh([x - 0.15, HH - 0.9, -HZ], [x + 0.15, HH - 0.6, HZ]))
         for zz in np.linspace(-HZ + 2, HZ - 2, 6):
             frame.append(trimesh.creation.cylinder(radius=0.05, segment=[[x, HH - 0.9, zz], [x, HH, zz + 1.5]],
                                                    sections=6))
-    b.add_trimesh(_merge(frame), bsdf=steel, name="steel_frame")
+    b.add_trimesh(merge_meshes(frame), bsdf=steel, name="steel_frame")
 
     # crates in stacks: wood, painted, glossy aluminium
     groups = {"wood": [], "green": [], "glossy": [], "painted": []}
@@ -81,7 +70,7 @@ def build(**options):
         for level in range(int(rng.integers(1, 4))):
             sz_ = float(rng.uniform(0.9, 2.0))
             ox, oz = rng.uniform(-0.3, 0.3, size=2)
-            box = _box([sx + ox - sz_ / 2, y, sz + oz - sz_ / 2], [sx + ox + sz_ / 2, y + sz_, sz + oz + sz_ / 2])
+            box = box_mesh([sx + ox - sz_ / 2, y, sz + oz - sz_ / 2], [sx + ox + sz_ / 2, y + sz_, sz + oz + sz_ / 2])
             ang = rng.uniform(-20, 20)
             box.apply_transform(trimesh.transformations.rotation_matrix(math.radians(ang), [0, 1, 0],
                                                                         [sx + ox, 0, sz + oz]))
@@ -91,11 +80,11 @@ def build(**options):
         for _ in range(2):
             s = float(rng.uniform(0.6, 1.0))
             cx, cz = sx + rng.uniform(-2.2, 2.2), sz + rng.uniform(-2.2, 2.2)
-            groups[kinds[int(rng.integers(0, 4))]].append(_box([cx - s / 2, 0, cz - s / 2], [cx + s / 2, s, cz + s / 2]))
+            groups[kinds[int(rng.integers(0, 4))]].append(box_mesh([cx - s / 2, 0, cz - s / 2], [cx + s / 2, s, cz + s / 2]))
     mats = {"wood": wood, "green": green, "glossy": glossy_crate, "painted": painted}
     for k, parts in groups.items():
         if parts:
-            b.add_trimesh(_merge(parts), bsdf=mats[k], name=f"crates_{k}")
+            b.add_trimesh(merge_meshes(parts), bsdf=mats[k], name=f"crates_{k}")
 
     # twelve small moving lights around three centres
     centres = [(-10.0, 0.0, 0.0), (0.0, 0.0, 0.0), (10.0, 0.0, 0.0)]

@@ -19,7 +19,7 @@ import math
 import numpy as np
 import trimesh
 
-from slc.scenes import (CameraPath, SceneBuilder, about, diffuse, principled, rotate, rough_conductor,
+from slc.scenes import (box_mesh, merge_meshes, CameraPath, SceneBuilder, about, diffuse, principled, rotate, rough_conductor,
                         translate)
 
 HALF_LEN = 24.0
@@ -28,17 +28,6 @@ WHEEL_R = 0.34
 SPHERE_RADIANCE = (260.0, 200.0, 120.0)
 SPHERE2_RADIANCE = (120.0, 170.0, 260.0)
 CUBE_RADIANCE = (220.0, 90.0, 60.0)
-
-
-def _box(lo, hi):
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    tm = trimesh.creation.box(extents=hi - lo)
-    tm.apply_translation(0.5 * (lo + hi))
-    return tm
-
-
-def _merge(parts):
-    return trimesh.util.concatenate(parts)
 
 
 def _sphere_path(x0, speed, z_amp, z_freq, y0, phase):
@@ -60,18 +49,18 @@ def _facades(side, rng):
         h = float(rng.uniform(8.0, 14.0))
         setback = float(rng.uniform(0.0, 0.4))
         zf = z_face + side * setback
-        parts.append(_box([x, 0.0, min(zf, zf + side * 4.0)], [x + w, h, max(zf, zf + side * 4.0)]))
+        parts.append(box_mesh([x, 0.0, min(zf, zf + side * 4.0)], [x + w, h, max(zf, zf + side * 4.0)]))
         # window frames / pilasters (protruding 0.12 m) and floor cornices
         for fx in np.arange(x + 0.9, x + w - 0.6, 1.8):
             for fy in np.arange(3.4, h - 1.5, 3.0):
-                frames.append(_box([fx - 0.55, fy, min(zf, zf - side * 0.12)],
+                frames.append(box_mesh([fx - 0.55, fy, min(zf, zf - side * 0.12)],
                                    [fx + 0.55, fy + 1.6, max(zf, zf - side * 0.12)]))
         for fy in np.arange(3.0, h - 0.5, 3.0):
-            frames.append(_box([x, fy - 0.15, min(zf, zf - side * 0.25)], [x + w, fy, max(zf, zf - side * 0.25)]))
+            frames.append(box_mesh([x, fy - 0.15, min(zf, zf - side * 0.25)], [x + w, fy, max(zf, zf - side * 0.25)]))
         # a balcony on the first floor and an awning over the ground floor on some buildings
         if rng.uniform() < 0.6:
             bx = x + 0.2 * w
-            frames.append(_box([bx, 3.1, min(zf, zf - side * 1.0)], [bx + 0.6 * w, 3.25, max(zf, zf - side * 1.0)]))
+            frames.append(box_mesh([bx, 3.1, min(zf, zf - side * 1.0)], [bx + 0.6 * w, 3.25, max(zf, zf - side * 1.0)]))
         if rng.uniform() < 0.7:
             ax = x + 0.5
             a0, a1 = zf, zf - side * 1.6
@@ -82,17 +71,17 @@ def _facades(side, rng):
 
 
 def _car_body(length, width, height):
-    body = _box([-length / 2, 0.25, -width / 2], [length / 2, 0.25 + 0.55 * height, width / 2])
-    cabin = _box([-0.3 * length, 0.25 + 0.55 * height, -0.45 * width], [0.2 * length, 0.25 + height, 0.45 * width])
-    return _merge([body, cabin])
+    body = box_mesh([-length / 2, 0.25, -width / 2], [length / 2, 0.25 + 0.55 * height, width / 2])
+    cabin = box_mesh([-0.3 * length, 0.25 + 0.55 * height, -0.45 * width], [0.2 * length, 0.25 + height, 0.45 * width])
+    return merge_meshes([body, cabin])
 
 
 def _wheel():
     """A tyre centred at the origin, axis along z, and its hub: a spoke cross
     standing out of both faces (separate mesh, bright metal, so the spin shows)."""
     tyre = trimesh.creation.cylinder(radius=WHEEL_R, height=0.22, sections=12)
-    hub = _merge([_box([-0.8 * WHEEL_R, -0.05, -0.13], [0.8 * WHEEL_R, 0.05, 0.13]),
-                  _box([-0.05, -0.8 * WHEEL_R, -0.13], [0.05, 0.8 * WHEEL_R, 0.13])])
+    hub = merge_meshes([box_mesh([-0.8 * WHEEL_R, -0.05, -0.13], [0.8 * WHEEL_R, 0.05, 0.13]),
+                  box_mesh([-0.05, -0.8 * WHEEL_R, -0.13], [0.05, 0.8 * WHEEL_R, 0.13])])
     return tyre, hub
 
 
@@ -112,12 +101,12 @@ def build(**options):
 
     # ground: glossy wet-looking asphalt, raised sidewalks
     b.add_quad([0, 0, 0], [HALF_LEN, 0, 0], [0, 0, -ROAD_Z], bsdf=asphalt, name="road")
-    b.add_trimesh(_merge([_box([-HALF_LEN, 0, ROAD_Z], [HALF_LEN, 0.15, WALK_Z + 0.5]),
-                          _box([-HALF_LEN, 0, -WALK_Z - 0.5], [HALF_LEN, 0.15, -ROAD_Z])]),
+    b.add_trimesh(merge_meshes([box_mesh([-HALF_LEN, 0, ROAD_Z], [HALF_LEN, 0.15, WALK_Z + 0.5]),
+                          box_mesh([-HALF_LEN, 0, -WALK_Z - 0.5], [HALF_LEN, 0.15, -ROAD_Z])]),
                   bsdf=curb, name="sidewalks")
     # facades: blocks by colour, frames, dark glossy windows, awnings
     blocks = [[], [], []]
-    frames, awnings, windows = [], [], []
+    frames, awnings = [], []
     for side in (-1, 1):
         parts, fr, aw = _facades(side, rng)
         for i, p in enumerate(parts):
@@ -126,22 +115,22 @@ def build(**options):
         awnings += aw
     for i, blk in enumerate(blocks):
         if blk:
-            b.add_trimesh(_merge(blk), bsdf=wall_cols[i], name=f"facades{i}")
-    b.add_trimesh(_merge(frames), bsdf=frame_mat, name="frames")
-    b.add_trimesh(_merge(awnings), bsdf=awning_mat, name="awnings")
+            b.add_trimesh(merge_meshes(blk), bsdf=wall_cols[i], name=f"facades{i}")
+    b.add_trimesh(merge_meshes(frames), bsdf=frame_mat, name="frames")
+    b.add_trimesh(merge_meshes(awnings), bsdf=awning_mat, name="awnings")
     # lamp posts (unlit, glossy metal) and cafe tables on the sidewalks
     props = []
     for x in np.arange(-20.0, 21.0, 8.0):
         for side in (-1, 1):
             z = side * (ROAD_Z + 0.5)
             props.append(trimesh.creation.cylinder(radius=0.07, segment=[[x, 0.15, z], [x, 4.2, z]], sections=8))
-            props.append(_box([x - 0.2, 4.2, z - 0.2], [x + 0.2, 4.5, z + 0.2]))
+            props.append(box_mesh([x - 0.2, 4.2, z - 0.2], [x + 0.2, 4.5, z + 0.2]))
     for x in (-14.0, -12.0, 5.0, 7.0, 16.0):
         for side in (-1, 1):
             z = side * 5.6
             props.append(trimesh.creation.cylinder(radius=0.04, segment=[[x, 0.15, z], [x, 0.85, z]], sections=6))
             props.append(trimesh.creation.cylinder(radius=0.38, segment=[[x, 0.85, z], [x, 0.9, z]], sections=16))
-    b.add_trimesh(_merge(props), bsdf=metal, name="street_props")
+    b.add_trimesh(merge_meshes(props), bsdf=metal, name="street_props")
 
     # cars: body + wheels, driving along +x (z < 0 lane) or -x (z > 0 lane), wrapping around
     period_len = 2 * HALF_LEN - 6.0
@@ -158,7 +147,7 @@ def build(**options):
 
         body = _car_body(L, Wd, Hh)
         b.add_trimesh(body, bsdf=principled(col, roughness=0.12, metallic=0.6), name=f"car{ci}", transform=body_T)
-        b.add_trimesh(_box([-0.28 * L, 0.25 + 0.6 * Hh, -0.455 * Wd], [0.18 * L, 0.2 + Hh, 0.455 * Wd]),
+        b.add_trimesh(box_mesh([-0.28 * L, 0.25 + 0.6 * Hh, -0.455 * Wd], [0.18 * L, 0.2 + Hh, 0.455 * Wd]),
                       bsdf=glass, name=f"car{ci}_glass", transform=body_T)
         for wx in (-0.32 * L, 0.32 * L):
             for wz in (-0.5 * Wd - 0.06, 0.5 * Wd + 0.06):

@@ -13,7 +13,7 @@ import math
 import numpy as np
 import trimesh
 
-from slc.scenes import CameraPath, SceneBuilder, diffuse, principled, rough_conductor
+from slc.scenes import box_mesh, merge_meshes, CameraPath, SceneBuilder, diffuse, principled, rough_conductor
 
 EXTENT, GRID = 30.0, 64
 MOON_DIR = np.array([-0.55, 0.57, -0.61])
@@ -43,17 +43,6 @@ def _terrain():
     return V, F
 
 
-def _box(lo, hi):
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    tm = trimesh.creation.box(extents=hi - lo)
-    tm.apply_translation(0.5 * (lo + hi))
-    return tm
-
-
-def _merge(parts):
-    return trimesh.util.concatenate(parts)
-
-
 def _place(tm, x, z, yaw_deg, y):
     M = trimesh.transformations.rotation_matrix(math.radians(yaw_deg), [0, 1, 0])
     M[:3, 3] = [x, y, z]
@@ -62,7 +51,7 @@ def _place(tm, x, z, yaw_deg, y):
 
 
 def _hut_walls(L, W, H):
-    return _box([-L / 2, -0.5, -W / 2], [L / 2, H, W / 2])
+    return box_mesh([-L / 2, -0.5, -W / 2], [L / 2, H, W / 2])
 
 
 def _hut_roof(L, W, H, ridge, overhang=0.5):
@@ -109,12 +98,12 @@ def build(**options):
         y = float(height(np.array(x), np.array(z)))
         walls.append(_place(_hut_walls(L, W, H), x, z, yaw, y))
         # a door frame (dark inset) on the front
-        walls.append(_place(_box([-0.6, -0.2, W / 2], [0.6, 1.9, W / 2 + 0.08]), x, z, yaw, y))
+        walls.append(_place(box_mesh([-0.6, -0.2, W / 2], [0.6, 1.9, W / 2 + 0.08]), x, z, yaw, y))
         roof = _place(_hut_roof(L, W, H, ridge), x, z, yaw, y)
         (glossy_roof if k == 3 else roofs).append(roof)
-    b.add_trimesh(_merge(walls), bsdf=wood, name="hut_walls")
-    b.add_trimesh(_merge(roofs), bsdf=thatch, name="hut_roofs")
-    b.add_trimesh(_merge(glossy_roof), bsdf=slate, name="longhouse_roof")
+    b.add_trimesh(merge_meshes(walls), bsdf=wood, name="hut_walls")
+    b.add_trimesh(merge_meshes(roofs), bsdf=thatch, name="hut_roofs")
+    b.add_trimesh(merge_meshes(glossy_roof), bsdf=slate, name="longhouse_roof")
 
     # palisade: posts on an arc around the village
     posts = []
@@ -122,7 +111,7 @@ def build(**options):
         x, z = 18.0 * math.cos(a), 18.0 * math.sin(a)
         y = float(height(np.array(x), np.array(z)))
         posts.append(trimesh.creation.cylinder(radius=0.18, segment=[[x, y - 0.5, z], [x, y + 3.0, z]], sections=6))
-    b.add_trimesh(_merge(posts), bsdf=wood, name="palisade")
+    b.add_trimesh(merge_meshes(posts), bsdf=wood, name="palisade")
 
     # barrels with iron hoops (glossy) near the huts
     barrels, hoops = [], []
@@ -132,8 +121,8 @@ def build(**options):
         for hy in (0.15, 0.75):
             hoops.append(trimesh.creation.cylinder(radius=0.37, segment=[[x, y + hy, z], [x, y + hy + 0.06, z]],
                                                    sections=14))
-    b.add_trimesh(_merge(barrels), bsdf=wood, name="barrels")
-    b.add_trimesh(_merge(hoops), bsdf=iron, name="hoops")
+    b.add_trimesh(merge_meshes(barrels), bsdf=wood, name="barrels")
+    b.add_trimesh(merge_meshes(hoops), bsdf=iron, name="hoops")
 
     # torches: poles (diffuse wood) with tiny emissive spheres on top
     poles = []
@@ -144,7 +133,7 @@ def build(**options):
                                                sections=8))
         b.add_sphere([x, y + 2.2, z], TORCH_RADIUS, subdivisions=1, bsdf=dark, emission=TORCH_RADIANCE,
                      name=f"torch{i}")
-    b.add_trimesh(_merge(poles), bsdf=iron, name="torch_poles")
+    b.add_trimesh(merge_meshes(poles), bsdf=iron, name="torch_poles")
 
     # the moon: far, large, high in the sky (lights the whole village from one side)
     d = MOON_DIR / np.linalg.norm(MOON_DIR)

@@ -240,6 +240,25 @@ def ratio(a, b):
         return None
 
 
+def setup(opts, quick: dict, full: dict, methods: list[str]):
+    """The common start of a multi-viewer experiment: the preset (with
+    --res/--frames applied), the method specs, the validated scenes and the
+    RunConfig. Returns (preset, specs, scenes, cfg)."""
+    from .pipeline import RunConfig
+    pr = apply_common(opts, quick if opts.quick else full)
+    specs = opts.methods or available_methods(methods)
+    loaded = load_and_validate(opts.scene or pr["scenes"], specs, bool(opts.scene))
+    cfg = RunConfig(width=pr["width"], height=pr["height"], frames=pr["frames"], warmup=pr["warmup"],
+                    eval_frames=pr["eval_frames"], eval_viewers=pr.get("eval_viewers"), seed=opts.seed)
+    return pr, specs, loaded, cfg
+
+
+def add_viewer_arguments(p) -> None:
+    """Common options plus --viewers (viewer counts)."""
+    add_common_arguments(p)
+    p.add_argument("--viewers", type=int, nargs="+", help="viewer counts")
+
+
 def run_cases(cases, cfg, desc: str, seed: int = 0) -> list[dict]:
     """Run (scene, spec, viewers, extra-fields) cases with one progress bar."""
     from tqdm import tqdm

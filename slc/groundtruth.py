@@ -19,7 +19,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .gbuffer import GBuffer, compose
+from .gbuffer import GBuffer, compose, to_image
+from .io import cached_array
 from .lights import finite, mis_weight, rng, sample_light, visible
 
 GT_SAMPLES = 2048
@@ -86,17 +87,8 @@ def ground_truth(scene, gb: GBuffer, frame: int, viewer: str = "", spp: int = GT
                  use_cache: bool = True) -> np.ndarray:
     """Composed ground-truth image (H, W, 3) at the G-buffer's points, cached."""
     path = cache_dir() / _key(scene.name, frame, viewer, gb, spp, scene.time)
-    if use_cache and path.exists():
-        try:
-            return np.load(path)
-        except (OSError, ValueError):
-            pass
-    L = compose(gb, direct_mis(scene.mi_scene, gb, spp))
-    img = np.array(L, dtype=np.float32)
-    img = (img.T if img.shape[0] == 3 else img).reshape(gb.height, gb.width, 3)
-    if use_cache:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".tmp{os.getpid()}.npy")
-        np.save(tmp, img)
-        os.replace(tmp, path)
-    return img
+
+    def compute():
+        return to_image(gb, compose(gb, direct_mis(scene.mi_scene, gb, spp)))
+
+    return cached_array(path, compute, use_cache)

@@ -100,3 +100,19 @@ def write_json(path, obj) -> None:
 
 def write_text(path, text: str) -> None:
     _atomic(path, lambda p: Path(p).write_text(text))
+
+
+def cached_array(path, compute, use_cache: bool = True) -> np.ndarray:
+    """``np.load(path)`` when a cached copy exists, else ``compute()``, saved
+    atomically to ``path`` (reference images: ground truth, path-traced
+    indirect light)."""
+    path = Path(path)
+    if use_cache and path.exists():
+        try:
+            return np.load(path)
+        except (OSError, ValueError):
+            pass
+    arr = np.asarray(compute())
+    if use_cache:
+        _atomic(path, lambda p: np.save(p, arr, allow_pickle=False))
+    return arr

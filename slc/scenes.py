@@ -26,7 +26,6 @@ import numpy as np
 from . import backend
 
 backend.init()
-import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -297,11 +296,7 @@ class SceneBuilder:
         return self.add_mesh(np.asarray(tm.vertices), np.asarray(tm.faces), **kw)
 
     def add_box(self, lo, hi, **kw) -> str:
-        import trimesh
-        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-        tm = trimesh.creation.box(extents=hi - lo)
-        tm.apply_translation(0.5 * (lo + hi))
-        return self.add_trimesh(tm, **kw)
+        return self.add_trimesh(box_mesh(lo, hi), **kw)
 
     def add_quad(self, center, u, v, **kw) -> str:
         """A rectangle ``center +- u +- v`` facing ``cross(u, v)``."""
@@ -344,6 +339,21 @@ class SceneBuilder:
         scene.set_time(0.0)
         scene._update_bbox()  # animated meshes are now in their t = 0 pose
         return scene
+
+
+def box_mesh(lo, hi):
+    """A trimesh box spanning the corners ``lo`` and ``hi``."""
+    import trimesh
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    tm = trimesh.creation.box(extents=hi - lo)
+    tm.apply_translation(0.5 * (lo + hi))
+    return tm
+
+
+def merge_meshes(parts):
+    """One trimesh from several (fewer shapes make a faster scene)."""
+    import trimesh
+    return trimesh.util.concatenate(parts)
 
 
 def _vertex_normals(V, F):
@@ -404,14 +414,10 @@ def _import_definition(path: Path):
     return mod
 
 
-_cache: dict = {}
-
-
 def load(name_or_path: str, **options) -> Scene:
     """Load a built-in scene by name, a ``.py`` definition or a ``.xml`` file.
 
     Raises :class:`SceneError` with a one-line message on any problem."""
-    key = (str(name_or_path), tuple(sorted(options.items())))
     p = Path(str(name_or_path))
     if p.suffix == ".xml":
         return load_xml(p)

@@ -211,7 +211,6 @@ def test_packing_round_trip_limits():
     dirs = [[0, 0, 1], [0, 0, -1], [1, 0, 0], [-1, 1e-7, 0], [-1, -1e-7, 0], sph(89.99, 200), sph(0.01, 77),
             sph(179.9, -100)]
     N = len(dirs)
-    rng = np.random.default_rng(1)
     alphas = np.array([0.0, 1e-6, 1e-3, 0.01, 0.3, 1.5, 3.0, math.pi])
     rad = np.array([0.0, 1e-9, 1e-3, 0.5, 1.0, 12.3, 1e5, 1e6])
     D = [V(*[dirs[(i + k) % N] for i in range(N)]) for k in range(K)]

@@ -3,7 +3,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import gbuffer, groundtruth, methods, scenes, views
+from slc import gbuffer, groundtruth, methods, views
 from slc.pipeline import gbuffers_for
 from slc.scenes import SHARED_DIR, CameraPath, Scene
 

@@ -15,11 +15,12 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+
+from ..io import cached_array
 
 from ..gbuffer import GBuffer
 from ..groundtruth import cache_dir
@@ -82,16 +83,9 @@ def reference_indirect(scene, gb: GBuffer, frame: int, viewer: str = "", spp: in
                        use_cache: bool = True) -> np.ndarray:
     """(H, W, 3) path-traced indirect diffuse radiance, cached on disk."""
     path = cache_dir().parent / "crc-ref" / _key(scene.name, frame, viewer, gb, spp, bounces, scene.time)
-    if use_cache and path.exists():
-        try:
-            return np.load(path)
-        except (OSError, ValueError):
-            pass
-    a = np.array(indirect_diffuse(scene.mi_scene, gb, spp, bounces), dtype=np.float32)
-    img = (a.T if a.shape[0] == 3 else a).reshape(gb.height, gb.width, 3)
-    if use_cache:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".tmp{os.getpid()}.npy")
-        np.save(tmp, img)
-        os.replace(tmp, path)
-    return img
+
+    def compute():
+        a = np.array(indirect_diffuse(scene.mi_scene, gb, spp, bounces), dtype=np.float32)
+        return (a.T if a.shape[0] == 3 else a).reshape(gb.height, gb.width, 3)
+
+    return cached_array(path, compute, use_cache)

@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import math
 
-import drjit as dr
-import mitsuba as mi
 
 from ..methods import Method
 from . import traversal as tv

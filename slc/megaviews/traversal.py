@@ -306,7 +306,6 @@ def brute_force(scene_h: SceneHierarchy, view_h: ViewHierarchy, R: int = 16, cul
         nvd = mi.Vector3f(dr.gather(mi.Point3f, V.dir, qv))
         psi = dr.gather(mi.Float, V.phi, qv)
         culled = cull_test(cs, rs, pv, 0.0, nvd, psi) if cull else dr.zeros(mi.Bool, dr.width(qs))
-        size = pb.projected_size(cs - pv, rs, mi.Float(0.0), lay.R)
         mu = _splat(depth, lay, qv, ps, pv, rs * INV_SQRT3, ~culled, multi_pixel)
         c_multi, c_cull = dr.count(~culled & (mu > 0)), dr.count(culled)
         dr.eval(depth, c_multi, c_cull)

@@ -37,12 +37,14 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+
+from ..gbuffer import to_image  # noqa: F401  (callers use vpl.to_image)
+from ..io import cached_array
 
 from ..lights import finite, rng, sample_light, visible
 from . import traversal as tv
@@ -309,23 +311,4 @@ def indirect_reference(scene, gb, spp: int = 256, seed: int = 11, use_cache: boo
                                    float(cam.fov), None if scene.time is None else round(float(scene.time), 6)]
                                   ).encode()).hexdigest()[:16]
     path = cache_dir().parent / "megaviews" / f"{scene.name}_{gb.width}x{gb.height}_s{spp}_{key}.npy"
-    if use_cache and path.exists():
-        try:
-            return np.load(path)
-        except (OSError, ValueError):
-            pass
-    L = _trace_indirect(scene.mi_scene, gb, spp, seed)
-    img = to_image(gb, L)
-    if use_cache:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".tmp{os.getpid()}.npy")
-        np.save(tmp, img)
-        os.replace(tmp, path)
-    return img
-
-
-def to_image(gb, L) -> np.ndarray:
-    a = np.array(L, np.float32)
-    if a.ndim == 2 and a.shape[0] == 3:
-        a = a.T
-    return a.reshape(gb.height, gb.width, 3)
+    return cached_array(path, lambda: to_image(gb, _trace_indirect(scene.mi_scene, gb, spp, seed)), use_cache)

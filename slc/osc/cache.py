@@ -356,9 +356,9 @@ class OnSurfaceCache:
         return s
 
     # ------------------------------------------------------------------ per pixel
-    def _pixel_requests(self, gb):
-        """Virtual block, texel-in-block and level of every pixel of a G-buffer."""
-        B, sh = self.block_size, self.block_shift
+    def _pixel_coords(self, gb):
+        """Per pixel: (valid, island, island-local level-0 coordinates, level,
+        the island-level key ``isl * levels + lvl``)."""
         sidx = mi.UInt32(gb.shape_index)
         valid = mi.Bool(gb.valid) & (sidx < self.n_shapes)
         valid &= dr.gather(mi.Bool, self.d_has_cache, sidx, valid)
@@ -366,7 +366,12 @@ class OnSurfaceCache:
         isl = dr.gather(mi.UInt32, self.d_tri_island, tri, valid)
         uv = self._bary_uv(tri, gb.prim_uv, valid)
         lvl = self.level_of(gb.footprint, isl, valid)
-        k = isl * self.levels + lvl
+        return valid, isl, uv, lvl, isl * self.levels + lvl
+
+    def _pixel_requests(self, gb):
+        """Virtual block, texel-in-block and level of every pixel of a G-buffer."""
+        B, sh = self.block_size, self.block_shift
+        valid, isl, uv, lvl, k = self._pixel_coords(gb)
         wl = dr.gather(mi.UInt32, self.d_lvl_w, k, valid)
         hl = dr.gather(mi.UInt32, self.d_lvl_h, k, valid)
         scale = dr.rcp(mi.Float(mi.UInt32(1) << lvl))
@@ -385,14 +390,7 @@ class OnSurfaceCache:
         is usable). Taps are clamped to the island's texel rectangle, so they
         never read another island."""
         B, sh = self.block_size, self.block_shift
-        sidx = mi.UInt32(gb.shape_index)
-        valid = mi.Bool(gb.valid) & (sidx < self.n_shapes)
-        valid &= dr.gather(mi.Bool, self.d_has_cache, sidx, valid)
-        tri = dr.gather(mi.UInt32, self.d_tri_base, sidx, valid) + mi.UInt32(gb.prim_index)
-        isl = dr.gather(mi.UInt32, self.d_tri_island, tri, valid)
-        uv = self._bary_uv(tri, gb.prim_uv, valid)
-        lvl = self.level_of(gb.footprint, isl, valid)
-        k = isl * self.levels + lvl
+        valid, isl, uv, lvl, k = self._pixel_coords(gb)
         wl = mi.Int32(dr.gather(mi.UInt32, self.d_lvl_w, k, valid))
         hl = mi.Int32(dr.gather(mi.UInt32, self.d_lvl_h, k, valid))
         base = dr.gather(mi.UInt32, self.d_lvl_base, k, valid)
