@@ -85,7 +85,7 @@ def run(opts) -> dict:
     import numpy as np
     from tqdm import tqdm
 
-    from slc import experiment, io, scenes, views
+    from slc import experiment, io, views
     from slc.crc import CRCCache
     from slc.crc.quality import JND_CIE76, pdiff
     from slc.crc.reference import reference_indirect
@@ -111,21 +111,13 @@ def run(opts) -> dict:
     out = Path(opts.out) / NAME
 
     # ----------------- validate everything before any work -----------------
-    loaded = []
-    for name in opts.scene or preset["scenes"]:
-        try:
-            loaded.append(scenes.load(name))
-        except scenes.SceneError as e:
-            if name == "sponza" and not opts.scene:
-                print(f"note: skipping sponza ({e})", file=sys.stderr)
-                continue
-            raise
+    names = experiment.load_and_validate(opts.scene or preset["scenes"], [], bool(opts.scene))
 
     rows = []
     evals = set(preset["eval_frames"])
-    total = len(loaded) * len(preset["bounces"]) * preset["frames"]
+    total = len(names) * len(preset["bounces"]) * preset["frames"]
     with tqdm(total=total, desc=NAME, unit="frame", disable=None) as bar:
-        for s in loaded:
+        for s in experiment.each_scene(names):
             viewers = views.single(s)
             for nb in preset["bounces"]:
                 cfgs = _configs(nb)
@@ -199,7 +191,7 @@ def run(opts) -> dict:
                                              s.exposure)
                 _plot(out / f"crc_{s.name}_b{nb}.png", group, f"{s.name}, {nb} bounce(s), {W}x{H}")
 
-    config = {"quick": bool(opts.quick), "scenes": [s.name for s in loaded], **preset, "seed": opts.seed,
+    config = {"quick": bool(opts.quick), "scenes": names, **preset, "seed": opts.seed,
               "march_samples": getattr(opts, "march_samples", 0) or 0,
               "pdiff": f"percent of pixels with CIE76 dE > {JND_CIE76} against the RGB3 cache",
               "lab_rmse": "CIE Lab RMSE (percent) against the RGB3 cache; lab_rmse_ref against the reference",
@@ -217,15 +209,15 @@ def run(opts) -> dict:
           f"path-traced reference ({preset['ref_spp']} spp indirect + {preset['direct_spp']} spp direct).\n\n"
           + experiment.markdown_table(rows, cols) + "\n")
     md += "\n## Targets\n\n"
-    for s in loaded:
+    for name in names:
         for nb in preset["bounces"]:
-            g = [r for r in rows if r["scene"] == s.name and r["bounces"] == nb and r["visibility"] == "march"]
+            g = [r for r in rows if r["scene"] == name and r["bounces"] == nb and r["visibility"] == "march"]
             y1r = next(r for r in g if r["occupancy"] and r["chroma"] == "ratio")
             g = [r for r in g if r["chroma"] == "offset"]
             y1 = next(r for r in g if r["occupancy"] and r["encoding"] == "y3co1cg1")
             on = next(r for r in g if r["occupancy"] and r["encoding"] == "rgb3")
             off = next(r for r in g if not r["occupancy"] and r["encoding"] == "rgb3")
-            md += (f"- {s.name}, {nb} bounce(s): Y3Co1Cg1 / RGB3 time = {y1['time_vs_rgb3']:.2f} (target <= 0.75), "
+            md += (f"- {name}, {nb} bounce(s): Y3Co1Cg1 / RGB3 time = {y1['time_vs_rgb3']:.2f} (target <= 0.75), "
                    f"Lab RMSE {y1['lab_rmse']:.3f}% (target < 1%); occupancy on/off time = "
                    f"{on['time_ms'] / max(off['time_ms'], 1e-9):.2f} at occupancy ratio "
                    f"{on['occupancy_ratio']:.2f}; all optimizations / unoptimized = {y1['time_vs_unoptimized']:.2f}; "

@@ -72,7 +72,7 @@ def _time_maps(sh, vpls, mode, res, reps, view_depth, phi=math.pi / 2, direction
 def run(opts) -> dict:
     import numpy as np
 
-    from slc import experiment, io, metrics, scenes, views
+    from slc import experiment, io, metrics, views
     from slc.megaviews import vpl as vp
     from slc.megaviews.hierarchy import SceneHierarchy
     from slc.pipeline import gbuffers_for
@@ -88,10 +88,10 @@ def run(opts) -> dict:
     for m in methods:
         if m not in METHODS:
             raise experiment.ExperimentError(f"unknown method '{m}' (megaviews: {', '.join(METHODS)})")
-    loaded = [scenes.load(n) for n in (opts.scene or preset["scenes"])]
+    names = experiment.load_and_validate(opts.scene or preset["scenes"], [], bool(opts.scene))
     out = Path(opts.out) / NAME
     rows, notes = [], []
-    for s in loaded:
+    for s in experiment.each_scene(names):
         s.set_frame(0)
         sh = SceneHierarchy(s.mi_scene, preset["scene_depth"])
         n_leaves = int(sh.size - sh.tree.level_start[sh.depth])
@@ -155,25 +155,25 @@ def run(opts) -> dict:
 
     # ------------------------------ targets as ratios ------------------------------
     summary = []
-    for s in loaded:
-        vr = [r for r in rows if r["scene"] == s.name and r["sweep"] == "views"]
+    for name in names:
+        vr = [r for r in rows if r["scene"] == name and r["sweep"] == "views"]
         mv = sorted([r for r in vr if r["method"] == "megaviews"], key=lambda r: r["views"])
         ml = {r["views"]: r for r in vr if r["method"] == "manylods"}
         if len(mv) >= 2:
             a, b = mv[0], mv[-1]
-            summary.append(f"{s.name}: megaviews {b['views'] / a['views']:.0f}x views cost "
+            summary.append(f"{name}: megaviews {b['views'] / a['views']:.0f}x views cost "
                            f"{b['time_ms'] / max(a['time_ms'], 1e-9):.2f}x time "
                            f"(target <= {(b['views'] / a['views']) ** (2 / 3):.1f}x, i.e. 64x views -> 16x time, exponent 2/3; "
                            f"measured exponent {math.log(b['time_ms'] / a['time_ms']) / math.log(b['views'] / a['views']):.2f})")
         for r in mv:
             if r["views"] in ml:
                 o = ml[r["views"]]
-                summary.append(f"{s.name} {r['views']} views: megaviews {o['time_ms'] / max(r['time_ms'], 1e-9):.2f}x "
+                summary.append(f"{name} {r['views']} views: megaviews {o['time_ms'] / max(r['time_ms'], 1e-9):.2f}x "
                                f"faster than manylods, peak memory {r['memory_mb']:.1f} vs {o['memory_mb']:.1f} MB "
                                f"(pair queue {r['pair_queue_mb']:.1f} vs {o['pair_queue_mb']:.1f} MB)")
     _plots(out, rows)
     config = {"quick": bool(opts.quick), **{k: v for k, v in preset.items()}, "methods": methods,
-              "seed": opts.seed, "scenes": [s.name for s in loaded]}
+              "seed": opts.seed, "scenes": names}
     results = experiment.results_object(NAME, config, rows)
     results["summary"] = summary
     results["notes"] = sorted(set(notes))

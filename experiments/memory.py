@@ -33,39 +33,38 @@ def run(opts):
     from slc import experiment as ex
     from slc import views
 
-    pr, specs, loaded, cfg = ex.setup(opts, QUICK, FULL, METHODS)
+    pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     counts = opts.viewers or pr["viewers"]
-    cases = []
-    for s in loaded:
-        for spec in specs:
-            for n in counts:
-                cases.append((s, spec, views.overlap_rig(s, n, 1.0), {"rig": "overlap", "overlap": 100}))
-                cases.append((s, spec, views.random_viewers(s, n), {"rig": "random"}))
-    rows = ex.run_cases(cases, cfg, NAME, opts.seed)
+    def cases(s):
+        return [c for spec in specs for n in counts for c in (
+            (spec, views.overlap_rig(s, n, 1.0), {"rig": "overlap", "overlap": 100}),
+            (spec, views.random_viewers(s, n), {"rig": "random"}))]
+
+    rows = ex.run_per_scene(names, cases, cfg, NAME, opts.seed)
     for r in rows:
         if "active_mb" in r:
             continue
         r["active_mb"] = r.get("memory_active_mb", r["memory_mb"])
     out = Path(opts.out) / NAME
-    for s in loaded:
+    for name in names:
         for rig in ("overlap", "random"):
-            ex.time_vs_viewers_plot(out / f"memory_{s.name}_{rig}.png",
-                                    [r for r in rows if r["scene"] == s.name and r["rig"] == rig],
-                                    f"{s.name}: memory, {rig} rig", y="memory_mb", ylabel="memory [MB]")
+            ex.time_vs_viewers_plot(out / f"memory_{name}_{rig}.png",
+                                    [r for r in rows if r["scene"] == name and r["rig"] == rig],
+                                    f"{name}: memory, {rig} rig", y="memory_mb", ylabel="memory [MB]")
     cols = [("scene", "scene"), ("method", "method"), ("rig", "rig"), ("viewers", "viewers"),
             ("measured_overlap", "measured overlap %"), ("memory_mb", "allocated [MB]"), ("active_mb", "active [MB]"),
             ("time_ms", "t [ms]")]
     md = ex.markdown_table(rows, cols) + "\n\n## Targets (ratios measured in this run)\n\n"
     n = max(counts)
-    for s in loaded:
+    for name in names:
         for spec in specs:
-            g = {(r["rig"], r["viewers"]): r for r in rows if r["scene"] == s.name and r["setting"] == spec}
+            g = {(r["rig"], r["viewers"]): r for r in rows if r["scene"] == name and r["setting"] == spec}
             a, b = g.get(("overlap", 1)), g.get(("overlap", n))
             if a and b:
-                md += (f"- {s.name} {spec}: memory at 100% overlap, {n} viewers = "
+                md += (f"- {name} {spec}: memory at 100% overlap, {n} viewers = "
                        f"{ex.ratio(b['memory_mb'], a['memory_mb']):.2f}x one viewer's"
                        + (" (target <= 1.1x)\n" if spec == "slc" else "\n"))
-    return ex.finish(NAME, out, opts, cfg, loaded, specs, rows, md, {"viewers": counts})
+    return ex.finish(NAME, out, opts, cfg, names, specs, rows, md, {"viewers": counts})
 
 
 if __name__ == "__main__":

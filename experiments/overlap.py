@@ -33,39 +33,34 @@ def add_arguments(p):
 
 
 def run(opts):
-    from tqdm import tqdm
 
     from slc import experiment as ex
     from slc import views
     from slc.methods import parse_spec
 
-    pr, specs, loaded, cfg = ex.setup(opts, QUICK, FULL, METHODS)
+    pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     counts, overlaps = opts.viewers or pr["viewers"], opts.overlaps or pr["overlaps"]
     out = Path(opts.out) / NAME
-    cases = []
-    for s in loaded:
+    rows = []
+    for s in ex.each_scene(names):
+        cases = []
         for spec in specs:
             cache = parse_spec(spec)[0] in CACHE_METHODS
             for o in (overlaps if cache else sorted({min(overlaps), max(overlaps)})):
                 for n in counts:
                     if n == 1 and o != max(overlaps):
                         continue  # one viewer has no overlap: run it once
-                    cases.append((s, spec, n, o))
-    rows = []
-    with tqdm(total=len(cases) * cfg.frames, desc=NAME, unit="frame", disable=None) as bar:
-        for s, spec, n, o in cases:
-            vs = views.overlap_rig(s, n, o / 100.0, aspect=cfg.width / cfg.height)
-            row = ex.run_case(s, spec, vs, cfg, bar, seed=opts.seed, rig="overlap", overlap=o)
-            row.pop("_result")
-            rows.append(row)
+                    cases.append((s, spec, views.overlap_rig(s, n, o / 100.0, aspect=cfg.width / cfg.height),
+                                  {"rig": "overlap", "overlap": o}))
+        rows += ex.run_cases(cases, cfg, f"{NAME} {s.name}", opts.seed)
     # one viewer belongs to every overlap curve
     for r in [r for r in rows if r["viewers"] == 1]:
         for o in overlaps:
             if o != r["overlap"] and parse_spec(r["setting"])[0] in CACHE_METHODS:
                 rows.append({**r, "overlap": o, "derived": True})
-    for s in loaded:
-        ex.time_vs_viewers_plot(out / f"time_vs_viewers_{s.name}.png", [r for r in rows if r["scene"] == s.name],
-                                f"{s.name}: controlled overlap ({cfg.width}x{cfg.height})",
+    for name in sorted({r["scene"] for r in rows}):
+        ex.time_vs_viewers_plot(out / f"time_vs_viewers_{name}.png", [r for r in rows if r["scene"] == name],
+                                f"{name}: controlled overlap ({cfg.width}x{cfg.height})",
                                 group=("method", "overlap"))
     md = [f"# {NAME}\n", f"{cfg.width}x{cfg.height}, {cfg.frames} frames ({cfg.warmup} warm-up); time = median "
           f"DI ms per frame for all viewers; quality of the first {cfg.eval_viewers} viewer(s) on frames "
@@ -73,18 +68,18 @@ def run(opts):
           ex.markdown_table([r for r in rows if not r.get("derived")], ex.DEFAULT_COLUMNS[:3] + [
               ("overlap", "target overlap %"), ("measured_overlap", "measured %"), ("cache_overlap", "cache entries %")]
               + ex.DEFAULT_COLUMNS[3:]), "\n## Targets (ratios measured in this run)\n"]
-    for s in loaded:
+    for name in sorted({r["scene"] for r in rows}):
         for spec in specs:
-            one = [r for r in rows if r["scene"] == s.name and r["setting"] == spec and r["viewers"] == 1]
-            top = [r for r in rows if r["scene"] == s.name and r["setting"] == spec and r["viewers"] == max(counts)
+            one = [r for r in rows if r["scene"] == name and r["setting"] == spec and r["viewers"] == 1]
+            top = [r for r in rows if r["scene"] == name and r["setting"] == spec and r["viewers"] == max(counts)
                    and r["overlap"] == max(overlaps)]
             if one and top and max(counts) > 1:
-                md.append(f"- {s.name} {spec}: {max(counts)} viewers at {max(overlaps)}% overlap cost "
+                md.append(f"- {name} {spec}: {max(counts)} viewers at {max(overlaps)}% overlap cost "
                           f"{ex.ratio(top[0]['time_ms'], one[0]['time_ms']):.2f}x one viewer"
                           + (" (target <= 1.5x)" if parse_spec(spec)[0] in CACHE_METHODS else ""))
     md = "\n".join(md) + "\n"
     config = {"quick": bool(opts.quick), "viewers": counts, "overlaps": overlaps, "methods": specs,
-              "scenes": [s.name for s in loaded], "width": cfg.width, "height": cfg.height,
+              "scenes": names, "width": cfg.width, "height": cfg.height,
               "frames": cfg.frames, "warmup": cfg.warmup, "eval_frames": cfg.evaluated(),
               "eval_viewers": cfg.eval_viewers, "seed": cfg.seed}
     results = ex.results_object(NAME, config, [r for r in ex.strip_private(rows)])

@@ -30,28 +30,27 @@ def run(opts):
     from slc import experiment as ex
     from slc import views
 
-    pr, specs, loaded, cfg = ex.setup(opts, QUICK, FULL, METHODS)
+    pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     counts = opts.viewers or pr["viewers"]
-    cases = [(s, spec, views.random_viewers(s, n), {"rig": "random"}) for s in loaded for spec in specs
-             for n in counts]
-    rows = ex.run_cases(cases, cfg, NAME, opts.seed)
+    rows = ex.run_per_scene(names, lambda s: [(spec, views.random_viewers(s, n), {"rig": "random"})
+                                              for spec in specs for n in counts], cfg, NAME, opts.seed)
     out = Path(opts.out) / NAME
-    for s in loaded:
-        ex.time_vs_viewers_plot(out / f"time_vs_viewers_{s.name}.png", [r for r in rows if r["scene"] == s.name],
-                                f"{s.name}: random viewers ({cfg.width}x{cfg.height})")
+    for name in names:
+        ex.time_vs_viewers_plot(out / f"time_vs_viewers_{name}.png", [r for r in rows if r["scene"] == name],
+                                f"{name}: random viewers ({cfg.width}x{cfg.height})")
     md = ex.markdown_table(rows, ex.MULTI_COLUMNS) + "\n\n## Targets (ratios measured in this run)\n\n"
     n = max(counts)
-    for s in loaded:
-        get = {r["setting"]: r for r in rows if r["scene"] == s.name and r["viewers"] == n}
+    for name in names:
+        get = {r["setting"]: r for r in rows if r["scene"] == name and r["viewers"] == n}
         if "slc" in get and "rt48" in get:
             a, b = get["slc"], get["rt48"]
-            md += (f"- {s.name}, {n} viewers (measured overlap {a.get('measured_overlap', 0):.0f}%): slc is "
+            md += (f"- {name}, {n} viewers (measured overlap {a.get('measured_overlap', 0):.0f}%): slc is "
                    f"{ex.ratio(b['time_ms'], a['time_ms']):.2f}x faster than rt48 (target >= 2x); FLIP slc "
                    f"{a['flip']:.4f} vs rt48 {b['flip']:.4f} (target: lower)\n")
         if "slc" in get and "restir" in get:
-            md += (f"- {s.name}, {n} viewers: slc is {ex.ratio(get['restir']['time_ms'], get['slc']['time_ms']):.2f}x "
+            md += (f"- {name}, {n} viewers: slc is {ex.ratio(get['restir']['time_ms'], get['slc']['time_ms']):.2f}x "
                    f"faster than restir; FLIP slc {get['slc']['flip']:.4f} vs restir {get['restir']['flip']:.4f}\n")
-    return ex.finish(NAME, out, opts, cfg, loaded, specs, rows, md, {"viewers": counts})
+    return ex.finish(NAME, out, opts, cfg, names, specs, rows, md, {"viewers": counts})
 
 
 if __name__ == "__main__":

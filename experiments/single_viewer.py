@@ -46,14 +46,14 @@ def run(opts) -> dict:
     sweep = ex.available_methods(preset["sweep"]) if opts.sweep is None else opts.sweep
     sweep = [s for s in sweep if s not in method_specs]
     out = Path(opts.out) / NAME
-    loaded = ex.load_and_validate(opts.scene or preset["scenes"], method_specs + sweep, bool(opts.scene))
+    names = ex.load_and_validate(opts.scene or preset["scenes"], method_specs + sweep, bool(opts.scene))
 
     cfg = RunConfig(width=preset["width"], height=preset["height"], frames=preset["frames"],
                     warmup=preset["warmup"], eval_frames=preset["eval_frames"], seed=opts.seed)
     rows = []
-    with tqdm(total=len(loaded) * len(method_specs + sweep) * cfg.frames, desc=NAME, unit="frame",
+    with tqdm(total=len(names) * len(method_specs + sweep) * cfg.frames, desc=NAME, unit="frame",
               disable=None) as bar:
-        for s in loaded:
+        for s in ex.each_scene(names):
             scene_rows = []
             for spec in method_specs + sweep:
                 row = ex.run_case(s, spec, views.single(s), cfg, bar, seed=opts.seed, rig="single",
@@ -65,7 +65,7 @@ def run(opts) -> dict:
             ex.speed_error_plot(out / f"speed_error_{s.name}.png", scene_rows,
                                 f"{s.name}: time vs FLIP ({cfg.width}x{cfg.height})")
 
-    config = {"quick": bool(opts.quick), "scenes": [s.name for s in loaded], "methods": method_specs,
+    config = {"quick": bool(opts.quick), "scenes": names, "methods": method_specs,
               "sweep": sweep, "width": cfg.width, "height": cfg.height, "frames": cfg.frames,
               "warmup": cfg.warmup, "eval_frames": cfg.evaluated(), "seed": cfg.seed, "gt_spp": cfg.gt_spp}
     results = ex.results_object(NAME, config, rows)

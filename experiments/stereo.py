@@ -30,31 +30,32 @@ def run(opts):
     from slc import experiment as ex
     from slc import views
 
-    pr, specs, loaded, cfg = ex.setup(opts, QUICK, FULL, METHODS)
-    cases = []
-    for s in loaded:
+    pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
+    def cases(s):
+        out = []
         for spec in specs:
-            cases.append((s, spec, views.independent(s, pr["singles"]), {"rig": "single", "pairs": 0}))
-            for p in pr["pairs"]:
-                cases.append((s, spec, views.stereo(s, p), {"rig": "stereo", "pairs": p}))
-    rows = ex.run_cases(cases, cfg, NAME, opts.seed)
+            out.append((spec, views.independent(s, pr["singles"]), {"rig": "single", "pairs": 0}))
+            out += [(spec, views.stereo(s, p), {"rig": "stereo", "pairs": p}) for p in pr["pairs"]]
+        return out
+
+    rows = ex.run_per_scene(names, cases, cfg, NAME, opts.seed)
     out = Path(opts.out) / NAME
-    for s in loaded:
-        ex.time_vs_viewers_plot(out / f"time_{s.name}.png", [r for r in rows if r["scene"] == s.name],
-                                f"{s.name}: single viewers vs stereo pairs", group=("method", "rig"))
+    for name in names:
+        ex.time_vs_viewers_plot(out / f"time_{name}.png", [r for r in rows if r["scene"] == name],
+                                f"{name}: single viewers vs stereo pairs", group=("method", "rig"))
     md = ex.markdown_table(rows, ex.MULTI_COLUMNS) + "\n\n## Targets (ratios measured in this run)\n\n"
-    for s in loaded:
+    for name in names:
         for spec in specs:
-            g = {(r["rig"], r["viewers"]): r for r in rows if r["scene"] == s.name and r["setting"] == spec}
+            g = {(r["rig"], r["viewers"]): r for r in rows if r["scene"] == name and r["setting"] == spec}
             single = g.get(("single", pr["singles"]))
             for p in pr["pairs"]:
                 st = g.get(("stereo", 2 * p))
                 if single and st:
                     tgt = " (target <= 1.4x; paper 1.36x)" if p == 16 and spec == "slc" else (
                         " (paper: about 0.74x)" if p == 8 and spec == "slc" else "")
-                    md += (f"- {s.name} {spec}: {p} stereo pairs ({2 * p} images) cost "
+                    md += (f"- {name} {spec}: {p} stereo pairs ({2 * p} images) cost "
                            f"{ex.ratio(st['time_ms'], single['time_ms']):.2f}x of {pr['singles']} single viewers{tgt}\n")
-    return ex.finish(NAME, out, opts, cfg, loaded, specs, rows, md, {"singles": pr["singles"], "pairs": pr["pairs"]})
+    return ex.finish(NAME, out, opts, cfg, names, specs, rows, md, {"singles": pr["singles"], "pairs": pr["pairs"]})
 
 
 if __name__ == "__main__":

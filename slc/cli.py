@@ -113,7 +113,8 @@ def render_cmd(scene_name, method, viewers, rig, overlap, res, frames, warmup, s
     click.echo(f"wrote {outd}")
 
 
-@cli.command("run", context_settings={"ignore_unknown_options": True, "allow_extra_args": True})
+@cli.command("run", add_help_option=False,
+             context_settings={"ignore_unknown_options": True, "allow_extra_args": True})
 @click.argument("experiment_name")
 @click.argument("args", nargs=-1, type=click.UNPROCESSED)
 def run_cmd(experiment_name, args):

@@ -117,9 +117,10 @@ class SurfaceLightCones(Method):
             n_active = dr.width(fr.active)
             motion = mi.Bool()
             if n_active > 0:
+                keys = self.cache.entry_keys(fr.active) if hasattr(self.cache, "entry_keys") else None
                 self.storage, motion = update_entries(
                     self.scene.mi_scene, self.storage, fr.active, fr.si, self._rays(fr.rays), fr.is_new,
-                    fr.seed_slot, ctx.frame, self.seed, self.params, st_info)
+                    fr.seed_slot, ctx.frame, self.seed, self.params, st_info, keys=keys)
                 self.cache.mark_motion(fr.active, motion)
                 st.outputs(self.storage)
         with timer.stage("shade") as st:

@@ -287,22 +287,28 @@ INVALID = 0xFFFFFFFF
 
 
 def entry_rng(slot: mi.UInt32, frame: int, seed: int) -> mi.PCG32:
-    """PCG32 stream per entry keyed by (slot, frame, seed) only: the random numbers of
-    an entry do not depend on which other entries are active or on the viewers.
+    """PCG32 stream per entry keyed by (entry key, frame, seed) only: the random numbers
+    of an entry do not depend on which other entries are active or on the viewers.
     The key is opaque so that a new frame never recompiles the kernel."""
     key = dr.opaque(mi.UInt32, (int(seed) * 0x9E3779B1 + int(frame) * 0x85EBCA77 + 0x165667B1) & 0xFFFFFFFF)
     v0, v1 = mi.sample_tea_32(mi.UInt32(slot), key, 6)
     state = mi.UInt64(v0) | (mi.UInt64(v1) << 32)
-    return mi.PCG32(size=dr.width(slot), initstate=state, initseq=mi.UInt64(slot))
+    # seed() rather than the constructor: PCG32(size, ...) adds arange(size) to both
+    # inputs, which would tie an entry's stream to its lane position
+    rng = mi.PCG32()
+    rng.seed(state, mi.UInt64(slot))
+    return rng
 
 
 def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: mi.SurfaceInteraction3f,
                    rays: mi.UInt32, is_new: mi.Bool, seed_slot: mi.UInt32, frame: int, seed: int,
-                   p: ConeParams, stats: dict | None = None):
+                   p: ConeParams, stats: dict | None = None, keys: mi.UInt32 | None = None):
     """One update cycle of every active entry (one lane per entry, samples processed
     sequentially in a loop so no update is lost). Reads and writes the packed
-    ``storage`` (``capacity * words_per_entry`` UInt32). Returns (storage, motion mask
-    per active entry)."""
+    ``storage`` (``capacity * words_per_entry`` UInt32). ``keys`` (default: the
+    slots) seed each entry's random numbers and shrink-test schedule; the OSC's
+    viewer-independent texel keys make an entry's history independent of which
+    other viewers exist. Returns (storage, motion mask per active entry)."""
     from .packing import scatter_words
     if dr.width(active) == 0:
         return storage, mi.Bool()
@@ -313,8 +319,9 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     # the order changes nothing in the results).
     order = dr.argsort(mi.UInt32(rays), descending=True)
     act = dr.gather(mi.UInt32, active, order)
+    key = dr.gather(mi.UInt32, active if keys is None else mi.UInt32(keys), order)
     words, motion_o, shrunk_o, dropped_o = _updated_words(
-        scene, storage, act, dr.gather(type(si), si, order), dr.gather(mi.UInt32, rays, order),
+        scene, storage, act, key, dr.gather(type(si), si, order), dr.gather(mi.UInt32, rays, order),
         dr.gather(mi.Bool, is_new, order), dr.gather(mi.UInt32, seed_slot, order), frame, seed, p)
     motion = dr.zeros(mi.Bool, N)
     dr.scatter(motion, motion_o, order)
@@ -327,7 +334,7 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     return storage, motion
 
 
-def _updated_words(scene, storage, active, si, rays, is_new, seed_slot, frame, seed, p: ConeParams):
+def _updated_words(scene, storage, active, key, si, rays, is_new, seed_slot, frame, seed, p: ConeParams):
     """The update kernel proper: unpack, insert samples, shrink, end the cycle,
     pack. Returns the evaluated (words, motion, shrunk, dropped)."""
     from .packing import gather_words, pack, unpack
@@ -349,7 +356,7 @@ def _updated_words(scene, storage, active, si, rays, is_new, seed_slot, frame, s
     n = dr.select(has_seed, sn, dr.select(is_new, en, n))
 
     frame_l = si.sh_frame
-    sampler = entry_rng(active, frame, seed)
+    sampler = entry_rng(key, frame, seed)
     rays = mi.UInt32(rays)
     S = [dr.zeros(mi.Color3f, N) for _ in range(K)]
     beta = dr.zeros(mi.Float, N)
@@ -375,7 +382,7 @@ def _updated_words(scene, storage, active, si, rays, is_new, seed_slot, frame, s
     # ----------------------------------------------- shrink test: one ray per cone
     period = max(int(p.shrink_period), 1)
     phase = dr.opaque(mi.UInt32, frame % period)  # opaque: no recompilation per frame
-    do_shrink = valid & ((rays > 1) | (((active + phase) % period) == 0))
+    do_shrink = valid & ((rays > 1) | (((key + phase) % period) == 0))
     us = [sampler.next_float32() for _ in range(K)]
     dirs, tested = shrink_test_dirs(D, A, n, us, p)
     hits = []

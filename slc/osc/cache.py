@@ -661,6 +661,14 @@ class OnSurfaceCache:
         ty = ((xy >> 16) << sh) | (w >> sh)
         return isl, lvl, tx, ty
 
+    def entry_keys(self, slots) -> mi.UInt32:
+        """A 32-bit hash of each slot's (island, level, tx, ty): the same for a
+        texel whatever physical block it landed in, so payload random numbers
+        keyed by it do not depend on which viewers asked for what."""
+        isl, lvl, tx, ty = self.entry_texels(mi.UInt32(slots))
+        k0, _ = mi.sample_tea_32(isl * self.levels + lvl, (ty << 16) | tx, 4)
+        return k0
+
     def entry_info(self, slots) -> dict:
         """numpy (island, level, tx, ty) of slots: a viewer-independent key."""
         isl, lvl, tx, ty = self.entry_texels(mi.UInt32(slots))
