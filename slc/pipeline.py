@@ -54,13 +54,15 @@ class RunResult:
     metrics: dict
     memory_mb: float
     per_frame_ms: list = field(default_factory=list)
+    frames_ms: list = field(default_factory=list)  # per frame: {stage: ms, "total": ms}, warm-up included
     images: dict = field(default_factory=dict)  # viewer -> {"gt", "img", "flip_map"} of the last evaluated frame
     last: dict = field(default_factory=dict)    # viewer -> composed image of the last frame
     stats: dict = field(default_factory=dict)
 
     def row(self) -> dict:
         r = {"method": self.method, "viewers": self.viewers, "time_ms": self.time_ms,
-             "memory_mb": self.memory_mb, "stages_ms": self.stages}
+             "memory_mb": self.memory_mb, "stages_ms": self.stages,
+             "frames_ms": [{k: round(v, 3) for k, v in f.items()} for f in self.frames_ms]}
         r.update(self.metrics)
         r.update(self.stats)
         return r
@@ -119,7 +121,8 @@ def run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress=None) 
     return RunResult(method=method.name, viewers=len(viewers), time_ms=summ.get("total", 0.0),
                      stages={k: v for k, v in summ.items() if k != "total"}, metrics=metrics,
                      memory_mb=method.memory_bytes() / 2 ** 20,
-                     per_frame_ms=[fr.get("total", 0.0) for fr in timer.frames], images=images, last=last,
+                     per_frame_ms=[fr.get("total", 0.0) for fr in timer.frames], frames_ms=list(timer.frames),
+                     images=images, last=last,
                      stats=stats)
 
 

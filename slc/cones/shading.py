@@ -7,6 +7,8 @@ with ``L_c`` the cone's estimate of the integral of incoming radiance over its
 solid angle (see docs/cones.md). The directions are a fixed stratified
 (spherical-Fibonacci) pattern in the cone, the same for every pixel and frame, so
 shading adds no noise. A cone of zero angle (point light) samples its axis.
+Purely Lambertian pixels whose cones clear the horizon use the exact cone
+integral instead of the quadrature (same estimator, no loop).
 """
 from __future__ import annotations
 
@@ -46,12 +48,36 @@ def shade_pixels(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     nS = max(int(n_samples), 1)
     n_op = dr.opaque(mi.UInt32, nS)
 
+    # ------------------- Lambertian pixels: the cone integral in closed form -------------------
+    # For f_r = rho / pi and a cone (d, alpha) entirely above the horizon,
+    #   (1/Omega) int_cone cos(theta) dw = (n . d) (1 + cos alpha) / 2,
+    # which the nS-direction quadrature below only approximates; pixels whose BSDF is
+    # purely diffuse and whose cones all clear the horizon skip the loop.
+    flags = mi.UInt32(bsdf.flags())
+    lambert = active & mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & \
+        ~mi.has_flag(flags, mi.BSDFFlags.Glossy) & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & \
+        ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & (mi.Frame3f.cos_theta(si.wi) > 0.0)
+    nrm = si.sh_frame.n
+    closed = dr.zeros(mi.Color3f, dr.width(slot))
+    for i in range(K):
+        live = n > i
+        cos_d = dr.dot(nrm, Dw[i])
+        # above the horizon: angle(n, d) + alpha < pi/2  <=>  cos(angle + alpha) > 0
+        above = (cos_d * dr.cos(A[i]) - dr.safe_sqrt(1.0 - dr.square(cos_d)) * dr.sin(A[i])) > 0.0
+        lambert &= ~live | above
+        closed += dr.select(live, L[i] * (cos_d * 0.5 * (1.0 + dr.cos(A[i]))), 0.0)
+    rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert))
+    closed = rho * closed * (1.0 / math.pi)
+
+    # ------------------- everything else: nS directions per cone -------------------
+    sampled = active & ~lambert
+
     def cond(s, acc):
-        return s < n_op
+        return (s < n_op) & sampled
 
     def body(s, acc):
         for i in range(K):
-            m = active & (n > i)
+            m = sampled & (n > i)
             wi = cone_samples(Dw[i], A[i], s, nS)
             f = mi.Color3f(bsdf.eval(ctx, si, si.to_local(wi), m))
             acc += dr.select(m, f * L[i], 0.0)
@@ -59,6 +85,6 @@ def shade_pixels(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
 
     _, acc = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(slot))), cond=cond, body=body,
                            labels=("s", "acc"))
-    acc = acc * (1.0 / nS)
+    acc = dr.select(lambert, closed, acc * (1.0 / nS))
     ok = active & dr.isfinite(acc[0]) & dr.isfinite(acc[1]) & dr.isfinite(acc[2])
     return dr.select(ok, acc, 0.0)
