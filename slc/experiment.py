@@ -169,7 +169,9 @@ def load_and_validate(scene_names: list[str], method_specs: list[str], explicit_
                 continue
             raise
         for spec in method_specs:
-            methods.create(spec, s)
+            if methods.create(spec, s).output != "direct":
+                raise ExperimentError(f"method '{spec}' renders indirect light; this experiment compares direct "
+                                      f"light (use 'slc run megaviews')")
         names.append(name)
         del s
     _release()

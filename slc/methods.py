@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import importlib
 import re
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Callable
 
@@ -28,7 +29,7 @@ class FrameContext:
     seed: int = 0       # run seed; methods derive per-frame/per-viewer streams from it
 
 
-class Method:
+class Method(ABC):
     """Base class of a direct-illumination method.
 
     Subclasses set ``name`` and implement :meth:`render`. ``seed`` makes runs
@@ -36,7 +37,8 @@ class Method:
 
     name = "method"
     label = None    # display name when settings differ from the defaults
-    shared = False  # True when one state serves all viewers (caches)
+    shared = False
+    output = "direct"  # what render() returns; "indirect" methods cannot join direct-light experiments  # True when one state serves all viewers (caches)
 
     def __init__(self, scene, seed: int = 0, **kw):
         if kw:
@@ -53,9 +55,9 @@ class Method:
     def reset(self) -> None:
         """Forget all state carried across frames (caches, reservoirs)."""
 
+    @abstractmethod
     def render(self, ctx: FrameContext, gbuffers: list, timer) -> list:
         """Direct illumination per viewer (list of mi.Color3f, one per G-buffer)."""
-        raise NotImplementedError
 
     def memory_bytes(self) -> int:
         """Bytes of state the method keeps (caches, reservoirs, buffers)."""

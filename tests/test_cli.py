@@ -87,3 +87,9 @@ def test_scenes_and_methods_listing():
     assert r.returncode == 0 and "cornell" in r.stdout and "atrium" in r.stdout
     r = run(["methods"])
     assert r.returncode == 0 and "rt" in r.stdout
+
+
+def test_indirect_method_refused_by_direct_light_experiment(tmp_path):
+    r = run(["run", "single-viewer", "--quick", "--methods", "megaviews", "--out", str(tmp_path / "o")])
+    _one_line_error(r, "indirect light")
+    assert not (tmp_path / "o").exists()

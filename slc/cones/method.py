@@ -6,7 +6,7 @@ import mitsuba as mi
 
 from ..methods import Method, MethodError, register
 from .packing import bytes_per_entry, words_per_entry
-from .shading import shade_pixels
+from .shading import shade_pixels_frozen
 from .update import INVALID, ConeParams, update_entries
 
 
@@ -124,22 +124,19 @@ class SurfaceLightCones(Method):
                 self.cache.mark_motion(fr.active, motion)
                 st.outputs(self.storage)
         with timer.stage("shade") as st:
-            sizes = [gb.size for gb in gbuffers]
-            if n_active == 0:
-                outs = [dr.zeros(mi.Color3f, n_) for n_ in sizes]
-            else:
-                # all viewers in one kernel: tracing the shading code once per frame
-                # instead of once per viewer (with 16 viewers the Python tracing cost
-                # otherwise exceeded the shading itself)
-                gb = _StackedGBuffer(gbuffers)
-                slot = stack([mi.UInt32(s_) for s_ in fr.pixel_slot])
+            outs = []
+            for v, gb in enumerate(gbuffers):
+                if n_active == 0:
+                    outs.append(dr.zeros(mi.Color3f, gb.size))
+                    continue
+                slot = mi.UInt32(fr.pixel_slot[v])
                 ok = mi.Bool(gb.valid) & (slot != INVALID)
-                tf = dr.gather(mi.Frame3f, fr.si.sh_frame, stack(list(fr.pixel_index)), ok)
+                # each entry's own local frame (the cones live in it)
+                tf = dr.gather(mi.Frame3f, fr.si.sh_frame, fr.pixel_index[v], ok)
                 if self.fetch == "bilinear" and hasattr(self.cache, "bilinear_taps"):
-                    L = self._shade_bilinear(gb, slot, ok, tf, K)
+                    outs.append(self._shade_bilinear(gb, slot, ok, tf, K))
                 else:
-                    L = shade_pixels(self.storage, slot, ok, gb.si, tf, K, self.shade_samples)
-                outs = unstack(L, sizes)
+                    outs.append(shade_pixels_frozen(self.storage, slot, ok, gb.si, tf, K, self.shade_samples))
             st.outputs(*outs)
         self._last = {"active_entries": n_active, "motion_entries": motion,
                       "shrunk_entries": st_info.get("shrunk"), "dropped_entries": st_info.get("dropped")}
@@ -152,16 +149,14 @@ class SurfaceLightCones(Method):
         cones of every tap are read in the frame of the pixel's own entry (taps
         lie on the same island, so their normals agree to within its bound).
         Pixels with no usable tap fall back to the nearest entry."""
-        per = [self.cache.bilinear_taps(g) for g in getattr(gb, "_parts", [gb])]
-        taps = [stack([p[0][j] for p in per]) for j in range(4)]
-        weights = [stack([p[1][j] for p in per]) for j in range(4)]
+        taps, weights = self.cache.bilinear_taps(gb)
         nS = max(self.shade_samples // 4, 1)
         acc = dr.zeros(mi.Color3f, gb.size)
         for s_j, w_j in zip(taps, weights):
             m = ok & (w_j > 0.0)
-            acc += w_j * shade_pixels(self.storage, s_j, m, gb.si, tf, K, nS)
+            acc += w_j * shade_pixels_frozen(self.storage, s_j, m, gb.si, tf, K, nS)
         total = weights[0] + weights[1] + weights[2] + weights[3]
-        near = shade_pixels(self.storage, slot, ok & (total <= 0.0), gb.si, tf, K, self.shade_samples)
+        near = shade_pixels_frozen(self.storage, slot, ok & (total <= 0.0), gb.si, tf, K, self.shade_samples)
         return dr.select(total > 0.0, acc, near)
 
     def memory_bytes(self) -> int:
@@ -174,48 +169,6 @@ class SurfaceLightCones(Method):
                 v = int(dr.count(v)[0]) if dr.width(v) > 0 else 0
             out[k] = float(v or 0)
         return out
-
-
-def stack(xs, sizes=None):
-    """Concatenate Dr.Jit arrays or structures (e.g. SurfaceInteraction3f) of
-    several viewers into one array; ``sizes`` (pixels per viewer) broadcasts
-    fields stored as a single value (such as ``time``)."""
-    x0 = xs[0]
-    if len(xs) == 1:
-        return x0
-    fields = getattr(type(x0), "DRJIT_STRUCT", None)
-    if fields:
-        out = type(x0)()
-        for k in fields:
-            setattr(out, k, stack([getattr(x, k) for x in xs], sizes))
-        return out
-    if dr.depth_v(x0) > 1:
-        return type(x0)(*[stack([x[i] for x in xs], sizes) for i in range(len(x0))])
-    if sizes is not None:
-        xs = [dr.gather(type(x), x, dr.zeros(mi.UInt32, n_)) if dr.width(x) == 1 and n_ > 1 else x
-              for x, n_ in zip(xs, sizes)]
-    return dr.concat(list(xs))
-
-
-def unstack(x, sizes):
-    """Inverse of :func:`stack` for one array: per-viewer slices."""
-    if len(sizes) == 1:
-        return [x]
-    out, o = [], 0
-    for n_ in sizes:
-        out.append(dr.gather(type(x), x, dr.arange(mi.UInt32, n_) + o))
-        o += n_
-    return out
-
-
-class _StackedGBuffer:
-    """The fields of several G-buffers that shading reads, concatenated."""
-
-    def __init__(self, gbuffers):
-        self.si = stack([g.si for g in gbuffers], [g.size for g in gbuffers])
-        self.valid = stack([mi.Bool(g.valid) for g in gbuffers])
-        self.size = sum(g.size for g in gbuffers)
-        self._parts = gbuffers
 
 
 def _factory(scene, **kw):

@@ -34,6 +34,7 @@ class ManyViewIR(Method):
     from 64^2 maps up, off below, as in the paper's timings).
     """
     shared = True
+    output = "indirect"
 
     def __init__(self, scene, mode: str = "megaviews", views: int = 4096, bounces: int = 1, res: int = 16,
                  scene_depth: int = SCENE_DEPTH, view_depth: int = VIEW_DEPTH, samples: int = 64,
