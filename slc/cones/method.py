@@ -81,13 +81,9 @@ class SurfaceLightCones(Method):
         self._last = {}
 
     def _make_cache(self):
-        if self._cache_arg is not None:
-            self.cache = self._cache_arg
-        else:
-            from ..osc import OnSurfaceCache
-            self.cache = OnSurfaceCache(self.scene, block_size=self.block, bias=self.bias,
-                                        evict_after=self.evict_after)
-        self.cache.set_entry_bytes(bytes_per_entry(self.params.max_cones))
+        from ..osc import cache_for
+        self.cache = cache_for(self.scene, self._cache_arg, self.block, self.bias, self.evict_after,
+                               bytes_per_entry(self.params.max_cones))
 
     def _ensure_storage(self):
         need = int(self.cache.capacity) * words_per_entry(self.params.max_cones)

@@ -27,3 +27,14 @@ from .islands import MeshIslands, build_mesh_islands, charts_overlap, cluster_fa
 
 __all__ = ["OnSurfaceCache", "FrameRequests", "INVALID", "MeshIslands", "build_mesh_islands",
            "charts_overlap", "cluster_faces", "island_deviation"]
+
+
+def cache_for(scene, cache=None, block_size: int = 8, bias: float = 1.0, evict_after: int = 60,
+              entry_bytes: int = 0):
+    """The cache a payload method (cones, SH) stores its entries in: ``cache``
+    when one is given (tests pass stand-ins), else a new :class:`OnSurfaceCache`;
+    ``entry_bytes`` is the payload's packed size, used for memory reports."""
+    if cache is None:
+        cache = OnSurfaceCache(scene, block_size=block_size, bias=bias, evict_after=evict_after)
+    cache.set_entry_bytes(entry_bytes)
+    return cache

@@ -89,13 +89,9 @@ class SHSurfaceCache(Method):
         self._last = {}
 
     def _make_cache(self):
-        if self._cache_arg is not None:
-            self.cache = self._cache_arg
-        else:
-            from ..osc import OnSurfaceCache
-            self.cache = OnSurfaceCache(self.scene, block_size=self.block, bias=self.bias,
-                                        evict_after=self.evict_after)
-        self.cache.set_entry_bytes(4 * self.enc.n + 4)
+        from ..osc import cache_for
+        self.cache = cache_for(self.scene, self._cache_arg, self.block, self.bias, self.evict_after,
+                               4 * self.enc.n + 4)
 
     def _ensure_storage(self):
         cap = max(int(self.cache.capacity), 1)
