@@ -28,18 +28,12 @@ def run(opts):
     from slc import experiment as ex
     from slc import views
 
-    pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
-    counts = opts.viewers or pr["viewers"]
-    rows = ex.run_per_scene(names, lambda s: [(spec, views.meeting(s, n), {"rig": "meeting"})
-                                              for spec in specs for n in counts], cfg, NAME, opts.seed)
-    out = Path(opts.out) / NAME
-    for name in names:
-        ex.time_vs_viewers_plot(out / f"time_vs_viewers_{name}.png", [r for r in rows if r["scene"] == name],
-                                f"{name}: meeting rig")
+    rows, names, specs, cfg, out, counts = ex.viewer_count_experiment(
+        opts, NAME, QUICK, FULL, METHODS, "meeting", views.meeting, lambda name, cfg: f"{name}: meeting rig")
     md = ex.markdown_table(rows, ex.MULTI_COLUMNS) + "\n\n## Targets (ratios measured in this run)\n\n"
     n = max(counts)
     for name in names:
-        get = {r["setting"]: r for r in rows if r["scene"] == name and r["viewers"] == n}
+        get = ex.at_viewers(rows, name, n)
         if "slc" in get and "rt48" in get:
             md += (f"- {name}, {n} viewers: slc is {ex.ratio(get['rt48']['time_ms'], get['slc']['time_ms']):.2f}x "
                    f"faster than rt48 (target >= 10x; paper up to 20x); FLIP slc {get['slc']['flip']:.4f} vs "

@@ -30,18 +30,13 @@ def run(opts):
     from slc import experiment as ex
     from slc import views
 
-    pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
-    counts = opts.viewers or pr["viewers"]
-    rows = ex.run_per_scene(names, lambda s: [(spec, views.random_viewers(s, n), {"rig": "random"})
-                                              for spec in specs for n in counts], cfg, NAME, opts.seed)
-    out = Path(opts.out) / NAME
-    for name in names:
-        ex.time_vs_viewers_plot(out / f"time_vs_viewers_{name}.png", [r for r in rows if r["scene"] == name],
-                                f"{name}: random viewers ({cfg.width}x{cfg.height})")
+    rows, names, specs, cfg, out, counts = ex.viewer_count_experiment(
+        opts, NAME, QUICK, FULL, METHODS, "random", views.random_viewers,
+        lambda name, cfg: f"{name}: random viewers ({cfg.width}x{cfg.height})")
     md = ex.markdown_table(rows, ex.MULTI_COLUMNS) + "\n\n## Targets (ratios measured in this run)\n\n"
     n = max(counts)
     for name in names:
-        get = {r["setting"]: r for r in rows if r["scene"] == name and r["viewers"] == n}
+        get = ex.at_viewers(rows, name, n)
         if "slc" in get and "rt48" in get:
             a, b = get["slc"], get["rt48"]
             md += (f"- {name}, {n} viewers (measured overlap {a.get('measured_overlap', 0):.0f}%): slc is "

@@ -79,13 +79,29 @@ def write_results(out_dir: Path, results: dict, markdown: str) -> None:
     io.write_text(out_dir / "results.md", markdown)
 
 
-def speed_error_plot(path: Path, rows: list[dict], title: str, x="time_ms", y="flip") -> None:
-    """Time per frame against FLIP, one point per row, labelled by method
-    (and setting); rows of one method family are joined by a line."""
+def _figure(size):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(5.5, 4))
+    return plt.subplots(figsize=size)
+
+
+def _save_figure(fig, ax, path: Path, title: str, xlabel: str, ylabel: str, legend_size: int) -> None:
+    import matplotlib.pyplot as plt
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=legend_size)
+    fig.tight_layout()
+    io._atomic(path, lambda p: fig.savefig(p, dpi=120, format="png"))
+    plt.close(fig)
+
+
+def speed_error_plot(path: Path, rows: list[dict], title: str, x="time_ms", y="flip") -> None:
+    """Time per frame against FLIP, one point per row, labelled by method
+    (and setting); rows of one method family are joined by a line."""
+    fig, ax = _figure((5.5, 4))
     fams: dict[str, list] = {}
     for r in rows:
         if r.get(x) is None or r.get(y) is None:
@@ -97,14 +113,7 @@ def speed_error_plot(path: Path, rows: list[dict], title: str, x="time_ms", y="f
         for r in rs:
             ax.annotate(r.get("label", r["method"]), (r[x], r[y]), fontsize=7,
                         textcoords="offset points", xytext=(3, 3))
-    ax.set_xlabel("time per frame [ms]")
-    ax.set_ylabel("FLIP (lower is better)")
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    io._atomic(path, lambda p: fig.savefig(p, dpi=120, format="png"))
-    plt.close(fig)
+    _save_figure(fig, ax, path, title, "time per frame [ms]", "FLIP (lower is better)", 8)
 
 
 # -----------------------------------------------------------------------------
@@ -143,13 +152,7 @@ def apply_common(opts, preset: dict) -> dict:
 def available_methods(wanted: list[str]) -> list[str]:
     """``wanted`` without the methods that are not implemented (yet)."""
     from . import methods
-    avail = methods.available()
-    out = []
-    for spec in wanted:
-        name = methods.parse_spec(spec)[0]
-        if any(e.pattern.fullmatch(name) for e in methods._REGISTRY.values()) or name in avail:
-            out.append(spec)
-    return out
+    return [spec for spec in wanted if methods.known(methods.parse_spec(spec)[0])]
 
 
 def load_and_validate(scene_names: list[str], method_specs: list[str], explicit_scenes: bool) -> list[str]:
@@ -222,10 +225,7 @@ def time_vs_viewers_plot(path: Path, rows: list[dict], title: str, group=("metho
                          y="time_ms", ylabel="time per frame [ms]") -> None:
     """One line per group (e.g. method and overlap), ``y`` against ``x``;
     points labelled with the measured overlap when rows carry it."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, ax = _figure((6, 4))
     groups: dict[tuple, list] = {}
     for r in rows:
         groups.setdefault(tuple(r.get(g) for g in group), []).append(r)
@@ -237,15 +237,8 @@ def time_vs_viewers_plot(path: Path, rows: list[dict], title: str, group=("metho
             if r.get("measured_overlap") is not None and r.get(x, 1) > 1:
                 ax.annotate(f"{r['measured_overlap']:.0f}%", (r[x], r[y]), fontsize=6,
                             textcoords="offset points", xytext=(2, 2))
-    ax.set_xlabel(x)
-    ax.set_ylabel(ylabel)
     ax.set_xscale("log", base=2)
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    io._atomic(path, lambda p: fig.savefig(p, dpi=120, format="png"))
-    plt.close(fig)
+    _save_figure(fig, ax, path, title, x, ylabel, 7)
 
 
 def save_strip(out: Path, scene, label: str, res) -> None:
@@ -284,6 +277,27 @@ def add_viewer_arguments(p) -> None:
     """Common options plus --viewers (viewer counts)."""
     add_common_arguments(p)
     p.add_argument("--viewers", type=int, nargs="+", help="viewer counts")
+
+
+def viewer_count_experiment(opts, name: str, quick: dict, full: dict, methods: list[str], rig: str,
+                            make_viewers, plot_title):
+    """Every method on ``make_viewers(scene, n)`` for each viewer count, one
+    time-against-viewers plot per scene. Returns (rows, scene names, cfg,
+    out folder, viewer counts)."""
+    pr, specs, names, cfg = setup(opts, quick, full, methods)
+    counts = opts.viewers or pr["viewers"]
+    rows = run_per_scene(names, lambda s: [(spec, make_viewers(s, n), {"rig": rig})
+                                           for spec in specs for n in counts], cfg, name, opts.seed)
+    out = Path(opts.out) / name
+    for scene in names:
+        time_vs_viewers_plot(out / f"time_vs_viewers_{scene}.png", [r for r in rows if r["scene"] == scene],
+                             plot_title(scene, cfg))
+    return rows, names, specs, cfg, out, counts
+
+
+def at_viewers(rows: list[dict], scene: str, n: int) -> dict:
+    """Rows of one scene at ``n`` viewers, keyed by setting."""
+    return {r["setting"]: r for r in rows if r["scene"] == scene and r["viewers"] == n}
 
 
 def run_per_scene(names, make_cases, cfg, desc: str, seed: int = 0) -> list[dict]:

@@ -97,6 +97,12 @@ def _load_all():
                 raise
 
 
+def known(name: str) -> bool:
+    """Whether ``name`` (without settings) names a registered method."""
+    _load_all()
+    return any(e.pattern.fullmatch(name) for e in _REGISTRY.values())
+
+
 def available() -> dict[str, str]:
     _load_all()
     return {k: e.help for k, e in _REGISTRY.items()}

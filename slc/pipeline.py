@@ -53,11 +53,14 @@ class RunResult:
     stages: dict
     metrics: dict
     memory_mb: float
-    per_frame_ms: list = field(default_factory=list)
     frames_ms: list = field(default_factory=list)  # per frame: {stage: ms, "total": ms}, warm-up included
     images: dict = field(default_factory=dict)  # viewer -> {"gt", "img", "flip_map"} of the last evaluated frame
     last: dict = field(default_factory=dict)    # viewer -> composed image of the last frame
     stats: dict = field(default_factory=dict)
+
+    @property
+    def per_frame_ms(self) -> list:
+        return [f.get("total", 0.0) for f in self.frames_ms]
 
     def row(self) -> dict:
         r = {"method": self.method, "viewers": self.viewers, "time_ms": self.time_ms,
@@ -121,7 +124,7 @@ def run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress=None) 
     return RunResult(method=method.name, viewers=len(viewers), time_ms=summ.get("total", 0.0),
                      stages={k: v for k, v in summ.items() if k != "total"}, metrics=metrics,
                      memory_mb=method.memory_bytes() / 2 ** 20,
-                     per_frame_ms=[fr.get("total", 0.0) for fr in timer.frames], frames_ms=list(timer.frames),
+                     frames_ms=list(timer.frames),
                      images=images, last=last,
                      stats=stats)
 

@@ -75,7 +75,6 @@ def measure_overlap(gbuffers) -> float:
     seen by anyone. A cell is the hit position quantised to the median pixel
     footprint, so the figure is comparable across methods (cache methods also
     report the overlap of their own entries)."""
-    import drjit as dr
     if len(gbuffers) < 2:
         return 0.0
     keys, foot = [], []
@@ -94,7 +93,6 @@ def measure_overlap(gbuffers) -> float:
         keys.append(np.unique(k))
     allk = np.concatenate(keys)
     _, counts = np.unique(allk, return_counts=True)
-    del dr
     return 100.0 * float(np.mean(counts > 1)) if counts.size else 0.0
 
 
