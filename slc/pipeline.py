@@ -92,7 +92,7 @@ def run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress=None) 
     for i in range(cfg.frames):
         f = cfg.start_frame + i
         gbs = gbuffers_for(scene, viewers, f, cfg.width, cfg.height)
-        ctx = FrameContext(frame=f, time=scene.time or 0.0, seed=cfg.seed)
+        ctx = FrameContext(frame=f)
         timer.begin_frame()
         direct = method.render(ctx, gbs, timer)
         timer.end_frame()

@@ -36,6 +36,6 @@ def render_frames(scene, method, viewers, frames, width, height, seed=0, start=0
     out = None
     for f in range(start, start + frames):
         gbs = gbuffers_for(scene, viewers, f, width, height)
-        d = method.render(FrameContext(f, scene.time or 0.0, seed), gbs, NullTimer())
+        d = method.render(FrameContext(f), gbs, NullTimer())
         out = [gbuffer.to_image(gb, gbuffer.compose(gb, x)) for gb, x in zip(gbs, d)]
     return out, gbs

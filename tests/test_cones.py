@@ -163,20 +163,20 @@ def test_c_update_running_mean_and_cap():
     # cycles of 2 samples with weight sums 2v: a per-sample running mean of all samples
     vals = [4.0, 2.0, 0.0, 6.0]
     for k, v in enumerate(vals):
-        L, C, _ = end_cycle(L, [mi.Color3f(2 * v)], C, mi.UInt32(1), mi.Float(0.0), mi.UInt32(2), p)
+        L, C, _ = end_cycle(L, [mi.Color3f(2 * v)], C, mi.UInt32(1), mi.Float(0.0), mi.UInt32(2), mi.Bool(True), p)
         assert abs(C[0] - 2 * (k + 1)) < 1e-6                      # C counts samples
         assert abs(L[0][0][0] - np.mean(vals[:k + 1])) < 1e-5      # mean over all samples
     # an 8-sample cycle weighs 8x a 1-sample cycle
     L, C, _ = end_cycle([mi.Color3f(1.0)], [mi.Color3f(8 * 3.0)], mi.Float(1.0), mi.UInt32(1), mi.Float(0.0),
-                        mi.UInt32(8), p)
+                        mi.UInt32(8), mi.Bool(True), p)
     assert C[0] == 9 and abs(L[0][0][0] - (1.0 + 24.0) / 9) < 1e-5
     # cap at 255 (8 bits): L <- L (1 - n/255) + S / 255
     L, C, _ = end_cycle([mi.Color3f(1.0)], [mi.Color3f(0.0)], mi.Float(255.0), mi.UInt32(1), mi.Float(0.0),
-                        mi.UInt32(1), p)
+                        mi.UInt32(1), mi.Bool(False), p)
     assert C[0] == 255 and abs(L[0][0][0] - 254 / 255) < 1e-6
     # a turn of 20 deg divides C by 2 before the samples are added
     _, C, red = end_cycle([mi.Color3f(1.0)], [mi.Color3f(0.0)], mi.Float(100.0), mi.UInt32(1),
-                          mi.Float(math.radians(20)), mi.UInt32(1), p)
+                          mi.Float(math.radians(20)), mi.UInt32(1), mi.Bool(False), p)
     assert red[0] and abs(C[0] - 51.0) < 1e-4
 
 
@@ -279,7 +279,7 @@ def _run(scene, method, frames, start=0):
     out = None
     for f in range(start, start + frames):
         gbs = gbuffers_for(scene, viewers, f, W, H)
-        d = method.render(FrameContext(f, scene.time or 0.0, 0), gbs, NullTimer())
+        d = method.render(FrameContext(f), gbs, NullTimer())
         out = (gbs[0], d[0])
     return out
 
@@ -351,7 +351,7 @@ def test_glossy_flip_below_rt16():
     m = _make(sc)
     gb, d = _run(sc, m, 16)
     rt = create("rt16", sc)
-    d_rt = rt.render(FrameContext(15, 0.0, 0), [gb], NullTimer())[0]
+    d_rt = rt.render(FrameContext(15), [gb], NullTimer())[0]
     gt = gbuffer.to_image(gb, gbuffer.compose(gb, direct_mis(sc.mi_scene, gb, 1024)))
     f_slc = evaluate(gt, gbuffer.to_image(gb, gbuffer.compose(gb, d)))["flip"]
     f_rt = evaluate(gt, gbuffer.to_image(gb, gbuffer.compose(gb, d_rt)))["flip"]
@@ -377,7 +377,7 @@ def test_moving_light_recovers_after_stop():
     errs = {}
     for f in range(33):
         gbs = gbuffers_for(sc, viewers, f, W, H)
-        d = m.render(FrameContext(f, sc.time, 0), gbs, NullTimer())[0]
+        d = m.render(FrameContext(f), gbs, NullTimer())[0]
         if f in (12, 22, 32):
             v = np.array(gbs[0].valid)
             img = np.array(d).T.reshape(-1, 3)[v]

@@ -129,7 +129,7 @@ def test_end_to_end_indirect_is_finite():
     outs = {}
     for name in ("megaviews", "manylods"):
         m = create(f"{name}:views=512,scene_depth=4,view_depth=4,samples=16", s)
-        L = m.render(FrameContext(0, 0.0, 0), [gb], NullTimer())[0]
+        L = m.render(FrameContext(0), [gb], NullTimer())[0]
         img = vp.to_image(gb, L)
         assert np.all(np.isfinite(img)) and img.min() >= 0.0 and img.mean() > 0.0
         assert m.memory_bytes() > 0

@@ -35,7 +35,7 @@ def run_frames(method, scene, viewers, frames, width=W, height=H, gbs=None):
     out = []
     for f in range(frames):
         g = gbs if gbs is not None else gbuffers_for(scene, viewers, f, width, height)
-        d = method.render(FrameContext(f, float(f)), g, NullTimer())
+        d = method.render(FrameContext(f), g, NullTimer())
         out.append(to_image(g[0], d[0]))
     return out
 
@@ -226,13 +226,13 @@ def test_no_kernel_recompilation_after_warmup(cornell):
     vs = views.single(cornell)
     m = methods.create("restir:spatial=5", cornell, seed=7)
     for f in range(3):
-        m.render(FrameContext(f, float(f)), gbuffers_for(cornell, vs, f, W, H), NullTimer())
+        m.render(FrameContext(f), gbuffers_for(cornell, vs, f, W, H), NullTimer())
     gbs = gbuffers_for(cornell, vs, 3, W, H)
     dr.sync_thread()
     dr.kernel_history()                                  # drop older entries
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
-        m.render(FrameContext(3, 3.0), gbs, NullTimer())
+        m.render(FrameContext(3), gbs, NullTimer())
         dr.sync_thread()
         hist = dr.kernel_history()
     finally:

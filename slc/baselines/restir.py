@@ -16,7 +16,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..lights import finite, rng
-from ..methods import Method, MethodError, register
+from ..methods import Method, MethodError, Param, register
 
 # Emitter kinds (the measure in which a stored sample lives)
 AREA, DELTA_POS, INFINITE = 0, 1, 2
@@ -128,11 +128,9 @@ class ReSTIR(Method):
     implemented (a shadow-ray test in Z is inconsistent with the unshadowed
     target, see ``docs/restir.md``).
 
-    Parameters and defaults (RTXDI library defaults): ``local=8``,
-    ``env=1``, ``bsdf=1``, ``temporal=1``, ``mcap=20``, ``depth=0.1``,
-    ``normal=0.5``, ``spatial=1`` (5 is the other usual setting),
-    ``radius=32``, ``boost=8``, ``bias='basic'``, ``visibility=1``.
-    ``preset='falcor'`` sets 24 local / 8 environment / 1 BSDF candidates.
+    The defaults are RTXDI's library defaults (``spatial=5`` is the other
+    usual setting); ``preset=falcor`` sets 24 local / 8 environment / 1 BSDF
+    candidates.
 
     Memory: per viewer and pixel two reservoir buffers (history and
     working, 36 bytes each) and the previous surface (28 bytes):
@@ -144,28 +142,36 @@ class ReSTIR(Method):
     """
 
     name = "restir"
+    params = (
+        Param("local", 8, "RIS candidates from local (area and point) lights", lo=0),
+        Param("env", 1, "RIS candidates from the environment", lo=0),
+        Param("bsdf", 1, "RIS candidates by BSDF sampling", lo=0),
+        Param("preset", None, "candidate counts of a preset (overrides local/env/bsdf)",
+              choices=tuple(PRESETS), kind=str),
+        Param("temporal", 1, "temporal reuse on/off", lo=0, hi=1),
+        Param("mcap", 20.0, "temporal M cap", lo=0.0),
+        Param("depth", 0.1, "relative depth threshold of reuse", lo=0.0),
+        Param("normal", 0.5, "normal threshold of reuse (cosine)", lo=-1.0, hi=1.0),
+        Param("spatial", 1, "spatial neighbours", lo=0, hi=MAX_NEIGHBOURS),
+        Param("radius", 32.0, "spatial radius in pixels at 1080p (scaled)", lo=0.0),
+        Param("boost", 8, "spatial neighbours where history was rejected", lo=0, hi=MAX_NEIGHBOURS),
+        Param("bias", "basic", "bias correction (pairwise and ray-traced are not implemented)",
+              choices=("off", "basic")),
+        Param("visibility", 1, "final visibility ray on/off", lo=0, hi=1),
+    )
 
-    def __init__(self, scene, local: int = 8, env: int = 1, bsdf: int = 1, temporal: int = 1,
-                 mcap: float = 20.0, depth: float = 0.1, normal: float = 0.5, spatial: int = 1,
-                 radius: float = 32.0, boost: int = 8, bias: str = "basic", visibility: int = 1,
-                 preset: str | None = None, **kw):
+    def __init__(self, scene, **kw):
         super().__init__(scene, **kw)
-        if preset is not None:
-            if preset not in PRESETS:
-                raise MethodError(f"restir: unknown preset '{preset}' (one of {', '.join(PRESETS)})")
-            local, env, bsdf = PRESETS[preset]["local"], PRESETS[preset]["env"], PRESETS[preset]["bsdf"]
-        if bias not in ("off", "basic"):
-            raise MethodError(f"restir: bias must be off or basic (pairwise and ray-traced are not implemented), not '{bias}'")
-        self.n_local, self.n_env, self.n_bsdf = int(local), int(env), int(bsdf)
-        self.temporal, self.spatial, self.boost = bool(int(temporal)), int(spatial), int(boost)
-        self.mcap, self.depth_thr, self.normal_thr = float(mcap), float(depth), float(normal)
-        self.radius, self.bias, self.visibility = float(radius), bias, bool(int(visibility))
-        if min(self.n_local, self.n_env, self.n_bsdf, self.spatial, self.boost) < 0:
-            raise MethodError("restir: candidate and neighbour counts must be >= 0")
-        if max(self.spatial, self.boost) > MAX_NEIGHBOURS:
-            raise MethodError(f"restir: at most {MAX_NEIGHBOURS} spatial/boost neighbours (a 32-bit mask)")
+        if self.preset is not None:
+            self.local, self.env, self.bsdf = (PRESETS[self.preset][k] for k in ("local", "env", "bsdf"))
+        self.n_local, self.n_env, self.n_bsdf = self.local, self.env, self.bsdf
+        self.depth_thr, self.normal_thr = self.depth, self.normal
         self._setup_lights()
         self.reset()
+
+    def validate(self):
+        if self.preset is None and self.local + self.env + self.bsdf == 0:
+            raise MethodError("restir: at least one candidate is needed (local + env + bsdf > 0)")
 
     # ------------------------------ Set-up ------------------------------
 
@@ -200,12 +206,6 @@ class ReSTIR(Method):
         self._id_to_index = mi.UInt32(table)
         self._shaped = [(i, e.get_shape()) for i, e in enumerate(ems) if kinds[i] == AREA and e.get_shape()]
         self._bboxes = None
-
-    def settings(self):
-        return {"local": self.n_local, "env": self.n_env, "bsdf": self.n_bsdf, "temporal": int(self.temporal),
-                "mcap": self.mcap, "depth": self.depth_thr, "normal": self.normal_thr,
-                "spatial": self.spatial, "radius": self.radius, "boost": self.boost, "bias": self.bias,
-                "visibility": int(self.visibility)}
 
     def reset(self):
         self.state: dict[int, tuple] = {}   # viewer -> (Reservoir, previous GBuffer)
@@ -603,11 +603,6 @@ class ReSTIR(Method):
         return dict(self._stats)
 
 
-def _factory(scene, **kw):
-    return ReSTIR(scene, **kw)
-
-
-register("restir", _factory,
+register("restir", ReSTIR,
          help="ReSTIR DI (RTXDI defaults: 8 local/1 env/1 BSDF candidates, temporal M<=20, 1 spatial "
-              "neighbour in 32 px@1080p, bias=basic); restir:preset=falcor for 24/8/1; keys local, env, "
-              "bsdf, temporal, mcap, depth, normal, spatial, radius, boost, bias, visibility")
+              "neighbour in 32 px@1080p, bias=basic); restir:preset=falcor for 24/8/1")

@@ -5,7 +5,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..lights import direct_sample, finite, rng
-from ..methods import Method, register
+from ..methods import Method, Param, register
 
 
 class RandomLightSampling(Method):
@@ -19,18 +19,16 @@ class RandomLightSampling(Method):
     the BSDF (cosine included). Emitted radiance of directly seen emitters is
     added by the pipeline (:func:`slc.gbuffer.compose`).
 
-    Parameters: ``n`` (samples per pixel, default 16). Memory: none beyond
-    the frame (per-viewer output buffer of 12 bytes per pixel is counted).
+    Memory: none beyond the frame (per-viewer output buffer of 12 bytes per
+    pixel is counted).
     """
+    name = "rt"
+    params = (Param("n", 16, "light samples (and shadow rays) per pixel", lo=1),)
 
-    def __init__(self, scene, n: int = 16, **kw):
+    def __init__(self, scene, **kw):
         super().__init__(scene, **kw)
-        self.n = int(n)
         self.name = f"rt{self.n}"
         self._pixels = 0
-
-    def settings(self):
-        return {"n": self.n}
 
     def shade(self, gb, frame: int, viewer_index: int) -> mi.Color3f:
         sc = self.scene.mi_scene
@@ -66,5 +64,5 @@ class RandomLightSampling(Method):
         return 12 * self._pixels
 
 
-register("rt", lambda scene, n=16, **kw: RandomLightSampling(scene, n=n, **kw), pattern=r"rt(\d+)",
+register("rt", lambda scene, n=16, **kw: RandomLightSampling(scene, n=n, **kw), pattern=r"rt(\d+)", cls=RandomLightSampling,
          help="rtN: N random light samples per pixel with shadow rays")

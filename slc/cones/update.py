@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from ..keys import INVALID, STREAM_CONE_UPDATE, keyed_rng
+
 INF = float("inf")
 
 
@@ -37,11 +39,10 @@ class ConeParams:
     epsilon: float = 0.1            # shrink test at (1 - epsilon) * alpha from the axis
     alpha_delta: float = 1e-3       # rad; cones narrower than this are never shrink-tested (delta lights)
     alpha_small: float = math.radians(2.0)   # rad; cones below are tested on their axis and dropped on a miss
-    shrink_period: int = 4          # settled entries (1 ray) run the shrink test every k-th frame
+    shrink_period: int = 4          # settled entries run the shrink test every k-th frame
     seed_c_max: float = 4.0         # C given to an entry seeded from a coarser one
     c_max: float = 255.0            # 8-bit encoding
-    multi_cycles: float = 8.0       # cycles of new / moving entries cap C at this many cycles
-    rays_settled: float = 1.0       # samples per cycle of a settled entry (set by the method)
+    multi_cycles: float = 8.0       # cycles of unsettled (new / moving) entries cap C at this many cycles
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -197,7 +198,7 @@ def insert_sample(D, A, L, S, n, beta, s, w, ok, p: ConeParams):
     return D, A, L, S, n, beta, mi.UInt32(case)
 
 
-def end_cycle(L, S, C, n, beta, n_samples, p: ConeParams):
+def end_cycle(L, S, C, n, beta, n_samples, unsettled, p: ConeParams):
     """Close an update cycle: reduce C once (if a cone turned), add the cycle's
     sample count to it (the paper: "increasing C with the exact samples in every
     cycle"), and fold the samples into each cone's running mean. With
@@ -209,13 +210,14 @@ def end_cycle(L, S, C, n, beta, n_samples, p: ConeParams):
 
     Every sample's weight enters exactly one cone, so the sum over cones is the
     running mean of all samples (energy is kept through inserts and merges).
-    Returns (L, C, reduced)."""
+    ``unsettled`` (new or moving entries, the ray policy's decision) caps C
+    at ``multi_cycles`` cycles. Returns (L, C, reduced)."""
     K = p.max_cones
     C, red = c_reduction(C, beta, p)
     ns = dr.maximum(mi.Float(n_samples), 1.0)
-    # cycles with more samples than a settled entry gets (new entries, detected
-    # motion) keep at most ``multi_cycles`` cycles of memory; settled ones go up to 255
-    C = dr.minimum(C + ns, dr.select(ns > p.rays_settled, dr.minimum(p.multi_cycles * ns, p.c_max), p.c_max))
+    # unsettled entries (new, detected motion) keep at most ``multi_cycles``
+    # cycles of memory; settled ones go up to 255
+    C = dr.minimum(C + ns, dr.select(unsettled, dr.minimum(p.multi_cycles * ns, p.c_max), p.c_max))
     inv = 1.0 / dr.maximum(C, 1.0)
     keep = dr.maximum(1.0 - ns * inv, 0.0)
     out = []
@@ -283,32 +285,16 @@ def shrink_test_dirs(D, A, n, u, p: ConeParams):
 
 # ----------------------------------------------------------------------------- the update kernel
 
-INVALID = 0xFFFFFFFF
-
-
-def entry_rng(slot: mi.UInt32, frame: int, seed: int) -> mi.PCG32:
-    """PCG32 stream per entry keyed by (entry key, frame, seed) only: the random numbers
-    of an entry do not depend on which other entries are active or on the viewers.
-    The key is opaque so that a new frame never recompiles the kernel."""
-    key = dr.opaque(mi.UInt32, (int(seed) * 0x9E3779B1 + int(frame) * 0x85EBCA77 + 0x165667B1) & 0xFFFFFFFF)
-    v0, v1 = mi.sample_tea_32(mi.UInt32(slot), key, 6)
-    state = mi.UInt64(v0) | (mi.UInt64(v1) << 32)
-    # seed() rather than the constructor: PCG32(size, ...) adds arange(size) to both
-    # inputs, which would tie an entry's stream to its lane position
-    rng = mi.PCG32()
-    rng.seed(state, mi.UInt64(slot))
-    return rng
-
-
 def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: mi.SurfaceInteraction3f,
-                   rays: mi.UInt32, is_new: mi.Bool, seed_slot: mi.UInt32, frame: int, seed: int,
-                   p: ConeParams, stats: dict | None = None, keys: mi.UInt32 | None = None):
+                   rays: mi.UInt32, unsettled: mi.Bool, is_new: mi.Bool, seed_slot: mi.UInt32, keys: mi.UInt32,
+                   frame: int, seed: int, p: ConeParams, stats: dict | None = None):
     """One update cycle of every active entry (one lane per entry, samples processed
     sequentially in a loop so no update is lost). Reads and writes the packed
-    ``storage`` (``capacity * words_per_entry`` UInt32). ``keys`` (default: the
-    slots) seed each entry's random numbers and shrink-test schedule; the OSC's
-    viewer-independent texel keys make an entry's history independent of which
-    other viewers exist. Returns (storage, motion mask per active entry)."""
+    ``storage`` (``capacity * words_per_entry`` UInt32). ``rays`` and ``unsettled``
+    come from the ray policy; ``keys`` seed each entry's random numbers and
+    shrink-test schedule (the OSC's viewer-independent texel keys make an entry's
+    history independent of which other viewers exist). Returns (storage, motion
+    mask per active entry)."""
     from .packing import scatter_words
     if dr.width(active) == 0:
         return storage, mi.Bool()
@@ -319,10 +305,11 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     # the order changes nothing in the results).
     order = dr.argsort(mi.UInt32(rays), descending=True)
     act = dr.gather(mi.UInt32, active, order)
-    key = dr.gather(mi.UInt32, active if keys is None else mi.UInt32(keys), order)
+    key = dr.gather(mi.UInt32, keys, order)
     words, motion_o, shrunk_o, dropped_o = _updated_words(
         scene, storage, act, key, dr.gather(type(si), si, order), dr.gather(mi.UInt32, rays, order),
-        dr.gather(mi.Bool, is_new, order), dr.gather(mi.UInt32, seed_slot, order), frame, seed, p)
+        dr.gather(mi.Bool, unsettled, order), dr.gather(mi.Bool, is_new, order),
+        dr.gather(mi.UInt32, seed_slot, order), frame, seed, p)
     motion = dr.zeros(mi.Bool, N)
     dr.scatter(motion, motion_o, order)
     if stats is not None:
@@ -334,7 +321,8 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     return storage, motion
 
 
-def _updated_words(scene, storage, active, key, si, rays, is_new, seed_slot, frame, seed, p: ConeParams):
+def _updated_words(scene, storage, active, key, si, rays, unsettled, is_new, seed_slot, frame, seed,
+                   p: ConeParams):
     """The update kernel proper: unpack, insert samples, shrink, end the cycle,
     pack. Returns the evaluated (words, motion, shrunk, dropped)."""
     from .packing import gather_words, pack, unpack
@@ -356,7 +344,7 @@ def _updated_words(scene, storage, active, key, si, rays, is_new, seed_slot, fra
     n = dr.select(has_seed, sn, dr.select(is_new, en, n))
 
     frame_l = si.sh_frame
-    sampler = entry_rng(key, frame, seed)
+    sampler = keyed_rng(key, seed, frame, STREAM_CONE_UPDATE)
     rays = mi.UInt32(rays)
     S = [dr.zeros(mi.Color3f, N) for _ in range(K)]
     beta = dr.zeros(mi.Float, N)
@@ -382,7 +370,7 @@ def _updated_words(scene, storage, active, key, si, rays, is_new, seed_slot, fra
     # ----------------------------------------------- shrink test: one ray per cone
     period = max(int(p.shrink_period), 1)
     phase = dr.opaque(mi.UInt32, frame % period)  # opaque: no recompilation per frame
-    do_shrink = valid & ((rays > 1) | (((key + phase) % period) == 0))
+    do_shrink = valid & (unsettled | (((key + phase) % period) == 0))
     us = [sampler.next_float32() for _ in range(K)]
     dirs, tested = shrink_test_dirs(D, A, n, us, p)
     hits = []
@@ -396,7 +384,7 @@ def _updated_words(scene, storage, active, key, si, rays, is_new, seed_slot, fra
     D, A, L, S, n, beta, dropped, shrunk = shrink_step(D, A, L, S, n, beta, dirs, hits, tested, p)
 
     # ----------------------------------------------- close the cycle and pack
-    L, C, reduced = end_cycle(L, S, C, n, beta, rays, p)
+    L, C, reduced = end_cycle(L, S, C, n, beta, rays, unsettled, p)
     motion = valid & (reduced | dropped | (beta * (180.0 / math.pi) > p.beta_min_deg))
     words = pack(D, A, L, C, n, K)
     dr.eval(*words, motion, shrunk, dropped)

@@ -7,27 +7,15 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from ..lights import finite, sample_light, visible
-from ..methods import Method, MethodError, register
+from ..keys import INVALID, STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng
+from ..lights import sample_light, visible
+from ..methods import Param, register
+from ..osc.payload import PayloadMethod, RayPolicy
 from .project import irradiance, project, radiance
 from .ycocg import ENCODINGS, encoding as get_encoding
 
-INVALID = 0xFFFFFFFF
 
-
-def _slot_rng(slots: mi.UInt32, seed: int, frame: int) -> mi.PCG32:
-    """One PCG32 stream per cache slot and frame (independent of how many
-    slots are active); the key is opaque, so no recompilation per frame."""
-    s = mi.PCG32(size=dr.width(slots))
-    key = dr.opaque(mi.UInt32, (int(seed) * 0x9E3779B1 + int(frame) * 0x85EBCA77 + 0x27D4EB2F) & 0xFFFFFFFF)
-    v0, v1 = mi.sample_tea_32(mi.UInt32(slots), key, 4)
-    s.inc = (mi.UInt64(slots) << 1) | 1
-    s.state = (mi.UInt64(v0) << 32) | mi.UInt64(v1)
-    s.next_uint32()
-    return s
-
-
-class SHSurfaceCache(Method):
+class SHSurfaceCache(PayloadMethod):
     r"""SH radiance cache on the on-surface cache (``sh``).
 
     Each entry (texel = surface point x of its own) stores the incident
@@ -51,68 +39,38 @@ class SHSurfaceCache(Method):
     Suited to smooth direct light (environment maps, large lights); small
     lights are blurred by the 3-band truncation.
 
-    Parameters (defaults): ``encoding`` ("y3co1cg1"), ``max_count`` (16),
-    ``glossy_samples`` (8), ``bias`` (1.0), ``block`` (8), ``evict_after``
-    (60), ``presence``/``bleeding`` (1, 1). Memory: the OSC's allocated
-    blocks x (4 bytes x coefficients + 4 bytes count).
+    Storage per entry: the coefficients and the count, one float word each
+    (4 bytes x (coefficients + 1)). Ray policy: ``rays_new`` for an entry's
+    first 8 updates, ``rays_settled`` afterwards (SH reports no motion).
     """
 
     name = "sh"
-    shared = True
+    params = (
+        Param("encoding", "y3co1cg1", "SH encoding (bands per channel)", choices=tuple(ENCODINGS)),
+        Param("max_count", 16, "running-mean count cap (then an exponential moving average)", lo=1),
+        Param("glossy_samples", 8, "BSDF samples of the reconstructed radiance per glossy pixel", lo=1, hi=1024),
+        Param("rays_new", 8, "update rays of new entries", lo=1, hi=1024),
+        Param("rays_settled", 1, "update rays of settled entries", lo=1, hi=1024),
+        Param("presence", 1.0, "presence scale of the chrominance reconstruction", lo=0.0),
+        Param("bleeding", 1.0, "colour-bleeding scale of the chrominance reconstruction", lo=0.0),
+    ) + PayloadMethod.cache_params
+    storage_type = mi.Float
 
-    def __init__(self, scene, encoding: str = "y3co1cg1", max_count: int = 16, glossy_samples: int = 8,
-                 bias: float = 1.0, block: int = 8, evict_after: int = 60, presence: float = 1.0,
-                 bleeding: float = 1.0, cache=None, **kw):
+    def __init__(self, scene, **kw):
         super().__init__(scene, **kw)
-        try:
-            self.enc = get_encoding(encoding)
-        except ValueError as e:
-            raise MethodError(f"sh: {e}") from None
-        self.max_count = max(int(max_count), 1)
-        self.glossy_samples = max(int(glossy_samples), 1)
-        self.bias, self.block, self.evict_after = float(bias), int(block), int(evict_after)
-        self.presence, self.bleeding = float(presence), float(bleeding)
-        self._cache_arg = cache
+        self.enc = get_encoding(self.encoding)
+        self.words = self.enc.n + 1          # coefficients, then the count
         if self.enc.name != "y3co1cg1":
             self.label = f"sh:{self.enc.name}"
-        self.reset()
 
-    def settings(self):
-        return {"encoding": self.enc.name, "max_count": self.max_count, "glossy_samples": self.glossy_samples,
-                "bias": self.bias, "block": self.block, "evict_after": self.evict_after}
-
-    # ------------------------------------------------------------------ state
-    def reset(self):
-        self.cache = None
-        self.coeffs = None   # capacity x n floats, slot-major
-        self.count = None    # capacity update counts
-        self._last = {}
-
-    def _make_cache(self):
-        from ..osc import cache_for
-        self.cache = cache_for(self.scene, self._cache_arg, self.block, self.bias, self.evict_after,
-                               4 * self.enc.n + 4)
-
-    def _ensure_storage(self):
-        cap = max(int(self.cache.capacity), 1)
-        n = self.enc.n
-        if self.coeffs is None:
-            self.coeffs = dr.zeros(mi.Float, cap * n)
-            self.count = dr.zeros(mi.UInt32, cap)
-        elif dr.width(self.count) < cap:
-            old_c, old_n = self.coeffs, self.count
-            self.coeffs = dr.zeros(mi.Float, cap * n)
-            self.count = dr.zeros(mi.UInt32, cap)
-            dr.scatter(self.coeffs, old_c, dr.arange(mi.UInt32, dr.width(old_c)))
-            dr.scatter(self.count, old_n, dr.arange(mi.UInt32, dr.width(old_n)))
-            dr.eval(self.coeffs, self.count)
+    def ray_policy(self) -> RayPolicy:
+        return RayPolicy(new=self.rays_new, settled=self.rays_settled, moving=self.rays_new)
 
     # ----------------------------------------------------------------- update
-    def _update(self, frame, fr):
+    def update(self, ctx, fr, rays, unsettled):
         sc, enc, n = self.scene.mi_scene, self.enc, self.enc.n
         slots, si = fr.active, fr.si
-        rays = dr.maximum(mi.UInt32(fr.rays), 1)
-        sampler = _slot_rng(slots, self.seed, frame)
+        sampler = keyed_rng(fr.keys, self.seed, ctx.frame, STREAM_SH_UPDATE)
         ng = mi.Vector3f(si.n)
 
         # ------------------- light samples at the texel's own point -------------------
@@ -122,37 +80,40 @@ class SHSurfaceCache(Method):
         def body(i, acc, sampler):
             u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
             ds, w, ok = sample_light(sc, si, u, i < rays)
-            ok &= dr.dot(ds.d, ng) > 0.0
+            ok &= (dr.dot(ds.d, ng) > 0.0) & dr.all(dr.isfinite(w))
             ok = visible(sc, si, ds, ok)
-            c = project(enc, ds.d, finite(dr.select(ok, w, 0.0)))
+            c = project(enc, ds.d, dr.select(ok, w, 0.0))
             return i + 1, [a + b for a, b in zip(acc, c)], sampler
 
         acc0 = [mi.Float(0.0) for _ in range(n)]
         _, acc, _ = dr.while_loop(state=(mi.UInt32(0), acc0, sampler), cond=cond, body=body,
                                   labels=("i", "acc", "sampler"))
-        inv = dr.rcp(mi.Float(rays))
+        inv = dr.rcp(mi.Float(dr.maximum(rays, 1)))
 
         # ------------------------- running mean, LOD seeding -------------------------
+        W = self.words
         is_new = mi.Bool(fr.is_new)
         seed_slot = mi.UInt32(fr.seed_slot)
         seeded = is_new & (seed_slot != INVALID)
-        C_old = dr.select(is_new, dr.select(seeded, 1, 0), dr.gather(mi.UInt32, self.count, slots))
-        C = dr.minimum(C_old + 1, self.max_count)
-        a = dr.rcp(mi.Float(C))
+        C_old = dr.select(is_new, dr.select(seeded, 1.0, 0.0), dr.gather(mi.Float, self.storage, slots * W + n))
+        C = dr.minimum(C_old + 1.0, float(self.max_count))
+        a = dr.rcp(C)
         src = dr.select(seeded, seed_slot, slots)
         for c in range(n):
-            old = dr.gather(mi.Float, self.coeffs, src * n + c, ~is_new | seeded)
-            dr.scatter(self.coeffs, dr.fma(a, acc[c] * inv - old, old), slots * n + c)
-        dr.scatter(self.count, C, slots)
+            old = dr.gather(mi.Float, self.storage, src * W + c, ~is_new | seeded)
+            dr.scatter(self.storage, dr.fma(a, acc[c] * inv - old, old), slots * W + c)
+        dr.scatter(self.storage, C, slots * W + n)
+        return dr.zeros(mi.Bool, dr.width(slots))
 
     # ------------------------------------------------------------------ shade
-    def _shade(self, gb, slot):
-        enc, n = self.enc, self.enc.n
+    def shade(self, ctx, fr, v, gb):
+        enc, n, W = self.enc, self.enc.n, self.words
+        slot = mi.UInt32(fr.pixel_slot[v])
         si = gb.si
         ok = mi.Bool(gb.valid) & (slot != INVALID)
-        coeffs = [dr.gather(mi.Float, self.coeffs, slot * n + c, ok) for c in range(n)]
+        coeffs = [dr.gather(mi.Float, self.storage, slot * W + c, ok) for c in range(n)]
         bsdf = si.bsdf()
-        ctx = mi.BSDFContext()
+        ctx_b = mi.BSDFContext()
         flags = bsdf.flags()
         diffuse_only = ~mi.has_flag(flags, mi.BSDFFlags.Glossy) & ~mi.has_flag(flags, mi.BSDFFlags.Delta)
 
@@ -164,57 +125,25 @@ class SHSurfaceCache(Method):
 
         # -------------- glossy: BSDF samples of the reconstructed radiance --------------
         g = ok & ~diffuse_only
-        sampler = _slot_rng(dr.arange(mi.UInt32, gb.size), self.seed, 0x5A5A)
+        sampler = keyed_rng(dr.arange(mi.UInt32, gb.size), self.seed, 0, STREAM_SH_SHADE)
         ns = dr.opaque(mi.UInt32, self.glossy_samples)
 
         def cond(i, Lg, sampler):
-            return i < ns
+            return (i < ns) & g
 
         def body(i, Lg, sampler):
             u1 = sampler.next_float32()
             u2 = mi.Point2f(sampler.next_float32(), sampler.next_float32())
-            bs, bw = bsdf.sample(ctx, si, u1, u2, g)
+            bs, bw = bsdf.sample(ctx_b, si, u1, u2, g)
             okj = g & (bs.pdf > 0.0)
             Li = mi.Color3f(*radiance(enc, coeffs, si.to_world(bs.wo), self.presence, self.bleeding))
             return i + 1, Lg + dr.select(okj, mi.Color3f(bw) * Li, 0.0), sampler
 
-        if dr.any(g):
-            _, Lg, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
-                                     labels=("i", "Lg", "sampler"))
-            L += Lg * (1.0 / float(self.glossy_samples))
-        return finite(dr.select(ok, L, 0.0))
-
-    # ------------------------------------------------------------------ frame
-    def render(self, ctx, gbuffers, timer):
-        if self.cache is None:
-            self._make_cache()
-        fr = self.cache.begin_frame(ctx.frame, gbuffers, timer)
-        self._ensure_storage()
-        n_active = dr.width(fr.active)
-        with timer.stage("update") as st:
-            if n_active > 0:
-                self._update(ctx.frame, fr)
-                st.outputs(self.coeffs, self.count)
-        with timer.stage("shade") as st:
-            outs = []
-            for gb, slot in zip(gbuffers, fr.pixel_slot):
-                if n_active == 0:
-                    outs.append(dr.zeros(mi.Color3f, gb.size))
-                else:
-                    outs.append(self._shade(gb, mi.UInt32(slot)))
-            st.outputs(*outs)
-        self._last = {"active_entries": n_active}
-        return outs
-
-    def memory_bytes(self) -> int:
-        return int(self.cache.memory_bytes()) if self.cache is not None else 0
-
-    def stats(self) -> dict:
-        out = dict(self.cache.stats()) if self.cache is not None else {}
-        out.update({k: float(v) for k, v in self._last.items()})
-        return out
+        _, Lg, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
+                                 labels=("i", "Lg", "sampler"))
+        L += Lg * (1.0 / float(self.glossy_samples))
+        return dr.select(ok, L, 0.0)
 
 
-register("sh", lambda scene, **kw: SHSurfaceCache(scene, **kw),
-         help="SH (YCoCg, compressed chrominance) incident direct radiance in the on-surface cache; "
-              f"settings: encoding ({'/'.join(ENCODINGS)}), max_count, glossy_samples, bias, block")
+register("sh", SHSurfaceCache,
+         help="SH (YCoCg, compressed chrominance) incident direct radiance in the on-surface cache")

@@ -1,0 +1,180 @@
+"""The base class of cache methods: a payload in a surface cache.
+
+In the spirit of Mitsuba 3's ``ad/integrators/common.py``, the base class
+runs the frame and a subclass writes only the part that differs::
+
+    class MyCache(PayloadMethod):
+        name = "mine"
+        params = PayloadMethod.cache_params + (Param(...), ...)
+        words = 4                                     # 32-bit words per entry
+        def update(self, ctx, fr, rays, unsettled):   # write self.storage, return motion
+        def shade(self, ctx, fr, v, gb):              # one viewer's pixels from the entries
+
+:meth:`PayloadMethod.render` does, per frame: the cache's requests
+(:class:`slc.osc.protocol.FrameRequests`), storage growth to the cache's
+capacity, the ray policy of every active entry (from the payload's own
+per-entry state: new, moving or settled), the payload's ``update`` (stage
+"update"), the policy state's advance with the motion the update reports,
+and ``shade`` for every viewer (stage "shade"). Memory is the cache's own
+structures plus the allocated entries times :meth:`payload_bytes`.
+"""
+from __future__ import annotations
+
+from abc import abstractmethod
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+from ..methods import Method, MethodError, Param
+from .cache import OnSurfaceCache
+from .protocol import FrameRequests, SurfaceCache
+
+_UPD_MASK = 0xFFFF
+
+
+@dataclass(frozen=True)
+class RayPolicy:
+    r"""Update rays per entry and frame, from the entry's own state.
+
+    An entry is *new* for its first ``new_updates`` updates and gets ``new``
+    rays; after the payload reports motion it is *moving* for the next
+    ``motion_updates`` updates and gets ``moving`` rays; otherwise it is
+    *settled* and gets ``settled`` rays. New and moving entries are
+    "unsettled" (payloads may treat them differently, e.g. shorter memory)."""
+    new: int = 8
+    new_updates: int = 8
+    settled: int = 1
+    moving: int = 8
+    motion_updates: int = 8
+
+    def rays(self, state: mi.UInt32):
+        """(rays, unsettled) per entry from its policy state word
+        ``updates | motion_left << 16``."""
+        upd, mot = state & _UPD_MASK, state >> 16
+        young, moving = upd < self.new_updates, mot > 0
+        rays = dr.select(young, mi.UInt32(self.new),
+                         dr.select(moving, mi.UInt32(self.moving), mi.UInt32(self.settled)))
+        return rays, young | moving
+
+    def advance(self, state: mi.UInt32, motion: mi.Bool) -> mi.UInt32:
+        """The state after one update; ``motion`` restarts the moving phase."""
+        upd, mot = state & _UPD_MASK, state >> 16
+        upd = dr.minimum(upd + 1, _UPD_MASK)
+        mot = dr.select(motion, mi.UInt32(self.motion_updates), dr.select(mot > 0, mot - 1, 0))
+        return upd | (mot << 16)
+
+
+class PayloadMethod(Method):
+    """Base class of methods that keep a payload per surface-cache entry.
+
+    Subclasses set ``words`` (32-bit words per entry; ``storage_type`` is
+    ``mi.UInt32`` or ``mi.Float``), ``needs`` (cache capabilities they
+    require), and implement :meth:`update` and :meth:`shade`; they may
+    override :meth:`ray_policy`. ``cache`` (constructor keyword, not a
+    setting) replaces the default :class:`~slc.osc.OnSurfaceCache` by any
+    :class:`~slc.osc.protocol.SurfaceCache` (tests pass stand-ins)."""
+
+    cache_params = (
+        Param("bias", 1.0, "cache mip bias (1: about one entry per pixel; larger: coarser)", lo=1e-3, hi=1e3),
+        Param("block", 8, "cache block edge in texels", choices=(1, 2, 4, 8, 16, 32)),
+        Param("evict_after", 60, "frames a block may stay unused before it is freed", lo=1),
+    )
+    words = 1
+    storage_type = mi.UInt32
+    needs: frozenset = frozenset()
+
+    def __init__(self, scene, cache: SurfaceCache | None = None, **kw):
+        super().__init__(scene, **kw)
+        self._cache_arg = cache
+        self.reset()
+
+    # ------------------------------------------------------------------ hooks
+    def ray_policy(self) -> RayPolicy:
+        return RayPolicy()
+
+    @abstractmethod
+    def update(self, ctx, fr: FrameRequests, rays: mi.UInt32, unsettled: mi.Bool) -> mi.Bool:
+        """Update every active entry (``rays`` samples each) in ``self.storage``;
+        return the entries whose light moved (a mask over ``fr.active``)."""
+
+    @abstractmethod
+    def shade(self, ctx, fr: FrameRequests, v: int, gb) -> mi.Color3f:
+        """Viewer ``v``'s pixels from the entries ``fr.pixel_slot[v]`` (no rays)."""
+
+    # ------------------------------------------------------------------ state
+    def reset(self):
+        self.cache = None
+        self.storage = None
+        self.policy_state = None
+        self._last = {}
+
+    def _make_cache(self):
+        cache = self._cache_arg
+        if cache is None:
+            cache = OnSurfaceCache(self.scene, block_size=self.block, bias=self.bias, evict_after=self.evict_after)
+        missing = set(self.needs) - set(cache.capabilities)
+        if missing:
+            raise MethodError(f"{self.name}: the cache {type(cache).__name__} lacks {', '.join(sorted(missing))}")
+        self.cache = cache
+
+    def _grow(self):
+        """Storage and policy state sized to the cache's capacity (old contents kept)."""
+        cap = max(int(self.cache.capacity), 1)
+        if self.storage is not None and dr.width(self.policy_state) >= cap:
+            return
+        storage = dr.zeros(self.storage_type, cap * self.words)
+        state = dr.zeros(mi.UInt32, cap)
+        if self.storage is not None:
+            dr.scatter(storage, self.storage, dr.arange(mi.UInt32, dr.width(self.storage)))
+            dr.scatter(state, self.policy_state, dr.arange(mi.UInt32, dr.width(self.policy_state)))
+        self.storage, self.policy_state = storage, state
+        dr.eval(self.storage, self.policy_state)
+
+    # ------------------------------------------------------------------ frame
+    def render(self, ctx, gbuffers, timer):
+        if self.cache is None:
+            self._make_cache()
+        fr = self.cache.begin_frame(ctx.frame, gbuffers, timer)
+        self._grow()
+        n_active = fr.n_active
+        motion = mi.Bool()
+
+        # ------------------------------- update every requested entry once
+        with timer.stage("update") as st:
+            if n_active > 0:
+                policy = self.ray_policy()
+                state = dr.select(fr.is_new, 0, dr.gather(mi.UInt32, self.policy_state, fr.active))
+                rays, unsettled = policy.rays(state)
+                motion = self.update(ctx, fr, rays, unsettled)
+                dr.scatter(self.policy_state, policy.advance(state, motion), fr.active)
+                st.outputs(self.storage, self.policy_state)
+
+        # ------------------------------- shade every viewer from the entries
+        with timer.stage("shade") as st:
+            outs = [self.shade(ctx, fr, v, gb) if n_active > 0 else dr.zeros(mi.Color3f, gb.size)
+                    for v, gb in enumerate(gbuffers)]
+            st.outputs(*outs)
+        self._last = {"active_entries": n_active, "motion_entries": motion}
+        return outs
+
+    # ------------------------------------------------------------------ reports
+    def payload_bytes(self) -> int:
+        """Bytes per entry: the payload's words and its 4-byte policy state."""
+        return 4 * self.words + 4
+
+    def memory_bytes(self) -> int:
+        if self.cache is None:
+            return 0
+        return int(self.cache.memory_bytes()) + int(self.cache.entries_allocated()) * self.payload_bytes()
+
+    def stats(self) -> dict:
+        out = dict(self.cache.stats()) if self.cache is not None else {}
+        if self.cache is not None:
+            out["payload_bytes"] = float(int(self.cache.entries_allocated()) * self.payload_bytes())
+        for k, v in self._last.items():
+            if isinstance(v, mi.Bool):
+                v = int(dr.count(v)[0]) if dr.width(v) > 0 else 0
+            out[k] = float(v or 0)
+        return out
+

@@ -1,0 +1,101 @@
+"""The contract between a surface cache and the payload that lives in it.
+
+A *surface cache* decides which surface points have entries and where they
+live; a *payload* (cones, SH, ...; see :class:`slc.osc.payload.PayloadMethod`)
+decides what an entry stores, how it is updated and how pixels are shaded
+from it. Once per frame the cache turns all viewers' G-buffers into
+:class:`FrameRequests`; the payload updates every active entry once, from
+the entry's own surface point, and shades every viewer's pixels from the
+entries they map to.
+
+What the cache gives a payload (:class:`FrameRequests`):
+
+- ``active``: the unique entry slots requested by any viewer this frame,
+  sorted ascending; ``si``: each one's own surface point; ``is_new``: the
+  slot was (re)allocated since its last frame, so its payload is stale and
+  must be reset (or seeded); ``seed_slot``: an existing, already updated
+  entry of a coarser level covering a new entry (LOD seed), else INVALID;
+  ``keys``: a viewer-independent 32-bit key per entry (random numbers keyed
+  by it do not depend on who asked).
+- per viewer: ``pixel_slot`` (entry slot of each pixel, INVALID where the
+  G-buffer is invalid or nothing is cached) and ``pixel_index`` (the pixel's
+  index into ``active``/``si``, INVALID likewise).
+
+What the cache promises: slots index payload arrays of ``capacity`` entries
+(``capacity`` may grow between frames; payloads grow their arrays to it and
+keep the old contents); a slot that is not active keeps its payload until
+its block is evicted; an evicted and reused slot comes back with
+``is_new``. The payload must update every active entry in the frame that
+requested it (the cache counts an active entry as "seen" from then on: it
+may be a seed or a filter tap afterwards).
+
+What each reports: the cache its own structures' memory
+(:meth:`SurfaceCache.memory_bytes`: block table, surface points, flags) and
+the number of allocated entry slots (:meth:`SurfaceCache.entries_allocated`);
+the payload its storage per entry, so that a method's memory is
+``cache.memory_bytes() + entries_allocated() x payload bytes per entry``.
+
+Optional capabilities are declared in ``capabilities``, never probed:
+``"bilinear_taps"`` (:meth:`bilinear_taps`: the 4 entries around a pixel's
+cache coordinate with bilinear weights) and ``"entry_texels"``
+(``entry_info(slots)``: island, level, texel of entries, for tests and
+notebooks). A payload that needs a capability the cache lacks refuses at
+set-up with a one-line error.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import drjit as dr
+import mitsuba as mi
+
+from ..keys import INVALID
+
+BILINEAR_TAPS = "bilinear_taps"
+ENTRY_TEXELS = "entry_texels"
+
+
+@dataclass
+class FrameRequests:
+    """What :meth:`SurfaceCache.begin_frame` gives the payload (see the module)."""
+    frame: int
+    active: mi.UInt32
+    si: mi.SurfaceInteraction3f
+    is_new: mi.Bool
+    seed_slot: mi.UInt32
+    keys: mi.UInt32
+    pixel_slot: list = field(default_factory=list)
+    pixel_index: list = field(default_factory=list)
+
+    @property
+    def n_active(self) -> int:
+        return dr.width(self.active)
+
+    @classmethod
+    def empty(cls, frame: int, gbuffers) -> "FrameRequests":
+        """No entry requested: every pixel INVALID."""
+        inv = [dr.full(mi.UInt32, INVALID, gb.size) for gb in gbuffers]
+        return cls(frame=frame, active=mi.UInt32(), si=dr.zeros(mi.SurfaceInteraction3f, 0),
+                   is_new=mi.Bool(), seed_slot=mi.UInt32(), keys=mi.UInt32(),
+                   pixel_slot=inv, pixel_index=[mi.UInt32(x) for x in inv])
+
+
+@runtime_checkable
+class SurfaceCache(Protocol):
+    """A cache of surface points shared by all viewers (see the module)."""
+
+    capabilities: frozenset
+
+    @property
+    def capacity(self) -> int: ...
+
+    def begin_frame(self, frame: int, gbuffers, timer=None) -> FrameRequests: ...
+
+    def entries_allocated(self) -> int: ...
+
+    def memory_bytes(self) -> int: ...
+
+    def stats(self) -> dict: ...
+
+    def reset(self) -> None: ...

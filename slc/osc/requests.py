@@ -1,0 +1,93 @@
+"""Per-frame request processing of the on-surface cache: the slot dedupe
+over all viewers and the LOD seeds of new entries (Dr.Jit, no per-pixel
+Python)."""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from ..keys import INVALID
+from .blocks import BlockPool
+from .layout import CacheLayout
+
+
+def dedupe(pool: BlockPool, reqs, req_phys):
+    """Unique active slots of this frame over all viewers.
+
+    ``reqs``: per viewer (valid, virtual block, texel in block, level);
+    ``req_phys``: the requested physical blocks, ascending, with their rank
+    in ``pool.blk_rank``. Works on the compact range of requested blocks x
+    B^2 (not the whole pool), so the result stays sorted by slot. A min/max
+    viewer scatter per compact slot also tells which entries more than one
+    viewer asked for.
+
+    Returns (active slots, per-viewer pixel slots, per-viewer pixel index
+    into ``active``, number of entries seen by more than one viewer)."""
+    B2 = pool.B2
+    ncomp = dr.width(req_phys) * B2
+    vmin = dr.full(mi.UInt32, INVALID, max(ncomp, 1))
+    vmax = dr.zeros(mi.UInt32, max(ncomp, 1))
+    pixel_slot, pix_cid = [], []
+    for v, (valid, vb, within, _) in enumerate(reqs):
+        ph = pool.phys(vb, valid)
+        ok = valid & (ph != INVALID)
+        cid = dr.gather(mi.UInt32, pool.blk_rank, ph, ok) * B2 + within
+        viewer = dr.opaque(mi.UInt32, v)
+        dr.scatter_reduce(dr.ReduceOp.Min, vmin, viewer, cid, ok)
+        dr.scatter_reduce(dr.ReduceOp.Max, vmax, viewer, cid, ok)
+        pixel_slot.append(dr.select(ok, ph * B2 + within, INVALID))
+        pix_cid.append((ok, cid))
+    act_c = dr.compress(vmin != INVALID)
+    n_active = dr.width(act_c)
+    if n_active == 0:
+        return mi.UInt32(), pixel_slot, [dr.full(mi.UInt32, INVALID, dr.width(s)) for s in pixel_slot], 0
+    active = dr.gather(mi.UInt32, req_phys, act_c // B2) * B2 + (act_c & (B2 - 1))
+    multi = dr.gather(mi.UInt32, vmax, act_c) != dr.gather(mi.UInt32, vmin, act_c)
+    n_multi = int(dr.count(multi)[0])
+    # pixel -> index into the active list (vmax reused as the map)
+    dr.scatter(vmax, dr.arange(mi.UInt32, n_active), act_c)
+    pixel_index = [dr.select(ok, dr.gather(mi.UInt32, vmax, cid, ok), INVALID) for ok, cid in pix_cid]
+    return active, pixel_slot, pixel_index, n_multi
+
+
+def lod_seeds(layout: CacheLayout, pool: BlockPool, isl, lvl, tx, ty) -> mi.UInt32:
+    """Slot of the finest coarser entry (levels lvl+1 .. top) covering texel
+    (tx, ty) that is allocated and already seen, else INVALID. Read before
+    this frame's entries are marked seen, so a seed holds payload from
+    earlier frames."""
+    seed = dr.full(mi.UInt32, INVALID, dr.width(isl))
+    maxl = dr.gather(mi.UInt32, layout.d_isl_maxl, isl)
+    for d in range(1, layout.max_level + 1):
+        lc = lvl + d
+        m = (seed == INVALID) & (lc <= maxl)
+        cx, cy = tx >> d, ty >> d
+        vb = layout.vblock(isl * layout.levels + lc, cx, cy, m)
+        slot = pool.slot(vb, layout.within(cx, cy), m)
+        seed = dr.select(m & (slot != INVALID), slot, seed)
+    return seed
+
+
+def bilinear_taps(layout: CacheLayout, pool: BlockPool, gb):
+    """The 4 entries around each pixel's cache coordinate at the pixel's
+    level (texel centres at +0.5), with bilinear weights: ``(slots[4],
+    weights[4])``. A tap whose block is not mapped, or whose entry was never
+    updated, gets weight 0; the weights of the others are renormalised (all
+    zero when none is usable). Taps are clamped to the island's texel
+    rectangle, so they never read another island."""
+    valid, isl, uv, lvl, k = layout.pixel_coords(gb)
+    wl, hl = layout.key_extent(k, valid)
+    scale = dr.rcp(mi.Float(mi.UInt32(1) << lvl))
+    fx, fy = uv.x * scale - 0.5, uv.y * scale - 0.5
+    x0, y0 = dr.floor(fx), dr.floor(fy)
+    ax, ay = fx - x0, fy - y0
+    slots, weights = [], []
+    for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        tx = mi.UInt32(dr.clip(mi.Int32(x0) + dx, 0, wl - 1))
+        ty = mi.UInt32(dr.clip(mi.Int32(y0) + dy, 0, hl - 1))
+        slot = pool.slot(layout.vblock(k, tx, ty, valid), layout.within(tx, ty), valid)
+        w = (ax if dx else 1.0 - ax) * (ay if dy else 1.0 - ay)
+        slots.append(slot)
+        weights.append(dr.select(slot != INVALID, w, 0.0))
+    total = weights[0] + weights[1] + weights[2] + weights[3]
+    inv = dr.select(total > 0.0, dr.rcp(dr.maximum(total, 1e-20)), 0.0)
+    return slots, [w * inv for w in weights]

@@ -1,0 +1,134 @@
+"""The surface point of every cache entry (texel = surface point).
+
+An entry's position and normal come from the texel itself, never from the
+pixel that asked for it (otherwise two viewers would update one entry from
+two points): once per new entry, the triangle of its island that contains
+the texel centre (else the nearest one) is found by a brute-force search in
+the island's 2D texture space, and its (triangle, barycentrics) are kept per
+slot; every frame the active entries' ``SurfaceInteraction3f`` is rebuilt
+from them with ``PreliminaryIntersection3f.compute_surface_interaction``.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from .blocks import _extend
+from .layout import CacheLayout
+
+
+class TexelPoints:
+    """Per slot: the global triangle and Mitsuba barycentrics of the entry's
+    surface point (12 bytes), for a pool of ``capacity`` slots."""
+
+    def __init__(self, layout: CacheLayout, capacity: int):
+        self.layout = layout
+        self.slot_tri = dr.zeros(mi.UInt32, capacity)
+        self.slot_b = dr.zeros(mi.Point2f, capacity)
+
+    def resize(self, capacity: int) -> None:
+        if dr.width(self.slot_tri) >= capacity:
+            return
+        n_old = dr.width(self.slot_tri)
+        self.slot_tri = _extend(self.slot_tri, 0, capacity, mi.UInt32)
+        sb = dr.zeros(mi.Point2f, capacity)
+        dr.scatter(sb, self.slot_b, dr.arange(mi.UInt32, n_old))
+        self.slot_b = sb
+        dr.eval(self.slot_tri, self.slot_b)
+
+    def place(self, slots, isl, lvl, tx, ty) -> None:
+        """Find and keep the surface point of new entries (texel centres)."""
+        size = mi.Float(mi.UInt32(1) << lvl)
+        c = mi.Point2f((mi.Float(tx) + 0.5) * size, (mi.Float(ty) + 0.5) * size)
+        tri, b = self.lookup(isl, c)
+        dr.scatter(self.slot_tri, tri, slots)
+        dr.scatter(self.slot_b, b, slots)
+
+    def interactions(self, slots, isl) -> mi.SurfaceInteraction3f:
+        """The surface interaction of every slot (its own point, ``wi`` along the normal)."""
+        tri = dr.gather(mi.UInt32, self.slot_tri, slots)
+        b = dr.gather(mi.Point2f, self.slot_b, slots)
+        return self.surface_interaction(isl, tri, b)
+
+    def lookup(self, isl, c):
+        """Triangle of island ``isl`` containing the 2D point ``c`` (island
+        level-0 texel coordinates), else the nearest one; returns the global
+        triangle and Mitsuba barycentrics (u, v) of the closest point. Brute
+        force over the island's triangles (<= max_triangles) in a symbolic
+        loop; the first triangle in island order wins ties, so the answer
+        does not depend on who asked."""
+        L = self.layout
+        start = dr.gather(mi.UInt32, L.d_isl_start, isl)
+        count = dr.gather(mi.UInt32, L.d_isl_count, isl)
+        n = dr.width(isl)
+        i = dr.zeros(mi.UInt32, n)
+        best_d = dr.full(mi.Float, dr.inf, n)
+        best_j = mi.UInt32(start)
+        bu, bv = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
+        uv = L.d_sorted_uv
+
+        def cond(i, best_d, best_j, bu, bv):
+            return i < count
+
+        def body(i, best_d, best_j, bu, bv):
+            j = start + i
+            p0 = dr.gather(mi.Point2f, uv, j * 3 + 0)
+            p1 = dr.gather(mi.Point2f, uv, j * 3 + 1)
+            p2 = dr.gather(mi.Point2f, uv, j * 3 + 2)
+            d2, u, v = _closest_on_triangle(c, p0, p1, p2)
+            better = d2 < best_d
+            best_d = dr.select(better, d2, best_d)
+            best_j = dr.select(better, j, best_j)
+            bu = dr.select(better, u, bu)
+            bv = dr.select(better, v, bv)
+            i = dr.select(best_d <= 0.0, count, i + 1)   # inside: done
+            return i, best_d, best_j, bu, bv
+
+        i, best_d, best_j, bu, bv = dr.while_loop((i, best_d, best_j, bu, bv), cond, body)
+        tri = dr.gather(mi.UInt32, L.d_sorted_tri, best_j)
+        return tri, mi.Point2f(bu, bv)
+
+    def surface_interaction(self, isl, tri, b) -> mi.SurfaceInteraction3f:
+        L = self.layout
+        n = dr.width(tri)
+        shape_idx = dr.gather(mi.UInt32, L.d_isl_shape, isl)
+        pi = dr.zeros(mi.PreliminaryIntersection3f, n)
+        pi.t = dr.full(mi.Float, 1.0, n)
+        pi.valid = dr.full(mi.Bool, True, n)
+        pi.prim_uv = mi.Point2f(b)
+        pi.prim_index = tri - dr.gather(mi.UInt32, L.d_tri_base, shape_idx)
+        pi.shape_index = shape_idx
+        pi.shape = dr.gather(mi.ShapePtr, L.mi_scene.shapes_dr(), shape_idx)
+        ray = mi.Ray3f(mi.Point3f(0.0), mi.Vector3f(0.0, 0.0, 1.0))
+        si = pi.compute_surface_interaction(ray, mi.RayFlags.All)
+        si.wi = mi.Vector3f(0.0, 0.0, 1.0)     # "viewer" along the shading normal
+        return si
+
+
+def _closest_on_triangle(c, p0, p1, p2):
+    """Squared 2D distance from c to triangle (p0, p1, p2) and the
+    barycentrics (u, v) (weights of p1, p2) of the closest point."""
+    e0, e1, q = p1 - p0, p2 - p0, c - p0
+    det = e0.x * e1.y - e0.y * e1.x
+    ok = dr.abs(det) > 1e-12
+    inv = dr.select(ok, dr.rcp(det), 0.0)
+    u = (q.x * e1.y - q.y * e1.x) * inv
+    v = (e0.x * q.y - e0.y * q.x) * inv
+    inside = ok & (u >= 0) & (v >= 0) & (u + v <= 1)
+
+    def seg(a, d):
+        s = dr.clip(dr.dot(c - a, d) / dr.maximum(dr.squared_norm(d), 1e-20), 0.0, 1.0)
+        return dr.squared_norm(c - (a + s * d)), s
+
+    d01, s01 = seg(p0, e0)            # (u, v) = (s, 0)
+    d02, s02 = seg(p0, e1)            # (0, s)
+    d12, s12 = seg(p1, p2 - p1)       # (1 - s, s)
+    best, bu, bv = d01, s01, mi.Float(0.0)
+    m = d02 < best
+    best, bu, bv = dr.select(m, d02, best), dr.select(m, 0.0, bu), dr.select(m, s02, bv)
+    m = d12 < best
+    best, bu, bv = dr.select(m, d12, best), dr.select(m, 1.0 - s12, bu), dr.select(m, s12, bv)
+    best = dr.select(inside, 0.0, best)
+    bu = dr.select(inside, u, bu)
+    bv = dr.select(inside, v, bv)
+    return best, bu, bv
