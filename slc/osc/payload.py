@@ -107,6 +107,7 @@ class PayloadMethod(Method):
         self.cache = None
         self.storage = None
         self.policy_state = None
+        self.requests = None      # the last frame's FrameRequests (for notebooks and tests)
         self._last = {}
 
     def _make_cache(self):
@@ -135,7 +136,7 @@ class PayloadMethod(Method):
     def render(self, ctx, gbuffers, timer):
         if self.cache is None:
             self._make_cache()
-        fr = self.cache.begin_frame(ctx.frame, gbuffers, timer)
+        fr = self.requests = self.cache.begin_frame(ctx.frame, gbuffers, timer)
         self._grow()
         n_active = fr.n_active
         motion = mi.Bool()
