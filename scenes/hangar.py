@@ -1,4 +1,4 @@
-"""hangar: large hall lit by 12 small moving emissive spheres circling at different heights and speeds, with stacks of crates (some glossy) on a glossy floor; dynamic.
+"""hangar: large hall lit by 12 small moving emissive spheres circling at different heights and speeds, with stacks of crates (some glossy) on a glossy floor; dynamic (option lights=N).
 
 Layout (metres, y up): the hall spans x in [-20, 20], z in [-12, 12], walls
 9 m high with ribbed steel columns and a roof with trusses. Crates (boxes,
@@ -6,7 +6,10 @@ Layout (metres, y up): the hall spans x in [-20, 20], z in [-12, 12], walls
 are emissive icospheres (radius 0.12 m, 80 triangles each) moving on
 horizontal circles/ellipses around three centres, each at its own height
 (0.8-6 m), speed (0.35-1.6 rad/s), direction and colour, plus a small
-vertical bob.
+vertical bob. ``hangar:lights=N`` builds the same hall with N lights (the
+first N of one deterministic sequence of orbits; their radiance scaled by
+12/N so that the total power stays that of the twelve), for the many-lights
+experiment (the paper's Fig. 17).
 """
 import math
 
@@ -86,17 +89,22 @@ def build(**options):
         if parts:
             b.add_trimesh(merge_meshes(parts), bsdf=mats[k], name=f"crates_{k}")
 
-    # twelve small moving lights around three centres
+    # small moving lights around three centres (12 by default); their orbits come from a
+    # generator of their own, so the first N lights are the same for every N
+    n_lights = int(options.get("lights", N_LIGHTS))
+    if not 1 <= n_lights <= 256:
+        raise ValueError(f"lights must be 1-256, got {n_lights}")
+    lrng = np.random.default_rng(7)
     centres = [(-10.0, 0.0, 0.0), (0.0, 0.0, 0.0), (10.0, 0.0, 0.0)]
     palette = [(1.0, 0.85, 0.6), (0.6, 0.8, 1.0), (1.0, 0.5, 0.4), (0.7, 1.0, 0.6)]
-    for i in range(N_LIGHTS):
+    for i in range(n_lights):
         c = centres[i % 3]
-        rx = float(rng.uniform(3.0, 7.5))
-        rz = float(rng.uniform(3.0, 8.5))
-        y = float(0.8 + 5.2 * (i / (N_LIGHTS - 1)))
-        omega = float(rng.uniform(0.35, 1.6)) * (1 if i % 2 == 0 else -1)
-        phase = float(rng.uniform(0, 2 * np.pi))
-        radiance = 250.0 * np.asarray(palette[i % 4])
+        rx = float(lrng.uniform(3.0, 7.5))
+        rz = float(lrng.uniform(3.0, 8.5))
+        y = float(0.8 + 5.2 * ((i * 0.618034) % 1.0))
+        omega = float(lrng.uniform(0.35, 1.6)) * (1 if i % 2 == 0 else -1)
+        phase = float(lrng.uniform(0, 2 * np.pi))
+        radiance = 250.0 * (N_LIGHTS / n_lights) * np.asarray(palette[i % 4])
         b.add_sphere([0, 0, 0], LIGHT_RADIUS, subdivisions=1, bsdf=dark, emission=radiance, name=f"light{i:02d}",
                      transform=_orbit(c, rx, rz, y, omega, phase, 0.4))
 

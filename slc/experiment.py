@@ -309,14 +309,16 @@ def run_per_scene(names, make_cases, cfg, desc: str, seed: int = 0) -> list[dict
     return rows
 
 
-def run_cases(cases, cfg, desc: str, seed: int = 0) -> list[dict]:
-    """Run (scene, spec, viewers, extra-fields) cases with one progress bar."""
+def run_cases(cases, cfg, desc: str, seed: int = 0, keep: bool = False) -> list[dict]:
+    """Run (scene, spec, viewers, extra-fields) cases with one progress bar;
+    ``keep`` leaves each row's ``_result`` (images) in place."""
     from tqdm import tqdm
     rows = []
     with tqdm(total=len(cases) * cfg.frames, desc=desc, unit="frame", disable=None) as bar:
         for s, spec, vs, extra in cases:
             row = run_case(s, spec, vs, cfg, bar, seed=seed, **extra)
-            row.pop("_result")
+            if not keep:
+                row.pop("_result")
             rows.append(row)
     return rows
 
@@ -341,3 +343,74 @@ def finish(name: str, out: Path, opts, cfg, names, specs, rows, md_body: str, ex
 MULTI_COLUMNS = [("scene", "scene"), ("method", "method"), ("rig", "rig"), ("viewers", "viewers"),
                  ("measured_overlap", "measured overlap %"), ("time_ms", "t [ms]"), ("flip", "FLIP"),
                  ("psnr", "PSNR"), ("ssim", "SSIM"), ("memory_mb", "memory [MB]")]
+
+
+# -----------------------------------------------------------------------------
+# Scene-variant sweeps (many-lights, envmap, point-lights)
+# -----------------------------------------------------------------------------
+
+def variant_experiment(opts, name: str, preset: dict, specs: list[str], variants: list[tuple], field: str,
+                       title: str) -> dict:
+    """Every method on every scene variant, one viewer on the scene's first
+    path. ``variants``: (value, scene spec) pairs, e.g. ``(24, "hangar:lights=24")``;
+    rows carry the value in ``field``. Writes results.json/results.md, a
+    FLIP-and-time-against-``field`` plot, a speed-against-error plot per
+    variant and an image strip per (variant, method)."""
+    from .pipeline import RunConfig
+    from . import views
+    out = Path(opts.out) / name
+    scene_specs = load_and_validate([v for _, v in variants], specs, True)
+    value_of = {s: v for v, s in variants}
+    cfg = RunConfig(width=preset["width"], height=preset["height"], frames=preset["frames"],
+                    warmup=preset["warmup"], eval_frames=preset["eval_frames"], seed=opts.seed)
+    rows = []
+    for s in each_scene(scene_specs):
+        case_rows = run_cases([(s, spec, views.single(s), {field: value_of[s.name], "rig": "single"})
+                               for spec in specs], cfg, f"{name} {s.name}", opts.seed, keep=True)
+        for r in case_rows:
+            r["family"] = r["method"].rstrip("0123456789") or r["method"]
+            save_strip(out, s, r["label"], r.pop("_result"))
+        speed_error_plot(out / f"speed_error_{s.name.replace(':', '_').replace('=', '')}.png", case_rows,
+                         f"{s.name}: time vs FLIP ({cfg.width}x{cfg.height})")
+        rows += case_rows
+    metric_vs_value_plot(out / f"flip_time_vs_{field}.png", rows, field, title)
+    columns = DEFAULT_COLUMNS[:1] + [(field, field)] + [("setting", "method")] + DEFAULT_COLUMNS[3:]
+    md = (f"# {name}\n\n{cfg.width}x{cfg.height}, {cfg.frames} frames ({cfg.warmup} warm-up), one viewer; "
+          f"quality on frames {cfg.evaluated()} against {cfg.gt_spp}-sample ground truth; time = median DI ms "
+          f"per frame.\n\n" + markdown_table(rows, columns) + "\n")
+    config = {"quick": bool(opts.quick), "methods": specs, "variants": [list(v) for v in variants],
+              "width": cfg.width, "height": cfg.height, "frames": cfg.frames, "warmup": cfg.warmup,
+              "eval_frames": cfg.evaluated(), "seed": cfg.seed, "gt_spp": cfg.gt_spp}
+    results = results_object(name, config, strip_private(rows))
+    write_results(out, results, md)
+    print(md)
+    return results
+
+
+def metric_vs_value_plot(path: Path, rows: list[dict], field: str, title: str) -> None:
+    """FLIP (left) and time (right) against ``field``, one line per method setting."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    groups: dict[str, list] = {}
+    for r in rows:
+        groups.setdefault(r.get("setting", r["method"]), []).append(r)
+    numeric = all(isinstance(r[field], (int, float)) for r in rows)
+    order = sorted({r[field] for r in rows}, key=lambda v: (not numeric, v))
+    for label, rs in sorted(groups.items()):
+        rs = sorted(rs, key=lambda r: order.index(r[field]))
+        xs = [r[field] if numeric else order.index(r[field]) for r in rs]
+        for ax, key in zip(axes, ("flip", "time_ms")):
+            ax.plot(xs, [r.get(key) for r in rs], "o-", label=label)
+    for ax, ylabel in zip(axes, ("FLIP (lower is better)", "time per frame [ms]")):
+        if not numeric:
+            ax.set_xticks(range(len(order)), [str(v) for v in order])
+        ax.set_xlabel(field)
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    io._atomic(path, lambda p: fig.savefig(p, dpi=120, format="png"))
+    plt.close(fig)

@@ -31,6 +31,7 @@ import mitsuba as mi  # noqa: E402
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SCENES_DIR = REPO_ROOT / "scenes"
 SHARED_DIR = REPO_ROOT.parent / "shared"
+ENVMAPS_DIR = SHARED_DIR / "envmaps"
 
 FPS = 30.0
 SUPPORTED_EMITTERS = ("area", "point", "spot", "envmap", "constant", "directional")
@@ -320,8 +321,21 @@ class SceneBuilder:
         self.extra[self._id(name)] = {"type": "point", "position": list(map(float, position)),
                                       "intensity": {"type": "rgb", "value": list(map(float, intensity))}}
 
-    def add_envmap(self, filename=None, scale=1.0, rgb=None, to_world=None):
-        if filename is not None:
+    def add_spot_light(self, position, target, intensity, cutoff_deg=30.0, name="spot"):
+        T = mi.ScalarTransform4f().look_at(origin=list(map(float, position)), target=list(map(float, target)),
+                                           up=[0, 1, 0] if abs(np.subtract(target, position)[1]) < 0.99 *
+                                           np.linalg.norm(np.subtract(target, position)) else [1, 0, 0])
+        self.extra[self._id(name)] = {"type": "spot", "to_world": T, "cutoff_angle": float(cutoff_deg),
+                                      "beam_width": 0.75 * float(cutoff_deg),
+                                      "intensity": {"type": "rgb", "value": list(map(float, intensity))}}
+
+    def add_envmap(self, filename=None, scale=1.0, rgb=None, to_world=None, bitmap=None):
+        if bitmap is not None:
+            d = {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(bitmap, np.float32)),
+                 "scale": float(scale)}
+            if to_world is not None:
+                d["to_world"] = to_world
+        elif filename is not None:
             d = {"type": "envmap", "filename": str(filename), "scale": float(scale)}
             if to_world is not None:
                 d["to_world"] = to_world
@@ -414,10 +428,36 @@ def _import_definition(path: Path):
     return mod
 
 
+def parse_scene_spec(spec: str) -> tuple[str, dict]:
+    """``"hangar:lights=24"`` -> ``("hangar", {"lights": "24"})`` (values stay strings;
+    each scene's ``build`` converts its own options)."""
+    name, _, rest = str(spec).partition(":")
+    opts = {}
+    for item in filter(None, rest.split(",")):
+        k, eq, v = item.partition("=")
+        if not eq or not k.strip():
+            raise SceneError(f"bad scene option '{item}' in '{spec}' (expected key=value)")
+        opts[k.strip()] = v.strip()
+    return name.strip(), opts
+
+
 def load(name_or_path: str, **options) -> Scene:
     """Load a built-in scene by name, a ``.py`` definition or a ``.xml`` file.
+    Built-in scenes take options in the name, like methods take settings:
+    ``hangar:lights=24`` (the scene's name keeps them, so ground-truth caches
+    of two variants never mix).
 
     Raises :class:`SceneError` with a one-line message on any problem."""
+    if ":" in str(name_or_path) and Path(str(name_or_path)).suffix not in (".xml", ".py"):
+        name, opts = parse_scene_spec(name_or_path)
+        if name not in builtin_names():
+            raise SceneError(f"unknown scene '{name}' (built-in scenes: {', '.join(builtin_names())})")
+        try:
+            scene = _import_definition(SCENES_DIR / f"{name}.py").build(**{**opts, **options})
+        except (TypeError, ValueError) as e:
+            raise SceneError(f"bad options for scene '{name_or_path}': {e}") from None
+        scene.name = str(name_or_path)
+        return scene
     p = Path(str(name_or_path))
     if p.suffix == ".xml":
         return load_xml(p)

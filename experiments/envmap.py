@@ -1,0 +1,51 @@
+"""envmap: a courtyard lit only by an environment map (the paper's Fig. 18).
+
+The ``skylit`` scene under (a) the two HDR skies of ``../shared/envmaps/``
+(a sunset, a studio; skipped with a note when absent) and (b) a map made in
+code that is hard for cones: many small bright regions over a dim sky. FLIP
+and time for slc, sh (spherical harmonics, which the paper expects to fit
+smooth light better), rt48 and restir, with plots and image strips.
+
+    slc run envmap --quick [--maps spots venice]
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+if __name__ == "__main__" and __package__ is None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+NAME = "envmap"
+FULL = dict(scene="skylit", maps=["venice", "studio", "spots"], width=320, height=180, frames=32, warmup=4,
+            eval_frames=[15, 31])
+QUICK = dict(scene="skylit", maps=["venice", "spots"], width=160, height=90, frames=12, warmup=4, eval_frames=[11])
+METHODS = ["rt48", "restir", "slc", "slc:max_cones=4", "sh"]
+
+
+def add_arguments(p):
+    from slc.experiment import add_common_arguments
+    add_common_arguments(p)
+    p.add_argument("--maps", nargs="+", help="environment maps: venice, studio (../shared/envmaps), spots, constant")
+
+
+def run(opts):
+    from slc import experiment as ex
+    from slc.scenes import ENVMAPS_DIR
+    pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
+    scene = (opts.scene or [pr["scene"]])[0]
+    maps = opts.maps or pr["maps"]
+    if not opts.maps:
+        missing = [m for m in maps if m in ("venice", "studio") and not any(ENVMAPS_DIR.glob(f"{m}*.hdr"))]
+        if missing:
+            print(f"note: skipping {', '.join(missing)} (no HDR file in {ENVMAPS_DIR})", file=sys.stderr)
+        maps = [m for m in maps if m not in missing]
+    variants = [(m, f"{scene}:env={m}") for m in maps]
+    specs = opts.methods or ex.available_methods(METHODS)
+    return ex.variant_experiment(opts, NAME, pr, specs, variants, "envmap",
+                                 f"{scene}: error and time per environment map")
+
+
+if __name__ == "__main__":
+    from slc.cli import run_experiment_standalone
+    sys.exit(run_experiment_standalone(__file__))

@@ -1,0 +1,43 @@
+"""point-lights: a gallery lit only by 16-64 point and spot lights.
+
+Delta lights are the case the Surface Light Cones paper calls overkill for
+cones ("a simple visibility/occlusion caching approach may work
+significantly better"): FLIP and time against the light count for slc, sh,
+rt48 and restir; the baseline of the adaptive representation's visibility
+mode.
+
+    slc run point-lights --quick [--lights 16 64]
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+if __name__ == "__main__" and __package__ is None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+NAME = "point-lights"
+FULL = dict(scene="lamps", lights=[16, 32, 64], width=320, height=180, frames=32, warmup=4, eval_frames=[15, 31])
+QUICK = dict(scene="lamps", lights=[16, 64], width=160, height=90, frames=12, warmup=4, eval_frames=[11])
+METHODS = ["rt48", "restir", "slc", "slc:max_cones=4", "sh"]
+
+
+def add_arguments(p):
+    from slc.experiment import add_common_arguments
+    add_common_arguments(p)
+    p.add_argument("--lights", type=int, nargs="+", help="light counts")
+
+
+def run(opts):
+    from slc import experiment as ex
+    pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
+    scene = (opts.scene or [pr["scene"]])[0]
+    variants = [(n, f"{scene}:lights={n}") for n in (opts.lights or pr["lights"])]
+    specs = opts.methods or ex.available_methods(METHODS)
+    return ex.variant_experiment(opts, NAME, pr, specs, variants, "lights",
+                                 f"{scene}: error and time against the number of point/spot lights")
+
+
+if __name__ == "__main__":
+    from slc.cli import run_experiment_standalone
+    sys.exit(run_experiment_standalone(__file__))
