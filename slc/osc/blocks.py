@@ -24,9 +24,31 @@ import mitsuba as mi
 import numpy as np
 
 from ..keys import INVALID
-from .layout import CacheLayout, u32
+from .layout import CacheLayout
 
 PAGE_SHIFT = 6   # 64 virtual blocks per page: measured best on Sponza at 320x180 (docs/osc.md)
+
+
+def widen(a):
+    """``a`` evaluated, its single element repeated when it has one.
+
+    Dr.Jit loads an evaluated width-1 operand as a scalar, so a kernel fed by
+    a per-frame list (new blocks, evicted blocks, new pages, new entries) that
+    holds one element is not the kernel fed by a longer list: it would be
+    compiled when it first happens, after warm-up too. Callers use widened
+    lists only in idempotent operations (gathers, plain scatters of equal
+    values) or mask the copy with :func:`lanes`. The copy is made from a
+    Python list (a memcpy, no kernel); not from a numpy array, whose memory
+    Dr.Jit may keep with an alignment of its own that changes the kernel."""
+    dr.eval(a)
+    if dr.width(a) == 1:
+        a = type(a)(np.array(a).tolist() * 2)
+    return a
+
+
+def lanes(width: int, n: int) -> mi.Bool:
+    """The first ``n`` of ``width`` lanes (``n`` opaque: one kernel for every count)."""
+    return dr.arange(mi.UInt32, width) < dr.opaque(mi.UInt32, n)
 
 
 def _extend(a, fill, size, tp):
@@ -150,20 +172,26 @@ class BlockPool:
         return n
 
     def _unmap(self, phys):
+        n = dr.width(phys)
+        phys = widen(phys)
         vb = dr.gather(mi.UInt32, self.blk_vb, phys)
         pg = dr.gather(mi.UInt32, self.dir, vb >> self.page_shift)
         dr.scatter(self.pages, INVALID, (pg << self.page_shift) | (vb & (self.page_span - 1)))
-        dr.scatter_reduce(dr.ReduceOp.Add, self.pg_count, mi.UInt32(INVALID), pg)   # -1 (mod 2^32)
+        # Local mode: the default (Expand on the CPU) bakes the target's size into the kernel
+        dr.scatter_reduce(dr.ReduceOp.Add, self.pg_count, mi.UInt32(INVALID), pg,   # -1 (mod 2^32)
+                          lanes(dr.width(phys), n), mode=dr.ReduceMode.Local)
         dr.scatter(self.blk_vb, INVALID, phys)
         dr.eval(self.pages, self.pg_count, self.blk_vb)
-        self.n_blocks -= dr.width(phys)
+        self.n_blocks -= n
         # free the pages that became empty
         empty = dr.compress((self.pg_dir != INVALID) & (self.pg_count == 0))
-        if dr.width(empty):
+        n_empty = dr.width(empty)
+        if n_empty:
+            empty = widen(empty)
             dr.scatter(self.dir, INVALID, dr.gather(mi.UInt32, self.pg_dir, empty))
             dr.scatter(self.pg_dir, INVALID, empty)
             dr.eval(self.dir, self.pg_dir)
-            self.n_pages -= dr.width(empty)
+            self.n_pages -= n_empty
 
     def _evict_lru(self, need: int, req_vb) -> None:
         """Pool full: free the ``need`` least recently used blocks that are
@@ -177,7 +205,7 @@ class BlockPool:
         if len(cand) == 0:
             return
         order = cand[np.lexsort((cand, last[cand]))][:need]
-        self._unmap(u32(order))
+        self._unmap(mi.UInt32(order.astype(np.uint32).tolist()))   # not numpy memory: see widen
         self.evicted_early += len(order)
 
     # ------------------------------------------------------------------ allocation
@@ -189,6 +217,7 @@ class BlockPool:
         n_new = dr.width(miss)
         if n_new == 0:
             return 0, 0, False
+        miss = widen(miss)      # only its first n_alloc (<= n_new) lanes are used
         new_vb = dr.gather(mi.UInt32, req_vb, miss)
         free = dr.compress(self.blk_vb == INVALID)
         grown = False
@@ -209,6 +238,9 @@ class BlockPool:
     def _map(self, vb, phys):
         """Map virtual blocks to physical ones; record island/level/block xy;
         reset the blocks' slots to unseen."""
+        n = dr.width(phys)
+        dr.eval(vb, phys)
+        vb, phys = widen(vb), widen(phys)
         k, bx, by = self.layout.block_of(vb)
         # pages of the block table for directory entries seen for the first time
         d = vb >> self.page_shift
@@ -217,23 +249,27 @@ class BlockPool:
         new_d = dr.compress(need)
         nd = dr.width(new_d)
         if nd:
+            new_d = widen(new_d)
             free = dr.compress(self.pg_dir == INVALID)
             if dr.width(free) < nd:
                 self._grow_pages(nd - dr.width(free))
                 free = dr.compress(self.pg_dir == INVALID)
-            new_pg = dr.gather(mi.UInt32, free, dr.arange(mi.UInt32, nd))
+            # a repeated directory entry (widened list) gets the same page
+            new_pg = dr.gather(mi.UInt32, free, dr.minimum(dr.arange(mi.UInt32, dr.width(new_d)),
+                                                           dr.opaque(mi.UInt32, nd - 1)))
             dr.scatter(self.dir, new_pg, new_d)
             dr.scatter(self.pg_dir, new_d, new_pg)
             dr.eval(self.dir, self.pg_dir)
             self.n_pages += nd
         pg = dr.gather(mi.UInt32, self.dir, d)
         dr.scatter(self.pages, phys, (pg << self.page_shift) | (vb & (self.page_span - 1)))
-        dr.scatter_reduce(dr.ReduceOp.Add, self.pg_count, mi.UInt32(1), pg)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.pg_count, mi.UInt32(1), pg, lanes(dr.width(phys), n),
+                          mode=dr.ReduceMode.Local)
         dr.scatter(self.blk_vb, vb, phys)
         dr.scatter(self.blk_key, k, phys)
         dr.scatter(self.blk_xy, bx | (by << 16), phys)
         B2 = self.B2
-        j = dr.arange(mi.UInt32, dr.width(phys) * B2)
+        j = dr.arange(mi.UInt32, dr.width(phys) * B2)     # repeated blocks reset the same slots
         dr.scatter(self.slot_seen, mi.UInt32(0), dr.gather(mi.UInt32, phys, j // B2) * B2 + j % B2)
         dr.eval(self.pages, self.pg_count, self.blk_vb, self.blk_key, self.blk_xy, self.slot_seen)
 

@@ -28,7 +28,7 @@ import numpy as np
 
 from ..keys import INVALID
 from ..timing import NullTimer
-from .blocks import BlockPool
+from .blocks import BlockPool, widen
 from .islands import DEFAULT_MAX_ANGLE, DEFAULT_MAX_TRIANGLES
 from .layout import CacheLayout
 from .protocol import BILINEAR_TAPS, ENTRY_TEXELS, FrameRequests
@@ -139,7 +139,8 @@ class OnSurfaceCache:
                 self._warned = True
             req_phys = pool.touch(req_vb, self.tick)
             active, pixel_slot, pixel_index, n_multi = dedupe(pool, reqs, req_phys)
-            st.outputs(active, *pixel_slot, *pixel_index, pool.blk_vb, pool.blk_last)
+            dr.eval(active)    # apart: n_active may equal a viewer's pixel count (same-sized values fuse)
+            st.outputs(*pixel_slot, *pixel_index, pool.blk_vb, pool.blk_last)
 
         # ---------------------------------------------------------- 3. queue: new entries, surface points
         with timer.stage("queue") as st:
@@ -150,9 +151,14 @@ class OnSurfaceCache:
             new_idx = dr.compress(is_new)
             n_new = dr.width(new_idx)
             if n_new:
+                new_idx = widen(new_idx)   # a repeated entry computes and writes the same values
                 g = [dr.gather(mi.UInt32, a, new_idx) for a in (active, isl, lvl, tx, ty)]
                 dr.scatter(seed, lod_seeds(L, pool, *g[1:]), new_idx)
                 self.points.place(*g)
+                # apart from the n-sized values below: a kernel must not depend on
+                # whether n_new happens to equal n_active (same-sized values fuse)
+                dr.eval(seed, self.points.slot_tri, self.points.slot_b)
+            dr.eval(seed, is_new)
             si = self.points.interactions(active, isl)
             keys = self._keys(isl, lvl, tx, ty)
             dr.scatter(pool.slot_seen, mi.UInt32(1), active)

@@ -33,8 +33,10 @@ def dedupe(pool: BlockPool, reqs, req_phys):
         ok = valid & (ph != INVALID)
         cid = dr.gather(mi.UInt32, pool.blk_rank, ph, ok) * B2 + within
         viewer = dr.opaque(mi.UInt32, v)
-        dr.scatter_reduce(dr.ReduceOp.Min, vmin, viewer, cid, ok)
-        dr.scatter_reduce(dr.ReduceOp.Max, vmax, viewer, cid, ok)
+        # Local mode: the default (Expand on the CPU) bakes the target's size, a per-frame
+        # count, into the kernel: a new kernel every frame
+        dr.scatter_reduce(dr.ReduceOp.Min, vmin, viewer, cid, ok, mode=dr.ReduceMode.Local)
+        dr.scatter_reduce(dr.ReduceOp.Max, vmax, viewer, cid, ok, mode=dr.ReduceMode.Local)
         pixel_slot.append(dr.select(ok, ph * B2 + within, INVALID))
         pix_cid.append((ok, cid))
     act_c = dr.compress(vmin != INVALID)
