@@ -92,6 +92,28 @@ def _f32(a) -> mi.Float:
     return mi.Float(np.ascontiguousarray(a, dtype=np.float32))
 
 
+def _widen(a):
+    """``a`` evaluated, its single element repeated when it has one.
+
+    Dr.Jit loads an evaluated width-1 operand as a scalar, so a kernel fed
+    by a per-frame list (new blocks, evicted blocks, new pages, new entries)
+    that holds one element is not the kernel fed by a longer list: it is
+    compiled when it first happens, after warm-up too. Callers use widened
+    lists only in idempotent operations (gathers, plain scatters of equal
+    values) or mask the copy with :func:`_lanes`. The copy is made from a
+    Python list (a memcpy, no kernel); not from a numpy array, whose memory
+    Dr.Jit may keep with an alignment of its own that changes the kernel."""
+    dr.eval(a)
+    if dr.width(a) == 1:
+        a = type(a)(np.array(a).tolist() * 2)
+    return a
+
+
+def _lanes(width: int, n: int) -> mi.Bool:
+    """The first ``n`` of ``width`` lanes (``n`` opaque: one kernel for every count)."""
+    return dr.arange(mi.UInt32, width) < dr.opaque(mi.UInt32, n)
+
+
 class OnSurfaceCache:
     """Shared on-surface cache of a scene (see module and ``docs/osc.md``).
 
@@ -462,6 +484,7 @@ class OnSurfaceCache:
             phys = self._phys(req_vb)
             miss = dr.compress(phys == INVALID)
             n_new_blocks = dr.width(miss)
+            miss = _widen(miss)     # only its first n_alloc (<= n_new_blocks) lanes are used
             overflow = 0
             if n_new_blocks:
                 new_vb = dr.gather(mi.UInt32, req_vb, miss)
@@ -504,8 +527,8 @@ class OnSurfaceCache:
                 ok = valid & (ph != INVALID)
                 slot = dr.select(ok, ph * B2 + within, INVALID)
                 cid = dr.gather(mi.UInt32, self.blk_rank, ph, ok) * B2 + within
-                dr.scatter_reduce(dr.ReduceOp.Min, vmin, mi.UInt32(v), cid, ok)
-                dr.scatter_reduce(dr.ReduceOp.Max, vmax, mi.UInt32(v), cid, ok)
+                dr.scatter_reduce(dr.ReduceOp.Min, vmin, mi.UInt32(v), cid, ok, mode=dr.ReduceMode.Local)
+                dr.scatter_reduce(dr.ReduceOp.Max, vmax, mi.UInt32(v), cid, ok, mode=dr.ReduceMode.Local)
                 pixel_slot.append(slot)
                 pix_cid.append((ok, cid))
             act_c = dr.compress(vmin != INVALID)
@@ -522,7 +545,8 @@ class OnSurfaceCache:
             else:
                 active, n_multi = mi.UInt32(), 0
                 pixel_index = [dr.full(mi.UInt32, INVALID, dr.width(s_)) for s_ in pixel_slot]
-            dr.eval(active, *pixel_slot, *pixel_index)
+            dr.eval(active)    # apart: n_active may equal a viewer's pixel count (same-sized values fuse)
+            dr.eval(*pixel_slot, *pixel_index)
             self._mark("pixel_index")
             st.outputs(active, *pixel_slot, *pixel_index, self.blk_vb, self.blk_last)
         # ---- 3. update queue
@@ -579,20 +603,25 @@ class OnSurfaceCache:
         return n
 
     def _unmap(self, phys):
+        n = dr.width(phys)
+        phys = _widen(phys)
         vb = dr.gather(mi.UInt32, self.blk_vb, phys)
         pg = dr.gather(mi.UInt32, self.dir, vb >> self.page_shift)
         dr.scatter(self.pages, INVALID, (pg << self.page_shift) | (vb & (self.page_span - 1)))
-        dr.scatter_reduce(dr.ReduceOp.Add, self.pg_count, mi.UInt32(INVALID), pg)   # -1 (mod 2^32)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.pg_count, mi.UInt32(INVALID), pg,   # -1 (mod 2^32)
+                          _lanes(dr.width(phys), n), mode=dr.ReduceMode.Local)
         dr.scatter(self.blk_vb, INVALID, phys)
         dr.eval(self.pages, self.pg_count, self.blk_vb)
-        self.n_blocks -= dr.width(phys)
+        self.n_blocks -= n
         # free the pages that became empty
         empty = dr.compress((self.pg_dir != INVALID) & (self.pg_count == 0))
-        if dr.width(empty):
+        n_empty = dr.width(empty)
+        if n_empty:
+            empty = _widen(empty)
             dr.scatter(self.dir, INVALID, dr.gather(mi.UInt32, self.pg_dir, empty))
             dr.scatter(self.pg_dir, INVALID, empty)
             dr.eval(self.dir, self.pg_dir)
-            self.n_pages -= dr.width(empty)
+            self.n_pages -= n_empty
 
     def _evict_lru(self, need: int, req_vb) -> None:
         """Pool full: free the ``need`` least recently used blocks that are
@@ -606,7 +635,7 @@ class OnSurfaceCache:
         if len(cand) == 0:
             return
         order = cand[np.lexsort((cand, last[cand]))][:need]
-        self._unmap(_u32(order))
+        self._unmap(mi.UInt32(order.astype(np.uint32).tolist()))   # not numpy memory: see _widen
         self._evicted_early += len(order)
 
     def _map_blocks(self, vb, phys):
@@ -614,6 +643,9 @@ class OnSurfaceCache:
         (binary search of the virtual block in the per-(island, level) bases)
         and reset the blocks' entry counters."""
         B2 = self.block_texels
+        n = dr.width(phys)
+        dr.eval(vb, phys)
+        vb, phys = _widen(vb), _widen(phys)
         n_tab = dr.width(self.d_lvl_base)
         k = mi.UInt32(dr.binary_search(0, n_tab, lambda i: dr.gather(mi.UInt32, self.d_lvl_base, i) <= vb)) - 1
         local = vb - dr.gather(mi.UInt32, self.d_lvl_base, k)
@@ -629,23 +661,26 @@ class OnSurfaceCache:
         new_d = dr.compress(need)
         nd = dr.width(new_d)
         if nd:
+            new_d = _widen(new_d)
             free = dr.compress(self.pg_dir == INVALID)
             if dr.width(free) < nd:
                 self._grow_pages(nd - dr.width(free))
                 free = dr.compress(self.pg_dir == INVALID)
-            new_pg = dr.gather(mi.UInt32, free, dr.arange(mi.UInt32, nd))
+            # a repeated directory entry gets the same page
+            new_pg = dr.gather(mi.UInt32, free, dr.minimum(dr.arange(mi.UInt32, dr.width(new_d)),
+                                                           dr.opaque(mi.UInt32, nd - 1)))
             dr.scatter(self.dir, new_pg, new_d)
             dr.scatter(self.pg_dir, new_d, new_pg)
             dr.eval(self.dir, self.pg_dir)
             self.n_pages += nd
         pg = dr.gather(mi.UInt32, self.dir, d)
         dr.scatter(self.pages, phys, (pg << self.page_shift) | (vb & (self.page_span - 1)))
-        dr.scatter_reduce(dr.ReduceOp.Add, self.pg_count, mi.UInt32(1), pg)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.pg_count, mi.UInt32(1), pg, _lanes(dr.width(phys), n),
+                          mode=dr.ReduceMode.Local)
         dr.scatter(self.blk_vb, vb, phys)
         dr.scatter(self.blk_key, k, phys)
         dr.scatter(self.blk_xy, bx | (by << 16), phys)
-        n = dr.width(phys)
-        j = dr.arange(mi.UInt32, n * B2)
+        j = dr.arange(mi.UInt32, dr.width(phys) * B2)
         dr.scatter(self.slot_state, mi.UInt32(0), dr.gather(mi.UInt32, phys, j // B2) * B2 + j % B2)
         dr.eval(self.pages, self.pg_count, self.blk_vb, self.blk_key, self.blk_xy, self.slot_state)
 
@@ -687,6 +722,7 @@ class OnSurfaceCache:
         n_new = dr.width(new_idx)
         seed = dr.full(mi.UInt32, INVALID, n)
         if n_new:
+            new_idx = _widen(new_idx)   # a repeated entry computes and writes the same values
             ns = dr.gather(mi.UInt32, active, new_idx)
             nisl, nlvl = dr.gather(mi.UInt32, isl, new_idx), dr.gather(mi.UInt32, lvl, new_idx)
             ntx, nty = dr.gather(mi.UInt32, tx, new_idx), dr.gather(mi.UInt32, ty, new_idx)
@@ -698,7 +734,11 @@ class OnSurfaceCache:
             tri, b = self._lookup(nisl, c)
             dr.scatter(self.slot_tri, tri, ns)
             dr.scatter(self.slot_b, b, ns)
-        dr.eval(seed, rays, is_new, self.slot_tri, self.slot_b)
+            # apart from the n-sized values below: a kernel must not depend on
+            # whether n_new happens to equal n (same-sized values fuse)
+            dr.eval(seed, self.slot_tri, self.slot_b)
+        dr.eval(seed)
+        dr.eval(rays, is_new)
         self._mark("seed_lookup")
         tri = dr.gather(mi.UInt32, self.slot_tri, active)
         b = dr.gather(mi.Point2f, self.slot_b, active)
