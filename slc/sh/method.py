@@ -167,8 +167,10 @@ class SHSurfaceCache(Method):
         sampler = _slot_rng(dr.arange(mi.UInt32, gb.size), self.seed, 0x5A5A)
         ns = dr.opaque(mi.UInt32, self.glossy_samples)
 
+        # no Python branch on dr.any(g): whether a glossy pixel is in view must
+        # not change the kernel (it would compile a new one when the first appears)
         def cond(i, Lg, sampler):
-            return i < ns
+            return (i < ns) & g
 
         def body(i, Lg, sampler):
             u1 = sampler.next_float32()
@@ -178,10 +180,9 @@ class SHSurfaceCache(Method):
             Li = mi.Color3f(*radiance(enc, coeffs, si.to_world(bs.wo), self.presence, self.bleeding))
             return i + 1, Lg + dr.select(okj, mi.Color3f(bw) * Li, 0.0), sampler
 
-        if dr.any(g):
-            _, Lg, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
-                                     labels=("i", "Lg", "sampler"))
-            L += Lg * (1.0 / float(self.glossy_samples))
+        _, Lg, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
+                                 labels=("i", "Lg", "sampler"))
+        L += Lg * (1.0 / float(self.glossy_samples))
         return finite(dr.select(ok, L, 0.0))
 
     # ------------------------------------------------------------------ frame
