@@ -102,11 +102,32 @@ print("RESULT " + json.dumps(out))
     assert r["flag_after"] is False       # the flag's previous state is restored
 
 
+def test_experiment_flags_rows_that_built_kernels(tmp_path, capsys):
+    from slc import experiment as ex
+    rows = [{"scene": "atrium", "method": "slc", "label": "slc", "viewers": 4, "time_ms": 12.5,
+             "compiled_after_warmup": 2},
+            {"scene": "atrium", "method": "rt48", "label": "rt48", "viewers": 4, "time_ms": 40.0,
+             "compiled_after_warmup": 0}]
+    ex.write_results(tmp_path, {"experiment": "demo", "rows": rows}, ex.markdown_table(rows))
+    err = capsys.readouterr().err.splitlines()
+    assert len([x for x in err if x.startswith("warning: demo:")]) == 1
+    assert "label=slc" in err[0] and "2 kernel(s) built after warm-up" in err[0]
+    md = (tmp_path / "results.md").read_text()
+    assert "| 12.50 ⚠2 |" in md and "| 40.00 |" in md
+    assert "kernels built in timed frames" in md
+    saved = json.loads((tmp_path / "results.json").read_text())["rows"]
+    assert [r["compiled_after_warmup"] for r in saved] == [2, 0]
+    # nothing to flag: no warning, no note
+    ex.write_results(tmp_path, {"experiment": "demo", "rows": rows[1:]}, ex.markdown_table(rows[1:]))
+    assert capsys.readouterr().err == ""
+    assert "kernels built" not in (tmp_path / "results.md").read_text()
+
+
 # -----------------------------------------------------------------------------
 # First run (empty kernel cache) against a second run: the same ratios
 # -----------------------------------------------------------------------------
 
-EXP_ARGS = ["random-viewers", "--quick", "--res", "64x36", "--frames", "8", "--viewers", "1", "4",
+EXP_ARGS = ["random-viewers", "--quick", "--res", "96x54", "--frames", "12", "--viewers", "1", "4",
             "--methods", "slc", "rt48"]
 
 
@@ -127,19 +148,26 @@ def _ratios(rows):
 
 @pytest.mark.slow
 def test_first_and_second_run_give_the_same_ratios(tmp_path):
-    """Two fresh processes, each with a fresh, empty kernel cache (HOME points
-    at a new folder; Dr.Jit keeps its cache in ~/.drjit); the ground-truth
-    cache (SLC_CACHE) is shared. Every row has compiled_after_warmup == 0 and
-    the ratios agree within 10%."""
+    """A first run on a fresh, empty kernel cache (HOME points at a new
+    folder; Dr.Jit keeps its cache in ~/.drjit) and a second run in another
+    fresh process on the kernels the first one left on disk, as a user who
+    runs a command twice; the ground-truth cache (SLC_CACHE) is shared. Every
+    row has compiled_after_warmup == 0 and the ratios agree within 10%
+    (timings: run it on a quiet machine)."""
+    load, cores = os.getloadavg()[0], os.cpu_count() or 1
+    if load > cores:
+        pytest.skip(f"timing comparison needs a quiet machine (load average {load:.1f} on {cores} cores)")
+    home = tmp_path / "home"
+    home.mkdir()
     runs = []
     for k in range(2):
-        home = tmp_path / f"home{k}"
-        home.mkdir()
         rows = _experiment(tmp_path / f"out{k}", home)
+        if k == 0:
+            assert (home / ".drjit").is_dir()     # the run did fill the fresh kernel cache
         assert rows and all(r["compiled_after_warmup"] == 0 for r in rows), \
             [(r["method"], r["viewers"], r["compiled_after_warmup"]) for r in rows]
-        assert (home / ".drjit").is_dir()     # the run did use the fresh kernel cache
         runs.append(_ratios(rows))
-    print("first run", runs[0], "second run", runs[1])
+        print(f"run {k + 1}:", {(r["method"], r["viewers"]): round(r["time_ms"], 2) for r in rows},
+              {k_: round(v, 3) for k_, v in runs[-1].items()})
     for k in runs[0]:
         assert abs(runs[1][k] / runs[0][k] - 1.0) <= 0.10, (k, runs[0][k], runs[1][k])
