@@ -90,8 +90,8 @@ def gbuffers_for(scene, viewers, frame: int, width: int, height: int) -> list:
 def run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress=None) -> RunResult:
     """Render ``cfg.frames`` frames with ``method`` for all ``viewers``.
 
-    Kernels built (compiled, or loaded from the disk cache) inside
-    ``method.render`` are counted per frame with Dr.Jit's kernel history
+    Kernels built (compiled, loaded from the disk cache, or recorded into a
+    frozen function) inside ``method.render`` are counted per frame with Dr.Jit's kernel history
     (the flag's previous state is restored afterwards)."""
     with KernelCounter() as kc:
         return _run_sequence(scene, method, viewers, cfg, progress, kc)

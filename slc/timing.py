@@ -79,9 +79,11 @@ class KernelCounter:
     costs nothing), then in the on-disk cache (``~/.drjit``; loading costs a
     few ms), else it compiles it with LLVM (10-200 ms). A history entry of
     type ``KernelType.JIT`` has ``cache_hit = 0`` when it was compiled and
-    ``cache_disk = 1`` when it was loaded from disk; :meth:`take` counts both
-    since the last call (and clears the history). Other entry types (memset,
-    compress, reductions...) are precompiled and never counted.
+    ``cache_disk = 1`` when it was loaded from disk; :meth:`take` counts both,
+    and kernels recorded into a frozen function (``recording_mode ==
+    Recorded``: the function was traced again), since the last call (and
+    clears the history). Other entry types (memset, compress, reductions...)
+    are precompiled and never counted.
 
     Usage::
 
@@ -113,8 +115,14 @@ class KernelCounter:
 
 
 def built(entry: dict) -> bool:
-    """Whether a kernel-history entry was compiled or loaded from disk."""
-    return entry.get("type") == dr.KernelType.JIT and (not entry.get("cache_hit") or bool(entry.get("cache_disk")))
+    """Whether a kernel-history entry was compiled, loaded from disk, or
+    recorded into a frozen function (``dr.freeze``: a re-recording traces the
+    function again even when its kernels are cached)."""
+    if entry.get("type") != dr.KernelType.JIT:
+        return False
+    if entry.get("recording_mode") == dr.KernelRecordingMode.Recorded:
+        return True
+    return not entry.get("cache_hit") or bool(entry.get("cache_disk"))
 
 
 class NullTimer(StageTimer):
