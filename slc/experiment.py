@@ -6,7 +6,9 @@ alone (``python experiments/single_viewer.py --quick``) or through
 ``slc run single-viewer --quick``. This module finds the scripts, writes
 ``results.json`` / ``results.md`` atomically (a failed run leaves no partial
 results), renders the Markdown table and draws the speed-against-error
-plots.
+plots. A row whose timed frames built kernels (``compiled_after_warmup`` >
+0) is flagged: a warning on stderr, a mark in its time cell and a note in
+``results.md``.
 """
 from __future__ import annotations
 
@@ -62,18 +64,61 @@ DEFAULT_COLUMNS = [("scene", "scene"), ("method", "method"), ("viewers", "viewer
                    ("memory_mb", "memory [MB]")]
 
 
+COMPILED_MARK = "⚠"   # marks a time cell whose timed frames built kernels
+
+
+def _cell(r: dict, k: str, nd: int) -> str:
+    text = _fmt(r.get(k, "-"), nd)
+    if k == "time_ms" and r.get("compiled_after_warmup"):
+        text += f" {COMPILED_MARK}{int(r['compiled_after_warmup'])}"
+    return text
+
+
 def markdown_table(rows: list[dict], columns=None) -> str:
+    """A Markdown table of ``rows``; a time whose timed frames built kernels is
+    followed by the mark and the number of kernels (``12.34 ⚠2``)."""
     columns = columns or DEFAULT_COLUMNS
     cols = [(k, h) for k, h in columns if any(k in r for r in rows)]
     nd = {"time_ms": 2, "flip": 4, "psnr": 2, "ssim": 4, "memory_mb": 3}
     out = ["| " + " | ".join(h for _, h in cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
     for r in rows:
-        out.append("| " + " | ".join(_fmt(r.get(k, "-"), nd.get(k, 3)) for k, _ in cols) + " |")
+        out.append("| " + " | ".join(_cell(r, k, nd.get(k, 3)) for k, _ in cols) + " |")
     return "\n".join(out)
 
 
+def compiled_rows(rows: list[dict]) -> list[str]:
+    """One line per row whose timed frames built (compiled or loaded from
+    the disk cache) Dr.Jit kernels: its time is not steady state."""
+    out = []
+    for r in rows:
+        n = r.get("compiled_after_warmup")
+        if n:
+            where = ", ".join(f"{k}={r[k]}" for k in ("scene", "label", "rig", "viewers", "overlap") if k in r)
+            out.append(f"{where}: {int(n)} kernel(s) built after warm-up")
+    return out
+
+
+def flag_compiled(results: dict, markdown: str) -> str:
+    """Warn on stderr about every row with ``compiled_after_warmup`` > 0 and
+    return ``markdown`` with a note listing them (unchanged when none)."""
+    import sys
+    lines = compiled_rows(results.get("rows", []))
+    if not lines:
+        return markdown
+    for line in lines:
+        print(f"warning: {results.get('experiment', '?')}: {line}; its time depends on the kernel cache",
+              file=sys.stderr)
+    note = ("\n\n## Warning: kernels built in timed frames\n\n"
+            f"Times marked {COMPILED_MARK}N include N Dr.Jit kernels compiled or loaded from the disk cache "
+            "after the warm-up frames (`compiled_after_warmup`), so they depend on the state of the kernel "
+            "cache and are not steady-state figures:\n\n" + "\n".join(f"- {x}" for x in lines) + "\n")
+    return markdown.rstrip("\n") + note
+
+
 def write_results(out_dir: Path, results: dict, markdown: str) -> None:
-    """``results.json`` and ``results.md``, each written atomically."""
+    """``results.json`` and ``results.md``, each written atomically; rows that
+    built kernels after warm-up are flagged (:func:`flag_compiled`)."""
+    markdown = flag_compiled(results, markdown)
     out_dir.mkdir(parents=True, exist_ok=True)
     io.write_json(out_dir / "results.json", results)
     io.write_text(out_dir / "results.md", markdown)

@@ -5,6 +5,11 @@ per viewer, hand all of them to the method (timed by stage; G-buffer
 generation and tone mapping are not timed, as in the papers), compose with
 directly seen emission, and on evaluation frames compare every viewer's
 image with the 2048-sample ground truth at the same points.
+
+Kernels compiled or loaded from Dr.Jit's disk cache while the method
+renders are counted per frame (:class:`slc.timing.KernelCounter`); their sum
+over the timed frames is ``compiled_after_warmup`` in every row, and it must
+be 0: otherwise the median time depends on the state of the kernel cache.
 """
 from __future__ import annotations
 
@@ -17,7 +22,7 @@ from . import gbuffer as gbuf
 from .groundtruth import GT_SAMPLES, ground_truth
 from .methods import FrameContext, Method
 from .metrics import evaluate
-from .timing import StageTimer
+from .timing import KernelCounter, StageTimer
 from .views import measure_overlap
 
 
@@ -53,7 +58,8 @@ class RunResult:
     stages: dict
     metrics: dict
     memory_mb: float
-    frames_ms: list = field(default_factory=list)  # per frame: {stage: ms, "total": ms}, warm-up included
+    frames_ms: list = field(default_factory=list)  # per frame: {stage: ms, "total": ms, "compiled": n}, warm-up included
+    compiled_after_warmup: int = 0  # kernels compiled or loaded from disk in the timed frames (0 when steady)
     images: dict = field(default_factory=dict)  # viewer -> {"gt", "img", "flip_map"} of the last evaluated frame
     last: dict = field(default_factory=dict)    # viewer -> composed image of the last frame
     stats: dict = field(default_factory=dict)
@@ -65,6 +71,7 @@ class RunResult:
     def row(self) -> dict:
         r = {"method": self.method, "viewers": self.viewers, "time_ms": self.time_ms,
              "memory_mb": self.memory_mb, "stages_ms": self.stages,
+             "compiled_after_warmup": int(self.compiled_after_warmup),
              "frames_ms": [{k: round(v, 3) for k, v in f.items()} for f in self.frames_ms]}
         r.update(self.metrics)
         r.update(self.stats)
@@ -81,8 +88,18 @@ def gbuffers_for(scene, viewers, frame: int, width: int, height: int) -> list:
 
 
 def run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress=None) -> RunResult:
-    """Render ``cfg.frames`` frames with ``method`` for all ``viewers``."""
+    """Render ``cfg.frames`` frames with ``method`` for all ``viewers``.
+
+    Kernels built (compiled, loaded from the disk cache, or recorded into a
+    frozen function) inside ``method.render`` are counted per frame with Dr.Jit's kernel history
+    (the flag's previous state is restored afterwards)."""
+    with KernelCounter() as kc:
+        return _run_sequence(scene, method, viewers, cfg, progress, kc)
+
+
+def _run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress, kc: KernelCounter) -> RunResult:
     timer = StageTimer()
+    compiled: list[int] = []
     method.reset()
     evals = set(cfg.evaluated())
     acc: dict[str, list] = {}
@@ -93,9 +110,11 @@ def run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress=None) 
         f = cfg.start_frame + i
         gbs = gbuffers_for(scene, viewers, f, cfg.width, cfg.height)
         ctx = FrameContext(frame=f)
+        kc.take()                 # kernels of the G-buffer and of the previous frame's evaluation
         timer.begin_frame()
         direct = method.render(ctx, gbs, timer)
         timer.end_frame()
+        compiled.append(kc.take())
         for k, v in method.stats().items():
             if isinstance(v, (int, float)):
                 # a cache's own overlap of entries is kept apart from the pipeline's measure
@@ -124,7 +143,9 @@ def run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress=None) 
     return RunResult(method=method.name, viewers=len(viewers), time_ms=summ.get("total", 0.0),
                      stages={k: v for k, v in summ.items() if k != "total"}, metrics=metrics,
                      memory_mb=method.memory_bytes() / 2 ** 20,
-                     frames_ms=list(timer.frames),
+                     frames_ms=[dict(f, compiled=c) for f, c in zip(timer.frames, compiled)],
+                     compiled_after_warmup=sum(compiled[cfg.warmup:] if len(compiled) > cfg.warmup
+                                               else compiled[-1:]),
                      images=images, last=last,
                      stats=stats)
 

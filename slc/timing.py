@@ -14,6 +14,10 @@ Usage::
         st.outputs(cache)
     timer.end_frame()
     timer.summary(warmup=2)   # {"update": median ms, ..., "total": median ms}
+
+Timed frames must not build kernels: :class:`KernelCounter` counts the
+kernels that were compiled or loaded from Dr.Jit's on-disk kernel cache
+(anything but an in-memory cache hit) with Dr.Jit's own kernel history.
 """
 from __future__ import annotations
 
@@ -66,6 +70,59 @@ class StageTimer:
         fr = self.frames[warmup:] if len(self.frames) > warmup else self.frames[-1:]
         keys = sorted({k for f in fr for k in f})
         return {k: statistics.median([f.get(k, 0.0) for f in fr]) for k in keys}
+
+
+class KernelCounter:
+    """Kernels built or loaded from disk, from Dr.Jit's kernel history.
+
+    Dr.Jit looks a kernel up by the hash of its IR: first in memory (a hit
+    costs nothing), then in the on-disk cache (``~/.drjit``; loading costs a
+    few ms), else it compiles it with LLVM (10-200 ms). A history entry of
+    type ``KernelType.JIT`` has ``cache_hit = 0`` when it was compiled and
+    ``cache_disk = 1`` when it was loaded from disk; :meth:`take` counts both,
+    and kernels recorded into a frozen function (``recording_mode ==
+    Recorded``: the function was traced again), since the last call (and
+    clears the history). Other entry types (memset, compress, reductions...)
+    are precompiled and never counted.
+
+    Usage::
+
+        with KernelCounter() as kc:
+            kc.take()          # discard what came before
+            ...                # the measured work
+            n = kc.take()      # kernels built or loaded in between
+
+    The previous state of ``JitFlag.KernelHistory`` is restored on exit.
+    """
+
+    def __init__(self):
+        self._prev = None
+        self.last: list[dict] = []   # the counted entries of the last take()
+
+    def __enter__(self) -> "KernelCounter":
+        self._prev = dr.flag(dr.JitFlag.KernelHistory)
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        dr.kernel_history()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        dr.kernel_history()
+        dr.set_flag(dr.JitFlag.KernelHistory, bool(self._prev))
+
+    def take(self) -> int:
+        self.last = [e for e in dr.kernel_history() if built(e)]
+        return len(self.last)
+
+
+def built(entry: dict) -> bool:
+    """Whether a kernel-history entry was compiled, loaded from disk, or
+    recorded into a frozen function (``dr.freeze``: a re-recording traces the
+    function again even when its kernels are cached)."""
+    if entry.get("type") != dr.KernelType.JIT:
+        return False
+    if entry.get("recording_mode") == dr.KernelRecordingMode.Recorded:
+        return True
+    return not entry.get("cache_hit") or bool(entry.get("cache_disk"))
 
 
 class NullTimer(StageTimer):
