@@ -102,20 +102,20 @@ print("RESULT " + json.dumps(out))
     assert r["flag_after"] is False       # the flag's previous state is restored
 
 
-def _table_consistent(cache):
+def _table_consistent(pool):
     """Block table invariants: mapped blocks counted once, page counts equal
     the mapped entries of each page, directory and pages point at each other."""
     import numpy as np
-    from slc.osc.cache import INVALID
-    blk_vb = np.array(cache.blk_vb)
-    assert cache.n_blocks == int(np.count_nonzero(blk_vb != INVALID))
-    pg_dir, pages, cnt = np.array(cache.pg_dir), np.array(cache.pages), np.array(cache.pg_count)
+    from slc.keys import INVALID
+    blk_vb = np.array(pool.blk_vb)
+    assert pool.n_blocks == int(np.count_nonzero(blk_vb != INVALID))
+    pg_dir, pages, cnt = np.array(pool.pg_dir), np.array(pool.pages), np.array(pool.pg_count)
     used = np.nonzero(pg_dir != INVALID)[0]
-    assert cache.n_pages == len(used)
-    span = cache.page_span
+    assert pool.n_pages == len(used)
+    span = pool.page_span
     for p in used:
         assert cnt[p] == np.count_nonzero(pages[p * span:(p + 1) * span] != INVALID)
-        assert np.array(cache.dir)[pg_dir[p]] == p
+        assert np.array(pool.dir)[pg_dir[p]] == p
 
 
 def test_single_element_lists_keep_the_block_table_exact():
@@ -126,30 +126,32 @@ def test_single_element_lists_keep_the_block_table_exact():
     import mitsuba as mi
     import numpy as np
     from slc import scenes, views
-    from slc.osc.cache import INVALID, OnSurfaceCache
+    from slc.keys import INVALID
+    from slc.osc import OnSurfaceCache
     from slc.pipeline import gbuffers_for
     s = scenes.load("cornell")
     cache = OnSurfaceCache(s)
+    pool = cache.pool
     cache.begin_frame(0, gbuffers_for(s, views.single(s), 0, 48, 27), None)
-    _table_consistent(cache)
-    blk_vb = np.array(cache.blk_vb)
+    _table_consistent(pool)
+    blk_vb = np.array(pool.blk_vb)
     phys = int(np.nonzero(blk_vb != INVALID)[0][0])
     vb = int(blk_vb[phys])
-    pg = int(np.array(cache.dir)[vb >> cache.page_shift])
-    before, nb = int(np.array(cache.pg_count)[pg]), cache.n_blocks
-    cache._unmap(mi.UInt32([phys]))
-    assert cache.n_blocks == nb - 1
-    assert int(np.array(cache.pg_count)[pg]) == before - 1 or np.array(cache.pg_dir)[pg] == INVALID
-    _table_consistent(cache)
-    cache._map_blocks(mi.UInt32([vb]), mi.UInt32([phys]))
-    cache.n_blocks += 1
-    _table_consistent(cache)
-    assert int(np.array(cache._phys(mi.UInt32([vb])))[0]) == phys
+    pg = int(np.array(pool.dir)[vb >> pool.page_shift])
+    before, nb = int(np.array(pool.pg_count)[pg]), pool.n_blocks
+    pool._unmap(mi.UInt32([phys]))
+    assert pool.n_blocks == nb - 1
+    assert int(np.array(pool.pg_count)[pg]) == before - 1 or np.array(pool.pg_dir)[pg] == INVALID
+    _table_consistent(pool)
+    pool._map(mi.UInt32([vb]), mi.UInt32([phys]))
+    pool.n_blocks += 1
+    _table_consistent(pool)
+    assert int(np.array(pool.phys(mi.UInt32([vb])))[0]) == phys
     # and the cache keeps working: later frames with one or a few new blocks stay consistent
     for f in range(1, 6):
         cache.begin_frame(f, gbuffers_for(s, views.single(s), f, 48, 27), None)
-        _table_consistent(cache)
-    assert dr.width(cache.blk_vb) > 0
+        _table_consistent(pool)
+    assert dr.width(pool.blk_vb) > 0
 
 
 def test_experiment_flags_rows_that_built_kernels(tmp_path, capsys):
