@@ -408,6 +408,10 @@ class EmitterSampler:
 
     # ------------------------------------------------------------------ densities
 
+    def choice_pmf(self, index: mi.UInt32, active: mi.Bool) -> mi.Float:
+        """P(e) of emitters (indices into ``scene.emitters()``; 0 outside the subset)."""
+        return dr.gather(mi.Float, self._e_pmf, index, active)
+
     def index_of(self, emitter: mi.EmitterPtr, active: mi.Bool) -> tuple[mi.UInt32, mi.Bool]:
         """Index into ``scene.emitters()`` of emitter pointers; mask of valid ones."""
         rid = dr.reinterpret_array(mi.UInt32, emitter)
