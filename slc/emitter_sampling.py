@@ -18,6 +18,7 @@ See ``docs/emitter-sampling.md`` for the densities.
 from __future__ import annotations
 
 import math
+import os
 
 import drjit as dr
 import mitsuba as mi
@@ -30,6 +31,10 @@ MESH, RECT, SPHERE, POINT, OTHER = 0, 1, 2, 3, 4
 KIND_NAMES = {MESH: "mesh", RECT: "rectangle", SPHERE: "sphere", POINT: "point", OTHER: "mitsuba"}
 
 CHOICES = ("power", "uniform")
+# Emitter choice of the per-scene samplers (for_scene). 'uniform' (Mitsuba's) by default: the power-
+# proportional choice raised RT-16's relMSE on atrium, sponza, street and (35x) village, where a
+# bright distant moon takes the samples of nearby torches (docs/emitter-sampling.md).
+DEFAULT_CHOICE = os.environ.get("SLC_EMITTER_CHOICE", "uniform")
 
 
 def alias_table(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -94,16 +99,18 @@ class EmitterSampler:
     :math:`P(e)`; the entry is chosen by ``u.x`` and the fraction of
     ``u.x`` left by the alias lookup is reused inside the entry.
 
-    Emitter choice ``choice``: ``'power'`` (default) gives infinite lights
-    and those sampled by Mitsuba their uniform share :math:`1/N`, and splits
-    the rest of the probability among the tabled emitters in proportion to
-    their power (:math:`\pi L A` for area lights, :math:`4\pi I` for point
-    lights, by luminance); ``'uniform'``: :math:`P(e) = 1/N` as Mitsuba.
+    Emitter choice ``choice``: ``'uniform'`` (default): :math:`P(e) = 1/N`
+    as Mitsuba; ``'power'`` gives infinite lights and those sampled by
+    Mitsuba their uniform share :math:`1/N`, and splits the rest of the
+    probability among the tabled emitters in proportion to their power
+    (:math:`\pi L A` for area lights, :math:`4\pi I` for point lights, by
+    luminance). Power ignores distance: it measured worse than uniform on
+    most built-in scenes (see ``docs/emitter-sampling.md``).
     An emitter of zero power is never chosen and contributes nothing.
     Every density above is the one the sampling follows, so the estimator
     is unbiased either way.
 
-    Parameters: ``scene`` (``mi.Scene``), ``choice`` (``'power'``),
+    Parameters: ``scene`` (``mi.Scene``), ``choice`` (``'uniform'``),
     ``subset`` (indices into ``scene.emitters()`` to sample from, default
     all; ReSTIR uses the local lights). Emitter indices returned are
     indices into ``scene.emitters()``.
@@ -114,7 +121,7 @@ class EmitterSampler:
     scenes move meshes only).
     """
 
-    def __init__(self, scene: mi.Scene, choice: str = "power", subset=None):
+    def __init__(self, scene: mi.Scene, choice: str = "uniform", subset=None):
         if choice not in CHOICES:
             raise ValueError(f"emitter choice must be one of {', '.join(CHOICES)}, not '{choice}'")
         self.choice = choice
@@ -151,6 +158,8 @@ class EmitterSampler:
                     p0, n = at(0.0, 0.0)
                     e0 = at(1.0, 0.0)[0] - p0
                     e1 = at(0.0, 1.0)[0] - p0
+                    if np.dot(np.cross(e0, e1), n) < 0.0:   # the kernel takes n = cross(e0, e1)
+                        e0, e1 = e1, e0
                     A = float(np.linalg.norm(np.cross(e0, e1)))
                     return RECT, L, dict(p0=p0[None], e0=e0[None], e1=e1[None], n=n[None], A=A), \
                         math.pi * _luminance(L) * A
@@ -199,18 +208,17 @@ class EmitterSampler:
                 pmf[known] = share * power / power.sum()
         self.pmf_by_subset = pmf
         # ---------------- alias entries ----------------
-        ent_p, ent_em, ent_kind, ent_pa = [], [], [], []
-        P0, E0, E1, NN = [], [], [], []
+        ent_p, ent_em, ent_kind, ent_pa, ent_L = [], [], [], [], []
+        P0, E0, E1 = [], [], []
         n_all = len(self.emitters)
         e_kind = np.full(n_all, OTHER, np.uint32)
         e_pmf = np.zeros(n_all, np.float64)
         e_inv_area = np.zeros(n_all, np.float64)
-        e_L = np.zeros((n_all, 3), np.float64)
         e_c = np.zeros((n_all, 3), np.float64)
         e_r = np.zeros(n_all, np.float64)
         self._mesh_buffers = []
         for k, (i, kind, L, g, _) in enumerate(rows):
-            e_kind[i], e_pmf[i], e_L[i] = kind, pmf[k], L
+            e_kind[i], e_pmf[i] = kind, pmf[k]
             if kind in (MESH, RECT, SPHERE):
                 e_inv_area[i] = 1.0 / g["A"] if g["A"] > 0.0 else 0.0
             if kind == MESH:
@@ -222,8 +230,8 @@ class EmitterSampler:
                 m = 1
                 ent_p.append(np.array([pmf[k]]))
             z = np.zeros((m, 3))
-            P0.append(g.get("p0", z)); E0.append(g.get("e0", z)); E1.append(g.get("e1", z)); NN.append(g.get("n", z))
-            ent_em.append(np.full(m, i)); ent_kind.append(np.full(m, kind))
+            P0.append(g.get("p0", z)); E0.append(g.get("e0", z)); E1.append(g.get("e1", z))
+            ent_em.append(np.full(m, i)); ent_kind.append(np.full(m, kind)); ent_L.append(np.tile(L, (m, 1)))
             ent_pa.append(np.full(m, pmf[k] * e_inv_area[i] if kind in (MESH, RECT) else pmf[k]))
             if kind in (SPHERE, POINT):
                 e_c[i] = g["p0"][0]
@@ -244,12 +252,11 @@ class EmitterSampler:
         self._kind = mi.UInt32(np.concatenate(ent_kind).astype(np.uint32))
         self._pa = mi.Float(np.concatenate(ent_pa).astype(np.float32))
         self._p0, self._e0, self._e1 = f3(P0), mi.Vector3f(f3(E0)), mi.Vector3f(f3(E1))
-        self._n = mi.Vector3f(f3(NN))
+        self._L = mi.Color3f(f3(ent_L))
         # per emitter (index into scene.emitters())
         self._e_kind = mi.UInt32(e_kind)
         self._e_pmf = mi.Float(e_pmf.astype(np.float32))
         self._e_inv_area = mi.Float(e_inv_area.astype(np.float32))
-        self._e_L = mi.Color3f(*[e_L[:, c].astype(np.float32) for c in range(3)])
         self._e_c = mi.Point3f(*[e_c[:, c].astype(np.float32) for c in range(3)])
         self._e_r = mi.Float(e_r.astype(np.float32))
         self._M = dr.opaque(mi.Float, float(self.size))
@@ -262,6 +269,7 @@ class EmitterSampler:
         from being reused, so an index change is a reliable signal."""
         for sh, buf in self._mesh_buffers:
             if sh.vertex_positions_buffer().index != buf.index:
+                _outside_symbolic("re-read a moved emissive mesh")
                 self._build()
                 return True
         return False
@@ -304,12 +312,15 @@ class EmitterSampler:
         ux = dr.clip(ux, 0.0, 0.99999994)
         u2 = mi.Point2f(ux, u.y)
 
-        kind = dr.gather(mi.UInt32, self._kind, ent, active)
+        present = set(self.kinds_present)
+        if len(present) == 1:   # one kind (e.g. emissive meshes only): no per-lane kind
+            kind = mi.UInt32(self.kinds_present[0])
+        else:
+            kind = dr.gather(mi.UInt32, self._kind, ent, active)
         em = dr.gather(mi.UInt32, self._em, ent, active)
         pa = dr.gather(mi.Float, self._pa, ent, active)
         p0 = dr.gather(mi.Point3f, self._p0, ent, active)
-        Le = dr.gather(mi.Color3f, self._e_L, em, active)
-        present = set(self.kinds_present)
+        Le = dr.gather(mi.Color3f, self._L, ent, active)
 
         p = mi.Point3f(p0)
         n = dr.zeros(mi.Vector3f, dr.width(active))
@@ -321,7 +332,7 @@ class EmitterSampler:
             flat = active & ((kind == MESH) | (kind == RECT))
             e0 = dr.gather(mi.Vector3f, self._e0, ent, flat)
             e1 = dr.gather(mi.Vector3f, self._e1, ent, flat)
-            nf = dr.gather(mi.Vector3f, self._n, ent, flat)
+            nf = dr.normalize(dr.cross(e0, e1))   # the geometric normal (rectangles: oriented at set-up)
             b = mi.warp.square_to_uniform_triangle(u2)
             b = dr.select(kind == MESH, mi.Vector2f(b), mi.Vector2f(u2))
             pf = p0 + e0 * b.x + e1 * b.y
@@ -477,20 +488,32 @@ class EmitterSampler:
 _CACHE: dict[tuple, tuple] = {}
 
 
-def for_scene(scene: mi.Scene, choice: str = "power", subset=None) -> EmitterSampler:
+def for_scene(scene: mi.Scene, choice: str | None = None, subset=None) -> EmitterSampler:
     """The sampler of ``scene`` (built on first use, then cached and
-    refreshed when an emissive mesh moved). The cache key is the scene's
+    refreshed when an emissive mesh moved; both must happen outside
+    symbolic loops: :class:`slc.scenes.Scene` calls this at load and after
+    every pose change). The cache key is the scene's
     address plus its first emitter, held alive by the entry, so a new scene
     at a recycled address is never mistaken for an old one."""
+    choice = DEFAULT_CHOICE if choice is None else choice
     ems = scene.emitters()
     key = (id(scene), choice, None if subset is None else tuple(sorted(int(i) for i in subset)))
     hit = _CACHE.get(key)
     if hit is not None and len(ems) == len(hit[0].emitters) and (not ems or ems[0] is hit[0].emitters[0]):
         hit[0].refresh()
         return hit[0]
+    _outside_symbolic("build the emitter table")
     s = EmitterSampler(scene, choice=choice, subset=subset)
     _CACHE[key] = (s,)
     return s
+
+
+def _outside_symbolic(what: str) -> None:
+    """The table is read from the scene on the host, which a symbolic loop
+    or call cannot do (its literals cannot be evaluated there)."""
+    if dr.flag(dr.JitFlag.SymbolicScope):
+        raise RuntimeError(f"cannot {what} inside a symbolic loop: call slc.emitter_sampling.for_scene(scene) "
+                           "before tracing (slc.scenes.Scene does it at load and in set_time)")
 
 
 def clear_cache() -> None:

@@ -3,8 +3,9 @@ ReSTIR, the cache updates and the ground truth.
 
 :func:`sample_light` is the one switch. By default (``table``) it samples
 from the scene's :class:`~slc.emitter_sampling.EmitterSampler` (one alias
-table over emissive triangles and emitters, emitters chosen in proportion
-to power, no virtual call over emitters); with ``mitsuba``
+table over emissive triangles and emitters, no virtual call over emitters;
+emitters chosen uniformly as Mitsuba does, or in proportion to power with
+``SLC_EMITTER_CHOICE=power``); with ``mitsuba``
 (:func:`set_emitter_sampling`, or ``SLC_EMITTER_SAMPLING=mitsuba``) it is
 :func:`sample_light_reference`, i.e. ``scene.sample_emitter_direction``
 (uniform emitter choice, Mitsuba's per-emitter sampling). The ground

@@ -101,7 +101,7 @@ def _chi2(scene, sample_dir, pdf, seed=3):
 
 def test_table_kinds():
     sc = _mixed_scene()
-    t = emitter_sampling.EmitterSampler(sc)
+    t = emitter_sampling.EmitterSampler(sc, choice="power")
     kinds = t.describe()["emitters"]
     assert kinds == {"rectangle": 1, "sphere": 1, "mesh": 2, "mitsuba": 1, "point": 1}, kinds
     pm = np.array(list(t.pmf.values()))
@@ -188,11 +188,12 @@ def _estimate(sample, n, seed):
     return v.mean(), v.std() / math.sqrt(n)
 
 
-def test_weights_match_mitsuba_in_expectation():
+@pytest.mark.parametrize("choice", ["power", "uniform"])
+def test_weights_match_mitsuba_in_expectation(choice):
     """Irradiance-like estimates (all kinds, point light included) agree
     with Mitsuba's within 4 standard errors."""
     sc = _mixed_scene(point=True, smooth=False)
-    t = emitter_sampling.EmitterSampler(sc)
+    t = emitter_sampling.EmitterSampler(sc, choice=choice)
     n = 1 << 21
     a, sa = _estimate(lambda si, u, m: t.sample(si, u, m)[:3], n, 1)
     b, sb = _estimate(lambda si, u, m: lights.sample_light_reference(sc, si, u, m), n, 2)
@@ -253,11 +254,13 @@ def test_switch_selects_the_sampler():
         lights.set_emitter_sampling("bogus")
 
 
-@pytest.mark.parametrize("name", ["cornell", "atrium"])
-def test_rt_with_table_matches_ground_truth_mean(name):
+@pytest.mark.parametrize("name,choice", [("cornell", "uniform"), ("atrium", "uniform"), ("atrium", "power")])
+def test_rt_with_table_matches_ground_truth_mean(name, choice, monkeypatch):
     """RT-N with the table against the 2048-sample ground truth (Mitsuba's
     sampling, MIS): image means agree within 2%."""
+    monkeypatch.setattr(emitter_sampling, "DEFAULT_CHOICE", choice)
     s = scenes.load(name)
+    assert emitter_sampling.for_scene(s.mi_scene).choice == choice
     gb = gbuffers_for(s, views.single(s), 0, 64, 36)[0]
     gt = groundtruth.ground_truth(s, gb, 0, "single")
     with lights.emitter_sampling_as("table"):

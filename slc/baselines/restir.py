@@ -100,7 +100,7 @@ class ReSTIR(Method):
 
     1. *initial*: RIS over ``local`` local-light candidates (from the
        scene's emitter table over the local lights, :mod:`slc.emitter_sampling`:
-       light chosen in proportion to power, its density from the table; with
+       light choice and density from the table; with
        ``SLC_EMITTER_SAMPLING=mitsuba`` a uniform light choice and Mitsuba's
        ``sample_direction`` per light), ``env`` candidates
        of the infinite lights and ``bsdf`` BSDF-sampled rays; resampling
