@@ -272,3 +272,17 @@ def test_rt_with_table_matches_ground_truth_mean(name, choice, monkeypatch):
     a, b = img[valid].mean(), gt[valid].mean()
     assert b > 1e-3, "scene is black"
     assert abs(a - b) / b < 0.02, (name, a, b)
+
+
+def test_bench_rays_reports_both_samplers():
+    """`slc bench rays` measures Mitsuba's sampler and the table side by side
+    (a smoke test: no timing is asserted)."""
+    from slc import bench
+    r = bench.bench_rays("cornell", 16, 9, n=2, repeats=1)
+    assert set(r["samplers"]) == {"mitsuba", "table"}
+    for x in r["samplers"].values():
+        assert x["raw_ms"] > 0 and x["ours_ms"] > 0 and x["sample_ms"] > 0
+    assert r["samplers"]["table"]["table"]["entries"] == 2   # cornell: one quad light, two triangles
+    assert r["samplers"]["mitsuba"]["table"]["entries"] == 0
+    lines = bench.report_lines(r)
+    assert sum("ratio ours/raw" in ln for ln in lines) == 2
