@@ -1,13 +1,13 @@
 """A per-scene emitter sampler in one kernel, without a virtual call over
-emitters: one alias table whose entries are emissive triangles and whole
-emitters, then closed-form sampling of the chosen entry.
+emitters: table lookups for the emitter and (on meshes) the triangle, then
+closed-form sampling of the chosen entry.
 
 ``scene.sample_emitter_direction`` picks an emitter uniformly and calls
 its ``sample_direction`` through a virtual call (on the LLVM backend, one
 indirect call per emitter kind per lane, after a gather of the pointer),
 and a mesh emitter then samples a triangle from its own area table. Here
-both choices are one lookup of a combined alias table built once per
-scene; positions, normals, radiance and probabilities are gathered from
+both choices are O(1) table lookups (alias tables built once per
+scene); positions, normals, radiance and probabilities are gathered from
 flat arrays. Emitters the table does not model (spot, directional,
 environment and constant lights, textured radiance, shapes other than
 meshes, rectangles and spheres) are sampled by Mitsuba, in a masked call
@@ -94,10 +94,13 @@ class EmitterSampler:
     * others: Mitsuba's ``sample_direction`` / ``pdf_direction``, times
       :math:`P(e)`.
 
-    A triangle t of a mesh emitter is one alias entry of probability
-    :math:`P(e)\,A_t/A_e`, every other emitter one entry of probability
-    :math:`P(e)`; the entry is chosen by ``u.x`` and the fraction of
-    ``u.x`` left by the alias lookup is reused inside the entry.
+    Two lookups, no search: the emitter by ``u.x`` (uniform: Mitsuba's own
+    mapping, index ``floor(N u.x)``; power: an alias table over
+    :math:`P(e)`), then the triangle of a mesh emitter by ``u.y`` from an
+    alias table over its triangles' areas (:math:`P(t|e) = A_t/A_e`; other
+    emitters have one entry). The fractions of ``u.x`` and ``u.y`` left by
+    the lookups are reused inside the entry, so that a single quad light or
+    a sphere gets exactly Mitsuba's mapping of ``u``.
 
     Emitter choice ``choice``: ``'uniform'`` (default): :math:`P(e) = 1/N`
     as Mitsuba; ``'power'`` gives infinite lights and those sampled by
@@ -236,10 +239,25 @@ class EmitterSampler:
             if kind in (SPHERE, POINT):
                 e_c[i] = g["p0"][0]
                 e_r[i] = g["e0"][0, 0] if kind == SPHERE else 0.0
-        p = np.concatenate(ent_p) if ent_p else np.zeros(1)
-        total = p.sum()
-        q, alias = alias_table(p / total if total > 0 else np.full(len(p), 1.0 / len(p)))
-        self.size = len(p)
+        # two levels: the emitter (by u.x: uniform as Mitsuba, or an alias table over P(e)),
+        # then the entry within it (by u.y: an alias table over its triangles' areas)
+        self.size = sum(len(x) for x in ent_p)
+        counts = np.array([len(x) for x in ent_p], np.int64)
+        offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        q = np.ones(self.size)
+        alias = np.zeros(self.size, np.int64)
+        for o, c, x in zip(offsets, counts, ent_p):
+            tot = x.sum()
+            q[o:o + c], alias[o:o + c] = alias_table(x / tot if tot > 0 else np.full(c, 1.0 / c))
+        eq, ealias = alias_table(pmf / pmf.sum() if pmf.sum() > 0 else np.full(N, 1.0 / N))
+        self._uniform = self.choice == "uniform" or bool(np.allclose(pmf, 1.0 / N, rtol=0, atol=0))
+        self._seg_off = mi.UInt32(offsets.astype(np.uint32))
+        self._seg_cnt = mi.UInt32(counts.astype(np.uint32))
+        self._eq = mi.Float(eq.astype(np.float32))
+        self._ealias = mi.UInt32(ealias.astype(np.uint32))
+        self._N = dr.opaque(mi.Float, float(N))
+        self._N1 = dr.opaque(mi.UInt32, N - 1)
+        self.n_emitters = N
 
         def f3(a):
             a = np.concatenate(a).astype(np.float32)
@@ -259,8 +277,6 @@ class EmitterSampler:
         self._e_inv_area = mi.Float(e_inv_area.astype(np.float32))
         self._e_c = mi.Point3f(*[e_c[:, c].astype(np.float32) for c in range(3)])
         self._e_r = mi.Float(e_r.astype(np.float32))
-        self._M = dr.opaque(mi.Float, float(self.size))
-        self._M1 = dr.opaque(mi.UInt32, self.size - 1)
         self.pmf = {i: float(e_pmf[i]) for i in self.subset}
 
     def refresh(self) -> bool:
@@ -299,18 +315,22 @@ class EmitterSampler:
         (pdf 0, back side of a one-sided emitter, zero radiance)."""
         active = mi.Bool(active)
 
-        # ------------------------ entry: one alias lookup ------------------------
-        x = u.x * self._M
-        j = dr.minimum(mi.UInt32(x), self._M1)
-        frac = x - mi.Float(j)
-        q = dr.gather(mi.Float, self._q, j, active)
-        keep = frac < q
-        ent = dr.select(keep, j, dr.gather(mi.UInt32, self._alias, j, active))
-        # reuse the fraction of u.x left by the lookup (guarded divisions)
-        ux = dr.select(keep, frac / dr.select(q > 0.0, q, 1.0),
-                       (frac - q) / dr.select(q < 1.0, 1.0 - q, 1.0))
-        ux = dr.clip(ux, 0.0, 0.99999994)
-        u2 = mi.Point2f(ux, u.y)
+        # ------------------------ emitter: by u.x ------------------------
+        if self.n_emitters == 1:
+            k, ux = mi.UInt32(0), mi.Float(u.x)
+        elif self._uniform:   # Mitsuba's own mapping (index and reused fraction)
+            x = u.x * self._N
+            k = dr.minimum(mi.UInt32(x), self._N1)
+            ux = x - mi.Float(k)
+        else:
+            k, ux = _alias_lookup(u.x, self._N, self._N1, self._eq, self._ealias, active)
+
+        # ------------------------ entry within it: by u.y ------------------------
+        off = dr.gather(mi.UInt32, self._seg_off, k, active)
+        cnt = dr.gather(mi.UInt32, self._seg_cnt, k, active)
+        j, uy = _alias_lookup(u.y, mi.Float(cnt), cnt - 1, self._q, self._alias, active, off)
+        ent = off + j
+        u2 = mi.Point2f(ux, uy)
 
         present = set(self.kinds_present)
         if len(present) == 1:   # one kind (e.g. emissive meshes only): no per-lane kind
@@ -481,6 +501,20 @@ class EmitterSampler:
         ds = mi.DirectionSample3f(scene, si2, si)
         ds.n = dr.select(si2.is_valid(), mi.Normal3f(si2.n), ds.n)
         return self.pdf(si, ds, active)
+
+
+def _alias_lookup(u, n_f, n_1, q_arr, alias_arr, active, offset=None):
+    """Index in [0, n) drawn by ``u`` from an alias table (at ``offset`` in
+    the arrays), and the fraction of ``u`` left by the lookup, reused."""
+    x = u * n_f
+    j = dr.minimum(mi.UInt32(x), n_1)
+    frac = x - mi.Float(j)
+    at = j if offset is None else offset + j
+    q = dr.gather(mi.Float, q_arr, at, active)
+    keep = frac < q
+    idx = dr.select(keep, j, dr.gather(mi.UInt32, alias_arr, at, active & ~keep))
+    r = dr.select(keep, frac / dr.select(q > 0.0, q, 1.0), (frac - q) / dr.select(q < 1.0, 1.0 - q, 1.0))
+    return idx, dr.clip(r, 0.0, 0.99999994)
 
 
 # ---------------------------------------------------------------------- per-scene cache
