@@ -32,7 +32,7 @@ KIND_NAMES = {MESH: "mesh", RECT: "rectangle", SPHERE: "sphere", POINT: "point",
 
 CHOICES = ("power", "uniform")
 # Emitter choice of the per-scene samplers (for_scene). 'uniform' (Mitsuba's) by default: the power-
-# proportional choice raised RT-16's relMSE on atrium, sponza, street and (35x) village, where a
+# proportional choice raised RT-16's relMSE on atrium, sponza, garden, street and (28x) village, where a
 # bright distant moon takes the samples of nearby torches (docs/emitter-sampling.md).
 DEFAULT_CHOICE = os.environ.get("SLC_EMITTER_CHOICE", "uniform")
 
