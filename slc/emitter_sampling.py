@@ -209,7 +209,6 @@ class EmitterSampler:
             if known and power.sum() > 0.0:
                 share = len(known) / N
                 pmf[known] = share * power / power.sum()
-        self.pmf_by_subset = pmf
         # ---------------- alias entries ----------------
         ent_p, ent_em, ent_kind, ent_pa, ent_L = [], [], [], [], []
         P0, E0, E1 = [], [], []
@@ -228,7 +227,7 @@ class EmitterSampler:
                 m = len(g["area"])
                 ent_p.append(pmf[k] * g["area"] / g["A"] if g["A"] > 0.0 else np.zeros(m))
                 sh = self._shapes[self.emitters[i].get_shape().id()]
-                self._mesh_buffers.append((sh, sh.vertex_positions_buffer()))
+                self._mesh_buffers.append([sh, sh.vertex_positions_buffer(), sum(len(x) for x in ent_p) - m, m])
             else:
                 m = 1
                 ent_p.append(np.array([pmf[k]]))
@@ -280,15 +279,38 @@ class EmitterSampler:
         self.pmf = {i: float(e_pmf[i]) for i in self.subset}
 
     def refresh(self) -> bool:
-        """Rebuild when an emissive mesh's vertex buffer was replaced (an
-        animated light). Holding the old buffers keeps their JIT indices
-        from being reused, so an index change is a reliable signal."""
-        for sh, buf in self._mesh_buffers:
-            if sh.vertex_positions_buffer().index != buf.index:
-                _outside_symbolic("re-read a moved emissive mesh")
-                self._build()
-                return True
-        return False
+        """Follow emissive meshes whose vertex buffer was replaced (animated
+        lights): their triangles' corners and edges are gathered from the new
+        buffer on the device and scattered into the table (no host copy).
+        Holding the old buffers keeps their JIT indices from being reused, so
+        an index change is a reliable signal. The motion must preserve
+        triangle areas (rigid, as :class:`slc.scenes.Animated`); otherwise
+        call :meth:`rebuild`."""
+        moved = False
+        for rec in self._mesh_buffers:
+            sh, buf, off, m = rec
+            V = sh.vertex_positions_buffer()
+            if V.index == buf.index:
+                continue
+            _outside_symbolic("re-read a moved emissive mesh")
+            F = sh.faces_buffer()
+            t = dr.arange(mi.UInt32, m)
+            corner = [dr.gather(mi.UInt32, F, 3 * t + c) for c in range(3)]
+            P = [mi.Point3f(*[dr.gather(mi.Float, V, 3 * f + a) for a in range(3)]) for f in corner]
+            at = off + t
+            self._p0 = mi.Point3f(_scattered(self._p0, P[0], at))
+            self._e0 = mi.Vector3f(_scattered(self._e0, P[1] - P[0], at))
+            self._e1 = mi.Vector3f(_scattered(self._e1, P[2] - P[0], at))
+            rec[1] = V
+            moved = True
+        if moved:
+            dr.eval(self._p0, self._e0, self._e1)
+        return moved
+
+    def rebuild(self) -> None:
+        """Re-read every emitter (e.g. after a non-rigid change)."""
+        _outside_symbolic("rebuild the emitter table")
+        self._build()
 
     @property
     def tabled(self) -> bool:
@@ -501,6 +523,16 @@ class EmitterSampler:
         ds = mi.DirectionSample3f(scene, si2, si)
         ds.n = dr.select(si2.is_valid(), mi.Normal3f(si2.n), ds.n)
         return self.pdf(si, ds, active)
+
+
+def _scattered(arr, value, index):
+    """Components of a 3D array with ``value`` written at ``index``."""
+    out = []
+    for c in range(3):
+        a = mi.Float(arr[c])
+        dr.scatter(a, value[c], index)
+        out.append(a)
+    return out
 
 
 def _alias_lookup(u, n_f, n_1, q_arr, alias_arr, active, offset=None):
