@@ -286,3 +286,44 @@ def test_bench_rays_reports_both_samplers():
     assert r["samplers"]["mitsuba"]["table"]["entries"] == 0
     lines = bench.report_lines(r)
     assert sum("ratio ours/raw" in ln for ln in lines) == 2
+
+
+@pytest.mark.parametrize("mode", ["table", "mitsuba"])
+def test_light_pdf_matches_the_sampler_in_use(mode):
+    """lights.light_pdf / light_pdf_hit give ds.pdf of the sampler in use
+    (flat emitters, where Mitsuba's pdf is the density of its samples)."""
+    sc = _mixed_scene(point=False, smooth=False, env=False)
+    emitter_sampling.for_scene(sc)
+    n = 1 << 14
+    rng = mi.PCG32(n)
+    si = _shading_point(n)
+    with lights.emitter_sampling_as(mode):
+        ds, w, ok = lights.sample_light(sc, si, mi.Point2f(rng.next_float32(), rng.next_float32()), mi.Bool(True))
+        p = np.array(lights.light_pdf(sc, si, ds, ok))
+        si2 = sc.ray_intersect(mi.Ray3f(si.p, ds.d), ok)   # a point in free space: no offset needed
+        same = ok & si2.is_valid() & (dr.norm(si2.p - ds.p) < 1e-3)   # the ray found the sampled point
+        ph = np.array(lights.light_pdf_hit(sc, si, si2, same))
+    okn, samen = np.array(ok), np.array(same)
+    ref = np.array(ds.pdf)
+    assert okn.mean() > 0.3 and samen.sum() > 0.95 * okn.sum()
+    assert np.allclose(p[okn], ref[okn], rtol=2e-3)
+    assert np.allclose(ph[samen], ref[samen], rtol=2e-3)
+
+
+def test_table_is_not_built_inside_a_symbolic_loop():
+    """Building reads the scene on the host: inside a symbolic loop it
+    fails with a clear message instead of silently falling back."""
+    sc = _mixed_scene()
+    emitter_sampling.clear_cache()
+
+    def body(i):
+        emitter_sampling.for_scene(sc)
+        return (i + 1,)
+
+    with pytest.raises(RuntimeError) as e:
+        dr.while_loop((mi.UInt32(0),), lambda i: i < 2, body)
+    chain, x = [], e.value
+    while x is not None:
+        chain.append(str(x))
+        x = x.__cause__ or x.__context__
+    assert any("inside a symbolic loop" in m for m in chain), chain
