@@ -313,8 +313,7 @@ def test_light_pdf_matches_the_sampler_in_use(mode):
 def test_table_is_not_built_inside_a_symbolic_loop():
     """Building reads the scene on the host: inside a symbolic loop it
     fails with a clear message instead of silently falling back."""
-    sc = _mixed_scene()
-    emitter_sampling.clear_cache()
+    sc = _mixed_scene()   # a new scene: no table yet (the cache is not cleared: other tests' scenes keep theirs)
 
     def body(i):
         emitter_sampling.for_scene(sc)
