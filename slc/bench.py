@@ -1,20 +1,39 @@
 """Benchmarks that check our own overhead.
 
 :func:`bench_rays` times, on the same scene, G-buffer and number of rays,
-(a) Mitsuba's raw ``scene.ray_test`` on precomputed shadow rays and (b) our
-RT-N kernel (light sample + shadow ray + BSDF evaluation per ray). The
-ratio (b)/(a) says how much our baseline adds on top of ray casting.
+(a) Mitsuba's raw ``scene.ray_test`` on precomputed shadow rays, (b) our
+RT-N kernel (light sample + shadow ray + BSDF evaluation per ray) and (c)
+the light sampling alone, once per light sampler: Mitsuba's
+``scene.sample_emitter_direction`` (``mitsuba``, the reference) and the
+scene's emitter table (``table``, :mod:`slc.emitter_sampling`, the
+default). Each sampler's raw rays are the ones it samples, so (b)/(a) says
+how much our baseline adds on top of casting the very rays it casts. The
+measurements are interleaved round by round (one call of each per round,
+medians over ``repeats`` rounds after one warm-up round), so that load
+from other processes on a shared machine hits both samplers alike.
 """
 from __future__ import annotations
+
+import statistics
+import time
 
 import drjit as dr
 import mitsuba as mi
 
 from . import scenes, views
 from .baselines.rt import RandomLightSampling
-from .lights import rng, sample_light
+from .lights import emitter_sampling_as, rng, sample_light, sampler
 from .pipeline import gbuffers_for
-from .timing import time_call
+
+SAMPLERS = ("mitsuba", "table")
+
+
+def _timed(fn) -> float:
+    dr.sync_thread()
+    t0 = time.perf_counter()
+    dr.eval(fn())
+    dr.sync_thread()
+    return (time.perf_counter() - t0) * 1e3
 
 
 def bench_rays(scene_name: str = "atrium", width: int = 320, height: int = 180, n: int = 16,
@@ -23,21 +42,80 @@ def bench_rays(scene_name: str = "atrium", width: int = 320, height: int = 180, 
     gb = gbuffers_for(s, views.single(s), 0, width, height)[0]
     sc = s.mi_scene
 
-    # --------------- the same shadow rays, precomputed, for raw ray_test ---------------
+    # --------------- per-ray shading points: n rays per pixel ---------------
     count = gb.size * n
     idx = dr.arange(mi.UInt32, count)
     pix = idx // n
     si = dr.gather(mi.SurfaceInteraction3f, gb.si, pix)
     active = dr.gather(mi.Bool, gb.valid, pix)
-    sampler = rng(count, 1, stream=5)
-    ds, _, ok = sample_light(sc, si, mi.Point2f(sampler.next_float32(), sampler.next_float32()), active)
-    rays = si.spawn_ray_to(ds.p)
-    dr.eval(rays, ok)
-    dr.sync_thread()
-    raw_ms, _ = time_call(lambda: sc.ray_test(rays, ok), repeats=repeats)
+    dr.eval(si, active)
 
-    m = RandomLightSampling(s, n=n)
-    ours_ms, _ = time_call(lambda: m.shade(gb, 0, 0), repeats=repeats)
-    return {"scene": s.name, "rays": count, "raw_ms": raw_ms, "ours_ms": ours_ms,
-            "raw_mrays": count / raw_ms / 1e3, "ours_mrays": count / ours_ms / 1e3,
-            "ratio": ours_ms / raw_ms}
+    def light_samples():
+        smp = rng(count, 1, stream=5)
+        ds, w, ok = sample_light(sc, si, mi.Point2f(smp.next_float32(), smp.next_float32()), active)
+        return ds.p, w, ok
+
+    # --------------- the same shadow rays, precomputed, for raw ray_test ---------------
+    calls, info = {}, {}
+    for mode in SAMPLERS:
+        with emitter_sampling_as(mode):
+            tab = sampler(sc)
+            info[mode] = tab.describe() if tab is not None else {"entries": 0}
+            smp = rng(count, 1, stream=5)
+            ds, _, ok = sample_light(sc, si, mi.Point2f(smp.next_float32(), smp.next_float32()), active)
+            rays = si.spawn_ray_to(ds.p)
+            dr.eval(rays, ok)
+        m = RandomLightSampling(s, n=n)
+
+        def raw(rays=rays, ok=ok):
+            return sc.ray_test(rays, ok)
+
+        def ours(m=m, mode=mode):
+            with emitter_sampling_as(mode):
+                return m.shade(gb, 0, 0)
+
+        def sample_only(mode=mode):
+            with emitter_sampling_as(mode):
+                return light_samples()
+
+        calls[mode] = {"raw": raw, "ours": ours, "sample": sample_only}
+
+    # --------------- interleaved rounds ---------------
+    times = {(mode, k): [] for mode in SAMPLERS for k in ("raw", "ours", "sample")}
+    for r in range(repeats + 1):
+        for mode in SAMPLERS:
+            for k, fn in calls[mode].items():
+                t = _timed(fn)
+                if r > 0:
+                    times[(mode, k)].append(t)
+    med = {key: statistics.median(v) for key, v in times.items()}
+
+    out = {"scene": s.name, "rays": count, "n": n, "width": width, "height": height, "samplers": {}}
+    for mode in SAMPLERS:
+        raw_ms, ours_ms, smp_ms = med[(mode, "raw")], med[(mode, "ours")], med[(mode, "sample")]
+        out["samplers"][mode] = {"raw_ms": raw_ms, "ours_ms": ours_ms, "sample_ms": smp_ms,
+                                 "raw_mrays": count / raw_ms / 1e3, "ours_mrays": count / ours_ms / 1e3,
+                                 "ratio": ours_ms / raw_ms, "table": info[mode]}
+    # the default sampler's figures at the top level (as before)
+    out.update({k: out["samplers"]["table"][k] for k in ("raw_ms", "ours_ms", "raw_mrays", "ours_mrays", "ratio")})
+    return out
+
+
+def report_lines(r: dict) -> list[str]:
+    """The lines ``slc bench rays`` prints."""
+    n = r["n"]
+    lines = [f"scene {r['scene']} {r['width']}x{r['height']}, {r['rays']} shadow rays per pass "
+             f"(medians of interleaved rounds):"]
+    for mode in SAMPLERS:
+        x = r["samplers"][mode]
+        what = ("Mitsuba's sample_emitter_direction (reference)" if mode == "mitsuba"
+                else f"emitter table ({x['table'].get('entries', 0)} entries, default)")
+        lines += [f" light sampler: {what}",
+                  f"  raw scene.ray_test      : {x['raw_ms']:8.2f} ms  {x['raw_mrays']:7.1f} Mrays/s",
+                  f"  light sampling alone    : {x['sample_ms']:8.2f} ms",
+                  f"  rt{n} (sample+ray+BSDF) : {x['ours_ms']:8.2f} ms  {x['ours_mrays']:7.1f} Mrays/s",
+                  f"  ratio ours/raw          : {x['ratio']:.2f}x (target <= 1.5x)"]
+    a, b = r["samplers"]["mitsuba"], r["samplers"]["table"]
+    lines.append(f" table / mitsuba: rt{n} {b['ours_ms'] / a['ours_ms']:.2f}x, "
+                 f"light sampling {b['sample_ms'] / a['sample_ms']:.2f}x")
+    return lines

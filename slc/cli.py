@@ -143,14 +143,11 @@ def bench_grp():
 @click.option("--n", default=16, show_default=True, type=int, help="samples (rays) per pixel")
 @click.option("--repeats", default=5, show_default=True, type=int)
 def bench_rays(scene_name, res, n, repeats):
-    """RT-N throughput next to Mitsuba's raw scene.ray_test on the same rays."""
-    from .bench import bench_rays as run
+    """RT-N throughput next to Mitsuba's raw scene.ray_test on the same rays, with Mitsuba's light sampler and the emitter table."""
+    from .bench import bench_rays as run, report_lines
     w, h = _parse_res(res)
-    r = run(scene_name, w, h, n, repeats)
-    click.echo(f"scene {r['scene']} {w}x{h}, {r['rays']} shadow rays per pass:")
-    click.echo(f"  raw scene.ray_test      : {r['raw_ms']:8.2f} ms  {r['raw_mrays']:7.1f} Mrays/s")
-    click.echo(f"  rt{n} (sample+ray+BSDF) : {r['ours_ms']:8.2f} ms  {r['ours_mrays']:7.1f} Mrays/s")
-    click.echo(f"  ratio ours/raw          : {r['ratio']:.2f}x (target <= 1.5x)")
+    for line in report_lines(run(scene_name, w, h, n, repeats)):
+        click.echo(line)
 
 
 def main(argv=None):

@@ -21,7 +21,8 @@ import numpy as np
 
 from .gbuffer import GBuffer, compose, to_image
 from .io import cached_array
-from .lights import finite, mis_weight, rng, sample_light, visible
+from .lights import finite, mis_weight, rng, visible
+from .lights import sample_light_reference as sample_light  # Mitsuba's own sampling: an independent check
 
 GT_SAMPLES = 2048
 _VERSION = "gt-v1"

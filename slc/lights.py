@@ -1,17 +1,72 @@
 """Light sampling at surface points: the building block shared by RT-N,
 ReSTIR, the cache updates and the ground truth.
 
-All emitter kinds of Mitsuba go through ``scene.sample_emitter_direction``:
-area lights on shapes and emissive meshes (sampled by area or solid angle),
-point and spot lights (``ds.delta``), directional lights and environment
-maps. The returned weight ``w`` is ``L_e / pdf`` with the uniform choice of
-emitter already folded in, so ``f * w * V`` is an unbiased one-sample
-estimate of direct illumination.
+:func:`sample_light` is the one switch. By default (``table``) it samples
+from the scene's :class:`~slc.emitter_sampling.EmitterSampler` (one alias
+table over emissive triangles and emitters, no virtual call over emitters;
+emitters chosen uniformly as Mitsuba does, or in proportion to power with
+``SLC_EMITTER_CHOICE=power``); with ``mitsuba``
+(:func:`set_emitter_sampling`, or ``SLC_EMITTER_SAMPLING=mitsuba``) it is
+:func:`sample_light_reference`, i.e. ``scene.sample_emitter_direction``
+(uniform emitter choice, Mitsuba's per-emitter sampling). The ground
+truths always use the reference, so that they stay an independent check.
+Either way the weight ``w`` is ``L_e / pdf`` with the emitter choice
+already folded in, so ``f * w * V`` is an unbiased one-sample estimate of
+direct illumination, and :func:`light_pdf` / :func:`light_pdf_hit` give the
+density of the sampler in use (for MIS).
 """
 from __future__ import annotations
 
+import contextlib
+import os
+
 import drjit as dr
 import mitsuba as mi
+
+from . import emitter_sampling
+
+MODES = ("table", "mitsuba")
+_mode = None   # None: read SLC_EMITTER_SAMPLING (default 'table') on first use
+
+
+def emitter_sampling_mode() -> str:
+    """'table' or 'mitsuba' (see the module docstring)."""
+    global _mode
+    if _mode is None:
+        m = os.environ.get("SLC_EMITTER_SAMPLING", "table")
+        if m not in MODES:
+            raise ValueError(f"SLC_EMITTER_SAMPLING must be one of {', '.join(MODES)}, not '{m}'")
+        _mode = m
+    return _mode
+
+
+def set_emitter_sampling(mode: str) -> None:
+    """Select the light sampler used by every method from now on. Kernels
+    traced before keep the sampler they were traced with."""
+    global _mode
+    if mode not in MODES:
+        raise ValueError(f"emitter sampling must be one of {', '.join(MODES)}, not '{mode}'")
+    _mode = mode
+
+
+@contextlib.contextmanager
+def emitter_sampling_as(mode: str):
+    """``with emitter_sampling_as('mitsuba'): ...`` (benchmarks, tests)."""
+    old = emitter_sampling_mode()
+    set_emitter_sampling(mode)
+    try:
+        yield
+    finally:
+        set_emitter_sampling(old)
+
+
+def sampler(scene: mi.Scene, subset=None):
+    """The scene's emitter table when the table is in use and models at
+    least one of the scene's emitters, else None (Mitsuba's sampling)."""
+    if emitter_sampling_mode() != "table":
+        return None
+    s = emitter_sampling.for_scene(scene, subset=subset)
+    return s if s.tabled else None
 
 
 def rng(n: int, seed: int, stream: int = 0) -> mi.PCG32:
@@ -29,13 +84,43 @@ def finite(c: mi.Color3f) -> mi.Color3f:
 
 
 def sample_light(scene: mi.Scene, si: mi.SurfaceInteraction3f, u: mi.Point2f, active: mi.Bool):
-    """One light sample from ``si``: (DirectionSample3f, L_e/pdf as Color3f, mask).
+    """One light sample from ``si``: (DirectionSample3f, L_e/pdf as Color3f, mask),
+    from the sampler in use (see the module docstring).
 
     The mask is false where no sample exists (pdf 0, or the light is behind
     the geometric surface)."""
+    s = sampler(scene)
+    if s is None:
+        return sample_light_reference(scene, si, u, active)
+    ds, w, ok, _ = s.sample(si, u, active)
+    return ds, w, ok
+
+
+def sample_light_reference(scene: mi.Scene, si: mi.SurfaceInteraction3f, u: mi.Point2f, active: mi.Bool):
+    """:func:`sample_light` through Mitsuba's ``scene.sample_emitter_direction``
+    (uniform emitter choice); used by the ground truths."""
     ds, w = scene.sample_emitter_direction(si, u, False, active)
     ok = active & (ds.pdf > 0.0) & (dr.max(mi.Color3f(w)) > 0.0)
     return ds, mi.Color3f(w), ok
+
+
+def light_pdf(scene: mi.Scene, si: mi.SurfaceInteraction3f, ds: mi.DirectionSample3f, active: mi.Bool) -> mi.Float:
+    """Solid-angle density with which :func:`sample_light` produces ``ds``
+    (emitter choice included; ``ds.n`` the geometric normal for the table)."""
+    s = sampler(scene)
+    if s is None:
+        return scene.pdf_emitter_direction(si, ds, active)
+    return s.pdf(si, ds, active)
+
+
+def light_pdf_hit(scene: mi.Scene, si: mi.SurfaceInteraction3f, si2: mi.SurfaceInteraction3f,
+                  active: mi.Bool) -> mi.Float:
+    """:func:`light_pdf` of the emitter point ``si2`` hit by a ray from ``si``
+    (a BSDF sample; an escaped ray gives the environment's density)."""
+    s = sampler(scene)
+    if s is None:
+        return scene.pdf_emitter_direction(si, mi.DirectionSample3f(scene, si2, si), active)
+    return s.pdf_hit(scene, si, si2, active)
 
 
 def visible(scene: mi.Scene, si: mi.SurfaceInteraction3f, ds: mi.DirectionSample3f, active: mi.Bool) -> mi.Bool:

@@ -158,6 +158,8 @@ class Scene:
         self.time = None
         self._params = mi.traverse(mi_scene) if self.animated else None
         check_emitters(mi_scene, name)
+        from .emitter_sampling import for_scene
+        for_scene(mi_scene)   # the emitter table, built here: never inside a symbolic loop
 
     def _update_bbox(self) -> None:
         """Bounding box of the non-emissive geometry (far lights such as a
@@ -190,6 +192,8 @@ class Scene:
                 N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
                 self._params[f"{a.shape_id}.vertex_normals"] = mi.Float(N.astype(np.float32).ravel())
         self._params.update()
+        from .emitter_sampling import for_scene
+        for_scene(self.mi_scene)   # re-read moved emissive meshes outside kernels
         self.time = t
 
     def set_frame(self, frame: int) -> None:

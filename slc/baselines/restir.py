@@ -15,7 +15,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..lights import finite, rng
+from ..lights import finite, rng, sampler as light_table
 from ..methods import Method, MethodError, Param, register
 
 # Emitter kinds (the measure in which a stored sample lives)
@@ -98,8 +98,11 @@ class ReSTIR(Method):
 
     Stages (timed as ``initial``, ``temporal``, ``spatial``, ``shade``):
 
-    1. *initial*: RIS over ``local`` local-light candidates (uniform light
-       choice, Mitsuba's ``sample_direction`` per light), ``env`` candidates
+    1. *initial*: RIS over ``local`` local-light candidates (from the
+       scene's emitter table over the local lights, :mod:`slc.emitter_sampling`:
+       light choice and density from the table; with
+       ``SLC_EMITTER_SAMPLING=mitsuba`` a uniform light choice and Mitsuba's
+       ``sample_direction`` per light), ``env`` candidates
        of the infinite lights and ``bsdf`` BSDF-sampled rays; resampling
        weights are balance-heuristic MIS weights over the three techniques,
        :math:`w = \hat p(y) / \sum_t N_t p_t(y)`, all densities in the
@@ -205,6 +208,8 @@ class ReSTIR(Method):
         table[ids] = np.arange(len(ids), dtype=np.uint32)
         self._id_to_index = mi.UInt32(table)
         self._shaped = [(i, e.get_shape()) for i, e in enumerate(ems) if kinds[i] == AREA and e.get_shape()]
+        # local-light candidates from the shared emitter table (None: Mitsuba, uniform choice)
+        self._table = light_table(sc, subset=local) if local else None
         self._bboxes = None
 
     def reset(self):
@@ -291,11 +296,19 @@ class ReSTIR(Method):
         cos_y = dr.abs(dr.dot(mi.Vector3f(n), d))
         to_area = dr.select(kind == AREA, cos_y / dr.select(dist > 0.0, dr.square(dist), 1.0), 1.0)
         if p_dir is None:
-            p_dir = em.pdf_direction(si, ds, active & ~delta)
+            need = active & ~delta
+            if self._table is not None:   # only the infinite lights still need Mitsuba's density
+                need &= kind == INFINITE
+            p_dir = em.pdf_direction(si, ds, need)
         p_dir = dr.select(delta, 0.0, p_dir)
         total = dr.zeros(mi.Float, dr.width(light))
         if self._L and self.n_local:
-            p_l = dr.select(delta, 1.0, p_dir * to_area) / self._L
+            if self._table is not None:
+                loc = active & (kind != INFINITE)
+                p_l = dr.select(delta, self._table.choice_pmf(light, loc),
+                                self._table.pdf(si, ds, loc & ~delta, index=light) * to_area)
+            else:
+                p_l = dr.select(delta, 1.0, p_dir * to_area) / self._L
             total += dr.select(kind != INFINITE, float(self.n_local) * p_l, 0.0)
         if self._E and self.n_env:
             p_e = dr.select(delta, 1.0, p_dir) / self._E
@@ -320,6 +333,8 @@ class ReSTIR(Method):
         ctx = mi.BSDFContext()
         sampler = rng(n, seed, stream=11)
         res = _Stream(n)
+        if self._table is not None:
+            self._table.refresh()   # animated emissive meshes
 
         def add(y, nrm, light, ok, u_sel, p_dir=None):
             _, p_hat, d, dist, kind, ds, p_bsdf = self._eval(si, bsdf, y, nrm, light, ok, with_pdf=True)
@@ -339,6 +354,11 @@ class ReSTIR(Method):
 
             def body(i, y_, n_, l_, p_, w_, smp):
                 res.y, res.n, res.light, res.p_hat, res.w_sum = y_, n_, l_, p_, w_
+                if self._table is not None:
+                    u = mi.Point2f(smp.next_float32(), smp.next_float32())
+                    ds, _, ok, light = self._table.sample(si, u, active)
+                    add(mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32())
+                    return i + 1, res.y, res.n, res.light, res.p_hat, res.w_sum, smp
                 k = dr.minimum(mi.UInt32(smp.next_float32() * self._L), self._L - 1)
                 light = dr.gather(mi.UInt32, self._local, k, active)
                 em = dr.gather(mi.EmitterPtr, self._emitters, light, active)

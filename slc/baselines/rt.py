@@ -14,8 +14,9 @@ class RandomLightSampling(Method):
     .. math:: L_o(x) \approx \frac{1}{N}\sum_{k=1}^{N} f_r(x, \omega_k, \omega_o)
               \frac{L_e(y_k)\,G(x, y_k)\,V(x, y_k)}{p(y_k)}
 
-    Each sample picks an emitter uniformly and a point on it
-    (``scene.sample_emitter_direction``), traces one shadow ray and evaluates
+    Each sample picks an emitter and a point on it (``slc.lights.sample_light``:
+    the scene's emitter table, or ``scene.sample_emitter_direction`` with
+    ``SLC_EMITTER_SAMPLING=mitsuba``), traces one shadow ray and evaluates
     the BSDF (cosine included). Emitted radiance of directly seen emitters is
     added by the pipeline (:func:`slc.gbuffer.compose`).
 

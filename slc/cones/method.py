@@ -25,7 +25,7 @@ class SurfaceLightCones(PayloadMethod):
     :math:`E_c = \int_{\Omega_c} L_i(x,\omega)\,d\omega` (incoming radiance integrated
     over the cone's solid angle, no cosine). One update cycle draws ``n`` light samples
     at the entry's own surface point with weights
-    :math:`w_k = L_e G / p \cdot V` (``scene.sample_emitter_direction`` + shadow ray),
+    :math:`w_k = L_e G / p \cdot V` (``slc.lights.sample_light`` + shadow ray),
     inserts them one after another (cases A-D) and sets
 
     .. math:: L_c \leftarrow L_c (1 - 1/C) + \frac{1}{C}\,\frac{1}{n}\sum_k [\omega_k \in c]\, w_k,

@@ -25,6 +25,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..keys import INVALID, STREAM_CONE_UPDATE, keyed_rng
+from ..lights import sample_light
 
 INF = float("inf")
 
@@ -355,9 +356,8 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, is_new, see
 
     def body(k, D, A, L, S, n, beta, sampler):
         u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
-        ds, w = scene.sample_emitter_direction(si, u, False, valid)
-        w = mi.Color3f(w)
-        ok = valid & (ds.pdf > 0.0) & (dr.max(w) > 0.0) & dr.all(dr.isfinite(w))
+        ds, w, ok = sample_light(scene, si, u, valid)
+        ok &= dr.all(dr.isfinite(w))
         ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), ok)
         s = dr.normalize(frame_l.to_local(ds.d))
         D, A, L, S, n, beta, _ = insert_sample(D, A, L, S, n, beta, s, w, ok, p)

@@ -24,7 +24,8 @@ from ..io import cached_array
 
 from ..gbuffer import GBuffer
 from ..groundtruth import cache_dir
-from ..lights import finite, rng, sample_light, visible
+from ..lights import finite, rng, visible
+from ..lights import sample_light_reference as sample_light  # Mitsuba's own sampling: an independent check
 
 _VERSION = "crc-ref-v1"
 

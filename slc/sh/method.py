@@ -22,7 +22,7 @@ class SHSurfaceCache(PayloadMethod):
     direct radiance :math:`L_i(x, \omega)` projected onto real SH in the
     chosen encoding (default Y3Co1Cg1, 11 coefficients; ``rgb3``,
     ``y3co3cg3``, ``y3co2cg2``). One update draws ``rays`` light samples at x
-    (``scene.sample_emitter_direction`` + shadow ray; lights below the
+    (``slc.lights.sample_light`` + shadow ray; lights below the
     texel's surface are dropped) and estimates
 
     .. math:: \hat\lambda_{lm} = \frac{1}{n}\sum_k \frac{L_e(\omega_k) V}{p(\omega_k)} Y_{lm}(\omega_k),
