@@ -21,7 +21,7 @@ import numpy as np
 
 from .gbuffer import GBuffer, compose, to_image
 from .io import cached_array
-from .lights import finite, mis_weight, rng, sample_light, visible
+from .lights import mis_weight, rng, sample_light, visible
 
 GT_SAMPLES = 2048
 _VERSION = "gt-v1"
@@ -71,7 +71,7 @@ def direct_mis(scene: mi.Scene, gb: GBuffer, spp: int = GT_SAMPLES, seed: int = 
 
     _, L, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
                             labels=("i", "L", "sampler"))
-    return finite(L / float(max(spp, 1)))
+    return L / float(max(spp, 1))
 
 
 def _key(scene_name: str, frame: int, viewer: str, gb: GBuffer, spp: int, t) -> str:

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import check
 from . import gbuffer as gbuf
 from .groundtruth import GT_SAMPLES, ground_truth
 from .methods import FrameContext, Method
@@ -94,7 +95,10 @@ def run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress=None) 
         gbs = gbuffers_for(scene, viewers, f, cfg.width, cfg.height)
         ctx = FrameContext(frame=f, time=scene.time or 0.0, seed=cfg.seed)
         timer.begin_frame()
-        direct = method.render(ctx, gbs, timer)
+        with check.scope(method.label or method.name, f, gbs):     # check mode: names method/frame
+            direct = method.render(ctx, gbs, timer)
+            if check.enabled():                                     # raw images: no NaN/Inf, >= 0
+                check.images(direct, gbs)
         timer.end_frame()
         for k, v in method.stats().items():
             if isinstance(v, (int, float)):

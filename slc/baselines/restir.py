@@ -15,7 +15,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..lights import finite, rng
+from ..lights import rng
 from ..methods import Method, MethodError, register
 
 # Emitter kinds (the measure in which a stored sample lives)
@@ -264,7 +264,6 @@ class ReSTIR(Method):
         else:
             f, p_bsdf = bsdf.eval(ctx, si, si.to_local(d), ok), None
         c = dr.select(ok, mi.Color3f(f) * Le * G, 0.0)
-        c = finite(c)
         p_hat = dr.maximum(mi.luminance(c), 0.0)
         if with_pdf:
             return c, p_hat, d, dist, kind, ds, dr.select(ok, p_bsdf, 0.0)
@@ -542,7 +541,7 @@ class ReSTIR(Method):
         ok = active & (r.W > 0.0)
         c, _, d, dist, kind, _ = self._eval(si, si.bsdf(), r.y, r.n, r.light, ok)
         vis = self._visible(si, d, dist, kind, ok)
-        return finite(dr.select(vis, c * r.W, 0.0))
+        return dr.select(vis, c * r.W, 0.0)
 
     # ------------------------------ Frame ------------------------------
 
