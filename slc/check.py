@@ -24,7 +24,9 @@ read back from the device.
 
 Negative values are only an error in images (radiance): stage outputs hold
 directions, SH coefficients, chroma and other quantities that are negative
-by nature.
+by nature. +Inf is Mitsuba's "no hit / infinitely far" convention in the
+struct fields ``t``, ``dist`` and ``maxt`` (interactions, direction samples,
+rays) and is accepted there; NaN is not.
 """
 from __future__ import annotations
 
@@ -35,6 +37,8 @@ import drjit as dr
 import numpy as np
 
 ENV = "SLC_CHECK"
+# struct fields in which +Inf means "no hit" / "infinitely far" (Mitsuba's convention)
+_INF_FIELDS = ("t", "dist", "maxt")
 
 
 class CheckError(RuntimeError):
@@ -90,10 +94,10 @@ def _kind(x: float) -> str:
 
 # ------------------------------------------------------------------ walking values
 
-def _leaves(v, path: str):
-    """(path, 1-D float numpy array per component) of every float leaf of a
-    Dr.Jit value, list/tuple/dict of them, or a DRJIT_STRUCT / Mitsuba
-    struct (fields by name)."""
+def _leaves(v, path: str, inf_ok: bool = False):
+    """(path, 1-D float numpy array per component, +Inf allowed) of every
+    float leaf of a Dr.Jit value, list/tuple/dict of them, or a DRJIT_STRUCT
+    / Mitsuba struct (fields by name)."""
     if v is None or isinstance(v, (bool, int, str)):
         return
     if isinstance(v, (list, tuple)):
@@ -107,23 +111,23 @@ def _leaves(v, path: str):
     fields = getattr(type(v), "DRJIT_STRUCT", None)
     if fields:
         for k in fields:
-            yield from _leaves(getattr(v, k, None), f"{path}.{k}")
+            yield from _leaves(getattr(v, k, None), f"{path}.{k}", k in _INF_FIELDS)
         return
     if not dr.is_array_v(v):
         return
     if not dr.is_float_v(v):
         return
-    if dr.depth_v(v) == 1:
-        yield path, np.asarray(v, dtype=np.float64).ravel()
-    elif dr.is_tensor_v(v):
-        yield path, np.asarray(v, dtype=np.float64).ravel()
+    if dr.depth_v(v) == 1 or dr.is_tensor_v(v):
+        yield path, np.asarray(v, dtype=np.float64).ravel(), inf_ok
     else:
         for i in range(len(v)):
-            yield from _leaves(v[i], f"{path}[{i}]")
+            yield from _leaves(v[i], f"{path}[{i}]", inf_ok)
 
 
-def _first_bad(a: np.ndarray, negative: bool):
-    bad = ~np.isfinite(a)
+def _first_bad(a: np.ndarray, negative: bool, inf_ok: bool = False):
+    bad = np.isnan(a) if inf_ok else ~np.isfinite(a)
+    if inf_ok:
+        bad |= np.isneginf(a)
     if negative:
         bad |= a < 0.0
     if not bad.any():
@@ -145,8 +149,8 @@ def _pixel(i: int, n: int) -> str:
 def stage_outputs(stage: str, values) -> None:
     """Raise at the first NaN/Inf among the float leaves of a stage's outputs."""
     for k, v in enumerate(values):
-        for path, a in _leaves(v, f"output {k}"):
-            hit = _first_bad(a, negative=False)
+        for path, a, inf_ok in _leaves(v, f"output {k}"):
+            hit = _first_bad(a, negative=False, inf_ok=inf_ok)
             if hit is not None:
                 i, x = hit
                 raise CheckError(_where(stage, f"{_kind(x)} in {path}{_pixel(i, a.size)} "
@@ -160,7 +164,7 @@ def images(images, gbuffers, stage: str = "image") -> None:
         if isinstance(img, np.ndarray):
             comps = [img.reshape(-1, img.shape[-1])[:, c].astype(np.float64) for c in range(img.shape[-1])]
         else:
-            comps = [a for _, a in _leaves(img, "")]
+            comps = [a for _, a, _ in _leaves(img, "")]
         w = int(gb.width)
         for c, a in enumerate(comps):
             hit = _first_bad(a, negative=True)
@@ -172,7 +176,7 @@ def images(images, gbuffers, stage: str = "image") -> None:
 
 def array(values, name: str, stage: str = "output", negative: bool = True) -> None:
     """Check one array (e.g. a reference image) outside a pipeline run."""
-    for path, a in _leaves(values, name):
+    for path, a, _ in _leaves(values, name):
         hit = _first_bad(np.asarray(a, np.float64).ravel(), negative)
         if hit is not None:
             i, x = hit
