@@ -444,20 +444,50 @@ def _hard_scene(kind):
     return b.build([cam])
 
 
+# kind: (bound on |mean / reference - 1|, bound on the per-pixel mean error / mean).
+# Measured (40x30, 10 frames, check mode, plane pixels against helpers.quadrature_direct /
+# the closed form): point +0.2% / 4.8%, huge +0.06% / 4.6%, inside -0.3% / 6.1%;
+# grazing -38.7% / 49%, hemisphere (2 cones) -28% / 85%: known misses, xfail with the figure
+# while they miss (the assertion runs, so a fix turns them into passes).
+HARD_BOUNDS = {"point": (0.01, 0.07), "huge": (0.01, 0.07), "inside": (0.02, 0.09),
+               "grazing": (0.05, 0.10), "hemisphere": (0.05, 0.10)}
+HARD_MISSES = {"grazing": "a light standing on the horizon: measured mean -38.7%, per-pixel 49%",
+               "hemisphere": "a hemisphere-sized light with 2 cones: measured mean -28%, per-pixel 85%"}
+
+
 @pytest.mark.parametrize("kind", ["grazing", "point", "hemisphere", "zero", "huge", "inside"])
-def test_hard_cases_finite(kind):
+def test_hard_cases_finite(kind, monkeypatch):
+    """Every hard case in check mode (SLC_CHECK=1: a NaN/Inf in any stage output or
+    a NaN/Inf/negative value in the returned image raises), and the raw image
+    against an independent reference on the plane's pixels: a quadrature over the
+    light with exact visibility (point, huge, inside, grazing) or the closed form
+    (hemisphere); zero radiance gives exactly 0. Bounds in HARD_BOUNDS."""
+    from helpers import HARD_POINT, HARD_RECTS, quadrature_direct
+    from slc import check
+    monkeypatch.setenv(check.ENV, "1")
     sc = _hard_scene(kind)
     m = _make(sc, max_cones=2 if kind == "hemisphere" else 3)
-    gb, d = _run(sc, m, 10)
-    img = np.array(d)
-    assert np.all(np.isfinite(img)) and np.all(img >= 0)
-    v = np.array(gb.valid)
+    with check.scope("slc", None):
+        gb, d = _run(sc, m, 10)
+        check.images([d], [gb])
+    img = np.array(d).T.reshape(-1, 3)
     if kind == "zero":
         assert np.all(img == 0)
-    if kind in ("point", "hemisphere", "huge"):
-        gt = _gt(sc, gb, 256)[v]
-        out = img.T.reshape(-1, 3)[v]
-        # the hemisphere-sized light is a known weak case (heavy-tailed area sampling,
-        # constant merging, directions below the horizon): only a loose bound
-        tol = 0.05 if kind != "hemisphere" else 0.75
-        assert abs(out.mean() / gt.mean() - 1) < tol, (out.mean(), gt.mean())
+        return
+    p = np.array(gb.si.p).T.reshape(-1, 3)
+    v = np.array(gb.valid) & (np.abs(p[:, 1]) < 1e-4)
+    if kind == "hemisphere":
+        ref = np.repeat((0.5 / math.pi * rect_irradiance(p[:, 0], p[:, 2], -60, 60, -60, 60, 2.0, 1.0))[:, None],
+                        3, axis=1)
+    else:
+        rects, pts = list(HARD_RECTS.get(kind, {}).values()), ([HARD_POINT] if kind == "point" else [])
+        ref = quadrature_direct(sc, gb, rects, pts, n=64)
+        coarse = quadrature_direct(sc, gb, rects, pts, n=32)       # converged pixels only
+        v &= np.abs(ref - coarse).max(axis=1) <= 1e-3 * np.maximum(ref.max(axis=1), 1e-12)
+    a, r = img[v], ref[v]
+    mean_err, pix_err = abs(a.mean() / r.mean() - 1), np.abs(a - r).mean() / r.mean()
+    print(f"cones hard case {kind}: mean error {mean_err:.4f}, per-pixel {pix_err:.4f}")
+    bm, bp = HARD_BOUNDS[kind]
+    if kind in HARD_MISSES and not (mean_err < bm and pix_err < bp):
+        pytest.xfail(HARD_MISSES[kind])
+    assert mean_err < bm and pix_err < bp, (kind, mean_err, pix_err)
