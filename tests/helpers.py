@@ -121,22 +121,25 @@ def quadrature_direct(scene, gb, rects=(), points=(), n=48, chunk=1 << 21):
 
 # ----------------------------------------------------------------------------- per-pixel Z-test
 
-def z_test(runs, ref, significance=0.01, ref_var=None, rel_floor=1e-4):
+def z_test(runs, ref, significance=0.01, ref_var=None, rel_floor=1e-4, var_runs=None):
     """Per-pixel Z-test of independent runs of an estimator against a reference
     mean, in the manner of Mitsuba's ``mi.testing.RenderingRegressionTest``:
     ``z = |mean(runs) - ref| / sqrt(var(runs) / K + ref_var)``, two-sided p-value
     ``2 (1 - Phi(z))`` per pixel and channel, significance Sidak-corrected for the
     number of tests, ``1 - (1 - significance)^(1 / n)``. ``runs``: (K, N, 3);
     ``ref``: (N, 3); ``ref_var``: variance of the reference mean (0 for a closed
-    form). The standard error is floored at ``rel_floor * |ref|`` (float32
-    round-off of a zero-variance estimator, e.g. one point light) and 1e-12.
+    form). ``var_runs`` (K', N, 3): a separate batch of runs to take the variance
+    of one run from (as Mitsuba takes it from its reference render), so that the
+    statistic is not a t statistic with few degrees of freedom; default: ``runs``.
+    The standard error is floored at ``rel_floor * |ref|`` (float32 round-off of a
+    zero-variance estimator, e.g. one point light) and 1e-12.
     Returns dict(p_min, alpha, n, failed (indices), z)."""
     from scipy.special import erfc
     runs = np.asarray(runs, np.float64)
     ref = np.asarray(ref, np.float64)
     K = runs.shape[0]
     mean = runs.mean(axis=0)
-    var = runs.var(axis=0, ddof=1) / K
+    var = (runs if var_runs is None else np.asarray(var_runs, np.float64)).var(axis=0, ddof=1) / K
     if ref_var is not None:
         var = var + np.asarray(ref_var, np.float64)
     se = np.sqrt(var + np.square(rel_floor * np.abs(ref)) + 1e-24)
