@@ -19,6 +19,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from . import check
 from .gbuffer import GBuffer, compose, to_image
 from .io import cached_array
 from .lights import mis_weight, rng, sample_light, visible
@@ -91,4 +92,8 @@ def ground_truth(scene, gb: GBuffer, frame: int, viewer: str = "", spp: int = GT
     def compute():
         return to_image(gb, compose(gb, direct_mis(scene.mi_scene, gb, spp)))
 
-    return cached_array(path, compute, use_cache)
+    img = cached_array(path, compute, use_cache)
+    if check.enabled():                      # check mode: the reference is raw too
+        with check.scope("gt", frame, [gb]):
+            check.images([img], [gb], stage="ground truth")
+    return img

@@ -31,12 +31,17 @@ def rect_irradiance(px, pz, x1, x2, z1, z2, h, L):
 
 
 def render_frames(scene, method, viewers, frames, width, height, seed=0, start=0):
-    """Run ``frames`` frames; return the composed images of the last frame."""
+    """Run ``frames`` frames; return the composed images of the last frame. In
+    check mode (SLC_CHECK=1) stage outputs and returned images are checked."""
+    from slc import check
     from slc.pipeline import gbuffers_for
     out = None
     for f in range(start, start + frames):
         gbs = gbuffers_for(scene, viewers, f, width, height)
-        d = method.render(FrameContext(f, scene.time or 0.0, seed), gbs, NullTimer())
+        with check.scope(method.label or method.name, f, gbs):
+            d = method.render(FrameContext(f, scene.time or 0.0, seed), gbs, NullTimer())
+            if check.enabled():
+                check.images(d, gbs)
         out = [gbuffer.to_image(gb, gbuffer.compose(gb, x)) for gb, x in zip(gbs, d)]
     return out, gbs
 

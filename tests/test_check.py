@@ -132,3 +132,17 @@ def test_env_values():
             os.environ.pop(check.ENV, None)
         else:
             os.environ[check.ENV] = old
+
+
+def test_ground_truth_checked(cornell, check_on, monkeypatch, tmp_path):
+    """In check mode the ground-truth image is checked as well (a cached copy included)."""
+    from slc import groundtruth
+    monkeypatch.setenv("SLC_CACHE", str(tmp_path))
+    gb = gbuffer.render_gbuffer(cornell, views.single(cornell)[0].camera(0), W, H)
+    groundtruth.ground_truth(cornell, gb, 0, "v", spp=16)                 # fine
+    path = next((tmp_path / "gt").glob("*.npy"))
+    a = np.load(path)
+    a[BAD_Y, BAD_X, 2] = np.nan
+    np.save(path, a)
+    with pytest.raises(check.CheckError, match=r"gt frame 0 stage 'ground truth': NaN at viewer 0 pixel \(13, 9\)"):
+        groundtruth.ground_truth(cornell, gb, 0, "v", spp=16)
