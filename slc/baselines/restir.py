@@ -258,6 +258,14 @@ class ReSTIR(Method):
         ds.emitter = em
         ds.delta = dr.gather(mi.Bool, self._delta, light, active)
         Le = mi.Color3f(em.eval_direction(si, ds, ok))
+        if self._E:
+            # Mitsuba's envmap reads eval_direction's texel from ds.uv (set by its own
+            # sampler), not from ds.d: a stored direction is looked up with eval(), wi = -d
+            env = ok & inf & ~ds.delta
+            se = dr.zeros(mi.SurfaceInteraction3f, dr.width(d))
+            se.wi = -d
+            se.wavelengths = si.wavelengths
+            Le = dr.select(env, mi.Color3f(em.eval(se, env)), Le)
         G = dr.select(kind == AREA, dr.abs(dr.dot(mi.Vector3f(n), d)) / dr.select(ok & ~inf, dr.square(dist), 1.0), 1.0)
         if with_pdf:
             f, p_bsdf = bsdf.eval_pdf(ctx, si, si.to_local(d), ok)
