@@ -6,7 +6,10 @@
     slc run EXPERIMENT [--quick] [--out DIR] [--scene NAME]... [experiment options]
     slc bench rays                  RT-N shadow-ray throughput vs raw ray_test
 
-Every command takes ``--variant`` (or ``SLC_VARIANT``). Bad input (missing
+Every command takes ``--variant`` (or ``SLC_VARIANT``) and ``--check`` (or
+``SLC_CHECK=1``: stop at the first NaN/Inf or negative value, see
+:mod:`slc.check`; ``slc run EXP --check`` and ``python experiments/EXP.py
+--check`` work as well). Bad input (missing
 file, unknown scene/method/experiment, a scene without emitters) prints one
 line ``slc: error: ...`` and exits with status 2, writing no results.
 """
@@ -25,7 +28,8 @@ def _errors():
     from .experiment import ExperimentError
     from .methods import MethodError
     from .scenes import SceneError
-    return (SceneError, MethodError, ExperimentError, backend.BackendError, FileNotFoundError)
+    from .check import CheckError
+    return (SceneError, MethodError, ExperimentError, backend.BackendError, FileNotFoundError, CheckError)
 
 
 def _fail(msg: str):
@@ -45,8 +49,13 @@ def _parse_res(res: str) -> tuple[int, int]:
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--variant", default=None, help="Mitsuba variant (cuda_ad_rgb or llvm_ad_rgb); default: auto")
-def cli(variant):
+@click.option("--check", "check_mode", is_flag=True, default=False,
+              help="check mode (= SLC_CHECK=1): stop at the first NaN/Inf or negative value")
+def cli(variant, check_mode):
     """slc: shared caches of incoming light for many viewers."""
+    if check_mode:
+        from . import check
+        check.enable()
     try:
         backend.init(variant)
     except backend.BackendError as e:
@@ -128,7 +137,12 @@ def _run_module(mod, argv, prog):
     p = argparse.ArgumentParser(prog=prog, description=(mod.__doc__ or "").strip().splitlines()[0])
     if hasattr(mod, "add_arguments"):
         mod.add_arguments(p)
+    p.add_argument("--check", action="store_true",
+                   help="check mode (= SLC_CHECK=1): stop at the first NaN/Inf or negative value")
     opts = p.parse_args(argv)
+    if opts.check:
+        from . import check
+        check.enable()
     mod.run(opts)
 
 

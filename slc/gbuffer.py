@@ -99,7 +99,6 @@ def render_gbuffer(scene: Scene, cam: Camera, width: int, height: int,
     si = pi.compute_surface_interaction(ray)
     valid = si.is_valid()
     emitted = mi.Color3f(si.emitter(sc).eval(si))
-    emitted = dr.select(dr.isfinite(emitted[0] + emitted[1] + emitted[2]), emitted, 0.0)
     depth = dr.select(valid, si.t, 0.0)
     idx = dr.arange(mi.UInt32, width * height)
     cur = mi.Vector2f(mi.Float(idx % width) + 0.5, mi.Float(idx // width) + 0.5)
@@ -129,7 +128,7 @@ def to_image(gb: GBuffer, value: mi.Color3f) -> np.ndarray:
 
 def compose(gb: GBuffer, direct: mi.Color3f) -> mi.Color3f:
     """Final image value: emitted radiance seen directly plus direct light at
-    valid hits; NaN/Inf are replaced by 0 (never reach an image)."""
-    L = gb.emitted + dr.select(gb.valid, direct, 0.0)
-    ok = dr.isfinite(L[0]) & dr.isfinite(L[1]) & dr.isfinite(L[2])
-    return dr.select(ok, dr.maximum(L, 0.0), 0.0)
+    valid hits. Raw: nothing is clamped and NaN/Inf are kept, so that they
+    surface (check mode, :mod:`slc.check`, stops at them); clamping happens
+    in the display tone map only (:func:`slc.io.tonemap`)."""
+    return gb.emitted + dr.select(gb.valid, direct, 0.0)

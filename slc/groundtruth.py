@@ -19,9 +19,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from . import check
 from .gbuffer import GBuffer, compose, to_image
 from .io import cached_array
-from .lights import finite, mis_weight, rng, visible
+from .lights import mis_weight, rng, visible
 from .lights import sample_light_reference as sample_light  # Mitsuba's own sampling: an independent check
 
 GT_SAMPLES = 2048
@@ -72,7 +73,7 @@ def direct_mis(scene: mi.Scene, gb: GBuffer, spp: int = GT_SAMPLES, seed: int = 
 
     _, L, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
                             labels=("i", "L", "sampler"))
-    return finite(L / float(max(spp, 1)))
+    return L / float(max(spp, 1))
 
 
 def _key(scene_name: str, frame: int, viewer: str, gb: GBuffer, spp: int, t) -> str:
@@ -92,4 +93,8 @@ def ground_truth(scene, gb: GBuffer, frame: int, viewer: str = "", spp: int = GT
     def compute():
         return to_image(gb, compose(gb, direct_mis(scene.mi_scene, gb, spp)))
 
-    return cached_array(path, compute, use_cache)
+    img = cached_array(path, compute, use_cache)
+    if check.enabled():                      # check mode: the reference is raw too
+        with check.scope("gt", frame, [gb]):
+            check.images([img], [gb], stage="ground truth")
+    return img

@@ -48,7 +48,8 @@ def _atomic(path: Path, write):
 
 def write_exr(path, img: np.ndarray) -> None:
     import mitsuba as mi
-    a = np.ascontiguousarray(np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0), dtype=np.float32)
+    # raw HDR values: NaN/Inf/negative are written as they are (clamping is for display only)
+    a = np.ascontiguousarray(img, dtype=np.float32)
     _atomic(path, lambda p: mi.Bitmap(a, pixel_format=mi.Bitmap.PixelFormat.RGB).write(p))
 
 

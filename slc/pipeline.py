@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import check
 from . import gbuffer as gbuf
 from .groundtruth import GT_SAMPLES, ground_truth
 from .methods import FrameContext, Method
@@ -112,7 +113,10 @@ def _run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress, kc: 
         ctx = FrameContext(frame=f)
         kc.take()                 # kernels of the G-buffer and of the previous frame's evaluation
         timer.begin_frame()
-        direct = method.render(ctx, gbs, timer)
+        with check.scope(method.label or method.name, f, gbs):     # check mode: names method/frame
+            direct = method.render(ctx, gbs, timer)
+            if check.enabled():                                     # raw images: no NaN/Inf, >= 0
+                check.images(direct, gbs)
         timer.end_frame()
         compiled.append(kc.take())
         for k, v in method.stats().items():

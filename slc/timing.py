@@ -27,6 +27,8 @@ from contextlib import contextmanager
 
 import drjit as dr
 
+from . import check
+
 
 class _Stage:
     def __init__(self):
@@ -64,6 +66,8 @@ class StageTimer:
         ms = (time.perf_counter() - t0) * 1e3
         if self._cur is not None:
             self._cur[name] = self._cur.get(name, 0.0) + ms
+        if st.values and check.enabled():     # check mode (SLC_CHECK / --check), after the clock
+            check.stage_outputs(name, st.values)
 
     def summary(self, warmup: int = 0) -> dict[str, float]:
         """Median ms per stage over frames after the first ``warmup``."""

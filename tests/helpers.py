@@ -31,11 +31,125 @@ def rect_irradiance(px, pz, x1, x2, z1, z2, h, L):
 
 
 def render_frames(scene, method, viewers, frames, width, height, seed=0, start=0):
-    """Run ``frames`` frames; return the composed images of the last frame."""
+    """Run ``frames`` frames; return the composed images of the last frame. In
+    check mode (SLC_CHECK=1) stage outputs and returned images are checked."""
+    from slc import check
     from slc.pipeline import gbuffers_for
     out = None
     for f in range(start, start + frames):
         gbs = gbuffers_for(scene, viewers, f, width, height)
-        d = method.render(FrameContext(f), gbs, NullTimer())
+        with check.scope(method.label or method.name, f, gbs):
+            d = method.render(FrameContext(f), gbs, NullTimer())
+            if check.enabled():
+                check.images(d, gbs)
         out = [gbuffer.to_image(gb, gbuffer.compose(gb, x)) for gb, x in zip(gbs, d)]
     return out, gbs
+
+
+# ----------------------------------------------------------------------------- hard cases
+
+def hard_scene(kind):
+    """The hard cases of DESIGN.md on a diffuse plane (albedo 0.5, y = 0, facing up):
+    ``grazing`` (a 1 x 0.2 m light standing on the horizon), ``point``, ``hemisphere``
+    (a 120 m square light 2 m above: nearly the whole hemisphere), ``zero`` (a black
+    light and a point light below the plane), ``huge`` (radiance 1e6), ``inside`` (a box
+    closed around part of the plane). Same scenes as tests/test_cones.py."""
+    b = SceneBuilder(f"hard_{kind}")
+    b.add_quad([0, 0, 0], [2, 0, 0], [0, 0, -2], bsdf=diffuse([0.5] * 3), name="plane")
+    for k, (c, u, v, L) in HARD_RECTS.get(kind, {}).items():
+        b.add_quad(c, u, v, emission=[L] * 3, name=k)
+    if kind == "point":
+        b.add_point_light(*HARD_POINT)
+    elif kind == "zero":
+        b.add_point_light([0, -1, 0], [1.0] * 3)        # below the plane: contributes nothing
+    elif kind == "inside":
+        b.add_box([-0.3, -0.1, -0.3], [0.3, 0.3, 0.3], bsdf=diffuse([0.5] * 3))
+    cam = CameraPath([([0.0, 0.8, 1.2], [0.0, 0.0, 0.0])], frames=8, fov=70)
+    return b.build([cam])
+
+
+# kind -> {name: (centre, u, v, radiance)} of its rectangular lights (facing cross(u, v))
+HARD_RECTS = {
+    "grazing": {"light": ([0, 0.1, -1.5], [0.5, 0, 0], [0, 0.1, 0], 10.0)},
+    "hemisphere": {"light": ([0, 2.0, 0], [60, 0, 0], [0, 0, 60], 1.0)},
+    "zero": {"light": ([0, 1, 0], [0.2, 0, 0], [0, 0, 0.2], 0.0)},
+    "huge": {"light": ([0, 1, 0], [0.05, 0, 0], [0, 0, 0.05], 1e6)},
+    "inside": {"light": ([0, 1, 0], [0.2, 0, 0], [0, 0, 0.2], 5.0)},
+}
+HARD_POINT = ([0.2, 0.7, 0.1], [3.0] * 3)
+
+
+def quadrature_direct(scene, gb, rects=(), points=(), n=48, chunk=1 << 21):
+    """Deterministic reference of direct illumination at the G-buffer points
+    (N x 3 numpy): midpoint rule on an n x n grid over each rectangular light
+    ``(centre, u, v, radiance)`` (one-sided, facing cross(u, v)) and the point
+    lights ``(position, intensity)``, with exact visibility (Mitsuba shadow rays)
+    and the BSDF (cosine included). Independent of the Monte Carlo estimators
+    it checks; accurate where the pixel is several grid cells from the light."""
+    import drjit as dr
+    import mitsuba as mi
+    N = gb.size
+    out = np.zeros((N, 3))
+    lights = []
+    for c, u, v, L in rects:
+        c, u, v = (np.asarray(a, float) for a in (c, u, v))
+        t = (np.arange(n) + 0.5) / n * 2 - 1
+        a, b = np.meshgrid(t, t, indexing="ij")
+        pts = c + a.reshape(-1, 1) * u + b.reshape(-1, 1) * v
+        nl = np.cross(u, v)
+        dA = 4 * np.linalg.norm(nl) / n ** 2
+        nl /= np.linalg.norm(nl)
+        lights.append((pts, nl, float(dA) * float(L), True))
+    for p, I in points:
+        lights.append((np.asarray([p], float), np.zeros(3), float(np.asarray(I, float)[0]), False))
+    ctx = mi.BSDFContext()
+    for pts, nl, scale, area in lights:
+        M = len(pts)
+        per = max(1, chunk // M)
+        for s in range(0, N, per):
+            idx = np.arange(s, min(N, s + per))
+            pix = mi.UInt32(np.repeat(idx, M).astype(np.uint32))
+            si = dr.gather(mi.SurfaceInteraction3f, gb.si, pix)
+            ok = dr.gather(mi.Bool, gb.valid, pix)
+            y = mi.Point3f(*[mi.Float(np.tile(pts[:, k], len(idx))) for k in range(3)])
+            d = y - si.p
+            r2 = dr.squared_norm(d)
+            d = d / dr.sqrt(r2)
+            cos_y = dr.maximum(-dr.dot(mi.Vector3f(*[float(x) for x in nl]), d), 0.0) if area else mi.Float(1.0)
+            vis = ok & ~scene.mi_scene.ray_test(si.spawn_ray_to(y), ok)
+            f = mi.Color3f(si.bsdf().eval(ctx, si, si.to_local(d), vis))
+            c = dr.select(vis, f * (scale * cos_y / r2), 0.0)
+            arr = np.array(c).T.reshape(len(idx), M, 3)
+            out[idx] += arr.sum(axis=1)
+    return out
+
+
+# ----------------------------------------------------------------------------- per-pixel Z-test
+
+def z_test(runs, ref, significance=0.01, ref_var=None, rel_floor=1e-4, var_runs=None):
+    """Per-pixel Z-test of independent runs of an estimator against a reference
+    mean, in the manner of Mitsuba's ``mi.testing.RenderingRegressionTest``:
+    ``z = |mean(runs) - ref| / sqrt(var(runs) / K + ref_var)``, two-sided p-value
+    ``2 (1 - Phi(z))`` per pixel and channel, significance Sidak-corrected for the
+    number of tests, ``1 - (1 - significance)^(1 / n)``. ``runs``: (K, N, 3);
+    ``ref``: (N, 3); ``ref_var``: variance of the reference mean (0 for a closed
+    form). ``var_runs`` (K', N, 3): a separate batch of runs to take the variance
+    of one run from (as Mitsuba takes it from its reference render), so that the
+    statistic is not a t statistic with few degrees of freedom; default: ``runs``.
+    The standard error is floored at ``rel_floor * |ref|`` (float32 round-off of a
+    zero-variance estimator, e.g. one point light) and 1e-12.
+    Returns dict(p_min, alpha, n, failed (indices), z)."""
+    from scipy.special import erfc
+    runs = np.asarray(runs, np.float64)
+    ref = np.asarray(ref, np.float64)
+    K = runs.shape[0]
+    mean = runs.mean(axis=0)
+    var = (runs if var_runs is None else np.asarray(var_runs, np.float64)).var(axis=0, ddof=1) / K
+    if ref_var is not None:
+        var = var + np.asarray(ref_var, np.float64)
+    se = np.sqrt(var + np.square(rel_floor * np.abs(ref)) + 1e-24)
+    z = np.abs(mean - ref) / se
+    p = erfc(z / np.sqrt(2.0))                  # = 2 (1 - Phi(z))
+    n = p.size
+    alpha = 1.0 - (1.0 - significance) ** (1.0 / n)
+    return dict(p_min=float(p.min()), alpha=alpha, n=n, failed=np.argwhere(p <= alpha), z=z)

@@ -21,6 +21,11 @@ UNSUPPORTED_XML = """<scene version="3.0.0">
   <shape type="rectangle"><bsdf type="diffuse"/></shape>
   <emitter type="projector"><float name="scale" value="1"/></emitter>
 </scene>"""
+INF_LIGHT_XML = """<scene version="3.0.0">
+  <shape type="rectangle"><bsdf type="diffuse"/></shape>
+  <shape type="sphere"><point name="center" x="0" y="0" z="2"/><float name="radius" value="0.2"/>
+    <emitter type="area"><rgb name="radiance" value="inf"/></emitter></shape>
+</scene>"""
 GOOD_XML = """<scene version="3.0.0">
   <shape type="rectangle"><bsdf type="diffuse"/></shape>
   <shape type="sphere"><point name="center" x="0" y="0" z="2"/><float name="radius" value="0.2"/>
@@ -31,7 +36,7 @@ GOOD_XML = """<scene version="3.0.0">
 @pytest.fixture()
 def xmls(tmp_path):
     paths = {}
-    for name, text in [("none", NO_EMITTER_XML), ("unsupported", UNSUPPORTED_XML), ("good", GOOD_XML),
+    for name, text in [("none", NO_EMITTER_XML), ("unsupported", UNSUPPORTED_XML), ("good", GOOD_XML), ("inf", INF_LIGHT_XML),
                        ("broken", "<scene version='3.0.0'><shape type='nonexistent_plugin'/></scene>"),
                        ("garbage", "this is < not xml")]:
         p = tmp_path / f"{name}.xml"
@@ -93,3 +98,22 @@ def test_indirect_method_refused_by_direct_light_experiment(tmp_path):
     r = run(["run", "single-viewer", "--quick", "--methods", "megaviews", "--out", str(tmp_path / "o")])
     _one_line_error(r, "indirect light")
     assert not (tmp_path / "o").exists()
+
+
+def test_check_mode_stops_at_first_inf(xmls, tmp_path):
+    """A light of infinite radiance: without --check the run completes and the
+    Inf reaches the EXR (raw values); with --check (or SLC_CHECK=1) it stops
+    with one line naming method, stage and pixel, exit 2, nothing written."""
+    args = ["render", "--scene", str(xmls["inf"]), "--method", "rt4", "--res", "32x18", "--frames", "2"]
+    r = run(args + ["--out", str(tmp_path / "raw")])
+    assert r.returncode == 0, r.stderr
+    import numpy as np
+    from slc.io import read_exr
+    assert np.isinf(read_exr(next((tmp_path / "raw").glob("*.exr")))).any()
+    r = run(["--check"] + args + ["--out", str(tmp_path / "chk")])
+    _one_line_error(r, "check: rt4 frame 0 stage 'shade'", "+Inf", "pixel (")
+    assert not (tmp_path / "chk").exists()
+    r = run(["run", "single-viewer", "--quick", "--check", "--scene", str(xmls["inf"]), "--methods", "rt4",
+             "--frames", "2", "--res", "32x18", "--out", str(tmp_path / "exp")])
+    _one_line_error(r, "check: rt4", "+Inf")
+    assert not (tmp_path / "exp" / "single-viewer" / "results.json").exists()

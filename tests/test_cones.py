@@ -219,7 +219,9 @@ def test_packing_round_trip_limits():
     C = mi.Float([0, 1, 7, 100, 254.6, 255, 300, 17])
     cnt = mi.UInt32([0, 1, 2, 3, 3, 3, 2, 1])
     words = P.pack(D, A, L, C, cnt, K)
-    assert len(words) == 9 and P.entry_bits(3) == 286 and P.bytes_per_entry(3) == 36
+    # sizes measured from the packed arrays (not restated from packing.py's constants)
+    assert 4 * len(words) == P.bytes_per_entry(K) == 36 and all(dr.width(w) == N for w in words)
+    assert _bits_used(K) == 286                      # the paper's 286 bits, in 3 RGB32 texels
     D2, A2, L2, C2, n2 = P.unpack(words, K)
     assert list(n2) == list(cnt)
     assert np.allclose(np.array(C2), [0, 1, 7, 100, 255, 255, 255, 17])
@@ -252,10 +254,29 @@ def test_fp16_and_radiance_codes_match_reference():
     assert np.isfinite(dec[2])
 
 
+def _bits_used(K, n=4096, seed=1):
+    """Highest bit position set (+1) over the packed words of ``n`` random entries
+    with every field spread over its range: the packed size in bits, measured."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(K, n, 3))
+    d /= np.linalg.norm(d, axis=2, keepdims=True)
+    D = [mi.Vector3f(d[k, :, 0], d[k, :, 1], d[k, :, 2]) for k in range(K)]
+    A = [mi.Float(rng.uniform(0, math.pi, n)) for _ in range(K)]
+    L = [mi.Color3f(*[10.0 ** rng.uniform(-8, 9, n) for _ in range(3)]) for _ in range(K)]
+    words = P.pack(D, A, L, mi.Float(rng.uniform(0, 255, n)), mi.UInt32(rng.integers(0, K + 1, n)), K)
+    used = 0
+    for i, w in enumerate(words):
+        o = int(np.bitwise_or.reduce(np.array(w, np.uint32)))
+        if o:
+            used = 32 * i + o.bit_length()
+    return used
+
+
 def test_max_cones_4_uses_4_texels():
-    assert P.entry_bits(4) == 379 and P.words_per_entry(4) == 12 and P.bytes_per_entry(4) == 48
+    assert _bits_used(4) == 379                      # 4 x 92 + 8 + 3 bits -> 4 RGB32 texels
     D = [V([0, 0, 1], [1, 0, 0]) for _ in range(4)]
     words = P.pack(D, [mi.Float(0.1, 0.2)] * 4, [mi.Color3f(1.0)] * 4, mi.Float(5, 6), mi.UInt32(4, 3), 4)
+    assert 4 * len(words) == P.bytes_per_entry(4) == 48     # 32-bit words per entry, counted
     _, _, _, C2, n2 = P.unpack(words, 4)
     assert list(n2) == [4, 3] and list(C2) == [5, 6]
 
@@ -315,6 +336,11 @@ def test_small_light_diffuse_plane_converges(cache):
     assert abs(img[:, 0].mean() / (0.5 / math.pi * E).mean() - 1) < 0.02
 
 
+# per-pixel mean error / mean of slc:fetch=bilinear on the small-light plane against the
+# closed form (measured 1.01%, image mean -0.18%; the nearest fetch: 4.1% against the ground truth)
+BILINEAR_BOUND = 0.015
+
+
 def test_bilinear_fetch_taps_and_error():
     """Bilinear fetch on the OSC: every pixel's usable tap weights sum to 1, taps are
     entries of the pixel's own island, and on the small-light plane it is closer to
@@ -331,6 +357,12 @@ def test_bilinear_fetch_taps_and_error():
         assert np.all(np.isfinite(img))
         errs[fetch] = np.abs(img - _gt(sc, gb)[v]).mean() / _gt(sc, gb)[v].mean()
         if fetch == "bilinear":
+            # absolute bound against the closed form at the pixel points (no reference noise)
+            p = np.array(gb.si.p).T.reshape(-1, 3)[v]
+            E = 0.5 / math.pi * rect_irradiance(p[:, 0], p[:, 2], -0.1, 0.1, -0.1, 0.1, 1.0, 20.0)
+            cf = np.abs(img[:, 0] - E).mean() / E.mean()
+            print("bilinear vs closed form: per-pixel", cf, "mean", img[:, 0].mean() / E.mean() - 1)
+            assert cf < BILINEAR_BOUND and abs(img[:, 0].mean() / E.mean() - 1) < 0.01, cf
             taps, weights = m.cache.bilinear_taps(gb)
             total = sum(np.array(w) for w in weights)[v]
             assert np.allclose(total, 1.0, atol=1e-5)
@@ -343,6 +375,7 @@ def test_bilinear_fetch_taps_and_error():
                 if isl is not None:
                     isl_j = m.cache.entry_info(mi.UInt32(s_np[used]))["island"]
                     assert np.array_equal(np.array(isl_j), np.array(isl)[used])
+    print("fetch per-pixel errors", errs)
     assert errs["bilinear"] < errs["nearest"], errs
 
 
@@ -444,20 +477,50 @@ def _hard_scene(kind):
     return b.build([cam])
 
 
+# kind: (bound on |mean / reference - 1|, bound on the per-pixel mean error / mean).
+# Measured (40x30, 10 frames, check mode, plane pixels against helpers.quadrature_direct /
+# the closed form): point +0.2% / 4.8%, huge +0.06% / 4.6%, inside -0.3% / 6.1%;
+# grazing -38.7% / 49%, hemisphere (2 cones) -28% / 85%: known misses, xfail with the figure
+# while they miss (the assertion runs, so a fix turns them into passes).
+HARD_BOUNDS = {"point": (0.01, 0.07), "huge": (0.01, 0.07), "inside": (0.02, 0.09),
+               "grazing": (0.05, 0.10), "hemisphere": (0.05, 0.10)}
+HARD_MISSES = {"grazing": "a light standing on the horizon: measured mean -38.7%, per-pixel 49%",
+               "hemisphere": "a hemisphere-sized light with 2 cones: measured mean -28%, per-pixel 85%"}
+
+
 @pytest.mark.parametrize("kind", ["grazing", "point", "hemisphere", "zero", "huge", "inside"])
-def test_hard_cases_finite(kind):
+def test_hard_cases_finite(kind, monkeypatch):
+    """Every hard case in check mode (SLC_CHECK=1: a NaN/Inf in any stage output or
+    a NaN/Inf/negative value in the returned image raises), and the raw image
+    against an independent reference on the plane's pixels: a quadrature over the
+    light with exact visibility (point, huge, inside, grazing) or the closed form
+    (hemisphere); zero radiance gives exactly 0. Bounds in HARD_BOUNDS."""
+    from helpers import HARD_POINT, HARD_RECTS, quadrature_direct
+    from slc import check
+    monkeypatch.setenv(check.ENV, "1")
     sc = _hard_scene(kind)
     m = _make(sc, max_cones=2 if kind == "hemisphere" else 3)
-    gb, d = _run(sc, m, 10)
-    img = np.array(d)
-    assert np.all(np.isfinite(img)) and np.all(img >= 0)
-    v = np.array(gb.valid)
+    with check.scope("slc", None):
+        gb, d = _run(sc, m, 10)
+        check.images([d], [gb])
+    img = np.array(d).T.reshape(-1, 3)
     if kind == "zero":
         assert np.all(img == 0)
-    if kind in ("point", "hemisphere", "huge"):
-        gt = _gt(sc, gb, 256)[v]
-        out = img.T.reshape(-1, 3)[v]
-        # the hemisphere-sized light is a known weak case (heavy-tailed area sampling,
-        # constant merging, directions below the horizon): only a loose bound
-        tol = 0.05 if kind != "hemisphere" else 0.75
-        assert abs(out.mean() / gt.mean() - 1) < tol, (out.mean(), gt.mean())
+        return
+    p = np.array(gb.si.p).T.reshape(-1, 3)
+    v = np.array(gb.valid) & (np.abs(p[:, 1]) < 1e-4)
+    if kind == "hemisphere":
+        ref = np.repeat((0.5 / math.pi * rect_irradiance(p[:, 0], p[:, 2], -60, 60, -60, 60, 2.0, 1.0))[:, None],
+                        3, axis=1)
+    else:
+        rects, pts = list(HARD_RECTS.get(kind, {}).values()), ([HARD_POINT] if kind == "point" else [])
+        ref = quadrature_direct(sc, gb, rects, pts, n=64)
+        coarse = quadrature_direct(sc, gb, rects, pts, n=32)       # converged pixels only
+        v &= np.abs(ref - coarse).max(axis=1) <= 1e-3 * np.maximum(ref.max(axis=1), 1e-12)
+    a, r = img[v], ref[v]
+    mean_err, pix_err = abs(a.mean() / r.mean() - 1), np.abs(a - r).mean() / r.mean()
+    print(f"cones hard case {kind}: mean error {mean_err:.4f}, per-pixel {pix_err:.4f}")
+    bm, bp = HARD_BOUNDS[kind]
+    if kind in HARD_MISSES and not (mean_err < bm and pix_err < bp):
+        pytest.xfail(HARD_MISSES[kind])
+    assert mean_err < bm and pix_err < bp, (kind, mean_err, pix_err)

@@ -246,10 +246,12 @@ def test_eviction_frees_blocks_and_memory(cornell):
     cache = OnSurfaceCache(cornell, evict_after=K)
     ga = gb(cornell, [0, 1, 3.4], [0, 1, 0])            # the whole box
     gs = gb(cornell, [0.4, 0.3, 1.2], [0.4, 0.3, 0.35])  # the short block only, close up
-    cache.begin_frame(0, [ga], None)
+    fr0 = cache.begin_frame(0, [ga], None)
     m_full = cache.memory_bytes()
     b_full = cache.stats()["blocks"]
-    assert m_full == b_full * 64 * 16 + cache.pool.table_bytes()
+    # blocks counted from the slots handed out (every allocated block is requested in frame 0)
+    blocks = len(_blocks_of(cache, fr0))
+    assert b_full == blocks and m_full - cache.pool.table_bytes() == blocks * 8 * 8 * 16
     evicted = 0
     for f in range(1, K + 2):
         cache.begin_frame(f, [gs], None)
@@ -338,3 +340,113 @@ def test_nothing_in_view(cornell):
     sky = gb(cornell, [0, 1, 5], [0, 1, 10])            # looking out of the open box
     fr = cache.begin_frame(1, [sky], None)
     assert fr.n_active == 0 and np.all(np.array(fr.pixel_slot[0]) == INVALID)
+
+
+# ----------------------------------------------------------------------------- eviction (public API only)
+
+K_EVICT = 3
+VIEW_ALL = ([0, 1, 3.4], [0, 1, 0])                 # the whole box
+VIEW_BLOCK = ([0.4, 0.3, 1.2], [0.4, 0.3, 0.35])    # the short block only, close up
+
+
+def _blocks_of(cache, fr):
+    """Physical blocks holding this frame's requested entries (from the slots)."""
+    act = np.array(fr.active).astype(np.int64)
+    return set((act // cache.layout.block_texels).tolist())
+
+
+def test_eviction_exact_k_frame_timing(cornell):
+    """evict_after=K: a block last requested in frame f is still there in frame
+    f + K (an entry requested again then is not new) and freed at the start of
+    frame f + K + 1 (requested again then, it comes back new). Counted: no
+    eviction in frames 1..K, all of view A's blocks not also used by view B in
+    frame K + 1, and the blocks left are exactly those B uses."""
+    ga, gbk = gb(cornell, *VIEW_ALL), gb(cornell, *VIEW_BLOCK)
+    # requested again after K unused frames: survives
+    c = OnSurfaceCache(cornell, evict_after=K_EVICT)
+    c.begin_frame(0, [ga], None)
+    for f in range(1, K_EVICT):
+        c.begin_frame(f, [gbk], None)
+    fr = c.begin_frame(K_EVICT, [ga], None)
+    assert c.stats()["evicted"] == 0 and not np.array(fr.is_new).any()
+    # after K + 1 unused frames: freed, comes back new
+    c = OnSurfaceCache(cornell, evict_after=K_EVICT)
+    fa = c.begin_frame(0, [ga], None)
+    blocks_a = _blocks_of(c, fa)
+    evicted = []
+    for f in range(1, K_EVICT + 2):
+        fb = c.begin_frame(f, [gbk], None)
+        evicted.append(c.stats()["evicted"])
+    blocks_b = _blocks_of(c, fb)
+    assert evicted[:K_EVICT] == [0] * K_EVICT
+    assert evicted[K_EVICT] == len(blocks_a - blocks_b) > 0
+    assert c.stats()["blocks"] == len(blocks_b)
+    fr = c.begin_frame(K_EVICT + 2, [ga], None)
+    new = np.array(fr.is_new)
+    blk = np.array(fr.active).astype(np.int64) // c.layout.block_texels
+    assert new.any() and not new[np.isin(blk, list(blocks_b))].any()
+
+
+def test_block_in_use_survives(cornell):
+    """A view requested every frame keeps its slots for 4K frames (nothing of it is
+    evicted, nothing becomes new again) while the blocks of another view, no longer
+    requested, are evicted."""
+    ga, gbk = gb(cornell, *VIEW_ALL), gb(cornell, *VIEW_BLOCK)
+    c = OnSurfaceCache(cornell, evict_after=K_EVICT)
+    c.begin_frame(0, [ga, gbk], None)
+    f1 = c.begin_frame(1, [gbk], None)
+    slots = np.array(f1.pixel_slot[0])
+    total_evicted = 0
+    for f in range(2, 4 * K_EVICT + 2):
+        fr = c.begin_frame(f, [gbk], None)
+        total_evicted += c.stats()["evicted"]
+        assert np.array_equal(np.array(fr.pixel_slot[0]), slots)
+        assert not np.array(fr.is_new).any()
+    assert total_evicted > 0
+
+
+def test_reused_slot_starts_from_reset_state(cornell):
+    """After view A's blocks are evicted, view C (the back wall up close: other
+    texels) is allocated into the freed physical blocks (lowest free first). Every
+    entry of C, reused slots included, is new in its first frame only (the payload
+    must be reset), and a payload method restarts its ray policy there, exactly as
+    in a fresh cache; its texel keys are C's, not A's."""
+    ga, gbk = gb(cornell, *VIEW_ALL), gb(cornell, *VIEW_BLOCK)
+    gc = gb(cornell, [0, 1, 0.6], [0, 1, -1], fov=30)
+    from slc.cones.method import SurfaceLightCones
+    from slc.methods import FrameContext
+    from slc.timing import NullTimer
+    c = OnSurfaceCache(cornell, evict_after=K_EVICT)
+    m = SurfaceLightCones(cornell, cache=c)
+    m.render(FrameContext(0), [ga], NullTimer())
+    fa = m.requests
+    slots_a = np.array(fa.active)
+    keys_a = c.entry_info(slots_a)
+    for f in range(1, K_EVICT + 2):
+        m.render(FrameContext(f), [gbk], NullTimer())
+    fresh = SurfaceLightCones(cornell, cache=OnSurfaceCache(cornell, evict_after=K_EVICT))
+    seq, seq_fresh = [], []
+    for i in range(10):
+        m.render(FrameContext(K_EVICT + 2 + i), [gbk, gc], NullTimer())
+        fresh.render(FrameContext(i), [gc], NullTimer())
+        fr, ff = m.requests, fresh.requests
+        act = np.array(fr.active)
+        c_slots = np.unique(np.array(fr.pixel_slot[1])[np.array(gc.valid)])
+        idx = np.searchsorted(act, c_slots)
+        if i == 0:
+            reused = np.isin(c_slots, slots_a)
+            assert reused.sum() > 100, reused.sum()
+            assert np.all(np.array(fr.is_new)[idx])
+            # a reused slot holds another texel now
+            ka = {k: v[np.isin(slots_a, c_slots[reused])] for k, v in keys_a.items()}
+            kc = c.entry_info(c_slots[reused])
+            same = (ka["island"] == kc["island"]) & (ka["level"] == kc["level"]) & \
+                (ka["tx"] == kc["tx"]) & (ka["ty"] == kc["ty"])
+            assert not same.all()
+        else:
+            assert not np.array(fr.is_new)[idx].any()
+        # the policy state (updates so far) of C's entries, as in the fresh cache
+        seq.append(sorted(set((np.array(m.policy_state)[c_slots] & 0xFFFF).tolist())))
+        seq_fresh.append(sorted(set((np.array(fresh.policy_state)[np.array(ff.active)] & 0xFFFF).tolist())))
+    assert seq == seq_fresh
+    assert seq[0] == [1] and seq[-1] == [10]

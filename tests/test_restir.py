@@ -188,10 +188,19 @@ def test_memory_reset_and_reallocation(cornell):
     assert m.memory_bytes() == 0
     vs2 = views.independent(cornell, 2)
     run_frames(m, cornell, vs2, 2)
-    assert m.memory_bytes() == m.bytes_per_pixel() * W * H * 2
+    mem2 = m.memory_bytes()
+    # the stored reservoirs, measured from their arrays: RESERVOIR_BYTES per pixel and viewer
+    from slc.baselines.restir import RESERVOIR_BYTES
+    held = 0
+    for r, _ in m.state.values():
+        for k in ("y", "n", "light", "W", "M"):
+            a = np.array(getattr(r, k))
+            held += a.nbytes
+    assert held == RESERVOIR_BYTES * W * H * 2
     assert m.stats()["temporal_reuse"] > 0.2
     run_frames(m, cornell, vs2[:1], 1, width=48, height=27)   # new resolution and viewer count
-    assert m.memory_bytes() == m.bytes_per_pixel() * 48 * 27
+    assert m.memory_bytes() * (2 * W * H) == mem2 * (48 * 27)  # scales with pixels x viewers
+    assert len(m.state) == 1
     assert m.stats()["temporal_reuse"] == 0.0
     m.reset()
     assert m.memory_bytes() == 0 and not m.state
@@ -240,3 +249,127 @@ def test_no_kernel_recompilation_after_warmup(cornell):
     jit = [h for h in hist if h["type"] == dr.KernelType.JIT]
     assert jit, "no kernel launched"
     assert all(h["cache_hit"] for h in jit), [h.get("hash") for h in jit if not h["cache_hit"]]
+
+
+# ---------------------------------------------------------------- per-pixel error, bias, spatial, presets
+
+
+def _runs(spec, scene, gbs, frames, seeds):
+    """Direct light (N x 3) of the last of ``frames`` frames for each seed (independent runs)."""
+    out = []
+    for s in seeds:
+        m = methods.create(spec, scene, seed=s)
+        for f in range(frames):
+            d = m.render(FrameContext(f, float(f)), gbs, NullTimer())
+        out.append(np.array(d[0], np.float64).T)
+    return np.stack(out)
+
+
+@pytest.fixture(scope="module")
+def cornell_flat(cornell):
+    """G-buffer of cornell's first camera and a 4096-sample reference, flattened (N x 3)."""
+    gbs = gbuffers_for(cornell, views.single(cornell), 0, W, H)
+    gt = np.array(direct_mis(cornell.mi_scene, gbs[0], 4096), np.float64).T
+    return gbs, gt, np.array(gbs[0].valid)
+
+
+def _pix_err(imgs, gt, v):
+    """Mean over runs of the per-pixel mean absolute error relative to the mean."""
+    return float(np.mean([np.abs(i[v] - gt[v]).mean() for i in imgs]) / gt[v].mean())
+
+
+def test_per_pixel_error_spatial_and_falcor(cornell, cornell_flat):
+    """Per-pixel error against the ground truth (one frame, no temporal reuse, 4
+    seeds). Measured (64x36): 1 spatial neighbour 10.2%, 5 neighbours 7.9%, none
+    11.8%; the falcor preset (24/8/1 candidates, no reuse) 9.3%; rt16 5.6%,
+    rt8 8.0%. Asserted: each below 1.25x its measured figure, more spatial
+    neighbours (0 -> 1 -> 5) and more candidates each lower the error by more
+    than 10%."""
+    gbs, gt, v = cornell_flat
+    seeds = range(4)
+    e = {spec: _pix_err(_runs(spec, cornell, gbs, 1, seeds), gt, v) for spec in
+         ("restir:temporal=0,spatial=0", "restir:temporal=0", "restir:temporal=0,spatial=5",
+          "restir:preset=falcor,temporal=0,spatial=0")}
+    print(e)
+    assert e["restir:temporal=0,spatial=0"] < 1.25 * 0.118
+    assert e["restir:temporal=0"] < 1.25 * 0.102
+    assert e["restir:temporal=0,spatial=5"] < 1.25 * 0.079
+    assert e["restir:preset=falcor,temporal=0,spatial=0"] < 1.25 * 0.093
+    assert e["restir:temporal=0,spatial=5"] < 0.9 * e["restir:temporal=0"]
+    assert e["restir:temporal=0"] < 0.9 * e["restir:temporal=0,spatial=0"]
+    assert e["restir:preset=falcor,temporal=0,spatial=0"] < 0.9 * e["restir:temporal=0,spatial=0"]
+
+
+def test_falcor_preset_candidates_and_check_mode(cornell, cornell_flat, monkeypatch):
+    """The falcor preset runs with its 24/8/1 candidates in check mode (stage
+    outputs and images finite, images >= 0) and its 16-seed average is within
+    2% of the ground truth over the image (measured +0.1%)."""
+    from slc import check
+    monkeypatch.setenv(check.ENV, "1")
+    gbs, gt, v = cornell_flat
+    m = methods.create("restir:preset=falcor", cornell)
+    assert (m.n_local, m.n_env, m.n_bsdf) == (24, 8, 1)
+    from slc.pipeline import RunConfig, run_sequence
+    run_sequence(cornell, m, views.single(cornell), RunConfig(width=W, height=H, frames=3, warmup=0,
+                                                             eval_frames=[], measure_overlap=False))
+    avg = _runs("restir:preset=falcor,temporal=0,spatial=0", cornell, gbs, 1, range(16)).mean(axis=0)
+    assert abs(avg[v].mean() / gt[v].mean() - 1) < 0.02
+
+
+def _half_black_plane():
+    """A plane, left half diffuse 0.5, right half black (albedo 0), one light above:
+    spatial neighbours across the seam pass the depth/normal tests, but on the black
+    side every sample has target 0."""
+    b = SceneBuilder("half_black")
+    b.add_quad([-1, 0, 0], [1, 0, 0], [0, 0, -2], bsdf=diffuse([0.5] * 3), name="lit")
+    b.add_quad([1, 0, 0], [1, 0, 0], [0, 0, -2], bsdf=diffuse([0.0] * 3), name="black")
+    b.add_quad([0, 1.5, 0], [0.3, 0, 0], [0, 0, 0.3], bsdf=diffuse([0, 0, 0]), emission=[10] * 3, name="light")
+    sc = b.build([])
+    cam = Camera(np.array([0.0, 2.0, 1.2]), np.array([0.0, 0.0, -0.4]), fov=70)
+    return sc, Viewer("top", lambda f: cam)
+
+
+def test_bias_off_darkens_next_to_zero_target_neighbours():
+    """bias=off normalizes by the sum of M of all merged reservoirs (1/M); bias=basic
+    counts only those whose surface has p_hat(y) > 0 (1/Z). Next to the seam of a
+    half-black plane, half the neighbours have p_hat = 0 for every sample, so
+    bias=off is darker there while basic stays unbiased. 16 seeds, one frame,
+    8 spatial neighbours, no initial visibility. Asserted: within two pixels of
+    the seam bias=off is below 0.9x the ground truth and basic
+    within 5%; away from the seam (10+ pixels) both within 5%. Measured (64x36):
+    near the seam bias=off 0.825, basic 1.002; away 0.997 for both."""
+    sc, v = _half_black_plane()
+    gbs = gbuffers_for(sc, [v], 0, W, H)
+    gt = np.array(direct_mis(sc.mi_scene, gbs[0], 4096), np.float64).T
+    p = np.array(gbs[0].si.p).T
+    valid = np.array(gbs[0].valid)
+    px = np.array(gbs[0].footprint)                     # pixel size on the surface
+    lit = valid & (p[:, 0] < 0) & (gt.max(axis=1) > 0)
+    near = lit & (p[:, 0] > -2 * px)                    # within 2 pixels of the seam x = 0
+    far = lit & (p[:, 0] < -10 * px)
+    ratios = {}
+    for bias in ("off", "basic"):
+        avg = _runs(f"restir:temporal=0,spatial=8,visibility=0,bias={bias}", sc, gbs, 1, range(16)).mean(axis=0)
+        ratios[bias] = (avg[near].mean() / gt[near].mean(), avg[far].mean() / gt[far].mean())
+    print(ratios, near.sum(), far.sum())
+    assert near.sum() > 20 and far.sum() > 100
+    assert ratios["off"][0] < 0.9, ratios
+    assert abs(ratios["basic"][0] - 1) < 0.05, ratios
+    assert abs(ratios["off"][1] - 1) < 0.05 and abs(ratios["basic"][1] - 1) < 0.05, ratios
+
+
+def test_envmap_light_against_ground_truth():
+    """An HDR environment map (tests/test_emitters.py's 'envmap' scene): the mean
+    over pixels of a 16-seed average, one frame, no reuse, within 3% of the ground
+    truth. Measured (48x27): 0.1% after the fix; before it 0.002x (Mitsuba's envmap
+    eval_direction reads the texel from ds.uv, which a stored direction does not
+    have; ReSTIR now evaluates stored environment directions with eval())."""
+    from test_emitters import ENVMAP, _scene
+    if not ENVMAP.exists():
+        pytest.skip("envmap not present in ../shared")
+    sc = _scene("envmap")
+    gbs = gbuffers_for(sc, views.single(sc), 0, 48, 27)
+    gt = np.array(direct_mis(sc.mi_scene, gbs[0], 1024), np.float64).T
+    v = np.array(gbs[0].valid)
+    avg = _runs("restir:temporal=0,spatial=0", sc, gbs, 1, range(16)).mean(axis=0)
+    assert abs(avg[v].mean() / gt[v].mean() - 1) < 0.03, (avg[v].mean(), gt[v].mean())

@@ -42,7 +42,11 @@ def test_scene_has_paths_and_materials(name):
 
 
 @pytest.mark.parametrize("name", BUILTIN)
-def test_every_method_renders_finite_and_deterministic(name):
+def test_every_method_renders_finite_and_deterministic(name, monkeypatch):
+    """Check mode on: every stage output finite, every returned image finite and
+    >= 0 (raw values, nothing clamped), a lit image, the same images twice."""
+    from slc import check
+    monkeypatch.setenv(check.ENV, "1")
     s = _load(name)
     vs = views.single(s)
     for spec in _methods():

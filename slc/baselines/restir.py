@@ -15,7 +15,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..lights import finite, rng, sampler as light_table
+from ..lights import rng, sampler as light_table
 from ..methods import Method, MethodError, Param, register
 
 # Emitter kinds (the measure in which a stored sample lives)
@@ -263,13 +263,20 @@ class ReSTIR(Method):
         ds.emitter = em
         ds.delta = dr.gather(mi.Bool, self._delta, light, active)
         Le = mi.Color3f(em.eval_direction(si, ds, ok))
+        if self._E:
+            # Mitsuba's envmap reads eval_direction's texel from ds.uv (set by its own
+            # sampler), not from ds.d: a stored direction is looked up with eval(), wi = -d
+            env = ok & inf & ~ds.delta
+            se = dr.zeros(mi.SurfaceInteraction3f, dr.width(d))
+            se.wi = -d
+            se.wavelengths = si.wavelengths
+            Le = dr.select(env, mi.Color3f(em.eval(se, env)), Le)
         G = dr.select(kind == AREA, dr.abs(dr.dot(mi.Vector3f(n), d)) / dr.select(ok & ~inf, dr.square(dist), 1.0), 1.0)
         if with_pdf:
             f, p_bsdf = bsdf.eval_pdf(ctx, si, si.to_local(d), ok)
         else:
             f, p_bsdf = bsdf.eval(ctx, si, si.to_local(d), ok), None
         c = dr.select(ok, mi.Color3f(f) * Le * G, 0.0)
-        c = finite(c)
         p_hat = dr.maximum(mi.luminance(c), 0.0)
         if with_pdf:
             return c, p_hat, d, dist, kind, ds, dr.select(ok, p_bsdf, 0.0)
@@ -562,7 +569,7 @@ class ReSTIR(Method):
         ok = active & (r.W > 0.0)
         c, _, d, dist, kind, _ = self._eval(si, si.bsdf(), r.y, r.n, r.light, ok)
         vis = self._visible(si, d, dist, kind, ok)
-        return finite(dr.select(vis, c * r.W, 0.0))
+        return dr.select(vis, c * r.W, 0.0)
 
     # ------------------------------ Frame ------------------------------
 

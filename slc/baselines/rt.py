@@ -4,7 +4,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ..lights import direct_sample, finite, rng
+from ..lights import direct_sample, rng
 from ..methods import Method, Param, register
 
 
@@ -50,7 +50,7 @@ class RandomLightSampling(Method):
 
         _, L, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
                                 labels=("i", "L", "sampler"))
-        return finite(L / float(max(self.n, 1)))
+        return L / float(max(self.n, 1))
 
     def render(self, ctx, gbuffers, timer):
         outs = []

@@ -1,0 +1,148 @@
+"""Check mode (slc.check, SLC_CHECK / --check): the first NaN/Inf or negative
+value raises with the method, stage and pixel; off, nothing is checked."""
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from slc import check, gbuffer, scenes, views
+from slc.methods import Method
+from slc.pipeline import RunConfig, run_sequence
+from slc.timing import StageTimer
+
+W, H = 24, 16
+BAD_X, BAD_Y = 13, 9
+
+
+class Stub(Method):
+    """Returns 0.25 everywhere except one value at (BAD_X, BAD_Y) of viewer ``bad_viewer``,
+    through a timed stage 'shade' (or raw, without stage outputs, when ``staged`` is False)."""
+
+    name = "stub"
+
+    def __init__(self, scene, value=float("nan"), bad_viewer=0, staged=True, channel=1):
+        super().__init__(scene)
+        self.value, self.bad_viewer, self.staged, self.channel = value, bad_viewer, staged, channel
+
+    def render(self, ctx, gbuffers, timer):
+        outs = []
+        for v, gb in enumerate(gbuffers):
+            a = np.full((gb.size, 3), 0.25, np.float32)
+            if v == self.bad_viewer:
+                a[BAD_Y * gb.width + BAD_X, self.channel] = self.value
+            outs.append(mi.Color3f(a[:, 0], a[:, 1], a[:, 2]))
+        if self.staged:
+            with timer.stage("shade") as st:
+                st.outputs(*outs)
+        return outs
+
+
+@pytest.fixture(scope="module")
+def cornell():
+    return scenes.load("cornell")
+
+
+def _cfg(frames=2):
+    return RunConfig(width=W, height=H, frames=frames, warmup=0, eval_frames=[], measure_overlap=False)
+
+
+@pytest.fixture()
+def check_on(monkeypatch):
+    monkeypatch.setenv(check.ENV, "1")
+
+
+@pytest.fixture()
+def check_off(monkeypatch):
+    monkeypatch.delenv(check.ENV, raising=False)
+
+
+@pytest.mark.parametrize("value,kind", [(float("nan"), "NaN"), (float("inf"), "+Inf")])
+def test_stage_output_nan_raises_with_pixel(cornell, check_on, value, kind):
+    with pytest.raises(check.CheckError) as e:
+        run_sequence(cornell, Stub(cornell, value=value), views.single(cornell), _cfg())
+    msg = str(e.value)
+    assert "\n" not in msg
+    assert "stub" in msg and "frame 0" in msg and "stage 'shade'" in msg and kind in msg
+    assert f"pixel ({BAD_X}, {BAD_Y})" in msg and f"entry {BAD_Y * W + BAD_X}" in msg
+
+
+def test_image_check_names_viewer_and_negative(cornell, check_on):
+    """A negative value is not an error in stage outputs (directions, SH
+    coefficients are negative by nature) but it is in an image; the second
+    viewer is named."""
+    vs = views.overlap_rig(cornell, 2, 1.0)
+    with pytest.raises(check.CheckError) as e:
+        run_sequence(cornell, Stub(cornell, value=-0.5, bad_viewer=1), vs, _cfg())
+    msg = str(e.value)
+    assert "stage 'image'" in msg and "negative value -0.5" in msg
+    assert f"viewer 1 pixel ({BAD_X}, {BAD_Y}) channel 1" in msg
+    # unstaged method: the returned image is still checked
+    with pytest.raises(check.CheckError, match=r"stage 'image': NaN at viewer 0 pixel \(13, 9\)"):
+        run_sequence(cornell, Stub(cornell, staged=False), views.single(cornell), _cfg())
+
+
+def test_check_off_does_not_raise_and_keeps_raw_values(cornell, check_off):
+    """Off, the run finishes, and the NaN is not hidden: it reaches the composed image."""
+    r = run_sequence(cornell, Stub(cornell), views.single(cornell), _cfg())
+    img = next(iter(r.last.values()))
+    assert np.isnan(img[BAD_Y, BAD_X, 1])
+    assert np.isfinite(np.delete(img.reshape(-1, 3), BAD_Y * W + BAD_X, axis=0)).all()
+
+
+def test_compose_is_raw(cornell):
+    """compose adds the emission seen directly and keeps negative and non-finite values."""
+    gb = gbuffer.render_gbuffer(cornell, views.single(cornell)[0].camera(0), W, H)
+    d = np.zeros((gb.size, 3), np.float32)
+    valid = np.array(gb.valid)
+    i, j = np.nonzero(valid)[0][:2]
+    d[i] = -1.0
+    d[j] = np.inf
+    out = gbuffer.to_image(gb, gbuffer.compose(gb, mi.Color3f(d[:, 0], d[:, 1], d[:, 2]))).reshape(-1, 3)
+    em = gbuffer.to_image(gb, gb.emitted).reshape(-1, 3)
+    assert np.allclose(out[i], em[i] - 1.0) and np.all(np.isinf(out[j]))
+
+
+def test_stage_timer_checks_struct_leaves(check_on):
+    """Float leaves of structs and nested lists are checked; integer and bool
+    leaves are not; the stage name is in the message."""
+    t = StageTimer()
+    t.begin_frame()
+    si = dr.zeros(mi.SurfaceInteraction3f, 4)      # t = +Inf: Mitsuba's "no hit", accepted
+    si.p = mi.Point3f([0, 1, 2, 3], [0, 0, 0, 0], [0, 0, dr.nan, 0])
+    with pytest.raises(check.CheckError, match=r"stage 'update': NaN in output 1\[0\]\.p\[2\] \(entry 2 of 4\)"):
+        with t.stage("update") as st:
+            st.outputs(mi.UInt32(0xFFFFFFFF), [si], mi.Bool(True))
+    with t.stage("fine") as st:
+        st.outputs(mi.UInt32(7), mi.Float(-1.0), mi.Vector3f(-1, 0, 0))
+
+
+def test_env_values():
+    import os
+    old = os.environ.get(check.ENV)
+    try:
+        for v, on in (("1", True), ("yes", True), ("0", False), ("", False), ("off", False)):
+            os.environ[check.ENV] = v
+            assert check.enabled() is on
+        check.enable(False)
+        assert not check.enabled()
+        check.enable()
+        assert check.enabled()
+    finally:
+        if old is None:
+            os.environ.pop(check.ENV, None)
+        else:
+            os.environ[check.ENV] = old
+
+
+def test_ground_truth_checked(cornell, check_on, monkeypatch, tmp_path):
+    """In check mode the ground-truth image is checked as well (a cached copy included)."""
+    from slc import groundtruth
+    monkeypatch.setenv("SLC_CACHE", str(tmp_path))
+    gb = gbuffer.render_gbuffer(cornell, views.single(cornell)[0].camera(0), W, H)
+    groundtruth.ground_truth(cornell, gb, 0, "v", spp=16)                 # fine
+    path = next((tmp_path / "gt").glob("*.npy"))
+    a = np.load(path)
+    a[BAD_Y, BAD_X, 2] = np.nan
+    np.save(path, a)
+    with pytest.raises(check.CheckError, match=r"gt frame 0 stage 'ground truth': NaN at viewer 0 pixel \(13, 9\)"):
+        groundtruth.ground_truth(cornell, gb, 0, "v", spp=16)
