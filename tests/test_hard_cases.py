@@ -68,7 +68,7 @@ def render(spec, sc, gb, frames=1, seed=0):
     for f in range(frames):
         timer.begin_frame()
         with check.scope(spec, f, [gb]):
-            d = m.render(FrameContext(f, 0.0, seed), [gb], timer)
+            d = m.render(FrameContext(f), [gb], timer)
             check.images(d, [gb])
         timer.end_frame()
     return np.array(d[0], np.float64).T

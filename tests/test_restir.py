@@ -260,7 +260,7 @@ def _runs(spec, scene, gbs, frames, seeds):
     for s in seeds:
         m = methods.create(spec, scene, seed=s)
         for f in range(frames):
-            d = m.render(FrameContext(f, float(f)), gbs, NullTimer())
+            d = m.render(FrameContext(f), gbs, NullTimer())
         out.append(np.array(d[0], np.float64).T)
     return np.stack(out)
 

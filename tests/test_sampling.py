@@ -340,7 +340,7 @@ def _method_runs(spec, scene, gbs, seeds, frames=1):
     for s in seeds:
         m = methods.create(spec, scene, seed=s)
         for f in range(frames):
-            d = m.render(FrameContext(f, float(f)), gbs, NullTimer())
+            d = m.render(FrameContext(f), gbs, NullTimer())
         out.append(np.array(d[0], np.float64).T)
     return np.stack(out)
 
