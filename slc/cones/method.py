@@ -6,7 +6,7 @@ import mitsuba as mi
 
 from ..methods import Method, MethodError, register
 from .packing import bytes_per_entry, words_per_entry
-from .shading import shade_pixels_frozen
+from .shading import shade_key, shader_for
 from .update import INVALID, ConeParams, update_entries
 
 
@@ -130,15 +130,16 @@ class SurfaceLightCones(Method):
                 # each entry's own local frame (the cones live in it)
                 tf = dr.gather(mi.Frame3f, fr.si.sh_frame, fr.pixel_index[v], ok)
                 if self.fetch == "bilinear" and hasattr(self.cache, "bilinear_taps"):
-                    outs.append(self._shade_bilinear(gb, slot, ok, tf, K))
+                    outs.append(self._shade_bilinear(gb, slot, ok, tf, K, ctx.frame))
                 else:
-                    outs.append(shade_pixels_frozen(self.storage, slot, ok, gb.si, tf, K, self.shade_samples))
+                    outs.append(shader_for(self, K)(self.storage, slot, ok, gb.si, tf, self.shade_samples,
+                                                    shade_key(ctx.frame, self.seed)))
             st.outputs(*outs)
         self._last = {"active_entries": n_active, "motion_entries": motion,
                       "shrunk_entries": st_info.get("shrunk"), "dropped_entries": st_info.get("dropped")}
         return outs
 
-    def _shade_bilinear(self, gb, slot, ok, tf, K):
+    def _shade_bilinear(self, gb, slot, ok, tf, K, frame=0):
         """Bilinear fetch: the 4 entries around the pixel's cache coordinate, each
         shaded with ``shade_samples / 4`` directions per cone and weighted
         bilinearly (the same number of BSDF evaluations as a nearest fetch). The
@@ -147,12 +148,14 @@ class SurfaceLightCones(Method):
         Pixels with no usable tap fall back to the nearest entry."""
         taps, weights = self.cache.bilinear_taps(gb)
         nS = max(self.shade_samples // 4, 1)
+        shade = shader_for(self, K)
         acc = dr.zeros(mi.Color3f, gb.size)
-        for s_j, w_j in zip(taps, weights):
+        for j, (s_j, w_j) in enumerate(zip(taps, weights)):
             m = ok & (w_j > 0.0)
-            acc += w_j * shade_pixels_frozen(self.storage, s_j, m, gb.si, tf, K, nS)
+            acc += w_j * shade(self.storage, s_j, m, gb.si, tf, nS, shade_key(frame, self.seed, j))
         total = weights[0] + weights[1] + weights[2] + weights[3]
-        near = shade_pixels_frozen(self.storage, slot, ok & (total <= 0.0), gb.si, tf, K, self.shade_samples)
+        near = shade(self.storage, slot, ok & (total <= 0.0), gb.si, tf, self.shade_samples,
+                     shade_key(frame, self.seed, 4))
         return dr.select(total > 0.0, acc, near)
 
     def memory_bytes(self) -> int:
