@@ -26,17 +26,15 @@ BSDF samples of a Dirac lobe (mirrors) see ``\tilde L`` with weight 1.
 Purely Lambertian pixels whose cones clear the horizon use the exact cone
 integral ``(rho/pi) sum_c L_c (n . d_c)(1 + cos alpha_c)/2`` (no loop).
 
-Sample counts: ``n_samples`` per live cone as before, split into ``n_C`` cone
-directions per cone and ``n_samples - n_C`` BSDF directions per live cone (so a
-pixel with ``n`` cones evaluates its BSDF ``n * n_samples`` times, as the former
-fixed 16-direction pattern did). Random numbers are hashes of (pixel index,
-``key``): deterministic for a given frame, seed and tap.
+Sample counts: ``n_samples`` (n_S) directions per live cone, split per pixel into
+``n_C`` cone directions and ``n_S - n_C`` BSDF directions by the lobe's width against
+the cones (``q = p_B(mirror) max_c Omega_c``; at most 3/4 BSDF), so a pixel with ``n``
+cones evaluates its BSDF ``n n_S`` times (+1 pdf), as the former fixed pattern did.
+Random numbers are hashes of (pixel index, ``key``): deterministic for a given frame,
+seed and tap. See docs/cones.md for the expectation.
 
-Each :class:`ConeShading` (one per method instance) owns its own frozen
-function (``dr.freeze``): its Python tracing is paid once, then replayed for
-every viewer, frame, tap and sample count. Only BSDF pointers (not shapes) enter
-the frozen function, so animated meshes (whose registry entries change every
-frame) do not force a new recording.
+Each :class:`ConeShading` (one per method instance) owns its own frozen function
+(``dr.freeze``), not frozen in animated scenes (see the class).
 """
 from __future__ import annotations
 
@@ -91,10 +89,10 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
                  bsdf: mi.BSDFPtr, texel_frame: mi.Frame3f, max_cones: int, n_total: mi.UInt32,
                  key: mi.UInt32, adaptive: bool = True, rotate: bool = True) -> mi.Color3f:
     """Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
-    ``slot`` (nearest-texel fetch); ``texel_frame`` is the local frame of each pixel's
-    entry (the frame its cone directions are stored in). ``n_cone`` directions per live
-    cone, ``n_bsdf`` BSDF directions per live cone (opaque scalars). Entries without
-    cones and inactive pixels give 0."""
+    ``slot``; ``texel_frame`` is the local frame of each pixel's entry (the frame its
+    cone directions are stored in). ``n_total`` directions per live cone and ``key``
+    are opaque scalars; ``adaptive`` / ``rotate`` see :class:`ConeShading`. Entries
+    without cones and inactive pixels give 0."""
     K = max_cones
     D, A, L, C, n = unpack(gather_words(storage, slot, K, active), K)
     Dw = [dr.normalize(texel_frame.to_world(D[i])) for i in range(K)]
