@@ -144,11 +144,13 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     sampled = active & ~lambert & (n > 0)
 
     # ------------------- allocation: how narrow is the lobe against the cones? -------------------
-    # q = p_B(r) max_c Omega_c, with r the mirror direction of w_o (the peak of a glossy lobe):
-    # q >> 1 is a lobe narrower than the cones (BSDF sampling wins), q << 1 a lobe wider than
-    # them (cone sampling wins; a diffuse lobe has p_B <= 1/pi). Of the n_S directions per
-    # cone, n_B = round(n_S min(q / (1 + q), 3/4)) are BSDF samples (at least a quarter stay
-    # cone samples: a glossy coat's diffuse base, e.g. plastic, is cheaper by cone sampling). The allocation is fixed before any
+    # q = p_B(r) max_c Omega_c, with r the mirror direction of w_o (the peak of a glossy lobe),
+    # compares the cone's solid angle with the lobe's (about 1 / p_B(r)). n_S cone directions
+    # are spaced about Omega / n_S apart: they resolve the lobe while q < n_S. Of the n_S
+    # directions per cone, n_B = round(n_S min(q / (q + n_S), 3/4)) are BSDF samples: none
+    # for rough lobes (a diffuse lobe has p_B <= 1/pi), up to three quarters for lobes far
+    # narrower than the cones; at least a quarter stay cone samples (a glossy coat's diffuse
+    # base, e.g. plastic, is cheaper by cone sampling). The allocation is fixed before any
     # sample is drawn, so the MIS estimator stays unbiased for any q.
     ns_f = mi.Float(n_total)
     if adaptive:
@@ -157,7 +159,7 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
             om_max = dr.maximum(om_max, dr.select(area[i], 2.0 * math.pi * h[i], 0.0))
         r = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
         q = bsdf.pdf(ctx, si, r, sampled) * om_max
-        n_b = mi.UInt32(dr.round(ns_f * dr.minimum(q / (1.0 + q), B_MAX)))
+        n_b = mi.UInt32(dr.round(ns_f * dr.minimum(q / (q + ns_f), B_MAX)))
     else:
         n_b = mi.UInt32(ns_f * 0.5)
     n_b = dr.minimum(n_b, n_total - 1)                                    # n_C >= 1: Dirac cones need it
