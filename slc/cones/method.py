@@ -9,7 +9,7 @@ from ..methods import Param, register
 from ..osc.payload import PayloadMethod, RayPolicy
 from ..osc.protocol import BILINEAR_TAPS
 from .packing import words_per_entry
-from .shading import shade_pixels_frozen
+from .shading import shade_key, shader_for
 from .update import ConeParams, update_entries
 
 
@@ -33,9 +33,15 @@ class SurfaceLightCones(PayloadMethod):
     with :math:`C` incremented by the cycle's samples (capped at 255, or at 8 cycles
     while the entry is new or moving) and reduced by
     :math:`\min(\max(1 + 0.05\,\beta, 1.01), 3)` (:math:`\beta` in degrees) when a cone
-    turned. Shading (no rays, ``shade_samples`` stratified directions per cone):
+    turned. Shading (no rays): the cones define a radiance density
+    :math:`\tilde L(\omega) = \sum_{c \ni \omega} L_c / \Omega_c`; ``shade_samples`` directions per
+    cone, split per pixel between uniform cone sampling and BSDF sampling, are combined by
+    multiple importance sampling (balance heuristic over both strategies),
 
-    .. math:: L_o = \sum_c \sum_{s=1}^{n_S} f_r(x, \omega_{c,s}, \omega_o)\cos\theta_{c,s}\, L_c / n_S .
+    .. math:: L_o = \sum_k \frac{f_r(x, \omega_k, \omega_o)\cos\theta_k\, \tilde L(\omega_k)}
+              {n_C \sum_{c \ni \omega_k} 1/\Omega_c + n_B\, p_B(\omega_k)},
+
+    and purely Lambertian pixels use the exact cone integral (docs/cones.md).
 
     Ray policy: ``rays_new`` rays for an entry's first 8 updates and for 8 updates
     after detected motion, ``rays_settled`` otherwise. See docs/cones.md.
@@ -80,10 +86,11 @@ class SurfaceLightCones(PayloadMethod):
         # each entry's own local frame (the cones live in it)
         tf = dr.gather(mi.Frame3f, fr.si.sh_frame, fr.pixel_index[v], ok)
         if self.fetch == "bilinear":
-            return self._shade_bilinear(gb, slot, ok, tf)
-        return shade_pixels_frozen(self.storage, slot, ok, gb.si, tf, self.max_cones, self.shade_samples)
+            return self._shade_bilinear(gb, slot, ok, tf, ctx.frame)
+        return shader_for(self, self.max_cones)(self.storage, slot, ok, gb.si, tf, self.shade_samples,
+                                                shade_key(ctx.frame, self.seed))
 
-    def _shade_bilinear(self, gb, slot, ok, tf):
+    def _shade_bilinear(self, gb, slot, ok, tf, frame):
         """Bilinear fetch: the 4 entries around the pixel's cache coordinate, each
         shaded with ``shade_samples / 4`` directions per cone and weighted
         bilinearly (the same number of BSDF evaluations as a nearest fetch). The
@@ -93,12 +100,14 @@ class SurfaceLightCones(PayloadMethod):
         K = self.max_cones
         taps, weights = self.cache.bilinear_taps(gb)
         nS = max(self.shade_samples // 4, 1)
+        shade = shader_for(self, K)
         acc = dr.zeros(mi.Color3f, gb.size)
-        for s_j, w_j in zip(taps, weights):
+        for j, (s_j, w_j) in enumerate(zip(taps, weights)):
             m = ok & (w_j > 0.0)
-            acc += w_j * shade_pixels_frozen(self.storage, s_j, m, gb.si, tf, K, nS)
+            acc += w_j * shade(self.storage, s_j, m, gb.si, tf, nS, shade_key(frame, self.seed, j))
         total = weights[0] + weights[1] + weights[2] + weights[3]
-        near = shade_pixels_frozen(self.storage, slot, ok & (total <= 0.0), gb.si, tf, K, self.shade_samples)
+        near = shade(self.storage, slot, ok & (total <= 0.0), gb.si, tf, self.shade_samples,
+                     shade_key(frame, self.seed, 4))
         return dr.select(total > 0.0, acc, near)
 
     def stats(self) -> dict:

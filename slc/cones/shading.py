@@ -1,14 +1,40 @@
-"""Shading from the cones: per pixel, ``nS`` directions uniform in each cone's
-solid angle, BSDF evaluation (cosine included), no rays:
+r"""Shading from the cones, no rays: multiple importance sampling of the cones'
+radiance with the BSDF.
 
-    L_o = sum_c sum_s f_r(x, w_{c,s}, w_o) cos(w_{c,s}) L_c / nS
+The cones of an entry define a piecewise-constant model of the incoming radiance
 
-with ``L_c`` the cone's estimate of the integral of incoming radiance over its
-solid angle (see docs/cones.md). The directions are a fixed stratified
-(spherical-Fibonacci) pattern in the cone, the same for every pixel and frame, so
-shading adds no noise. A cone of zero angle (point light) samples its axis.
+.. math:: \tilde L(\omega) = \sum_{c\,\ni\,\omega} L_c / \Omega_c,
+          \qquad \Omega_c = 2\pi (1 - \cos\alpha_c),
+
+(``L_c`` estimates the integral of the incoming radiance over cone ``c``, see
+docs/cones.md; overlapping cones add up). The shading integrates
+:math:`\int f_r \cos\theta\, \tilde L\, d\omega` with two strategies, combined by
+the balance heuristic over all samples of a pixel (Veach's multi-sample MIS):
+
+- cone sampling: ``n_C`` directions uniform in each live cone (pdf ``1/Omega_c``),
+  a stratified spherical-Fibonacci pattern rotated per pixel;
+- BSDF sampling: ``n_B`` directions from ``bsdf.sample`` (pdf ``p_B``), a
+  rank-1 (R3) sequence rotated per pixel.
+
+Every sample, whatever its strategy, contributes
+
+.. math:: f_r \cos\theta\, \tilde L(\omega) \,/\, \Big(n_C \sum_{c\,\ni\,\omega} 1/\Omega_c + n_B\, p_B(\omega)\Big),
+
+which is unbiased for the integral. Cones narrower than ``ALPHA_DELTA`` (point
+lights) are Dirac cones: one evaluation on the axis, ``f_r cos L_c``, weight 1.
+BSDF samples of a Dirac lobe (mirrors) see ``\tilde L`` with weight 1.
 Purely Lambertian pixels whose cones clear the horizon use the exact cone
-integral instead of the quadrature (same estimator, no loop).
+integral ``(rho/pi) sum_c L_c (n . d_c)(1 + cos alpha_c)/2`` (no loop).
+
+Sample counts: ``n_samples`` (n_S) directions per live cone, split per pixel into
+``n_C`` cone directions and ``n_S - n_C`` BSDF directions by the lobe's width against
+the cones (``q = p_B(mirror) max_c Omega_c``; at most 3/4 BSDF), so a pixel with ``n``
+cones evaluates its BSDF ``n n_S`` times (+1 pdf), as the former fixed pattern did.
+Random numbers are hashes of (pixel index, ``key``): deterministic for a given frame,
+seed and tap. See docs/cones.md for the expectation.
+
+Each :class:`ConeShading` (one per method instance) owns its own frozen function
+(``dr.freeze``); see the class for animated scenes.
 """
 from __future__ import annotations
 
@@ -19,13 +45,20 @@ import mitsuba as mi
 
 from .packing import gather_words, unpack
 
-GOLDEN = 0.6180339887498949
+GOLDEN = 0.6180339887498949           # 1 / phi: azimuths of the spherical-Fibonacci pattern
+R3 = 1.2207440846057596               # plastic constant of the 3-D Roberts (R3) sequence
+B_MAX = 0.75                          # at most this share of the directions are BSDF samples
+ALPHA_DELTA = 1e-3                    # rad; narrower cones are Dirac cones (as in ConeParams.alpha_delta)
 
 
 def cone_samples(Dw, A, s_idx: mi.UInt32, nS: int):
-    """Direction ``s_idx`` of ``nS`` of the stratified pattern in cone (Dw, A) (world)."""
-    u = (mi.Float(s_idx) + 0.5) * (1.0 / nS)
-    x = mi.Float(s_idx) * GOLDEN
+    """Direction ``s_idx`` of ``nS`` of the fixed stratified pattern in cone (Dw, A) (world)."""
+    return cone_direction(Dw, A, (mi.Float(s_idx) + 0.5) * (1.0 / nS), mi.Float(s_idx) * GOLDEN)
+
+
+def cone_direction(Dw, A, u, x):
+    """The direction of cone (Dw, A) at ``1 - cos(theta) = u (1 - cos A)`` and azimuth
+    ``2 pi frac(x)``: uniform in the cone's solid angle for uniform ``u``."""
     ph = 2.0 * math.pi * (x - dr.floor(x))
     h = 2.0 * dr.square(dr.sin(0.5 * A))            # 1 - cos(alpha), precise for tiny alpha
     x = u * h                                       # 1 - cos(theta)
@@ -35,63 +68,238 @@ def cone_samples(Dw, A, s_idx: mi.UInt32, nS: int):
     return mi.Frame3f(Dw).to_world(mi.Vector3f(st * cp, st * sp, ct))
 
 
-def shade_pixels(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.SurfaceInteraction3f,
-                 texel_frame: mi.Frame3f, max_cones: int, n_samples: int = 16) -> mi.Color3f:
-    """Direct illumination of the pixels ``si`` from the entries ``slot`` (nearest-texel
-    fetch); ``texel_frame`` is the local frame of each pixel's entry (the frame its cone
-    directions are stored in). Entries without cones and inactive pixels give 0."""
+def _hash_float(pid: mi.UInt32, key: mi.UInt32, j: int) -> mi.Float:
+    """Uniform float in [0, 1) from (pixel, key, stream j)."""
+    v0, v1 = mi.sample_tea_32(pid, key ^ mi.UInt32((0x9E3779B9 * (j + 1)) & 0xFFFFFFFF), 4)
+    return mi.Float(v0 >> 8) * (1.0 / 16777216.0)
+
+
+def _frac(x):
+    return x - dr.floor(x)
+
+
+def _lambertian(bsdf, si, active):
+    flags = mi.UInt32(bsdf.flags())
+    return active & mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & \
+        ~mi.has_flag(flags, mi.BSDFFlags.Glossy) & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & \
+        ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & (mi.Frame3f.cos_theta(si.wi) > 0.0)
+
+
+def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.SurfaceInteraction3f,
+                 bsdf: mi.BSDFPtr, texel_frame: mi.Frame3f, max_cones: int, n_total: mi.UInt32,
+                 key: mi.UInt32, adaptive: bool = True, rotate: bool = True) -> mi.Color3f:
+    """Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
+    ``slot``; ``texel_frame`` is the local frame of each pixel's entry (the frame its
+    cone directions are stored in). ``n_total`` directions per live cone and ``key``
+    are opaque scalars; ``adaptive`` / ``rotate`` see :class:`ConeShading`. Entries
+    without cones and inactive pixels give 0."""
     K = max_cones
     D, A, L, C, n = unpack(gather_words(storage, slot, K, active), K)
     Dw = [dr.normalize(texel_frame.to_world(D[i])) for i in range(K)]
-    bsdf = si.bsdf()
     ctx = mi.BSDFContext()
-    nS = max(int(n_samples), 1)
-    n_op = dr.opaque(mi.UInt32, nS)
+    zero = dr.select(active, mi.Float(0.0), mi.Float(0.0))     # a zero of the pixels' width
+    pid = dr.arange(mi.UInt32, dr.width(slot))
+
+    # ------------------- the cones: live, Dirac, solid angle, density -------------------
+    live = [active & (n > i) for i in range(K)]
+    h = [2.0 * dr.square(dr.sin(0.5 * A[i])) for i in range(K)]           # 1 - cos(alpha_c)
+    delta = [live[i] & (A[i] < ALPHA_DELTA) for i in range(K)]
+    area = [live[i] & ~delta[i] for i in range(K)]                        # cones with a density
+    inv_om = [dr.select(area[i], dr.rcp(dr.maximum(2.0 * math.pi * h[i], 1e-30)), 0.0) for i in range(K)]
+    n_live = mi.Float(n)
+
+    def density(w, own=None):
+        """(sum over cones holding w of L_c/Omega_c, of 1/Omega_c); cone ``own`` holds w."""
+        Lt, dt = mi.Color3f(zero), mi.Float(zero)
+        for j in range(K):
+            inside = area[j] & ((1.0 - dr.dot(w, Dw[j])) <= h[j] * (1.0 + 1e-5) + 1e-7)
+            if own == j:
+                inside = area[j]
+            Lt += dr.select(inside, L[j] * inv_om[j], 0.0)
+            dt += dr.select(inside, inv_om[j], 0.0)
+        return Lt, dt
+
+    def mis(pdf_cones, pdf_b):
+        """Balance heuristic: a sample's weight over its pdf, 1 / (n_C sum_c 1/Omega_c + n_B p_B)."""
+        den = nc_f * pdf_cones + nb_f * pdf_b
+        return dr.select(den > 0.0, dr.rcp(den), 0.0)
 
     # ------------------- Lambertian pixels: the cone integral in closed form -------------------
-    # For f_r = rho / pi and a cone (d, alpha) entirely above the horizon,
-    #   (1/Omega) int_cone cos(theta) dw = (n . d) (1 + cos alpha) / 2,
-    # which the nS-direction quadrature below only approximates; pixels whose BSDF is
-    # purely diffuse and whose cones all clear the horizon skip the loop.
-    flags = mi.UInt32(bsdf.flags())
-    lambert = active & mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & \
-        ~mi.has_flag(flags, mi.BSDFFlags.Glossy) & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & \
-        ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & (mi.Frame3f.cos_theta(si.wi) > 0.0)
+    lambert = _lambertian(bsdf, si, active)
     nrm = si.sh_frame.n
-    closed = dr.zeros(mi.Color3f, dr.width(slot))
+    closed = mi.Color3f(zero)
     for i in range(K):
-        live = n > i
         cos_d = dr.dot(nrm, Dw[i])
         # above the horizon: angle(n, d) + alpha < pi/2  <=>  cos(angle + alpha) > 0
         above = (cos_d * dr.cos(A[i]) - dr.safe_sqrt(1.0 - dr.square(cos_d)) * dr.sin(A[i])) > 0.0
-        lambert &= ~live | above
-        closed += dr.select(live, L[i] * (cos_d * 0.5 * (1.0 + dr.cos(A[i]))), 0.0)
+        lambert &= ~live[i] | above
+        closed += dr.select(live[i], L[i] * (cos_d * 0.5 * (1.0 + dr.cos(A[i]))), 0.0)
     rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert))
     closed = rho * closed * (1.0 / math.pi)
+    sampled = active & ~lambert & (n > 0)
 
-    # ------------------- everything else: nS directions per cone -------------------
-    sampled = active & ~lambert
-
-    def cond(s, acc):
-        return (s < n_op) & sampled
-
-    def body(s, acc):
+    # ------------------- allocation: how narrow is the lobe against the cones? -------------------
+    # q = p_B(r) max_c Omega_c, with r the mirror direction of w_o (the peak of a glossy lobe),
+    # compares the cone's solid angle with the lobe's (about 1 / p_B(r)). n_S cone directions
+    # are spaced about Omega / n_S apart: they resolve the lobe while q < n_S. Of the n_S
+    # directions per cone, n_B = round(n_S min(q / (q + n_S), 3/4)) are BSDF samples: none
+    # for rough lobes (a diffuse lobe has p_B <= 1/pi), up to three quarters for lobes far
+    # narrower than the cones; at least a quarter stay cone samples (a glossy coat's diffuse
+    # base, e.g. plastic, is cheaper by cone sampling). The allocation is fixed before any
+    # sample is drawn, so the MIS estimator stays unbiased for any q.
+    ns_f = mi.Float(n_total)
+    if adaptive:
+        om_max = mi.Float(zero)
         for i in range(K):
-            m = sampled & (n > i)
-            wi = cone_samples(Dw[i], A[i], s, nS)
-            f = mi.Color3f(bsdf.eval(ctx, si, si.to_local(wi), m))
-            acc += dr.select(m, f * L[i], 0.0)
-        return s + 1, acc
+            om_max = dr.maximum(om_max, dr.select(area[i], 2.0 * math.pi * h[i], 0.0))
+        r = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
+        q = bsdf.pdf(ctx, si, r, sampled) * om_max
+        n_b = mi.UInt32(dr.round(ns_f * dr.minimum(q / (q + ns_f), B_MAX)))
+    else:
+        n_b = mi.UInt32(ns_f * 0.5)
+    n_b = dr.minimum(n_b, n_total - 1)                                    # n_C >= 1: Dirac cones need it
+    n_c = n_total - n_b
+    nc_f, nb_f = mi.Float(n_c), mi.Float(n_b) * n_live                    # samples per cone / per pixel
+    nc_rcp = dr.rcp(dr.maximum(nc_f, 1.0))
 
-    _, acc = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(slot))), cond=cond, body=body,
-                           labels=("s", "acc"))
-    acc = dr.select(lambert, closed, acc * (1.0 / nS))
+    # per-pixel rotations of the two patterns
+    if rotate:
+        rot = [(_hash_float(pid, key, 2 * i), _hash_float(pid, key, 2 * i + 1)) for i in range(K)]
+    else:
+        rot = [(mi.Float(0.5), mi.Float(0.0)) for i in range(K)]
+    rb = (_hash_float(pid, key, 2 * K), _hash_float(pid, key, 2 * K + 1), _hash_float(pid, key, 2 * K + 2))
+
+    # ------------------- cone sampling: n_C directions in each live cone -------------------
+    # iteration j draws pattern direction j of every live cone (the cones unrolled: measured
+    # 30 % cheaper than one loop over all (cone, j) pairs with a single BSDF call site).
+    # A Dirac cone is evaluated once, on its axis.
+    def cone_cond(j, acc):
+        return (j < n_c) & sampled
+
+    def cone_body(j, acc):
+        jf = mi.Float(j)
+        for i in range(K):
+            u = _frac((jf + rot[i][0]) * nc_rcp)
+            wi = dr.select(delta[i], Dw[i], cone_direction(Dw[i], A[i], u, jf * GOLDEN + rot[i][1]))
+            m = sampled & live[i] & (~delta[i] | (j == 0))
+            f, pdf_b = bsdf.eval_pdf(ctx, si, si.to_local(wi), m)
+            Lt, dt = density(wi, own=i)
+            w = dr.select(delta[i], L[i], Lt * mis(dt, pdf_b))
+            acc += dr.select(m, mi.Color3f(f) * w, 0.0)
+        return j + 1, acc
+
+    _, acc = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(zero)), cond=cone_cond, body=cone_body,
+                           labels=("j", "acc"))
+
+    # ------------------- BSDF sampling: n_B directions per live cone -------------------
+    def bsdf_cond(t, acc):
+        return (t < n_b * n) & sampled
+
+    def bsdf_body(t, acc):
+        k = mi.Float(t)
+        u1 = _frac(rb[0] + k * (1.0 / R3))
+        u2 = mi.Point2f(_frac(rb[1] + k * (1.0 / R3 ** 2)), _frac(rb[2] + k * (1.0 / R3 ** 3)))
+        bs, bw = bsdf.sample(ctx, si, u1, u2, sampled)
+        wi = si.to_world(bs.wo)
+        ok = sampled & (bs.pdf > 0.0)
+        Lt, dt = density(wi)
+        dirac = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+        # bw = f cos / p_B, so the sample's f cos Lt / den is bw * p_B * Lt / den;
+        # a Dirac lobe cannot be reached by cone sampling: weight 1 / n_B
+        w = dr.select(dirac, dr.rcp(dr.maximum(nb_f, 1.0)), bs.pdf * mis(dt, bs.pdf))
+        acc += dr.select(ok, mi.Color3f(bw) * Lt * w, 0.0)
+        return t + 1, acc
+
+    _, acc = dr.while_loop(state=(mi.UInt32(0), acc), cond=bsdf_cond, body=bsdf_body, labels=("t", "acc"))
+
+    acc = dr.select(lambert, closed, acc)
     ok = active & dr.isfinite(acc[0]) & dr.isfinite(acc[1]) & dr.isfinite(acc[2])
     return dr.select(ok, acc, 0.0)
 
 
-# Shading is called once per viewer with same-shaped inputs: a frozen function
-# records the kernel launches once and replays them, so the Python tracing of
-# this code is paid once, not once per viewer (16 viewers at 320x180: 143 ms
-# instead of 231 ms per frame; results bit-identical).
-shade_pixels_frozen = dr.freeze(shade_pixels)
+def shade_key(frame: int, seed: int, tap: int = 0) -> int:
+    """The random-number key of one shading call (frame, seed, bilinear tap)."""
+    x = (int(frame) * 0x9E3779B1 + int(seed) * 0x85EBCA77 + int(tap) * 0xC2B2AE3D) & 0xFFFFFFFF
+    x ^= x >> 16
+    x = (x * 0x7FEB352D) & 0xFFFFFFFF
+    return x ^ (x >> 15)
+
+
+class ConeShading:
+    r"""Shading of pixels from their cache entries' cones: MIS of cone sampling and
+    BSDF sampling (module docstring and docs/cones.md).
+
+    Parameters (defaults): ``max_cones`` (as stored), ``adaptive=True`` (split each
+    cone's ``n_samples`` between the strategies by the lobe's width against the cones;
+    False: half and half), ``rotate=True`` (rotate the patterns per pixel and key; False:
+    the same pattern everywhere), ``freeze=True`` (record the kernel launches once and
+    replay them), ``animated=False`` (the scene's meshes move), ``max_recordings=4``.
+
+    Freezing pays only while its recordings are replayed. Each instance owns its frozen
+    function, so recordings are freed with the method and never shared between scenes.
+    A frozen function traverses every object of Mitsuba's registry (shapes, BSDFs,
+    emitters, the scene) on each call; when meshes move, that state changes from frame to
+    frame and the function is recorded again on the frame's first call (measured on
+    ``street``: one recording per frame), then replayed for the frame's other viewers and
+    bilinear taps. So in an animated scene the function keeps at most 2 recordings (LRU)
+    and is dropped (shading unfrozen from then on) once 8 calls show that almost no call
+    is a replay (one viewer, nearest fetch: a recording costs as much as plain tracing).
+    In a static scene a function recorded more than ``max_recordings`` times is dropped.
+    """
+
+    def __init__(self, max_cones: int, adaptive: bool = True, rotate: bool = True, freeze: bool = True,
+                 animated: bool = False, max_recordings: int = 4):
+        self.max_cones = int(max_cones)
+        self.adaptive, self.rotate = bool(adaptive), bool(rotate)
+        self.animated, self.max_recordings = bool(animated), int(max_recordings)
+        self.frozen = bool(freeze)
+        # one frozen function per instance: recordings live and die with the method
+        if not freeze:
+            self.kernel = shade_kernel
+        elif self.animated:
+            self.kernel = dr.freeze(shade_kernel, limit=2, warn_after=1 << 30)
+        else:
+            self.kernel = dr.freeze(shade_kernel, warn_after=self.max_recordings + 1)
+        self.recordings = 0          # recordings made, including those of a dropped frozen function
+        self.calls = 0
+
+    def __call__(self, storage, slot, active, si, texel_frame, n_samples: int = 16, key: int = 0) -> mi.Color3f:
+        out = self.kernel(storage, mi.UInt32(slot), mi.Bool(active), si, si.bsdf(), texel_frame, self.max_cones,
+                          dr.opaque(mi.UInt32, max(int(n_samples), 1)), dr.opaque(mi.UInt32, int(key)),
+                          self.adaptive, self.rotate)
+        if self.frozen:
+            self.calls += 1
+            self.recordings = int(self.kernel.n_recordings)
+            if self.animated:
+                drop = self.calls >= 8 and self.recordings > 0.9 * self.calls
+            else:
+                drop = self.recordings > self.max_recordings
+            if drop:
+                self.kernel.clear()
+                self.kernel, self.frozen = shade_kernel, False
+        return out
+
+    @property
+    def n_recordings(self) -> int:
+        """Recordings made by this instance's frozen function (0 when never frozen)."""
+        return self.recordings
+
+    @property
+    def n_cached_recordings(self) -> int:
+        return int(self.kernel.n_cached_recordings) if self.frozen else 0
+
+
+def shader_for(owner, max_cones: int) -> ConeShading:
+    """The :class:`ConeShading` of ``owner`` (a method instance), made on first use
+    (animated when the owner's scene is, see :class:`ConeShading`)."""
+    sh = getattr(owner, "_cone_shading", None)
+    if sh is None or sh.max_cones != int(max_cones):
+        scene = getattr(owner, "scene", None)
+        sh = ConeShading(max_cones, animated=bool(getattr(scene, "dynamic", False)))
+        owner._cone_shading = sh
+    return sh
+
+
+def shade_pixels(storage, slot, active, si, texel_frame, max_cones: int, n_samples: int = 16, key: int = 0):
+    """Unfrozen one-off shading (tests, notebooks)."""
+    return ConeShading(max_cones, freeze=False)(storage, slot, active, si, texel_frame, n_samples, key)
