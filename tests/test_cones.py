@@ -597,7 +597,7 @@ def test_shading_freeze_recordings_bounded():
             widths = []
             for f in range(8):
                 gbs = gbuffers_for(sc, single(sc), f, W, H)
-                d = m.render(FrameContext(f, sc.time or 0.0, 0), gbs, NullTimer())
+                d = m.render(FrameContext(f), gbs, NullTimer())
                 widths.append(dr.width(m.storage))
                 assert np.all(np.isfinite(np.array(d[0])))
             sh = m._cone_shading
@@ -611,7 +611,7 @@ def test_shading_freeze_recordings_bounded():
     sc = _moving_scene()
     m = create("slc", sc)
     for f in range(6):
-        d = m.render(FrameContext(f, sc.time or 0.0, 0), gbuffers_for(sc, single(sc) * 4, f, W, H), NullTimer())
+        d = m.render(FrameContext(f), gbuffers_for(sc, single(sc) * 4, f, W, H), NullTimer())
         assert all(np.all(np.isfinite(np.array(x))) for x in d)
     sh = m._cone_shading
     assert sh.frozen and sh.n_recordings <= 6 and sh.n_cached_recordings <= 2, (sh.n_recordings, sh.frozen)
@@ -644,7 +644,7 @@ def test_shading_compiles_nothing_after_warmup(n_viewers):
         for f in range(6):
             t = T()
             t.begin_frame()
-            m.render(FrameContext(f, 0.0, 0), gbuffers_for(sc, viewers, f, W, H), t)
+            m.render(FrameContext(f), gbuffers_for(sc, viewers, f, W, H), t)
             t.end_frame()
             if f >= 3:
                 missed += [k for k in t.hist if k.get("type") == dr.KernelType.JIT and not k.get("cache_hit", False)]
@@ -702,7 +702,7 @@ def test_glossy_plane_relmse_vs_rt48(kind, alpha, light, request):
     gb, d = _run(sc, m, GLOSSY_FRAMES)
     img = gbuffer.to_image(gb, gbuffer.compose(gb, d))
     gt = ground_truth(sc, gb, GLOSSY_FRAMES - 1)
-    d_rt = create("rt48", sc).render(FrameContext(GLOSSY_FRAMES - 1, 0.0, 0), [gb], NullTimer())[0]
+    d_rt = create("rt48", sc).render(FrameContext(GLOSSY_FRAMES - 1), [gb], NullTimer())[0]
     img_rt = gbuffer.to_image(gb, gbuffer.compose(gb, d_rt))
     assert np.all(np.isfinite(img))
     r_slc, r_rt = rel_mse(gt, img), rel_mse(gt, img_rt)
