@@ -190,16 +190,26 @@ def test_analytic_scene_renders_like_its_meshed_twin(twins, spec):
     Measured (96x54, 12 frames): slc relMSE 0.0022 vs 0.0021, sh 0.0039 vs 0.0046."""
     sc_a, sc_m = twins
     img_a, gt_a, gb_a, _ = _render(sc_a, spec)
-    img_m, gt_m, _, _ = _render(sc_m, spec)
+    img_m, gt_m, gb_m, _ = _render(sc_m, spec)
     e_a, e_m = rel_mse(gt_a, img_a), rel_mse(gt_m, img_m)
     assert e_m < 0.01 and e_a < 0.01, (e_a, e_m)
     assert e_a < 1.3 * e_m, (e_a, e_m)
-    # no black analytic pixel where the ground truth is lit (before: all of them were 0)
-    sidx, valid = np.array(gb_a.shape_index).reshape(H, W), np.array(gb_a.valid).reshape(H, W)
-    for k, s in enumerate(sc_a.mi_scene.shapes()):
-        if not s.is_mesh():
-            lit = valid & (sidx == k) & (gt_a.sum(-1) > 1e-3)
-            assert lit.sum() > 50 and np.all(img_a[lit].sum(-1) > 0), s.class_name()
+    # black pixels where the ground truth is lit: before, every analytic pixel was 0; now
+    # the sphere has none and the other shapes no more than their meshed twins (a texel
+    # in full shadow next to a lit pixel, at shadow edges)
+    def black_lit(sc, gb, img, gt):
+        sidx, valid = np.array(gb.shape_index).reshape(H, W), np.array(gb.valid).reshape(H, W)
+        out = {}
+        for k, s in enumerate(sc.mi_scene.shapes()):
+            if s.id() in SHAPES:
+                sel = valid & (sidx == k)
+                lit = sel & (gt.sum(-1) > 0.05 * gt[sel].sum(-1).max())
+                out[s.id()] = (int(sel.sum()), int((lit & (img.sum(-1) <= 0)).sum()))
+        return out
+    ba, bm = black_lit(sc_a, gb_a, img_a, gt_a), black_lit(sc_m, gb_m, img_m, gt_m)
+    assert ba["ball"][0] > 200 and ba["ball"][1] == 0, ba
+    for k in SHAPES:
+        assert ba[k][0] > 200 and ba[k][1] <= 2 * bm[k][1] + 5, (k, ba, bm)
 
 
 def test_unsupported_shape_is_named_in_one_warning(tmp_path):
@@ -249,3 +259,28 @@ def test_bad_scenes_give_one_line_errors(tmp_path, case, words):
         load_xml(p)
     msg = str(e.value)
     assert "\n" not in msg and all(w in msg.lower() for w in words), msg
+
+
+# ---------------------------------------------------------------- bilinear fetch on a closed box
+def closed_box_xml():
+    """A closed room of 6 diffuse quads (4 x 3 x 5, normals inwards), one
+    rectangle area light just under the ceiling, the camera inside."""
+    def quad(T, rgb):
+        return (f'  <shape type="rectangle"><bsdf type="diffuse"><rgb name="reflectance" value="{rgb}"/></bsdf>'
+                f'<transform name="to_world">{T}</transform></shape>\n')
+    s = """<scene version="3.0.0">
+  <sensor type="perspective"><float name="fov" value="70"/>
+    <transform name="to_world"><lookat origin="0.6, 1.4, 2.2" target="-0.4, 1.0, -2.0" up="0, 1, 0"/></transform>
+  </sensor>
+"""
+    s += quad('<scale x="2" y="2.5"/><rotate x="1" angle="-90"/>', "0.7")                       # floor y=0
+    s += quad('<scale x="2" y="2.5"/><rotate x="1" angle="90"/><translate y="3"/>', "0.7")       # ceiling
+    s += quad('<scale x="2" y="1.5"/><translate y="1.5" z="-2.5"/>', "0.6, 0.6, 0.6")           # back
+    s += quad('<scale x="2" y="1.5"/><rotate y="1" angle="180"/><translate y="1.5" z="2.5"/>', "0.6")  # front
+    s += quad('<scale x="2.5" y="1.5"/><rotate y="1" angle="90"/><translate x="-2" y="1.5"/>', "0.7, 0.2, 0.2")
+    s += quad('<scale x="2.5" y="1.5"/><rotate y="1" angle="-90"/><translate x="2" y="1.5"/>', "0.2, 0.7, 0.2")
+    s += ('  <shape type="rectangle"><bsdf type="diffuse"><rgb name="reflectance" value="0"/></bsdf>'
+          '<emitter type="area"><rgb name="radiance" value="15"/></emitter>'
+          '<transform name="to_world"><scale value="0.5"/><rotate x="1" angle="90"/><translate y="2.99"/>'
+          '</transform></shape>\n')
+    return s + "</scene>\n"

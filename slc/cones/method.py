@@ -85,20 +85,23 @@ class SurfaceLightCones(PayloadMethod):
 
     def _shade_bilinear(self, gb, slot, ok, tf):
         """Bilinear fetch: the 4 entries around the pixel's cache coordinate, each
-        shaded with ``shade_samples / 4`` directions per cone and weighted
-        bilinearly (the same number of BSDF evaluations as a nearest fetch). The
-        cones of every tap are read in the frame of the pixel's own entry (taps
-        lie on the same island, so their normals agree to within its bound).
-        Pixels with no usable tap fall back to the nearest entry."""
+        shaded with ``shade_samples`` directions per cone (as the nearest fetch) and
+        weighted bilinearly. Splitting the directions over the taps (``shade_samples
+        / 4`` each) made the quadrature error of every tap 4x coarser: on surfaces
+        that miss the Lambertian closed form (a two-sided wall seen from its back,
+        glossy BSDFs) it doubled FLIP (docs/cones.md, "Bilinear fetch"). The cones
+        of every tap are read in the frame of the pixel's own entry (taps lie on
+        the same island, so their normals agree to within its bound). Pixels with
+        no usable tap fall back to the nearest entry."""
         K = self.max_cones
         taps, weights = self.cache.bilinear_taps(gb)
-        nS = max(self.shade_samples // 4, 1)
+        nS = self.shade_samples
         acc = dr.zeros(mi.Color3f, gb.size)
         for s_j, w_j in zip(taps, weights):
             m = ok & (w_j > 0.0)
             acc += w_j * shade_pixels_frozen(self.storage, s_j, m, gb.si, tf, K, nS)
         total = weights[0] + weights[1] + weights[2] + weights[3]
-        near = shade_pixels_frozen(self.storage, slot, ok & (total <= 0.0), gb.si, tf, K, self.shade_samples)
+        near = shade_pixels_frozen(self.storage, slot, ok & (total <= 0.0), gb.si, tf, K, nS)
         return dr.select(total > 0.0, acc, near)
 
     def stats(self) -> dict:

@@ -24,6 +24,8 @@ import mitsuba as mi
 from .blocks import _extend
 from .layout import CacheLayout
 
+EDGE_INSET = 1e-4     # border entries of analytic shapes stay this far (in u, v) inside the domain
+
 
 class TexelPoints:
     """Per slot: the global triangle and Mitsuba barycentrics of the entry's
@@ -106,7 +108,10 @@ class TexelPoints:
         with the barycentrics ``b``; then ``steps`` Newton steps on
         ``project(p(u, v)) = c`` with the Jacobian from ``dp_du``, ``dp_dv``
         (each step at most one grid cell; skipped where it is singular, e.g. a
-        pole). Non-periodic parameters stay in [0, 1]. Mesh entries keep ``b``."""
+        pole). Non-periodic parameters stay in [EDGE_INSET, 1 - EDGE_INSET]: an
+        entry exactly on a rim that touches another surface (a cylinder standing
+        on a floor) had every shadow ray blocked by that surface at t = 0.
+        Mesh entries keep ``b``."""
         L = self.layout
         shape_idx = dr.gather(mi.UInt32, L.d_isl_shape, isl)
         ana = dr.gather(mi.Bool, L.d_shape_analytic, shape_idx)
@@ -133,8 +138,8 @@ class TexelPoints:
             du = dr.clip((j11 * r.x - j01 * r.y) * inv, -1.0 / nu, 1.0 / nu)
             dv = dr.clip((j00 * r.y - j10 * r.x) * inv, -1.0 / nv, 1.0 / nv)
             u, v = uv.x + du, uv.y + dv
-            u = dr.select(pu, u, dr.clip(u, 0.0, 1.0))
-            v = dr.select(pv, v, dr.clip(v, 0.0, 1.0))
+            u = dr.select(pu, u, dr.clip(u, EDGE_INSET, 1.0 - EDGE_INSET))
+            v = dr.select(pv, v, dr.clip(v, EDGE_INSET, 1.0 - EDGE_INSET))
             uv = dr.select(ok, mi.Point2f(u, v), uv)
         return dr.select(ana, uv, b)
 
