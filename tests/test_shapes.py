@@ -174,9 +174,10 @@ def test_analytic_shapes_have_islands_and_entries_on_the_real_surface(twins):
         else:
             dev = np.abs(loc[:, 2])
         assert dev.max() < 1e-4, (name, dev.max())
-        # distance to the pixel hits in texel widths of the entry's level (meshes: median 0.4, max 0.75)
+        # distance to the pixel hits in texel widths of the entry's level: measured
+        # median 0.40, max 0.70-0.73 (meshes in docs/osc.md: 0.4, 0.75)
         d = np.linalg.norm(P[e] - hit[sel], axis=1) / info["texel_world"][e]
-        assert np.median(d) < 0.6 and d.max() < 1.5, (name, np.median(d), d.max())
+        assert np.median(d) < 0.5 and d.max() < 0.8, (name, np.median(d), d.max())
         # the entry's normal is the surface normal near the pixel (a texel spans a
         # pixel footprint, over which a small sphere's normal turns)
         cos = np.abs(np.einsum("ij,ij->i", N[e], np.array(gb.si.n).T[sel]))

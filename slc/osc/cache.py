@@ -43,8 +43,9 @@ class OnSurfaceCache:
 
     Parameters
     ----------
-    scene: :class:`slc.scenes.Scene` (its triangle meshes get islands; other
-        shapes are not cached and their pixels get INVALID slots).
+    scene: :class:`slc.scenes.Scene` (its triangle meshes and analytic
+        spheres, disks and cylinders get islands; other shapes are named in
+        one warning, not cached, and their pixels get INVALID slots).
     block_size: texels per block edge (8 as in OSC, 2 as in the slides);
         power of two.
     bias: mip bias; level = round(log2(footprint * bias / texel_size)).

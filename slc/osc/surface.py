@@ -25,6 +25,7 @@ from .blocks import _extend
 from .layout import CacheLayout
 
 EDGE_INSET = 1e-4     # border entries of analytic shapes stay this far (in u, v) inside the domain
+BORDER_INSET = 1e-3   # clamped border entries move this fraction of the way to the triangle's centroid
 
 
 class TexelPoints:
@@ -99,6 +100,13 @@ class TexelPoints:
 
         i, best_d, best_j, bu, bv = dr.while_loop((i, best_d, best_j, bu, bv), cond, body)
         tri = dr.gather(mi.UInt32, L.d_sorted_tri, best_j)
+        # a centre outside every triangle is clamped onto an edge; move it a
+        # little towards the centroid, so that an entry never sits exactly on an
+        # edge where another surface meets it (room corners: its shadow rays
+        # started on the wall's plane and were blocked at t = 0)
+        out = best_d > 0.0
+        bu = dr.select(out, bu * (1.0 - BORDER_INSET) + BORDER_INSET / 3.0, bu)
+        bv = dr.select(out, bv * (1.0 - BORDER_INSET) + BORDER_INSET / 3.0, bv)
         return tri, mi.Point2f(bu, bv)
 
     def analytic_params(self, isl, tri, b, c, steps: int = 2):
