@@ -91,10 +91,12 @@ class SurfaceLightCones(PayloadMethod):
         that miss the Lambertian closed form (a two-sided wall seen from its back,
         glossy BSDFs) it doubled FLIP (docs/cones.md, "Bilinear fetch"). The cones
         of every tap are read in the frame of the pixel's own entry (taps lie on
-        the same island, so their normals agree to within its bound). Pixels with
-        no usable tap fall back to the nearest entry."""
+        the same island, so their normals agree to within its bound). Taps are
+        limited to the entries this viewer requested this frame, so that another
+        viewer cannot change this one's image. Pixels with no usable tap fall back
+        to the nearest entry."""
         K = self.max_cones
-        taps, weights = self.cache.bilinear_taps(gb)
+        taps, weights = self.cache.bilinear_taps(gb, slot)     # this viewer's own entries only
         nS = self.shade_samples
         acc = dr.zeros(mi.Color3f, gb.size)
         for s_j, w_j in zip(taps, weights):

@@ -193,9 +193,9 @@ class OnSurfaceCache:
         return dict(island=np.array(isl), level=lv, tx=np.array(tx), ty=np.array(ty),
                     texel_world=self.layout.texel_size * np.exp2(lv.astype(np.float64)))
 
-    def bilinear_taps(self, gb):
+    def bilinear_taps(self, gb, own_slots=None):
         """See :func:`.requests.bilinear_taps`."""
-        return bilinear_taps(self.layout, self.pool, gb)
+        return bilinear_taps(self.layout, self.pool, gb, own_slots)
 
     def pixel_levels(self, gb) -> mi.UInt32:
         """Mip level of every pixel of a G-buffer (0 where nothing is cached)."""
