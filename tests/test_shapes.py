@@ -242,6 +242,25 @@ def test_scene_of_only_analytic_shapes_does_not_crash(tmp_path):
         assert np.isfinite(img).all() and img.sum() > 0
 
 
+def test_scene_with_nothing_cacheable_renders(tmp_path):
+    """Only an instance (no entries, one warning): the cache methods render the
+    environment seen around it, no crash (the layout's tables are never empty)."""
+    p = tmp_path / "inst.xml"
+    p.write_text("""<scene version="3.0.0">
+  <sensor type="perspective"><transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform></sensor>
+  <shape type="shapegroup" id="grp"><shape type="sphere"><bsdf type="diffuse"/></shape></shape>
+  <shape type="instance" id="copy"><ref id="grp"/></shape>
+  <emitter type="constant"/>
+</scene>""")
+    sc = load_xml(p)
+    for spec in ("slc", "slc:fetch=nearest", "sh"):
+        with pytest.warns(UserWarning, match="copy"):
+            img, gt, gb, _ = _render(sc, spec, frames=2)
+        valid = np.array(gb.valid).reshape(H, W)
+        assert np.isfinite(img).all() and valid.any()
+        assert np.all(img[valid] == 0) and np.allclose(img[~valid], gt[~valid])
+
+
 @pytest.mark.parametrize("case,words", [
     ("no_shapes", ["no shapes"]),
     ("zero_fov", ["degenerate camera", "field of view"]),

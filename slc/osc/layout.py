@@ -34,11 +34,15 @@ MAX_LEVELS = 20
 
 
 def u32(a) -> mi.UInt32:
-    return mi.UInt32(np.ascontiguousarray(a, dtype=np.uint32))
+    """A Dr.Jit table; never empty (a masked gather from an empty array still
+    raises: a scene with nothing cacheable gets one-element tables)."""
+    a = np.ascontiguousarray(a, dtype=np.uint32).ravel()
+    return mi.UInt32(a if a.size else np.zeros(1, np.uint32))
 
 
 def f32(a) -> mi.Float:
-    return mi.Float(np.ascontiguousarray(a, dtype=np.float32))
+    a = np.ascontiguousarray(a, dtype=np.float32).ravel()
+    return mi.Float(a if a.size else np.zeros(1, np.float32))
 
 
 class CacheLayout:
@@ -160,7 +164,7 @@ class CacheLayout:
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]]) if ni else np.zeros(0, np.int64)
         # Dr.Jit tables
         self.d_tri_base = u32(tri_base)
-        self.d_has_cache = mi.Bool(has_cache.tolist()) if self.n_shapes else mi.Bool()
+        self.d_has_cache = mi.Bool(has_cache.tolist() if self.n_shapes else [False])
         self.d_tri_island = u32(tri_island)
         self.d_tri_uv = f32(tri_uv.ravel())            # 6 floats per triangle
         self.d_isl_shape = u32(isl_shape)
@@ -244,10 +248,8 @@ class CacheLayout:
         the island-level key ``isl * levels + lvl``)."""
         sidx = mi.UInt32(gb.shape_index)
         valid = mi.Bool(gb.valid) & (sidx < self.n_shapes)
-        if self.n_islands == 0:          # nothing cacheable: every pixel invalid, no gather
+        if self.n_islands == 0:          # nothing cacheable: every pixel invalid
             valid &= False
-            z = dr.zeros(mi.UInt32, dr.width(valid))
-            return valid, z, dr.zeros(mi.Point2f, dr.width(valid)), z, z
         valid &= dr.gather(mi.Bool, self.d_has_cache, sidx, valid)
         tri = dr.gather(mi.UInt32, self.d_tri_base, sidx, valid) + mi.UInt32(gb.prim_index)
         if self.has_analytic:
@@ -321,7 +323,7 @@ class CacheLayout:
     def block_of(self, vb):
         """(island-level key, block x, block y) of virtual blocks: a binary
         search in the per-(island, level) bases."""
-        n_tab = dr.width(self.d_lvl_base)
+        n_tab = len(self._np_lvl_base)
         k = mi.UInt32(dr.binary_search(0, n_tab, lambda i: dr.gather(mi.UInt32, self.d_lvl_base, i) <= vb)) - 1
         local = vb - dr.gather(mi.UInt32, self.d_lvl_base, k)
         # max(.., 1): masked-off SIMD lanes of a gather read 0, and an integer
