@@ -485,8 +485,14 @@ def load_xml(path: Path, exposure: float = 1.0) -> Scene:
         sc = mi.load_file(str(path))
     except Exception as e:  # Mitsuba raises RuntimeError with a long message
         msg = str(e).strip().splitlines()
-        raise SceneError(f"cannot parse scene {path}: {msg[-1] if msg else type(e).__name__}") from None
+        last = msg[-1] if msg else type(e).__name__
+        if any(w in last for w in ("lookat", "field of view", "sensor plugin")):
+            # Mitsuba rejects a zero fov or a look-at whose target is its origin
+            raise SceneError(f"degenerate camera in scene {path}: {last.split(': ', 1)[-1]}") from None
+        raise SceneError(f"cannot parse scene {path}: {last}") from None
     check_emitters(sc, path.name)
+    if len(sc.shapes()) == 0:
+        raise SceneError(f"scene '{path.name}' has no shapes (only emitters): nothing to shade")
     paths = []
     bb = sc.bbox()
     lo, hi = np.array(bb.min, float).ravel(), np.array(bb.max, float).ravel()

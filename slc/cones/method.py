@@ -56,7 +56,7 @@ class SurfaceLightCones(PayloadMethod):
         Param("epsilon", 0.1, "shrink test at (1 - epsilon) alpha", lo=1e-6, hi=1 - 1e-6),
         Param("shrink_period", 4, "settled entries run the shrink test every k-th frame", lo=1, hi=1024),
         Param("beta_min", 1.0, "degrees: smaller cone turns neither reduce C nor count as motion", lo=0.0),
-        Param("fetch", "nearest", "nearest entry, or the 4 surrounding entries weighted bilinearly",
+        Param("fetch", "bilinear", "the 4 surrounding entries weighted bilinearly, or the nearest entry",
               choices=("nearest", "bilinear")),
     ) + PayloadMethod.cache_params
 
@@ -92,14 +92,19 @@ class SurfaceLightCones(PayloadMethod):
 
     def _shade_bilinear(self, gb, slot, ok, tf, frame):
         """Bilinear fetch: the 4 entries around the pixel's cache coordinate, each
-        shaded with ``shade_samples / 4`` directions per cone and weighted
-        bilinearly (the same number of BSDF evaluations as a nearest fetch). The
-        cones of every tap are read in the frame of the pixel's own entry (taps
-        lie on the same island, so their normals agree to within its bound).
-        Pixels with no usable tap fall back to the nearest entry."""
+        shaded with ``shade_samples`` directions per cone (as the nearest fetch) and
+        weighted bilinearly. Splitting the directions over the taps (``shade_samples
+        / 4`` each) made the quadrature error of every tap 4x coarser: on surfaces
+        that miss the Lambertian closed form (a two-sided wall seen from its back,
+        glossy BSDFs) it doubled FLIP (docs/cones.md, "Bilinear fetch"). The cones
+        of every tap are read in the frame of the pixel's own entry (taps lie on
+        the same island, so their normals agree to within its bound). Taps are
+        limited to the entries this viewer requested this frame, so that another
+        viewer cannot change this one's image. Pixels with no usable tap fall back
+        to the nearest entry."""
         K = self.max_cones
-        taps, weights = self.cache.bilinear_taps(gb)
-        nS = max(self.shade_samples // 4, 1)
+        taps, weights = self.cache.bilinear_taps(gb, slot)     # this viewer's own entries only
+        nS = self.shade_samples
         shade = shader_for(self, K)
         acc = dr.zeros(mi.Color3f, gb.size)
         for j, (s_j, w_j) in enumerate(zip(taps, weights)):

@@ -7,15 +7,16 @@ Modules, one concept each:
   (:class:`FrameRequests`, :class:`SurfaceCache`, declared capabilities);
 - :mod:`.payload`: :class:`PayloadMethod`, the base class of cache methods
   (it owns ``render()``: frame requests, the ray policy, update, shading);
-- :mod:`.islands`: islands, their texture spaces and the per-mesh atlas (numpy set-up);
+- :mod:`.islands`: islands, their texture spaces, the per-mesh atlas, analytic shapes' grids (numpy set-up);
 - :mod:`.layout`: islands and levels as Dr.Jit tables, the virtual block space;
 - :mod:`.blocks`: the two-level block table and the physical block pool (allocation, eviction);
-- :mod:`.surface`: each entry's own surface point (triangle lookup);
+- :mod:`.surface`: each entry's own surface point (triangle lookup, analytic (u, v));
 - :mod:`.requests`: slot dedupe over viewers, LOD seeds, bilinear taps;
 - :mod:`.cache`: :class:`OnSurfaceCache`, the per-frame stages.
 
-Not done: non-mesh shapes (analytic spheres etc.) get INVALID slots; the
-back side of a triangle shares the front side's entries; new entries are
+Analytic spheres, disks and cylinders are cached through a (u, v) grid
+used for their layout only; other non-mesh shapes get INVALID slots (one
+warning names them). Not done: the back side of a triangle shares the front side's entries; new entries are
 seeded from coarser entries only (not from finer ones).
 Design and numbers: docs/osc.md.
 """

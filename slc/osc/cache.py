@@ -43,8 +43,9 @@ class OnSurfaceCache:
 
     Parameters
     ----------
-    scene: :class:`slc.scenes.Scene` (its triangle meshes get islands; other
-        shapes are not cached and their pixels get INVALID slots).
+    scene: :class:`slc.scenes.Scene` (its triangle meshes and analytic
+        spheres, disks and cylinders get islands; other shapes are named in
+        one warning, not cached, and their pixels get INVALID slots).
     block_size: texels per block edge (8 as in OSC, 2 as in the slides);
         power of two.
     bias: mip bias; level = round(log2(footprint * bias / texel_size)).
@@ -198,9 +199,9 @@ class OnSurfaceCache:
         return dict(island=np.array(isl), level=lv, tx=np.array(tx), ty=np.array(ty),
                     texel_world=self.layout.texel_size * np.exp2(lv.astype(np.float64)))
 
-    def bilinear_taps(self, gb):
+    def bilinear_taps(self, gb, own_slots=None):
         """See :func:`.requests.bilinear_taps`."""
-        return bilinear_taps(self.layout, self.pool, gb)
+        return bilinear_taps(self.layout, self.pool, gb, own_slots)
 
     def pixel_levels(self, gb) -> mi.UInt32:
         """Mip level of every pixel of a G-buffer (0 where nothing is cached)."""

@@ -7,32 +7,47 @@ cut into ``B x B`` virtual blocks, numbered consecutively over all
 (island, level) pairs: ``vblock = base[isl, lvl] + (ty >> log2 B) * nbx[isl, lvl] + (tx >> log2 B)``.
 Nothing here changes per frame; the block table that maps virtual blocks to
 memory is :mod:`.blocks`.
+
+Meshes map a hit to its texel by barycentrics (``gb.prim_index``,
+``gb.prim_uv``). Analytic shapes (sphere, disk, cylinder) get islands built
+on a tessellation of their (u, v) square (:func:`.islands.tessellate_analytic`):
+a hit's grid triangle comes from its ``si.uv`` directly (no 3D search), its
+island is that triangle's, and its texel coordinates are the orthographic
+projection of ``si.p`` on the island's plane (the same projection that made
+the island's texture space). Other shapes get no entries (one warning).
 """
 from __future__ import annotations
 
 import math
+import warnings
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from ..keys import INVALID
-from .islands import DEFAULT_MAX_ANGLE, DEFAULT_MAX_TRIANGLES, MeshIslands, build_mesh_islands
+from .islands import (ANALYTIC_KIND, DEFAULT_MAX_ANGLE, DEFAULT_MAX_TRIANGLES, MeshIslands, ParamGrid,
+                      build_mesh_islands, shape_to_world, tessellate_analytic)
 
 DEFAULT_TARGET_TEXELS = 2 ** 24      # level-0 texels over the whole scene when texel_size is None
 MAX_LEVELS = 20
 
 
 def u32(a) -> mi.UInt32:
-    return mi.UInt32(np.ascontiguousarray(a, dtype=np.uint32))
+    """A Dr.Jit table; never empty (a masked gather from an empty array still
+    raises: a scene with nothing cacheable gets one-element tables)."""
+    a = np.ascontiguousarray(a, dtype=np.uint32).ravel()
+    return mi.UInt32(a if a.size else np.zeros(1, np.uint32))
 
 
 def f32(a) -> mi.Float:
-    return mi.Float(np.ascontiguousarray(a, dtype=np.float32))
+    a = np.ascontiguousarray(a, dtype=np.float32).ravel()
+    return mi.Float(a if a.size else np.zeros(1, np.float32))
 
 
 class CacheLayout:
-    """Islands, levels and the virtual block space of a scene's meshes.
+    """Islands, levels and the virtual block space of a scene's meshes and
+    analytic shapes.
 
     Parameters: ``block_size`` (texels per block edge, a power of two),
     ``bias`` (mip bias), ``texel_size`` (world size of a level-0 texel;
@@ -52,23 +67,33 @@ class CacheLayout:
         self._build_tables()
 
     # ------------------------------------------------------------------ set-up
-    def _meshes(self):
-        out = []
+    def _surfaces(self):
+        """(shape index, V, F, ParamGrid or None) of every cacheable shape:
+        meshes, and analytic shapes through their parameter-space grid. Other
+        shapes are named in one warning."""
+        out, skipped = [], []
         for k, sh in enumerate(self.mi_scene.shapes()):
-            if not sh.is_mesh():
+            if sh.is_mesh():
+                V = np.array(sh.vertex_positions_buffer(), np.float32).reshape(-1, 3)
+                F = np.array(sh.faces_buffer(), np.uint32).reshape(-1, 3)
+                if len(F):
+                    out.append((k, V, F, None))
                 continue
-            V = np.array(sh.vertex_positions_buffer(), np.float32).reshape(-1, 3)
-            F = np.array(sh.faces_buffer(), np.uint32).reshape(-1, 3)
-            if len(F) == 0:
+            grid = tessellate_analytic(sh)
+            if grid is None:
+                skipped.append(f"{sh.id() or k} ({sh.class_name()})")
                 continue
-            out.append((k, V, F))
+            out.append((k, grid.V.astype(np.float32), grid.F.astype(np.uint32), grid))
+        if skipped:
+            warnings.warn(f"on-surface cache: no entries for {len(skipped)} shape(s) of unsupported type, "
+                          f"their pixels stay black: {', '.join(skipped)}", stacklevel=3)
         return out
 
     def _build_islands(self, texel_size):
-        meshes = self._meshes()
+        surfaces = self._surfaces()
         self.n_shapes = len(self.mi_scene.shapes())
         area = 0.0
-        for _, V, F in meshes:
+        for _, V, F, _ in surfaces:
             V64 = V.astype(np.float64)
             c = np.cross(V64[F[:, 1]] - V64[F[:, 0]], V64[F[:, 2]] - V64[F[:, 0]])
             area += 0.5 * float(np.linalg.norm(c, axis=1).sum())
@@ -78,11 +103,15 @@ class CacheLayout:
         self.texel_size = float(texel_size)
         self.islands: list[MeshIslands] = []
         self.mesh_data = {}
-        for k, V, F in meshes:
+        self.grids: dict[int, ParamGrid] = {}
+        for k, V, F, grid in surfaces:
             isl = build_mesh_islands(V, F, self.texel_size, shape_index=k,
                                      max_angle=self.max_angle, max_triangles=self.max_triangles)
             self.islands.append(isl)
             self.mesh_data[k] = (V, F)
+            if grid is not None:
+                self.grids[k] = grid
+        self.has_analytic = bool(self.grids)
 
     def _build_tables(self):
         B = self.block_size
@@ -135,7 +164,7 @@ class CacheLayout:
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]]) if ni else np.zeros(0, np.int64)
         # Dr.Jit tables
         self.d_tri_base = u32(tri_base)
-        self.d_has_cache = mi.Bool(has_cache.tolist()) if self.n_shapes else mi.Bool()
+        self.d_has_cache = mi.Bool(has_cache.tolist() if self.n_shapes else [False])
         self.d_tri_island = u32(tri_island)
         self.d_tri_uv = f32(tri_uv.ravel())            # 6 floats per triangle
         self.d_isl_shape = u32(isl_shape)
@@ -149,6 +178,53 @@ class CacheLayout:
         self.d_lvl_w = u32(w.ravel())
         self.d_lvl_h = u32(h.ravel())
         self.d_isl_dims = u32(dims.ravel())
+        if self.has_analytic:
+            self._build_analytic_tables(nt, ni)
+
+    def _build_analytic_tables(self, nt, ni):
+        """Per shape: analytic flag, grid size, periodic flags and the base of
+        its grid-triangle map; per triangle the (u, v) of its corners (zero for
+        mesh triangles); per island its plane (2 axes, origin) to project hits."""
+        ns = self.n_shapes
+        analytic = np.zeros(ns, bool)
+        grid_dims = np.ones((ns, 2), np.int64)
+        periodic = np.zeros((ns, 2), bool)
+        gbase = np.zeros(ns, np.int64)
+        kind = np.zeros(ns, np.int64)
+        xform = np.tile(np.eye(4), (ns, 1, 1))
+        shapes = self.mi_scene.shapes()
+        gmap, ng = [], 0
+        tri_param = np.zeros((nt, 6))
+        axes = np.zeros((ni, 2, 3))
+        origin = np.zeros((ni, 2))
+        for m in self.islands:
+            k = m.shape_index
+            i0 = self.island_base[k]
+            axes[i0:i0 + m.n_islands] = m.axes
+            origin[i0:i0 + m.n_islands] = m.origin
+            g = self.grids.get(k)
+            if g is None:
+                continue
+            analytic[k] = True
+            kind[k] = ANALYTIC_KIND[shapes[k].class_name()]
+            xform[k] = shape_to_world(shapes[k])
+            grid_dims[k] = (g.nu, g.nv)
+            periodic[k] = g.periodic
+            gbase[k] = ng
+            gmap.append(g.grid_tri)
+            ng += len(g.grid_tri)
+            t0 = int(self._np_tri_base[k])
+            tri_param[t0:t0 + len(g.F)] = g.corner_param.reshape(-1, 6)
+        self.d_shape_analytic = mi.Bool(analytic.tolist())
+        self.d_shape_kind = u32(kind)
+        self.d_shape_xform = f32(xform.ravel())          # 16 floats per shape, row-major
+        self.d_grid_dims = u32(grid_dims.ravel())
+        self.d_grid_periodic = mi.Bool(periodic.ravel().tolist())
+        self.d_grid_base = u32(gbase)
+        self.d_grid_tri = u32(np.concatenate(gmap))
+        self.d_tri_param = f32(tri_param.ravel())
+        self.d_isl_axes = f32(axes.ravel())
+        self.d_isl_origin = f32(origin.ravel())
 
     # ------------------------------------------------------------------ addressing
     def vblock(self, key, tx, ty, active=True) -> mi.UInt32:
@@ -172,10 +248,17 @@ class CacheLayout:
         the island-level key ``isl * levels + lvl``)."""
         sidx = mi.UInt32(gb.shape_index)
         valid = mi.Bool(gb.valid) & (sidx < self.n_shapes)
+        if self.n_islands == 0:          # nothing cacheable: every pixel invalid
+            valid &= False
         valid &= dr.gather(mi.Bool, self.d_has_cache, sidx, valid)
         tri = dr.gather(mi.UInt32, self.d_tri_base, sidx, valid) + mi.UInt32(gb.prim_index)
+        if self.has_analytic:
+            ana = valid & dr.gather(mi.Bool, self.d_shape_analytic, sidx, valid)
+            tri = dr.select(ana, self.grid_triangle(sidx, gb.si.uv, ana), tri)
         isl = dr.gather(mi.UInt32, self.d_tri_island, tri, valid)
         uv = self.bary_uv(tri, gb.prim_uv, valid)
+        if self.has_analytic:
+            uv = dr.select(ana, self.project(isl, gb.si.p, ana), uv)
         lvl = self.level_of(gb.footprint, isl, valid)
         return valid, isl, uv, lvl, isl * self.levels + lvl
 
@@ -197,6 +280,39 @@ class CacheLayout:
         u, v = prim_uv.x, prim_uv.y
         return c0 * (1.0 - u - v) + c1 * u + c2 * v
 
+    def grid_triangle(self, sidx, uv, active) -> mi.UInt32:
+        """Global triangle of an analytic shape's grid holding the parameter
+        point ``uv`` (the cell from ``floor(uv * (nu, nv))``, the side of its
+        diagonal from the fractions; collapsed triangles map to their cell's other one)."""
+        nu = dr.gather(mi.UInt32, self.d_grid_dims, sidx * 2 + 0, active)
+        nv = dr.gather(mi.UInt32, self.d_grid_dims, sidx * 2 + 1, active)
+        fu = dr.clip(mi.Float(uv.x), 0.0, 1.0) * mi.Float(nu)
+        fv = dr.clip(mi.Float(uv.y), 0.0, 1.0) * mi.Float(nv)
+        ci = dr.minimum(mi.UInt32(dr.floor(fu)), nu - 1)
+        cj = dr.minimum(mi.UInt32(dr.floor(fv)), nv - 1)
+        second = (fu - mi.Float(ci)) + (fv - mi.Float(cj)) > 1.0
+        g = 2 * (cj * nu + ci) + dr.select(second, 1, 0)
+        local = dr.gather(mi.UInt32, self.d_grid_tri, dr.gather(mi.UInt32, self.d_grid_base, sidx, active) + g,
+                          active)
+        return dr.gather(mi.UInt32, self.d_tri_base, sidx, active) + local
+
+    def project(self, isl, p, active=True) -> mi.Point2f:
+        """Island-local level-0 texel coordinates of a world point: the
+        orthographic projection on the island's plane that built its texture space."""
+        a0 = dr.gather(mi.Vector3f, self.d_isl_axes, isl * 2 + 0, active)
+        a1 = dr.gather(mi.Vector3f, self.d_isl_axes, isl * 2 + 1, active)
+        o = dr.gather(mi.Point2f, self.d_isl_origin, isl, active)
+        inv = 1.0 / self.texel_size
+        return mi.Point2f((dr.dot(a0, mi.Vector3f(p)) - o.x) * inv, (dr.dot(a1, mi.Vector3f(p)) - o.y) * inv)
+
+    def analytic_point(self, sidx, uv, active=True):
+        """World (p, dp_du, dp_dv) of parameter points of analytic shapes
+        (closed forms, :func:`.islands.analytic_point`)."""
+        from .islands import analytic_point
+        rows = [[dr.gather(mi.Float, self.d_shape_xform, sidx * 16 + (4 * r + c), active) for c in range(4)]
+                for r in range(3)]
+        return analytic_point(dr.gather(mi.UInt32, self.d_shape_kind, sidx, active), rows, uv)
+
     def level_of(self, footprint, isl, active=True) -> mi.UInt32:
         """Mip level clamp(round(log2(footprint * bias / texel_size)), 0, island top level)."""
         r = mi.Float(footprint) * (self.bias / self.texel_size)
@@ -207,7 +323,7 @@ class CacheLayout:
     def block_of(self, vb):
         """(island-level key, block x, block y) of virtual blocks: a binary
         search in the per-(island, level) bases."""
-        n_tab = dr.width(self.d_lvl_base)
+        n_tab = len(self._np_lvl_base)
         k = mi.UInt32(dr.binary_search(0, n_tab, lambda i: dr.gather(mi.UInt32, self.d_lvl_base, i) <= vb)) - 1
         local = vb - dr.gather(mi.UInt32, self.d_lvl_base, k)
         # max(.., 1): masked-off SIMD lanes of a gather read 0, and an integer

@@ -69,24 +69,37 @@ def lod_seeds(layout: CacheLayout, pool: BlockPool, isl, lvl, tx, ty) -> mi.UInt
     return seed
 
 
-def bilinear_taps(layout: CacheLayout, pool: BlockPool, gb):
+def bilinear_taps(layout: CacheLayout, pool: BlockPool, gb, own_slots=None):
     """The 4 entries around each pixel's cache coordinate at the pixel's
     level (texel centres at +0.5), with bilinear weights: ``(slots[4],
     weights[4])``. A tap whose block is not mapped, or whose entry was never
     updated, gets weight 0; the weights of the others are renormalised (all
     zero when none is usable). Taps are clamped to the island's texel
-    rectangle, so they never read another island."""
+    rectangle, so they never read another island.
+
+    ``own_slots`` (the viewer's ``fr.pixel_slot[v]``): only entries this
+    viewer requested in this frame are used. Without it a tap could be an
+    entry that exists or is fresh only because another viewer asked for it,
+    and a second viewer would change the first one's image (and a tap could be
+    an entry last updated many frames ago)."""
     valid, isl, uv, lvl, k = layout.pixel_coords(gb)
     wl, hl = layout.key_extent(k, valid)
     scale = dr.rcp(mi.Float(mi.UInt32(1) << lvl))
     fx, fy = uv.x * scale - 0.5, uv.y * scale - 0.5
     x0, y0 = dr.floor(fx), dr.floor(fy)
     ax, ay = fx - x0, fy - y0
+    own = None
+    if own_slots is not None:
+        own_slots = mi.UInt32(own_slots)
+        own = dr.zeros(mi.Bool, max(pool.capacity, 1))
+        dr.scatter(own, True, own_slots, own_slots != INVALID)
     slots, weights = [], []
     for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
         tx = mi.UInt32(dr.clip(mi.Int32(x0) + dx, 0, wl - 1))
         ty = mi.UInt32(dr.clip(mi.Int32(y0) + dy, 0, hl - 1))
         slot = pool.slot(layout.vblock(k, tx, ty, valid), layout.within(tx, ty), valid)
+        if own is not None:
+            slot = dr.select((slot != INVALID) & dr.gather(mi.Bool, own, slot, slot != INVALID), slot, INVALID)
         w = (ax if dx else 1.0 - ax) * (ay if dy else 1.0 - ay)
         slots.append(slot)
         weights.append(dr.select(slot != INVALID, w, 0.0))

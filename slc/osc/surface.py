@@ -7,6 +7,14 @@ the texel centre (else the nearest one) is found by a brute-force search in
 the island's 2D texture space, and its (triangle, barycentrics) are kept per
 slot; every frame the active entries' ``SurfaceInteraction3f`` is rebuilt
 from them with ``PreliminaryIntersection3f.compute_surface_interaction``.
+
+Analytic shapes (sphere, disk, cylinder): the same 2D search runs over the
+island's triangles of the shape's parameter-space grid; the barycentrics
+interpolate the triangle's corner (u, v), two Newton steps move (u, v) so
+that the real surface point (closed form) projects onto the texel centre,
+and the slot keeps (u, v) instead of barycentrics; every frame the entry's
+interaction is Mitsuba's ``compute_surface_interaction`` at that point of
+the real surface (never on the tessellation).
 """
 from __future__ import annotations
 
@@ -16,10 +24,14 @@ import mitsuba as mi
 from .blocks import _extend
 from .layout import CacheLayout
 
+EDGE_INSET = 1e-4     # border entries of analytic shapes stay this far (in u, v) inside the domain
+BORDER_INSET = 1e-3   # clamped border entries move this fraction of the way to the triangle's centroid
+
 
 class TexelPoints:
     """Per slot: the global triangle and Mitsuba barycentrics of the entry's
-    surface point (12 bytes), for a pool of ``capacity`` slots."""
+    surface point (analytic shapes: the shape's (u, v) instead of
+    barycentrics; 12 bytes), for a pool of ``capacity`` slots."""
 
     def __init__(self, layout: CacheLayout, capacity: int):
         self.layout = layout
@@ -41,6 +53,8 @@ class TexelPoints:
         size = mi.Float(mi.UInt32(1) << lvl)
         c = mi.Point2f((mi.Float(tx) + 0.5) * size, (mi.Float(ty) + 0.5) * size)
         tri, b = self.lookup(isl, c)
+        if self.layout.has_analytic:
+            b = self.analytic_params(isl, tri, b, c)
         dr.scatter(self.slot_tri, tri, slots)
         dr.scatter(self.slot_b, b, slots)
 
@@ -86,7 +100,56 @@ class TexelPoints:
 
         i, best_d, best_j, bu, bv = dr.while_loop((i, best_d, best_j, bu, bv), cond, body)
         tri = dr.gather(mi.UInt32, L.d_sorted_tri, best_j)
+        # a centre outside every triangle is clamped onto an edge; move it a
+        # little towards the centroid, so that an entry never sits exactly on an
+        # edge where another surface meets it (room corners: its shadow rays
+        # started on the wall's plane and were blocked at t = 0)
+        out = best_d > 0.0
+        bu = dr.select(out, bu * (1.0 - BORDER_INSET) + BORDER_INSET / 3.0, bu)
+        bv = dr.select(out, bv * (1.0 - BORDER_INSET) + BORDER_INSET / 3.0, bv)
         return tri, mi.Point2f(bu, bv)
+
+    def analytic_params(self, isl, tri, b, c, steps: int = 2):
+        """For entries of analytic shapes: the (u, v) parameters whose surface
+        point projects onto the texel centre ``c`` (island level-0 texel
+        coordinates). Start: the grid triangle's corner (u, v) interpolated
+        with the barycentrics ``b``; then ``steps`` Newton steps on
+        ``project(p(u, v)) = c`` with the Jacobian from ``dp_du``, ``dp_dv``
+        (each step at most one grid cell; skipped where it is singular, e.g. a
+        pole). Non-periodic parameters stay in [EDGE_INSET, 1 - EDGE_INSET]: an
+        entry exactly on a rim that touches another surface (a cylinder standing
+        on a floor) had every shadow ray blocked by that surface at t = 0.
+        Mesh entries keep ``b``."""
+        L = self.layout
+        shape_idx = dr.gather(mi.UInt32, L.d_isl_shape, isl)
+        ana = dr.gather(mi.Bool, L.d_shape_analytic, shape_idx)
+        c0 = dr.gather(mi.Point2f, L.d_tri_param, tri * 3 + 0, ana)
+        c1 = dr.gather(mi.Point2f, L.d_tri_param, tri * 3 + 1, ana)
+        c2 = dr.gather(mi.Point2f, L.d_tri_param, tri * 3 + 2, ana)
+        uv = c0 * (1.0 - b.x - b.y) + c1 * b.x + c2 * b.y
+        nu = mi.Float(dr.gather(mi.UInt32, L.d_grid_dims, shape_idx * 2 + 0, ana))
+        nv = mi.Float(dr.gather(mi.UInt32, L.d_grid_dims, shape_idx * 2 + 1, ana))
+        pu = dr.gather(mi.Bool, L.d_grid_periodic, shape_idx * 2 + 0, ana)
+        pv = dr.gather(mi.Bool, L.d_grid_periodic, shape_idx * 2 + 1, ana)
+        a0 = dr.gather(mi.Vector3f, L.d_isl_axes, isl * 2 + 0, ana)
+        a1 = dr.gather(mi.Vector3f, L.d_isl_axes, isl * 2 + 1, ana)
+        inv_ts = 1.0 / L.texel_size
+        for _ in range(steps):
+            p, dp_du, dp_dv = L.analytic_point(shape_idx, uv, ana)
+            r = c - L.project(isl, p, ana)
+            j00, j01 = dr.dot(a0, dp_du) * inv_ts, dr.dot(a0, dp_dv) * inv_ts
+            j10, j11 = dr.dot(a1, dp_du) * inv_ts, dr.dot(a1, dp_dv) * inv_ts
+            det = j00 * j11 - j01 * j10
+            scale = dr.maximum(dr.maximum(dr.abs(j00), dr.abs(j01)), dr.maximum(dr.abs(j10), dr.abs(j11)))
+            ok = ana & (dr.abs(det) > 1e-6 * scale * scale) & dr.isfinite(det)
+            inv = dr.select(ok, dr.rcp(det), 0.0)
+            du = dr.clip((j11 * r.x - j01 * r.y) * inv, -1.0 / nu, 1.0 / nu)
+            dv = dr.clip((j00 * r.y - j10 * r.x) * inv, -1.0 / nv, 1.0 / nv)
+            u, v = uv.x + du, uv.y + dv
+            u = dr.select(pu, u, dr.clip(u, EDGE_INSET, 1.0 - EDGE_INSET))
+            v = dr.select(pv, v, dr.clip(v, EDGE_INSET, 1.0 - EDGE_INSET))
+            uv = dr.select(ok, mi.Point2f(u, v), uv)
+        return dr.select(ana, uv, b)
 
     def surface_interaction(self, isl, tri, b) -> mi.SurfaceInteraction3f:
         L = self.layout
@@ -100,6 +163,20 @@ class TexelPoints:
         pi.shape_index = shape_idx
         pi.shape = dr.gather(mi.ShapePtr, L.mi_scene.shapes_dr(), shape_idx)
         ray = mi.Ray3f(mi.Point3f(0.0), mi.Vector3f(0.0, 0.0, 1.0))
+        if L.has_analytic:
+            # analytic shapes: a ray that starts on the closed-form point (t = 0)
+            # and Mitsuba's own compute_surface_interaction (which reprojects p
+            # onto the surface and sets uv, frames, derivatives); the disk reads
+            # its object-space (x, y) from prim_uv
+            ana = dr.gather(mi.Bool, L.d_shape_analytic, shape_idx)
+            p, dp_du, dp_dv = L.analytic_point(shape_idx, b, ana)
+            kind = dr.gather(mi.UInt32, L.d_shape_kind, shape_idx, ana)
+            sphi, cphi = dr.sincos(dr.two_pi * b.y)
+            disk = ana & (kind == 2)
+            pi.prim_uv = dr.select(disk, mi.Point2f(b.x * cphi, b.x * sphi), pi.prim_uv)
+            pi.t = dr.select(ana, 0.0, pi.t)
+            n = dr.normalize(dr.cross(dp_du, dp_dv))
+            ray = mi.Ray3f(dr.select(ana, p, ray.o), dr.select(ana, -n, ray.d))
         si = pi.compute_surface_interaction(ray, mi.RayFlags.All)
         si.wi = mi.Vector3f(0.0, 0.0, 1.0)     # "viewer" along the shading normal
         return si
