@@ -136,9 +136,11 @@ class EmitterSampler:
         table = np.full(int(ids.max()) + 1 if len(ids) else 1, 0xFFFFFFFF, dtype=np.uint32)
         table[ids] = np.arange(len(ids), dtype=np.uint32)
         self._id_to_index = mi.UInt32(table)
-        # get_shape() may return the base class: take the scene's own (typed) object
-        want = {e.get_shape().id() for e in self.emitters if e.get_shape() is not None}
-        self._shapes = {sh.id(): sh for sh in scene.shapes() if sh.id() in want}
+        # get_shape() may return the base class: take the scene's own (typed) object, found by
+        # its emitter (shape ids are not unique: unnamed XML shapes can share one)
+        by_emitter = {_ptr(sh.emitter()): sh for sh in scene.shapes() if sh.is_emitter()}
+        self._shapes = {i: by_emitter.get(_ptr(e), e.get_shape()) for i, e in enumerate(self.emitters)
+                        if e.get_shape() is not None}
         self._build()
 
     # ------------------------------------------------------------------ set-up
@@ -151,7 +153,7 @@ class EmitterSampler:
         if cls == "AreaLight" and "radiance.value" in params.keys():
             L = _rgb(params["radiance.value"])
             sh = e.get_shape()
-            sh = self._shapes.get(sh.id(), sh) if sh is not None else None
+            sh = self._shapes.get(i, sh) if sh is not None else None
             if L is not None and sh is not None:
                 name = sh.class_name()
                 if name == "Rectangle":
@@ -226,7 +228,7 @@ class EmitterSampler:
             if kind == MESH:
                 m = len(g["area"])
                 ent_p.append(pmf[k] * g["area"] / g["A"] if g["A"] > 0.0 else np.zeros(m))
-                sh = self._shapes[self.emitters[i].get_shape().id()]
+                sh = self._shapes[i]
                 self._mesh_buffers.append([sh, sh.vertex_positions_buffer(), sum(len(x) for x in ent_p) - m, m])
             else:
                 m = 1
@@ -523,6 +525,11 @@ class EmitterSampler:
         ds = mi.DirectionSample3f(scene, si2, si)
         ds.n = dr.select(si2.is_valid(), mi.Normal3f(si2.n), ds.n)
         return self.pdf(si, ds, active)
+
+
+def _ptr(emitter) -> int:
+    """Registry id of an emitter (a stable identity for one process)."""
+    return int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(emitter))[0])
 
 
 def _scattered(arr, value, index):
