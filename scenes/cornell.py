@@ -23,11 +23,11 @@ def build(**options):
                emission=LIGHT_RADIANCE, name="light")
     paths = [
         CameraPath([([0, 1, 3.4], [0, 1, 0]), ([0.5, 1.2, 3.0], [0, 0.9, 0]), ([-0.4, 1.1, 3.2], [0, 1, 0])],
-                   frames=64, fov=45, name="front"),
+                   fov=45, name="front"),
         CameraPath([([0.7, 1.6, 0.9], [-0.3, 0.3, -0.5]), ([-0.7, 1.5, 0.8], [0.3, 0.3, -0.4]),
-                    ([0.0, 1.7, 0.7], [0, 0, -0.6])], frames=64, fov=55, name="above"),
+                    ([0.0, 1.7, 0.7], [0, 0, -0.6])], fov=55, name="above"),
         CameraPath([([-0.8, 0.4, 0.9], [0.5, 0.8, -0.8]), ([0.8, 0.5, 0.9], [-0.5, 0.9, -0.8]),
-                    ([0.0, 0.3, 0.95], [0.0, 1.2, -1.0])], frames=64, fov=60, name="low"),
+                    ([0.0, 0.3, 0.95], [0.0, 1.2, -1.0])], fov=60, name="low"),
     ]
     return b.build(paths, exposure=1.0, unit=1.0, meeting_center=[0, 0.8, -0.2],
                    description=__doc__.strip())

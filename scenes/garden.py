@@ -144,20 +144,19 @@ def build(**options):
     else:
         b.add_envmap(rgb=ENV_CONSTANT)
 
-    f = 64
     paths = [
         CameraPath([([-7.5, 1.7, -8.5], [4.0, 1.5, 2.0]), ([-3.0, 1.7, -8.8], [6.0, 2.0, -3.0]),
                     ([2.0, 1.6, -8.5], [-3.0, 2.0, 6.0]), ([7.0, 1.8, -8.6], [0.0, 1.0, 0.0])],
-                   frames=f, fov=60, name="arcade_walk"),
+                   fov=60, name="arcade_walk"),
         CameraPath([([0.0, 1.6, 6.5], [6.0, 3.0, -4.0]), ([-5.0, 1.7, 3.0], [5.5, 3.0, -4.0]),
                     ([-4.5, 1.7, -2.5], [6.5, 2.0, 6.5]), ([1.0, 1.6, -3.5], [-3.0, 2.5, 6.0])],
-                   frames=f, fov=60, name="courtyard"),
+                   fov=60, name="courtyard"),
         CameraPath([([8.5, 6.0, 8.5], [-2.0, 0.5, -2.0]), ([0.0, 7.0, 9.0], [0.0, 0.5, -4.0]),
                     ([-8.0, 6.5, 8.0], [3.0, 1.0, -3.0]), ([-8.0, 6.0, -1.0], [6.0, 1.0, 0.0])],
-                   frames=f, fov=55, name="above"),
+                   fov=55, name="above"),
         CameraPath([([4.0, 0.9, -2.0], [5.5, 3.5, -4.0]), ([3.5, 1.0, 0.0], [-1.0, 3.0, -1.5]),
                     ([5.0, 1.1, 2.0], [8.5, 0.5, 8.5]), ([6.0, 1.2, -0.5], [8.5, 0.5, -8.0])],
-                   frames=f, fov=70, name="foliage"),
+                   fov=70, name="foliage"),
     ]
     return b.build(paths, exposure=float(options.get("exposure", 1.0)), unit=1.0,
                    meeting_center=[2.0, 1.2, 2.0], description=__doc__.strip().splitlines()[0])

@@ -341,3 +341,27 @@ def finish(name: str, out: Path, opts, cfg, names, specs, rows, md_body: str, ex
 MULTI_COLUMNS = [("scene", "scene"), ("method", "method"), ("rig", "rig"), ("viewers", "viewers"),
                  ("measured_overlap", "measured overlap %"), ("time_ms", "t [ms]"), ("flip", "FLIP"),
                  ("psnr", "PSNR"), ("ssim", "SSIM"), ("memory_mb", "memory [MB]")]
+
+
+# -----------------------------------------------------------------------------
+# Start-up against steady state
+# -----------------------------------------------------------------------------
+
+SETTLE_FRAMES = 8    # default update policy: an entry gets 8 rays for its first 8 updates, then 1
+STEADY_WARMUP = 10   # warm-up of every preset: kernel builds, then the first frame's entries settle
+
+
+def add_startup(rows: list[dict], settle: int = SETTLE_FRAMES) -> list[dict]:
+    """Add ``startup_ms`` to every row: the median DI time of frames 1 ..
+    ``settle - 1``, while the entries requested in frame 0 are still in
+    their 8-ray start-up (frame 0 and frames that built kernels, when the
+    row's ``frames_ms`` counts them, are left out). ``time_ms`` stays the
+    median after the warm-up, i.e. the steady state when the warm-up is at
+    least ``settle`` frames. Per-viewer methods have no start-up; their
+    figure shows the same frames for comparison."""
+    import statistics
+    for r in rows:
+        fr = r.get("frames_ms") or []
+        ts = [f.get("total", 0.0) for i, f in enumerate(fr[:settle]) if i >= 1 and not f.get("compiled")]
+        r["startup_ms"] = statistics.median(ts) if ts else None
+    return rows
