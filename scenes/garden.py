@@ -9,6 +9,9 @@ with glossy tops; lamps: small emissive spheres hanging in the arcade and on
 posts, and two emissive lantern boxes. The sky is
 ``../shared/envmaps/venice_sunset_1k.hdr`` when present, otherwise a constant
 dusk-blue environment.
+
+Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
+1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scenes.CameraPath``).
 """
 import numpy as np
 import trimesh

@@ -7,6 +7,9 @@ are emissive icospheres (radius 0.12 m, 80 triangles each) moving on
 horizontal circles/ellipses around three centres, each at its own height
 (0.8-6 m), speed (0.35-1.6 rad/s), direction and colour, plus a small
 vertical bob.
+
+Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
+1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scenes.CameraPath``).
 """
 import math
 

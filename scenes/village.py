@@ -7,6 +7,9 @@ roofs as prisms, one glossy-roofed longhouse); a palisade and a few barrels.
 The moon is an emissive icosphere of radius 10 m about 120 m away, 35 degrees
 above the horizon; the torches are emissive spheres of radius 0.08 m on
 2.2 m poles.
+
+Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
+1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scenes.CameraPath``).
 """
 import math
 
