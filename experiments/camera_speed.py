@@ -26,9 +26,9 @@ NAME = "camera-speed"
 SPEEDS = [0.25, 0.5, 1.0, 2.0, 4.0]
 FALLBACK_SCENE = "village"      # second scene when ../shared (Sponza) is absent
 FULL = dict(scenes=["atrium", "sponza"], speeds=SPEEDS, width=320, height=180, frames=240, warmup=10,
-            eval_frames=[79, 159, 239])
+            eval_frames=[79, 159, 239], eval_viewers=1)
 QUICK = dict(scenes=["atrium", "sponza"], speeds=SPEEDS, width=96, height=54, frames=24, warmup=10,
-             eval_frames=[15, 23])
+             eval_frames=[15, 23], eval_viewers=1)
 METHODS = ["slc", "rt48", "restir"]
 
 
