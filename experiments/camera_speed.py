@@ -43,7 +43,7 @@ def run(opts):
 
     from slc import experiment as ex
     from slc import views
-    from slc.scenes import TURN_RATE, WALK_SPEED
+    from slc.scenes import FPS, TURN_RATE, WALK_SPEED
 
     pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     if not opts.scene and len(names) < 2 and FALLBACK_SCENE not in names:
@@ -83,7 +83,7 @@ def run(opts):
     return ex.finish(NAME, out, opts, cfg, names, specs, rows, md, {"speeds": speeds,
                                                                     "walk_speed_mps": WALK_SPEED,
                                                                     "turn_rate_dps": TURN_RATE,
-                                                                    "fps": 60})
+                                                                    "fps": FPS})
 
 
 def _ratios(rows, names, speeds) -> str:
