@@ -17,9 +17,8 @@ if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 NAME = "envmap"
-FULL = dict(scene="skylit", maps=["venice", "studio", "spots"], width=320, height=180, frames=32, warmup=4,
-            eval_frames=[15, 31])
-QUICK = dict(scene="skylit", maps=["venice", "spots"], width=160, height=90, frames=12, warmup=4, eval_frames=[11])
+FULL = dict(scene="skylit", maps=["venice", "studio", "spots"], width=320, height=180, frames=120, warmup=10, eval_frames=[59, 119])
+QUICK = dict(scene="skylit", maps=["venice", "spots"], width=160, height=90, frames=24, warmup=10, eval_frames=[23])
 METHODS = ["rt48", "restir", "slc", "slc:max_cones=4", "sh"]
 
 

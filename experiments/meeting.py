@@ -12,9 +12,9 @@ if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 NAME = "meeting"
-FULL = dict(scenes=["atrium", "cornell"], viewers=[1, 16], width=320, height=180, frames=16, warmup=4,
-            eval_frames=[15], eval_viewers=2)
-QUICK = dict(scenes=["atrium"], viewers=[1, 16], width=96, height=54, frames=8, warmup=3, eval_frames=[7],
+FULL = dict(scenes=["atrium", "cornell"], viewers=[1, 16], width=320, height=180, frames=240, warmup=10,
+            eval_frames=[239], eval_viewers=2)
+QUICK = dict(scenes=["atrium"], viewers=[1, 16], width=96, height=54, frames=24, warmup=10, eval_frames=[23],
              eval_viewers=1)
 METHODS = ["slc", "rt48"]
 
@@ -30,7 +30,10 @@ def run(opts):
 
     rows, names, specs, cfg, out, counts = ex.viewer_count_experiment(
         opts, NAME, QUICK, FULL, METHODS, "meeting", views.meeting, lambda name, cfg: f"{name}: meeting rig")
-    md = ex.markdown_table(rows, ex.MULTI_COLUMNS) + "\n\n## Targets (ratios measured in this run)\n\n"
+    ex.add_startup(rows)
+    md = ex.markdown_table(rows, ex.MULTI_COLUMNS[:6] + [("startup_ms", "start-up t [ms]"),
+                                                        ("compiled_after_warmup", "kernels after warm-up")]
+                           + ex.MULTI_COLUMNS[6:]) + "\n\n## Targets (ratios measured in this run)\n\n"
     n = max(counts)
     for name in names:
         get = ex.at_viewers(rows, name, n)

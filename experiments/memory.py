@@ -1,9 +1,12 @@
 """memory: method memory against the number of viewers (SLC paper, Fig. 14).
 
-Cache methods report allocated blocks x packed bytes per entry ("allocated")
-and the entries requested this frame x bytes ("active"); per-viewer methods
-report their buffers (ReSTIR: reservoirs, bytes per pixel x pixels x
-viewers; RT-N: its output buffer). Scene data, G-buffers and output images
+Cache methods report allocated blocks x packed bytes per entry plus the
+block table ("allocated") and the entries requested per frame (mean over the
+timed frames) x packed bytes per entry ("active": the payload that the
+viewers actually use; the paper's blocks are about half filled); per-viewer
+methods report their buffers (ReSTIR: reservoirs, bytes per pixel x pixels x
+viewers; RT-N: its output buffer), which every frame uses in full, so they
+have no separate active figure. Scene data, G-buffers and output images
 common to all methods are excluded. Rigs: 100% overlap and random viewers.
 
     slc run memory --quick
@@ -17,9 +20,9 @@ if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 NAME = "memory"
-FULL = dict(scenes=["atrium"], viewers=[1, 2, 4, 8, 16], width=320, height=180, frames=12, warmup=2,
+FULL = dict(scenes=["atrium"], viewers=[1, 4, 16], width=320, height=180, frames=240, warmup=10,
             eval_frames=[], eval_viewers=1)
-QUICK = dict(scenes=["atrium"], viewers=[1, 4, 16], width=96, height=54, frames=6, warmup=2, eval_frames=[],
+QUICK = dict(scenes=["atrium"], viewers=[1, 4, 16], width=96, height=54, frames=24, warmup=10, eval_frames=[],
              eval_viewers=1)
 METHODS = ["slc", "rt16", "rt48", "restir"]
 
@@ -40,11 +43,10 @@ def run(opts):
             (spec, views.overlap_rig(s, n, 1.0), {"rig": "overlap", "overlap": 100}),
             (spec, views.random_viewers(s, n), {"rig": "random"}))]
 
-    rows = ex.run_per_scene(names, cases, cfg, NAME, opts.seed)
-    for r in rows:
-        if "active_mb" in r:
-            continue
-        r["active_mb"] = r.get("memory_active_mb", r["memory_mb"])
+    rows = []
+    for s in ex.each_scene(names):
+        rows += _run_cases([(s, *c) for c in cases(s)], cfg, f"{NAME} {s.name}", opts.seed)
+    ex.add_startup(rows)
     out = Path(opts.out) / NAME
     for name in names:
         for rig in ("overlap", "random"):
@@ -65,6 +67,29 @@ def run(opts):
                        f"{ex.ratio(b['memory_mb'], a['memory_mb']):.2f}x one viewer's"
                        + (" (target <= 1.1x)\n" if spec == "slc" else "\n"))
     return ex.finish(NAME, out, opts, cfg, names, specs, rows, md, {"viewers": counts})
+
+
+def _run_cases(cases, cfg, desc, seed):
+    """Like ``slc.experiment.run_cases``, and for cache methods ``active_mb``
+    = mean entries requested per timed frame x the cache's packed bytes per
+    entry (read from the method's cache after the run)."""
+    from tqdm import tqdm
+
+    from slc import methods
+    from slc.pipeline import run_sequence
+    rows = []
+    with tqdm(total=len(cases) * cfg.frames, desc=desc, unit="frame", disable=None) as bar:
+        for s, spec, vs, extra in cases:
+            m = methods.create(spec, s, seed=seed)
+            bar.set_postfix_str(f"{s.name}/{spec}/{len(vs)}v")
+            res = run_sequence(s, m, vs, cfg, progress=bar)
+            row = {"scene": s.name, **res.row(), "setting": spec, "label": m.label or m.name,
+                   "resolution": f"{cfg.width}x{cfg.height}", **extra}
+            entry_bytes = getattr(getattr(m, "cache", None), "entry_bytes", 0)
+            if entry_bytes and "entries_requested" in row:
+                row["active_mb"] = row["entries_requested"] * entry_bytes / 2 ** 20
+            rows.append(row)
+    return rows
 
 
 if __name__ == "__main__":

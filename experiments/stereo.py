@@ -14,11 +14,15 @@ if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 NAME = "stereo"
-FULL = dict(scenes=["atrium"], singles=16, pairs=[8, 16], width=320, height=180, frames=16, warmup=4,
-            eval_frames=[15], eval_viewers=2)
-QUICK = dict(scenes=["atrium"], singles=16, pairs=[8, 16], width=64, height=36, frames=6, warmup=2,
-             eval_frames=[5], eval_viewers=1)
+FULL = dict(scenes=["atrium"], singles=16, pairs=[8, 16], width=320, height=180, frames=240, warmup=10,
+            eval_frames=[239], eval_viewers=2)
+QUICK = dict(scenes=["atrium"], singles=16, pairs=[8, 16], width=64, height=36, frames=20, warmup=10,
+             eval_frames=[19], eval_viewers=1)
 METHODS = ["slc", "rt48", "restir"]
+STEADY_COLUMNS = [("scene", "scene"), ("method", "method"), ("rig", "rig"), ("viewers", "viewers"),
+                  ("measured_overlap", "measured overlap %"), ("time_ms", "t [ms]"),
+                  ("startup_ms", "start-up t [ms]"), ("compiled_after_warmup", "kernels after warm-up"),
+                  ("flip", "FLIP"), ("psnr", "PSNR"), ("ssim", "SSIM"), ("memory_mb", "memory [MB]")]
 
 
 def add_arguments(p):
@@ -38,12 +42,12 @@ def run(opts):
             out += [(spec, views.stereo(s, p), {"rig": "stereo", "pairs": p}) for p in pr["pairs"]]
         return out
 
-    rows = ex.run_per_scene(names, cases, cfg, NAME, opts.seed)
+    rows = ex.add_startup(ex.run_per_scene(names, cases, cfg, NAME, opts.seed))
     out = Path(opts.out) / NAME
     for name in names:
         ex.time_vs_viewers_plot(out / f"time_{name}.png", [r for r in rows if r["scene"] == name],
                                 f"{name}: single viewers vs stereo pairs", group=("method", "rig"))
-    md = ex.markdown_table(rows, ex.MULTI_COLUMNS) + "\n\n## Targets (ratios measured in this run)\n\n"
+    md = ex.markdown_table(rows, STEADY_COLUMNS) + "\n\n## Targets (ratios measured in this run)\n\n"
     for name in names:
         for spec in specs:
             g = {(r["rig"], r["viewers"]): r for r in rows if r["scene"] == name and r["setting"] == spec}

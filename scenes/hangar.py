@@ -10,6 +10,9 @@ vertical bob. ``hangar:lights=N`` builds the same hall with N lights (the
 first N of one deterministic sequence of orbits; their radiance scaled by
 12/N so that the total power stays that of the twelve), for the many-lights
 experiment (the paper's Fig. 17).
+
+Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
+1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scenes.CameraPath``).
 """
 import math
 
@@ -108,19 +111,18 @@ def build(**options):
         b.add_sphere([0, 0, 0], LIGHT_RADIUS, subdivisions=1, bsdf=dark, emission=radiance, name=f"light{i:02d}",
                      transform=_orbit(c, rx, rz, y, omega, phase, 0.4))
 
-    f = 64
     paths = [
         CameraPath([([-18.0, 1.8, -10.0], [0.0, 1.5, 0.0]), ([-12.0, 2.0, -10.5], [0.0, 2.0, 4.0]),
                     ([-5.0, 1.8, -10.8], [8.0, 1.0, 4.0]), ([2.0, 2.0, -10.5], [14.0, 2.0, 0.0])],
-                   frames=f, fov=60, name="aisle"),
+                   fov=60, name="aisle"),
         CameraPath([([17.0, 7.5, 10.0], [0.0, 0.5, 0.0]), ([8.0, 7.8, 10.5], [-6.0, 0.5, -3.0]),
                     ([-4.0, 7.5, 10.0], [-12.0, 0.5, -4.0]), ([-16.0, 7.0, 9.0], [0.0, 1.0, -4.0])],
-                   frames=f, fov=60, name="gantry"),
+                   fov=60, name="gantry"),
         CameraPath([([-6.0, 1.5, 2.0], [4.0, 1.5, -3.0]), ([-2.5, 1.6, 3.5], [6.0, 2.5, 6.5]),
                     ([5.5, 1.7, 2.5], [14.0, 2.0, -2.0]), ([9.5, 1.6, 0.5], [0.5, 1.0, 0.5])],
-                   frames=f, fov=65, name="floor_walk"),
+                   fov=65, name="floor_walk"),
         CameraPath([([18.5, 3.0, -10.5], [-4.0, 2.0, 4.0]), ([18.0, 4.5, -2.0], [-10.0, 1.0, 0.0]),
-                    ([18.5, 3.5, 6.0], [-4.0, 3.0, -6.0])], frames=f, fov=55, name="end_wall"),
+                    ([18.5, 3.5, 6.0], [-4.0, 3.0, -6.0])], fov=55, name="end_wall"),
     ]
     return b.build(paths, exposure=float(options.get("exposure", 2.5)), unit=1.0,
                    meeting_center=[0.0, 1.5, 0.0], description=__doc__.strip().splitlines()[0])

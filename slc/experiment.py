@@ -391,6 +391,30 @@ MULTI_COLUMNS = [("scene", "scene"), ("method", "method"), ("rig", "rig"), ("vie
 
 
 # -----------------------------------------------------------------------------
+# Start-up against steady state
+# -----------------------------------------------------------------------------
+
+SETTLE_FRAMES = 8    # default update policy: an entry gets 8 rays for its first 8 updates, then 1
+STEADY_WARMUP = 10   # warm-up of every preset: kernel builds, then the first frame's entries settle
+
+
+def add_startup(rows: list[dict], settle: int = SETTLE_FRAMES) -> list[dict]:
+    """Add ``startup_ms`` to every row: the median DI time of frames 1 ..
+    ``settle - 1``, while the entries requested in frame 0 are still in
+    their 8-ray start-up (frame 0 and frames that built kernels, when the
+    row's ``frames_ms`` counts them, are left out). ``time_ms`` stays the
+    median after the warm-up, i.e. the steady state when the warm-up is at
+    least ``settle`` frames. Per-viewer methods have no start-up; their
+    figure shows the same frames for comparison."""
+    import statistics
+    for r in rows:
+        fr = r.get("frames_ms") or []
+        ts = [f.get("total", 0.0) for i, f in enumerate(fr[:settle]) if i >= 1 and not f.get("compiled")]
+        r["startup_ms"] = statistics.median(ts) if ts else None
+    return rows
+
+
+# -----------------------------------------------------------------------------
 # Scene-variant sweeps (many-lights, envmap, point-lights)
 # -----------------------------------------------------------------------------
 
@@ -418,8 +442,10 @@ def variant_experiment(opts, name: str, preset: dict, specs: list[str], variants
         speed_error_plot(out / f"speed_error_{s.name.replace(':', '_').replace('=', '')}.png", case_rows,
                          f"{s.name}: time vs FLIP ({cfg.width}x{cfg.height})")
         rows += case_rows
+    add_startup(rows)
     metric_vs_value_plot(out / f"flip_time_vs_{field}.png", rows, field, title)
-    columns = DEFAULT_COLUMNS[:1] + [(field, field)] + [("setting", "method")] + DEFAULT_COLUMNS[3:]
+    columns = DEFAULT_COLUMNS[:1] + [(field, field)] + [("setting", "method")] + DEFAULT_COLUMNS[3:4] + \
+        [("startup_ms", "start-up [ms]")] + DEFAULT_COLUMNS[4:]
     md = (f"# {name}\n\n{cfg.width}x{cfg.height}, {cfg.frames} frames ({cfg.warmup} warm-up), one viewer; "
           f"quality on frames {cfg.evaluated()} against {cfg.gt_spp}-sample ground truth; time = median DI ms "
           f"per frame.\n\n" + markdown_table(rows, columns) + "\n")

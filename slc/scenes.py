@@ -4,6 +4,11 @@ A :class:`Scene` wraps a ``mi.Scene`` with what the experiments need on top:
 animation as a function of time (:meth:`Scene.set_time`), camera paths, a
 fixed exposure for tone mapping and the scene's unit (scene units per metre).
 
+Time is physical: frame ``f`` is ``f / FPS`` seconds at ``FPS = 60``, and
+camera paths move at a walking pace (``WALK_SPEED`` = 1.4 m/s) with view
+turns capped at ``TURN_RATE`` = 30 deg/s (:class:`CameraPath`), so a cache
+entry stays in view for as many frames as it would in a real-time session.
+
 Built-in scene definitions live in the repository's top-level ``scenes/``
 folder, one Python file per scene with a ``build(**options) -> Scene``
 function (see ``docs/adding-a-scene.md``). :func:`load` resolves a name from
@@ -33,7 +38,9 @@ SCENES_DIR = REPO_ROOT / "scenes"
 SHARED_DIR = REPO_ROOT.parent / "shared"
 ENVMAPS_DIR = SHARED_DIR / "envmaps"
 
-FPS = 30.0
+FPS = 60.0            # frames per second of every camera path and animation (the paper's real-time rate)
+WALK_SPEED = 1.4      # m/s: camera speed of the built-in paths (a walking pace)
+TURN_RATE = 30.0      # deg/s: fastest turn of a built-in path's view direction
 SUPPORTED_EMITTERS = ("area", "point", "spot", "envmap", "constant", "directional")
 
 
@@ -75,6 +82,7 @@ class Camera:
 
 
 def _catmull_rom(p0, p1, p2, p3, t):
+    t = np.asarray(t, float)[..., None] if np.ndim(t) else t
     t2, t3 = t * t, t * t * t
     return 0.5 * ((2 * p1) + (-p0 + p2) * t + (2 * p0 - 5 * p1 + 4 * p2 - p3) * t2
                   + (-p0 + 3 * p1 - 3 * p2 + p3) * t3)
@@ -82,36 +90,115 @@ def _catmull_rom(p0, p1, p2, p3, t):
 
 @dataclass
 class CameraPath:
-    """Keyframed camera path, interpolated by a Catmull-Rom spline.
+    """Keyframed camera path, interpolated by a Catmull-Rom spline, moving
+    at a physical speed.
 
-    ``keys`` are (origin, target) pairs; ``frames`` is the path length in
-    frames (keys are spread evenly over it). Frames past the end hold the
-    last pose, so any frame index is valid."""
+    ``keys`` are (origin, target) pairs. The camera runs along the spline of
+    the origins at ``speed`` m/s (``unit`` scene units per metre) and its
+    view direction (towards the spline of the targets) turns at most
+    ``turn_rate`` deg/s: each short piece of the path takes
+    ``max(distance / speed, angle / turn_rate)`` seconds, so the camera walks
+    at ``speed`` and slows down only where the view swings faster than the
+    turn rate. Frame ``f`` is time ``f / FPS`` (60 Hz). Past its end the
+    path runs back (and forth again), so every frame keeps the stated speed
+    and any frame index is valid. ``duration`` is the one-way time in
+    seconds, ``n_frames`` the same in frames. A viewer's camera-speed
+    multiplier (:func:`slc.views.at_speed`) scales the time, not the path.
+
+    Legacy mode: with ``frames`` given, the keys are spread evenly over that
+    many frames (no physical speed) and frames past the end hold the last
+    pose; hand-made test paths use it.
+    """
     keys: list
-    frames: int = 64
+    frames: int | None = None
     fov: float = 60.0
     name: str = "path"
+    speed: float = WALK_SPEED          # m/s
+    turn_rate: float = TURN_RATE       # deg/s
+    unit: float = 1.0                  # scene units per metre
 
-    def at(self, frame: float) -> Camera:
-        k = [(np.asarray(o, float), np.asarray(t, float)) for o, t in self.keys]
-        if len(k) == 1:
-            return Camera(k[0][0].copy(), k[0][1].copy(), fov=self.fov)
-        s = min(max(frame, 0.0), self.frames - 1) / max(self.frames - 1, 1) * (len(k) - 1)
-        i = min(int(s), len(k) - 2)
+    def __post_init__(self):
+        self._k = [(np.asarray(o, float), np.asarray(t, float)) for o, t in self.keys]
+        self._legacy = self.frames is not None
+        self._table = None
+        if not self._legacy:
+            self._table = self._time_table()
+
+    @property
+    def n_frames(self) -> int:
+        """Frames from the first key to the last (one way) at 1x speed."""
+        return self.frames if self._legacy else int(math.ceil(self.duration * FPS)) + 1
+
+    # ------------------------------------------------------------------ spline
+    def _spline(self, s):
+        """(origin, target) at spline parameter(s) ``s`` in [0, len(keys) - 1]."""
+        k = self._k
+        n = len(k)
+        s = np.clip(np.asarray(s, float), 0.0, n - 1)
+        i = np.minimum(s.astype(int), n - 2)
         t = s - i
-        idx = [max(i - 1, 0), i, i + 1, min(i + 2, len(k) - 1)]
-        o = _catmull_rom(*[k[j][0] for j in idx], t)
-        g = _catmull_rom(*[k[j][1] for j in idx], t)
-        return Camera(o, g, fov=self.fov)
+        idx = [np.maximum(i - 1, 0), i, i + 1, np.minimum(i + 2, n - 1)]
+        O = np.stack([o for o, _ in k])
+        G = np.stack([g for _, g in k])
+        o = _catmull_rom(*[O[j] for j in idx], t)
+        g = _catmull_rom(*[G[j] for j in idx], t)
+        return o, g
+
+    def _time_table(self, samples_per_key: int = 256):
+        """Spline parameter -> time (s) at walking speed with the turn cap."""
+        if len(self._k) == 1:
+            return np.array([0.0]), np.array([0.0])
+        s = np.linspace(0.0, len(self._k) - 1, samples_per_key * (len(self._k) - 1) + 1)
+        o, g = self._spline(s)
+        d = g - o
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        ds = np.linalg.norm(np.diff(o, axis=0), axis=1) / (self.speed * self.unit)
+        cr = np.linalg.norm(np.cross(d[:-1], d[1:]), axis=1)
+        ang = np.arctan2(cr, np.sum(d[:-1] * d[1:], axis=1))  # robust for tiny angles
+        dth = ang / math.radians(self.turn_rate)
+        t = np.concatenate([[0.0], np.cumsum(np.maximum(ds, dth))])
+        return t, s
+
+    @property
+    def duration(self) -> float:
+        """Seconds from the first key to the last (one way)."""
+        if self._legacy:
+            return (self.frames - 1) / FPS
+        return float(self._table[0][-1])
+
+    def length(self) -> float:
+        """Length of the camera's route in metres (one way)."""
+        if len(self._k) == 1:
+            return 0.0
+        s = np.linspace(0.0, len(self._k) - 1, 256 * (len(self._k) - 1) + 1)
+        o, _ = self._spline(s)
+        return float(np.sum(np.linalg.norm(np.diff(o, axis=0), axis=1))) / self.unit
+
+    # ------------------------------------------------------------------ poses
+    def at(self, frame: float) -> Camera:
+        """The camera at frame ``frame`` (time ``frame / FPS``)."""
+        if len(self._k) == 1:
+            return Camera(self._k[0][0].copy(), self._k[0][1].copy(), fov=self.fov)
+        if self._legacy:
+            s = min(max(frame, 0.0), self.frames - 1) / max(self.frames - 1, 1) * (len(self._k) - 1)
+        else:
+            T, S = self._table
+            t = max(float(frame), 0.0) / FPS
+            if T[-1] > 0:
+                t = t % (2 * T[-1])
+                t = t if t <= T[-1] else 2 * T[-1] - t      # back and forth
+            s = float(np.interp(t, T, S))
+        o, g = self._spline(s)
+        return Camera(np.asarray(o, float).ravel(), np.asarray(g, float).ravel(), fov=self.fov)
 
 
 def random_path(rng: np.random.Generator, lo, hi, look_lo, look_hi, n_keys=5,
-                frames=64, fov=60.0, name="random") -> CameraPath:
-    """A smooth path through ``n_keys`` random points of the box [lo, hi],
-    looking at random points of [look_lo, look_hi]."""
+                fov=60.0, name="random", unit=1.0) -> CameraPath:
+    """A smooth path at walking speed through ``n_keys`` random points of the
+    box [lo, hi], looking at random points of [look_lo, look_hi]."""
     lo, hi, look_lo, look_hi = map(lambda a: np.asarray(a, float), (lo, hi, look_lo, look_hi))
     keys = [(rng.uniform(lo, hi), rng.uniform(look_lo, look_hi)) for _ in range(n_keys)]
-    return CameraPath(keys, frames=frames, fov=fov, name=name)
+    return CameraPath(keys, fov=fov, name=name, unit=unit)
 
 
 # -----------------------------------------------------------------------------
@@ -139,7 +226,10 @@ class Scene:
     animated: rigidly moving meshes (lights or objects).
     exposure: multiplier applied before the tone map (fixed per scene so that
         every method and the ground truth are mapped alike).
-    unit: scene units per metre (stereo interocular distance = 0.064 * unit).
+    unit: scene units per metre (1.0: one scene unit is one metre; every
+        built-in scene is modelled in metres). Camera paths walk at
+        ``WALK_SPEED * unit`` scene units per second; stereo eyes are
+        ``0.064 * unit`` apart. Paths given in other units are re-timed.
     """
 
     def __init__(self, name: str, mi_scene: mi.Scene, camera_paths: list[CameraPath],
@@ -147,7 +237,9 @@ class Scene:
                  unit: float = 1.0, description: str = "", meeting_center=None):
         self.name = name
         self.mi_scene = mi_scene
-        self.camera_paths = camera_paths
+        self.camera_paths = [p if p._legacy or p.unit == unit else
+                             CameraPath(p.keys, fov=p.fov, name=p.name, speed=p.speed,
+                                        turn_rate=p.turn_rate, unit=unit) for p in camera_paths]
         self.animated = animated or []
         self.exposure = exposure
         self.unit = unit
@@ -197,6 +289,7 @@ class Scene:
         self.time = t
 
     def set_frame(self, frame: int) -> None:
+        """Pose the scene at frame ``frame`` (time ``frame / FPS``, 60 Hz)."""
         self.set_time(frame / FPS)
 
     def path(self, i: int) -> CameraPath:
@@ -209,9 +302,8 @@ class Scene:
         rng = np.random.default_rng(1000 + i)
         base = self.camera_paths[0] if self.camera_paths else None
         fov = base.fov if base else 60.0
-        frames = base.frames if base else 64
         return random_path(rng, lo + 0.2 * ext, hi - 0.2 * ext, lo + 0.3 * ext, hi - 0.3 * ext,
-                           frames=frames, fov=fov, name=f"random{i}")
+                           fov=fov, name=f"random{i}", unit=self.unit)
 
 
 def check_emitters(mi_scene: mi.Scene, name: str) -> None:
@@ -475,9 +567,10 @@ def load(name_or_path: str, **options) -> Scene:
     return _import_definition(SCENES_DIR / f"{name_or_path}.py").build(**options)
 
 
-def load_xml(path: Path, exposure: float = 1.0) -> Scene:
+def load_xml(path: Path, exposure: float = 1.0, unit: float = 1.0) -> Scene:
     """Any Mitsuba 3 XML scene. Camera paths: the XML's sensor (held still)
-    plus orbits around the scene's bounding box."""
+    plus orbits around the scene's bounding box at walking speed, taking
+    one scene unit for ``1 / unit`` metres (default: one metre)."""
     path = Path(path)
     if not path.exists():
         raise SceneError(f"scene file not found: {path}")
@@ -508,13 +601,13 @@ def load_xml(path: Path, exposure: float = 1.0) -> Scene:
                 fov = float(mi.traverse(s).get("x_fov", [60.0])[0]) * 9 / 16
             except Exception:
                 pass
-            paths.append(CameraPath([(o, o + fwd), (o, o + fwd)], frames=64, fov=fov, name="sensor"))
+            paths.append(CameraPath([(o, o + fwd)], fov=fov, name="sensor"))
     r = 0.6 * float(np.linalg.norm(ext))
     for k in range(3):
         keys = []
         for j in range(6):
             a = 2 * math.pi * (j / 6.0 + k / 3.0)
             keys.append((c + np.array([r * math.cos(a), 0.15 * ext[1] * (k - 1), r * math.sin(a)]), c))
-        paths.append(CameraPath(keys, frames=64, fov=50.0, name=f"orbit{k}"))
-    return Scene(path.stem, sc, paths, exposure=exposure, unit=1.0,
+        paths.append(CameraPath(keys, fov=50.0, name=f"orbit{k}", unit=unit))
+    return Scene(path.stem, sc, paths, exposure=exposure, unit=unit,
                  description=f"Mitsuba XML scene {path}")

@@ -20,7 +20,7 @@ from slc.groundtruth import direct_mis
 from slc.methods import FrameContext, create
 from slc.metrics import evaluate
 from slc.pipeline import gbuffers_for
-from slc.scenes import CameraPath, SceneBuilder, diffuse, rough_conductor, translate
+from slc.scenes import FPS, CameraPath, SceneBuilder, diffuse, rough_conductor, translate
 from slc.timing import NullTimer
 from slc.views import single
 
@@ -395,7 +395,7 @@ def test_glossy_flip_below_rt16():
 
 def _moving_scene(stop=12):
     def T(t):
-        f = min(t * 30.0, stop)
+        f = min(t * FPS, stop)   # frame index (scene time t = frame / FPS)
         return translate([0.04 * f, 0.0, 0.0])
     return plane_under_rect_light(half=0.1, radiance=20.0, light_transform=T, name="moving")
 

@@ -30,8 +30,8 @@ def test_scene_has_paths_and_materials(name):
     s = _load(name)
     assert len(s.camera_paths) >= 3
     for p in s.camera_paths[:3]:
-        assert p.frames >= 60
-        c0, c1 = p.at(0), p.at(p.frames // 2)
+        assert p.duration >= 4.0, (p.name, p.duration)     # at least 4 s at walking speed
+        c0, c1 = p.at(0), p.at(p.n_frames // 2)
         assert np.all(np.isfinite(c0.origin)) and np.linalg.norm(c0.origin - c1.origin) + \
             np.linalg.norm(c0.target - c1.target) > 0, "camera path does not move"
     assert len(s.mi_scene.emitters()) >= 1
@@ -39,6 +39,63 @@ def test_scene_has_paths_and_materials(name):
         kinds = {sh.bsdf().class_name() for sh in s.mi_scene.shapes()}
         assert kinds & {"RoughConductor", "Principled"}, kinds
         assert "SmoothDiffuse" in kinds, kinds
+
+
+def _motion(path, frames, speed=1.0):
+    """Per frame: distance moved (scene units) and view turn (degrees)."""
+    v = views.Viewer("v", path.at, speed=speed)
+    cams = [v.camera(f) for f in frames]
+    dist, turn = [], []
+    for a, b in zip(cams, cams[1:]):
+        fa, fb = a.basis()[0], b.basis()[0]
+        dist.append(np.linalg.norm(b.origin - a.origin))
+        turn.append(np.degrees(np.arctan2(np.linalg.norm(np.cross(fa, fb)), np.dot(fa, fb))))
+    return np.array(dist), np.array(turn)
+
+
+@pytest.mark.parametrize("name", BUILTIN)
+def test_paths_move_at_walking_speed(name):
+    """Every path of every built-in scene: at most 1.4 m/s and 30 deg/s at
+    60 Hz in every frame, walking speed (within 10%) wherever the view does
+    not turn near its limit, also past the path's end (it runs back)."""
+    s = _load(name)
+    step = scenes.WALK_SPEED * s.unit / scenes.FPS
+    max_turn = scenes.TURN_RATE / scenes.FPS
+    for p in s.camera_paths:
+        frames = list(range(0, p.n_frames + 120, 3))
+        d, t = _motion(p, [f + k for f in frames for k in (0, 1)][::1])
+        d, t = d[::2], t[::2]           # consecutive pairs (f, f + 1)
+        assert d.max() <= 1.02 * step, (p.name, d.max() / step)
+        assert t.max() <= 1.05 * max_turn, (p.name, t.max() / max_turn)
+        free = t < 0.5 * max_turn
+        if len(p.keys) > 1 and free.any():
+            assert np.median(d[free]) >= 0.9 * step, (p.name, np.median(d[free]) / step)
+
+
+def test_camera_speed_multiplier():
+    s = _load("atrium")
+    v1 = views.single(s)[0]
+    for k in (0.25, 0.5, 2.0, 4.0):
+        vk = views.at_speed([v1], k)[0]
+        for f in (0, 8, 40):
+            a, b = vk.camera(f), v1.camera(f * k)
+            assert np.allclose(a.origin, b.origin) and np.allclose(a.target, b.target)
+        d, _ = _motion(s.camera_paths[0], [100, 101], speed=k)
+        d1, _ = _motion(s.camera_paths[0], [100 * k, 100 * k + k])
+        assert np.isclose(d[0], d1[0])
+    with pytest.raises(ValueError):
+        views.at_speed([v1], 0.0)
+    # the scene's own animation keeps its clock
+    s.set_frame(30)
+    assert s.time == 30 / scenes.FPS
+
+
+def test_paths_are_deterministic():
+    a, b = _load("atrium"), _load("atrium")
+    for pa, pb in zip(a.camera_paths, b.camera_paths):
+        for f in (0, 17, 333, 5000):
+            assert np.array_equal(pa.at(f).origin, pb.at(f).origin)
+            assert np.array_equal(pa.at(f).target, pb.at(f).target)
 
 
 @pytest.mark.parametrize("name", BUILTIN)

@@ -1,0 +1,71 @@
+"""Rigs produce the overlap they are named for, measured with views.measure_overlap.
+
+The controlled rig calibrates its yaw step at views.CALIBRATION_RES on
+views.CALIBRATION_FRAMES; these tests measure it again at another
+resolution and on other frames, so they check that the calibration holds
+beyond the images it was fitted on (and that no fan wraps around the
+circle: 16 views at 0% used to measure 75%)."""
+import numpy as np
+import pytest
+
+from slc import scenes, views
+from slc.pipeline import gbuffers_for
+
+W, H = 80, 45                  # same aspect as the calibration, other resolution
+FRAMES = (30, 90)              # other frames than the calibration's (0, 60, 120)
+TOLERANCE = 10.0               # percentage points
+
+
+@pytest.fixture(scope="module")
+def atrium():
+    return scenes.load("atrium")
+
+
+@pytest.mark.parametrize("n", [4, 16])
+@pytest.mark.parametrize("target", [0, 25, 50, 75, 100])
+def test_controlled_rig_reaches_its_target(atrium, n, target):
+    rig = views.overlap_rig(atrium, n, target / 100.0, aspect=W / H)
+    got = np.mean([views.measure_overlap(gbuffers_for(atrium, rig, f, W, H)) for f in FRAMES])
+    assert abs(got - target) <= TOLERANCE, f"{n} viewers, target {target}%: measured {got:.1f}%"
+
+
+def test_controlled_rig_never_wraps(atrium):
+    """The fan spans at most 360 degrees: the first and last viewers' yaws
+    differ by less than 360 - hfov, whatever the viewer count."""
+    for n in (4, 16):
+        rig = views.overlap_rig(atrium, n, 0.0, aspect=W / H)
+        dirs = []
+        for v in rig:
+            f, _, _ = v.camera(0).basis()
+            dirs.append(np.degrees(np.arctan2(f[2], f[0])))
+        hfov = views.horizontal_fov(rig[0].camera(0).fov, W / H)
+        d = np.sort(np.mod(np.array(dirs) - dirs[0], 360.0))
+        gaps = np.diff(np.concatenate([d, [d[0] + 360.0]]))
+        # adjacent screens at 0%: every gap between neighbouring view directions is at least one field of view
+        assert gaps.min() >= hfov - 1e-6, (n, gaps.min(), hfov)
+
+
+def test_random_rig_overlap_start_and_average(atrium):
+    """16 random viewers: about 50% overlap at the start (band 40-65%) and
+    about 20% on average over the first 4 s (band 10-35%; measured 30%)."""
+    rig = views.random_viewers(atrium, 16)
+    m = [views.measure_overlap(gbuffers_for(atrium, rig, f, 64, 36)) for f in range(0, 241, 30)]
+    assert 40.0 <= m[0] <= 65.0, m
+    assert 10.0 <= np.mean(m) <= 35.0, m
+    assert np.mean(m[2:]) < m[0] - 15.0, "the viewers do not drift apart"
+
+
+def test_random_rig_paths_are_uncorrelated_and_deterministic(atrium):
+    a, b = views.random_viewers(atrium, 16), views.random_viewers(atrium, 16)
+    starts = np.array([v.camera(0).origin for v in a])
+    assert np.array_equal(starts, np.array([v.camera(0).origin for v in b]))
+    # different start points, at least 1 m apart
+    d = np.linalg.norm(starts[:, None, :] - starts[None, :, :], axis=2) + np.eye(len(a)) * 1e9
+    assert d.min() > 1.0
+    # headings after 2 s point in many directions (not one shared route)
+    heads = []
+    for v in a:
+        o0, o1 = v.camera(119).origin, v.camera(120).origin
+        heads.append(np.arctan2(o1[2] - o0[2], o1[0] - o0[0]))
+    hist, _ = np.histogram(np.mod(heads, 2 * np.pi), bins=4, range=(0, 2 * np.pi))
+    assert (hist > 0).sum() >= 3, hist
