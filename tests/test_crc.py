@@ -216,3 +216,18 @@ def test_pipeline_compares_crc_with_the_indirect_reference(cornell):
     assert np.array_equal(im["gt"], ind)
     assert not np.allclose(im["gt"], direct)
     assert np.isfinite(im["img"]).all() and "flip" in r.metrics
+
+
+def test_render_gt_uses_the_reference_of_the_output_kind(tmp_path):
+    """``slc render --gt`` with an indirect method compares it with the
+    indirect reference (and says so), not with the direct ground truth."""
+    out = tmp_path / "r"
+    r = subprocess.run([sys.executable, "-m", "slc.cli", "render", "--scene", "cornell", "--method",
+                        "crc:vpls=256,samples=4", "--res", "32x18", "--frames", "2", "--warmup", "1", "--gt",
+                        "--out", str(out)], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert "vs the indirect reference" in r.stdout, r.stdout
+    import json
+    row = json.loads((out / "timings.json").read_text())
+    assert np.isfinite(row["flip"]) and row["psnr"] > 0
+    assert list(out.glob("*_strip.png"))
