@@ -86,7 +86,7 @@ class CRCCache(Method):
         Param("resolution", 16, "grid cells on the scene box's longest side", lo=2, hi=256),
         Param("bounces", 1, "indirect bounces (1: depth occupancy; more: geometry occupancy)", lo=1, hi=8),
         Param("occupancy", True, "cache points only in occupied cells (0: every cell)"),
-        Param("vpls", 4096, "light paths (VPLs) per frame", lo=1, hi=1 << 22),
+        Param("vpls", 4096, "light paths (VPLs) per frame", lo=1, hi=4_000_000),
         Param("samples", 64, "VPL samples per cache point", lo=1, hi=1 << 16),
         Param("secondary_rays", 32, "directions per cache point for bounces 2+", lo=1, hi=1 << 16),
         Param("secondary_distance", 8.0, "march length of secondary rays [cells]", lo=0.25, hi=1024.0),

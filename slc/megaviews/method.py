@@ -35,7 +35,7 @@ class ManyViewIR(Method):
     mode = "megaviews"
     output = "indirect"
     params = (
-        Param("views", 4096, "VPLs (views) per frame", lo=1, hi=1 << 22),
+        Param("views", 4096, "VPLs (views) per frame", lo=1, hi=4_000_000),
         Param("bounces", 1, "light-path bounces that leave VPLs (indirect bounces)", lo=1, hi=8),
         Param("res", 16, "shadow-map resolution per paraboloid face (a power of two)", lo=2, hi=1024),
         Param("scene_depth", SCENE_DEPTH, "scene octree levels (the paper: 11 on a GPU)", lo=1, hi=12),
@@ -45,7 +45,7 @@ class ManyViewIR(Method):
         Param("filter", 4, "cross-bilateral filter radius in pixels (0: off)", lo=0, hi=32),
         Param("fusion", True, "fuse maps top-down (0: queries walk the ancestors)"),
         Param("budget", tv.DEFAULT_BUDGET, "pair-queue budget in pairs (multi-pass above it)",
-              lo=1024, hi=1 << 30),
+              lo=1024, hi=1_000_000_000),
         Param("mpf", None, "multi-pixel filling (default: on from 64^2 maps up)", kind=bool),
     )
 
