@@ -180,24 +180,41 @@ class CRCCache(Method):
         N = front_normal(si)
         return X, N, phi
 
-    def _first_bounce(self, frame: int, cells: mi.UInt32, X, N, phi) -> list:
-        enc, grid, geo = self.enc, self.grid, self.geo
-        sampler = keyed_rng(cells, self.seed, frame, STREAM_CRC + _FIRST_BOUNCE)
-        Pc = grid.center(cells)
-        n_vpl, h, jit = self.vpls, grid.h, self.jitter
-        d2min = (self.min_distance * h) ** 2
-        n_s = dr.opaque(mi.UInt32, self.samples)
-        sc = self.scene.mi_scene
-        vis_mode, ms = self.visibility, self.march_samples
+    def _integrate(self, frame: int, cells: mi.UInt32, stream: int, count: int, sample) -> list:
+        """Sum over ``count`` samples per cache point, in registers, of
+        ``project(enc, omega, L)`` for ``(omega, L) = sample(Pc, sampler)``
+        (``Pc``: the cell centres; one keyed stream per cell)."""
+        enc = self.enc
+        sampler = keyed_rng(cells, self.seed, frame, STREAM_CRC + stream)
+        Pc = self.grid.center(cells)
+        n = dr.opaque(mi.UInt32, count)
 
-        # ---------------- n_s VPL samples per cache point, in registers ----------------
         def cond(i, acc, sampler):
-            return i < n_s
+            return i < n
 
         def body(i, acc, sampler):
+            omega, L = sample(Pc, sampler)
+            acc = [a + b for a, b in zip(acc, project(enc, omega, L))]
+            return i + 1, acc, sampler
+
+        acc0 = [mi.Float(0.0) for _ in range(enc.n)]
+        _, acc, _ = dr.while_loop(state=(mi.UInt32(0), acc0, sampler), cond=cond, body=body,
+                                  labels=("i", "acc", "sampler"))
+        return acc
+
+    def _jittered(self, Pc: mi.Point3f, sampler: mi.PCG32) -> mi.Point3f:
+        off = mi.Vector3f(sampler.next_float32(), sampler.next_float32(), sampler.next_float32()) - 0.5
+        return Pc + off * (self.jitter * self.grid.h)
+
+    def _first_bounce(self, frame: int, cells: mi.UInt32, X, N, phi) -> list:
+        geo, n_vpl = self.geo, self.vpls
+        d2min = (self.min_distance * self.grid.h) ** 2
+        sc = self.scene.mi_scene
+
+        # ---------------- one VPL sample at a jittered cache point ----------------
+        def sample(Pc, sampler):
             j = dr.minimum(mi.UInt32(sampler.next_float32() * n_vpl), n_vpl - 1)
-            off = mi.Vector3f(sampler.next_float32(), sampler.next_float32(), sampler.next_float32()) - 0.5
-            P = Pc + off * (jit * h)
+            P = self._jittered(Pc, sampler)
             Xk = dr.gather(mi.Point3f, X, j)
             Nk = dr.gather(mi.Vector3f, N, j)
             Pk = dr.gather(mi.Color3f, phi, j)
@@ -207,49 +224,35 @@ class CRCCache(Method):
             cos_k = -dr.dot(Nk, w_dir)
             ok = (cos_k > 0.0) & (dr.max(Pk) > 0.0) & (d2 > 0.0)
             # --------------------------- visibility ---------------------------
-            if vis_mode == "march":
+            if self.visibility == "march":
                 ok = visible(self.geometry, geo, P, Xk, sampler.next_float32(), ok,
-                             start_offset=geo.h, end_offset=2.0 * geo.h, samples=ms)
+                             start_offset=geo.h, end_offset=2.0 * geo.h, samples=self.march_samples)
             else:
                 ray = mi.Ray3f(P, w_dir)
                 ray.maxt = dr.sqrt(d2) * (1.0 - 1e-3)
                 ok &= ~sc.ray_test(ray, ok)
-            # --------------------------- projection ---------------------------
-            L = Pk * dr.select(ok, cos_k / (math.pi * dr.maximum(d2, d2min)), 0.0)
-            c = project(enc, w_dir, L)
-            acc = [a + b for a, b in zip(acc, c)]
-            return i + 1, acc, sampler
+            return w_dir, Pk * dr.select(ok, cos_k / (math.pi * dr.maximum(d2, d2min)), 0.0)
 
-        acc0 = [mi.Float(0.0) for _ in range(enc.n)]
-        _, acc, _ = dr.while_loop(state=(mi.UInt32(0), acc0, sampler), cond=cond, body=body,
-                                  labels=("i", "acc", "sampler"))
+        acc = self._integrate(frame, cells, _FIRST_BOUNCE, self.samples, sample)
         inv = 1.0 / float(self.samples)
         return [a * inv for a in acc]
 
     def _secondary_bounce(self, frame: int, bounce: int, cells: mi.UInt32, vin: mi.Float) -> list:
-        enc, grid, geo = self.enc, self.grid, self.geo
-        sampler = keyed_rng(cells, self.seed, frame, STREAM_CRC + _SECONDARY + bounce)
-        Pc = grid.center(cells)
-        h, jit, rho_avg = grid.h, self.jitter, self.albedo
+        geo, h = self.geo, self.grid.h
         tmax = self.secondary_distance * h
-        n_sec = dr.opaque(mi.UInt32, self.secondary_rays)
         sc = self.scene.mi_scene
-        vis_mode, ms = self.visibility, self.march_samples
 
-        def cond(i, acc, sampler):
-            return i < n_sec
-
-        def body(i, acc, sampler):
+        # ------------- one direction from a jittered cache point -------------
+        def sample(Pc, sampler):
             d = mi.warp.square_to_uniform_sphere(mi.Point2f(sampler.next_float32(), sampler.next_float32()))
-            off = mi.Vector3f(sampler.next_float32(), sampler.next_float32(), sampler.next_float32()) - 0.5
-            P = Pc + off * (jit * h)
+            P = self._jittered(Pc, sampler)
             # ------------------- nearest visible surface point -------------------
-            if vis_mode == "march":
+            if self.visibility == "march":
                 hit, t = march(self.geometry, geo, P, d, geo.h, tmax, sampler.next_float32(), mi.Bool(True),
-                               samples=ms)
+                               samples=self.march_samples)
                 X = P + dr.select(hit, t, 0.0) * d
                 n = -d
-                rho = mi.Color3f(rho_avg)
+                rho = mi.Color3f(self.albedo)
             else:
                 si = sc.ray_intersect(mi.Ray3f(P, d))
                 hit = si.is_valid() & (si.wi.z > 0.0)
@@ -258,15 +261,10 @@ class CRCCache(Method):
                 rho = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, hit))
             # ------------- reflected radiance of the previous bounce -------------
             coeffs = self._lookup(vin, X + n * (0.5 * h), hit)
-            E = irradiance(enc, coeffs, n, clamp=True, chroma=self.chroma)
-            L = dr.select(hit, rho * mi.Color3f(*E) * (1.0 / math.pi), 0.0)
-            c = project(enc, d, L)
-            acc = [a + b for a, b in zip(acc, c)]
-            return i + 1, acc, sampler
+            E = irradiance(self.enc, coeffs, n, clamp=True, chroma=self.chroma)
+            return d, dr.select(hit, rho * mi.Color3f(*E) * (1.0 / math.pi), 0.0)
 
-        acc0 = [mi.Float(0.0) for _ in range(enc.n)]
-        _, acc, _ = dr.while_loop(state=(mi.UInt32(0), acc0, sampler), cond=cond, body=body,
-                                  labels=("i", "acc", "sampler"))
+        acc = self._integrate(frame, cells, _SECONDARY + bounce, self.secondary_rays, sample)
         w = 4.0 * math.pi / float(self.secondary_rays)
         return [a * w for a in acc]
 
