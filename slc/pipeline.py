@@ -12,10 +12,9 @@ from __future__ import annotations
 
 import statistics
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
-
-from typing import Callable
 
 from . import gbuffer as gbuf
 from . import references
