@@ -37,7 +37,7 @@ FULL = dict(scenes=["cornell"], views=[1024, 4096, 16384, 65536], res=[16, 32, 6
             ref_spp=512, seq_views=4096, seq_frames=4)
 QUICK = dict(scenes=["cornell"], views=[1024, 4096, 16384], res=[16, 32, 64], res_views=1024,
              particles=[4096], gres=64, reps=2, scene_depth=6, view_depth=6, brute_pairs=6e7,
-             ref_spp=256)
+             ref_spp=256, seq_views=1024, seq_frames=3)
 METHODS = ["megaviews", "manylods", "brute"]
 
 
