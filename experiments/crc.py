@@ -3,16 +3,20 @@
 Per scene and bounce count (1 bounce: depth occupancy; 2 bounces: geometry
 occupancy), the CRC grid cache runs with occupancy off and on and with the
 encodings RGB3 (27 coefficients, uncompressed), Y3Co3Cg3 (27), Y3Co2Cg2 (17)
-and Y3Co1Cg1 (11), side by side on the same frames (every configuration
-renders each frame in turn, so machine load affects all alike), plus
-Mitsuba-ray visibility for RGB3 and Y3Co1Cg1. Reported per row: median
-cache time per frame after warm-up (occupancy, light paths, bounces,
-blending, reconstruction; voxelization is static and given separately),
-occupancy ratio, CIE Lab RMSE and pdiff (percent of pixels with CIE76
-dE > 2.3) against the uncompressed cache (RGB3, same occupancy and
-visibility), and FLIP/PSNR/SSIM/Lab RMSE of the composited image (direct +
-indirect) against a path-traced reference of the diffuse indirect light at
-the same G-buffer points (plus the same direct light).
+and Y3Co1Cg1 (11), plus the "ratio" chroma decoding and Mitsuba-ray
+visibility for RGB3 and Y3Co1Cg1 (and any ``--methods crc:...`` specs).
+Each configuration is the registered method ``crc`` run on the same frames
+through the common pipeline (:func:`slc.experiment.run_case`, one
+configuration after the other). Reported per row: median cache time per
+frame after warm-up (occupancy, light paths, bounces, blending,
+reconstruction; voxelization is static and given separately), occupancy
+ratio, CIE Lab RMSE and pdiff (percent of pixels with CIE76 dE > 2.3)
+against the uncompressed cache (RGB3, same occupancy and visibility),
+FLIP/PSNR/SSIM/Lab RMSE of the composited image (ground-truth direct +
+cache indirect) against direct + the indirect reference at the same
+G-buffer points (:func:`slc.references.reference_for`, ``"full"``), and
+``indirect_*``: the pipeline's own comparison of the indirect light alone
+with the indirect reference.
 
     python experiments/crc.py --quick
     slc run crc --quick [--scene cornell]
@@ -45,6 +49,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bounces", type=int, nargs="+", help="indirect bounce counts (default 1 2)")
     p.add_argument("--march-samples", type=int, default=0,
                    help="fixed ray-march sample count (the paper's 8-12); 0 = one sample per geometry voxel")
+    p.add_argument("--methods", nargs="+", metavar="SPEC",
+                   help="extra configurations, e.g. crc:encoding=y3co2cg2,chroma=ratio (checked before any work)")
     p.add_argument("--seed", type=int, default=0)
 
 
@@ -77,29 +83,50 @@ def _plot(path, rows, title):
     a2.set_ylabel("Lab RMSE vs RGB3 [%]")
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    io._atomic(path, lambda p: fig.savefig(p, dpi=120, format="png"))
+    io.write_figure(path, fig, dpi=120)
     plt.close(fig)
 
 
+def _spec(settings: dict) -> str:
+    return "crc:" + ",".join(f"{k}={int(v) if isinstance(v, bool) else v}" for k, v in settings.items())
+
+
+def _extra_specs(specs, nb: int, common: dict) -> list[dict]:
+    """``--methods`` specs as settings, with the experiment's bounces,
+    resolution and march samples unless the spec sets them."""
+    from slc import methods
+    out = []
+    for spec in specs or []:
+        name, settings = methods.parse_spec(spec)
+        if name != "crc":
+            raise methods.MethodError(f"the crc experiment runs the crc method only (got '{spec}')")
+        out.append({**common, "bounces": nb, **settings})
+    return out
+
+
 def run(opts) -> dict:
+    import dataclasses
+
     import numpy as np
     from tqdm import tqdm
 
-    from slc import experiment, io, views
-    from slc.crc import CRCCache
+    from slc import experiment, io, methods, views
+    from slc.crc.grid import Grid
     from slc.crc.quality import JND_CIE76, pdiff
-    from slc.crc.reference import reference_indirect
-    from slc.gbuffer import to_image
-    from slc.groundtruth import ground_truth
     from slc.metrics import evaluate, lab_rmse
-    from slc.pipeline import gbuffers_for
-    from slc.timing import StageTimer
+    from slc.pipeline import RunConfig
+    from slc.references import reference_for
 
     preset = dict(QUICK if opts.quick else FULL)
     if opts.res:
         w, _, h = opts.res.lower().partition("x")
-        preset["width"], preset["height"] = int(w), int(h)
+        try:
+            preset["width"], preset["height"] = int(w), int(h)
+        except ValueError:
+            raise experiment.ExperimentError(f"bad resolution '{opts.res}' (expected WxH, e.g. 320x180)") from None
     if opts.frames:
+        if opts.frames < 1:
+            raise experiment.ExperimentError("--frames must be at least 1")
         preset["frames"] = opts.frames
         preset["eval_frames"] = [f for f in preset["eval_frames"] if f < opts.frames] or [opts.frames - 1]
         preset["warmup"] = min(preset["warmup"], max(opts.frames - 1, 0))
@@ -109,94 +136,87 @@ def run(opts) -> dict:
         preset["bounces"] = opts.bounces
     W, H = preset["width"], preset["height"]
     out = Path(opts.out) / NAME
+    common = dict(resolution=preset["resolution"], march_samples=getattr(opts, "march_samples", 0) or 0)
 
     # ----------------- validate everything before any work -----------------
     names = experiment.load_and_validate(opts.scene or preset["scenes"], [], bool(opts.scene))
+    cfg = RunConfig(width=W, height=H, frames=preset["frames"], warmup=preset["warmup"],
+                    eval_frames=preset["eval_frames"], seed=opts.seed, ref_spp=preset["ref_spp"],
+                    keep_images=False, measure_overlap=False)
+    plans = {nb: [{**common, "bounces": nb, **c} for c in _configs(nb)] + _extra_specs(opts.methods, nb, common)
+             for nb in preset["bounces"]}
 
     rows = []
-    evals = set(preset["eval_frames"])
-    total = len(names) * len(preset["bounces"]) * preset["frames"]
+    total = len(names) * sum(len(p) for p in plans.values()) * preset["frames"]
     with tqdm(total=total, desc=NAME, unit="frame", disable=None) as bar:
         for s in experiment.each_scene(names):
             viewers = views.single(s)
-            for nb in preset["bounces"]:
-                cfgs = _configs(nb)
-                caches = [CRCCache(s, bounces=nb, resolution=preset["resolution"], seed=opts.seed,
-                                   march_samples=getattr(opts, "march_samples", 0) or 0, **c)
-                          for c in cfgs]
-                timers = [StageTimer() for _ in cfgs]
-                acc = [dict() for _ in cfgs]
-                stats = [dict() for _ in cfgs]
-                last = {}
-                for f in range(preset["frames"]):
-                    bar.set_postfix_str(f"{s.name}/{nb} bounce(s)")
-                    gbs = gbuffers_for(s, viewers, f, W, H)
-                    imgs = []
-                    for cache, tm in zip(caches, timers):
-                        tm.begin_frame()
-                        ind = cache.render(f, gbs, tm)
-                        tm.end_frame()
-                        imgs.append(to_image(gbs[0], ind[0]))
-                    for st, cache in zip(stats, caches):
-                        for k, v in cache.stats().items():
-                            st.setdefault(k, []).append(float(v))
-                    if f in evals:
-                        gb = gbs[0]
-                        direct = ground_truth(s, gb, f, gb.viewer, spp=preset["direct_spp"])
-                        ref = direct + reference_indirect(s, gb, f, gb.viewer, spp=preset["ref_spp"], bounces=nb)
-                        finals = [direct + im for im in imgs]
-                        for i, c in enumerate(cfgs):
-                            base = next(j for j, d in enumerate(cfgs) if d["occupancy"] == c["occupancy"]
-                                        and "chroma" not in d
-                                        and d["visibility"] == c["visibility"] and d["encoding"] == "rgb3")
-                            m = evaluate(ref, finals[i], s.exposure)
-                            m["lab_rmse_ref"] = m.pop("lab_rmse")
-                            m["lab_rmse"] = lab_rmse(finals[base], finals[i], s.exposure)
-                            m["pdiff"] = pdiff(finals[base], finals[i], s.exposure)
-                            for k, v in m.items():
-                                acc[i].setdefault(k, []).append(v)
-                        last = {"ref": ref, "finals": finals, "direct": direct}
-                    bar.update(1)
-                # ------------------------------ rows ------------------------------
-                group = []
-                for i, (c, cache, tm) in enumerate(zip(cfgs, caches, timers)):
-                    summ = tm.summary(preset["warmup"])
-                    w0 = preset["warmup"]
-                    row = {"scene": s.name, "method": "crc", "viewers": len(viewers), "encoding": c["encoding"],
-                           "occupancy": c["occupancy"], "visibility": c["visibility"], "bounces": nb,
-                           "chroma": c.get("chroma", "offset"),
-                           "coefficients": cache.enc.n, "time_ms": summ.get("total", 0.0),
-                           "stages_ms": {k: v for k, v in summ.items() if k != "total"},
-                           "memory_mb": cache.memory_bytes() / 2 ** 20,
-                           "occupancy_ratio": float(np.mean(stats[i]["occupancy_ratio"][w0:] or
-                                                            stats[i]["occupancy_ratio"])),
-                           "voxelize_ms": cache.voxelize_ms, "grid": list(cache.grid.dims),
-                           "resolution": f"{W}x{H}"}
-                    row.update({k: float(np.mean(v)) for k, v in acc[i].items()})
+            made = {nb: [methods.create(_spec(c), s, seed=opts.seed) for c in plan] for nb, plan in plans.items()}
+            for nb, plan in plans.items():
+                group, finals = [], []
+                for c, m in zip(plan, made[nb]):
+                    # --- one configuration through the common pipeline; the hook keeps the
+                    # composited images (direct ground truth + indirect) of the evaluated frames ---
+                    composed = {}
+
+                    def on_eval(f, v, gb, img, ref, composed=composed):
+                        direct = reference_for("direct", s, gb, f, gb.viewer, spp=preset["direct_spp"])
+                        composed[f] = (direct + img, direct + ref)
+
+                    row = experiment.run_case(s, _spec(c), viewers, dataclasses.replace(cfg, on_eval=on_eval),
+                                              bar, seed=opts.seed)
+                    res = row.pop("_result")
+                    st = m.settings()
+                    for k in res.metrics:   # the pipeline's comparison: indirect light alone
+                        row["indirect_" + k] = row.pop(k)
+                    acc = {}
+                    for f, (final, ref_full) in sorted(composed.items()):
+                        q = evaluate(ref_full, final, s.exposure)
+                        q["lab_rmse_ref"] = q.pop("lab_rmse")
+                        for k, v in q.items():
+                            acc.setdefault(k, []).append(v)
+                    row.update({k: float(np.mean(v)) for k, v in acc.items()})
+                    row.update({"encoding": st["encoding"], "occupancy": st["occupancy"],
+                                "visibility": st["visibility"], "bounces": st["bounces"], "chroma": st["chroma"],
+                                "coefficients": m.enc.n,
+                                "grid": list(Grid.around(s.bbox_min, s.bbox_max, st["resolution"]).dims)})
                     group.append(row)
+                    finals.append(composed)
+                # ------------------- against the RGB3 cache (the paper's comparison) -------------------
+                for r, fin in zip(group, finals):
+                    base = next((j for j, x in enumerate(group) if x["occupancy"] == r["occupancy"]
+                                 and x["visibility"] == r["visibility"] and x["encoding"] == "rgb3"
+                                 and x["chroma"] == "offset"), None)
+                    if base is None:
+                        continue
+                    fb = finals[base]
+                    r["lab_rmse"] = float(np.mean([lab_rmse(fb[f][0], fin[f][0], s.exposure) for f in fin]))
+                    r["pdiff"] = float(np.mean([pdiff(fb[f][0], fin[f][0], s.exposure) for f in fin]))
                 unopt = next(r for r in group if not r["occupancy"] and r["encoding"] == "rgb3")
                 for r in group:
-                    same = next(x for x in group if x["occupancy"] == r["occupancy"] and x["chroma"] == "offset" and
-                                x["visibility"] == r["visibility"] and x["encoding"] == "rgb3")
-                    r["time_vs_rgb3"] = r["time_ms"] / max(same["time_ms"], 1e-9)
+                    same = next((x for x in group if x["occupancy"] == r["occupancy"] and x["chroma"] == "offset"
+                                 and x["visibility"] == r["visibility"] and x["encoding"] == "rgb3"), None)
+                    r["time_vs_rgb3"] = r["time_ms"] / max(same["time_ms"], 1e-9) if same else None
                     r["time_vs_unoptimized"] = r["time_ms"] / max(unopt["time_ms"], 1e-9)
                 rows += group
                 # ------------------------------ images ------------------------------
                 stem = out / "images" / f"{s.name}_b{nb}"
-                io.write_hdr_and_png(stem.with_name(stem.name + "_reference"), last["ref"], s.exposure)
-                for i, c in enumerate(cfgs):
-                    if c["occupancy"] and c["visibility"] == "march" and c["encoding"] in ("rgb3", "y3co1cg1"):
-                        tag = c["encoding"] + ("_ratio" if c.get("chroma") == "ratio" else "")
-                        io.write_hdr_and_png(stem.with_name(f"{stem.name}_{tag}"), last["finals"][i],
-                                             s.exposure)
+                last = max(finals[0])
+                io.write_hdr_and_png(stem.with_name(stem.name + "_reference"), finals[0][last][1], s.exposure)
+                for r, fin in zip(group, finals):
+                    if r["occupancy"] and r["visibility"] == "march" and r["encoding"] in ("rgb3", "y3co1cg1"):
+                        tag = r["encoding"] + ("_ratio" if r["chroma"] == "ratio" else "")
+                        io.write_hdr_and_png(stem.with_name(f"{stem.name}_{tag}"), fin[last][0], s.exposure)
                 _plot(out / f"crc_{s.name}_b{nb}.png", group, f"{s.name}, {nb} bounce(s), {W}x{H}")
 
     config = {"quick": bool(opts.quick), "scenes": names, **preset, "seed": opts.seed,
               "march_samples": getattr(opts, "march_samples", 0) or 0,
               "pdiff": f"percent of pixels with CIE76 dE > {JND_CIE76} against the RGB3 cache",
               "lab_rmse": "CIE Lab RMSE (percent) against the RGB3 cache; lab_rmse_ref against the reference",
-              "reference": "path-traced diffuse indirect light (slc.crc.reference) + ground-truth direct light"}
-    results = experiment.results_object(NAME, config, rows)
+              "reference": "slc.references: indirect reference (the method's bounces) + ground-truth direct light",
+              "indirect_metrics": "indirect_*: the pipeline's comparison of the indirect light alone with the "
+                                  "indirect reference (exposure 0.8 / p99 of the reference)"}
+    results = experiment.results_object(NAME, config, experiment.strip_private(rows))
     cols = [("scene", "scene"), ("bounces", "bounces"), ("visibility", "visibility"), ("occupancy", "occupancy"),
             ("encoding", "encoding"), ("chroma", "chroma"), ("coefficients", "coeffs"),
             ("occupancy_ratio", "occ. ratio"),
@@ -205,8 +225,10 @@ def run(opts) -> dict:
             ("flip", "FLIP"), ("psnr", "PSNR"), ("ssim", "SSIM"), ("memory_mb", "memory [MB]")]
     md = (f"# {NAME}\n\n{W}x{H}, {preset['frames']} frames ({preset['warmup']} warm-up), grid resolution "
           f"{preset['resolution']}; t = median cache ms per frame (voxelization excluded); Lab RMSE and pdiff "
-          f"(CIE76 dE > {JND_CIE76}) against the uncompressed RGB3 cache; FLIP/PSNR/SSIM against the "
-          f"path-traced reference ({preset['ref_spp']} spp indirect + {preset['direct_spp']} spp direct).\n\n"
+          f"(CIE76 dE > {JND_CIE76}) against the uncompressed RGB3 cache; FLIP/PSNR/SSIM of ground-truth direct + "
+          f"cache indirect against the reference ({preset['ref_spp']} spp indirect (slc.references) + "
+          f"{preset['direct_spp']} spp direct); indirect_* in results.json: indirect light alone against the "
+          f"indirect reference (the pipeline's comparison).\n\n"
           + experiment.markdown_table(rows, cols) + "\n")
     md += "\n## Targets\n\n"
     for name in names:

@@ -89,7 +89,9 @@ def methods_cmd():
 @click.option("--frames", default=8, show_default=True, type=int)
 @click.option("--warmup", default=2, show_default=True, type=int)
 @click.option("--seed", default=0, show_default=True, type=int)
-@click.option("--gt/--no-gt", default=False, show_default=True, help="compare the last frame with ground truth")
+@click.option("--gt/--no-gt", default=False, show_default=True,
+              help="compare the last frame with the reference of the method's output kind "
+                   "(direct: ground truth; indirect: indirect reference; full: both)")
 @click.option("--out", default="out/render", show_default=True)
 def render_cmd(scene_name, method, viewers, rig, overlap, res, frames, warmup, seed, gt, out):
     """Render a sequence with one method; write images and timings."""
@@ -114,11 +116,12 @@ def render_cmd(scene_name, method, viewers, rig, overlap, res, frames, warmup, s
         io.write_hdr_and_png(outd / f"{s.name}_{m.name}_{vname}", img, s.exposure)
     for vname, im in r.images.items():
         io.comparison_strip(outd / f"{s.name}_{m.name}_{vname}_strip.png", im["gt"], im["img"],
-                                im["flip_map"], s.exposure)
+                            im["flip_map"], im["exposure"])
     row = {"scene": s.name, **r.row(), "per_frame_ms": r.per_frame_ms}
     io.write_json(outd / "timings.json", row)
-    click.echo(f"{s.name} {m.name} viewers={len(vs)}: {r.time_ms:.2f} ms/frame (median after {cfg.warmup} warm-up)"
-               + "".join(f", {k} {v:.4f}" for k, v in r.metrics.items()))
+    click.echo(f"{s.name} {m.name} ({m.output} light) viewers={len(vs)}: {r.time_ms:.2f} ms/frame (median after "
+               f"{cfg.warmup} warm-up)" + "".join(f", {k} {v:.4f}" for k, v in r.metrics.items())
+               + (f" vs the {m.output} reference" if r.metrics else ""))
     click.echo(f"wrote {outd}")
 
 

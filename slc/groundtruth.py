@@ -4,15 +4,13 @@ G-buffer points, with multiple importance sampling of lights and BSDF.
 Per sample: one light sample (shadow ray, power-heuristic weight against the
 BSDF pdf; delta lights weight 1) plus one BSDF sample (a ray; if it hits an
 emitter or escapes to the environment, weighted against the light pdf).
-Results are cached on disk (``$SLC_CACHE`` or ``~/.cache/slc``), keyed by
-scene, frame, viewer, resolution, sample count and a hash of the camera and
-scene time, so experiments never recompute the same reference.
+Results are cached on disk (``$SLC_CACHE/gt`` or ``~/.cache/slc/gt``) under
+the one key of :func:`slc.references.cache_path` (scene, frame, viewer,
+resolution, sample count, camera, scene time, G-buffer hash), so
+experiments never recompute the same reference.
 """
 from __future__ import annotations
 
-import hashlib
-import json
-import os
 from pathlib import Path
 
 import drjit as dr
@@ -24,13 +22,14 @@ from .gbuffer import GBuffer, compose, to_image
 from .io import cached_array
 from .lights import mis_weight, rng, visible
 from .lights import sample_light_reference as sample_light  # Mitsuba's own sampling: an independent check
+from .references import cache_path, cache_root
 
 GT_SAMPLES = 2048
 _VERSION = "gt-v1"
 
 
 def cache_dir() -> Path:
-    return Path(os.environ.get("SLC_CACHE", Path.home() / ".cache" / "slc")) / "gt"
+    return cache_root() / "gt"
 
 
 def direct_mis(scene: mi.Scene, gb: GBuffer, spp: int = GT_SAMPLES, seed: int = 7) -> mi.Color3f:
@@ -76,19 +75,10 @@ def direct_mis(scene: mi.Scene, gb: GBuffer, spp: int = GT_SAMPLES, seed: int = 
     return L / float(max(spp, 1))
 
 
-def _key(scene_name: str, frame: int, viewer: str, gb: GBuffer, spp: int, t) -> str:
-    cam = gb.camera
-    h = hashlib.sha1(json.dumps([_VERSION, scene_name, frame, viewer, gb.width, gb.height, spp,
-                                 np.round(cam.origin, 6).tolist(), np.round(cam.target, 6).tolist(),
-                                 float(cam.fov), None if t is None else round(float(t), 6)]).encode()).hexdigest()[:16]
-    safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in f"{scene_name}_f{frame}_{viewer}")
-    return f"{safe}_{gb.width}x{gb.height}_s{spp}_{h}.npy"
-
-
 def ground_truth(scene, gb: GBuffer, frame: int, viewer: str = "", spp: int = GT_SAMPLES,
                  use_cache: bool = True) -> np.ndarray:
     """Composed ground-truth image (H, W, 3) at the G-buffer's points, cached."""
-    path = cache_dir() / _key(scene.name, frame, viewer, gb, spp, scene.time)
+    path = cache_path("gt", _VERSION, scene, gb, frame, viewer, spp)
 
     def compute():
         return to_image(gb, compose(gb, direct_mis(scene.mi_scene, gb, spp)))

@@ -86,6 +86,11 @@ def comparison_strip(path, reference_hdr, test_hdr, flip_map, exposure: float) -
     write_png(path, strip)
 
 
+def write_figure(path, fig, dpi: int = 120) -> None:
+    """A Matplotlib figure as PNG, written atomically."""
+    _atomic(path, lambda p: fig.savefig(p, dpi=dpi, format="png"))
+
+
 def write_json(path, obj) -> None:
     def enc(o):
         if isinstance(o, (np.floating,)):

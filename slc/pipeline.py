@@ -4,7 +4,9 @@ For each frame: pose the scene (:meth:`Scene.set_frame`), build one G-buffer
 per viewer, hand all of them to the method (timed by stage; G-buffer
 generation and tone mapping are not timed, as in the papers), compose with
 directly seen emission, and on evaluation frames compare every viewer's
-image with the 2048-sample ground truth at the same points.
+image with the reference of the method's own ``output`` kind at the same
+points (:func:`slc.references.reference_for`: the 2048-sample direct
+ground truth, the indirect reference, or both).
 
 Kernels compiled or loaded from Dr.Jit's disk cache while the method
 renders are counted per frame (:class:`slc.timing.KernelCounter`); their sum
@@ -15,12 +17,14 @@ from __future__ import annotations
 
 import statistics
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
 from . import check
 from . import gbuffer as gbuf
-from .groundtruth import GT_SAMPLES, ground_truth
+from . import references
+from .groundtruth import GT_SAMPLES
 from .methods import FrameContext, Method
 from .metrics import evaluate
 from .timing import KernelCounter, StageTimer
@@ -44,6 +48,8 @@ class RunConfig:
     start_frame: int = 0
     eval_viewers: int | None = None   # compare only the first k viewers with the ground truth
     measure_overlap: bool = True      # screen-independent overlap of the viewers' visible surface
+    ref_spp: int | None = None        # samples of indirect references (None: references.INDIRECT_SAMPLES)
+    on_eval: Callable | None = None   # on_eval(frame, viewer index, gb, image, reference) per evaluated image
 
     def evaluated(self) -> list[int]:
         if self.eval_frames is None:
@@ -61,7 +67,7 @@ class RunResult:
     memory_mb: float
     frames_ms: list = field(default_factory=list)  # per frame: {stage: ms, "total": ms, "compiled": n}, warm-up included
     compiled_after_warmup: int = 0  # kernels compiled or loaded from disk in the timed frames (0 when steady)
-    images: dict = field(default_factory=dict)  # viewer -> {"gt", "img", "flip_map"} of the last evaluated frame
+    images: dict = field(default_factory=dict)  # viewer -> {"gt", "img", "flip_map", "exposure"}, last evaluated frame
     last: dict = field(default_factory=dict)    # viewer -> composed image of the last frame
     stats: dict = field(default_factory=dict)
 
@@ -128,16 +134,23 @@ def _run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress, kc: 
         if i in evals:
             k = len(gbs) if cfg.eval_viewers is None else min(cfg.eval_viewers, len(gbs))
             for v, (gb, d) in enumerate(zip(gbs[:k], direct[:k])):
-                img = gbuf.to_image(gb, gbuf.compose(gb, d))
-                gt = ground_truth(scene, gb, f, gb.viewer, spp=cfg.gt_spp)
-                m = evaluate(gt, img, scene.exposure, with_map=True)
+                # the reference of the method's own output kind (direct, indirect or full)
+                img = references.image_of(method.output, gb, d)
+                gt = references.reference_for(method.output, scene, gb, f, gb.viewer,
+                                              spp=cfg.gt_spp if method.output == "direct" else cfg.ref_spp,
+                                              bounces=references.reference_bounces(method))
+                exposure = references.exposure_for(method.output, scene, gt)
+                m = evaluate(gt, img, exposure, with_map=True)
                 fmap = m.pop("flip_map")
                 for k, val in m.items():
                     acc.setdefault(k, []).append(val)
+                if cfg.on_eval is not None:
+                    cfg.on_eval(f, v, gb, img, gt)
                 if cfg.keep_images:
-                    images[gb.viewer or f"v{v}"] = {"gt": gt, "img": img, "flip_map": fmap, "frame": f}
+                    images[gb.viewer or f"v{v}"] = {"gt": gt, "img": img, "flip_map": fmap, "frame": f,
+                                                    "exposure": exposure}
         if cfg.keep_images and i == cfg.frames - 1:
-            last = {gb.viewer: gbuf.to_image(gb, gbuf.compose(gb, d)) for gb, d in zip(gbs, direct)}
+            last = {gb.viewer: references.image_of(method.output, gb, d) for gb, d in zip(gbs, direct)}
         if progress is not None:
             progress.update(1)
     summ = timer.summary(cfg.warmup)

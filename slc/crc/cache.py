@@ -9,30 +9,17 @@ import time
 import drjit as dr
 import mitsuba as mi
 
-from ..lights import finite
+from ..keys import STREAM_CRC, keyed_rng
+from ..methods import Method, Param
 from ..sh.project import irradiance, project
+from ..sh.ycocg import ENCODINGS
 from ..sh.ycocg import encoding as get_encoding
 from . import volume
 from .grid import GEOMETRY_FACTOR, Grid
 from .march import march, visible
 
-
-def _seed(seed: int, frame: int, stream: int) -> mi.UInt64:
-    s = (int(seed) * 0x9E3779B97F4A7C15 + int(frame) * 0xD1B54A32D192ED03 + stream * 0xBF58476D1CE4E5B9)
-    return dr.opaque(mi.UInt64, s & 0xFFFFFFFFFFFFFFFF)
-
-
-def cell_rng(cells: mi.UInt32, seed: int, frame: int, stream: int) -> mi.PCG32:
-    """One PCG32 stream per cell, keyed by the cell index (not by its
-    position in the compacted list), so the same cell draws the same numbers
-    whether or not other cells are active."""
-    s = mi.PCG32(size=dr.width(cells))
-    key = dr.opaque(mi.UInt32, (int(seed) * 0x9E3779B1 + int(frame) * 0x85EBCA77 + stream * 0xC2B2AE3D) & 0xFFFFFFFF)
-    v0, v1 = mi.sample_tea_32(mi.UInt32(cells), key, 4)
-    s.inc = (mi.UInt64(cells) << 1) | 1
-    s.state = (mi.UInt64(v0) << 32) | mi.UInt64(v1)
-    s.next_uint32()
-    return s
+# Random streams of the stages (offsets of STREAM_CRC; keys: light path or cell index)
+_LIGHTS, _FIRST_BOUNCE, _SECONDARY = 11, 12, 20
 
 
 def front_normal(si: mi.SurfaceInteraction3f) -> mi.Vector3f:
@@ -41,7 +28,7 @@ def front_normal(si: mi.SurfaceInteraction3f) -> mi.Vector3f:
     return dr.select(si.wi.z < 0.0, -n, n)
 
 
-class CRCCache:
+class CRCCache(Method):
     r"""Grid radiance cache with chrominance-compressed SH (CRC).
 
     Per frame:
@@ -83,50 +70,44 @@ class CRCCache:
        Hanrahan), back to RGB (``presence`` scales Y, ``bleeding`` CoCg),
        outgoing diffuse radiance rho(x) E / pi.
 
-    Parameters (defaults): ``encoding`` ("y3co1cg1"; "rgb3", "y3co3cg3",
-    "y3co2cg2"), ``resolution`` (16 cells on the longest side), ``bounces``
-    (1), ``occupancy`` (True; False = every cell is a cache point),
-    ``vpls`` (4096), ``samples`` (64 VPLs per cell), ``secondary_rays``
-    (32), ``secondary_distance`` (8 cells), ``visibility`` ("march"),
-    ``march_samples`` (0 = one sample per geometry voxel; n > 0 = the
-    paper's fixed sparse count), ``blend`` (0.25), ``jitter`` (0.5 cell),
-    ``min_distance`` (0.5 cell), ``depth_stride`` (1 pixel; larger strides
-    skip pixels whose cells the dilation may not cover), ``albedo``
-    (0.5), ``presence``/``bleeding`` (1, 1), ``chroma`` ("offset", the
-    paper; "ratio": constant-term chroma scaled by the directional
-    luminance, see :func:`slc.sh.project.irradiance`), ``seed`` (0).
+    Random numbers: one stream per light path and per cell
+    (:func:`slc.keys.keyed_rng`, keyed by the path or *cell* index, not by
+    the position in the compacted list of active cells), so the same cell
+    draws the same numbers whether or not other cells are active.
+
+    Output: *indirect* light only (``output = "indirect"``): direct light
+    is not cached; compose with a direct-light method or the ground truth.
     """
 
-    def __init__(self, scene, encoding="y3co1cg1", resolution: int = 16, bounces: int = 1,
-                 occupancy: bool = True, vpls: int = 4096, samples: int = 64, secondary_rays: int = 32,
-                 secondary_distance: float = 8.0, visibility: str = "march", march_samples: int = 0,
-                 blend: float = 0.25, jitter: float = 0.5, min_distance: float = 0.5, depth_stride: int = 1,
-                 albedo: float = 0.5, presence: float = 1.0, bleeding: float = 1.0, chroma: str = "offset",
-                 seed: int = 0):
-        if visibility not in ("march", "rays"):
-            raise ValueError(f"visibility must be 'march' or 'rays', got '{visibility}'")
-        self.scene = scene
-        self.enc = get_encoding(encoding)
-        self.resolution = int(resolution)
-        self.bounces = max(int(bounces), 1)
-        self.occupancy = bool(occupancy)
-        self.n_vpl = max(int(vpls), 1)
-        self.samples = max(int(samples), 1)
-        self.secondary_rays = max(int(secondary_rays), 1)
-        self.secondary_distance = float(secondary_distance)
-        self.visibility = visibility
-        self.march_samples = int(march_samples)
-        self.blend = float(blend)
-        self.jitter = float(jitter)
-        self.min_distance = float(min_distance)
-        self.depth_stride = int(depth_stride)
-        self.albedo = float(albedo)
-        self.presence = float(presence)
-        self.bleeding = float(bleeding)
-        if chroma not in ("offset", "ratio"):
-            raise ValueError(f"chroma must be 'offset' or 'ratio', got '{chroma}'")
-        self.chroma = chroma
-        self.seed = int(seed)
+    name = "crc"
+    output = "indirect"
+    params = (
+        Param("encoding", "y3co1cg1", "SH encoding of the radiance", choices=tuple(ENCODINGS)),
+        Param("resolution", 16, "grid cells on the scene box's longest side", lo=2, hi=256),
+        Param("bounces", 1, "indirect bounces (1: depth occupancy; more: geometry occupancy)", lo=1, hi=8),
+        Param("occupancy", True, "cache points only in occupied cells (0: every cell)"),
+        Param("vpls", 4096, "light paths (VPLs) per frame", lo=1, hi=4_000_000),
+        Param("samples", 64, "VPL samples per cache point", lo=1, hi=1 << 16),
+        Param("secondary_rays", 32, "directions per cache point for bounces 2+", lo=1, hi=1 << 16),
+        Param("secondary_distance", 8.0, "march length of secondary rays [cells]", lo=0.25, hi=1024.0),
+        Param("visibility", "march", "visibility by geometry-volume march or Mitsuba rays",
+              choices=("march", "rays")),
+        Param("march_samples", 0, "samples per marched ray (0: one per geometry voxel; paper 8-12)",
+              lo=0, hi=4096),
+        Param("blend", 0.25, "temporal blend weight of the new estimate", lo=0.01, hi=1.0),
+        Param("jitter", 0.5, "jitter of the sample point around the cell centre [cells]", lo=0.0, hi=1.0),
+        Param("min_distance", 0.5, "distance clamp of VPL contributions [cells]", lo=0.0, hi=8.0),
+        Param("depth_stride", 1, "pixel stride of the depth occupancy", lo=1, hi=64),
+        Param("albedo", 0.5, "grey albedo of marched secondary hits", lo=0.0, hi=1.0),
+        Param("presence", 1.0, "scale of Y (artistic control)", lo=0.0, hi=16.0),
+        Param("bleeding", 1.0, "scale of Co, Cg (artistic control)", lo=0.0, hi=16.0),
+        Param("chroma", "offset", "chroma decoding: the paper's offset or the constant-chromaticity ratio",
+              choices=("offset", "ratio")),
+    )
+
+    def __init__(self, scene, **kw):
+        super().__init__(scene, **kw)
+        self.enc = get_encoding(self.encoding)
         self.grid = Grid.around(scene.bbox_min, scene.bbox_max, self.resolution)
         self.geo = self.grid.finer(GEOMETRY_FACTOR)
         self.voxelize_ms = 0.0
@@ -143,11 +124,6 @@ class CRCCache:
         self.active = None
         self.n_active = 0
         self._volumes = 1
-
-    def settings(self) -> dict:
-        return {"encoding": self.enc.name, "resolution": self.resolution, "bounces": self.bounces,
-                "occupancy": self.occupancy, "vpls": self.n_vpl, "samples": self.samples,
-                "visibility": self.visibility}
 
     def _voxelize(self) -> None:
         t = self.scene.time
@@ -191,8 +167,7 @@ class CRCCache:
     def _lights(self, frame: int):
         """Virtual point lights: first hits of light paths (the RSM samples)."""
         sc = self.scene.mi_scene
-        s = mi.PCG32(size=self.n_vpl, initstate=_seed(self.seed, frame, 11),
-                     initseq=dr.arange(mi.UInt64, self.n_vpl))
+        s = keyed_rng(dr.arange(mi.UInt32, self.vpls), self.seed, frame, STREAM_CRC + _LIGHTS)
         u1 = s.next_float32()
         u2 = mi.Point2f(s.next_float32(), s.next_float32())
         u3 = mi.Point2f(s.next_float32(), s.next_float32())
@@ -200,29 +175,46 @@ class CRCCache:
         si = sc.ray_intersect(ray)
         ok = si.is_valid() & (si.wi.z > 0.0)
         rho = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, ok))
-        phi = finite(dr.select(ok, mi.Color3f(w) * rho, 0.0))
+        phi = dr.select(ok, mi.Color3f(w) * rho, 0.0)
         X = dr.select(ok, si.p, 0.0)
         N = front_normal(si)
         return X, N, phi
 
-    def _first_bounce(self, frame: int, cells: mi.UInt32, X, N, phi) -> list:
-        enc, grid, geo = self.enc, self.grid, self.geo
-        sampler = cell_rng(cells, self.seed, frame, 12)
-        Pc = grid.center(cells)
-        n_vpl, h, jit = self.n_vpl, grid.h, self.jitter
-        d2min = (self.min_distance * h) ** 2
-        n_s = dr.opaque(mi.UInt32, self.samples)
-        sc = self.scene.mi_scene
-        vis_mode, ms = self.visibility, self.march_samples
+    def _integrate(self, frame: int, cells: mi.UInt32, stream: int, count: int, sample) -> list:
+        """Sum over ``count`` samples per cache point, in registers, of
+        ``project(enc, omega, L)`` for ``(omega, L) = sample(Pc, sampler)``
+        (``Pc``: the cell centres; one keyed stream per cell)."""
+        enc = self.enc
+        sampler = keyed_rng(cells, self.seed, frame, STREAM_CRC + stream)
+        Pc = self.grid.center(cells)
+        n = dr.opaque(mi.UInt32, count)
 
-        # ---------------- n_s VPL samples per cache point, in registers ----------------
         def cond(i, acc, sampler):
-            return i < n_s
+            return i < n
 
         def body(i, acc, sampler):
+            omega, L = sample(Pc, sampler)
+            acc = [a + b for a, b in zip(acc, project(enc, omega, L))]
+            return i + 1, acc, sampler
+
+        acc0 = [mi.Float(0.0) for _ in range(enc.n)]
+        _, acc, _ = dr.while_loop(state=(mi.UInt32(0), acc0, sampler), cond=cond, body=body,
+                                  labels=("i", "acc", "sampler"))
+        return acc
+
+    def _jittered(self, Pc: mi.Point3f, sampler: mi.PCG32) -> mi.Point3f:
+        off = mi.Vector3f(sampler.next_float32(), sampler.next_float32(), sampler.next_float32()) - 0.5
+        return Pc + off * (self.jitter * self.grid.h)
+
+    def _first_bounce(self, frame: int, cells: mi.UInt32, X, N, phi) -> list:
+        geo, n_vpl = self.geo, self.vpls
+        d2min = (self.min_distance * self.grid.h) ** 2
+        sc = self.scene.mi_scene
+
+        # ---------------- one VPL sample at a jittered cache point ----------------
+        def sample(Pc, sampler):
             j = dr.minimum(mi.UInt32(sampler.next_float32() * n_vpl), n_vpl - 1)
-            off = mi.Vector3f(sampler.next_float32(), sampler.next_float32(), sampler.next_float32()) - 0.5
-            P = Pc + off * (jit * h)
+            P = self._jittered(Pc, sampler)
             Xk = dr.gather(mi.Point3f, X, j)
             Nk = dr.gather(mi.Vector3f, N, j)
             Pk = dr.gather(mi.Color3f, phi, j)
@@ -232,49 +224,35 @@ class CRCCache:
             cos_k = -dr.dot(Nk, w_dir)
             ok = (cos_k > 0.0) & (dr.max(Pk) > 0.0) & (d2 > 0.0)
             # --------------------------- visibility ---------------------------
-            if vis_mode == "march":
+            if self.visibility == "march":
                 ok = visible(self.geometry, geo, P, Xk, sampler.next_float32(), ok,
-                             start_offset=geo.h, end_offset=2.0 * geo.h, samples=ms)
+                             start_offset=geo.h, end_offset=2.0 * geo.h, samples=self.march_samples)
             else:
                 ray = mi.Ray3f(P, w_dir)
                 ray.maxt = dr.sqrt(d2) * (1.0 - 1e-3)
                 ok &= ~sc.ray_test(ray, ok)
-            # --------------------------- projection ---------------------------
-            L = Pk * dr.select(ok, cos_k / (math.pi * dr.maximum(d2, d2min)), 0.0)
-            c = project(enc, w_dir, L)
-            acc = [a + b for a, b in zip(acc, c)]
-            return i + 1, acc, sampler
+            return w_dir, Pk * dr.select(ok, cos_k / (math.pi * dr.maximum(d2, d2min)), 0.0)
 
-        acc0 = [mi.Float(0.0) for _ in range(enc.n)]
-        _, acc, _ = dr.while_loop(state=(mi.UInt32(0), acc0, sampler), cond=cond, body=body,
-                                  labels=("i", "acc", "sampler"))
+        acc = self._integrate(frame, cells, _FIRST_BOUNCE, self.samples, sample)
         inv = 1.0 / float(self.samples)
         return [a * inv for a in acc]
 
     def _secondary_bounce(self, frame: int, bounce: int, cells: mi.UInt32, vin: mi.Float) -> list:
-        enc, grid, geo = self.enc, self.grid, self.geo
-        sampler = cell_rng(cells, self.seed, frame, 20 + bounce)
-        Pc = grid.center(cells)
-        h, jit, rho_avg = grid.h, self.jitter, self.albedo
+        geo, h = self.geo, self.grid.h
         tmax = self.secondary_distance * h
-        n_sec = dr.opaque(mi.UInt32, self.secondary_rays)
         sc = self.scene.mi_scene
-        vis_mode, ms = self.visibility, self.march_samples
 
-        def cond(i, acc, sampler):
-            return i < n_sec
-
-        def body(i, acc, sampler):
+        # ------------- one direction from a jittered cache point -------------
+        def sample(Pc, sampler):
             d = mi.warp.square_to_uniform_sphere(mi.Point2f(sampler.next_float32(), sampler.next_float32()))
-            off = mi.Vector3f(sampler.next_float32(), sampler.next_float32(), sampler.next_float32()) - 0.5
-            P = Pc + off * (jit * h)
+            P = self._jittered(Pc, sampler)
             # ------------------- nearest visible surface point -------------------
-            if vis_mode == "march":
+            if self.visibility == "march":
                 hit, t = march(self.geometry, geo, P, d, geo.h, tmax, sampler.next_float32(), mi.Bool(True),
-                               samples=ms)
+                               samples=self.march_samples)
                 X = P + dr.select(hit, t, 0.0) * d
                 n = -d
-                rho = mi.Color3f(rho_avg)
+                rho = mi.Color3f(self.albedo)
             else:
                 si = sc.ray_intersect(mi.Ray3f(P, d))
                 hit = si.is_valid() & (si.wi.z > 0.0)
@@ -283,15 +261,10 @@ class CRCCache:
                 rho = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, hit))
             # ------------- reflected radiance of the previous bounce -------------
             coeffs = self._lookup(vin, X + n * (0.5 * h), hit)
-            E = irradiance(enc, coeffs, n, clamp=True, chroma=self.chroma)
-            L = dr.select(hit, rho * mi.Color3f(*E) * (1.0 / math.pi), 0.0)
-            c = project(enc, d, L)
-            acc = [a + b for a, b in zip(acc, c)]
-            return i + 1, acc, sampler
+            E = irradiance(self.enc, coeffs, n, clamp=True, chroma=self.chroma)
+            return d, dr.select(hit, rho * mi.Color3f(*E) * (1.0 / math.pi), 0.0)
 
-        acc0 = [mi.Float(0.0) for _ in range(enc.n)]
-        _, acc, _ = dr.while_loop(state=(mi.UInt32(0), acc0, sampler), cond=cond, body=body,
-                                  labels=("i", "acc", "sampler"))
+        acc = self._integrate(frame, cells, _SECONDARY + bounce, self.secondary_rays, sample)
         w = 4.0 * math.pi / float(self.secondary_rays)
         return [a * w for a in acc]
 
@@ -345,10 +318,12 @@ class CRCCache:
         coeffs = self._lookup(self.cache, si.p + n * (0.5 * self.grid.h), active)
         E = mi.Color3f(*irradiance(self.enc, coeffs, n, self.presence, self.bleeding, chroma=self.chroma))
         rho = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, active))
-        return finite(dr.select(active, rho * E * (1.0 / math.pi), 0.0))
+        return dr.select(active, rho * E * (1.0 / math.pi), 0.0)
 
-    def render(self, frame: int, gbuffers, timer) -> list:
-        self.update(frame, gbuffers, timer)
+    def render(self, ctx, gbuffers, timer) -> list:
+        """Indirect light per viewer: the cache update of frame ``ctx.frame``
+        (shared by all viewers), then reconstruction at each G-buffer."""
+        self.update(ctx.frame, gbuffers, timer)
         with timer.stage("reconstruct") as st:
             out = [self.shade(gb) for gb in gbuffers]
             st.outputs(*out)

@@ -1,61 +1,80 @@
 """Instant radiosity methods ``megaviews``, ``manylods`` and ``brute``.
 
-All three generate the same VPLs per frame, render one dual-paraboloid
-shadow map per VPL (through the view hierarchy for ``megaviews``, per view
-for ``manylods``, every leaf into every view for ``brute``) and gather
-them per pixel (:func:`.vpl.gather`, then :func:`.vpl.bilateral`).
+All three generate the same VPLs per frame (:meth:`ManyViewIR.lights`),
+render one dual-paraboloid shadow map per VPL (:meth:`ManyViewIR.shadow_maps`:
+through the view hierarchy for ``megaviews``, per view for ``manylods``,
+every leaf into every view for ``brute``) and gather them per pixel
+(:meth:`ManyViewIR.gather`: :func:`.vpl.gather`, then :func:`.vpl.bilateral`).
+The ``megaviews`` experiment calls these three steps itself (to time the
+shadow maps alone on one VPL set); :meth:`ManyViewIR.render` chains them.
 
-Note: :meth:`render` returns the *indirect* illumination from the VPLs
-(one bounce by default), not direct light: these methods are compared in
-the ``megaviews`` experiment against a one-bounce indirect reference, not
-against :mod:`slc.groundtruth`.
+Output: *indirect* light (``output = "indirect"``, ``bounces`` reflections),
+compared by the pipeline with :func:`slc.references.reference_for`'s
+indirect reference, not with the direct ground truth.
 """
 from __future__ import annotations
 
 import math
 
-
-from ..methods import Method
+from ..methods import Method, MethodError, Param, register
 from . import traversal as tv
 from . import vpl as vp
 from .hierarchy import SCENE_DEPTH, VIEW_DEPTH, SceneHierarchy, ViewHierarchy
 
 
 class ManyViewIR(Method):
-    """VPL instant radiosity with many-view shadow maps.
+    r"""VPL instant radiosity with many-view shadow maps.
 
-    Parameters (defaults): ``mode`` (``megaviews``/``manylods``/``brute``),
-    ``views`` (VPL count, 4096), ``bounces`` (1), ``res`` (map resolution
-    per paraboloid face, 16), ``scene_depth`` (7), ``view_depth`` (7),
-    ``samples`` (VPL samples per pixel, 64), ``cull_level`` (2),
-    ``filter`` (cross-bilateral radius, 4; 0 = off), ``fusion`` (1; 0 =
-    direct queries through the ancestors), ``budget`` (pair-queue budget
-    in pairs, 16M), ``mpf`` (multi-pixel filling; default on
-    from 64^2 maps up, off below, as in the paper's timings).
+    .. math:: L(x) \approx \frac{C(x)}{S}\sum_{s=1}^{S}
+              f_x\cos\theta_x\, f_k\cos\theta_k\,\frac{\Phi_k}{\max(d^2, d_{min}^2)}\, V_k(x)
+
+    (see :mod:`.vpl`), with ``V_k`` read from VPL k's shadow map. The
+    subclasses differ only in how the maps are rendered (``mode``).
     """
-    shared = True
+    name = "megaviews"
+    mode = "megaviews"
     output = "indirect"
+    params = (
+        Param("views", 4096, "VPLs (views) per frame", lo=1, hi=4_000_000),
+        Param("bounces", 1, "light-path bounces that leave VPLs (indirect bounces)", lo=1, hi=8),
+        Param("res", 16, "shadow-map resolution per paraboloid face (a power of two)", lo=2, hi=1024),
+        Param("scene_depth", SCENE_DEPTH, "scene octree levels (the paper: 11 on a GPU)", lo=1, hi=12),
+        Param("view_depth", VIEW_DEPTH, "view octree levels", lo=1, hi=12),
+        Param("samples", 64, "VPL samples per pixel", lo=1, hi=1 << 16),
+        Param("cull_level", 2, "view-hierarchy level cut for per-pixel culling", lo=0, hi=12),
+        Param("filter", 4, "cross-bilateral filter radius in pixels (0: off)", lo=0, hi=32),
+        Param("fusion", True, "fuse maps top-down (0: queries walk the ancestors)"),
+        Param("budget", tv.DEFAULT_BUDGET, "pair-queue budget in pairs (multi-pass above it)",
+              lo=1024, hi=1_000_000_000),
+        Param("mpf", None, "multi-pixel filling (default: on from 64^2 maps up)", kind=bool),
+    )
 
-    def __init__(self, scene, mode: str = "megaviews", views: int = 4096, bounces: int = 1, res: int = 16,
-                 scene_depth: int = SCENE_DEPTH, view_depth: int = VIEW_DEPTH, samples: int = 64,
-                 cull_level: int = 2, filter: int = 4, fusion: int = 1, budget: int = tv.DEFAULT_BUDGET,
-                 mpf: int | None = None, **kw):
+    def __init__(self, scene, **kw):
         super().__init__(scene, **kw)
-        self.name = mode
-        self.mode = mode
-        self.views, self.bounces, self.res = int(views), int(bounces), int(res)
-        self.scene_depth, self.view_depth = int(scene_depth), int(view_depth)
-        self.samples, self.cull_level, self.filter = int(samples), int(cull_level), int(filter)
-        self.fusion, self.budget, self.mpf = bool(fusion), int(budget), (
-            self.res >= 64 if mpf is None else bool(mpf))
+        self.multi_pixel = self.res >= 64 if self.mpf is None else self.mpf
         self._sh = None
         self._maps = None
         self._vh = None
         self.last_stats = {}
 
-    def settings(self):
-        return dict(mode=self.mode, views=self.views, bounces=self.bounces, res=self.res,
-                    scene_depth=self.scene_depth, view_depth=self.view_depth, samples=self.samples)
+    def validate(self) -> None:
+        if self.res & (self.res - 1):
+            raise MethodError(f"{self.name}: res must be a power of two (got {self.res})")
+
+    def variant(self, **changes) -> "ManyViewIR":
+        """The same method with some settings changed (validated), sharing
+        the scene hierarchy when ``scene_depth`` stays the same."""
+        m = type(self)(self.scene, seed=self.seed, **{**self.settings(), **changes})
+        if m.scene_depth == self.scene_depth:
+            m._sh = self._sh
+        return m
+
+    def use_scene_hierarchy(self, sh: SceneHierarchy) -> None:
+        """Share a scene hierarchy built by another method instance (same
+        scene, same ``scene_depth``)."""
+        if sh.depth != self.scene_depth:
+            raise ValueError(f"scene hierarchy of depth {sh.depth}, method needs {self.scene_depth}")
+        self._sh = sh
 
     def scene_hierarchy(self) -> SceneHierarchy:
         if self._sh is None:
@@ -65,43 +84,83 @@ class ManyViewIR(Method):
     def reset(self):
         self._maps = None
 
-    def shadow_maps(self, vpls: vp.VPLSet, timer=None):
-        """(maps, octree view hierarchy for gathering) for ``vpls``."""
+    # ------------------------------------------------------------------ steps
+    def lights(self, seed: int) -> vp.VPLSet:
+        """The frame's VPLs (``views`` of them, ``bounces`` per light path)."""
+        return vp.generate(self.scene.mi_scene, self.views, self.bounces, seed)
+
+    def shadow_maps(self, vpls: vp.VPLSet, timer=None, phi: float = math.pi / 2):
+        """(maps, octree view hierarchy for gathering) of views at the VPLs
+        (hemispheres, ``phi = pi/2``; ``pi`` for omnidirectional views)."""
         sh = self.scene_hierarchy()
         from contextlib import nullcontext
         with (timer.stage("view_hierarchy") if timer is not None else nullcontext()):
-            tree = ViewHierarchy(vpls.position, vpls.normal, math.pi / 2, self.view_depth)
-            flat = None if self.mode == "megaviews" else ViewHierarchy(vpls.position, vpls.normal,
-                                                                       math.pi / 2, flat=True)
+            tree = ViewHierarchy(vpls.position, vpls.normal, phi, self.view_depth)
+            flat = None if self.mode == "megaviews" else ViewHierarchy(vpls.position, vpls.normal, phi, flat=True)
         maps = tv.render_maps(sh, tree if flat is None else flat, self.res, self.mode,
                               budget_pairs=self.budget, fusion=self.fusion, timer=timer,
-                              multi_pixel=self.mpf)
+                              multi_pixel=self.multi_pixel)
+        self._maps, self._vh = maps, tree
+        self.last_stats = maps.stats.as_dict()
         return maps, tree
+
+    def gather(self, gb, vpls: vp.VPLSet, maps, tree, seed: int):
+        """Indirect light at the G-buffer points (gathering, then the filter)."""
+        L = vp.gather(self.scene_hierarchy(), vpls, maps, gb, self.samples, seed, self.cull_level,
+                      cull_tree=tree, fused=self.fusion)
+        return vp.bilateral(gb, L, self.filter) if self.filter > 0 else L
 
     def render(self, ctx, gbuffers, timer):
         with timer.stage("vpl") as st:
-            vpls = vp.generate(self.scene.mi_scene, self.views, self.bounces, self.seed_for(ctx.frame))
+            vpls = self.lights(self.seed_for(ctx.frame))
             st.outputs(vpls.flux)
         maps, tree = self.shadow_maps(vpls, timer)
-        self._maps, self._vh = maps, tree
+        with timer.stage("maps") as st:
+            st.outputs(maps.depth)
         outs = []
         with timer.stage("gather") as st:
             for v, gb in enumerate(gbuffers):
-                L = vp.gather(self.scene_hierarchy(), vpls, maps, gb, self.samples, self.seed_for(ctx.frame, v),
-                              self.cull_level, cull_tree=tree, fused=self.fusion)
-                if self.filter > 0:
-                    L = vp.bilateral(gb, L, self.filter)
-                outs.append(L)
+                outs.append(self.gather(gb, vpls, maps, tree, self.seed_for(ctx.frame, v)))
             st.outputs(*outs)
-        self.last_stats = maps.stats.as_dict()
         return outs
 
-    def memory_bytes(self) -> int:
-        b = self.scene_hierarchy().memory_bytes() if self._sh is not None else 0
+    # --------------------------------------------------------------- figures
+    def memory(self) -> dict:
+        """Bytes by part (after :meth:`shadow_maps`): pair-queue peak, all
+        maps, scene and view hierarchies (see ``docs/megaviews.md``)."""
+        out = {"scene_hierarchy": self.scene_hierarchy().memory_bytes() if self._sh is not None else 0,
+               "maps": 0, "view_hierarchy": 0, "pair_queue": 0}
         if self._maps is not None:
-            b += self._maps.memory_bytes() + self._maps.view_h.memory_bytes()
-            b += self._maps.stats.peak_pairs * tv.PAIR_BYTES
-        return int(b)
+            out["maps"] = self._maps.memory_bytes()
+            out["view_hierarchy"] = self._maps.view_h.memory_bytes()
+            out["pair_queue"] = self._maps.stats.peak_pairs * tv.PAIR_BYTES
+        return out
+
+    def memory_bytes(self) -> int:
+        return int(sum(self.memory().values()))
 
     def stats(self):
         return {k: float(v) for k, v in self.last_stats.items()}
+
+
+class MegaViews(ManyViewIR):
+    __doc__ = ManyViewIR.__doc__ + "\n    Maps by concurrent scene-view hierarchy traversal.\n"
+    name = mode = "megaviews"
+
+
+class ManyLoDs(ManyViewIR):
+    __doc__ = ManyViewIR.__doc__ + "\n    Maps by a scene-hierarchy traversal per view.\n"
+    name = mode = "manylods"
+
+
+class BruteForce(ManyViewIR):
+    __doc__ = ManyViewIR.__doc__ + "\n    Maps by splatting every scene leaf into every view.\n"
+    name = mode = "brute"
+
+
+register("megaviews", MegaViews,
+         help="VPL instant radiosity, shadow maps by concurrent scene-view traversal (indirect light)")
+register("manylods", ManyLoDs,
+         help="VPL instant radiosity, shadow maps by per-view scene-hierarchy traversal (indirect light)")
+register("brute", BruteForce,
+         help="VPL instant radiosity, every scene leaf splatted into every view (indirect light)")

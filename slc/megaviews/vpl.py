@@ -28,14 +28,11 @@ Filtering
     reflectance, multiplied back after).
 
 Reference
-    ``indirect_reference``: a small path tracer, one diffuse indirect
-    bounce at the G-buffer points (BSDF-sampled direction, then next-event
-    estimation at the hit), cached on disk like :mod:`slc.groundtruth`.
+    :func:`slc.references.reference_for` (``"indirect"``, the methods'
+    ``bounces``): the one indirect estimator of every indirect method.
 """
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 from dataclasses import dataclass
 
@@ -44,9 +41,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..gbuffer import to_image  # noqa: F401  (callers use vpl.to_image)
-from ..io import cached_array
-
-from ..lights import finite, rng, sample_light, visible
+from ..lights import rng
 from . import traversal as tv
 from .hierarchy import ViewHierarchy
 
@@ -103,8 +98,9 @@ def _generate(mi_scene: mi.Scene, n: int, bounces: int = 1, seed: int = 0) -> VP
             bsdf = si.bsdf()
             bs, bw = bsdf.sample(ctx, si, sampler.next_float32(), mi.Point2f(sampler.next_float32(),
                                                                              sampler.next_float32()), ok)
-            thr = finite(thr * mi.Color3f(bw))
-            active = ok & (bs.pdf > 0.0) & (dr.max(thr) > 0.0)
+            active = ok & (bs.pdf > 0.0)
+            thr = dr.select(active, thr * mi.Color3f(bw), 0.0)
+            active &= dr.max(thr) > 0.0
             ray = si.spawn_ray(si.to_world(bs.wo))
     # ----------------------- compact the valid VPLs -----------------------
     all_si, all_flux, all_b = [], [], []
@@ -228,7 +224,7 @@ def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cu
 
     _, _, _, L = dr.while_loop(state=(mi.UInt32(0), mi.UInt32(0), mi.UInt32(0), mi.Color3f(0.0)),
                                cond=cond, body=body)
-    return finite(dr.select(active, L * Cf / mi.Float(S), 0.0))
+    return dr.select(active, L * Cf / mi.Float(S), 0.0)
 
 
 # -----------------------------------------------------------------------------
@@ -264,51 +260,4 @@ def bilateral(gb, L: mi.Color3f, radius: int = 4, sigma_s: float = 2.5, sigma_d:
             acc += w * Eq
             wsum += w
     Ef = dr.select(wsum > 1e-8, acc / dr.maximum(wsum, 1e-8), E)
-    return finite(dr.select(valid, dr.select(demod, Ef * rho, Ef), 0.0))
-
-
-# -----------------------------------------------------------------------------
-# Reference: one indirect bounce, path traced, cached on disk
-# -----------------------------------------------------------------------------
-
-_REF_VERSION = "mv-ref-v1"
-
-
-def _trace_indirect(mi_scene, gb, spp: int, seed: int) -> mi.Color3f:
-    si, active = gb.si, gb.valid
-    bsdf = si.bsdf()
-    ctx = mi.BSDFContext()
-    sampler = rng(gb.size, seed, stream=55)
-    n = dr.opaque(mi.UInt32, spp)
-
-    def cond(i, L, sampler):
-        return i < n
-
-    def body(i, L, sampler):
-        # ------------------------- BSDF-sampled bounce -------------------------
-        bs, bw = bsdf.sample(ctx, si, sampler.next_float32(),
-                             mi.Point2f(sampler.next_float32(), sampler.next_float32()), active)
-        ok = active & (bs.pdf > 0.0)
-        si2 = mi_scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), ok)
-        ok &= si2.is_valid() & ~si2.shape.is_emitter()
-        # ------------------- next-event estimation at the hit -------------------
-        ds, w, ok2 = sample_light(mi_scene, si2, mi.Point2f(sampler.next_float32(), sampler.next_float32()), ok)
-        ok2 = visible(mi_scene, si2, ds, ok2)
-        f2 = mi.Color3f(si2.bsdf().eval(ctx, si2, si2.to_local(ds.d), ok2))
-        L += dr.select(ok2, mi.Color3f(bw) * f2 * w, 0.0)
-        return i + 1, L, sampler
-
-    _, L, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body)
-    return finite(L / float(max(spp, 1)))
-
-
-def indirect_reference(scene, gb, spp: int = 256, seed: int = 11, use_cache: bool = True) -> np.ndarray:
-    """(H, W, 3) one-bounce indirect light at the G-buffer points, cached."""
-    from ..groundtruth import cache_dir
-    cam = gb.camera
-    key = hashlib.sha1(json.dumps([_REF_VERSION, scene.name, gb.width, gb.height, spp, seed,
-                                   np.round(cam.origin, 6).tolist(), np.round(cam.target, 6).tolist(),
-                                   float(cam.fov), None if scene.time is None else round(float(scene.time), 6)]
-                                  ).encode()).hexdigest()[:16]
-    path = cache_dir().parent / "megaviews" / f"{scene.name}_{gb.width}x{gb.height}_s{spp}_{key}.npy"
-    return cached_array(path, lambda: to_image(gb, _trace_indirect(scene.mi_scene, gb, spp, seed)), use_cache)
+    return dr.select(valid, dr.select(demod, Ef * rho, Ef), 0.0)
