@@ -45,7 +45,9 @@ class SceneWorker:
         return {"host": socket.gethostname(), "pid": os.getpid(), "threads": self.runner.threads}
 
     def run(self, job) -> dict:
-        return self.runner.run_safe(job)
+        res = self.runner.run_safe(job)
+        res["node"] = ray.get_runtime_context().get_node_id()
+        return res
 
 
 def _runtime_env() -> dict:
@@ -79,6 +81,8 @@ class RayPool:
         self.workers, self.threads = workers, threads
         self._replacements = 0
         self.actors = [self._new_actor() for _ in range(workers)]
+        # wait until every worker has imported slc, so that jobs are not charged with worker start-up
+        self.info = ray.get([a.info.remote() for a in self.actors])
 
     def _new_actor(self):
         return SceneWorker.options(num_cpus=self.threads, scheduling_strategy="SPREAD",

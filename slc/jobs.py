@@ -444,7 +444,7 @@ class Session:
             if on_result is not None:
                 on_result(job, rows, res)
             timing = {"wall_s": time.perf_counter() - t_submit, "run_s": res["run_s"], "load_s": res["load_s"],
-                      "attempts": attempts, "pid": res.get("pid")}
+                      "attempts": attempts, "pid": res.get("pid"), "node": res.get("node")}
             self.store.commit(job, rows, timing)
             timing.update(key=job.key, host=rows[0].get("host") if rows else None)
             self.stats.append(timing)
