@@ -366,13 +366,19 @@ def run_per_scene(names, make_cases, cfg, desc: str, seed: int = 0, keep_images:
     see :meth:`slc.jobs.Session.run`."""
     from . import jobs
     session = jobs.current(desc.split()[0])
-    js, n = [], 0
-    for s in each_scene(names):
+    js, n, live = [], 0, {}
+    for i, s in enumerate(each_scene(names)):
         cases = [(s, *c) for c in make_cases(s)]
         js += jobs.jobs_from_cases(session.experiment, cases, cfg, seed, keep_images, start=n)
         n += len(cases)
         del cases
-    return _in_case_order(js, session.run(js, desc, on_result=on_result))
+        if i == len(names) - 1 and not session.distributed:
+            live = {jobs.scene_source(s): s}  # a serial run starts with the scene still loaded
+        del s
+    js.sort(key=lambda j: j.scene not in live)  # stable: that scene's jobs first
+    rows = session.run(js, desc, scenes=live, on_result=on_result)
+    live.clear()
+    return _in_case_order(js, rows)
 
 
 def run_cases(cases, cfg, desc: str, seed: int = 0, keep: bool = False) -> list[dict]:

@@ -441,11 +441,13 @@ class Session:
 
         def finished(job, res, t_submit, attempts):
             rows = _normalize(res["rows"])
+            t_out = time.perf_counter()
             if on_result is not None:
                 on_result(job, rows, res)
-            timing = {"wall_s": time.perf_counter() - t_submit, "run_s": res["run_s"], "load_s": res["load_s"],
+            timing = {"run_s": res["run_s"], "load_s": res["load_s"], "output_s": time.perf_counter() - t_out,
                       "attempts": attempts, "pid": res.get("pid"), "node": res.get("node")}
             self.store.commit(job, rows, timing)
+            timing["wall_s"] = time.perf_counter() - t_submit  # submitted -> committed
             timing.update(key=job.key, host=rows[0].get("host") if rows else None)
             self.stats.append(timing)
             done[job.key] = rows
@@ -460,7 +462,7 @@ class Session:
                 if self.distributed:
                     self.pool().run(todo, finished, gave_up, self.retries, progress)
                 else:
-                    self._run_serial(todo, finished, gave_up, scenes or {}, progress)
+                    self._run_serial(todo, finished, gave_up, scenes if scenes is not None else {}, progress)
         finally:
             progress.close()
             if self._runner is not None and not self.distributed:
@@ -478,8 +480,10 @@ class Session:
             self._runner = Runner(self.threads)
         runner = self._runner
         for job in todo:
-            if job.scene in scenes and runner._src != job.scene:
-                runner.adopt(job.scene, scenes[job.scene])
+            if runner._src != job.scene:
+                scenes.pop(runner._src, None)  # the caller's reference goes too: one scene alive at a time
+                if job.scene in scenes:
+                    runner.adopt(job.scene, scenes[job.scene])
             for attempt in range(1, self.retries + 2):
                 t0 = time.perf_counter()
                 res = runner.run_safe(job, progress)
@@ -492,17 +496,24 @@ class Session:
 
     # ----------------------------------------------------------------------
     def overhead(self) -> dict | None:
-        """Median job time and median job overhead (wall time on the driver
-        minus time in the cases, i.e. dispatch, scene load, commit)."""
+        """Job time and job overhead. A job's time is its wall time on the
+        driver (submitted -> committed); its overhead is that minus the time
+        in its cases, split into the scene load (when the worker did not hold
+        the scene), the experiment's output (``on_result``: image files) and
+        the rest (dispatch, transfer, row commit: the job machinery)."""
         if not self.stats:
             return None
-        wall = [s["wall_s"] for s in self.stats]
-        over = [s["wall_s"] - s["run_s"] for s in self.stats]
-        load = [s["load_s"] for s in self.stats]
+        st = self.stats
+        wall = [s["wall_s"] for s in st]
+        over = [s["wall_s"] - s["run_s"] for s in st]
+        mach = [s["wall_s"] - s["run_s"] - s["load_s"] - s["output_s"] for s in st]
         med = statistics.median(wall)
-        return {"jobs": len(self.stats), "median_job_s": med, "median_overhead_s": statistics.median(over),
-                "median_overhead_without_load_s": statistics.median(o - l for o, l in zip(over, load)),
-                "overhead_pct": 100.0 * statistics.median(over) / med if med else float("nan")}
+        pct = (lambda x: 100.0 * x / med if med else float("nan"))
+        return {"jobs": len(st), "median_job_s": med, "total_job_s": sum(wall),
+                "median_overhead_s": statistics.median(over), "overhead_pct": pct(statistics.median(over)),
+                "total_overhead_s": sum(over), "total_load_s": sum(s["load_s"] for s in st),
+                "total_output_s": sum(s["output_s"] for s in st),
+                "median_machinery_s": statistics.median(mach), "machinery_pct": pct(statistics.median(mach))}
 
 
 # -----------------------------------------------------------------------------
@@ -538,9 +549,11 @@ def session_for(experiment: str, opts):
         if o is not None:
             from . import io
             io.write_json(out / "jobs.json", {"summary": o, "jobs": s.stats})
-            print(f"jobs: {o['jobs']} run, median job {o['median_job_s']:.2f} s, median overhead "
-                  f"{o['median_overhead_s']:.3f} s ({o['overhead_pct']:.2f}%; without scene loads "
-                  f"{o['median_overhead_without_load_s']:.3f} s)", file=sys.stderr)
+            print(f"jobs: {o['jobs']} run, median job {o['median_job_s']:.2f} s; median overhead "
+                  f"{o['median_overhead_s']:.3f} s ({o['overhead_pct']:.2f}%), of which job machinery "
+                  f"{o['median_machinery_s']:.3f} s ({o['machinery_pct']:.2f}%); in all {o['total_overhead_s']:.1f} s "
+                  f"overhead ({o['total_load_s']:.1f} s scene loads, {o['total_output_s']:.1f} s image files) "
+                  f"in {o['total_job_s']:.1f} s of jobs", file=sys.stderr)
 
 
 def run_jobs(jobs: list[Job], out_dir=None, workers: int | None = None, address: str | None = None,
