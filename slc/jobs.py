@@ -19,7 +19,8 @@ Execution (:class:`Session`, :func:`run_jobs`):
   Dr.Jit thread count.
 
 Persistence: each finished job is committed as ``OUT/EXPERIMENT/rows/KEY.json``
-(written to a temporary file, fsync'ed, renamed; only the driver writes).
+(written to a temporary file, fsync'ed, renamed; only the driver writes),
+after the evaluated images of a ``keep_images`` job (``KEY.images.npz``).
 A row file is either complete or absent: an interrupted run (Ctrl-C, kill -9,
 a lost worker) loses at most the jobs in flight, never a written row, and a
 re-run of a job overwrites its own file (the name is the job's key), so no row
@@ -320,6 +321,36 @@ class RowStore:
             return None
         return d["rows"]
 
+    def images_path(self, job: Job) -> Path:
+        return self.folder / f"{job.key}.images.npz"
+
+    def save_images(self, job: Job, images: list) -> None:
+        """The evaluated images of a ``keep_images`` job (before its commit)."""
+        if self.folder is None or not job.keep_images:
+            return
+        arrays = {}
+        for i, per_case in enumerate(images):
+            for viewer, d in (per_case or {}).items():
+                for k, v in d.items():
+                    arrays[f"{i}\x1f{viewer}\x1f{k}"] = np.asarray(v)
+        from .io import _atomic
+        _atomic(self.images_path(job), lambda p: np.savez(p, **arrays))
+
+    def load_images(self, job: Job) -> list:
+        """Per case, ``{viewer: {"gt", "img", "flip_map", "frame"}}`` as saved ({} when absent)."""
+        out = [{} for _ in job.cases]
+        if self.folder is None:
+            return out
+        try:
+            with np.load(self.images_path(job), allow_pickle=False) as z:
+                for name in z.files:
+                    i, viewer, k = name.split("\x1f")
+                    v = z[name]
+                    out[int(i)].setdefault(viewer, {})[k] = v.item() if v.ndim == 0 else v
+        except (OSError, ValueError):
+            pass
+        return out
+
     def commit(self, job: Job, rows: list[dict], timing: dict) -> None:
         if self.folder is None:
             return
@@ -365,6 +396,12 @@ class _Progress:
         self.bar.close()
 
 
+def images_of(session: "Session", job: Job) -> list:
+    """The images of a ``keep_images`` job: from this session's run, else as
+    committed by an earlier run (resume)."""
+    return session.images.pop(job.key, None) or session.store.load_images(job)
+
+
 class Session:
     """Runs lists of jobs for one experiment run (see the module).
 
@@ -395,6 +432,7 @@ class Session:
         self._pool = None
         self._runner = None
         self.stats: list[dict] = []  # per finished job: key, wall_s, run_s, load_s, attempts, host
+        self.images: dict[str, list] = {}  # keep_images jobs run in this session: key -> images per case
 
     # ----------------------------------------------------------------------
     def pool(self):
@@ -445,9 +483,12 @@ class Session:
             t_out = time.perf_counter()
             if on_result is not None:
                 on_result(job, rows, res)
+            self.store.save_images(job, res["images"])
             timing = {"run_s": res["run_s"], "load_s": res["load_s"], "output_s": time.perf_counter() - t_out,
                       "attempts": attempts, "pid": res.get("pid"), "node": res.get("node")}
             self.store.commit(job, rows, timing)
+            if job.keep_images:
+                self.images[job.key] = res["images"]
             timing["wall_s"] = time.perf_counter() - t_submit  # submitted -> committed
             timing.update(key=job.key, host=rows[0].get("host") if rows else None)
             self.stats.append(timing)
