@@ -393,16 +393,11 @@ def run_cases(cases, cfg, desc: str, seed: int = 0, keep: bool = False) -> list[
     session = jobs.current(desc.split()[0])
     js = jobs.jobs_from_cases(session.experiment, cases, cfg, seed, keep_images=keep)
     live = {jobs.scene_source(s): s for s, *_ in cases}
-    images = {}
-
-    def collect(job, rows, res):
-        for c, im in zip(job.cases, res["images"]):
-            images[c.index] = im
-
-    rows = _in_case_order(js, session.run(js, desc, scenes=live, on_result=collect if keep else None))
-    if keep:
-        for r, i in zip(rows, sorted(c.index for j in js for c in j.cases)):
-            r["_result"] = SimpleNamespace(images=images.get(i, {}))
+    rows = _in_case_order(js, session.run(js, desc, scenes=live))
+    if keep:  # from this run, or committed with the job by the run that --resume continues
+        images = {c.index: im for j in js for c, im in zip(j.cases, jobs.images_of(session, j))}
+        for r, i in zip(rows, sorted(images)):
+            r["_result"] = SimpleNamespace(images=images[i])
     return rows
 
 
