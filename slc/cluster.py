@@ -61,6 +61,21 @@ def _runtime_env() -> dict:
     return {"env_vars": env}
 
 
+def _check_reachable(address: str, timeout: float = 5.0) -> None:
+    """One line instead of Ray's minutes of reconnection attempts when a
+    HOST:PORT head is not listening."""
+    if address == "auto" or "://" in address:
+        return
+    import socket
+    host, _, port = address.rpartition(":")
+    try:
+        socket.create_connection((host or "127.0.0.1", int(port)), timeout=timeout).close()
+    except (OSError, ValueError) as e:
+        from .experiment import ExperimentError
+        raise ExperimentError(f"no Ray head at '{address}' ({e}); start one with 'ray start --head' "
+                              f"(docs/cluster.md)") from None
+
+
 class RayPool:
     """N :class:`SceneWorker` actors on a local instance or a cluster."""
 
@@ -69,7 +84,13 @@ class RayPool:
         kw = dict(logging_level=logging.WARNING, runtime_env=_runtime_env())
         if address:
             if self._own:
-                ray.init(address=address, **kw)
+                _check_reachable(address)
+                try:
+                    ray.init(address=address, **kw)
+                except (ConnectionError, ValueError, RuntimeError) as e:
+                    from .experiment import ExperimentError
+                    msg = str(e).strip().splitlines()
+                    raise ExperimentError(f"cannot connect to Ray at '{address}': {msg[0] if msg else e}") from None
             cpus = [int(n["Resources"].get("CPU", 0)) for n in ray.nodes() if n.get("Alive")]
             cpus = [c for c in cpus if c > 0] or [1]
             threads = threads or min(cpus)

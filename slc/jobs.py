@@ -460,8 +460,9 @@ class Session:
         """Run ``jobs`` (only the missing ones when resuming); returns their
         rows in job order, each job's in case order. ``scenes``: loaded scenes
         by source for serial runs (an entry is removed from the dict when the
-        run moves on to another scene, so that only one stays alive); ``on_result(job, rows, result)`` is called
-        on the driver before a job is committed (e.g. to write its images)."""
+        run moves on to another scene, so that only one stays alive).
+        ``on_result(job, rows, result)`` is called on the driver before a job
+        is committed (e.g. to write its images)."""
         keys = [j.key for j in jobs]
         if len(set(keys)) != len(keys):
             raise ValueError("two jobs of one run have the same key")
