@@ -261,7 +261,7 @@ def _write_durable(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` atomically and durably: temp file in the
     same folder, fsync, rename, fsync the folder."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".json", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".part", dir=path.parent)  # never matches *.json
     try:
         with os.fdopen(fd, "w") as f:
             f.write(text)

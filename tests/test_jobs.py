@@ -45,7 +45,8 @@ def rows_dir(out):
 
 def committed(out) -> dict:
     d = rows_dir(out)
-    return {p.name: p.stat().st_mtime_ns for p in d.glob("*.json")} if d.is_dir() else {}
+    return {p.name: p.stat().st_mtime_ns for p in d.glob("*.json") if not p.name.startswith(".")} \
+        if d.is_dir() else {}
 
 
 def wait_for(cond, proc, timeout=600):
