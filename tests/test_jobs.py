@@ -251,3 +251,18 @@ def test_killed_ray_worker_loses_no_row_and_the_run_completes(serial, tmp_path):
     stats = json.loads((out / "single-viewer" / "jobs.json").read_text())["jobs"]
     assert len(stats) == len(SCENES) and max(s["attempts"] for s in stats) == 2  # the lost job was retried
     assert_same_results(serial, out)
+
+
+def test_serial_runs_do_not_import_ray(tmp_path):
+    code = ("import sys, slc\n"
+            "from slc import jobs, scenes, views\n"
+            "from slc.pipeline import RunConfig\n"
+            "s = scenes.load('cornell')\n"
+            "cfg = RunConfig(width=8, height=6, frames=1, warmup=0, eval_frames=[])\n"
+            "js = jobs.jobs_from_cases('t', [(s, 'rt4', views.single(s), {})], cfg)\n"
+            f"rows = jobs.run_jobs(js, {str(tmp_path)!r})\n"
+            "assert len(rows) == 1 and rows[0]['threads'] >= 1 and rows[0]['backend']\n"
+            "print('ray' in sys.modules, 'slc.cluster' in sys.modules)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split() == ["False", "False"]
