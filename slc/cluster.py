@@ -17,7 +17,7 @@
   killed process, a lost node) fails the attempt of the job it ran and is
   replaced by a new actor (at most ``workers * (retries + 1)`` replacements).
 - Workers see the driver's ``SLC_VARIANT`` (the same backend everywhere),
-  ``SLC_CACHE`` when set (the ground-truth cache: put it on storage every node
+  ``SLC_CHECK`` (check mode) and ``SLC_CACHE`` when set (the ground-truth cache: put it on storage every node
   shares) and a ``PYTHONPATH`` that starts with this checkout.
 """
 from __future__ import annotations
@@ -29,6 +29,8 @@ from collections import deque
 from pathlib import Path
 
 import ray
+
+from .jobs import _raise_fatal
 
 
 @ray.remote
@@ -56,8 +58,9 @@ def _runtime_env() -> dict:
     env = {"SLC_VARIANT": backend.variant(),
            "PYTHONPATH": os.pathsep.join([root] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep)
                                                    if p and p != root])}
-    if os.environ.get("SLC_CACHE"):
-        env["SLC_CACHE"] = os.environ["SLC_CACHE"]
+    for k in ("SLC_CACHE", "SLC_CHECK"):  # shared ground-truth cache; check mode (slc --check)
+        if os.environ.get(k):
+            env[k] = os.environ[k]
     return {"env_vars": env}
 
 
@@ -180,6 +183,7 @@ class RayPool:
                     retry_or_give_up(job, f"worker lost: {type(e).__name__}: {msg[0] if msg else ''}")
                     continue
                 idle.append(actor)
+                _raise_fatal(res)  # check mode: the first bad value stops the run
                 if "error" in res:
                     retry_or_give_up(job, res["error"])
                 else:

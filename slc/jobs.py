@@ -245,12 +245,25 @@ class Runner:
                 "load_s": t1 - t0, "run_s": t2 - t1, "pid": os.getpid()}
 
     def run_safe(self, job: Job, progress=None) -> dict:
-        """:meth:`run`, or ``{"error": "Type: message"}`` when it raises."""
+        """:meth:`run`, or ``{"error": "Type: message"}`` when it raises
+        (reported and retried by the driver). A check-mode error
+        (:class:`slc.check.CheckError`) is no job failure but stops the whole
+        run: ``{"fatal": message}``."""
+        from .check import CheckError
         try:
             return self.run(job, progress)
-        except Exception as e:  # reported and retried by the driver
+        except CheckError as e:
+            return {"fatal": str(e)}
+        except Exception as e:
             msg = str(e).strip().splitlines()
             return {"error": f"{type(e).__name__}: {msg[0] if msg else ''}".strip()}
+
+
+def _raise_fatal(res: dict) -> None:
+    """Stop the run on a check-mode error from a job (see :meth:`Runner.run_safe`)."""
+    if "fatal" in res:
+        from .check import CheckError
+        raise CheckError(res["fatal"])
 
 
 # -----------------------------------------------------------------------------
@@ -530,6 +543,7 @@ class Session:
             for attempt in range(1, self.retries + 2):
                 t0 = time.perf_counter()
                 res = runner.run_safe(job, progress)
+                _raise_fatal(res)
                 if "error" not in res:
                     finished(job, res, t0, attempt)
                     break

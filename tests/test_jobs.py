@@ -266,3 +266,23 @@ def test_serial_runs_do_not_import_ray(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.split() == ["False", "False"]
+
+
+def test_check_mode_error_stops_the_run_without_retries(tmp_path, monkeypatch):
+    from slc import scenes
+    from slc.check import CheckError
+    s = scenes.load("cornell")
+    s.source = "cornell"
+    cfg = RunConfig(width=8, height=6, frames=1, warmup=0, eval_frames=[])
+    js = [jobs.jobs_from_cases("t", [(s, spec, views.single(s), {})], cfg)[0] for spec in ("rt4", "rt8")]
+    calls = []
+
+    def bad(self, job, progress=None):
+        calls.append(job.key)
+        raise CheckError("rt4: frame 0, stage shade: NaN at pixel (1, 2)")
+
+    monkeypatch.setattr(jobs.Runner, "run", bad)
+    with pytest.raises(CheckError, match="NaN at pixel"):
+        jobs.Session("t", tmp_path, retries=2).run(js)
+    assert calls == [js[0].key]  # neither retried nor followed by the other job
+    assert not list(tmp_path.glob("rows/*.json"))  # nothing committed
