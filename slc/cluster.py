@@ -64,6 +64,19 @@ def _runtime_env() -> dict:
     return {"env_vars": env}
 
 
+def _writable(obj):
+    """Ray hands numpy arrays back read-only (zero-copy from its object
+    store); copy them so the driver's writers (e.g. ``mi.Bitmap``) take them."""
+    import numpy as np
+    if isinstance(obj, np.ndarray):
+        return obj if obj.flags.writeable else obj.copy()
+    if isinstance(obj, dict):
+        return {k: _writable(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_writable(v) for v in obj]
+    return obj
+
+
 def _check_reachable(address: str, timeout: float = 5.0) -> None:
     """One line instead of Ray's minutes of reconnection attempts when a
     HOST:PORT head is not listening."""
@@ -183,6 +196,7 @@ class RayPool:
                     retry_or_give_up(job, f"worker lost: {type(e).__name__}: {msg[0] if msg else ''}")
                     continue
                 idle.append(actor)
+                res = _writable(res)
                 _raise_fatal(res)  # check mode: the first bad value stops the run
                 if "error" in res:
                     retry_or_give_up(job, res["error"])
