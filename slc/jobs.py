@@ -446,6 +446,7 @@ class Session:
         self._runner = None
         self.stats: list[dict] = []  # per finished job: key, wall_s, run_s, load_s, attempts, host
         self.images: dict[str, list] = {}  # keep_images jobs run in this session: key -> images per case
+        self.jobs_seen = 0
 
     # ----------------------------------------------------------------------
     def pool(self):
@@ -476,6 +477,7 @@ class Session:
         run moves on to another scene, so that only one stays alive).
         ``on_result(job, rows, result)`` is called on the driver before a job
         is committed (e.g. to write its images)."""
+        self.jobs_seen += len(jobs)
         keys = [j.key for j in jobs]
         if len(set(keys)) != len(keys):
             raise ValueError("two jobs of one run have the same key")
@@ -602,6 +604,9 @@ def session_for(experiment: str, opts):
     finally:
         _current = prev
         s.close()
+        if s.distributed and not s.jobs_seen:
+            print(f"note: {experiment} runs its own loop, not jobs: --workers/--address had no effect",
+                  file=sys.stderr)
         o = s.overhead()
         if o is not None:
             from . import io
