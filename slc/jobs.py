@@ -601,12 +601,12 @@ def session_for(experiment: str, opts):
     prev, _current = _current, s
     try:
         yield s
-    finally:
-        _current = prev
-        s.close()
         if s.distributed and not s.jobs_seen:
             print(f"note: {experiment} runs its own loop, not jobs: --workers/--address had no effect",
                   file=sys.stderr)
+    finally:
+        _current = prev
+        s.close()
         o = s.overhead()
         if o is not None:
             from . import io
