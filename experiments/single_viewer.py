@@ -38,7 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(opts) -> dict:
-    from tqdm import tqdm
+    from types import SimpleNamespace
 
     from slc import experiment as ex
     from slc import views
@@ -53,21 +53,22 @@ def run(opts) -> dict:
 
     cfg = RunConfig(width=preset["width"], height=preset["height"], frames=preset["frames"],
                     warmup=preset["warmup"], eval_frames=preset["eval_frames"], seed=opts.seed)
-    rows = []
-    with tqdm(total=len(names) * len(method_specs + sweep) * cfg.frames, desc=NAME, unit="frame",
-              disable=None) as bar:
-        for s in ex.each_scene(names):
-            scene_rows = []
-            for spec in method_specs + sweep:
-                row = ex.run_case(s, spec, views.single(s), cfg, bar, seed=opts.seed, rig="single",
-                                  sweep=spec in sweep)
-                row["family"] = row["method"].rstrip("0123456789") or row["method"]
-                ex.save_strip(out, s, row["label"], row.pop("_result"))
-                rows.append(row)
-                scene_rows.append(row)
-            ex.add_startup(scene_rows)
-            ex.speed_error_plot(out / f"speed_error_{s.name}.png", scene_rows,
-                                f"{s.name}: time vs FLIP ({cfg.width}x{cfg.height})")
+
+    def save_images(job, rows, res):  # on the driver, before the job is committed
+        scene = SimpleNamespace(name=res["scene_name"], exposure=res["exposure"])
+        for row, images in zip(rows, res["images"]):
+            ex.save_strip(out, scene, row["label"], SimpleNamespace(images=images))
+
+    # one job per scene: every method of the comparison in the same process (docs/experiments.md)
+    rows = ex.run_per_scene(names, lambda s: [(spec, views.single(s), {"rig": "single", "sweep": spec in sweep})
+                                              for spec in method_specs + sweep],
+                            cfg, NAME, opts.seed, keep_images=True, on_result=save_images)
+    for row in rows:
+        row["family"] = row["method"].rstrip("0123456789") or row["method"]
+    ex.add_startup(rows)
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        ex.speed_error_plot(out / f"speed_error_{scene}.png", [r for r in rows if r["scene"] == scene],
+                            f"{scene}: time vs FLIP ({cfg.width}x{cfg.height})")
 
     config = {"quick": bool(opts.quick), "scenes": names, "methods": method_specs,
               "sweep": sweep, "width": cfg.width, "height": cfg.height, "frames": cfg.frames,

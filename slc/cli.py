@@ -32,6 +32,11 @@ def _errors():
     return (SceneError, MethodError, ExperimentError, backend.BackendError, FileNotFoundError, CheckError)
 
 
+def _jobs_failed():
+    from .jobs import JobsFailed
+    return JobsFailed
+
+
 def _fail(msg: str):
     click.echo(f"slc: error: {msg}", err=True)
     sys.exit(2)
@@ -146,7 +151,9 @@ def _run_module(mod, argv, prog):
     if opts.check:
         from . import check
         check.enable()
-    mod.run(opts)
+    from .jobs import session_for
+    with session_for(getattr(mod, "NAME", prog.split()[-1]), opts):
+        mod.run(opts)
 
 
 @cli.group("bench")
@@ -177,6 +184,9 @@ def main(argv=None):
         sys.exit(2)
     except _errors() as e:
         _fail(str(e))
+    except _jobs_failed() as e:  # a run error, not bad input: exit 1, completed jobs kept for --resume
+        click.echo(f"slc: error: {e}", err=True)
+        sys.exit(1)
     except SystemExit as e:
         raise e
     return 0
@@ -191,6 +201,9 @@ def run_experiment_standalone(path: str) -> int:
     except _errors() as e:
         click.echo(f"{Path(path).name}: error: {e}", err=True)
         return 2
+    except _jobs_failed() as e:
+        click.echo(f"{Path(path).name}: error: {e}", err=True)
+        return 1
     return 0
 
 

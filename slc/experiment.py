@@ -173,6 +173,14 @@ def add_common_arguments(p, default_out: str = "out") -> None:
     p.add_argument("--res", help="WxH")
     p.add_argument("--frames", type=int, help="frames per sequence")
     p.add_argument("--seed", type=int, default=0)
+    g = p.add_argument_group("jobs (docs/cluster.md)")
+    g.add_argument("--workers", type=int, help="run the jobs on N Ray workers (a local Ray instance unless --address)")
+    g.add_argument("--address", help="run the jobs on a running Ray cluster: 'auto' or HOST:PORT")
+    g.add_argument("--threads", type=int, help="Dr.Jit threads per worker (default: cores // workers locally, "
+                                                "the smallest node's CPUs on a cluster; serial: all cores)")
+    g.add_argument("--resume", action="store_true",
+                   help="keep the jobs already committed in OUT/EXPERIMENT/rows/ and run only the missing ones")
+    g.add_argument("--retries", type=int, default=2, help="attempts after a failed job before it is reported")
 
 
 def apply_common(opts, preset: dict) -> dict:
@@ -243,6 +251,7 @@ def each_scene(names: list[str]):
     from . import scenes
     for name in names:
         s = scenes.load(name)
+        s.source = name  # what loads it again (jobs run elsewhere)
         yield s
         del s
         _release()
@@ -345,27 +354,58 @@ def at_viewers(rows: list[dict], scene: str, n: int) -> dict:
     return {r["setting"]: r for r in rows if r["scene"] == scene and r["viewers"] == n}
 
 
-def run_per_scene(names, make_cases, cfg, desc: str, seed: int = 0) -> list[dict]:
+def run_per_scene(names, make_cases, cfg, desc: str, seed: int = 0, keep_images: bool = False,
+                  on_result=None) -> list[dict]:
     """For each scene (one alive at a time), ``make_cases(scene)`` gives
-    (spec, viewers, extra-fields) tuples; returns all rows."""
-    rows = []
-    for s in each_scene(names):
-        rows += run_cases([(s, *c) for c in make_cases(s)], cfg, f"{desc} {s.name}", seed)
-    return rows
+    (spec, viewers, extra-fields) tuples; returns all rows, in that order.
+
+    The cases of every scene become jobs first (:func:`slc.jobs.jobs_from_cases`:
+    the viewers are frozen into cameras, so no live scene is kept), then all
+    jobs run under one progress bar, serially or on Ray (``--workers``,
+    ``--address``), resumable (``--resume``). ``keep_images``/``on_result``:
+    see :meth:`slc.jobs.Session.run`."""
+    from . import jobs
+    session = jobs.current(desc.split()[0])
+    js, n, live = [], 0, {}
+    for i, s in enumerate(each_scene(names)):
+        cases = [(s, *c) for c in make_cases(s)]
+        js += jobs.jobs_from_cases(session.experiment, cases, cfg, seed, keep_images, start=n)
+        n += len(cases)
+        del cases
+        if i == len(names) - 1 and not session.distributed:
+            live = {jobs.scene_source(s): s}  # a serial run starts with the scene still loaded
+        del s
+    js.sort(key=lambda j: j.scene not in live)  # stable: that scene's jobs first
+    rows = session.run(js, desc, scenes=live, on_result=on_result)
+    live.clear()
+    return _in_case_order(js, rows)
 
 
 def run_cases(cases, cfg, desc: str, seed: int = 0, keep: bool = False) -> list[dict]:
-    """Run (scene, spec, viewers, extra-fields) cases with one progress bar;
-    ``keep`` leaves each row's ``_result`` (images) in place."""
-    from tqdm import tqdm
-    rows = []
-    with tqdm(total=len(cases) * cfg.frames, desc=desc, unit="frame", disable=None) as bar:
-        for s, spec, vs, extra in cases:
-            row = run_case(s, spec, vs, cfg, bar, seed=seed, **extra)
-            if not keep:
-                row.pop("_result")
-            rows.append(row)
+    """Run (scene, spec, viewers, extra-fields) cases as jobs (one per scene
+    and viewers, every method of a comparison in the same job) with one
+    progress bar; rows in the order of ``cases``. ``keep`` gives each row a
+    ``_result`` whose ``images`` are the evaluated images (for
+    :func:`save_strip`)."""
+    from types import SimpleNamespace
+
+    from . import jobs
+    session = jobs.current(desc.split()[0])
+    js = jobs.jobs_from_cases(session.experiment, cases, cfg, seed, keep_images=keep)
+    live = {jobs.scene_source(s): s for s, *_ in cases}
+    rows = _in_case_order(js, session.run(js, desc, scenes=live))
+    if keep:  # from this run, or committed with the job by the run that --resume continues
+        images = {c.index: im for j in js for c, im in zip(j.cases, jobs.images_of(session, j))}
+        for r, i in zip(rows, sorted(images)):
+            r["_result"] = SimpleNamespace(images=images[i])
     return rows
+
+
+def _in_case_order(js, rows: list[dict]) -> list[dict]:
+    """Rows of ``js`` (job order, each job's cases in order) back in the order
+    the cases were given."""
+    index = [c.index for j in js for c in j.cases]
+    return [r for _, r in sorted(zip(index, rows), key=lambda t: t[0])]
 
 
 def finish(name: str, out: Path, opts, cfg, names, specs, rows, md_body: str, extra_config=None) -> dict:

@@ -123,7 +123,9 @@ def to_image(gb: GBuffer, value: mi.Color3f) -> np.ndarray:
     a = np.array(value, dtype=np.float32)
     if a.ndim == 2 and a.shape[0] == 3:
         a = a.T
-    return a.reshape(gb.height, gb.width, 3)
+    # C order: a strided view would make numpy reductions (metrics) sum in another order than
+    # the same image read back from the ground-truth cache (1-ulp differences between runs)
+    return np.ascontiguousarray(a.reshape(gb.height, gb.width, 3))
 
 
 def compose(gb: GBuffer, direct: mi.Color3f) -> mi.Color3f:
