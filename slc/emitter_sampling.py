@@ -2,6 +2,9 @@
 emitters: table lookups for the emitter and (on meshes) the triangle, then
 closed-form sampling of the chosen entry.
 
+Why one long module: the table's set-up (per emitter kind) and its sampling and pdf kernels
+must agree exactly (tested by chi-square); they are kept side by side.
+
 ``scene.sample_emitter_direction`` picks an emitter uniformly and calls
 its ``sample_direction`` through a virtual call (on the LLVM backend, one
 indirect call per emitter kind per lane, after a gather of the pointer),

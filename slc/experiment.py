@@ -1,5 +1,9 @@
 """Shared plumbing of the experiment scripts in ``experiments/``.
 
+Why one long module: the plumbing every experiment script shares (options, presets, tables,
+plots, viewer-count and scene-variant sweeps); splitting it would make each script import
+from several places.
+
 An experiment script defines ``NAME``, ``add_arguments(parser)`` (optional)
 and ``run(opts) -> dict`` returning the ``results.json`` object; it is run
 alone (``python experiments/single_viewer.py --quick``) or through
@@ -139,7 +143,7 @@ def _save_figure(fig, ax, path: Path, title: str, xlabel: str, ylabel: str, lege
     ax.grid(alpha=0.3)
     ax.legend(fontsize=legend_size)
     fig.tight_layout()
-    io._atomic(path, lambda p: fig.savefig(p, dpi=120, format="png"))
+    io.write_figure(path, fig, dpi=120)
     plt.close(fig)
 
 
@@ -523,5 +527,5 @@ def metric_vs_value_plot(path: Path, rows: list[dict], field: str, title: str) -
     axes[0].legend(fontsize=7)
     fig.suptitle(title)
     fig.tight_layout()
-    io._atomic(path, lambda p: fig.savefig(p, dpi=120, format="png"))
+    io.write_figure(path, fig, dpi=120)
     plt.close(fig)

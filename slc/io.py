@@ -86,6 +86,11 @@ def comparison_strip(path, reference_hdr, test_hdr, flip_map, exposure: float) -
     write_png(path, strip)
 
 
+def write_npz(path, **arrays) -> None:
+    """numpy arrays in one ``.npz`` file, written atomically."""
+    _atomic(path, lambda p: np.savez(p, **arrays))
+
+
 def write_figure(path, fig, dpi: int = 120) -> None:
     """A Matplotlib figure as PNG, written atomically."""
     _atomic(path, lambda p: fig.savefig(p, dpi=dpi, format="png"))

@@ -1,5 +1,9 @@
 """Experiments as jobs: run here or on Ray, resumable, the same rows either way.
 
+Why one long module: the job description, its atomic row store, the serial runner and the
+resume/retry logic must agree on one key and one file layout; Ray lives apart in
+:mod:`slc.cluster`.
+
 A :class:`Job` is one unit of work that can be retried on its own: one scene
 and a list of :class:`Case` s (method spec, viewers, extra row fields) that
 run one after another in the same process, so that the time ratios between
@@ -346,8 +350,8 @@ class RowStore:
             for viewer, d in (per_case or {}).items():
                 for k, v in d.items():
                     arrays[f"{i}\x1f{viewer}\x1f{k}"] = np.asarray(v)
-        from .io import _atomic
-        _atomic(self.images_path(job), lambda p: np.savez(p, **arrays))
+        from .io import write_npz
+        write_npz(self.images_path(job), **arrays)
 
     def load_images(self, job: Job) -> list:
         """Per case, ``{viewer: {"gt", "img", "flip_map", "frame"}}`` as saved ({} when absent)."""

@@ -1,5 +1,9 @@
 """Scenes: built-in procedural scenes, Sponza, and any Mitsuba 3 XML file.
 
+Why one long module: Scene, CameraPath (physical speeds) and SceneBuilder are one API for
+scene authors (docs/adding-a-scene.md); moving camera paths into a module of their own is the
+next split when this grows.
+
 A :class:`Scene` wraps a ``mi.Scene`` with what the experiments need on top:
 animation as a function of time (:meth:`Scene.set_time`), camera paths, a
 fixed exposure for tone mapping and the scene's unit (scene units per metre).

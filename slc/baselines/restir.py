@@ -1,6 +1,10 @@
 """ReSTIR DI (RTXDI-style), per viewer: reservoir-based spatiotemporal
 importance resampling of direct lighting [Bitterli et al. 2020].
 
+Why one long module: the four stages (initial candidates, temporal and spatial reuse, shading)
+share the reservoir type, the target function and the per-viewer state; kept together so that
+the estimator reads top to bottom as in the paper.
+
 One reservoir per pixel and viewer. Per frame: resampled importance sampling
 of initial candidates (local lights, environment, BSDF), temporal reuse from
 the previous frame's reservoirs through the motion vectors, spatial reuse

@@ -1,5 +1,8 @@
 r"""Concurrent scene-view hierarchy traversal (Sec. 3.2), and the baselines.
 
+Why one long module: the concurrent traversal and its two baselines (ManyLoDs, brute force)
+share the pair queue and the map rendering, so that the three are compared on the same code.
+
 ``render_maps(scene_h, view_h, R)`` renders one dual-paraboloid depth map
 per view node. The pair queue ``(s_i, v_j)`` starts at the roots and is
 processed breadth-first, one Dr.Jit kernel set per level; every pair is,

@@ -1,5 +1,8 @@
 """Islands, their 2D texture spaces and the per-mesh atlas (numpy set-up).
 
+Why one long module: clustering, projection, packing and the parameter-space tessellation of
+analytic shapes are the numpy set-up of one structure, run once per scene.
+
 An *island* is a connected group of triangles whose face normals all lie in
 a cone of half-angle ``max_angle`` (degrees) around the island's mean
 normal, with at most ``max_triangles`` triangles. Each island is projected
