@@ -30,12 +30,8 @@ def add_arguments(p):
 
 def run(opts):
     from slc import experiment as ex
-    pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
-    scene = (opts.scene or [pr["scene"]])[0]
-    variants = [(n, f"{scene}:lights={n}") for n in (opts.lights or pr["lights"])]
-    specs = opts.methods or ex.available_methods(METHODS)
-    return ex.variant_experiment(opts, NAME, pr, specs, variants, "lights",
-                                 f"{scene}: error and time against the number of point/spot lights")
+    return ex.scene_option_sweep(opts, NAME, QUICK, FULL, METHODS, "lights",
+                                 "error and time against the number of point/spot lights")
 
 
 if __name__ == "__main__":

@@ -502,6 +502,17 @@ def variant_experiment(opts, name: str, preset: dict, specs: list[str], variants
     return results
 
 
+def scene_option_sweep(opts, name: str, quick: dict, full: dict, methods: list[str], option: str,
+                       title: str) -> dict:
+    """:func:`variant_experiment` over ``SCENE:option=value`` for the values
+    given on the command line (``opts.<option>``) or in the preset."""
+    pr = apply_common(opts, quick if opts.quick else full)
+    scene = (opts.scene or [pr["scene"]])[0]
+    variants = [(v, f"{scene}:{option}={v}") for v in (getattr(opts, option, None) or pr[option])]
+    specs = opts.methods or available_methods(methods)
+    return variant_experiment(opts, name, pr, specs, variants, option, title)
+
+
 def metric_vs_value_plot(path: Path, rows: list[dict], field: str, title: str) -> None:
     """FLIP (left) and time (right) against ``field``, one line per method setting."""
     import matplotlib

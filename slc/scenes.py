@@ -529,16 +529,13 @@ def _import_definition(path: Path):
 
 
 def parse_scene_spec(spec: str) -> tuple[str, dict]:
-    """``"hangar:lights=24"`` -> ``("hangar", {"lights": "24"})`` (values stay strings;
-    each scene's ``build`` converts its own options)."""
-    name, _, rest = str(spec).partition(":")
-    opts = {}
-    for item in filter(None, rest.split(",")):
-        k, eq, v = item.partition("=")
-        if not eq or not k.strip():
-            raise SceneError(f"bad scene option '{item}' in '{spec}' (expected key=value)")
-        opts[k.strip()] = v.strip()
-    return name.strip(), opts
+    """``"hangar:lights=24"`` -> ``("hangar", {"lights": "24"})``, the syntax of
+    method specs (values stay strings; each scene's ``build`` converts its own)."""
+    from .methods import MethodError, parse_spec
+    try:
+        return parse_spec(spec)
+    except MethodError as e:
+        raise SceneError(str(e).replace("method setting", "scene option")) from None
 
 
 def load(name_or_path: str, **options) -> Scene:
