@@ -28,7 +28,7 @@ FULL = dict(scenes=["atrium", "street", "village", "garden", "sponza"], width=32
             sweep=["rt4", "rt8", "rt32", "slc:rays_settled=2", "slc:max_cones=2", "slc:bias=0.5", "slc:bias=2"])
 QUICK = dict(scenes=["atrium"], width=160, height=90, frames=24, warmup=10, eval_frames=[15, 23],
              sweep=["rt4"])
-BASE_METHODS = ["rt16", "rt48", "restir", "slc", "slc:fetch=nearest"]
+BASE_METHODS = ["rt16", "rt48", "restir", "slc", "slc:fetch=bilinear"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -101,7 +101,7 @@ def _targets(rows) -> str:
     by = {(r["scene"], r["setting"]): r for r in rows}
     for scene in sorted({r["scene"] for r in rows}):
         rt48, restir = by.get((scene, "rt48")), by.get((scene, "restir"))
-        for setting in ("slc", "slc:fetch=nearest"):
+        for setting in ("slc", "slc:fetch=bilinear"):
             slc_r = by.get((scene, setting))
             if not (slc_r and rt48):
                 continue

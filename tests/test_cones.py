@@ -533,7 +533,7 @@ def test_hard_cases_finite(kind, monkeypatch):
 def _storage_after(sc, frames=12, cache="pixel"):
     """A converged cone storage and the shading inputs of the last frame."""
     from slc.cones.update import INVALID
-    m = SurfaceLightCones(sc, cache=PixelSlotCache()) if cache == "pixel" else create("slc", sc)
+    m = SurfaceLightCones(sc, cache=PixelSlotCache(), fetch="nearest") if cache == "pixel" else create("slc", sc)
     gb, _ = _run(sc, m, frames)
     fr = m.cache.begin_frame(frames, [gb])
     slot = mi.UInt32(fr.pixel_slot[0])

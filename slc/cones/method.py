@@ -56,7 +56,7 @@ class SurfaceLightCones(PayloadMethod):
         Param("epsilon", 0.1, "shrink test at (1 - epsilon) alpha", lo=1e-6, hi=1 - 1e-6),
         Param("shrink_period", 4, "settled entries run the shrink test every k-th frame", lo=1, hi=1024),
         Param("beta_min", 1.0, "degrees: smaller cone turns neither reduce C nor count as motion", lo=0.0),
-        Param("fetch", "bilinear", "the 4 surrounding entries weighted bilinearly, or the nearest entry",
+        Param("fetch", "nearest", "the nearest entry (the paper's), or the 4 surrounding entries weighted bilinearly",
               choices=("nearest", "bilinear")),
     ) + PayloadMethod.cache_params
 
