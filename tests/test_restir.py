@@ -115,7 +115,7 @@ def test_camera_cut_no_stale_samples():
     cam_b = Camera(np.array([1.9, 1.0, 0.0]), np.array([-1.0, 0.6, 0.0]), fov=70)
     cut = Viewer("cut", lambda f: cam_a if f < 4 else cam_b)
     counts = {}
-    for spec in ("restir", "restir:depth=1e9,normal=-2"):
+    for spec in ("restir", "restir:depth=1e9,normal=-1"):
         m = methods.create(spec, sc, seed=2)
         imgs = run_frames(m, sc, [cut], 5)
         gb = gbuffers_for(sc, [cut], 4, W, H)[0]
@@ -123,7 +123,7 @@ def test_camera_cut_no_stale_samples():
         assert np.isfinite(imgs[-1]).all()
         counts[spec] = _stale_count(m, light_a, valid)
     assert counts["restir"] == 0
-    assert counts["restir:depth=1e9,normal=-2"] > 0
+    assert counts["restir:depth=1e9,normal=-1"] > 0
 
 
 def test_moving_light_no_stale_samples():
