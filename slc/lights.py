@@ -77,12 +77,6 @@ def rng(n: int, seed: int, stream: int = 0) -> mi.PCG32:
     return mi.PCG32(size=n, initstate=s, initseq=idx)
 
 
-def finite(c: mi.Color3f) -> mi.Color3f:
-    """Replace NaN/Inf by 0."""
-    ok = dr.isfinite(c[0]) & dr.isfinite(c[1]) & dr.isfinite(c[2])
-    return dr.select(ok, c, 0.0)
-
-
 def sample_light(scene: mi.Scene, si: mi.SurfaceInteraction3f, u: mi.Point2f, active: mi.Bool):
     """One light sample from ``si``: (DirectionSample3f, L_e/pdf as Color3f, mask),
     from the sampler in use (see the module docstring).
