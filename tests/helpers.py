@@ -153,3 +153,16 @@ def z_test(runs, ref, significance=0.01, ref_var=None, rel_floor=1e-4, var_runs=
     n = p.size
     alpha = 1.0 - (1.0 - significance) ** (1.0 / n)
     return dict(p_min=float(p.min()), alpha=alpha, n=n, failed=np.argwhere(p <= alpha), z=z)
+
+
+def independent_runs(spec, scene, gbs, seeds, frames=1):
+    """The first viewer's direct light (N x 3, float64) after ``frames`` frames,
+    one independent run of method ``spec`` per seed, stacked."""
+    from slc import methods
+    out = []
+    for s in seeds:
+        m = methods.create(spec, scene, seed=s)
+        for f in range(frames):
+            d = m.render(FrameContext(f), gbs, NullTimer())
+        out.append(np.array(d[0], np.float64).T)
+    return np.stack(out)

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 import slc  # noqa: F401  (selects the Mitsuba variant)
+from helpers import independent_runs
 from slc import methods, scenes, views
 from slc.gbuffer import to_image
 from slc.groundtruth import direct_mis
@@ -254,17 +255,6 @@ def test_no_kernel_recompilation_after_warmup(cornell):
 # ---------------------------------------------------------------- per-pixel error, bias, spatial, presets
 
 
-def _runs(spec, scene, gbs, frames, seeds):
-    """Direct light (N x 3) of the last of ``frames`` frames for each seed (independent runs)."""
-    out = []
-    for s in seeds:
-        m = methods.create(spec, scene, seed=s)
-        for f in range(frames):
-            d = m.render(FrameContext(f), gbs, NullTimer())
-        out.append(np.array(d[0], np.float64).T)
-    return np.stack(out)
-
-
 @pytest.fixture(scope="module")
 def cornell_flat(cornell):
     """G-buffer of cornell's first camera and a 4096-sample reference, flattened (N x 3)."""
@@ -287,7 +277,7 @@ def test_per_pixel_error_spatial_and_falcor(cornell, cornell_flat):
     than 10%."""
     gbs, gt, v = cornell_flat
     seeds = range(4)
-    e = {spec: _pix_err(_runs(spec, cornell, gbs, 1, seeds), gt, v) for spec in
+    e = {spec: _pix_err(independent_runs(spec, cornell, gbs, seeds), gt, v) for spec in
          ("restir:temporal=0,spatial=0", "restir:temporal=0", "restir:temporal=0,spatial=5",
           "restir:preset=falcor,temporal=0,spatial=0")}
     print(e)
@@ -312,7 +302,7 @@ def test_falcor_preset_candidates_and_check_mode(cornell, cornell_flat, monkeypa
     from slc.pipeline import RunConfig, run_sequence
     run_sequence(cornell, m, views.single(cornell), RunConfig(width=W, height=H, frames=3, warmup=0,
                                                              eval_frames=[], measure_overlap=False))
-    avg = _runs("restir:preset=falcor,temporal=0,spatial=0", cornell, gbs, 1, range(16)).mean(axis=0)
+    avg = independent_runs("restir:preset=falcor,temporal=0,spatial=0", cornell, gbs, range(16)).mean(axis=0)
     assert abs(avg[v].mean() / gt[v].mean() - 1) < 0.02
 
 
@@ -349,7 +339,7 @@ def test_bias_off_darkens_next_to_zero_target_neighbours():
     far = lit & (p[:, 0] < -10 * px)
     ratios = {}
     for bias in ("off", "basic"):
-        avg = _runs(f"restir:temporal=0,spatial=8,visibility=0,bias={bias}", sc, gbs, 1, range(16)).mean(axis=0)
+        avg = independent_runs(f"restir:temporal=0,spatial=8,visibility=0,bias={bias}", sc, gbs, range(16)).mean(axis=0)
         ratios[bias] = (avg[near].mean() / gt[near].mean(), avg[far].mean() / gt[far].mean())
     print(ratios, near.sum(), far.sum())
     assert near.sum() > 20 and far.sum() > 100
@@ -371,5 +361,5 @@ def test_envmap_light_against_ground_truth():
     gbs = gbuffers_for(sc, views.single(sc), 0, 48, 27)
     gt = np.array(direct_mis(sc.mi_scene, gbs[0], 1024), np.float64).T
     v = np.array(gbs[0].valid)
-    avg = _runs("restir:temporal=0,spatial=0", sc, gbs, 1, range(16)).mean(axis=0)
+    avg = independent_runs("restir:temporal=0,spatial=0", sc, gbs, range(16)).mean(axis=0)
     assert abs(avg[v].mean() / gt[v].mean() - 1) < 0.03, (avg[v].mean(), gt[v].mean())

@@ -31,7 +31,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import plane_under_rect_light, rect_irradiance, z_test
+from helpers import independent_runs, plane_under_rect_light, rect_irradiance, z_test
 from slc import methods, scenes, views
 from slc.cones.shading import GOLDEN, cone_samples
 from slc.groundtruth import direct_mis
@@ -335,16 +335,6 @@ def test_fixed_pattern_quadrature_of_the_cosine():
 
 # =============================================================================== per-pixel Z-tests
 
-def _method_runs(spec, scene, gbs, seeds, frames=1):
-    out = []
-    for s in seeds:
-        m = methods.create(spec, scene, seed=s)
-        for f in range(frames):
-            d = m.render(FrameContext(f), gbs, NullTimer())
-        out.append(np.array(d[0], np.float64).T)
-    return np.stack(out)
-
-
 def _gt_runs(scene, gb, seeds, spp):
     return np.stack([np.array(direct_mis(scene.mi_scene, gb, spp, seed=s), np.float64).T for s in seeds])
 
@@ -384,8 +374,8 @@ def test_ground_truth_per_pixel_z_test_closed_form(plane):
 
 def test_rt_per_pixel_z_test_closed_form(plane):
     sc, gbs, ref, mask = plane
-    runs = _method_runs("rt16", sc, gbs, range(32))
-    var_runs = _method_runs("rt16", sc, gbs, range(1000, 1128))
+    runs = independent_runs("rt16", sc, gbs, range(32))
+    var_runs = independent_runs("rt16", sc, gbs, range(1000, 1128))
     p_min, alpha = _z(runs, var_runs, ref, None, mask)
     assert p_min > alpha, (p_min, alpha)
     assert _z(runs * 1.02, var_runs, ref, None, mask)[0] < alpha
@@ -404,8 +394,8 @@ def cornell_ref():
 
 def test_rt_per_pixel_z_test_cornell(cornell_ref):
     sc, gbs, ref, ref_var, mask = cornell_ref
-    runs = _method_runs("rt16", sc, gbs, range(32))
-    var_runs = _method_runs("rt16", sc, gbs, range(1000, 1128))
+    runs = independent_runs("rt16", sc, gbs, range(32))
+    var_runs = independent_runs("rt16", sc, gbs, range(1000, 1128))
     p_min, alpha = _z(runs, var_runs, ref, ref_var, mask)
     assert p_min > alpha, (p_min, alpha)
     assert _z(runs * 1.02, var_runs, ref, ref_var, mask)[0] < alpha
@@ -418,13 +408,13 @@ def test_restir_bias_off_temporal_per_pixel_z_test(cornell_ref):
     penumbrae and is rejected by the same test."""
     sc, gbs, ref, ref_var, mask = cornell_ref
     spec = "restir:bias=off,spatial=0,boost=0"
-    runs = _method_runs(spec, sc, gbs, range(32), frames=4)
-    var_runs = _method_runs(spec, sc, gbs, range(1000, 1128), frames=4)
+    runs = independent_runs(spec, sc, gbs, range(32), frames=4)
+    var_runs = independent_runs(spec, sc, gbs, range(1000, 1128), frames=4)
     p_min, alpha = _z(runs, var_runs, ref, ref_var, mask)
     print("restir bias=off temporal: p_min", p_min, "alpha", alpha)
     assert p_min > alpha, (p_min, alpha)
-    d = _method_runs("restir", sc, gbs, range(32), frames=4)
-    dv = _method_runs("restir", sc, gbs, range(1000, 1064), frames=4)
+    d = independent_runs("restir", sc, gbs, range(32), frames=4)
+    dv = independent_runs("restir", sc, gbs, range(1000, 1064), frames=4)
     p_def, _ = _z(d, dv, ref, ref_var, mask)
     print("restir default: p_min", p_def)
     assert p_def < alpha
