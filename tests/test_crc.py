@@ -15,7 +15,8 @@ from slc import methods, references, scenes, views
 from slc.crc import CRCCache, Grid
 from slc.crc import volume
 from slc.crc.march import visible
-from slc.crc.quality import delta_e76, pdiff
+from slc.crc.quality import de76_fraction, delta_e76, pdiff
+from slc.crc.quality import _xyz_lab_yee
 from slc.gbuffer import to_image
 from slc.methods import FrameContext, MethodError
 from slc.pipeline import RunConfig, gbuffers_for, run_sequence
@@ -106,7 +107,7 @@ def test_march_visibility_agrees_with_rays(cornell):
 def test_occupancy_is_exact_at_shaded_points(cornell, bounces):
     """Dilation by one cell: restricting cache points to occupied cells
     changes nothing at the shaded points (per-cell keyed random streams)."""
-    kw = dict(encoding="y3co1cg1", bounces=bounces, vpls=1024, samples=16, secondary_rays=8)
+    kw = dict(encoding="y3co1cg1", bounces=bounces, samples=16, secondary_rays=8, depth_stride=1)
     c_on, _, on = _render(cornell, occupancy=True, **kw)
     _, _, off = _render(cornell, occupancy=False, **kw)
     assert c_on.occupancy_ratio() < 0.9
@@ -148,18 +149,47 @@ def test_encodings(cornell):
     assert abs(y311.mean() - rgb3.mean()) < 0.05 * rgb3.mean(), (y311.mean((0, 1)), rgb3.mean((0, 1)))
 
 
-def test_pdiff_counts_pixels_above_one_jnd():
-    """pdiff on images whose colour difference is constructed: grey 0.18
-    (L* = 49.5) against grey steps of +10% (dE76 = 2.11, below one JND)
-    and +12% (2.52, above; dE76 of a grey step is the change of L*)."""
+def test_de76_fraction_counts_pixels_above_one_jnd():
+    """The simpler measure: grey 0.18 (L* = 49.5) against grey steps of +10%
+    (dE76 = 2.11, below one JND) and +12% (2.52, above; dE76 of a grey step
+    is the change of L*)."""
     img = np.full((8, 8, 3), 0.18, np.float32)
     test = img.copy()
     test[:2] *= 1.10
     test[2:5] *= 1.12
     de = delta_e76(img, test)
     assert 2.0 < de[:2].min() and de[:2].max() < 2.3 and 2.3 < de[2:5].min() < 2.6
-    assert pdiff(img, test) == pytest.approx(3 / 8 * 100)
-    assert pdiff(img, img * 1.10) == 0.0 and pdiff(img, img * 1.12) == 100.0
+    assert de76_fraction(img, test) == pytest.approx(3 / 8 * 100)
+    assert de76_fraction(img, img * 1.10) == 0.0 and de76_fraction(img, img * 1.12) == 100.0
+
+
+def test_pdiff_on_images_with_known_differences():
+    """Yee's PerceptualDiff (the paper's pdiff) on constructed pairs, grey
+    0.5 = 50 cd/m^2 (threshold versus intensity there: 3.2 cd/m^2):
+    identical images -> 0; a 16 x 16 block (6.25% of the pixels) at twice
+    the luminance -> exactly those pixels; a uniform +5% (2.5 cd/m^2) is
+    below the threshold and +10% (5 cd/m^2) above it, but the same +10% on
+    a high-contrast random texture is masked; an equal-luminance colour
+    shift fails only when (da*^2 + db*^2) exceeds the threshold elevation
+    (>= 1): da* = 0.27 passes, da* = 1.36 fails."""
+    img = np.full((64, 64, 3), 0.5)
+    assert pdiff(img, img) == 0.0
+    block = img.copy()
+    block[8:24, 8:24] *= 2.0
+    assert pdiff(img, block) == pytest.approx(6.25)
+    assert pdiff(block, img) == pytest.approx(6.25)
+    assert pdiff(img, img * 1.05) == 0.0 and pdiff(img, img * 1.10) == 100.0
+    tex = np.repeat(np.random.default_rng(0).choice([0.1, 0.9], size=(64, 64))[..., None], 3, 2)
+    assert pdiff(tex, tex * 1.10) == 0.0
+    k = 0.297361 / 0.627355                    # d(R, G) along which Adobe-RGB Y is constant
+    for d, want in ((0.002, 0.0), (0.01, 6.25)):
+        shift = img.copy()
+        shift[8:24, 8:24] += np.array([d, -d * k, 0.0])
+        (lab0, y0), (lab1, y1) = _xyz_lab_yee(img), _xyz_lab_yee(shift)
+        assert np.allclose(y0, y1, atol=1e-12)
+        assert pdiff(img, shift) == pytest.approx(want)
+    with pytest.raises(ValueError):
+        pdiff(img, img[:32])
 
 
 def test_reference_has_no_indirect_light_on_a_lone_plane():
