@@ -27,8 +27,8 @@ colour factor 1.
 4. The pixel *fails* when ``|a_0 - b_0| > factor * tvi(adapt)`` (Ward
    Larson's threshold-versus-intensity), or else when the colour
    difference ``(da^2 + db^2) * colour_scale > factor`` (Lab a*, b*;
-   ``colour_scale`` = 1, ramped down to 0.01 below 10 cd/m^2 as in the
-   tool).
+   ``colour_scale`` = 1, scaled to 0.01 below 10 cd/m^2 as in the
+   OpenImageIO port).
 
 pdiff = 100 * failed pixels / pixels. :func:`de76_fraction` is the simpler
 measure used here before: percent of pixels whose CIE76 difference exceeds
