@@ -263,3 +263,31 @@ def test_render_gt_uses_the_reference_of_the_output_kind(tmp_path):
     row = json.loads((out / "timings.json").read_text())
     assert np.isfinite(row["flip"]) and row["psnr"] > 0
     assert list(out.glob("*_strip.png"))
+
+
+def test_halton_rectangle_and_paper_stride(cornell):
+    """The precomputed Halton points are the radical inverses (bases 2, 3);
+    the default depth stride is the paper's 10 at 1 MPixel scaled by the
+    frame's side (1 at 128x72, 2 at 320x180), a set stride is kept."""
+    from slc.crc.cache import halton
+    assert np.allclose(halton(5, 2), [0, 1 / 2, 1 / 4, 3 / 4, 1 / 8])
+    assert np.allclose(halton(5, 3), [0, 1 / 3, 2 / 3, 1 / 9, 4 / 9])
+    c = CRCCache(cornell, samples=8)
+    assert [c.stride_for(*wh) for wh in ((128, 72), (320, 180), (1000, 1000), (8, 8))] == [1, 2, 10, 1]
+    assert CRCCache(cornell, depth_stride=10).stride_for(128, 72) == 10
+    h = np.array(c._halton_cells)
+    assert h.shape == (2, 8) and np.allclose(h[1], halton(8, 3))
+
+
+def test_stages_split_by_encoding_dependence(cornell):
+    """Every timed stage is either one whose work scales with the
+    coefficient count or one that does not depend on the encoding."""
+    from slc.timing import StageTimer
+    m = methods.create("crc:bounces=2,samples=8,secondary_rays=4,rsm_size=16", cornell)
+    t = StageTimer()
+    gbs = gbuffers_for(cornell, views.single(cornell), 0, 32, 18)
+    t.begin_frame()
+    m.render(FrameContext(0), gbs, t)
+    t.end_frame()
+    stages = set(t.frames[0]) - {"total"}
+    assert stages == set(CRCCache.COEFFICIENT_STAGES) | set(CRCCache.FIXED_STAGES)
