@@ -8,6 +8,7 @@ import time
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from ..keys import STREAM_CRC, keyed_rng
 from ..methods import Method, Param
@@ -18,8 +19,11 @@ from . import volume
 from .grid import GEOMETRY_FACTOR, Grid
 from .march import march, visible
 
-# Random streams of the stages (offsets of STREAM_CRC; keys: light path or cell index)
-_LIGHTS, _FIRST_BOUNCE, _SECONDARY = 11, 12, 20
+# Random streams of the stages (offsets of STREAM_CRC; keys: light path, RSM
+# frame, (cell, sample) pair or cell index)
+_LIGHTS, _FIRST_BOUNCE, _ROTATION, _RSM, _SECONDARY = 11, 12, 13, 14, 20
+#: the paper's depth-occupancy stride s, at a 1 MPixel frame buffer
+PAPER_STRIDE = 10
 
 
 def front_normal(si: mi.SurfaceInteraction3f) -> mi.Vector3f:
@@ -28,52 +32,90 @@ def front_normal(si: mi.SurfaceInteraction3f) -> mi.Vector3f:
     return dr.select(si.wi.z < 0.0, -n, n)
 
 
+def halton(n: int, base: int) -> np.ndarray:
+    """The first ``n`` points (index 0..n-1) of the radical inverse in ``base``."""
+    out = np.zeros(n)
+    i = np.arange(n)
+    f = 1.0 / base
+    while np.any(i > 0):
+        out += (i % base) * f
+        i //= base
+        f /= base
+    return out
+
+
 class CRCCache(Method):
     r"""Grid radiance cache with chrominance-compressed SH (CRC).
 
-    Per frame:
+    Per frame (each step one timed stage; ``*_march`` stages do not depend
+    on the encoding, ``*_project``, ``blend`` and ``reconstruct`` scale with
+    its coefficient count):
 
-    1. *Occupancy*: cache points (cell centres) exist only in occupied
+    1. ``occupancy``: cache points (cell centres) exist only in occupied
        cells. With one bounce, the depth occupancy volume (the cells of the
-       viewers' G-buffer points, every ``depth_stride``-th pixel); with more,
-       the cells that hold geometry voxels. Both dilated by one cell, so that
-       the trilinear stencil of every shaded point (offset by half a cell
-       along its normal) only reads occupied cells.
-    2. *Lights* (the RSM of the paper): ``vpls`` light paths from the
-       emitters (``scene.sample_emitter_ray``); each first hit X_k with
-       normal n_k, diffuse albedo rho_k and sample flux Phi_k is a virtual
-       point light of intensity Phi_k rho_k cos / pi.
-    3. *First bounce*: at each occupied cell, ``samples`` VPLs k drawn
-       uniformly, received at the cell centre jittered by ``jitter`` cells:
+       viewers' G-buffer points, every s-th pixel in x and y: the paper's
+       s = 10 at 1 MPixel, scaled by the frame's side, i.e. 1 at 128x72 and 2
+       at 320x180, or ``depth_stride``); with more, the cells that hold geometry voxels.
+       Both dilated by one cell, so that the trilinear stencil of every
+       shaded point (offset by half a cell along its normal) reads occupied
+       cells.
+    2. ``lights`` (light injection): the virtual point lights X_k with
+       normal n_k, diffuse albedo rho_k and sample flux Phi_k (intensity
+       Phi_k rho_k cos / pi).
 
-       .. math:: \lambda_{lm}(P) = \frac{1}{n_s}\sum_k
+       - ``first_bounce="rsm"`` (the paper): one reflective shadow map per
+         emitter, ``rsm_size`` x ``rsm_size`` texels: texel (a, b) is the
+         first hit of the emitter ray whose direction sample is the texel
+         centre ((a + 1/2) / R, (b + 1/2) / R) (the RSM's image plane) and
+         whose position sample is a 2D Halton point (bases 2, 3) rotated
+         once per frame (where on an area light, or on a directional
+         light's disk, the ray starts).
+       - ``first_bounce="paths"``: ``vpls`` random light paths
+         (``scene.sample_emitter_ray``, PCG32).
+    3. ``bounce1_march`` / ``bounce1_project``: at each occupied cell,
+       ``samples`` VPLs k, received at the cell centre jittered by
+       ``jitter`` cells:
+
+       .. math:: \lambda_{lm}(P) = \frac{n_e}{n_s}\sum_k
                  \frac{\Phi_k \rho_k \max(0, n_k\cdot(-\omega_k))}
                       {\pi \max(|X_k-P|^2, d_{min}^2)} V(X_k, P)\, Y_{lm}(\omega_k)
 
-       projected in the encoding's colour space (YCoCg with fewer chroma
-       bands, or RGB). V by ray marching in the geometry volume
-       (``visibility="march"``) or by Mitsuba shadow rays (``"rays"``).
-    4. *Secondary bounces* (``bounces`` > 1): from each occupied cell,
-       ``secondary_rays`` uniform directions are marched up to
-       ``secondary_distance`` cells; at the hit X, a virtual diffuse surface
-       facing P reflects L = rho E(X, -omega) / pi, with E reconstructed from
-       the previous bounce's volume and rho = ``albedo`` (with Mitsuba rays:
-       the true normal and albedo of the hit):
-       :math:`\lambda^{(i)} = \frac{4\pi}{n}\sum_k L(X_k, -\omega_k) Y(\omega_k)`.
+       (the paper's Eq. 2: Phi_k n_texels / n_s with the texel flux
+       Phi_k = w_k / R^2 of the ray weight w_k; n_e = number of emitters,
+       samples split uniformly among the RSMs). With ``"rsm"`` the texels
+       are chosen at the points of a precomputed 2D Halton rectangle
+       (bases 2, 3) over the n_e R x R RSM atlas, rotated per cell and
+       frame (Cranley-Patterson); with ``"paths"`` uniformly at random
+       (n_e = 1). V by ray marching in the geometry volume
+       (``visibility="march"``, ``march_samples`` jittered samples per
+       segment, the paper's 8-12; 0: one per voxel) or Mitsuba shadow rays
+       (``"rays"``). The march stage stores (omega_k, L_k) per (cell,
+       sample); the project stage sums ``project(enc, omega, L)`` per cell
+       in the encoding's colour space (YCoCg with fewer chroma bands, or
+       RGB).
+    4. ``bounce2_march`` / ``bounce2_project`` (``bounces`` > 1): from each
+       occupied cell, ``secondary_rays`` uniform directions are marched up
+       to ``secondary_distance`` cells (``secondary_march_samples``, the
+       paper's 4-6; 0: one per voxel); at the hit X, a virtual diffuse
+       surface facing P reflects L = rho E(X, -omega) / pi, with E
+       reconstructed from the previous bounce's volume and rho =
+       ``albedo`` (with Mitsuba rays: the true normal and albedo of the
+       hit): :math:`\lambda^{(i)} = \frac{4\pi}{n}\sum_k L(X_k, -\omega_k) Y(\omega_k)`.
        Two volumes hold the last bounce's input and output (swapped) and a
        third the running sum.
-    5. *Blend*: exponential moving average ``cache = a new + (1 - a) cache``
+    5. ``blend``: exponential moving average ``cache = a new + (1 - a) cache``
        with ``a = blend`` for cells that were occupied in the previous frame
        (others start from the new value).
-    6. *Reconstruct* at the G-buffer points: trilinear interpolation of the
-       coefficients at x + n h / 2, closed-form irradiance (Ramamoorthi and
-       Hanrahan), back to RGB (``presence`` scales Y, ``bleeding`` CoCg),
-       outgoing diffuse radiance rho(x) E / pi.
+    6. ``reconstruct`` at the G-buffer points: trilinear interpolation of
+       the coefficients at x + n h / 2, closed-form irradiance (Ramamoorthi
+       and Hanrahan), back to RGB (``presence`` scales Y, ``bleeding``
+       CoCg), outgoing diffuse radiance rho(x) E / pi.
 
-    Random numbers: one stream per light path and per cell
-    (:func:`slc.keys.keyed_rng`, keyed by the path or *cell* index, not by
-    the position in the compacted list of active cells), so the same cell
-    draws the same numbers whether or not other cells are active.
+    Random numbers: one stream per light path, per frame (RSM rotation),
+    per (cell, sample) and per cell (:func:`slc.keys.keyed_rng`, keyed by
+    the *cell* index, not by the position in the compacted list of active
+    cells), so the same cell draws the same numbers whether or not other
+    cells are active.
 
     Output: *indirect* light only (``output = "indirect"``): direct light
     is not cached; compose with a direct-light method or the ground truth.
@@ -86,18 +128,24 @@ class CRCCache(Method):
         Param("resolution", 16, "grid cells on the scene box's longest side", lo=2, hi=256),
         Param("bounces", 1, "indirect bounces (1: depth occupancy; more: geometry occupancy)", lo=1, hi=8),
         Param("occupancy", True, "cache points only in occupied cells (0: every cell)"),
-        Param("vpls", 4096, "light paths (VPLs) per frame", lo=1, hi=4_000_000),
-        Param("samples", 64, "VPL samples per cache point", lo=1, hi=1 << 16),
+        Param("first_bounce", "rsm", "VPLs: per-emitter RSM texels chosen by Halton points (paper) "
+              "or random light paths chosen by PCG32", choices=("rsm", "paths")),
+        Param("rsm_size", 64, "RSM texels per side and emitter (first_bounce=rsm)", lo=1, hi=2048),
+        Param("vpls", 4096, "light paths (VPLs) per frame (first_bounce=paths)", lo=1, hi=4_000_000),
+        Param("samples", 64, "VPL samples per cache point (paper 50-200)", lo=1, hi=1 << 16),
         Param("secondary_rays", 32, "directions per cache point for bounces 2+", lo=1, hi=1 << 16),
         Param("secondary_distance", 8.0, "march length of secondary rays [cells]", lo=0.25, hi=1024.0),
         Param("visibility", "march", "visibility by geometry-volume march or Mitsuba rays",
               choices=("march", "rays")),
-        Param("march_samples", 0, "samples per marched ray (0: one per geometry voxel; paper 8-12)",
+        Param("march_samples", 10, "samples per first-bounce visibility march (paper 8-12; 0: one per voxel)",
+              lo=0, hi=4096),
+        Param("secondary_march_samples", 5, "samples per secondary-bounce march (paper 4-6; 0: one per voxel)",
               lo=0, hi=4096),
         Param("blend", 0.25, "temporal blend weight of the new estimate", lo=0.01, hi=1.0),
         Param("jitter", 0.5, "jitter of the sample point around the cell centre [cells]", lo=0.0, hi=1.0),
         Param("min_distance", 0.5, "distance clamp of VPL contributions [cells]", lo=0.0, hi=8.0),
-        Param("depth_stride", 1, "pixel stride of the depth occupancy", lo=1, hi=64),
+        Param("depth_stride", 0, "pixel stride of the depth occupancy (0: the paper's 10 at 1 MPixel, scaled "
+              "by sqrt(pixels / 1M); 1: every pixel)", lo=0, hi=64),
         Param("albedo", 0.5, "grey albedo of marched secondary hits", lo=0.0, hi=1.0),
         Param("presence", 1.0, "scale of Y (artistic control)", lo=0.0, hi=16.0),
         Param("bleeding", 1.0, "scale of Co, Cg (artistic control)", lo=0.0, hi=16.0),
@@ -112,6 +160,11 @@ class CRCCache(Method):
         self.geo = self.grid.finer(GEOMETRY_FACTOR)
         self.voxelize_ms = 0.0
         self._voxel_time = None
+        # the precomputed Halton rectangles: cell samples over the RSM atlas, RSM position samples
+        self._halton_cells = mi.Point2f(halton(self.samples, 2).astype(np.float32),
+                                        halton(self.samples, 3).astype(np.float32))
+        r2 = self.rsm_size * self.rsm_size
+        self._halton_rsm = np.stack([halton(r2, 2), halton(r2, 3)], 1)
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -159,121 +212,173 @@ class CRCCache(Method):
         if not self.occupancy:
             return dr.arange(mi.UInt32, self.grid.n_cells)
         if self.bounces == 1:
-            occ = volume.dilate(volume.depth_occupancy(self.grid, gbuffers, self.depth_stride), self.grid)
+            occ = dr.zeros(mi.UInt32, self.grid.n_cells)
+            for gb in gbuffers:
+                occ |= volume.depth_occupancy(self.grid, [gb], self.stride_for(gb.width, gb.height))
+            occ = volume.dilate(occ, self.grid)
         else:
             occ = self.geo_occ
         return dr.compress(occ != 0)
 
-    def _lights(self, frame: int):
-        """Virtual point lights: first hits of light paths (the RSM samples)."""
-        sc = self.scene.mi_scene
-        s = keyed_rng(dr.arange(mi.UInt32, self.vpls), self.seed, frame, STREAM_CRC + _LIGHTS)
-        u1 = s.next_float32()
-        u2 = mi.Point2f(s.next_float32(), s.next_float32())
-        u3 = mi.Point2f(s.next_float32(), s.next_float32())
-        ray, w, _ = sc.sample_emitter_ray(0.0, u1, u2, u3, True)
-        si = sc.ray_intersect(ray)
+    def stride_for(self, width: int, height: int) -> int:
+        """Depth-occupancy pixel stride at this frame size: ``depth_stride``,
+        or with 0 the paper's s = 10 at 1 MPixel scaled with the frame's
+        side, so that the depth samples per degree of view stay the paper's."""
+        if self.depth_stride > 0:
+            return self.depth_stride
+        return max(1, int(round(PAPER_STRIDE * math.sqrt(width * height / 1e6))))
+
+    def _vpl(self, si: mi.SurfaceInteraction3f, w):
         ok = si.is_valid() & (si.wi.z > 0.0)
         rho = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, ok))
         phi = dr.select(ok, mi.Color3f(w) * rho, 0.0)
-        X = dr.select(ok, si.p, 0.0)
-        N = front_normal(si)
-        return X, N, phi
+        return dr.select(ok, si.p, 0.0), front_normal(si), phi
 
-    def _integrate(self, frame: int, cells: mi.UInt32, stream: int, count: int, sample) -> list:
-        """Sum over ``count`` samples per cache point, in registers, of
-        ``project(enc, omega, L)`` for ``(omega, L) = sample(Pc, sampler)``
-        (``Pc``: the cell centres; one keyed stream per cell)."""
+    def _lights(self, frame: int):
+        """Virtual point lights (X, N, Phi rho) and the estimator's factor n_e."""
+        sc = self.scene.mi_scene
+        if self.first_bounce == "paths":
+            s = keyed_rng(dr.arange(mi.UInt32, self.vpls), self.seed, frame, STREAM_CRC + _LIGHTS)
+            u1 = s.next_float32()
+            u2 = mi.Point2f(s.next_float32(), s.next_float32())
+            u3 = mi.Point2f(s.next_float32(), s.next_float32())
+            ray, w, _ = sc.sample_emitter_ray(0.0, u1, u2, u3, True)
+            return (*self._vpl(sc.ray_intersect(ray), w), 1)
+        # ---------------- one RSM per emitter, texels on a regular grid ----------------
+        emitters = sc.emitters_dr()
+        n_e, R = dr.width(emitters), self.rsm_size
+        rot = np.random.default_rng([self.seed, frame, _RSM]).random(2)  # Cranley-Patterson, per frame
+        u2 = np.tile((self._halton_rsm + rot) % 1.0, (max(n_e, 1), 1)).astype(np.float32)
+        t = dr.arange(mi.UInt32, n_e * R * R)
+        e, tex = t // (R * R), t % (R * R)
+        u3 = (mi.Point2f(mi.Float(tex % R), mi.Float(tex // R)) + 0.5) * (1.0 / R)
+        ep = dr.gather(mi.EmitterPtr, emitters, e)
+        ray, w = ep.sample_ray(0.0, 0.5, mi.Point2f(u2[:, 0], u2[:, 1]), u3, True)
+        return (*self._vpl(sc.ray_intersect(ray), w), n_e)
+
+    def _lanes(self, cells: mi.UInt32, count: int):
+        """(cell, sample index) of the n_cells x count lanes, cell-major."""
+        lane = dr.arange(mi.UInt32, dr.width(cells) * count)
+        return dr.gather(mi.UInt32, cells, lane // count), lane % count
+
+    def _sum(self, omega: mi.Vector3f, L: mi.Color3f, n_cells: int, count: int, scale: float) -> list:
+        """``scale`` x the sum over each cell's ``count`` lanes of
+        ``project(enc, omega, L)`` (in registers, one cell per lane)."""
         enc = self.enc
-        sampler = keyed_rng(cells, self.seed, frame, STREAM_CRC + stream)
-        Pc = self.grid.center(cells)
+        base = dr.arange(mi.UInt32, n_cells) * count
         n = dr.opaque(mi.UInt32, count)
 
-        def cond(i, acc, sampler):
+        def cond(i, acc):
             return i < n
 
-        def body(i, acc, sampler):
-            omega, L = sample(Pc, sampler)
-            acc = [a + b for a, b in zip(acc, project(enc, omega, L))]
-            return i + 1, acc, sampler
+        def body(i, acc):
+            w = dr.gather(mi.Vector3f, omega, base + i)
+            x = dr.gather(mi.Color3f, L, base + i)
+            return i + 1, [a + b for a, b in zip(acc, project(enc, w, x))]
 
         acc0 = [mi.Float(0.0) for _ in range(enc.n)]
-        _, acc, _ = dr.while_loop(state=(mi.UInt32(0), acc0, sampler), cond=cond, body=body,
-                                  labels=("i", "acc", "sampler"))
-        return acc
+        _, acc = dr.while_loop(state=(mi.UInt32(0), acc0), cond=cond, body=body, labels=("i", "acc"))
+        return [a * scale for a in acc]
 
     def _jittered(self, Pc: mi.Point3f, sampler: mi.PCG32) -> mi.Point3f:
         off = mi.Vector3f(sampler.next_float32(), sampler.next_float32(), sampler.next_float32()) - 0.5
         return Pc + off * (self.jitter * self.grid.h)
 
-    def _first_bounce(self, frame: int, cells: mi.UInt32, X, N, phi) -> list:
-        geo, n_vpl = self.geo, self.vpls
+    def _first_bounce_samples(self, frame: int, cells: mi.UInt32, X, N, phi, n_e: int):
+        """(omega_k, L_k) of every (cell, sample) lane: VPL choice and visibility."""
+        geo, ns = self.geo, self.samples
         d2min = (self.min_distance * self.grid.h) ** 2
-        sc = self.scene.mi_scene
+        cell, i = self._lanes(cells, ns)
+        sampler = keyed_rng(cell * ns + i, self.seed, frame, STREAM_CRC + _FIRST_BOUNCE)
+        # ------------------------------- VPL choice -------------------------------
+        if self.first_bounce == "rsm":
+            R = self.rsm_size
+            rot = keyed_rng(cell, self.seed, frame, STREAM_CRC + _ROTATION)   # one per cell
+            h = dr.gather(mi.Point2f, self._halton_cells, i)
+            ux = h.x + rot.next_float32()
+            uy = h.y + rot.next_float32()
+            ux, uy = ux - dr.floor(ux), uy - dr.floor(uy)
+            x = dr.minimum(mi.UInt32(ux * float(n_e * R)), n_e * R - 1)
+            y = dr.minimum(mi.UInt32(uy * float(R)), R - 1)
+            e = x // R
+            j = e * (R * R) + y * R + (x - e * R)
+        else:
+            j = dr.minimum(mi.UInt32(sampler.next_float32() * self.vpls), self.vpls - 1)
+        P = self._jittered(self.grid.center(cell), sampler)
+        Xk = dr.gather(mi.Point3f, X, j)
+        Nk = dr.gather(mi.Vector3f, N, j)
+        Pk = dr.gather(mi.Color3f, phi, j)
+        v = Xk - P
+        d2 = dr.squared_norm(v)
+        w_dir = v * dr.rsqrt(dr.maximum(d2, 1e-20))
+        cos_k = -dr.dot(Nk, w_dir)
+        ok = (cos_k > 0.0) & (dr.max(Pk) > 0.0) & (d2 > 0.0)
+        # -------------------------------- visibility --------------------------------
+        if self.visibility == "march":
+            ok = visible(self.geometry, geo, P, Xk, sampler.next_float32(), ok,
+                         start_offset=geo.h, end_offset=2.0 * geo.h, samples=self.march_samples)
+        else:
+            ray = mi.Ray3f(P, w_dir)
+            ray.maxt = dr.sqrt(d2) * (1.0 - 1e-3)
+            ok &= ~self.scene.mi_scene.ray_test(ray, ok)
+        return w_dir, Pk * dr.select(ok, cos_k / (math.pi * dr.maximum(d2, d2min)), 0.0)
 
-        # ---------------- one VPL sample at a jittered cache point ----------------
-        def sample(Pc, sampler):
-            j = dr.minimum(mi.UInt32(sampler.next_float32() * n_vpl), n_vpl - 1)
-            P = self._jittered(Pc, sampler)
-            Xk = dr.gather(mi.Point3f, X, j)
-            Nk = dr.gather(mi.Vector3f, N, j)
-            Pk = dr.gather(mi.Color3f, phi, j)
-            v = Xk - P
-            d2 = dr.squared_norm(v)
-            w_dir = v * dr.rsqrt(dr.maximum(d2, 1e-20))
-            cos_k = -dr.dot(Nk, w_dir)
-            ok = (cos_k > 0.0) & (dr.max(Pk) > 0.0) & (d2 > 0.0)
-            # --------------------------- visibility ---------------------------
-            if self.visibility == "march":
-                ok = visible(self.geometry, geo, P, Xk, sampler.next_float32(), ok,
-                             start_offset=geo.h, end_offset=2.0 * geo.h, samples=self.march_samples)
-            else:
-                ray = mi.Ray3f(P, w_dir)
-                ray.maxt = dr.sqrt(d2) * (1.0 - 1e-3)
-                ok &= ~sc.ray_test(ray, ok)
-            return w_dir, Pk * dr.select(ok, cos_k / (math.pi * dr.maximum(d2, d2min)), 0.0)
+    def _secondary_samples(self, frame: int, bounce: int, cells: mi.UInt32):
+        """(omega, lookup point, normal, albedo, hit) of every (cell, ray) lane."""
+        geo, h, nr = self.geo, self.grid.h, self.secondary_rays
+        cell, i = self._lanes(cells, nr)
+        sampler = keyed_rng(cell * nr + i, self.seed, frame, STREAM_CRC + _SECONDARY + bounce)
+        d = mi.warp.square_to_uniform_sphere(mi.Point2f(sampler.next_float32(), sampler.next_float32()))
+        P = self._jittered(self.grid.center(cell), sampler)
+        # ----------------------- nearest visible surface point -----------------------
+        if self.visibility == "march":
+            hit, t = march(self.geometry, geo, P, d, geo.h, self.secondary_distance * h, sampler.next_float32(),
+                           mi.Bool(True), samples=self.secondary_march_samples)
+            X = P + dr.select(hit, t, 0.0) * d
+            n = -d
+            rho = mi.Color3f(self.albedo)
+        else:
+            si = self.scene.mi_scene.ray_intersect(mi.Ray3f(P, d))
+            hit = si.is_valid() & (si.wi.z > 0.0)
+            X = dr.select(hit, si.p, P)
+            n = front_normal(si)
+            rho = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, hit))
+        return d, mi.Point3f(X + n * (0.5 * h)), n, dr.select(hit, rho, 0.0), hit
 
-        acc = self._integrate(frame, cells, _FIRST_BOUNCE, self.samples, sample)
-        inv = 1.0 / float(self.samples)
-        return [a * inv for a in acc]
+    def _secondary_sum(self, n_cells: int, samples, vin: mi.Float) -> list:
+        """Bounce i from the lanes of :meth:`_secondary_samples` and the
+        previous bounce's volume ``vin`` (lookup, irradiance, projection)."""
+        enc, nr = self.enc, self.secondary_rays
+        d_all, q_all, n_all, rho_all, hit_all = samples
+        base = dr.arange(mi.UInt32, n_cells) * nr
+        n = dr.opaque(mi.UInt32, nr)
 
-    def _secondary_bounce(self, frame: int, bounce: int, cells: mi.UInt32, vin: mi.Float) -> list:
-        geo, h = self.geo, self.grid.h
-        tmax = self.secondary_distance * h
-        sc = self.scene.mi_scene
+        def cond(i, acc):
+            return i < n
 
-        # ------------- one direction from a jittered cache point -------------
-        def sample(Pc, sampler):
-            d = mi.warp.square_to_uniform_sphere(mi.Point2f(sampler.next_float32(), sampler.next_float32()))
-            P = self._jittered(Pc, sampler)
-            # ------------------- nearest visible surface point -------------------
-            if self.visibility == "march":
-                hit, t = march(self.geometry, geo, P, d, geo.h, tmax, sampler.next_float32(), mi.Bool(True),
-                               samples=self.march_samples)
-                X = P + dr.select(hit, t, 0.0) * d
-                n = -d
-                rho = mi.Color3f(self.albedo)
-            else:
-                si = sc.ray_intersect(mi.Ray3f(P, d))
-                hit = si.is_valid() & (si.wi.z > 0.0)
-                X = dr.select(hit, si.p, P)
-                n = front_normal(si)
-                rho = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, hit))
-            # ------------- reflected radiance of the previous bounce -------------
-            coeffs = self._lookup(vin, X + n * (0.5 * h), hit)
-            E = irradiance(self.enc, coeffs, n, clamp=True, chroma=self.chroma)
-            return d, dr.select(hit, rho * mi.Color3f(*E) * (1.0 / math.pi), 0.0)
+        def body(i, acc):
+            k = base + i
+            hit = dr.gather(mi.Bool, hit_all, k)
+            d = dr.gather(mi.Vector3f, d_all, k)
+            nrm = dr.gather(mi.Vector3f, n_all, k)
+            rho = dr.gather(mi.Color3f, rho_all, k, hit)
+            coeffs = self._lookup(vin, dr.gather(mi.Point3f, q_all, k, hit), hit)
+            E = irradiance(enc, coeffs, nrm, clamp=True, chroma=self.chroma)
+            L = dr.select(hit, rho * mi.Color3f(*E) * (1.0 / math.pi), 0.0)
+            return i + 1, [a + b for a, b in zip(acc, project(enc, d, L))]
 
-        acc = self._integrate(frame, cells, _SECONDARY + bounce, self.secondary_rays, sample)
-        w = 4.0 * math.pi / float(self.secondary_rays)
+        acc0 = [mi.Float(0.0) for _ in range(enc.n)]
+        _, acc = dr.while_loop(state=(mi.UInt32(0), acc0), cond=cond, body=body, labels=("i", "acc"))
+        w = 4.0 * math.pi / float(nr)
         return [a * w for a in acc]
 
     def _blend(self, cells: mi.UInt32, coeffs: list) -> None:
         n = self.grid.n_cells
         had = dr.gather(mi.UInt32, self.hist, cells) != 0
         a = dr.select(had, self.blend, 1.0)
-        for c in range(self.enc.n):
-            old = dr.gather(mi.Float, self.cache, cells + c * n)
+        # all reads before the first write: one kernel (the target is copied once) instead of one per coefficient
+        olds = [dr.gather(mi.Float, self.cache, cells + c * n) for c in range(self.enc.n)]
+        for c, old in enumerate(olds):
             dr.scatter(self.cache, dr.fma(a, coeffs[c] - old, old), cells + c * n)
         hist = dr.zeros(mi.UInt32, n)
         dr.scatter(hist, mi.UInt32(1), cells)
@@ -287,25 +392,35 @@ class CRCCache(Method):
             cells = self._occupancy(gbuffers)
             st.outputs(cells)
         self.active = cells
-        self.n_active = dr.width(cells)
+        self.n_active = nc = dr.width(cells)
         with timer.stage("lights") as st:
-            X, N, phi = self._lights(frame)
+            X, N, phi, n_e = self._lights(frame)
             st.outputs(X, N, phi)
-        with timer.stage("bounce1") as st:
-            coeffs = self._first_bounce(frame, cells, X, N, phi)
+        with timer.stage("bounce1_march") as st:
+            omega, L = self._first_bounce_samples(frame, cells, X, N, phi, n_e)
+            st.outputs(omega, L)
+        with timer.stage("bounce1_project") as st:
+            coeffs = self._sum(omega, L, nc, self.samples, float(n_e) / float(self.samples))
             st.outputs(*coeffs)
+        del omega, L
         self._volumes = 2
         if self.bounces > 1:
-            with timer.stage("bounce2+") as st:
-                total = list(coeffs)
+            total = list(coeffs)
+            with timer.stage("bounce2_project") as st:
                 inc = self._store(coeffs, cells)
-                for b in range(2, self.bounces + 1):
-                    new = self._secondary_bounce(frame, b, cells, inc)
+                st.outputs(inc)
+            for b in range(2, self.bounces + 1):
+                with timer.stage("bounce2_march") as st:
+                    smp = self._secondary_samples(frame, b, cells)
+                    st.outputs(*smp)
+                with timer.stage("bounce2_project") as st:
+                    new = self._secondary_sum(nc, smp, inc)
                     total = [t + x for t, x in zip(total, new)]
                     if b < self.bounces:
                         inc = self._store(new, cells)
-                coeffs = total
-                st.outputs(*coeffs)
+                        st.outputs(inc)
+                    st.outputs(*total)
+            coeffs = total
             self._volumes = 4 if self.bounces > 2 else 3
         with timer.stage("blend") as st:
             self._blend(cells, coeffs)
@@ -330,6 +445,11 @@ class CRCCache(Method):
         return out
 
     # ---------------------------------------------------------------- figures
+    #: stages whose work scales with the coefficient count (where compression can save)
+    COEFFICIENT_STAGES = ("bounce1_project", "bounce2_project", "blend", "reconstruct")
+    #: stages independent of the encoding (marching, light injection, occupancy)
+    FIXED_STAGES = ("occupancy", "lights", "bounce1_march", "bounce2_march")
+
     def occupancy_ratio(self) -> float:
         return self.n_active / max(self.grid.n_cells, 1)
 
