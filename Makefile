@@ -20,8 +20,16 @@ llvm:
 
 install: llvm $(STAMP)
 
+# The first run: one viewer on the atrium, slc against 16 and 48 light samples per pixel.
+# 240x135 rather than the quick preset's 160x90: at 160x90 slc's fixed per-frame costs (Python
+# tracing, syncs) are a third of its frame and hide the trade-off (slc/rt48 time 0.57x there,
+# 0.34x at 240x135 in the same conditions); three methods keep it near a minute on 2 cores
+# (90 s of CPU on a first run with an empty kernel and ground-truth cache).
 run: install
-	$(BIN)/slc run single-viewer --quick --out out
+	@echo "make run: atrium 240x135, 24 frames (10 warm-up); slc (Surface Light Cones) vs rt16 / rt48"
+	@echo "(16 / 48 light samples + shadow rays per pixel); time = median direct-light ms per frame"
+	@echo "after warm-up; FLIP / PSNR / SSIM against 2048-sample ground truth on frames 15 and 23."
+	$(BIN)/slc run single-viewer --quick --res 240x135 --methods rt16 rt48 slc --sweep --out out
 
 test: install
 	$(BIN)/python -m pytest -q tests
