@@ -21,10 +21,11 @@ llvm:
 install: llvm $(STAMP)
 
 # The first run: one viewer on the atrium, slc against 16 and 48 light samples per pixel.
-# 240x135 rather than the quick preset's 160x90: at 160x90 slc's fixed per-frame costs (Python
-# tracing, syncs) are a third of its frame and hide the trade-off (slc/rt48 time 0.57x there,
-# 0.34x at 240x135 in the same conditions); three methods keep it near a minute on 2 cores
-# (90 s of CPU on a first run with an empty kernel and ground-truth cache).
+# 240x135 rather than the quick preset's 160x90: slc's per-frame host time (Python tracing,
+# syncs) does not grow with the pixels and weighs less there (first runs on an empty kernel
+# cache, same loaded machine: slc/rt48 time 0.57x at 160x90, 0.34x at 240x135; FLIP 1.25x and
+# 1.23x rt48's). Three methods keep it near a minute on 2 idle cores (90 s of CPU in all,
+# ground truth and kernel compilation included).
 run: install
 	@echo "make run: atrium 240x135, 24 frames (10 warm-up); slc (Surface Light Cones) vs rt16 / rt48"
 	@echo "(16 / 48 light samples + shadow rays per pixel); time = median direct-light ms per frame"
