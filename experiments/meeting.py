@@ -27,6 +27,7 @@ def add_arguments(p):
 def run(opts):
     from slc import experiment as ex
     from slc import views
+    from slc.timing import stage_table
 
     rows, names, specs, cfg, out, counts = ex.viewer_count_experiment(
         opts, NAME, QUICK, FULL, METHODS, "meeting", views.meeting, lambda name, cfg: f"{name}: meeting rig")
@@ -41,6 +42,8 @@ def run(opts):
             md += (f"- {name}, {n} viewers: slc is {ex.ratio(get['rt48']['time_ms'], get['slc']['time_ms']):.2f}x "
                    f"faster than rt48 (target >= 10x; paper up to 20x); FLIP slc {get['slc']['flip']:.4f} vs "
                    f"rt48 {get['rt48']['flip']:.4f}\n")
+    md += ("\n## Where the time goes (median ms per stage; kernel execution in brackets, the rest is host "
+           "time)\n\n" + stage_table(rows, ("scene", "label", "viewers")))
     return ex.finish(NAME, out, opts, cfg, names, specs, rows, md, {"viewers": counts})
 
 

@@ -40,6 +40,7 @@ def run(opts):
     from slc import experiment as ex
     from slc import views
     from slc.methods import parse_spec
+    from slc.timing import stage_table
 
     pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     counts, overlaps = opts.viewers or pr["viewers"], opts.overlaps or pr["overlaps"]
@@ -74,6 +75,8 @@ def run(opts):
               + ex.DEFAULT_COLUMNS[3:4] + [("startup_ms", "start-up t [ms]"),
                                            ("compiled_after_warmup", "kernels after warm-up")]
               + ex.DEFAULT_COLUMNS[4:]), "\n## Overlap reached\n", _reached(rows),
+          "\n## Where the time goes (median ms per stage; kernel execution in brackets, the rest is host time)\n",
+          stage_table(rows, ("scene", "label", "viewers", "overlap")),
           "\n## Targets (ratios measured in this run)\n"]
     for name in sorted({r["scene"] for r in rows}):
         for spec in specs:

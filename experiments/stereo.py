@@ -33,6 +33,7 @@ def add_arguments(p):
 def run(opts):
     from slc import experiment as ex
     from slc import views
+    from slc.timing import stage_table
 
     pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     def cases(s):
@@ -59,6 +60,8 @@ def run(opts):
                         " (paper: about 0.74x)" if p == 8 and spec == "slc" else "")
                     md += (f"- {name} {spec}: {p} stereo pairs ({2 * p} images) cost "
                            f"{ex.ratio(st['time_ms'], single['time_ms']):.2f}x of {pr['singles']} single viewers{tgt}\n")
+    md += ("\n## Where the time goes (median ms per stage; kernel execution in brackets, the rest is host "
+           "time)\n\n" + stage_table(rows, ("scene", "label", "rig", "viewers")))
     return ex.finish(NAME, out, opts, cfg, names, specs, rows, md, {"singles": pr["singles"], "pairs": pr["pairs"]})
 
 

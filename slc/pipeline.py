@@ -65,7 +65,8 @@ class RunResult:
     stages: dict
     metrics: dict
     memory_mb: float
-    frames_ms: list = field(default_factory=list)  # per frame: {stage: ms, "total": ms, "compiled": n}, warm-up included
+    frames_ms: list = field(default_factory=list)  # per frame: {stage: ms, "total": ms, "kernel": ms, "compiled": n}, warm-up included
+    stages_kernel: dict = field(default_factory=dict)  # median kernel execution ms per stage (the rest is host time)
     compiled_after_warmup: int = 0  # kernels compiled or loaded from disk in the timed frames (0 when steady)
     images: dict = field(default_factory=dict)  # viewer -> {"gt", "img", "flip_map", "exposure"}, last evaluated frame
     last: dict = field(default_factory=dict)    # viewer -> composed image of the last frame
@@ -78,6 +79,7 @@ class RunResult:
     def row(self) -> dict:
         r = {"method": self.method, "viewers": self.viewers, "time_ms": self.time_ms,
              "memory_mb": self.memory_mb, "stages_ms": self.stages,
+             "stages_kernel_ms": self.stages_kernel,
              "compiled_after_warmup": int(self.compiled_after_warmup),
              "frames_ms": [{k: round(v, 3) for k, v in f.items()} for f in self.frames_ms]}
         r.update(self.metrics)
@@ -154,13 +156,16 @@ def _run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress, kc: 
         if progress is not None:
             progress.update(1)
     summ = timer.summary(cfg.warmup)
+    ksumm = timer.kernel_summary(cfg.warmup)
     metrics = {k: _mean(v) for k, v in acc.items()}
     stats = {k: float(np.mean(v if k == "measured_overlap" else (v[cfg.warmup:] if len(v) > cfg.warmup else v)))
              for k, v in stats_acc.items()}
     return RunResult(method=method.name, viewers=len(viewers), time_ms=summ.get("total", 0.0),
                      stages={k: v for k, v in summ.items() if k != "total"}, metrics=metrics,
                      memory_mb=method.memory_bytes() / 2 ** 20,
-                     frames_ms=[dict(f, compiled=c) for f, c in zip(timer.frames, compiled)],
+                     stages_kernel={k: v for k, v in ksumm.items() if k != "total"},
+                     frames_ms=[dict(f, kernel=k.get("total", 0.0), compiled=c)
+                                for f, k, c in zip(timer.frames, timer.kernel_frames, compiled)],
                      compiled_after_warmup=sum(compiled[cfg.warmup:] if len(compiled) > cfg.warmup
                                                else compiled[-1:]),
                      images=images, last=last,

@@ -102,6 +102,47 @@ print("RESULT " + json.dumps(out))
     assert r["flag_after"] is False       # the flag's previous state is restored
 
 
+def test_stage_kernel_time_and_counter_share_the_history():
+    """Per-stage kernel time (kernel history) is reported next to the wall
+    time, is positive for a stage that launches kernels and at most its wall
+    time (plus clock noise), is empty while the history is off; reading the
+    history in the stages does not hide kernels from the KernelCounter."""
+    import drjit as dr
+    import mitsuba as mi
+
+    import slc  # noqa: F401  (sets the variant)
+    from slc.timing import KernelCounter, StageTimer
+
+    def frame(timer, f):
+        timer.begin_frame()
+        with timer.stage("a") as st:
+            x = dr.arange(mi.Float, 200_000)
+            for _ in range(30):
+                x = dr.sin(x) + 0.5
+            st.outputs(x)
+        with timer.stage("b") as st:
+            y = dr.arange(mi.UInt32, 1000) * 13 + (f + 5_000_017)    # a literal: built every frame
+            st.outputs(y)
+        timer.end_frame()
+
+    off = StageTimer()
+    frame(off, 0)
+    assert off.kernel_summary() == {}
+    t = StageTimer()
+    with KernelCounter() as kc:
+        counts = []
+        for f in range(3):
+            kc.take()
+            frame(t, f)
+            counts.append(kc.take())
+    assert counts[1:] == [1, 1]              # stage "b" builds one kernel per frame; "a" once
+    wall, kern = t.summary(), t.kernel_summary()
+    assert set(kern) == set(wall)
+    assert kern["a"] > 0.0 and kern["b"] >= 0.0
+    for k in ("a", "b"):
+        assert kern[k] <= wall[k] + 0.5, (k, kern, wall)
+
+
 def _table_consistent(pool):
     """Block table invariants: mapped blocks counted once, page counts equal
     the mapped entries of each page, directory and pages point at each other."""

@@ -26,10 +26,11 @@ BSDF samples of a Dirac lobe (mirrors) see ``\tilde L`` with weight 1.
 Purely Lambertian pixels whose cones clear the horizon use the exact cone
 integral ``(rho/pi) sum_c L_c (n . d_c)(1 + cos alpha_c)/2`` (no loop).
 
-Sample counts: ``n_samples`` (n_S) directions per live cone, split per pixel into
-``n_C`` cone directions and ``n_S - n_C`` BSDF directions by the lobe's width against
-the cones (``q = p_B(mirror) max_c Omega_c``; at most 3/4 BSDF), so a pixel with ``n``
-cones evaluates its BSDF ``n n_S`` times (+1 pdf), as the former fixed pattern did.
+Sample counts: ``n_samples`` (n_S) directions, fewer for rough lobes (``n_S' =
+ceil(n_S clip(q, 1/4, 1))``), split per pixel into ``n_C`` cone directions per live cone
+and ``n_B = n_S' - n_C`` BSDF directions per pixel by the lobe's width against the cones
+(``q = p_B(mirror) max_c Omega_c``; at most 3/4 BSDF), so a pixel with ``n`` cones
+evaluates its BSDF ``n n_C + n_B`` times (+1 pdf).
 Random numbers are hashes of (pixel index, ``key``): deterministic for a given frame,
 seed and tap. See docs/cones.md for the expectation.
 
@@ -48,6 +49,7 @@ from .packing import gather_words, unpack
 GOLDEN = 0.6180339887498949           # 1 / phi: azimuths of the spherical-Fibonacci pattern
 R3 = 1.2207440846057596               # plastic constant of the 3-D Roberts (R3) sequence
 B_MAX = 0.75                          # at most this share of the directions are BSDF samples
+ROUGH_MIN = 0.25                      # rough lobes keep at least this share of the n_S directions per cone
 ALPHA_DELTA = 1e-3                    # rad; narrower cones are Dirac cones (as in ConeParams.alpha_delta)
 
 
@@ -106,7 +108,6 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     delta = [live[i] & (A[i] < ALPHA_DELTA) for i in range(K)]
     area = [live[i] & ~delta[i] for i in range(K)]                        # cones with a density
     inv_om = [dr.select(area[i], dr.rcp(dr.maximum(2.0 * math.pi * h[i], 1e-30)), 0.0) for i in range(K)]
-    n_live = mi.Float(n)
 
     def density(w, own=None):
         """(sum over cones holding w of L_c/Omega_c, of 1/Omega_c); cone ``own`` holds w."""
@@ -147,6 +148,12 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     # narrower than the cones; at least a quarter stay cone samples (a glossy coat's diffuse
     # base, e.g. plastic, is cheaper by cone sampling). The allocation is fixed before any
     # sample is drawn, so the MIS estimator stays unbiased for any q.
+    #
+    # Rough lobes (q < 1: the lobe is wider than the widest cone, so f_r cos varies little
+    # inside a cone) need fewer directions: n_S' = ceil(n_S clip(q, 1/4, 1)) per cone
+    # (at least a quarter of n_S). The BSDF directions are drawn per pixel, not per cone:
+    # their density does not depend on the cones, and a lobe narrower than the cones sees
+    # a nearly constant L~ whatever the cone count (docs/cones.md, "Per-viewer cost").
     ns_f = mi.Float(n_total)
     if adaptive:
         om_max = mi.Float(zero)
@@ -154,12 +161,15 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
             om_max = dr.maximum(om_max, dr.select(area[i], 2.0 * math.pi * h[i], 0.0))
         r = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
         q = bsdf.pdf(ctx, si, r, sampled) * om_max
-        n_b = mi.UInt32(dr.round(ns_f * dr.minimum(q / (q + ns_f), B_MAX)))
+        n_dir = dr.maximum(mi.UInt32(dr.ceil(ns_f * dr.clip(q, ROUGH_MIN, 1.0))), 1)
+        nd_f = mi.Float(n_dir)
+        n_b = mi.UInt32(dr.round(nd_f * dr.minimum(q / (q + nd_f), B_MAX)))
     else:
+        n_dir = mi.UInt32(n_total)
         n_b = mi.UInt32(ns_f * 0.5)
-    n_b = dr.minimum(n_b, n_total - 1)                                    # n_C >= 1: Dirac cones need it
-    n_c = n_total - n_b
-    nc_f, nb_f = mi.Float(n_c), mi.Float(n_b) * n_live                    # samples per cone / per pixel
+    n_b = dr.minimum(n_b, n_dir - 1)                                      # n_C >= 1: Dirac cones need it
+    n_c = n_dir - n_b
+    nc_f, nb_f = mi.Float(n_c), mi.Float(n_b)                             # per cone / per pixel
     nc_rcp = dr.rcp(dr.maximum(nc_f, 1.0))
 
     # per-pixel rotations of the two patterns
@@ -191,9 +201,9 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     _, acc = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(zero)), cond=cone_cond, body=cone_body,
                            labels=("j", "acc"))
 
-    # ------------------- BSDF sampling: n_B directions per live cone -------------------
+    # ------------------- BSDF sampling: n_B directions per pixel -------------------
     def bsdf_cond(t, acc):
-        return (t < n_b * n) & sampled
+        return (t < n_b) & sampled
 
     def bsdf_body(t, acc):
         k = mi.Float(t)
@@ -212,9 +222,8 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
 
     _, acc = dr.while_loop(state=(mi.UInt32(0), acc), cond=bsdf_cond, body=bsdf_body, labels=("t", "acc"))
 
-    acc = dr.select(lambert, closed, acc)
-    ok = active & dr.isfinite(acc[0]) & dr.isfinite(acc[1]) & dr.isfinite(acc[2])
-    return dr.select(ok, acc, 0.0)
+    # raw values: a NaN or Inf made here reaches the image, where check mode names it
+    return dr.select(lambert, closed, acc)
 
 
 def shade_key(frame: int, seed: int, tap: int = 0) -> int:
