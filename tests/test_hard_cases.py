@@ -14,6 +14,13 @@ reference instead of finiteness alone:
 
 Plane pixels only (y = 0; the box top for ``inside`` is excluded with the
 light seen directly). Measured figures are in each test's docstring.
+
+The second part runs ``slc`` (default settings) on the hard cases of issue
+#12 that tests/test_cones.py does not cover: a point-like sphere light, a
+light behind the surface, grazing incidence, a half-occluded large light and
+a light that moves and stops (both in check mode here), more lights than
+``max_cones``, a light that switches off. The table of all cases and bounds:
+docs/hard-cases.md.
 """
 import numpy as np
 import pytest
@@ -226,16 +233,28 @@ def _quad_ref(sc, gb, rects, mask, n=64):
 def _report(name, img, ref, mask, bounds):
     assert mask.sum() > 600, (name, mask.sum())
     mean_err, pix_err = rel_errors(img, ref, mask)
+    mean_err = (img[mask].mean() / ref[mask].mean() - 1.0)
     print(f"slc hard case {name}: mean error {mean_err:+.4f}, per-pixel {pix_err:.4f} ({mask.sum()} px)")
+    mean_err = abs(mean_err)
     bm, bp = bounds
+    if name in SLC_MISSES and not (mean_err < bm and pix_err < bp):
+        pytest.xfail(SLC_MISSES[name])
     assert mean_err < bm and pix_err < bp, (name, mean_err, pix_err)
 
 
-# case: (bound on |mean / reference - 1|, bound on per-pixel mean abs error / mean), set at
-# about 1.5x the measured figures (in each test's docstring and docs/hard-cases.md)
-SLC_BOUNDS = {"point-like": (1e9, 1e9), "behind": (1e9, 1e9), "grazing-far": (1e9, 1e9),
-              "half-occluded": (1e9, 1e9), "many-lights": (1e9, 1e9),
-              "moving-stopped": (1e9, 1e9), "switched-off": (1e9, 1e9)}
+# case: (bound on |mean / reference - 1|, bound on per-pixel mean abs error / mean): about
+# 1.5x the measured figures, the mean bound at least 2%. Measured (48x32, default slc on the
+# on-surface cache, check mode; mean error, per-pixel error):
+#   point-like -0.5%, 14.2%   behind -1.0%, 9.9%   grazing-far +1.2%, 10.8%
+#   half-occluded -0.2%, 8.0%   many-lights -4.8%, 10.7%   moving-stopped +1.4%, 8.6%
+#   switched-off +133%, 133% (a known miss: xfail with the figure while it misses; the
+#   assertion runs, so a fix turns it into a pass)
+SLC_BOUNDS = {"point-like": (0.02, 0.21), "behind": (0.02, 0.15), "grazing-far": (0.02, 0.16),
+              "half-occluded": (0.02, 0.12), "many-lights": (0.07, 0.16),
+              "moving-stopped": (0.03, 0.13), "switched-off": (0.05, 0.15)}
+SLC_MISSES = {"switched-off": "a light switched off 20 frames ago: measured mean +133%, per-pixel 133% "
+                              "(+194% 2 frames after; rt16 follows at once): a cone whose light went dark "
+                              "only decays as a running mean, nothing detects the change"}
 
 
 def test_slc_point_like_sphere_light():
@@ -351,22 +370,33 @@ OFF_AT = 16
 def test_slc_light_switches_off():
     """Two lights; the brighter one switches off at frame 16 (radiance 0
     through mi.traverse, the emitter table re-read). The error against the
-    quadrature of the light that stays on: 2, 10 and 20 frames after."""
+    quadrature of the light that stays on, 20 frames after. First, rt16 on
+    the same switch is right 2 frames after it (the switch reaches the
+    methods). Measured (mean, per-pixel): slc before the switch +0.4%, 6.6%;
+    2 frames after +194%; 10 after +152%; 20 after +133% (a known miss);
+    rt16 2 frames after the switch: asserted within 3% in the mean."""
     import mitsuba as mi
 
     from slc import emitter_sampling
-    sc = _plane_scene("hard_switch", rects=SWITCH)
-    params = mi.traverse(sc.mi_scene)
-    key = [k for k in params.keys() if k.startswith("off") and k.endswith("radiance.value")]
-    assert len(key) == 1, list(params.keys())
 
-    def hook(f):
-        if f == OFF_AT:
-            params[key[0]] = mi.Color3f(0.0)
-            params.update()
-            emitter_sampling.for_scene(sc.mi_scene).rebuild()
+    def switching(spec, frames, at):
+        sc = _plane_scene("hard_switch", rects=SWITCH)
+        params = mi.traverse(sc.mi_scene)
+        key = [k for k in params.keys() if k.startswith("off") and k.endswith("radiance.value")]
+        assert len(key) == 1, list(params.keys())
 
-    res = _slc_frames(sc, OFF_AT + 21, at=(OFF_AT - 1, OFF_AT + 2, OFF_AT + 10), hook=hook)
+        def hook(f):
+            if f == OFF_AT:
+                params[key[0]] = mi.Color3f(0.0)
+                params.update()
+                emitter_sampling.for_scene(sc.mi_scene).rebuild()
+        return sc, _slc_frames(sc, frames, at=at, spec=spec, hook=hook)
+
+    sc, rt = switching("rt16", OFF_AT + 3, ())
+    gb, img = rt[OFF_AT + 2]
+    ref, mask = _quad_ref(sc, gb, SWITCH[:1], _plane_mask(gb), n=32)
+    assert rel_errors(img, ref, mask)[0] < 0.03, rel_errors(img, ref, mask)
+    sc, res = switching("slc", OFF_AT + 21, (OFF_AT - 1, OFF_AT + 2, OFF_AT + 10))
     errs = {}
     for f, (gb, img) in res.items():
         on = SWITCH if f < OFF_AT else SWITCH[:1]
