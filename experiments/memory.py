@@ -1,9 +1,10 @@
 """memory: method memory against the number of viewers (SLC paper, Fig. 14).
 
-Cache methods report allocated blocks x packed bytes per entry plus the
-block table ("allocated") and the entries requested per frame (mean over the
-timed frames) x packed bytes per entry ("active": the payload that the
-viewers actually use; the paper's blocks are about half filled); per-viewer
+Cache methods report allocated blocks x bytes per entry plus the block
+table ("allocated") and the entries requested per frame (mean over the
+timed frames) x bytes per entry ("active": the entries that the viewers
+actually use, without the unused texels of their blocks and the table; the
+paper's blocks are about half filled); per-viewer
 methods report their buffers (ReSTIR: reservoirs, bytes per pixel x pixels x
 viewers; RT-N: its output buffer), which every frame uses in full, so they
 have no separate active figure. Scene data, G-buffers and output images
@@ -71,8 +72,8 @@ def run(opts):
 
 def _run_cases(cases, cfg, desc, seed):
     """Like ``slc.experiment.run_cases``, and for cache methods ``active_mb``
-    = mean entries requested per timed frame x the cache's packed bytes per
-    entry (read from the method's cache after the run)."""
+    = mean entries requested per timed frame x bytes per entry
+    (:func:`entry_bytes_of`, read from the method after the run)."""
     from tqdm import tqdm
 
     from slc import methods
@@ -85,11 +86,26 @@ def _run_cases(cases, cfg, desc, seed):
             res = run_sequence(s, m, vs, cfg, progress=bar)
             row = {"scene": s.name, **res.row(), "setting": spec, "label": m.label or m.name,
                    "resolution": f"{cfg.width}x{cfg.height}", **extra}
-            entry_bytes = getattr(getattr(m, "cache", None), "entry_bytes", 0)
+            entry_bytes = entry_bytes_of(m)
             if entry_bytes and "entries_requested" in row:
                 row["active_mb"] = row["entries_requested"] * entry_bytes / 2 ** 20
             rows.append(row)
     return rows
+
+
+def entry_bytes_of(m) -> float:
+    """Bytes per cache entry of a cache method, from its own memory report:
+    (memory_bytes - the block table) / allocated entries, i.e. the payload
+    (packed cones / coefficients and the ray-policy state) plus the cache's
+    surface point and seen flag. 0 for methods without an on-surface cache
+    (their buffers are used in full every frame: no separate active figure)."""
+    cache = getattr(m, "cache", None)
+    if cache is None or not hasattr(cache, "entries_allocated") or not hasattr(cache, "pool"):
+        return 0.0
+    n = int(cache.entries_allocated())
+    if n == 0:
+        return 0.0
+    return (int(m.memory_bytes()) - int(cache.pool.table_bytes())) / n
 
 
 if __name__ == "__main__":

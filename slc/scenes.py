@@ -65,9 +65,14 @@ class Camera:
     fov: float = 60.0  # vertical field of view in degrees
 
     def basis(self):
-        """(forward, right, up) unit vectors."""
+        """(forward, right, up) unit vectors. A camera whose target is its
+        origin (or not finite) has no view direction: :class:`SceneError`."""
         f = np.asarray(self.target, float) - np.asarray(self.origin, float)
-        f /= max(np.linalg.norm(f), 1e-12)
+        n = np.linalg.norm(f)
+        if not (np.isfinite(n) and n > 1e-12 * max(1.0, float(np.max(np.abs(self.origin))))):
+            raise SceneError(f"degenerate camera: target {_fmt(self.target)} is its origin {_fmt(self.origin)} "
+                             "(no view direction)")
+        f /= n
         r = np.cross(f, self.up)
         if np.linalg.norm(r) < 1e-8:  # looking along up: pick any right vector
             r = np.cross(f, [1.0, 0.0, 0.0]) if abs(f[0]) < 0.9 else np.cross(f, [0.0, 0.0, 1.0])
@@ -83,6 +88,26 @@ class Camera:
         rot = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
         return Camera(np.array(self.origin, float), np.asarray(self.origin, float) + rot @ d,
                       np.array(self.up, float), self.fov)
+
+
+def _fmt(v) -> str:
+    return "(" + ", ".join(f"{float(x):g}" for x in np.ravel(v)) + ")"
+
+
+def check_camera(keys, fov: float, name: str = "path") -> None:
+    """Raise :class:`SceneError` (one line) for a camera that cannot render:
+    no keys, a field of view outside (0, 180) degrees, a non-finite key, or a
+    key whose target is its origin. (The up vector is fixed to +y; a view
+    along it gets another right vector in :meth:`Camera.basis`, not NaN.)"""
+    if not keys:
+        raise SceneError(f"degenerate camera '{name}': no keys")
+    if not (np.isfinite(fov) and 0.0 < float(fov) < 180.0):
+        raise SceneError(f"degenerate camera '{name}': field of view {fov} deg (expected 0 < fov < 180)")
+    for i, (o, t) in enumerate(keys):
+        if o.shape != (3,) or t.shape != (3,) or not (np.all(np.isfinite(o)) and np.all(np.isfinite(t))):
+            raise SceneError(f"degenerate camera '{name}': key {i} is not two finite 3D points")
+        if np.linalg.norm(t - o) <= 1e-12 * max(1.0, float(np.max(np.abs(o)))):
+            raise SceneError(f"degenerate camera '{name}': key {i} looks at its own origin {_fmt(o)}")
 
 
 def _catmull_rom(p0, p1, p2, p3, t):
@@ -123,6 +148,7 @@ class CameraPath:
 
     def __post_init__(self):
         self._k = [(np.asarray(o, float), np.asarray(t, float)) for o, t in self.keys]
+        check_camera(self._k, self.fov, self.name)
         self._legacy = self.frames is not None
         self._table = None
         if not self._legacy:
@@ -241,6 +267,8 @@ class Scene:
                  unit: float = 1.0, description: str = "", meeting_center=None):
         self.name = name
         self.mi_scene = mi_scene
+        if len(mi_scene.shapes()) == 0:
+            raise SceneError(f"scene '{name}' has no shapes (only emitters): nothing to shade")
         self.camera_paths = [p if p._legacy or p.unit == unit else
                              CameraPath(p.keys, fov=p.fov, name=p.name, speed=p.speed,
                                         turn_rate=p.turn_rate, unit=unit) for p in camera_paths]
@@ -585,7 +613,7 @@ def load_xml(path: Path, exposure: float = 1.0, unit: float = 1.0) -> Scene:
             raise SceneError(f"degenerate camera in scene {path}: {last.split(': ', 1)[-1]}") from None
         raise SceneError(f"cannot parse scene {path}: {last}") from None
     check_emitters(sc, path.name)
-    if len(sc.shapes()) == 0:
+    if len(sc.shapes()) == 0:   # (Scene checks it too; here before the sensor is read)
         raise SceneError(f"scene '{path.name}' has no shapes (only emitters): nothing to shade")
     paths = []
     bb = sc.bbox()

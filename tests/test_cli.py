@@ -26,6 +26,38 @@ INF_LIGHT_XML = """<scene version="3.0.0">
   <shape type="sphere"><point name="center" x="0" y="0" z="2"/><float name="radius" value="0.2"/>
     <emitter type="area"><rgb name="radiance" value="inf"/></emitter></shape>
 </scene>"""
+EMITTERS_ONLY_XML = """<scene version="3.0.0">
+  <emitter type="point"><point name="position" x="0" y="2" z="0"/><rgb name="intensity" value="10"/></emitter>
+  <emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>
+</scene>"""
+
+
+def _camera_xml(lookat, fov=45):
+    return f"""<scene version="3.0.0">
+  <sensor type="perspective"><float name="fov" value="{fov}"/><transform name="to_world">{lookat}</transform></sensor>
+  <shape type="rectangle"><bsdf type="diffuse"/></shape>
+  <shape type="sphere"><point name="center" x="0" y="0" z="2"/><float name="radius" value="0.2"/>
+    <emitter type="area"><rgb name="radiance" value="20"/></emitter></shape>
+</scene>"""
+
+
+CAMERA_SAME_XML = _camera_xml('<lookat origin="0,1,3" target="0,1,3" up="0,1,0"/>')       # target == origin
+CAMERA_UP_XML = _camera_xml('<lookat origin="0,3,0" target="0,0,0" up="0,1,0"/>')         # up along the view
+CAMERA_FOV_XML = _camera_xml('<lookat origin="0,1,3" target="0,0,0" up="0,1,0"/>', fov=0)  # zero field of view
+
+
+def _py_scene(paths, shapes=True):
+    return ("from slc.scenes import CameraPath, SceneBuilder, diffuse\n"
+            "def build(**options):\n"
+            "    b = SceneBuilder('py_bad')\n"
+            + ("    b.add_quad([0, 0, 0], [1, 0, 0], [0, 0, -1], bsdf=diffuse([0.7] * 3), name='floor')\n" if shapes else "")
+            + "    b.add_point_light([0, 2, 0], [10, 10, 10])\n"
+            f"    return b.build([{paths}])\n")
+
+
+PY_NO_SHAPES = _py_scene("CameraPath([([0, 1, 3], [0, 1, 0]), ([1, 1, 3], [0, 1, 0])], fov=45)", shapes=False)
+PY_CAMERA_SAME = _py_scene("CameraPath([([0, 1, 3], [0, 1, 3]), ([1, 1, 3], [0, 1, 0])], fov=45)")
+PY_CAMERA_FOV = _py_scene("CameraPath([([0, 1, 3], [0, 1, 0]), ([1, 1, 3], [0, 1, 0])], fov=0)")
 GOOD_XML = """<scene version="3.0.0">
   <shape type="rectangle"><bsdf type="diffuse"/></shape>
   <shape type="sphere"><point name="center" x="0" y="0" z="2"/><float name="radius" value="0.2"/>
@@ -38,8 +70,14 @@ def xmls(tmp_path):
     paths = {}
     for name, text in [("none", NO_EMITTER_XML), ("unsupported", UNSUPPORTED_XML), ("good", GOOD_XML), ("inf", INF_LIGHT_XML),
                        ("broken", "<scene version='3.0.0'><shape type='nonexistent_plugin'/></scene>"),
-                       ("garbage", "this is < not xml")]:
+                       ("garbage", "this is < not xml"), ("emitters_only", EMITTERS_ONLY_XML),
+                       ("camera_same", CAMERA_SAME_XML), ("camera_up", CAMERA_UP_XML), ("camera_fov", CAMERA_FOV_XML)]:
         p = tmp_path / f"{name}.xml"
+        p.write_text(text)
+        paths[name] = p
+    for name, text in [("py_no_shapes", PY_NO_SHAPES), ("py_camera_same", PY_CAMERA_SAME),
+                       ("py_camera_fov", PY_CAMERA_FOV)]:
+        p = tmp_path / f"{name}.py"
         p.write_text(text)
         paths[name] = p
     return paths
@@ -56,7 +94,11 @@ def _one_line_error(r, *words):
 
 @pytest.mark.parametrize("case,words", [
     ("missing", ["not found"]), ("none", ["no emitters"]), ("unsupported", ["projector", "not supported"]),
-    ("broken", ["cannot parse"]), ("garbage", ["cannot parse"])])
+    ("broken", ["cannot parse"]), ("garbage", ["cannot parse"]),
+    ("emitters_only", ["no shapes"]), ("py_no_shapes", ["no shapes"]),
+    ("camera_same", ["degenerate camera"]), ("camera_up", ["degenerate camera"]),
+    ("camera_fov", ["degenerate camera", "field of view"]),
+    ("py_camera_same", ["degenerate camera", "own origin"]), ("py_camera_fov", ["degenerate camera", "field of view"])])
 def test_bad_scene_files(xmls, tmp_path, case, words):
     path = tmp_path / "missing.xml" if case == "missing" else xmls[case]
     out = tmp_path / "out"

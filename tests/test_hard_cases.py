@@ -14,6 +14,13 @@ reference instead of finiteness alone:
 
 Plane pixels only (y = 0; the box top for ``inside`` is excluded with the
 light seen directly). Measured figures are in each test's docstring.
+
+The second part runs ``slc`` (default settings) on the hard cases of issue
+#12 that tests/test_cones.py does not cover: a point-like sphere light, a
+light behind the surface, grazing incidence, a half-occluded large light and
+a light that moves and stops (both in check mode here), more lights than
+``max_cones``, a light that switches off. The table of all cases and bounds:
+docs/hard-cases.md.
 """
 import numpy as np
 import pytest
@@ -155,3 +162,247 @@ def test_restir_hard_cases(kind):
     print(f"restir {kind}: mean error {mean_err:.4f}, per-pixel {pix_err:.4f}")
     bm, bp = RESTIR_BOUNDS[kind]
     assert mean_err < bm and pix_err < bp, (kind, mean_err, pix_err)
+
+
+# =============================================================================
+# Surface Light Cones (slc, default settings on the on-surface cache): the hard
+# cases of issue #12 that tests/test_cones.py does not cover, in check mode,
+# raw outputs against an independent reference on the plane's pixels. The full
+# table (these and the ones in test_cones.py) is docs/hard-cases.md.
+# =============================================================================
+
+SLC_FRAMES = 16       # 8 new-entry updates + 8 settled ones at a still camera
+
+
+def _plane_scene(name, rects=(), spheres=(), blocker=None, light_transform=None):
+    """A diffuse plane (albedo 0.5, 4 m x 4 m at y = 0, facing up) with
+    rectangular lights ``(name, centre, u, v, radiance)`` (facing cross(u, v)),
+    emissive spheres ``(centre, radius, radiance)`` and an optional blocker
+    quad; the still camera of :func:`helpers.hard_scene`."""
+    from slc.scenes import CameraPath, SceneBuilder, diffuse
+    b = SceneBuilder(name)
+    b.add_quad([0, 0, 0], [2, 0, 0], [0, 0, -2], bsdf=diffuse([0.5] * 3), name="plane")
+    for k, c, u, v, L in rects:
+        b.add_quad(c, u, v, bsdf=diffuse([0, 0, 0]), emission=[L] * 3, name=k,
+                   transform=light_transform if k == "moving" else None)
+    for c, r, L in spheres:
+        b.add_sphere(c, r, subdivisions=3, bsdf=diffuse([0, 0, 0]), emission=[L] * 3, name="sphere")
+    if blocker is not None:
+        b.add_quad(*blocker, bsdf=diffuse([0.2] * 3), name="blocker")
+    cam = CameraPath([([0.0, 0.8, 1.2], [0.0, 0.0, 0.0])], frames=8, fov=70)
+    return b.build([cam])
+
+
+def _slc_frames(sc, frames, at=(), spec="slc", hook=None, **kw):
+    """Run ``spec`` on ``sc`` for ``frames`` frames at the still camera in check
+    mode; return ({frame: (G-buffer, image N x 3)} for frames in ``at`` (and the
+    last)). ``hook(frame)`` runs before each frame (e.g. switching a light)."""
+    m = methods.create(spec, sc, **kw)
+    viewers = views.single(sc)
+    timer = StageTimer()
+    out = {}
+    for f in range(frames):
+        if hook is not None:
+            hook(f)
+        gb = gbuffers_for(sc, viewers, f, W, H)[0]
+        timer.begin_frame()
+        with check.scope(spec, f, [gb]):
+            d = m.render(FrameContext(f), [gb], timer)
+            check.images(d, [gb])
+        timer.end_frame()
+        if f in at or f == frames - 1:
+            out[f] = (gb, np.array(d[0], np.float64).T)
+    return out
+
+
+def _plane_mask(gb):
+    p = np.array(gb.si.p).T
+    return np.array(gb.valid) & (np.abs(p[:, 1]) < 1e-4)
+
+
+def _quad_ref(sc, gb, rects, mask, n=64):
+    """Quadrature reference (helpers.quadrature_direct) and the mask narrowed
+    to pixels where 64 x 64 and 32 x 32 points agree within 0.1%."""
+    rs = [(c, u, v, L) for _, c, u, v, L in rects]
+    ref = quadrature_direct(sc, gb, rs, [], n=n)
+    coarse = quadrature_direct(sc, gb, rs, [], n=n // 2)
+    mask = mask & (np.abs(ref - coarse).max(axis=1) <= 1e-3 * np.maximum(ref.max(axis=1), 1e-12))
+    return ref, mask
+
+
+def _report(name, img, ref, mask, bounds):
+    assert mask.sum() > 600, (name, mask.sum())
+    mean_err, pix_err = rel_errors(img, ref, mask)
+    mean_err = (img[mask].mean() / ref[mask].mean() - 1.0)
+    print(f"slc hard case {name}: mean error {mean_err:+.4f}, per-pixel {pix_err:.4f} ({mask.sum()} px)")
+    mean_err = abs(mean_err)
+    bm, bp = bounds
+    if name in SLC_MISSES and not (mean_err < bm and pix_err < bp):
+        pytest.xfail(SLC_MISSES[name])
+    assert mean_err < bm and pix_err < bp, (name, mean_err, pix_err)
+
+
+# case: (bound on |mean / reference - 1|, bound on per-pixel mean abs error / mean): about
+# 1.5x the measured figures, the mean bound at least 2%. Measured (48x32, default slc on the
+# on-surface cache, check mode; mean error, per-pixel error):
+#   point-like -0.5%, 14.2%   behind -1.0%, 9.9%   grazing-far +1.2%, 10.8%
+#   half-occluded -0.2%, 8.0%   many-lights -4.8%, 10.7%   moving-stopped +1.4%, 8.6%
+#   switched-off +133%, 133% (a known miss: xfail with the figure while it misses; the
+#   assertion runs, so a fix turns it into a pass)
+SLC_BOUNDS = {"point-like": (0.02, 0.21), "behind": (0.02, 0.15), "grazing-far": (0.02, 0.16),
+              "half-occluded": (0.02, 0.12), "many-lights": (0.07, 0.16),
+              "moving-stopped": (0.03, 0.13), "switched-off": (0.05, 0.15)}
+SLC_MISSES = {"switched-off": "a light switched off 20 frames ago: measured mean +133%, per-pixel 133% "
+                              "(+194% 2 frames after; rt16 follows at once): a cone whose light went dark "
+                              "only decays as a running mean, nothing detects the change"}
+
+
+def test_slc_point_like_sphere_light():
+    """An emissive sphere of radius 4 mm (1e-3 of the 4 m scene) 0.7 m above
+    the plane: a cone of about 0.3 degrees. Reference: the closed form of a
+    sphere above the horizon, E = L A_proj cos / d^2, with A_proj the
+    icosphere's mean projected area (Cauchy: surface area / 4; it varies with
+    direction by under 1%)."""
+    import trimesh
+    c, r, L = np.array([0.2, 0.7, 0.1]), 0.004, 2.0e4
+    sc = _plane_scene("hard_pointlike", spheres=[(c, r, L)])
+    (gb, img), = _slc_frames(sc, SLC_FRAMES).values()
+    mask = _plane_mask(gb)
+    p = np.array(gb.si.p, np.float64).T
+    d = c - p
+    d2 = np.sum(d * d, axis=1)
+    A = trimesh.creation.icosphere(subdivisions=3, radius=r).area / 4.0
+    E = L * A * np.maximum(d[:, 1], 0.0) / np.sqrt(d2) / d2
+    ref = np.repeat((0.5 / np.pi * E)[:, None], 3, axis=1)
+    _report("point-like", img, ref, mask, SLC_BOUNDS["point-like"])
+
+
+BEHIND = [("front", [0, 1.0, 0], [0.2, 0, 0], [0, 0, 0.2], 10.0),
+          ("behind", [3.0, -0.7, 0], [0, 0, 0.5], [0, 0.3, 0], 50.0)]   # below the horizon, facing -x
+
+
+def test_slc_light_behind_the_surface():
+    """A bright light below the plane's horizon (beyond its edge, so no shadow
+    ray is blocked: only the cosine keeps it out) next to a small light in
+    front: the plane must get the front light alone (quadrature of it; the
+    behind light adds exactly 0 to the reference by the BSDF's cosine)."""
+    sc = _plane_scene("hard_behind", rects=BEHIND)
+    (gb, img), = _slc_frames(sc, SLC_FRAMES).values()
+    ref, mask = _quad_ref(sc, gb, BEHIND[:1], _plane_mask(gb))
+    full = quadrature_direct(sc, gb, [(c, u, v, L) for _, c, u, v, L in BEHIND], [], n=32)
+    assert np.allclose(full, quadrature_direct(sc, gb, [(c, u, v, L) for _, c, u, v, L in BEHIND[:1]], [], n=32))
+    _report("behind", img, ref, mask, SLC_BOUNDS["behind"])
+
+
+GRAZING_FAR = [("light", [0, 0.25, -3.0], [1.0, 0, 0], [0, 0.1, 0], 40.0)]   # 3-7 degrees above the horizon
+
+
+def test_slc_grazing_incidence():
+    """A light 3 m away, 3 to 7 degrees above the horizon, facing the plane
+    (not touching it: the touching one is test_cones.py's ``grazing``):
+    every plane point sees it at grazing incidence (cos 0.05-0.12)."""
+    sc = _plane_scene("hard_grazing_far", rects=GRAZING_FAR)
+    (gb, img), = _slc_frames(sc, SLC_FRAMES).values()
+    ref, mask = _quad_ref(sc, gb, GRAZING_FAR, _plane_mask(gb))
+    _report("grazing-far", img, ref, mask, SLC_BOUNDS["grazing-far"])
+
+
+HALF = [("light", [0, 1.0, 0], [0.5, 0, 0], [0, 0, 0.5], 8.0)]
+
+
+def test_slc_half_occluded_large_light_check_mode():
+    """test_cones.py's half-occluded large light (1 m x 1 m at 1 m, a thin
+    blocker at 0.5 m over the half x < 0), in check mode on the default slc,
+    against the quadrature with exact visibility."""
+    sc = _plane_scene("hard_half", rects=HALF, blocker=([-0.4, 0.5, 0], [0.4, 0, 0], [0, 0, -0.6]))
+    (gb, img), = _slc_frames(sc, 24).values()
+    ref, mask = _quad_ref(sc, gb, HALF, _plane_mask(gb))
+    _report("half-occluded", img, ref, mask, SLC_BOUNDS["half-occluded"])
+
+
+MANY = [(f"l{i}", [1.2 * np.cos(a), 0.9 + 0.2 * (i % 2), 1.2 * np.sin(a) - 0.3],
+         [0.08, 0, 0], [0, 0, 0.08], 60.0) for i, a in enumerate(np.linspace(0, 2 * np.pi, 8, endpoint=False))]
+
+
+def test_slc_more_lights_than_max_cones():
+    """Eight small lights on a ring around the plane's centre, all visible
+    from every plane point, with max_cones = 3: cones must merge (case D) and
+    still carry every light's energy."""
+    sc = _plane_scene("hard_many", rects=MANY)
+    (gb, img), = _slc_frames(sc, SLC_FRAMES, max_cones=3).values()
+    ref, mask = _quad_ref(sc, gb, MANY, _plane_mask(gb), n=32)
+    _report("many-lights", img, ref, mask, SLC_BOUNDS["many-lights"])
+
+
+STOP = 12
+
+
+def _moving(t):
+    from slc.scenes import translate
+    return translate([0.04 * min(t * 60.0, STOP), 0.0, 0.0])
+
+
+def test_slc_light_moves_then_stops():
+    """A 0.2 m light at 1 m moves 4 cm per frame for 12 frames, then stops
+    (test_cones.py's moving light, here in check mode on the default slc):
+    the error 20 frames after the stop, against the quadrature of the light
+    at its final place."""
+    rect = [("moving", [0, 1.0, 0], [0.1, 0, 0], [0, 0, 0.1], 20.0)]
+    sc = _plane_scene("hard_moving", rects=rect, light_transform=_moving)
+    res = _slc_frames(sc, STOP + 21, at=(STOP, STOP + 10))
+    final = [(k, np.array(c) + [0.04 * STOP, 0, 0], u, v, L) for k, c, u, v, L in rect]
+    errs = {}
+    for f, (gb, img) in res.items():
+        ref, mask = _quad_ref(sc, gb, final, _plane_mask(gb), n=32)
+        errs[f] = rel_errors(img, ref, mask)
+    print("moving light, (mean, per-pixel) error by frame:", errs)
+    assert errs[STOP][1] > errs[STOP + 10][1] > errs[STOP + 20][1] or errs[STOP + 20][1] < 0.05, errs
+    gb, img = res[STOP + 20]
+    ref, mask = _quad_ref(sc, gb, final, _plane_mask(gb), n=32)
+    _report("moving-stopped", img, ref, mask, SLC_BOUNDS["moving-stopped"])
+
+
+SWITCH = [("stays", [-0.3, 1.0, 0], [0.1, 0, 0], [0, 0, 0.1], 20.0),
+          ("off", [0.4, 0.8, 0], [0.1, 0, 0], [0, 0, 0.1], 40.0)]
+OFF_AT = 16
+
+
+def test_slc_light_switches_off():
+    """Two lights; the brighter one switches off at frame 16 (radiance 0
+    through mi.traverse, the emitter table re-read). The error against the
+    quadrature of the light that stays on, 20 frames after. First, rt16 on
+    the same switch is right 2 frames after it (the switch reaches the
+    methods). Measured (mean, per-pixel): slc before the switch +0.4%, 6.6%;
+    2 frames after +194%; 10 after +152%; 20 after +133% (a known miss);
+    rt16 2 frames after the switch: asserted within 3% in the mean."""
+    import mitsuba as mi
+
+    from slc import emitter_sampling
+
+    def switching(spec, frames, at):
+        sc = _plane_scene("hard_switch", rects=SWITCH)
+        params = mi.traverse(sc.mi_scene)
+        key = [k for k in params.keys() if k.startswith("off") and k.endswith("radiance.value")]
+        assert len(key) == 1, list(params.keys())
+
+        def hook(f):
+            if f == OFF_AT:
+                params[key[0]] = mi.Color3f(0.0)
+                params.update()
+                emitter_sampling.for_scene(sc.mi_scene).rebuild()
+        return sc, _slc_frames(sc, frames, at=at, spec=spec, hook=hook)
+
+    sc, rt = switching("rt16", OFF_AT + 3, ())
+    gb, img = rt[OFF_AT + 2]
+    ref, mask = _quad_ref(sc, gb, SWITCH[:1], _plane_mask(gb), n=32)
+    assert rel_errors(img, ref, mask)[0] < 0.03, rel_errors(img, ref, mask)
+    sc, res = switching("slc", OFF_AT + 21, (OFF_AT - 1, OFF_AT + 2, OFF_AT + 10))
+    errs = {}
+    for f, (gb, img) in res.items():
+        on = SWITCH if f < OFF_AT else SWITCH[:1]
+        ref, mask = _quad_ref(sc, gb, on, _plane_mask(gb), n=32)
+        errs[f] = rel_errors(img, ref, mask)
+    print("switched-off light, (mean, per-pixel) error by frame:", errs)
+    gb, img = res[OFF_AT + 20]
+    ref, mask = _quad_ref(sc, gb, SWITCH[:1], _plane_mask(gb), n=32)
+    _report("switched-off", img, ref, mask, SLC_BOUNDS["switched-off"])

@@ -45,14 +45,40 @@ def test_controlled_rig_never_wraps(atrium):
         assert gaps.min() >= hfov - 1e-6, (n, gaps.min(), hfov)
 
 
-def test_random_rig_overlap_start_and_average(atrium):
-    """16 random viewers: about 50% overlap at the start (band 40-65%) and
-    about 20% on average over the first 4 s (band 10-35%; measured 30%)."""
-    rig = views.random_viewers(atrium, 16)
+@pytest.mark.parametrize("seed", [0, 1])
+def test_random_rig_overlap_start_and_average(atrium, seed):
+    """16 random viewers, the paper's regime: about 50% overlap at the start
+    (band 40-60%) and about 20% on average over the first 4 s (band
+    15-25%), measured every 0.5 s at 64x36 (measured: seed 0 48% and 20%,
+    seed 1 43% and 22%; the rig before the fix: 52% and 30%)."""
+    rig = views.random_viewers(atrium, 16, seed=seed)
     m = [views.measure_overlap(gbuffers_for(atrium, rig, f, 64, 36)) for f in range(0, 241, 30)]
-    assert 40.0 <= m[0] <= 65.0, m
-    assert 10.0 <= np.mean(m) <= 35.0, m
-    assert np.mean(m[2:]) < m[0] - 15.0, "the viewers do not drift apart"
+    assert 40.0 <= m[0] <= 60.0, m
+    assert 15.0 <= np.mean(m) <= 25.0, m
+    assert np.mean(m[2:]) < m[0] - 20.0, "the viewers do not drift apart"
+
+
+def test_random_rig_keeps_clear_of_surfaces(atrium):
+    """No viewer starts inside a closed mesh or within 0.3 m of a surface,
+    and no step of a walk passes through a surface (checked on the keys
+    with the rig's own ray query, and on the poses between keys by a
+    G-buffer with no hit nearer than 0.1 m)."""
+    rig = views.random_viewers(atrium, 16)
+    for v in rig:
+        keys = v.pose.__self__._k
+        o = np.array([k[0] for k in keys])
+        assert views._clear(atrium, o[:-1], o[1:], 0.0).all(), v.name
+        assert views._clear(atrium, o[:1], o[:1] + [0.0, 1e-3, 0.0], 0.3).all(), v.name
+    for f in (0, 45, 150, 239):
+        for v, gb in zip(rig, gbuffers_for(atrium, rig, f, 32, 18)):
+            valid = np.array(gb.valid, bool)
+            p = np.array(gb.si.p, np.float64).reshape(3, -1).T[valid]
+            n = np.array(gb.si.n, np.float64).reshape(3, -1).T[valid]
+            d = p - np.asarray(v.camera(f).origin)
+            dist = np.linalg.norm(d, axis=1)
+            back = np.sum(n * d, axis=1) > 0
+            assert back.mean() < 0.05, (v.name, f, back.mean())     # not inside a closed mesh
+            assert dist.min() > 0.1, (v.name, f, dist.min())
 
 
 def test_random_rig_paths_are_uncorrelated_and_deterministic(atrium):

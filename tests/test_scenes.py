@@ -160,3 +160,36 @@ def test_rigs():
         assert np.dot(f, to_c / np.linalg.norm(to_c)) > 0.999
     ind = views.independent(s, 5)
     assert len({tuple(np.round(v.camera(10).origin, 6)) for v in ind}) == 5
+
+
+# ----------------------------------------------------------------------------- bad input: degenerate cameras
+
+def test_degenerate_cameras_raise_one_line_scene_errors():
+    """target == origin used to give NaN in Camera.basis (and an image of
+    NaN rays); a zero or >= 180 degree field of view rendered garbage. Each
+    is a SceneError with one line naming the problem; a view straight along
+    the up axis (a legitimate pose of a path) gets a finite orthonormal basis."""
+    from slc.scenes import Camera, CameraPath, SceneError
+    with pytest.raises(SceneError, match="degenerate camera.*no view direction") as e:
+        Camera(np.array([0.0, 1.0, 3.0]), np.array([0.0, 1.0, 3.0])).basis()
+    assert "\n" not in str(e.value)
+    with pytest.raises(SceneError, match="key 1 looks at its own origin"):
+        CameraPath([([0, 1, 3], [0, 0, 0]), ([1, 1, 1], [1, 1, 1])], fov=45)
+    for fov in (0.0, -10.0, 180.0, float("nan")):
+        with pytest.raises(SceneError, match="field of view"):
+            CameraPath([([0, 1, 3], [0, 0, 0])], fov=fov)
+    with pytest.raises(SceneError, match="not two finite 3D points"):
+        CameraPath([([0, float("inf"), 3], [0, 0, 0])], fov=45)
+    f, r, u = Camera(np.array([0.0, 3.0, 0.0]), np.array([0.0, 0.0, 0.0])).basis()   # looking straight down
+    B = np.stack([f, r, u])
+    assert np.all(np.isfinite(B)) and np.allclose(B @ B.T, np.eye(3), atol=1e-12)
+
+
+def test_scene_without_shapes_raises():
+    """A scene with emitters only has nothing to shade: one-line SceneError
+    from the Scene itself (XML and .py scenes alike)."""
+    from slc.scenes import CameraPath, SceneBuilder, SceneError
+    b = SceneBuilder("emitters_only")
+    b.add_point_light([0, 2, 0], [10.0] * 3)
+    with pytest.raises(SceneError, match="no shapes"):
+        b.build([CameraPath([([0, 1, 3], [0, 0, 0])], fov=45)])
