@@ -51,11 +51,19 @@ class SurfaceLightCones(PayloadMethod):
     params = (
         Param("max_cones", 3, "cones per entry", lo=1, hi=4),
         Param("shade_samples", 16, "shading directions per cone", lo=1, hi=1024),
-        Param("rays_new", 8, "update rays of new and moving entries", lo=1, hi=1024),
+        Param("rays_new", 8, "update rays of a new entry (its first update; see halve_every)", lo=1, hi=1024),
+        Param("new_updates", 8, "updates for which an entry counts as new", lo=1, hi=4096),
+        Param("halve_every", 0, "a new entry's rays halve every this many updates (0: rays_new throughout)",
+              lo=0, hi=4096),
+        Param("rays_moving", 8, "update rays of entries after detected motion", lo=1, hi=1024),
         Param("rays_settled", 1, "update rays of settled entries", lo=1, hi=1024),
+        Param("ray_budget", 0.0, "mean update rays per active entry and frame that new and moving entries may "
+              "take (0: no cap)", lo=0.0, hi=1024.0),
         Param("epsilon", 0.1, "shrink test at (1 - epsilon) alpha", lo=1e-6, hi=1 - 1e-6),
         Param("shrink_period", 4, "settled entries run the shrink test every k-th frame", lo=1, hi=1024),
         Param("beta_min", 1.0, "degrees: smaller cone turns neither reduce C nor count as motion", lo=0.0),
+        Param("samples", "r2", "update samples: a per-entry R2 sequence stratified over the entry's life, or "
+              "independent random numbers per cycle", choices=("r2", "random")),
         Param("fetch", "nearest", "the nearest entry (the paper's), or the 4 surrounding entries weighted bilinearly",
               choices=("nearest", "bilinear")),
     ) + PayloadMethod.cache_params
@@ -63,19 +71,25 @@ class SurfaceLightCones(PayloadMethod):
     def __init__(self, scene, **kw):
         super().__init__(scene, **kw)
         self.cone_params = ConeParams(max_cones=self.max_cones, epsilon=self.epsilon,
-                                      shrink_period=self.shrink_period, beta_min_deg=self.beta_min)
+                                      shrink_period=self.shrink_period, beta_min_deg=self.beta_min,
+                                      stratified=self.samples == "r2")
         self.words = words_per_entry(self.max_cones)
         self.needs = frozenset({BILINEAR_TAPS}) if self.fetch == "bilinear" else frozenset()
 
     def ray_policy(self) -> RayPolicy:
-        return RayPolicy(new=self.rays_new, settled=self.rays_settled, moving=self.rays_new)
+        return RayPolicy(new=self.rays_new, new_updates=self.new_updates, halve_every=self.halve_every,
+                         settled=self.rays_settled, moving=self.rays_moving, budget=self.ray_budget)
 
     # ------------------------------------------------------------------ update
     def update(self, ctx, fr, rays, unsettled):
         info = {}
+        # the entries' policy state before this update (PayloadMethod.render advances it after)
+        state = dr.select(fr.is_new, 0, dr.gather(mi.UInt32, self.policy_state, fr.active))
+        moving = (state >> 16) > 0
         self.storage, motion = update_entries(
             self.scene.mi_scene, self.storage, fr.active, fr.si, rays, unsettled, fr.is_new, fr.seed_slot,
-            fr.keys, ctx.frame, self.seed, self.cone_params, info)
+            fr.keys, ctx.frame, self.seed, self.cone_params, info,
+            moving=moving, first_sample=self.ray_policy().samples_before(state))
         self._info = info
         return motion
 

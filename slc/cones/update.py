@@ -28,6 +28,14 @@ from ..keys import INVALID, STREAM_CONE_UPDATE, keyed_rng
 from ..lights import sample_light
 
 INF = float("inf")
+# A stream of its own for the per-entry shift of the stratified update samples
+# (keyed by the entry alone, so it stays the same over the entry's life)
+STREAM_CONE_STRATA = STREAM_CONE_UPDATE ^ 0x5BD1E995
+# R2 (Roberts' rank-1 lattice on the plastic constant g): alpha = (1/g, 1/g^2)
+# as 32-bit fractions; u_k = frac(shift + k alpha) is computed in integers
+# (wrapping mod 2^32), exact for any sample index k
+_G2 = 1.32471795724474602596
+R2_STEP = (int((1.0 / _G2) * 2 ** 32) & 0xFFFFFFFF, int((1.0 / _G2 ** 2) * 2 ** 32) & 0xFFFFFFFF)
 
 
 @dataclass
@@ -43,7 +51,8 @@ class ConeParams:
     shrink_period: int = 4          # settled entries run the shrink test every k-th frame
     seed_c_max: float = 4.0         # C given to an entry seeded from a coarser one
     c_max: float = 255.0            # 8-bit encoding
-    multi_cycles: float = 8.0       # cycles of unsettled (new / moving) entries cap C at this many cycles
+    multi_cycles: float = 8.0       # cycles of moving entries cap C at this many cycles
+    stratified: bool = True         # light samples from a per-entry R2 sequence (False: independent PCG32)
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -199,7 +208,7 @@ def insert_sample(D, A, L, S, n, beta, s, w, ok, p: ConeParams):
     return D, A, L, S, n, beta, mi.UInt32(case)
 
 
-def end_cycle(L, S, C, n, beta, n_samples, unsettled, p: ConeParams):
+def end_cycle(L, S, C, n, beta, n_samples, moving, p: ConeParams):
     """Close an update cycle: reduce C once (if a cone turned), add the cycle's
     sample count to it (the paper: "increasing C with the exact samples in every
     cycle"), and fold the samples into each cone's running mean. With
@@ -211,14 +220,16 @@ def end_cycle(L, S, C, n, beta, n_samples, unsettled, p: ConeParams):
 
     Every sample's weight enters exactly one cone, so the sum over cones is the
     running mean of all samples (energy is kept through inserts and merges).
-    ``unsettled`` (new or moving entries, the ray policy's decision) caps C
-    at ``multi_cycles`` cycles. Returns (L, C, reduced)."""
+    ``moving`` (entries after detected motion, the ray policy's state) caps C
+    at ``multi_cycles`` cycles of ``n_s`` samples: a moving entry forgets its
+    older samples. New entries are not capped: their light did not move, and
+    a cap would throw away the samples of their first, larger cycles.
+    Returns (L, C, reduced)."""
     K = p.max_cones
     C, red = c_reduction(C, beta, p)
     ns = dr.maximum(mi.Float(n_samples), 1.0)
-    # unsettled entries (new, detected motion) keep at most ``multi_cycles``
-    # cycles of memory; settled ones go up to 255
-    C = dr.minimum(C + ns, dr.select(unsettled, dr.minimum(p.multi_cycles * ns, p.c_max), p.c_max))
+    # moving entries keep at most ``multi_cycles`` cycles of memory; the others go up to 255
+    C = dr.minimum(C + ns, dr.select(moving, dr.minimum(p.multi_cycles * ns, p.c_max), p.c_max))
     inv = 1.0 / dr.maximum(C, 1.0)
     keep = dr.maximum(1.0 - ns * inv, 0.0)
     out = []
@@ -288,19 +299,25 @@ def shrink_test_dirs(D, A, n, u, p: ConeParams):
 
 def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: mi.SurfaceInteraction3f,
                    rays: mi.UInt32, unsettled: mi.Bool, is_new: mi.Bool, seed_slot: mi.UInt32, keys: mi.UInt32,
-                   frame: int, seed: int, p: ConeParams, stats: dict | None = None):
+                   frame: int, seed: int, p: ConeParams, stats: dict | None = None,
+                   moving: mi.Bool | None = None, first_sample: mi.UInt32 | None = None):
     """One update cycle of every active entry (one lane per entry, samples processed
     sequentially in a loop so no update is lost). Reads and writes the packed
     ``storage`` (``capacity * words_per_entry`` UInt32). ``rays`` and ``unsettled``
     come from the ray policy; ``keys`` seed each entry's random numbers and
     shrink-test schedule (the OSC's viewer-independent texel keys make an entry's
-    history independent of which other viewers exist). Returns (storage, motion
+    history independent of which other viewers exist). ``moving`` (default:
+    none) marks the entries whose C is capped (see
+    :func:`end_cycle`); ``first_sample`` (default 0) is the index of the cycle's
+    first sample in the entry's stratified sequence. Returns (storage, motion
     mask per active entry)."""
     from .packing import scatter_words
     if dr.width(active) == 0:
         return storage, mi.Bool()
     N = dr.width(active)
     rays = mi.UInt32(rays)
+    moving = dr.zeros(mi.Bool, N) if moving is None else mi.Bool(moving)
+    first_sample = dr.zeros(mi.UInt32, N) if first_sample is None else mi.UInt32(first_sample)
     # Entries with 8 samples side by side, so that a SIMD packet's loop does not
     # run 8 iterations for 1-sample lanes (random numbers are keyed by slot, so
     # the order changes nothing in the results).
@@ -309,8 +326,8 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     key = dr.gather(mi.UInt32, keys, order)
     words, motion_o, shrunk_o, dropped_o = _updated_words(
         scene, storage, act, key, dr.gather(type(si), si, order), dr.gather(mi.UInt32, rays, order),
-        dr.gather(mi.Bool, unsettled, order), dr.gather(mi.Bool, is_new, order),
-        dr.gather(mi.UInt32, seed_slot, order), frame, seed, p)
+        dr.gather(mi.Bool, unsettled, order), dr.gather(mi.Bool, moving, order), dr.gather(mi.Bool, is_new, order),
+        dr.gather(mi.UInt32, seed_slot, order), dr.gather(mi.UInt32, first_sample, order), frame, seed, p)
     motion = dr.zeros(mi.Bool, N)
     dr.scatter(motion, motion_o, order)
     if stats is not None:
@@ -322,8 +339,8 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     return storage, motion
 
 
-def _updated_words(scene, storage, active, key, si, rays, unsettled, is_new, seed_slot, frame, seed,
-                   p: ConeParams):
+def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_new, seed_slot, first_sample,
+                   frame, seed, p: ConeParams):
     """The update kernel proper: unpack, insert samples, shrink, end the cycle,
     pack. Returns the evaluated (words, motion, shrunk, dropped)."""
     from .packing import gather_words, pack, unpack
@@ -351,21 +368,38 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, is_new, see
     beta = dr.zeros(mi.Float, N)
 
     # ----------------------------------------------- light samples, one at a time per entry
-    def cond(k, D, A, L, S, n, beta, sampler):
+    # Stratified over the entry's life: sample j of the entry is the R2 point
+    # frac(shift + j alpha), the shift fixed per entry (uniform, so every sample
+    # is uniform and the estimate stays unbiased) and j counting on from the
+    # samples of earlier cycles, so that the first cycles together cover the
+    # light-sampling domain evenly instead of at random.
+    if p.stratified:
+        shift = keyed_rng(key, seed, 0, STREAM_CONE_STRATA)
+        q0 = shift.next_uint32() + mi.UInt32(first_sample) * R2_STEP[0]
+        q1 = shift.next_uint32() + mi.UInt32(first_sample) * R2_STEP[1]
+    else:
+        q0 = q1 = dr.zeros(mi.UInt32, N)
+
+    def cond(k, D, A, L, S, n, beta, sampler, q0, q1):
         return k < rays
 
-    def body(k, D, A, L, S, n, beta, sampler):
-        u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
+    def body(k, D, A, L, S, n, beta, sampler, q0, q1):
+        if p.stratified:
+            # top 24 bits: a float32 in [0, 1)
+            u = mi.Point2f(mi.Float(q0 >> 8) * (1.0 / 16777216.0), mi.Float(q1 >> 8) * (1.0 / 16777216.0))
+            q0, q1 = q0 + R2_STEP[0], q1 + R2_STEP[1]
+        else:
+            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
         ds, w, ok = sample_light(scene, si, u, valid)
         ok &= dr.all(dr.isfinite(w))
         ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), ok)
         s = dr.normalize(frame_l.to_local(ds.d))
         D, A, L, S, n, beta, _ = insert_sample(D, A, L, S, n, beta, s, w, ok, p)
-        return k + 1, D, A, L, S, n, beta, sampler
+        return k + 1, D, A, L, S, n, beta, sampler, q0, q1
 
-    _, D, A, L, S, n, beta, sampler = dr.while_loop(
-        state=(mi.UInt32(0), D, A, L, S, n, beta, sampler), cond=cond, body=body,
-        labels=("k", "D", "A", "L", "S", "n", "beta", "sampler"))
+    _, D, A, L, S, n, beta, sampler, _, _ = dr.while_loop(
+        state=(mi.UInt32(0), D, A, L, S, n, beta, sampler, q0, q1), cond=cond, body=body,
+        labels=("k", "D", "A", "L", "S", "n", "beta", "sampler", "q0", "q1"))
 
     # ----------------------------------------------- shrink test: one ray per cone
     period = max(int(p.shrink_period), 1)
@@ -384,7 +418,7 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, is_new, see
     D, A, L, S, n, beta, dropped, shrunk = shrink_step(D, A, L, S, n, beta, dirs, hits, tested, p)
 
     # ----------------------------------------------- close the cycle and pack
-    L, C, reduced = end_cycle(L, S, C, n, beta, rays, unsettled, p)
+    L, C, reduced = end_cycle(L, S, C, n, beta, rays, moving, p)
     motion = valid & (reduced | dropped | (beta * (180.0 / math.pi) > p.beta_min_deg))
     words = pack(D, A, L, C, n, K)
     dr.eval(*words, motion, shrunk, dropped)
