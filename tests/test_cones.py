@@ -715,3 +715,24 @@ def test_glossy_plane_relmse_vs_rt48(kind, alpha, light, request):
           f"ratio {r_slc / r_rt:.3f} fireflies {fireflies}")
     assert fireflies == 0, fireflies
     assert r_slc <= r_rt, (r_slc, r_rt, r_slc / r_rt)
+
+
+def test_stratified_update_samples_lower_error():
+    """Update samples from a per-entry R2 sequence that counts on across cycles
+    (``samples=r2``, the default) against independent random numbers per cycle
+    (``samples=random``): a 0.4 m light 1 m above a diffuse plane, one entry per
+    pixel, 6 frames of the default schedule (48 samples per entry). Both are
+    unbiased (image mean within 1 % of the ground truth); the stratified one
+    halves the per-pixel error (measured mean abs error / mean 1.11 % against
+    2.15 %)."""
+    sc = plane_under_rect_light(half=0.2, radiance=20.0)
+    errs = {}
+    for mode in ("random", "r2"):
+        m = SurfaceLightCones(sc, cache=PixelSlotCache(), samples=mode)
+        gb, d = _run(sc, m, 6)
+        v = np.array(gb.valid)
+        img = np.array(d).T.reshape(-1, 3)[v]
+        gt = _gt(sc, gb, 2048)[v]
+        assert abs(img.mean() / gt.mean() - 1) < 0.01, mode
+        errs[mode] = np.abs(img - gt).mean() / gt.mean()
+    assert errs["r2"] < 0.7 * errs["random"], errs
