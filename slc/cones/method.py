@@ -62,19 +62,25 @@ class SurfaceLightCones(PayloadMethod):
         Param("epsilon", 0.1, "shrink test at (1 - epsilon) alpha", lo=1e-6, hi=1 - 1e-6),
         Param("shrink_period", 4, "settled entries run the shrink test every k-th frame", lo=1, hi=1024),
         Param("beta_min", 1.0, "degrees: smaller cone turns neither reduce C nor count as motion", lo=0.0),
+        Param("shrink_keeps", "energy", "a cone shrunk by a missed test keeps its integral L_c (the paper) or its "
+              "density L_c / Omega_c", choices=("energy", "density")),
+        Param("gone_test", "axis", "a cone whose rim test missed is tested on its axis, and a miss there too counts as "
+              "a light that left (C / 3, motion); off: the paper's test only", choices=("axis", "off")),
         Param("samples", "r2", "update samples: a per-entry R2 sequence stratified over the entry's life, or "
               "independent random numbers per cycle", choices=("r2", "random")),
-        Param("fetch", "nearest", "the nearest entry (the paper's), or the 4 surrounding entries weighted bilinearly",
-              choices=("nearest", "bilinear")),
+        Param("fetch", "nearest", "the nearest entry (the paper's), the 4 surrounding entries weighted bilinearly, "
+              "or one of the 4 drawn per pixel and frame with the bilinear weights as probabilities",
+              choices=("nearest", "bilinear", "stochastic")),
     ) + PayloadMethod.cache_params
 
     def __init__(self, scene, **kw):
         super().__init__(scene, **kw)
         self.cone_params = ConeParams(max_cones=self.max_cones, epsilon=self.epsilon,
                                       shrink_period=self.shrink_period, beta_min_deg=self.beta_min,
-                                      stratified=self.samples == "r2")
+                                      stratified=self.samples == "r2", shrink_keeps=self.shrink_keeps,
+                                      gone_test=self.gone_test == "axis")
         self.words = words_per_entry(self.max_cones)
-        self.needs = frozenset({BILINEAR_TAPS}) if self.fetch == "bilinear" else frozenset()
+        self.needs = frozenset({BILINEAR_TAPS}) if self.fetch in ("bilinear", "stochastic") else frozenset()
 
     def ray_policy(self) -> RayPolicy:
         return RayPolicy(new=self.rays_new, new_updates=self.new_updates, halve_every=self.halve_every,
@@ -101,6 +107,8 @@ class SurfaceLightCones(PayloadMethod):
         tf = dr.gather(mi.Frame3f, fr.si.sh_frame, fr.pixel_index[v], ok)
         if self.fetch == "bilinear":
             return self._shade_bilinear(gb, slot, ok, tf, ctx.frame)
+        if self.fetch == "stochastic":
+            slot = self._stochastic_tap(gb, slot, ctx.frame)
         return shader_for(self, self.max_cones)(self.storage, slot, ok, gb.si, tf, self.shade_samples,
                                                 shade_key(ctx.frame, self.seed))
 
@@ -128,6 +136,24 @@ class SurfaceLightCones(PayloadMethod):
         near = shade(self.storage, slot, ok & (total <= 0.0), gb.si, tf, self.shade_samples,
                      shade_key(frame, self.seed, 4))
         return dr.select(total > 0.0, acc, near)
+
+    def _stochastic_tap(self, gb, slot, frame):
+        """Stochastic bilinear fetch: one of the 4 bilinear taps per pixel, drawn
+        with probability equal to its bilinear weight (a hash of the pixel index
+        and an opaque per-frame key), so that the expected shading is the
+        bilinear fetch's at the cost of one quadrature, as the nearest fetch.
+        Pixels with no usable tap keep their nearest entry."""
+        taps, weights = self.cache.bilinear_taps(gb, slot)     # this viewer's own entries only
+        key = dr.opaque(mi.UInt32, shade_key(frame, self.seed, 5))
+        h, _ = mi.sample_tea_32(dr.arange(mi.UInt32, gb.size), key, 4)
+        u = mi.Float(h >> 8) * (1.0 / 16777216.0)
+        chosen, cdf, done = mi.UInt32(slot), mi.Float(0.0), mi.Bool(False)
+        for s_j, w_j in zip(taps, weights):
+            cdf += w_j
+            take = ~done & (w_j > 0.0) & (u < cdf)
+            chosen = dr.select(take, s_j, chosen)
+            done |= take
+        return chosen
 
     def stats(self) -> dict:
         out = super().stats()

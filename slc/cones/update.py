@@ -53,6 +53,9 @@ class ConeParams:
     c_max: float = 255.0            # 8-bit encoding
     multi_cycles: float = 8.0       # cycles of moving entries cap C at this many cycles
     stratified: bool = True         # light samples from a per-entry R2 sequence (False: independent PCG32)
+    shrink_keeps: str = "energy"    # a shrunk cone keeps its L_c ("energy", the paper) or its density L_c / Omega_c
+    gone_test: bool = True          # a missed rim test is followed by one on the axis; both missed: the light left
+    gone_turn: float = math.radians(40.0)   # rad; the turn a left light counts as (40 deg: the largest C reduction, /3)
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -263,9 +266,12 @@ def shrink_step(D, A, L, S, n, beta, test_dirs, hit, tested, p: ConeParams):
     """Apply the shrink-test outcome of every cone: ``test_dirs[i]`` the tested local
     direction, ``hit[i]`` whether it found an emitter, ``tested[i]`` whether cone i was
     tested. Small cones (alpha < alpha_small) that miss are dropped, larger ones shrink.
-    Returns (D, A, L, S, n, beta, dropped_any, shrunk_any)."""
+    With ``p.shrink_keeps == "density"`` a shrunk cone keeps its radiance density
+    ``L_c / Omega_c`` instead of its integral ``L_c``: the test found no light in
+    the part of the cone it gives up, so the integral over that part leaves
+    with it. Returns (D, A, L, S, n, beta, dropped_any, shrunk_any)."""
     K = p.max_cones
-    D, A = list(D), list(A)
+    D, A, L = list(D), list(A), list(L)
     keep, dropped, shrunk = [], mi.Bool(False), mi.Bool(False)
     for i in range(K):
         miss = tested[i] & ~hit[i] & (n > i)
@@ -273,8 +279,12 @@ def shrink_step(D, A, L, S, n, beta, test_dirs, hit, tested, p: ConeParams):
         drop = miss & small
         shr = miss & ~small
         Dn, An, delta = shrink_cone(D[i], A[i], test_dirs[i])
+        An = dr.maximum(An, 0.0)
+        if p.shrink_keeps == "density":
+            ratio = (1.0 - dr.cos(An)) / dr.maximum(1.0 - dr.cos(A[i]), 1e-12)
+            L[i] = dr.select(shr, L[i] * dr.clip(ratio, 0.0, 1.0), L[i])
         D[i] = dr.select(shr, Dn, D[i])
-        A[i] = dr.select(shr, dr.maximum(An, 0.0), A[i])
+        A[i] = dr.select(shr, An, A[i])
         beta = dr.select(shr, dr.maximum(beta, 0.5 * delta), beta)
         keep.append((n > i) & ~drop)
         dropped |= drop
@@ -415,6 +425,20 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_
         em = si2.emitter(scene, tested[i])
         Le = mi.Color3f(em.eval(si2, tested[i]))
         hits.append(tested[i] & (dr.max(Le) > 0.0))
+    # A light that left (switched off, moved away) leaves a cone whose rim tests
+    # miss but which only shrinks by epsilon alpha per test, with its L_c and C
+    # kept: it would fade as (1 - n/C) per cycle, 255 cycles for a settled entry.
+    # So a large cone whose rim test missed is tested once more on its axis; if
+    # that misses too, the cycle counts as a turn of ``gone_turn`` (C divided by
+    # 3, motion reported: 8 cycles of memory and rays_moving rays until it stops).
+    gone = mi.Bool(False)
+    if p.gone_test:
+        for i in range(K):
+            m = tested[i] & ~hits[i] & (A[i] >= p.alpha_small)
+            si2 = scene.ray_intersect(si.spawn_ray(frame_l.to_world(D[i])), m)
+            Le = mi.Color3f(si2.emitter(scene, m).eval(si2, m))
+            gone |= m & ~(dr.max(Le) > 0.0)
+        beta = dr.select(gone, dr.maximum(beta, p.gone_turn), beta)
     D, A, L, S, n, beta, dropped, shrunk = shrink_step(D, A, L, S, n, beta, dirs, hits, tested, p)
 
     # ----------------------------------------------- close the cycle and pack
