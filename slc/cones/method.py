@@ -51,13 +51,13 @@ class SurfaceLightCones(PayloadMethod):
     params = (
         Param("max_cones", 3, "cones per entry", lo=1, hi=4),
         Param("shade_samples", 16, "shading directions per cone", lo=1, hi=1024),
-        Param("rays_new", 8, "update rays of a new entry (its first update; see halve_every)", lo=1, hi=1024),
-        Param("new_updates", 8, "updates for which an entry counts as new", lo=1, hi=4096),
-        Param("halve_every", 0, "a new entry's rays halve every this many updates (0: rays_new throughout)",
+        Param("rays_new", 32, "update rays of a new entry (its first update; see halve_every)", lo=1, hi=1024),
+        Param("new_updates", 20, "updates for which an entry counts as new", lo=1, hi=4096),
+        Param("halve_every", 4, "a new entry's rays halve every this many updates (0: rays_new throughout)",
               lo=0, hi=4096),
         Param("rays_moving", 8, "update rays of entries after detected motion", lo=1, hi=1024),
         Param("rays_settled", 1, "update rays of settled entries", lo=1, hi=1024),
-        Param("ray_budget", 0.0, "mean update rays per active entry and frame that new and moving entries may "
+        Param("ray_budget", 8.0, "mean update rays per active entry and frame that new and moving entries may "
               "take (0: no cap)", lo=0.0, hi=1024.0),
         Param("epsilon", 0.1, "shrink test at (1 - epsilon) alpha", lo=1e-6, hi=1 - 1e-6),
         Param("shrink_period", 4, "settled entries run the shrink test every k-th frame", lo=1, hi=1024),
@@ -91,11 +91,13 @@ class SurfaceLightCones(PayloadMethod):
         info = {}
         # the entries' policy state before this update (PayloadMethod.render advances it after)
         state = dr.select(fr.is_new, 0, dr.gather(mi.UInt32, self.policy_state, fr.active))
+        policy = self.ray_policy()
         moving = (state >> 16) > 0
+        young = (state & 0xFFFF) < policy.new_updates
         self.storage, motion = update_entries(
             self.scene.mi_scene, self.storage, fr.active, fr.si, rays, unsettled, fr.is_new, fr.seed_slot,
             fr.keys, ctx.frame, self.seed, self.cone_params, info,
-            moving=moving, first_sample=self.ray_policy().samples_before(state))
+            moving=moving, first_sample=policy.samples_before(state), strata=young | ~moving)
         self._info = info
         return motion
 

@@ -310,7 +310,8 @@ def shrink_test_dirs(D, A, n, u, p: ConeParams):
 def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: mi.SurfaceInteraction3f,
                    rays: mi.UInt32, unsettled: mi.Bool, is_new: mi.Bool, seed_slot: mi.UInt32, keys: mi.UInt32,
                    frame: int, seed: int, p: ConeParams, stats: dict | None = None,
-                   moving: mi.Bool | None = None, first_sample: mi.UInt32 | None = None):
+                   moving: mi.Bool | None = None, first_sample: mi.UInt32 | None = None,
+                   strata: mi.Bool | None = None):
     """One update cycle of every active entry (one lane per entry, samples processed
     sequentially in a loop so no update is lost). Reads and writes the packed
     ``storage`` (``capacity * words_per_entry`` UInt32). ``rays`` and ``unsettled``
@@ -319,7 +320,8 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     history independent of which other viewers exist). ``moving`` (default:
     none) marks the entries whose C is capped (see
     :func:`end_cycle`); ``first_sample`` (default 0) is the index of the cycle's
-    first sample in the entry's stratified sequence. Returns (storage, motion
+    first sample in the entry's stratified sequence, used where ``strata``
+    (default: not ``moving``) holds, independent random numbers elsewhere. Returns (storage, motion
     mask per active entry)."""
     from .packing import scatter_words
     if dr.width(active) == 0:
@@ -328,6 +330,7 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     rays = mi.UInt32(rays)
     moving = dr.zeros(mi.Bool, N) if moving is None else mi.Bool(moving)
     first_sample = dr.zeros(mi.UInt32, N) if first_sample is None else mi.UInt32(first_sample)
+    strata = ~moving if strata is None else mi.Bool(strata)
     # Entries with 8 samples side by side, so that a SIMD packet's loop does not
     # run 8 iterations for 1-sample lanes (random numbers are keyed by slot, so
     # the order changes nothing in the results).
@@ -337,7 +340,7 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     words, motion_o, shrunk_o, dropped_o = _updated_words(
         scene, storage, act, key, dr.gather(type(si), si, order), dr.gather(mi.UInt32, rays, order),
         dr.gather(mi.Bool, unsettled, order), dr.gather(mi.Bool, moving, order), dr.gather(mi.Bool, is_new, order),
-        dr.gather(mi.UInt32, seed_slot, order), dr.gather(mi.UInt32, first_sample, order), frame, seed, p)
+        dr.gather(mi.UInt32, seed_slot, order), dr.gather(mi.UInt32, first_sample, order), dr.gather(mi.Bool, strata, order), frame, seed, p)
     motion = dr.zeros(mi.Bool, N)
     dr.scatter(motion, motion_o, order)
     if stats is not None:
@@ -350,7 +353,7 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
 
 
 def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_new, seed_slot, first_sample,
-                   frame, seed, p: ConeParams):
+                   strata, frame, seed, p: ConeParams):
     """The update kernel proper: unpack, insert samples, shrink, end the cycle,
     pack. Returns the evaluated (words, motion, shrunk, dropped)."""
     from .packing import gather_words, pack, unpack
@@ -382,7 +385,11 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_
     # frac(shift + j alpha), the shift fixed per entry (uniform, so every sample
     # is uniform and the estimate stays unbiased) and j counting on from the
     # samples of earlier cycles, so that the first cycles together cover the
-    # light-sampling domain evenly instead of at random.
+    # light-sampling domain evenly instead of at random. Where ``strata`` is
+    # false (moving entries past their new phase) the samples are independent
+    # random numbers: their sample count is not a function of their age, and
+    # indices that repeat those of the previous cycle would correlate the
+    # cycles they average.
     if p.stratified:
         shift = keyed_rng(key, seed, 0, STREAM_CONE_STRATA)
         q0 = shift.next_uint32() + mi.UInt32(first_sample) * R2_STEP[0]
@@ -394,12 +401,12 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_
         return k < rays
 
     def body(k, D, A, L, S, n, beta, sampler, q0, q1):
+        u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
         if p.stratified:
             # top 24 bits: a float32 in [0, 1)
-            u = mi.Point2f(mi.Float(q0 >> 8) * (1.0 / 16777216.0), mi.Float(q1 >> 8) * (1.0 / 16777216.0))
+            u = dr.select(strata, mi.Point2f(mi.Float(q0 >> 8) * (1.0 / 16777216.0),
+                                             mi.Float(q1 >> 8) * (1.0 / 16777216.0)), u)
             q0, q1 = q0 + R2_STEP[0], q1 + R2_STEP[1]
-        else:
-            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
         ds, w, ok = sample_light(scene, si, u, valid)
         ok &= dr.all(dr.isfinite(w))
         ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), ok)
