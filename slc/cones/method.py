@@ -43,8 +43,15 @@ class SurfaceLightCones(PayloadMethod):
 
     and purely Lambertian pixels use the exact cone integral (docs/cones.md).
 
-    Ray policy: ``rays_new`` rays for an entry's first 8 updates and for 8 updates
-    after detected motion, ``rays_settled`` otherwise. See docs/cones.md.
+    Ray policy (docs/cones.md, "Ray budget"): a new entry gets ``rays_new`` rays,
+    halved every ``halve_every`` updates down to ``rays_settled`` over its first
+    ``new_updates`` updates (32, 16, 8, 4, 2, then 1: 248 samples in 20 updates);
+    ``rays_moving`` rays for 8 updates after detected motion; ``rays_settled``
+    otherwise; a frame's rays are capped at ``ray_budget`` per active entry (the
+    rays above the settled ones scaled down together). Update samples
+    (``samples=r2``) follow a per-entry R2 sequence over the entry's life. A
+    missed shrink test on a wide cone is followed by one on its axis
+    (``gone_test=axis``): both missed, the light left, and the entry forgets fast.
     """
 
     name = "slc"
