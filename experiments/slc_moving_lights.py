@@ -52,10 +52,14 @@ def _cache_state(m) -> dict:
     if fr is None or fr.n_active == 0:
         return {}
     st = np.asarray(dr.gather(mi.UInt32, m.policy_state, fr.active))
-    _, _, _, C, n = unpack(gather_words(m.storage, fr.active, m.max_cones), m.max_cones)
+    _, A, _, C, n = unpack(gather_words(m.storage, fr.active, m.max_cones), m.max_cones)
+    n = np.asarray(n)
+    live = np.stack([n > i for i in range(m.max_cones)])
+    alpha = np.stack([np.asarray(a) for a in A])
     s = m.stats()
     return {"moving_share": float(np.mean((st >> 16) > 0)), "motion_share": s.get("motion_entries", 0.0) / fr.n_active,
-            "mean_C": float(np.mean(np.asarray(C))), "mean_cones": float(np.mean(np.asarray(n))),
+            "mean_C": float(np.mean(np.asarray(C))), "mean_cones": float(np.mean(n)),
+            "mean_alpha_deg": float(np.degrees(alpha[live].mean())) if live.any() else 0.0,
             "shrunk_share": s.get("shrunk_entries", 0.0) / fr.n_active,
             "dropped_share": s.get("dropped_entries", 0.0) / fr.n_active}
 
@@ -93,13 +97,13 @@ def run(opts):
                              "flip": sum(r["flip"] for r in late) / max(len(late), 1),
                              "compiled_after_warmup": res.compiled_after_warmup, "per_frame": per_frame,
                              **{k: sum(r.get(k, 0.0) for r in late) / max(len(late), 1)
-                                for k in ("moving_share", "motion_share", "mean_C")}})
+                                for k in ("moving_share", "motion_share", "mean_C", "mean_alpha_deg")}})
                 del m
     _plot(out, rows)
     md = ex.markdown_table(rows, [("scene", "scene"), ("setting", "setting"), ("time_ms", "t [ms]"),
                                   ("flip", "FLIP (mean of frames after warm-up)"),
                                   ("moving_share", "entries moving"), ("motion_share", "motion reported / frame"),
-                                  ("mean_C", "mean C")]) + "\n"
+                                  ("mean_C", "mean C"), ("mean_alpha_deg", "mean cone angle [deg]")]) + "\n"
     md += (f"\nPer-frame FLIP against a {opts.gt_spp}-sample ground truth, frames {cfg.warmup}-{cfg.frames - 1}; "
            f"per-frame curves in per_frame_*.png and results.json.\n")
     return ex.finish(NAME, out, opts, cfg, names, specs, rows, md, {"gt_spp": opts.gt_spp})
@@ -111,17 +115,19 @@ def _plot(out: Path, rows):
     import matplotlib.pyplot as plt
     out.mkdir(parents=True, exist_ok=True)
     for scene in dict.fromkeys(r["scene"] for r in rows):
-        fig, axs = plt.subplots(2, 1, figsize=(6.4, 6.0), dpi=120, sharex=True)
+        fig, axs = plt.subplots(3, 1, figsize=(6.4, 8.0), dpi=120, sharex=True)
         for r in rows:
             if r["scene"] != scene:
                 continue
             fs = [p["frame"] for p in r["per_frame"]]
-            axs[0].plot(fs, [p["flip"] for p in r["per_frame"]], label=r["setting"])
+            line, = axs[0].plot(fs, [p["flip"] for p in r["per_frame"]], label=r["setting"])
             if r["setting"].startswith("slc"):
-                axs[1].plot(fs, [p.get("moving_share", 0.0) for p in r["per_frame"]], label=r["setting"])
+                axs[1].plot(fs, [p.get("moving_share", 0.0) for p in r["per_frame"]], color=line.get_color())
+                axs[2].plot(fs, [p.get("mean_alpha_deg", 0.0) for p in r["per_frame"]], color=line.get_color())
         axs[0].set_ylabel("FLIP")
         axs[1].set_ylabel("share of entries moving")
-        axs[1].set_xlabel("frame")
+        axs[2].set_ylabel("mean cone half-angle [deg]")
+        axs[2].set_xlabel("frame")
         axs[0].legend(fontsize=6)
         axs[0].set_title(f"{scene}: per-frame error and motion state")
         fig.tight_layout()

@@ -320,8 +320,9 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     history independent of which other viewers exist). ``moving`` (default:
     none) marks the entries whose C is capped (see
     :func:`end_cycle`); ``first_sample`` (default 0) is the index of the cycle's
-    first sample in the entry's stratified sequence, used where ``strata``
-    (default: not ``moving``) holds, independent random numbers elsewhere. Returns (storage, motion
+    first sample in the entry's stratified sequence where ``strata`` (default:
+    not ``moving``) holds; elsewhere the cycle's samples continue a second
+    per-entry sequence at ``frame x rays``. Returns (storage, motion
     mask per active entry)."""
     from .packing import scatter_words
     if dr.width(active) == 0:
@@ -386,14 +387,17 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_
     # is uniform and the estimate stays unbiased) and j counting on from the
     # samples of earlier cycles, so that the first cycles together cover the
     # light-sampling domain evenly instead of at random. Where ``strata`` is
-    # false (moving entries past their new phase) the samples are independent
-    # random numbers: their sample count is not a function of their age, and
-    # indices that repeat those of the previous cycle would correlate the
-    # cycles they average.
+    # false (moving entries past their new phase) the sample count is not a
+    # function of the age, and indices repeating those of the previous cycle
+    # would correlate the cycles they average: there j = frame x rays, in a
+    # sequence of its own (a second shift), consecutive over the cycles of a
+    # moving phase while the entry's rays stay the same.
     if p.stratified:
         shift = keyed_rng(key, seed, 0, STREAM_CONE_STRATA)
-        q0 = shift.next_uint32() + mi.UInt32(first_sample) * R2_STEP[0]
-        q1 = shift.next_uint32() + mi.UInt32(first_sample) * R2_STEP[1]
+        s0, s1, m0, m1 = (shift.next_uint32(), shift.next_uint32(), shift.next_uint32(), shift.next_uint32())
+        j = dr.select(strata, mi.UInt32(first_sample), dr.opaque(mi.UInt32, frame & 0xFFFFFF) * rays)
+        q0 = dr.select(strata, s0, m0) + j * R2_STEP[0]
+        q1 = dr.select(strata, s1, m1) + j * R2_STEP[1]
     else:
         q0 = q1 = dr.zeros(mi.UInt32, N)
 
@@ -401,12 +405,12 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_
         return k < rays
 
     def body(k, D, A, L, S, n, beta, sampler, q0, q1):
-        u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
         if p.stratified:
             # top 24 bits: a float32 in [0, 1)
-            u = dr.select(strata, mi.Point2f(mi.Float(q0 >> 8) * (1.0 / 16777216.0),
-                                             mi.Float(q1 >> 8) * (1.0 / 16777216.0)), u)
+            u = mi.Point2f(mi.Float(q0 >> 8) * (1.0 / 16777216.0), mi.Float(q1 >> 8) * (1.0 / 16777216.0))
             q0, q1 = q0 + R2_STEP[0], q1 + R2_STEP[1]
+        else:
+            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
         ds, w, ok = sample_light(scene, si, u, valid)
         ok &= dr.all(dr.isfinite(w))
         ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), ok)
