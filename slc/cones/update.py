@@ -439,13 +439,15 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_
     # A light that left (switched off, moved away) leaves a cone whose rim tests
     # miss but which only shrinks by epsilon alpha per test, with its L_c and C
     # kept: it would fade as (1 - n/C) per cycle, 255 cycles for a settled entry.
-    # So a large cone whose rim test missed is tested once more on its axis; if
-    # that misses too, the cycle counts as a turn of ``gone_turn`` (C divided by
-    # 3, motion reported: 8 cycles of memory and rays_moving rays until it stops).
+    # So a large cone whose rim test missed and that got no sample this cycle
+    # is tested once more on its axis; if that misses too, the cycle counts as a
+    # turn of ``gone_turn`` (C divided by 3, motion reported: 8 cycles of memory
+    # and rays_moving rays until it stops). A cone that still gets samples holds
+    # a light that moves within reach, which widening and shrinking follow.
     gone = mi.Bool(False)
     if p.gone_test:
         for i in range(K):
-            m = tested[i] & ~hits[i] & (A[i] >= p.alpha_small)
+            m = tested[i] & ~hits[i] & (A[i] >= p.alpha_small) & (dr.max(S[i]) <= 0.0)
             si2 = scene.ray_intersect(si.spawn_ray(frame_l.to_world(D[i])), m)
             Le = mi.Color3f(si2.emitter(scene, m).eval(si2, m))
             gone |= m & ~(dr.max(Le) > 0.0)
