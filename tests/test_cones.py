@@ -780,3 +780,34 @@ def test_light_that_switches_off_fades():
     assert errs["axis", -1] < 0.08 and errs["off", -1] < 0.08, errs
     assert errs["axis", 8] < 0.15, errs            # measured 0.07
     assert errs["off", 8] > 1.0, errs              # measured 3.2: the stale cone the axis test removes
+
+
+def test_stochastic_fetch_mean_and_determinism():
+    """``fetch=stochastic`` shades one bilinear tap per pixel, drawn with its weight
+    as probability: the image mean stays within 1 % of the closed form, the image is
+    the same for the same seed and frame, and averaged over frames of a still camera
+    it approaches the bilinear fetch's (per-pixel error of the 8-frame mean below the
+    nearest fetch's single frame)."""
+    pytest.importorskip("slc.osc")
+    sc = plane_under_rect_light(half=0.1, radiance=20.0)
+    imgs = {}
+    for run in ("a", "b"):
+        m = create("slc", sc, fetch="stochastic")
+        acc = []
+        for f in range(24):
+            gbs = gbuffers_for(sc, single(sc), f, W, H)
+            d = m.render(FrameContext(f), gbs, NullTimer())[0]
+            if f >= 16:
+                acc.append(np.array(d).T.reshape(-1, 3))
+        imgs[run] = acc
+    assert all(np.array_equal(a, b) for a, b in zip(imgs["a"], imgs["b"]))
+    v = np.array(gbs[0].valid)
+    p = np.array(gbs[0].si.p).T.reshape(-1, 3)[v]
+    E = 0.5 / math.pi * rect_irradiance(p[:, 0], p[:, 2], -0.1, 0.1, -0.1, 0.1, 1.0, 20.0)
+    last = imgs["a"][-1][v][:, 0]
+    assert np.all(np.isfinite(last)) and abs(last.mean() / E.mean() - 1) < 0.01
+    mean8 = np.mean([a[v][:, 0] for a in imgs["a"]], axis=0)
+    m = create("slc", sc, fetch="nearest")
+    gb, d = _run(sc, m, 24)
+    near = np.array(d).T.reshape(-1, 3)[v][:, 0]
+    assert np.abs(mean8 - E).mean() < np.abs(near - E).mean()
