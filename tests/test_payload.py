@@ -153,6 +153,9 @@ def test_ray_policy_age_ramp_and_samples_before():
     assert rays == [32] * 4 + [16] * 4 + [8] * 4 + [4] * 4 + [2] * 4 + [1] * 4
     assert rays == [p.new_rays(a) for a in range(24)]
     assert before == [sum(rays[:a]) for a in range(24)]
+    # a new entry that reported motion gets at least the moving rays
+    st = p.advance(mi.UInt32([13]), mi.Bool([True]))     # age 14, moving
+    assert int(p.rays(st)[0][0]) == 8 and int(p.rays(mi.UInt32([14]))[0][0]) == 4
     # the step schedule (halve_every = 0) is the former policy
     q = RayPolicy(new=8, new_updates=8)
     assert [q.new_rays(a) for a in range(10)] == [8] * 8 + [1, 1]

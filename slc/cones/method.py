@@ -100,11 +100,10 @@ class SurfaceLightCones(PayloadMethod):
         state = dr.select(fr.is_new, 0, dr.gather(mi.UInt32, self.policy_state, fr.active))
         policy = self.ray_policy()
         moving = (state >> 16) > 0
-        young = (state & 0xFFFF) < policy.new_updates
         self.storage, motion = update_entries(
             self.scene.mi_scene, self.storage, fr.active, fr.si, rays, unsettled, fr.is_new, fr.seed_slot,
             fr.keys, ctx.frame, self.seed, self.cone_params, info,
-            moving=moving, first_sample=policy.samples_before(state), strata=young | ~moving)
+            moving=moving, first_sample=policy.samples_before(state), strata=~moving)
         self._info = info
         return motion
 

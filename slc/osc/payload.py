@@ -41,7 +41,8 @@ class RayPolicy:
     payload reports motion it is *moving* for the next ``motion_updates``
     updates and gets ``moving`` rays; otherwise it is *settled* and gets
     ``settled`` rays. New and moving entries are "unsettled" (payloads may
-    treat them differently, e.g. shorter memory).
+    treat them differently, e.g. shorter memory); a new entry that moves gets
+    the larger of its new and moving rays.
 
     A new entry at age ``a`` (updates so far) gets ``new`` rays when
     ``halve_every`` is 0 (a step: ``new`` rays, then ``settled``), else the
@@ -76,6 +77,9 @@ class RayPolicy:
         r_new = mi.UInt32(self.new)
         if self.halve_every > 0:
             r_new = dr.maximum(mi.UInt32(self.settled), r_new >> (upd // self.halve_every))
+        # a new entry that reported motion gets at least the moving rays (the ramp's
+        # tail would give it 2 while its memory is cut short)
+        r_new = dr.select(moving, dr.maximum(r_new, mi.UInt32(self.moving)), r_new)
         rays = dr.select(young, r_new, dr.select(moving, mi.UInt32(self.moving), mi.UInt32(self.settled)))
         if self.budget > 0 and dr.width(state) > 0:
             rays = self._capped(rays)
