@@ -64,7 +64,7 @@ class SurfaceLightCones(PayloadMethod):
               lo=0, hi=4096),
         Param("rays_moving", 8, "update rays of entries after detected motion", lo=1, hi=1024),
         Param("rays_settled", 1, "update rays of settled entries", lo=1, hi=1024),
-        Param("ray_budget", 8.0, "mean update rays per active entry and frame that new and moving entries may "
+        Param("ray_budget", 0.0, "mean update rays per active entry and frame that new and moving entries may "
               "take (0: no cap)", lo=0.0, hi=1024.0),
         Param("epsilon", 0.1, "shrink test at (1 - epsilon) alpha", lo=1e-6, hi=1 - 1e-6),
         Param("shrink_period", 4, "settled entries run the shrink test every k-th frame", lo=1, hi=1024),
