@@ -47,8 +47,8 @@ class SurfaceLightCones(PayloadMethod):
     halved every ``halve_every`` updates down to ``rays_settled`` over its first
     ``new_updates`` updates (32, 16, 8, 4, 2, then 1: 248 samples in 20 updates);
     ``rays_moving`` rays for 8 updates after detected motion; ``rays_settled``
-    otherwise; a frame's rays are capped at ``ray_budget`` per active entry (the
-    rays above the settled ones scaled down together). Update samples
+    otherwise; ``ray_budget`` (> 0) caps a frame's rays per active entry (the
+    rays above the settled ones scaled down together; off by default). Update samples
     (``samples=r2``) follow a per-entry R2 sequence over the entry's life. A
     missed shrink test on a wide cone is followed by one on its axis
     (``gone_test=axis``): both missed, the light left, and the entry forgets fast.

@@ -443,12 +443,11 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_
     # is tested once more on its axis; if that misses too, the cycle counts as a
     # turn of ``gone_turn`` (C divided by 3, motion reported: 8 cycles of memory
     # and rays_moving rays until it stops). A cone that still gets samples holds
-    # a light that moves within reach, which widening and shrinking follow; a
-    # moving entry already forgets within 8 cycles.
+    # a light that moves within reach, which widening and shrinking follow.
     gone = mi.Bool(False)
     if p.gone_test:
         for i in range(K):
-            m = tested[i] & ~hits[i] & (A[i] >= p.alpha_small) & (dr.max(S[i]) <= 0.0) & ~moving
+            m = tested[i] & ~hits[i] & (A[i] >= p.alpha_small) & (dr.max(S[i]) <= 0.0)
             si2 = scene.ray_intersect(si.spawn_ray(frame_l.to_world(D[i])), m)
             Le = mi.Color3f(si2.emitter(scene, m).eval(si2, m))
             gone |= m & ~(dr.max(Le) > 0.0)
