@@ -46,7 +46,7 @@ def add_arguments(p):
 
 def _cases(extra):
     """(camera, label, spec, pixel cache?) of every controlled run."""
-    conv = f"rays_new={CONVERGED_RAYS},rays_settled={CONVERGED_RAYS}"
+    conv = f"rays_new={CONVERGED_RAYS},rays_settled={CONVERGED_RAYS},rays_moving={CONVERGED_RAYS}"
     cases = []
     for cam in ("still", "walking"):
         cases.append((cam, "rt48", "rt48", False))
