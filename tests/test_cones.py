@@ -665,8 +665,7 @@ GLOSSY_MISSES = {
     ("conductor", 0.05, "small"): 2.69, ("conductor", 0.2, "small"): 3.79,
     ("plastic", 0.005, "small"): 26.1, ("plastic", 0.01, "small"): 7.63,
     ("plastic", 0.05, "small"): 2.87, ("plastic", 0.2, "small"): 9.25,
-    ("conductor", 0.05, "large"): 1.21,
-}
+}   # conductor 0.05 under the large light: 1.21 before the age ramp and stratified updates, 0.77 after
 
 
 def _glossy_bsdf(kind, alpha):
