@@ -665,8 +665,7 @@ GLOSSY_MISSES = {
     ("conductor", 0.05, "small"): 2.69, ("conductor", 0.2, "small"): 3.79,
     ("plastic", 0.005, "small"): 26.1, ("plastic", 0.01, "small"): 7.63,
     ("plastic", 0.05, "small"): 2.87, ("plastic", 0.2, "small"): 9.25,
-    ("conductor", 0.05, "large"): 1.21,
-}
+}   # conductor 0.05 under the large light: 1.21 before the age ramp and stratified updates, 0.77 after
 
 
 def _glossy_bsdf(kind, alpha):
@@ -715,3 +714,99 @@ def test_glossy_plane_relmse_vs_rt48(kind, alpha, light, request):
           f"ratio {r_slc / r_rt:.3f} fireflies {fireflies}")
     assert fireflies == 0, fireflies
     assert r_slc <= r_rt, (r_slc, r_rt, r_slc / r_rt)
+
+
+def test_stratified_update_samples_lower_error():
+    """Update samples from a per-entry R2 sequence that counts on across cycles
+    (``samples=r2``, the default) against independent random numbers per cycle
+    (``samples=random``): a 0.4 m light 1 m above a diffuse plane, one entry per
+    pixel, 6 frames of the default schedule (48 samples per entry). Both are
+    unbiased (image mean within 1 % of the ground truth); the stratified one
+    halves the per-pixel error (measured mean abs error / mean 1.11 % against
+    2.15 %)."""
+    sc = plane_under_rect_light(half=0.2, radiance=20.0)
+    errs = {}
+    for mode in ("random", "r2"):
+        m = SurfaceLightCones(sc, cache=PixelSlotCache(), samples=mode)
+        gb, d = _run(sc, m, 6)
+        v = np.array(gb.valid)
+        img = np.array(d).T.reshape(-1, 3)[v]
+        gt = _gt(sc, gb, 2048)[v]
+        assert abs(img.mean() / gt.mean() - 1) < 0.01, mode
+        errs[mode] = np.abs(img - gt).mean() / gt.mean()
+    assert errs["r2"] < 0.7 * errs["random"], errs
+
+
+def _switch_off_scene(off):
+    """Two lights over a diffuse plane; the larger one (0.6 m, about 30 deg seen from
+    the plane) leaves at frame ``off`` (it jumps 50 m below the plane: switched off)."""
+    b = SceneBuilder("switch_off")
+    b.add_quad([0, 0, 0], [2, 0, 0], [0, 0, -2], bsdf=diffuse([0.5] * 3), name="plane")
+    b.add_quad([-0.6, 1, 0], [0.15, 0, 0], [0, 0, 0.15], bsdf=diffuse([0] * 3), emission=[10] * 3, name="stays")
+
+    def T(t):
+        return translate([0.0, -50.0 if t * FPS >= off - 0.5 else 0.0, 0.0])
+    b.add_quad([0.6, 1, 0], [0.3, 0, 0], [0, 0, 0.3], bsdf=diffuse([0] * 3), emission=[10] * 3, name="goes",
+               transform=T)
+    cam = CameraPath([([0.0, 0.8, 1.2], [0.0, 0.0, 0.0])], frames=64, fov=60)
+    return b.build([cam, cam, cam])
+
+
+def test_light_that_switches_off_fades():
+    """Hard case "a light that switches off": after 24 frames (settled entries, C
+    about 80) the larger of two lights leaves. Its cones are wider than 2 degrees,
+    so the paper's rim test only shrinks them by epsilon alpha per miss and keeps
+    their L_c and C: the stale light fades as (1 - 1/C) per frame (measured mean
+    relative error 3.4-3.8 at the switch, 2.7-3.2 eight frames later). With the
+    axis test (``gone_test=axis``, an option: it costs FLIP on street, docs/cones.md)
+    a cone that got no sample and whose rim and axis both miss divides C by 3 and
+    puts the entry in the moving state: measured 0.07 eight frames after the
+    switch, and 0.04-0.05 before it in both settings."""
+    off = 24
+    sc = _switch_off_scene(off)
+    errs = {}
+    for mode in ("axis", "off"):
+        m = SurfaceLightCones(sc, cache=PixelSlotCache(), gone_test=mode)
+        for f in range(off + 9):
+            gbs = gbuffers_for(sc, single(sc), f, W, H)
+            d = m.render(FrameContext(f), gbs, NullTimer())[0]
+            if f in (off - 1, off + 8):
+                v = np.array(gbs[0].valid)
+                img = np.array(d).T.reshape(-1, 3)[v]
+                assert np.all(np.isfinite(img))
+                gt = _gt(sc, gbs[0], 256)[v]
+                errs[mode, f - off] = np.abs(img - gt).mean() / gt.mean()
+    assert errs["axis", -1] < 0.08 and errs["off", -1] < 0.08, errs
+    assert errs["axis", 8] < 0.15, errs            # measured 0.07
+    assert errs["off", 8] > 1.0, errs              # measured 2.7: the stale cone the axis test removes
+
+
+def test_stochastic_fetch_mean_and_determinism():
+    """``fetch=stochastic`` shades one bilinear tap per pixel, drawn with its weight
+    as probability: the image mean stays within 1 % of the closed form, the image is
+    the same for the same seed and frame, and averaged over frames of a still camera
+    it approaches the bilinear fetch's (per-pixel error of the 8-frame mean below the
+    nearest fetch's single frame)."""
+    pytest.importorskip("slc.osc")
+    sc = plane_under_rect_light(half=0.1, radiance=20.0)
+    imgs = {}
+    for run in ("a", "b"):
+        m = create("slc", sc, fetch="stochastic")
+        acc = []
+        for f in range(24):
+            gbs = gbuffers_for(sc, single(sc), f, W, H)
+            d = m.render(FrameContext(f), gbs, NullTimer())[0]
+            if f >= 16:
+                acc.append(np.array(d).T.reshape(-1, 3))
+        imgs[run] = acc
+    assert all(np.array_equal(a, b) for a, b in zip(imgs["a"], imgs["b"]))
+    v = np.array(gbs[0].valid)
+    p = np.array(gbs[0].si.p).T.reshape(-1, 3)[v]
+    E = 0.5 / math.pi * rect_irradiance(p[:, 0], p[:, 2], -0.1, 0.1, -0.1, 0.1, 1.0, 20.0)
+    last = imgs["a"][-1][v][:, 0]
+    assert np.all(np.isfinite(last)) and abs(last.mean() / E.mean() - 1) < 0.01
+    mean8 = np.mean([a[v][:, 0] for a in imgs["a"]], axis=0)
+    m = create("slc", sc, fetch="nearest")
+    gb, d = _run(sc, m, 24)
+    near = np.array(d).T.reshape(-1, 3)[v][:, 0]
+    assert np.abs(mean8 - E).mean() < np.abs(near - E).mean()

@@ -85,7 +85,8 @@ def test_bad_settings_are_one_line_errors(spec, cornell):
     with pytest.raises(MethodError) as e:
         methods.create(spec, cornell)
     msg = str(e.value)
-    assert "\n" not in msg and len(msg) < 200 and spec.split(":")[0].rstrip("0123456789") in msg
+    # one line; the unknown-setting message lists every known setting (18 for slc: 235 characters)
+    assert "\n" not in msg and len(msg) < 300 and spec.split(":")[0].rstrip("0123456789") in msg
 
 
 @pytest.mark.parametrize("spec", ["slc:bias=abc", "restir:temporal=abc"])
@@ -135,3 +136,42 @@ def test_stand_in_cache_needs_declared_capability(cornell):
     with pytest.raises(MethodError, match="bilinear_taps"):
         m.render(methods.FrameContext(0), gbs, __import__("slc.timing", fromlist=["NullTimer"]).NullTimer())
     dr.sync_thread()
+
+
+def test_ray_policy_age_ramp_and_samples_before():
+    """The age ramp halves a new entry's rays every ``halve_every`` updates down to
+    ``settled``; ``samples_before`` is the schedule's running sum (the index of the
+    cycle's first sample in the entry's stratified sequence)."""
+    p = RayPolicy(new=32, new_updates=20, halve_every=4, settled=1, moving=8, motion_updates=8)
+    state = mi.UInt32([0])
+    rays, before = [], []
+    for _ in range(24):
+        r, u = p.rays(state)
+        rays.append(int(r[0]))
+        before.append(int(p.samples_before(state)[0]))
+        assert bool(u[0]) == (len(rays) <= 20)
+        state = p.advance(state, mi.Bool([False]))
+    assert rays == [32] * 4 + [16] * 4 + [8] * 4 + [4] * 4 + [2] * 4 + [1] * 4
+    assert rays == [p.new_rays(a) for a in range(24)]
+    assert before == [sum(rays[:a]) for a in range(24)]
+    # a new entry that reported motion gets at least the moving rays
+    st = p.advance(mi.UInt32([13]), mi.Bool([True]))     # age 14, moving
+    assert int(p.rays(st)[0][0]) == 8 and int(p.rays(mi.UInt32([14]))[0][0]) == 4
+    # the step schedule (halve_every = 0) is the former policy
+    q = RayPolicy(new=8, new_updates=8)
+    assert [q.new_rays(a) for a in range(10)] == [8] * 8 + [1, 1]
+
+
+def test_ray_policy_budget_caps_the_frame():
+    """With a budget, the frame's rays never exceed budget x entries; every entry
+    keeps its settled rays and the rays above them shrink by one common factor."""
+    p = RayPolicy(new=32, new_updates=4, settled=1, moving=8, budget=2.0)
+    state = mi.UInt32([0] * 10 + [100] * 90)           # 10 new entries, 90 settled
+    rays, _ = p.rays(state)
+    r = np.array(rays)
+    assert r.sum() <= 2.0 * 100 and np.all(r[10:] == 1)
+    assert np.all(r[:10] == r[0]) and 1 < r[0] < 32    # (200 - 100) / 10 = 10 extra rays each: 11
+    assert r[0] == 11
+    # under the budget nothing changes
+    r2, _ = p.rays(mi.UInt32([0] + [100] * 99))
+    assert np.array(r2).tolist() == [32] + [1] * 99

@@ -43,39 +43,69 @@ class SurfaceLightCones(PayloadMethod):
 
     and purely Lambertian pixels use the exact cone integral (docs/cones.md).
 
-    Ray policy: ``rays_new`` rays for an entry's first 8 updates and for 8 updates
-    after detected motion, ``rays_settled`` otherwise. See docs/cones.md.
+    Ray policy (docs/cones.md, "Ray budget"): a new entry gets ``rays_new`` rays,
+    halved every ``halve_every`` updates down to ``rays_settled`` over its first
+    ``new_updates`` updates (32, 16, 8, 4, 2, then 1: 248 samples in 20 updates);
+    ``rays_moving`` rays for 8 updates after detected motion; ``rays_settled``
+    otherwise; ``ray_budget`` (> 0) caps a frame's rays per active entry (the
+    rays above the settled ones scaled down together; off by default). Update samples
+    (``samples=r2``) follow a per-entry R2 sequence over the entry's life. With
+    ``gone_test=axis`` (an option; off by default) a missed shrink test on a wide
+    cone that got no sample is followed by one on its axis: both missed, the
+    light left, and the entry forgets fast.
     """
 
     name = "slc"
     params = (
         Param("max_cones", 3, "cones per entry", lo=1, hi=4),
         Param("shade_samples", 16, "shading directions per cone", lo=1, hi=1024),
-        Param("rays_new", 8, "update rays of new and moving entries", lo=1, hi=1024),
+        Param("rays_new", 32, "update rays of a new entry (its first update; see halve_every)", lo=1, hi=1024),
+        Param("new_updates", 20, "updates for which an entry counts as new", lo=1, hi=4096),
+        Param("halve_every", 4, "a new entry's rays halve every this many updates (0: rays_new throughout)",
+              lo=0, hi=4096),
+        Param("rays_moving", 8, "update rays of entries after detected motion", lo=1, hi=1024),
         Param("rays_settled", 1, "update rays of settled entries", lo=1, hi=1024),
+        Param("ray_budget", 0.0, "mean update rays per active entry and frame that new and moving entries may "
+              "take (0: no cap)", lo=0.0, hi=1024.0),
         Param("epsilon", 0.1, "shrink test at (1 - epsilon) alpha", lo=1e-6, hi=1 - 1e-6),
         Param("shrink_period", 4, "settled entries run the shrink test every k-th frame", lo=1, hi=1024),
         Param("beta_min", 1.0, "degrees: smaller cone turns neither reduce C nor count as motion", lo=0.0),
-        Param("fetch", "nearest", "the nearest entry (the paper's), or the 4 surrounding entries weighted bilinearly",
-              choices=("nearest", "bilinear")),
+        Param("shrink_keeps", "energy", "a cone shrunk by a missed test keeps its integral L_c (the paper) or its "
+              "density L_c / Omega_c", choices=("energy", "density")),
+        Param("gone_test", "off", "axis: a cone whose rim test missed (and that got no sample) is tested on its axis, "
+              "and a miss there too counts as a light that left (C / 3, motion); off: the paper's test only",
+              choices=("off", "axis")),
+        Param("samples", "r2", "update samples: a per-entry R2 sequence stratified over the entry's life, or "
+              "independent random numbers per cycle", choices=("r2", "random")),
+        Param("fetch", "nearest", "the nearest entry (the paper's), the 4 surrounding entries weighted bilinearly, "
+              "or one of the 4 drawn per pixel and frame with the bilinear weights as probabilities",
+              choices=("nearest", "bilinear", "stochastic")),
     ) + PayloadMethod.cache_params
 
     def __init__(self, scene, **kw):
         super().__init__(scene, **kw)
         self.cone_params = ConeParams(max_cones=self.max_cones, epsilon=self.epsilon,
-                                      shrink_period=self.shrink_period, beta_min_deg=self.beta_min)
+                                      shrink_period=self.shrink_period, beta_min_deg=self.beta_min,
+                                      stratified=self.samples == "r2", shrink_keeps=self.shrink_keeps,
+                                      gone_test=self.gone_test == "axis")
         self.words = words_per_entry(self.max_cones)
-        self.needs = frozenset({BILINEAR_TAPS}) if self.fetch == "bilinear" else frozenset()
+        self.needs = frozenset({BILINEAR_TAPS}) if self.fetch in ("bilinear", "stochastic") else frozenset()
 
     def ray_policy(self) -> RayPolicy:
-        return RayPolicy(new=self.rays_new, settled=self.rays_settled, moving=self.rays_new)
+        return RayPolicy(new=self.rays_new, new_updates=self.new_updates, halve_every=self.halve_every,
+                         settled=self.rays_settled, moving=self.rays_moving, budget=self.ray_budget)
 
     # ------------------------------------------------------------------ update
     def update(self, ctx, fr, rays, unsettled):
         info = {}
+        # the entries' policy state before this update (PayloadMethod.render advances it after)
+        state = dr.select(fr.is_new, 0, dr.gather(mi.UInt32, self.policy_state, fr.active))
+        policy = self.ray_policy()
+        moving = (state >> 16) > 0
         self.storage, motion = update_entries(
             self.scene.mi_scene, self.storage, fr.active, fr.si, rays, unsettled, fr.is_new, fr.seed_slot,
-            fr.keys, ctx.frame, self.seed, self.cone_params, info)
+            fr.keys, ctx.frame, self.seed, self.cone_params, info,
+            moving=moving, first_sample=policy.samples_before(state), strata=~moving)
         self._info = info
         return motion
 
@@ -87,6 +117,8 @@ class SurfaceLightCones(PayloadMethod):
         tf = dr.gather(mi.Frame3f, fr.si.sh_frame, fr.pixel_index[v], ok)
         if self.fetch == "bilinear":
             return self._shade_bilinear(gb, slot, ok, tf, ctx.frame)
+        if self.fetch == "stochastic":
+            slot = self._stochastic_tap(gb, slot, ctx.frame)
         return shader_for(self, self.max_cones)(self.storage, slot, ok, gb.si, tf, self.shade_samples,
                                                 shade_key(ctx.frame, self.seed))
 
@@ -114,6 +146,24 @@ class SurfaceLightCones(PayloadMethod):
         near = shade(self.storage, slot, ok & (total <= 0.0), gb.si, tf, self.shade_samples,
                      shade_key(frame, self.seed, 4))
         return dr.select(total > 0.0, acc, near)
+
+    def _stochastic_tap(self, gb, slot, frame):
+        """Stochastic bilinear fetch: one of the 4 bilinear taps per pixel, drawn
+        with probability equal to its bilinear weight (a hash of the pixel index
+        and an opaque per-frame key), so that the expected shading is the
+        bilinear fetch's at the cost of one quadrature, as the nearest fetch.
+        Pixels with no usable tap keep their nearest entry."""
+        taps, weights = self.cache.bilinear_taps(gb, slot)     # this viewer's own entries only
+        key = dr.opaque(mi.UInt32, shade_key(frame, self.seed, 5))
+        h, _ = mi.sample_tea_32(dr.arange(mi.UInt32, gb.size), key, 4)
+        u = mi.Float(h >> 8) * (1.0 / 16777216.0)
+        chosen, cdf, done = mi.UInt32(slot), mi.Float(0.0), mi.Bool(False)
+        for s_j, w_j in zip(taps, weights):
+            cdf += w_j
+            take = ~done & (w_j > 0.0) & (u < cdf)
+            chosen = dr.select(take, s_j, chosen)
+            done |= take
+        return chosen
 
     def stats(self) -> dict:
         out = super().stats()

@@ -28,6 +28,14 @@ from ..keys import INVALID, STREAM_CONE_UPDATE, keyed_rng
 from ..lights import sample_light
 
 INF = float("inf")
+# A stream of its own for the per-entry shift of the stratified update samples
+# (keyed by the entry alone, so it stays the same over the entry's life)
+STREAM_CONE_STRATA = STREAM_CONE_UPDATE ^ 0x5BD1E995
+# R2 (Roberts' rank-1 lattice on the plastic constant g): alpha = (1/g, 1/g^2)
+# as 32-bit fractions; u_k = frac(shift + k alpha) is computed in integers
+# (wrapping mod 2^32), exact for any sample index k
+_G2 = 1.32471795724474602596
+R2_STEP = (int((1.0 / _G2) * 2 ** 32) & 0xFFFFFFFF, int((1.0 / _G2 ** 2) * 2 ** 32) & 0xFFFFFFFF)
 
 
 @dataclass
@@ -43,7 +51,11 @@ class ConeParams:
     shrink_period: int = 4          # settled entries run the shrink test every k-th frame
     seed_c_max: float = 4.0         # C given to an entry seeded from a coarser one
     c_max: float = 255.0            # 8-bit encoding
-    multi_cycles: float = 8.0       # cycles of unsettled (new / moving) entries cap C at this many cycles
+    multi_cycles: float = 8.0       # cycles of moving entries cap C at this many cycles
+    stratified: bool = True         # light samples from a per-entry R2 sequence (False: independent PCG32)
+    shrink_keeps: str = "energy"    # a shrunk cone keeps its L_c ("energy", the paper) or its density L_c / Omega_c
+    gone_test: bool = False         # a missed rim test is followed by one on the axis; both missed: the light left
+    gone_turn: float = math.radians(40.0)   # rad; the turn a left light counts as (40 deg: the largest C reduction, /3)
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -199,7 +211,7 @@ def insert_sample(D, A, L, S, n, beta, s, w, ok, p: ConeParams):
     return D, A, L, S, n, beta, mi.UInt32(case)
 
 
-def end_cycle(L, S, C, n, beta, n_samples, unsettled, p: ConeParams):
+def end_cycle(L, S, C, n, beta, n_samples, moving, p: ConeParams):
     """Close an update cycle: reduce C once (if a cone turned), add the cycle's
     sample count to it (the paper: "increasing C with the exact samples in every
     cycle"), and fold the samples into each cone's running mean. With
@@ -211,14 +223,16 @@ def end_cycle(L, S, C, n, beta, n_samples, unsettled, p: ConeParams):
 
     Every sample's weight enters exactly one cone, so the sum over cones is the
     running mean of all samples (energy is kept through inserts and merges).
-    ``unsettled`` (new or moving entries, the ray policy's decision) caps C
-    at ``multi_cycles`` cycles. Returns (L, C, reduced)."""
+    ``moving`` (entries after detected motion, the ray policy's state) caps C
+    at ``multi_cycles`` cycles of ``n_s`` samples: a moving entry forgets its
+    older samples. New entries are not capped: their light did not move, and
+    a cap would throw away the samples of their first, larger cycles.
+    Returns (L, C, reduced)."""
     K = p.max_cones
     C, red = c_reduction(C, beta, p)
     ns = dr.maximum(mi.Float(n_samples), 1.0)
-    # unsettled entries (new, detected motion) keep at most ``multi_cycles``
-    # cycles of memory; settled ones go up to 255
-    C = dr.minimum(C + ns, dr.select(unsettled, dr.minimum(p.multi_cycles * ns, p.c_max), p.c_max))
+    # moving entries keep at most ``multi_cycles`` cycles of memory; the others go up to 255
+    C = dr.minimum(C + ns, dr.select(moving, dr.minimum(p.multi_cycles * ns, p.c_max), p.c_max))
     inv = 1.0 / dr.maximum(C, 1.0)
     keep = dr.maximum(1.0 - ns * inv, 0.0)
     out = []
@@ -252,9 +266,12 @@ def shrink_step(D, A, L, S, n, beta, test_dirs, hit, tested, p: ConeParams):
     """Apply the shrink-test outcome of every cone: ``test_dirs[i]`` the tested local
     direction, ``hit[i]`` whether it found an emitter, ``tested[i]`` whether cone i was
     tested. Small cones (alpha < alpha_small) that miss are dropped, larger ones shrink.
-    Returns (D, A, L, S, n, beta, dropped_any, shrunk_any)."""
+    With ``p.shrink_keeps == "density"`` a shrunk cone keeps its radiance density
+    ``L_c / Omega_c`` instead of its integral ``L_c``: the test found no light in
+    the part of the cone it gives up, so the integral over that part leaves
+    with it. Returns (D, A, L, S, n, beta, dropped_any, shrunk_any)."""
     K = p.max_cones
-    D, A = list(D), list(A)
+    D, A, L = list(D), list(A), list(L)
     keep, dropped, shrunk = [], mi.Bool(False), mi.Bool(False)
     for i in range(K):
         miss = tested[i] & ~hit[i] & (n > i)
@@ -262,8 +279,12 @@ def shrink_step(D, A, L, S, n, beta, test_dirs, hit, tested, p: ConeParams):
         drop = miss & small
         shr = miss & ~small
         Dn, An, delta = shrink_cone(D[i], A[i], test_dirs[i])
+        An = dr.maximum(An, 0.0)
+        if p.shrink_keeps == "density":
+            ratio = (1.0 - dr.cos(An)) / dr.maximum(1.0 - dr.cos(A[i]), 1e-12)
+            L[i] = dr.select(shr, L[i] * dr.clip(ratio, 0.0, 1.0), L[i])
         D[i] = dr.select(shr, Dn, D[i])
-        A[i] = dr.select(shr, dr.maximum(An, 0.0), A[i])
+        A[i] = dr.select(shr, An, A[i])
         beta = dr.select(shr, dr.maximum(beta, 0.5 * delta), beta)
         keep.append((n > i) & ~drop)
         dropped |= drop
@@ -288,19 +309,29 @@ def shrink_test_dirs(D, A, n, u, p: ConeParams):
 
 def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: mi.SurfaceInteraction3f,
                    rays: mi.UInt32, unsettled: mi.Bool, is_new: mi.Bool, seed_slot: mi.UInt32, keys: mi.UInt32,
-                   frame: int, seed: int, p: ConeParams, stats: dict | None = None):
+                   frame: int, seed: int, p: ConeParams, stats: dict | None = None,
+                   moving: mi.Bool | None = None, first_sample: mi.UInt32 | None = None,
+                   strata: mi.Bool | None = None):
     """One update cycle of every active entry (one lane per entry, samples processed
     sequentially in a loop so no update is lost). Reads and writes the packed
     ``storage`` (``capacity * words_per_entry`` UInt32). ``rays`` and ``unsettled``
     come from the ray policy; ``keys`` seed each entry's random numbers and
     shrink-test schedule (the OSC's viewer-independent texel keys make an entry's
-    history independent of which other viewers exist). Returns (storage, motion
+    history independent of which other viewers exist). ``moving`` (default:
+    none) marks the entries whose C is capped (see
+    :func:`end_cycle`); ``first_sample`` (default 0) is the index of the cycle's
+    first sample in the entry's stratified sequence where ``strata`` (default:
+    not ``moving``) holds; elsewhere the cycle's samples continue a second
+    per-entry sequence at ``frame x rays``. Returns (storage, motion
     mask per active entry)."""
     from .packing import scatter_words
     if dr.width(active) == 0:
         return storage, mi.Bool()
     N = dr.width(active)
     rays = mi.UInt32(rays)
+    moving = dr.zeros(mi.Bool, N) if moving is None else mi.Bool(moving)
+    first_sample = dr.zeros(mi.UInt32, N) if first_sample is None else mi.UInt32(first_sample)
+    strata = ~moving if strata is None else mi.Bool(strata)
     # Entries with 8 samples side by side, so that a SIMD packet's loop does not
     # run 8 iterations for 1-sample lanes (random numbers are keyed by slot, so
     # the order changes nothing in the results).
@@ -309,8 +340,8 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     key = dr.gather(mi.UInt32, keys, order)
     words, motion_o, shrunk_o, dropped_o = _updated_words(
         scene, storage, act, key, dr.gather(type(si), si, order), dr.gather(mi.UInt32, rays, order),
-        dr.gather(mi.Bool, unsettled, order), dr.gather(mi.Bool, is_new, order),
-        dr.gather(mi.UInt32, seed_slot, order), frame, seed, p)
+        dr.gather(mi.Bool, unsettled, order), dr.gather(mi.Bool, moving, order), dr.gather(mi.Bool, is_new, order),
+        dr.gather(mi.UInt32, seed_slot, order), dr.gather(mi.UInt32, first_sample, order), dr.gather(mi.Bool, strata, order), frame, seed, p)
     motion = dr.zeros(mi.Bool, N)
     dr.scatter(motion, motion_o, order)
     if stats is not None:
@@ -322,8 +353,8 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     return storage, motion
 
 
-def _updated_words(scene, storage, active, key, si, rays, unsettled, is_new, seed_slot, frame, seed,
-                   p: ConeParams):
+def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_new, seed_slot, first_sample,
+                   strata, frame, seed, p: ConeParams):
     """The update kernel proper: unpack, insert samples, shrink, end the cycle,
     pack. Returns the evaluated (words, motion, shrunk, dropped)."""
     from .packing import gather_words, pack, unpack
@@ -351,21 +382,45 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, is_new, see
     beta = dr.zeros(mi.Float, N)
 
     # ----------------------------------------------- light samples, one at a time per entry
-    def cond(k, D, A, L, S, n, beta, sampler):
+    # Stratified over the entry's life: sample j of the entry is the R2 point
+    # frac(shift + j alpha), the shift fixed per entry (uniform, so every sample
+    # is uniform and the estimate stays unbiased) and j counting on from the
+    # samples of earlier cycles, so that the first cycles together cover the
+    # light-sampling domain evenly instead of at random. Where ``strata`` is
+    # false (moving entries) the sample count is not a
+    # function of the age, and indices repeating those of the previous cycle
+    # would correlate the cycles they average: there j = frame x rays, in a
+    # sequence of its own (a second shift), consecutive over the cycles of a
+    # moving phase while the entry's rays stay the same.
+    if p.stratified:
+        shift = keyed_rng(key, seed, 0, STREAM_CONE_STRATA)
+        s0, s1, m0, m1 = (shift.next_uint32(), shift.next_uint32(), shift.next_uint32(), shift.next_uint32())
+        j = dr.select(strata, mi.UInt32(first_sample), dr.opaque(mi.UInt32, frame & 0xFFFFFF) * rays)
+        q0 = dr.select(strata, s0, m0) + j * R2_STEP[0]
+        q1 = dr.select(strata, s1, m1) + j * R2_STEP[1]
+    else:
+        q0 = q1 = dr.zeros(mi.UInt32, N)
+
+    def cond(k, D, A, L, S, n, beta, sampler, q0, q1):
         return k < rays
 
-    def body(k, D, A, L, S, n, beta, sampler):
-        u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
+    def body(k, D, A, L, S, n, beta, sampler, q0, q1):
+        if p.stratified:
+            # top 24 bits: a float32 in [0, 1)
+            u = mi.Point2f(mi.Float(q0 >> 8) * (1.0 / 16777216.0), mi.Float(q1 >> 8) * (1.0 / 16777216.0))
+            q0, q1 = q0 + R2_STEP[0], q1 + R2_STEP[1]
+        else:
+            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
         ds, w, ok = sample_light(scene, si, u, valid)
         ok &= dr.all(dr.isfinite(w))
         ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), ok)
         s = dr.normalize(frame_l.to_local(ds.d))
         D, A, L, S, n, beta, _ = insert_sample(D, A, L, S, n, beta, s, w, ok, p)
-        return k + 1, D, A, L, S, n, beta, sampler
+        return k + 1, D, A, L, S, n, beta, sampler, q0, q1
 
-    _, D, A, L, S, n, beta, sampler = dr.while_loop(
-        state=(mi.UInt32(0), D, A, L, S, n, beta, sampler), cond=cond, body=body,
-        labels=("k", "D", "A", "L", "S", "n", "beta", "sampler"))
+    _, D, A, L, S, n, beta, sampler, _, _ = dr.while_loop(
+        state=(mi.UInt32(0), D, A, L, S, n, beta, sampler, q0, q1), cond=cond, body=body,
+        labels=("k", "D", "A", "L", "S", "n", "beta", "sampler", "q0", "q1"))
 
     # ----------------------------------------------- shrink test: one ray per cone
     period = max(int(p.shrink_period), 1)
@@ -381,10 +436,26 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, is_new, see
         em = si2.emitter(scene, tested[i])
         Le = mi.Color3f(em.eval(si2, tested[i]))
         hits.append(tested[i] & (dr.max(Le) > 0.0))
+    # A light that left (switched off, moved away) leaves a cone whose rim tests
+    # miss but which only shrinks by epsilon alpha per test, with its L_c and C
+    # kept: it would fade as (1 - n/C) per cycle, 255 cycles for a settled entry.
+    # So a large cone whose rim test missed and that got no sample this cycle
+    # is tested once more on its axis; if that misses too, the cycle counts as a
+    # turn of ``gone_turn`` (C divided by 3, motion reported: 8 cycles of memory
+    # and rays_moving rays until it stops). A cone that still gets samples holds
+    # a light that moves within reach, which widening and shrinking follow.
+    gone = mi.Bool(False)
+    if p.gone_test:
+        for i in range(K):
+            m = tested[i] & ~hits[i] & (A[i] >= p.alpha_small) & (dr.max(S[i]) <= 0.0)
+            si2 = scene.ray_intersect(si.spawn_ray(frame_l.to_world(D[i])), m)
+            Le = mi.Color3f(si2.emitter(scene, m).eval(si2, m))
+            gone |= m & ~(dr.max(Le) > 0.0)
+        beta = dr.select(gone, dr.maximum(beta, p.gone_turn), beta)
     D, A, L, S, n, beta, dropped, shrunk = shrink_step(D, A, L, S, n, beta, dirs, hits, tested, p)
 
     # ----------------------------------------------- close the cycle and pack
-    L, C, reduced = end_cycle(L, S, C, n, beta, rays, unsettled, p)
+    L, C, reduced = end_cycle(L, S, C, n, beta, rays, moving, p)
     motion = valid & (reduced | dropped | (beta * (180.0 / math.pi) > p.beta_min_deg))
     words = pack(D, A, L, C, n, K)
     dr.eval(*words, motion, shrunk, dropped)

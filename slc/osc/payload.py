@@ -37,25 +37,75 @@ _UPD_MASK = 0xFFFF
 class RayPolicy:
     r"""Update rays per entry and frame, from the entry's own state.
 
-    An entry is *new* for its first ``new_updates`` updates and gets ``new``
-    rays; after the payload reports motion it is *moving* for the next
-    ``motion_updates`` updates and gets ``moving`` rays; otherwise it is
-    *settled* and gets ``settled`` rays. New and moving entries are
-    "unsettled" (payloads may treat them differently, e.g. shorter memory)."""
+    An entry is *new* for its first ``new_updates`` updates; after the
+    payload reports motion it is *moving* for the next ``motion_updates``
+    updates and gets ``moving`` rays; otherwise it is *settled* and gets
+    ``settled`` rays. New and moving entries are "unsettled" (payloads may
+    treat them differently, e.g. shorter memory); a new entry that moves gets
+    the larger of its new and moving rays.
+
+    A new entry at age ``a`` (updates so far) gets ``new`` rays when
+    ``halve_every`` is 0 (a step: ``new`` rays, then ``settled``), else the
+    age ramp ``max(settled, new >> (a // halve_every))``: rays go where the
+    entry's sample count, and so the variance of its estimate, is smallest.
+
+    ``budget`` (> 0) caps the rays of a frame at ``budget`` per active
+    entry: when the entries ask for more, every entry keeps its ``settled``
+    rays and the rays above them are scaled down by one common factor
+    (rounded down, so the cap holds).  0: no cap."""
     new: int = 8
     new_updates: int = 8
     settled: int = 1
     moving: int = 8
     motion_updates: int = 8
+    halve_every: int = 0
+    budget: float = 0.0
+
+    def new_rays(self, age: int) -> int:
+        """Rays of a new entry at ``age`` (Python ints; the schedule)."""
+        if age >= self.new_updates:
+            return self.settled
+        if self.halve_every <= 0:
+            return self.new
+        return max(self.settled, self.new >> (age // self.halve_every))
 
     def rays(self, state: mi.UInt32):
         """(rays, unsettled) per entry from its policy state word
         ``updates | motion_left << 16``."""
         upd, mot = state & _UPD_MASK, state >> 16
         young, moving = upd < self.new_updates, mot > 0
-        rays = dr.select(young, mi.UInt32(self.new),
-                         dr.select(moving, mi.UInt32(self.moving), mi.UInt32(self.settled)))
+        r_new = mi.UInt32(self.new)
+        if self.halve_every > 0:
+            r_new = dr.maximum(mi.UInt32(self.settled), r_new >> (upd // self.halve_every))
+        # a new entry that reported motion gets at least the moving rays (the ramp's
+        # tail would give it 2 while its memory is cut short)
+        r_new = dr.select(moving, dr.maximum(r_new, mi.UInt32(self.moving)), r_new)
+        rays = dr.select(young, r_new, dr.select(moving, mi.UInt32(self.moving), mi.UInt32(self.settled)))
+        if self.budget > 0 and dr.width(state) > 0:
+            rays = self._capped(rays)
         return rays, young | moving
+
+    def _capped(self, rays: mi.UInt32) -> mi.UInt32:
+        """The per-frame cap (see the class docstring); no Python read-back:
+        the totals stay width-1 arrays inside the kernel."""
+        base = dr.minimum(rays, self.settled)
+        extra = mi.Float(rays - base)
+        n = dr.width(rays)
+        room = dr.maximum(dr.opaque(mi.Float, self.budget * n) - mi.Float(dr.sum(base)), 0.0)
+        want = dr.sum(extra)
+        scale = dr.select(want > room, room / dr.maximum(want, 1.0), 1.0)
+        return base + mi.UInt32(dr.floor(extra * scale))
+
+    def samples_before(self, state: mi.UInt32) -> mi.UInt32:
+        """Samples an entry has drawn before this update if it never moved
+        (the sum of the schedule over its age): the index of its first sample
+        in a per-entry low-discrepancy sequence (the update's stratification).
+        Motion phases and the budget make it approximate, never invalid."""
+        upd = state & _UPD_MASK
+        total = mi.UInt32(0)
+        for a in range(self.new_updates):
+            total += dr.select(upd > a, mi.UInt32(self.new_rays(a)), 0)
+        return total + mi.UInt32(dr.maximum(mi.Int32(upd) - self.new_updates, 0)) * self.settled
 
     def advance(self, state: mi.UInt32, motion: mi.Bool) -> mi.UInt32:
         """The state after one update; ``motion`` restarts the moving phase."""
