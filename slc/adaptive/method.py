@@ -19,6 +19,7 @@ from .choice import CONES, NONE, SH, VIS, ChoiceParams, Header
 from .pool import Pool
 
 REPS = (VIS, CONES, SH)
+RESTART_COUNT = 4
 
 
 def _subset(mask: mi.Bool):
@@ -148,6 +149,7 @@ class AdaptiveCache(PayloadMethod):
         # ------------------------------- every representation updates its own entries
         ed, en, mv = dr.zeros(mi.Float, N), dr.zeros(mi.Float, N), dr.zeros(mi.Vector3f, N)
         motion = dr.zeros(mi.Bool, N)
+        vis_motion = dr.zeros(mi.Bool, N)
         rays = mi.UInt32(rays)
         for r in REPS:
             idx, on, _ = _subset(tag == r)
@@ -159,7 +161,10 @@ class AdaptiveCache(PayloadMethod):
             ry = dr.gather(mi.UInt32, rays, idx)
             fr_r = dr.gather(mi.Bool, fresh, idx)
             if r == VIS:
-                out, st = visibility.update(sc, rec, si, key, ry, fr_r, on, ctx.frame, self.seed, self.vis_lights)
+                out, mo, st = visibility.update(sc, rec, si, key, ry, dr.gather(mi.Bool, unsettled, idx), fr_r, on,
+                                                ctx.frame, self.seed, self.vis_lights)
+                dr.scatter(motion, mo, idx, on)
+                dr.scatter(vis_motion, mo, idx, on)
             elif r == CONES:
                 out, mo, st = cones_rep.update(sc, rec, si, key, ry, dr.gather(mi.Bool, unsettled, idx), fr_r, on,
                                                ctx.frame, self.seed, self.cone_params)
@@ -173,7 +178,9 @@ class AdaptiveCache(PayloadMethod):
             dr.scatter(ed, st[0], idx, on)
             dr.scatter(en, st[1], idx, on)
             dr.scatter(mv, st[2], idx, on)
-            dr.eval(pool.data, ed, en, mv, motion)
+            dr.eval(pool.data, ed, en, mv, motion, vis_motion)
+        # a listed delta light went dark: the statistics restart from a short window
+        h.count = dr.select(vis_motion, dr.minimum(h.count, RESTART_COUNT), h.count)
 
         # ------------------------------- statistics and the choice
         e_d, e_n, m_hat = _means(ed, en, mv, rays)

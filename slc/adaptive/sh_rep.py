@@ -7,7 +7,9 @@ as the ``sh`` method (:class:`slc.sh.method.SHSurfaceCache`):
 :math:`\hat\lambda_{lm} = \frac1n \sum_k w_k V_k Y_{lm}(\omega_k)`,
 :math:`\lambda \leftarrow \lambda + (\hat\lambda - \lambda)/C`, C capped at
 ``max_count``; lights below the surface are dropped. Shading: the
-Ramamoorthi-Hanrahan irradiance for diffuse-only BSDFs, BSDF samples of the
+Ramamoorthi-Hanrahan irradiance for diffuse-only BSDFs (chrominance by the
+"ratio" rule of :func:`slc.sh.project.irradiance`: the paper's offset rule
+shifted the colour of a constant sky on a plane by 5%), BSDF samples of the
 reconstructed radiance otherwise (the ``sh`` method's shading, copied here
 to read the pool and the local frame).
 
@@ -28,7 +30,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..keys import STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng
-from ..sh.basis import C0, C1, band_of, basis
+from ..sh.basis import C1, band_of, basis
 from ..sh.project import irradiance, project, radiance
 from .sampling import lum, sampler_of
 
@@ -99,7 +101,7 @@ def shade(rec, si, bsdf, tf, active, enc, seed: int, glossy_samples: int) -> mi.
     diffuse_only = ~mi.has_flag(flags, mi.BSDFFlags.Glossy) & ~mi.has_flag(flags, mi.BSDFFlags.Delta)
     # ------------------- diffuse: closed-form irradiance at the pixel's normal
     nrm = tf.to_local(mi.Vector3f(si.sh_frame.n))
-    E = mi.Color3f(*irradiance(enc, coeffs, nrm))
+    E = mi.Color3f(*irradiance(enc, coeffs, nrm, chroma="ratio"))
     rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, active & diffuse_only))
     L = dr.select(active & diffuse_only & (si.wi.z > 0.0), rho * E * (1.0 / math.pi), 0.0)
     # ------------------- glossy: BSDF samples of the reconstructed radiance
@@ -158,4 +160,4 @@ def from_lobes(lobes, n_lanes: int, enc):
 
 def irradiance_at_normal(rec, enc) -> mi.Color3f:
     coeffs, _ = unpack(rec, enc)
-    return mi.Color3f(*irradiance(enc, coeffs, mi.Vector3f(0.0, 0.0, 1.0)))
+    return mi.Color3f(*irradiance(enc, coeffs, mi.Vector3f(0.0, 0.0, 1.0), chroma="ratio"))

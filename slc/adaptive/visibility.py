@@ -42,6 +42,7 @@ EMPTY = 0xFFFF
 STREAM_VIS = 0x3C6EF372
 VIS_WINDOW = 16
 RES_MAX_COUNT = 32
+UNSETTLED_COUNT = 4         # residual count cap of new and moving entries
 RESIDUAL_ALPHA = math.radians(60.0)     # the residual as a lobe (conversion): a 60-degree cone about n
 
 
@@ -88,9 +89,13 @@ def light_at(emitters_dr, si, idx, active):
 
 # ----------------------------------------------------------------------------- update
 
-def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int, K: int):
+def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int, seed: int, K: int):
     """One update cycle of VISIBILITY records ``rec`` (lists of words, one lane
-    per entry) at the entries' points ``si``. Returns (new words, stats values)."""
+    per entry) at the entries' points ``si``. A listed light whose unoccluded
+    irradiance here is now 0 (switched off, turned or moved away) is dropped
+    and reported as motion. Unsettled entries (new, moving) cap the
+    residual's count at ``UNSETTLED_COUNT``. Returns (new words, motion,
+    stats values)."""
     sc = scene
     N = dr.width(key)
     samp = sampler_of(sc)
@@ -110,9 +115,13 @@ def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int
 
     # ----------------------- the listed lights' exact unoccluded irradiance here
     wl, imp = [], []
+    gone = mi.Bool(False)
     for i in range(K):
         ds, w = light_at(em_dr, si, idx[i], valid)
         cos = dr.maximum(dr.dot(ds.d, nrm), 0.0)
+        dead = valid & (idx[i] != EMPTY) & ~(lum(w) * cos > 0.0)
+        gone |= dead & (vis[i] > 0.0)
+        idx[i] = dr.select(dead, EMPTY, idx[i])
         wl.append(w * cos)
         imp.append(dr.select(idx[i] != EMPTY, lum(w) * cos, -1.0))
 
@@ -175,11 +184,12 @@ def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int
 
     # ----------------------- the residual's running mean (with the energy moved by swaps)
     n = mi.Float(dr.maximum(mi.UInt32(rays), 1))
-    C = dr.minimum(C + 1.0, float(RES_MAX_COUNT))
+    cap = dr.select(mi.Bool(unsettled) | gone, float(UNSETTLED_COUNT), float(RES_MAX_COUNT))
+    C = dr.minimum(dr.minimum(C, cap - 1.0) + 1.0, cap)
     E = dr.maximum(E + adj, 0.0)
     E = E + (S / n - E) * dr.rcp(dr.maximum(C, 1.0))
     out = pack(idx, vis, cnt, E, C, K)
-    return out, [ed, en, m]
+    return out, gone, [ed, en, m]
 
 
 # ----------------------------------------------------------------------------- shading
