@@ -56,7 +56,7 @@ def _run_case(spec: str, rig: str, n: int) -> dict:
     return json.loads(line[len("RESULT "):])
 
 
-METHODS = ["rt16", "restir", "slc", "slc:fetch=bilinear", "sh"]
+METHODS = ["rt16", "restir", "slc", "slc:fetch=bilinear", "sh", "adaptive"]
 
 
 @pytest.mark.parametrize("rig,n", [("single", 1), ("random", 4)], ids=["1-viewer", "4-viewers"])

@@ -29,10 +29,11 @@ def _subset(mask: mi.Bool):
     idx = dr.compress(mask)
     n = dr.width(idx)
     if n >= 2:
-        return idx, dr.full(mi.Bool, True, n), n
+        return idx, dr.opaque(mi.Bool, True, n), n
     if n == 1:
-        return dr.gather(mi.UInt32, idx, mi.UInt32([0, 0])), mi.Bool([True, True]), 1
-    return mi.UInt32([0, 0]), mi.Bool([False, False]), 0
+        i0 = int(idx[0])          # a width-1 array would enter kernels as a scalar: another IR
+        return mi.UInt32([i0, i0]), dr.opaque(mi.Bool, True, 2), 1
+    return dr.opaque(mi.UInt32, 0, 2), dr.opaque(mi.Bool, False, 2), 0
 
 
 class AdaptiveCache(PayloadMethod):

@@ -32,7 +32,9 @@ class Pool:
         self.capacity, self.top = 0, 0
         self.data = dr.zeros(mi.UInt32, 0)
         self.free = dr.zeros(mi.UInt32, 0)
-        self._grow(max(int(initial), 2))
+        # two steps, so that the growth kernels are built here and not in a timed frame
+        self._resize(max(int(initial) // 2, 32))
+        self._resize(max(int(initial), 64))
 
     # ------------------------------------------------------------------ size
     @property
@@ -47,17 +49,19 @@ class Pool:
         return self.used * 4 * self.words
 
     def _grow(self, need_free: int) -> None:
-        if self.top >= need_free:
-            return
+        if self.top < need_free:
+            old = self.capacity
+            self._resize(max(2 * old, old + need_free - self.top, 64))
+
+    def _resize(self, cap: int) -> None:
+        """Grow to ``cap`` records (whole arrays copied: widths >= 32, never a
+        width-1 array, which a kernel would read as a scalar)."""
         old = self.capacity
-        cap = max(2 * old, old + need_free - self.top, 64)
         data = dr.zeros(mi.UInt32, cap * self.words)
         free = dr.zeros(mi.UInt32, cap)
         if old > 0:
             dr.scatter(data, self.data, dr.arange(mi.UInt32, old * self.words))
-        if self.top > 0:
-            dr.scatter(free, dr.gather(mi.UInt32, self.free, dr.arange(mi.UInt32, self.top)),
-                       dr.arange(mi.UInt32, self.top))
+            dr.scatter(free, self.free, dr.arange(mi.UInt32, old))
         # the new slots join the stack above the old free ones
         added = cap - old
         dr.scatter(free, dr.arange(mi.UInt32, added) + dr.opaque(mi.UInt32, old),
@@ -71,11 +75,10 @@ class Pool:
         """A fresh slot for every true lane of ``mask`` (INVALID elsewhere). The
         record's contents are stale: the caller initialises it."""
         n = int(dr.count(mask)[0]) if dr.width(mask) else 0
-        if n == 0:
-            return dr.full(mi.UInt32, INVALID, dr.width(mask))
+        # no early exit when n == 0: the same kernels run in every frame (none built after warm-up)
         self._grow(n)
         rank = _exclusive_rank(mask)
-        pos = dr.opaque(mi.UInt32, self.top - 1) - rank
+        pos = dr.opaque(mi.UInt32, max(self.top - 1, 0)) - rank
         slot = dr.gather(mi.UInt32, self.free, pos, mask)
         self.top -= n
         slot = dr.select(mask, slot, INVALID)
@@ -86,8 +89,6 @@ class Pool:
         """Return the slots of the true lanes of ``mask`` to the free list (each once)."""
         mask = mi.Bool(mask) & (mi.UInt32(slot) != INVALID)
         n = int(dr.count(mask)[0]) if dr.width(mask) else 0
-        if n == 0:
-            return
         rank = _exclusive_rank(mask)
         dr.scatter(self.free, mi.UInt32(slot), dr.opaque(mi.UInt32, self.top) + rank, mask)
         self.top += n
