@@ -3,7 +3,6 @@ and its accuracy against ground truth and closed forms, switching, the pool
 allocator and the header packing. Small images (32x32) on planes."""
 import math
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest

@@ -152,8 +152,15 @@ class AdaptiveCache(PayloadMethod):
         motion = dr.zeros(mi.Bool, N)
         vis_motion = dr.zeros(mi.Bool, N)
         rays = mi.UInt32(rays)
+        counts = {}
         for r in REPS:
-            idx, on, _ = _subset(tag == r)
+            idx, on, counts[r] = _subset(tag == r)
+            if counts[r] == 0:
+                continue        # no lane: no kernel traced (tracing costs as much as a small frame)
+            # entries with many rays side by side (as slc's update): a SIMD packet's loop runs as many
+            # iterations as its largest ray count
+            order = dr.argsort(dr.gather(mi.UInt32, rays, idx), descending=True)
+            idx, on = dr.gather(mi.UInt32, idx, order), dr.gather(mi.Bool, on, order)
             pool = self.pools[r]
             ps = dr.gather(mi.UInt32, slot, idx)
             rec = pool.gather(ps, on)
@@ -194,6 +201,7 @@ class AdaptiveCache(PayloadMethod):
         for k, w in enumerate(ch.pack_header(h)):
             dr.scatter(self.storage, w, base + k)
         self._tags = h.tag
+        self._counts = {r: int(dr.count(h.tag == r)[0]) for r in REPS}
         dr.eval(self.storage, self._tags)
         return motion
 
@@ -203,6 +211,8 @@ class AdaptiveCache(PayloadMethod):
         sc, K, Kv = self.scene.mi_scene, self.max_cones, self.vis_lights
         idx, on, n = _subset(switch)
         self._switches = n
+        if n == 0:
+            return h
         src = dr.gather(mi.UInt32, h.tag, idx)
         dst = dr.gather(mi.UInt32, target, idx)
         old = dr.gather(mi.UInt32, h.slot, idx)
@@ -249,11 +259,17 @@ class AdaptiveCache(PayloadMethod):
         si = gb.si
         bsdf = si.bsdf()
         m_v, m_c, m_s = ok & (tag == VIS), ok & (tag == CONES), ok & (tag == SH)
-        L = visibility.shade(sc, self.pools[VIS].gather(ps, m_v), si, bsdf, m_v, self.vis_lights)
-        L += shader_for(self, self.max_cones)(self.pools[CONES].data, dr.select(m_c, ps, 0), m_c, si, tf,
-                                              self.shade_samples, shade_key(ctx.frame, self.seed))
-        L += sh_rep.shade(self.pools[SH].gather(ps, m_s), si, bsdf, tf, m_s, self.enc, self.seed,
-                          self.glossy_samples)
+        # a representation no active entry uses is not traced (no pixel can need it)
+        used = getattr(self, "_counts", {})
+        L = dr.zeros(mi.Color3f, gb.size)
+        if used.get(VIS, 1):
+            L += visibility.shade(sc, self.pools[VIS].gather(ps, m_v), si, bsdf, m_v, self.vis_lights)
+        if used.get(CONES, 1):
+            L += shader_for(self, self.max_cones)(self.pools[CONES].data, dr.select(m_c, ps, 0), m_c, si, tf,
+                                                  self.shade_samples, shade_key(ctx.frame, self.seed))
+        if used.get(SH, 1):
+            L += sh_rep.shade(self.pools[SH].gather(ps, m_s), si, bsdf, tf, m_s, self.enc, self.seed,
+                              self.glossy_samples)
         return L
 
     # ------------------------------------------------------------------ reports

@@ -77,6 +77,14 @@ def empty(n: int, K: int):
             [dr.zeros(mi.UInt32, n) for _ in range(K)], dr.zeros(mi.Color3f, n), dr.zeros(mi.Float, n))
 
 
+def _slot(lst, i):
+    """Element ``i`` (a per-lane index) of a per-slot list."""
+    r = lst[0]
+    for j in range(1, len(lst)):
+        r = dr.select(i == j, lst[j], r)
+    return r
+
+
 def light_at(emitters_dr, si, idx, active):
     """(direction sample, I/d^2 RGB) of emitter ``idx`` at ``si``: exact and
     unoccluded for a delta light (0 where inactive or the index is empty)."""
@@ -114,16 +122,24 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int
     E, C = dr.select(fresh, e_E, E), dr.select(fresh, e_C, C)
 
     # ----------------------- the listed lights' exact unoccluded irradiance here
-    wl, imp = [], []
+    # one emitter call site in a loop over the list: a call is traced once per emitter
+    # instance, so K call sites would trace K times as much
+    def lcond(i, wl):
+        return i < K
+
+    def lbody(i, wl):
+        ds, w = light_at(em_dr, si, _slot(idx, i), valid)
+        wc = w * dr.maximum(dr.dot(ds.d, nrm), 0.0)
+        return i + 1, [dr.select(i == j, wc, wl[j]) for j in range(K)]
+
+    _, wl = dr.while_loop(state=(mi.UInt32(0), [dr.zeros(mi.Color3f, N) for _ in range(K)]), cond=lcond, body=lbody)
+    imp = []
     gone = mi.Bool(False)
     for i in range(K):
-        ds, w = light_at(em_dr, si, idx[i], valid)
-        cos = dr.maximum(dr.dot(ds.d, nrm), 0.0)
-        dead = valid & (idx[i] != EMPTY) & ~(lum(w) * cos > 0.0)
+        dead = valid & (idx[i] != EMPTY) & ~(lum(wl[i]) > 0.0)
         gone |= dead & (vis[i] > 0.0)
         idx[i] = dr.select(dead, EMPTY, idx[i])
-        wl.append(w * cos)
-        imp.append(dr.select(idx[i] != EMPTY, lum(w) * cos, -1.0))
+        imp.append(dr.select(idx[i] != EMPTY, lum(wl[i]), -1.0))
 
     rng = keyed_rng(key, seed, frame, STREAM_VIS)
     st = SampleStats(N)
@@ -199,12 +215,19 @@ def shade(scene: mi.Scene, rec, si, bsdf, active, K: int) -> mi.Color3f:
     em_dr = scene.emitters_dr()
     idx, vis, cnt, E, C = unpack(rec, K)
     ctx = mi.BSDFContext()
-    L = dr.zeros(mi.Color3f, dr.width(idx[0]))
-    for i in range(K):
-        m = active & (idx[i] != EMPTY) & (vis[i] > 0.0)
-        ds, w = light_at(em_dr, si, idx[i], m)
+    active = mi.Bool(active)
+
+    def cond(i, L):
+        return (i < K) & active
+
+    def body(i, L):                      # one emitter and one BSDF call site (see update)
+        ii, vi = _slot(idx, i), _slot(vis, i)
+        m = active & (ii != EMPTY) & (vi > 0.0)
+        ds, w = light_at(em_dr, si, ii, m)
         f = bsdf.eval(ctx, si, si.to_local(ds.d), m)
-        L += dr.select(m, mi.Color3f(f) * w * vis[i], 0.0)
+        return i + 1, L + dr.select(m, mi.Color3f(f) * w * vi, 0.0)
+
+    _, L = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(active))), cond=cond, body=body)
     fn = bsdf.eval(ctx, si, mi.Vector3f(0.0, 0.0, 1.0), active)
     L += dr.select(active, mi.Color3f(fn) * E, 0.0)
     return L
