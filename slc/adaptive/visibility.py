@@ -41,7 +41,7 @@ from .sampling import SampleStats, lum, sampler_of
 EMPTY = 0xFFFF
 STREAM_VIS = 0x3C6EF372
 VIS_WINDOW = 16
-RES_MAX_COUNT = 32
+RES_MAX_COUNT = 255                 # as the cones' C (8 bits)
 UNSETTLED_COUNT = 4         # residual count cap of new and moving entries
 RESIDUAL_ALPHA = math.radians(60.0)     # the residual as a lobe (conversion): a 60-degree cone about n
 
