@@ -119,12 +119,16 @@ def target_of(h: Header, p: ChoiceParams) -> mi.UInt32:
     return dr.select(h.e > 0.0, t, h.tag)
 
 
-def decide(h: Header, p: ChoiceParams):
-    """(header with the streak advanced, switch mask, target tag)."""
+def decide(h: Header, p: ChoiceParams, allowed: bool = True):
+    """(header with the streak advanced, switch mask, target tag). With
+    ``allowed`` false (a frame between switch frames) nothing switches and the
+    streaks keep counting."""
     t = target_of(h, p)
     differs = (t != h.tag) & (h.tag != NONE)
-    streak = dr.select(differs, h.streak + 1, 0)
+    streak = dr.select(differs, dr.minimum(h.streak + 1, 63), 0)
     switch = differs & (streak >= p.switch_after) & (h.count >= p.min_count)
+    if not allowed:
+        switch = dr.zeros(mi.Bool, dr.width(switch))
     h2 = Header(tag=h.tag, streak=dr.select(switch, 0, streak), count=h.count, e=h.e, slot=h.slot,
                 s_delta=h.s_delta, m=h.m)
     return h2, switch, t

@@ -74,6 +74,8 @@ class AdaptiveCache(PayloadMethod):
         Param("rays_settled", 1, "update rays of settled entries", lo=1, hi=1024),
         Param("window", 32, "light statistics' running-mean window (updates)", lo=1, hi=63),
         Param("switch_after", 3, "updates in a row asking for another representation before a switch", lo=1, hi=63),
+        Param("switch_period", 4, "switches are carried out in every k-th frame only (their conversion "
+              "kernels are traced in those frames)", lo=1, hi=64),
         Param("theta_delta", 0.5, "delta-light energy share above which VISIBILITY is chosen", lo=0.0, hi=1.0),
         Param("theta_r", 0.75, "mean resultant length below which SH is chosen", lo=0.0, hi=1.0),
         Param("start", "prior", "representation of new entries (prior: from the scene's emitters)",
@@ -193,7 +195,7 @@ class AdaptiveCache(PayloadMethod):
         # ------------------------------- statistics and the choice
         e_d, e_n, m_hat = _means(ed, en, mv, rays)
         h = ch.update_stats(h, e_d, e_n, m_hat, self.choice)
-        h, switch, target = ch.decide(h, self.choice)
+        h, switch, target = ch.decide(h, self.choice, allowed=ctx.frame % self.switch_period == 0)
         if forced is not None:
             switch = dr.zeros(mi.Bool, N)
         dr.eval(switch, target)
@@ -207,45 +209,50 @@ class AdaptiveCache(PayloadMethod):
 
     def _switch(self, fr, h: Header, switch: mi.Bool, target: mi.UInt32) -> Header:
         """Convert the records of switching entries (old representation ->
-        lobes -> new representation), then move them between pools."""
+        lobes -> new representation), then move them between pools. One small
+        kernel per (old, new) pair that occurs: the conversion of all pairs in
+        one kernel was traced in every frame with a switch and cost more than
+        the update itself (skylit: 400 ms a frame)."""
         sc, K, Kv = self.scene.mi_scene, self.max_cones, self.vis_lights
-        idx, on, n = _subset(switch)
-        self._switches = n
-        if n == 0:
-            return h
-        src = dr.gather(mi.UInt32, h.tag, idx)
-        dst = dr.gather(mi.UInt32, target, idx)
-        old = dr.gather(mi.UInt32, h.slot, idx)
-        si = dr.gather(mi.SurfaceInteraction3f, fr.si, idx)
-        n_l = dr.width(idx)
-
-        # ------------------------------- old record -> lobes (every source, masked)
-        lobes = []
-        lobes += visibility.lobes(sc, self.pools[VIS].gather(old, on & (src == VIS)), si, on & (src == VIS), Kv)
-        lobes += cones_rep.lobes(self.pools[CONES].gather(old, on & (src == CONES)), on & (src == CONES), K)
-        sh_old = self.pools[SH].gather(old, on & (src == SH))
-        lobes += sh_rep.lobes(sh_old, on & (src == SH), self.enc)
-
-        # ------------------------------- lobes -> new record
-        E = cones_rep.irradiance_at_normal(lobes)
-        E = dr.select(src == SH, sh_rep.irradiance_at_normal(sh_old, self.enc), E)
-        new_rec = {VIS: visibility.from_irradiance(E, n_l, Kv),
-                   CONES: cones_rep.from_lobes(lobes, n_l, self.cone_params),
-                   SH: sh_rep.from_lobes(lobes, n_l, self.enc)}
-        for r in REPS:
-            dr.eval(new_rec[r])
-        new_slot = dr.full(mi.UInt32, INVALID, n_l)
-        for r in REPS:
-            m = on & (dst == r)
-            s_r = self.pools[r].acquire(m)
-            self.pools[r].scatter(new_rec[r], s_r, m)
-            new_slot = dr.select(m, s_r, new_slot)
-        for r in REPS:
-            self.pools[r].release(old, on & (src == r))
         tag, slot = mi.UInt32(h.tag), mi.UInt32(h.slot)
-        dr.scatter(tag, dst, idx, on)
-        dr.scatter(slot, new_slot, idx, on)
-        dr.eval(tag, slot)
+        self._switches = int(dr.count(switch)[0]) if dr.width(switch) else 0
+        if self._switches == 0:
+            return h
+        for src in REPS:
+            for dst in REPS:
+                if dst == src:
+                    continue
+                idx, on, n = _subset(switch & (h.tag == src) & (target == dst))
+                if n == 0:
+                    continue
+                old = dr.gather(mi.UInt32, h.slot, idx)
+                si = dr.gather(mi.SurfaceInteraction3f, fr.si, idx)
+                n_l = dr.width(idx)
+                rec = self.pools[src].gather(old, on)
+                # ------------------------------- old record -> lobes
+                if src == VIS:
+                    lobes = visibility.lobes(sc, rec, si, on, Kv)
+                elif src == CONES:
+                    lobes = cones_rep.lobes(rec, on, K)
+                else:
+                    lobes = sh_rep.lobes(rec, on, self.enc)
+                # ------------------------------- lobes -> new record
+                if dst == VIS:
+                    E = sh_rep.irradiance_at_normal(rec, self.enc) if src == SH else \
+                        cones_rep.irradiance_at_normal(lobes)
+                    new = visibility.from_irradiance(E, n_l, Kv)
+                elif dst == CONES:
+                    new = cones_rep.from_lobes(lobes, n_l, self.cone_params)
+                else:
+                    new = sh_rep.from_lobes(lobes, n_l, self.enc)
+                dr.eval(new)
+                del rec
+                s_new = self.pools[dst].acquire(on)
+                self.pools[dst].scatter(new, s_new, on)
+                self.pools[src].release(old, on)
+                dr.scatter(tag, mi.UInt32(dst), idx, on)
+                dr.scatter(slot, s_new, idx, on)
+                dr.eval(tag, slot, self.pools[dst].data)
         return Header(tag=tag, streak=h.streak, count=h.count, e=h.e, slot=slot, s_delta=h.s_delta, m=h.m)
 
     # ------------------------------------------------------------------ shade
