@@ -109,6 +109,11 @@ class AdaptiveCache(PayloadMethod):
     def reset(self):
         super().reset()
         self.pools = None
+        # First frame: every kernel (each representation's update and shading, each
+        # conversion) runs, on masked lanes where nothing needs it, so that none is
+        # first built in a later frame; from then on unused ones are skipped.
+        self._warm = False
+        self._counts = {}
         self._switches = 0
         self._tags = None
 
@@ -153,11 +158,14 @@ class AdaptiveCache(PayloadMethod):
         ed, en, mv = dr.zeros(mi.Float, N), dr.zeros(mi.Float, N), dr.zeros(mi.Vector3f, N)
         motion = dr.zeros(mi.Bool, N)
         vis_motion = dr.zeros(mi.Bool, N)
+        # evaluated before the loop: otherwise their initialisation fuses into the first
+        # representation's kernel, a different kernel for each set of representations present
+        dr.eval(ed, en, mv, motion, vis_motion)
         rays = mi.UInt32(rays)
         counts = {}
         for r in REPS:
             idx, on, counts[r] = _subset(tag == r)
-            if counts[r] == 0:
+            if counts[r] == 0 and self._warm:
                 continue        # no lane: no kernel traced (tracing costs as much as a small frame)
             # entries with many rays side by side (as slc's update): a SIMD packet's loop runs as many
             # iterations as its largest ray count
@@ -216,14 +224,14 @@ class AdaptiveCache(PayloadMethod):
         sc, K, Kv = self.scene.mi_scene, self.max_cones, self.vis_lights
         tag, slot = mi.UInt32(h.tag), mi.UInt32(h.slot)
         self._switches = int(dr.count(switch)[0]) if dr.width(switch) else 0
-        if self._switches == 0:
+        if self._switches == 0 and self._warm:
             return h
         for src in REPS:
             for dst in REPS:
                 if dst == src:
                     continue
                 idx, on, n = _subset(switch & (h.tag == src) & (target == dst))
-                if n == 0:
+                if n == 0 and self._warm:
                     continue
                 old = dr.gather(mi.UInt32, h.slot, idx)
                 si = dr.gather(mi.SurfaceInteraction3f, fr.si, idx)
@@ -255,6 +263,12 @@ class AdaptiveCache(PayloadMethod):
                 dr.eval(tag, slot, self.pools[dst].data)
         return Header(tag=tag, streak=h.streak, count=h.count, e=h.e, slot=slot, s_delta=h.s_delta, m=h.m)
 
+    def render(self, ctx, gbuffers, timer):
+        out = super().render(ctx, gbuffers, timer)
+        if self.pools is not None:
+            self._warm = True
+        return out
+
     # ------------------------------------------------------------------ shade
     def shade(self, ctx, fr, v, gb):
         sc, W = self.scene.mi_scene, self.words
@@ -267,16 +281,27 @@ class AdaptiveCache(PayloadMethod):
         bsdf = si.bsdf()
         m_v, m_c, m_s = ok & (tag == VIS), ok & (tag == CONES), ok & (tag == SH)
         # a representation no active entry uses is not traced (no pixel can need it)
-        used = getattr(self, "_counts", {})
+        used = self._counts if self._warm else {}
+        # each representation's shading is its own kernel, added into an evaluated sum (the same
+        # kernels whichever representations are present)
         L = dr.zeros(mi.Color3f, gb.size)
+        dr.eval(L)
+        parts = []
         if used.get(VIS, 1):
-            L += visibility.shade(sc, self.pools[VIS].gather(ps, m_v), si, bsdf, m_v, self.vis_lights)
+            parts.append(lambda: visibility.shade(sc, self.pools[VIS].gather(ps, m_v), si, bsdf, m_v,
+                                                  self.vis_lights))
         if used.get(CONES, 1):
-            L += shader_for(self, self.max_cones)(self.pools[CONES].data, dr.select(m_c, ps, 0), m_c, si, tf,
-                                                  self.shade_samples, shade_key(ctx.frame, self.seed))
+            parts.append(lambda: shader_for(self, self.max_cones)(
+                self.pools[CONES].data, dr.select(m_c, ps, 0), m_c, si, tf, self.shade_samples,
+                shade_key(ctx.frame, self.seed)))
         if used.get(SH, 1):
-            L += sh_rep.shade(self.pools[SH].gather(ps, m_s), si, bsdf, tf, m_s, self.enc, self.seed,
-                              self.glossy_samples)
+            parts.append(lambda: sh_rep.shade(self.pools[SH].gather(ps, m_s), si, bsdf, tf, m_s, self.enc,
+                                              self.seed, self.glossy_samples))
+        for part in parts:
+            Lr = part()
+            dr.eval(Lr)
+            L = L + Lr
+            dr.eval(L)
         return L
 
     # ------------------------------------------------------------------ reports
