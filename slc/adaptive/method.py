@@ -67,7 +67,7 @@ class AdaptiveCache(PayloadMethod):
         Param("vis_lights", 4, "delta lights with their own visibility per VISIBILITY entry", lo=1, hi=8),
         Param("max_cones", 3, "cones per CONES entry", lo=1, hi=4),
         Param("encoding", "y3co1cg1", "SH encoding of SH entries", choices=tuple(ENCODINGS)),
-        Param("sh_count", 16, "SH running-mean count cap", lo=1),
+        Param("sh_count", 128, "SH running-mean count cap (samples)", lo=1, hi=1e6),
         Param("shade_samples", 16, "cone shading directions per cone", lo=1, hi=1024),
         Param("glossy_samples", 8, "BSDF samples of the SH radiance per glossy pixel", lo=1, hi=1024),
         Param("rays_new", 8, "update rays of new and moving entries", lo=1, hi=1024),

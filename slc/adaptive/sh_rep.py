@@ -5,8 +5,9 @@ coefficients), in the entry's local frame, in a pool of its own.
 Record: the coefficients and the update count, one float word each. Update
 as the ``sh`` method (:class:`slc.sh.method.SHSurfaceCache`):
 :math:`\hat\lambda_{lm} = \frac1n \sum_k w_k V_k Y_{lm}(\omega_k)`,
-:math:`\lambda \leftarrow \lambda + (\hat\lambda - \lambda)/C`, C capped at
-``max_count``; lights below the surface are dropped. Shading: the
+:math:`\lambda \leftarrow \lambda + n(\hat\lambda - \lambda)/C`, C the sample count
+capped at ``max_count`` (the ``sh`` method counts updates: a 1-sample update then
+weighs as much as an 8-sample one); lights below the surface are dropped. Shading: the
 Ramamoorthi-Hanrahan irradiance for diffuse-only BSDFs (chrominance by the
 "ratio" rule of :func:`slc.sh.project.irradiance`: the paper's offset rule
 shifted the colour of a constant sky on a plane by 5%), BSDF samples of the
@@ -83,9 +84,11 @@ def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int
     inv = dr.rcp(mi.Float(dr.maximum(mi.UInt32(rays), 1)))
     coeffs, C = unpack(rec, enc)
     fresh = mi.Bool(fresh)
+    # the count is in samples (as the cones' C): a cycle of n samples weighs n / C
+    n_s = mi.Float(dr.maximum(mi.UInt32(rays), 1))
     C = dr.select(fresh, 0.0, C)
-    C = dr.minimum(C + 1.0, float(max_count))
-    a = dr.rcp(C)
+    C = dr.minimum(C + n_s, float(max_count))
+    a = dr.minimum(n_s * dr.rcp(C), 1.0)
     out = []
     for c in range(n_c):
         old = dr.select(fresh, 0.0, coeffs[c])

@@ -24,7 +24,8 @@ irradiance is larger (importance = luminance of
 :math:`I_i/d_i^2 \cos\theta_i`, exact, recomputed every update); the
 evicted light's estimate :math:`E_i v_i` moves into :math:`E_r` and the
 newcomer's :math:`E_j V` out of it (energy kept). All other samples feed
-the residual's running mean, :math:`E_r \leftarrow E_r + (\hat E_r - E_r)/C_r`
+the residual's running mean, :math:`E_r \leftarrow E_r + n(\hat E_r - E_r)/C_r` (:math:`C_r`
+the sample count, at most 255, or 4 cycles while the entry is new or moving)
 with :math:`\hat E_r = \frac1n\sum_k [k \text{ not in the list}]\, w_k V_k c_k`.
 """
 from __future__ import annotations
@@ -42,7 +43,7 @@ EMPTY = 0xFFFF
 STREAM_VIS = 0x3C6EF372
 VIS_WINDOW = 16
 RES_MAX_COUNT = 255                 # as the cones' C (8 bits)
-UNSETTLED_COUNT = 4         # residual count cap of new and moving entries
+UNSETTLED_COUNT = 4         # residual count cap of new and moving entries, in update cycles
 RESIDUAL_ALPHA = math.radians(60.0)     # the residual as a lobe (conversion): a 60-degree cone about n
 
 
@@ -199,11 +200,12 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int
         cond=cond, body=body)
 
     # ----------------------- the residual's running mean (with the energy moved by swaps)
+    # the count is in samples (as the cones' C): a cycle of n samples weighs n / C
     n = mi.Float(dr.maximum(mi.UInt32(rays), 1))
-    cap = dr.select(mi.Bool(unsettled) | gone, float(UNSETTLED_COUNT), float(RES_MAX_COUNT))
-    C = dr.minimum(dr.minimum(C, cap - 1.0) + 1.0, cap)
+    cap = dr.select(mi.Bool(unsettled) | gone, float(UNSETTLED_COUNT) * n, float(RES_MAX_COUNT))
+    C = dr.minimum(dr.minimum(C, cap - n) + n, cap)
     E = dr.maximum(E + adj, 0.0)
-    E = E + (S / n - E) * dr.rcp(dr.maximum(C, 1.0))
+    E = E + (S / n - E) * dr.minimum(n * dr.rcp(dr.maximum(C, 1.0)), 1.0)
     out = pack(idx, vis, cnt, E, C, K)
     return out, gone, [ed, en, m]
 
