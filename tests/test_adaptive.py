@@ -163,9 +163,8 @@ def test_pool_allocates_unique_slots_and_reuses_freed_ones():
 def test_header_round_trip():
     h = ch.Header(tag=mi.UInt32([1, 3]), streak=mi.UInt32([2, 63]), count=mi.UInt32([5, 63]),
                   e=mi.Float([0.25, 1e6]), slot=mi.UInt32([7, INVALID]), s_delta=mi.Float([1.0, 0.3]),
-                  m=mi.Vector3f([0.0, 0.5], [0.0, -0.2], [1.0, 0.6]), kappa=mi.Float([1.0, 0.25]))
+                  m=mi.Vector3f([0.0, 0.5], [0.0, -0.2], [1.0, 0.6]))
     g = ch.unpack_header(ch.pack_header(h))
-    assert np.allclose(np.array(g.kappa), [1.0, 0.25], atol=1 / 255)
     assert list(g.tag) == [1, 3] and list(g.streak) == [2, 63] and list(g.count) == [5, 63]
     assert list(g.slot) == [7, INVALID]
     assert np.allclose(np.array(g.e), [0.25, 1e6], rtol=1e-3)
@@ -177,7 +176,7 @@ def test_hysteresis():
     p = ch.ChoiceParams()
     def hdr(tag, s, mz):
         return ch.Header(tag=mi.UInt32(tag), streak=mi.UInt32(0), count=mi.UInt32(10), e=mi.Float(1.0),
-                         slot=mi.UInt32(0), s_delta=mi.Float(s), m=mi.Vector3f(0.0, 0.0, mz), kappa=mi.Float(1.0))
+                         slot=mi.UInt32(0), s_delta=mi.Float(s), m=mi.Vector3f(0.0, 0.0, mz))
     # inside the band the current representation stays
     assert ch.target_of(hdr(ch.VIS, 0.45, 1.0), p)[0] == ch.VIS
     assert ch.target_of(hdr(ch.CONES, 0.55, 1.0), p)[0] == ch.CONES

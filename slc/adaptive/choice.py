@@ -4,8 +4,7 @@ choice rule (see docs/adaptive.md).
 Header (3 x 32 bits per cache entry)::
 
     w0: tag (2) | streak (6) | count (6) | e (18, the cones' e6m12 radiance code)
-    w1: slot of the entry's record in its representation's pool (24 bits, all ones: none)
-        | kappa (unorm8): the share of the delta-light energy the VISIBILITY list covers
+    w1: slot of the entry's record in its representation's pool (INVALID: none)
     w2: s_delta (unorm8) | m_x | m_y | m_z (snorm8: m / e_nd, local frame)
 
 Statistics, running means over the entry's own light samples (window
@@ -39,8 +38,6 @@ from ..cones.packing import decode_radiance, encode_radiance
 NONE, VIS, CONES, SH = 0, 1, 2, 3
 NAMES = {NONE: "none", VIS: "visibility", CONES: "cones", SH: "sh"}
 HEADER_WORDS = 3
-SLOT_MASK = 0xFFFFFF           # pool slots fit 24 bits (16M records per representation)
-INVALID = 0xFFFFFFFF
 
 
 @dataclass(frozen=True)
@@ -50,8 +47,6 @@ class ChoiceParams:
     h_delta: float = 0.15
     theta_r: float = 0.75         # mean resultant length below which light is "wide" (SH)
     h_r: float = 0.06
-    theta_kappa: float = 0.6      # VISIBILITY needs its list to cover this share of the delta energy
-    h_kappa: float = 0.1
     switch_after: int = 3         # updates in a row with another target before switching
     min_count: int = 2            # updates of statistics before the first switch
 
@@ -65,7 +60,6 @@ class Header:
     slot: mi.UInt32
     s_delta: mi.Float
     m: mi.Vector3f
-    kappa: mi.Float
 
 
 def _unorm8(x):
@@ -79,10 +73,8 @@ def _snorm8(x):
 def unpack_header(w) -> Header:
     w0, w1, w2 = (mi.UInt32(x) for x in w)
     m = mi.Vector3f(*[(mi.Float((w2 >> (8 * (k + 1))) & 0xFF) - 127.0) * (1.0 / 127.0) for k in range(3)])
-    slot = w1 & SLOT_MASK
     return Header(tag=w0 & 3, streak=(w0 >> 2) & 63, count=(w0 >> 8) & 63, e=decode_radiance(w0 >> 14),
-                  slot=dr.select(slot == SLOT_MASK, mi.UInt32(INVALID), slot),
-                  s_delta=mi.Float(w2 & 0xFF) * (1.0 / 255.0), m=m, kappa=mi.Float(w1 >> 24) * (1.0 / 255.0))
+                  slot=w1, s_delta=mi.Float(w2 & 0xFF) * (1.0 / 255.0), m=m)
 
 
 def pack_header(h: Header) -> list:
@@ -91,15 +83,12 @@ def pack_header(h: Header) -> list:
     w2 = _unorm8(h.s_delta)
     for k in range(3):
         w2 |= _snorm8(h.m[k]) << (8 * (k + 1))
-    w1 = (dr.minimum(mi.UInt32(h.slot), SLOT_MASK)) | (_unorm8(h.kappa) << 24)
-    return [w0, w1, w2]
+    return [w0, mi.UInt32(h.slot), w2]
 
 
-def update_stats(h: Header, e_d_hat, e_n_hat, m_hat, p: ChoiceParams, listed=None, unlisted=None) -> Header:
+def update_stats(h: Header, e_d_hat, e_n_hat, m_hat, p: ChoiceParams) -> Header:
     """Fold one update cycle's estimates (delta energy, other energy, other
-    energy times direction; for VISIBILITY entries the delta energy of listed
-    and of unlisted lights) into the running means. kappa changes only while
-    the entry is in VISIBILITY (elsewhere there is no list to measure)."""
+    energy times direction) into the running means."""
     e_d = h.s_delta * h.e
     e_n = h.e - e_d
     m = h.m * e_n
@@ -111,13 +100,8 @@ def update_stats(h: Header, e_d_hat, e_n_hat, m_hat, p: ChoiceParams, listed=Non
     s = dr.select(e > 0.0, e_d / dr.select(e > 0.0, e, 1.0), 0.0)
     mn = dr.select(e_n > 0.0, m / dr.select(e_n > 0.0, e_n, 1.0), mi.Vector3f(0.0))
     ok = dr.isfinite(e) & dr.isfinite(s)
-    kappa = h.kappa
-    if listed is not None:
-        tot = listed + unlisted
-        k_hat = dr.select(tot > 0.0, listed / dr.select(tot > 0.0, tot, 1.0), kappa)
-        kappa = dr.select((h.tag == VIS) & (tot > 0.0) & dr.isfinite(k_hat), dr.fma(a, k_hat - kappa, kappa), kappa)
     return Header(tag=h.tag, streak=h.streak, count=dr.minimum(h.count + 1, 63), e=dr.select(ok, e, 0.0),
-                  slot=h.slot, s_delta=dr.select(ok, s, 0.0), m=mn, kappa=kappa)
+                  slot=h.slot, s_delta=dr.select(ok, s, 0.0), m=mn)
 
 
 def resultant(h: Header) -> mi.Float:
@@ -129,7 +113,6 @@ def target_of(h: Header, p: ChoiceParams) -> mi.UInt32:
     around the thresholds (see the module)."""
     is_vis, is_sh = h.tag == VIS, h.tag == SH
     vis = h.s_delta > dr.select(is_vis, p.theta_delta - p.h_delta, p.theta_delta + p.h_delta)
-    vis &= h.kappa > dr.select(is_vis, p.theta_kappa - p.h_kappa, p.theta_kappa + p.h_kappa)
     R = resultant(h)
     wide = R < dr.select(is_sh, p.theta_r + p.h_r, p.theta_r - p.h_r)
     t = dr.select(vis, mi.UInt32(VIS), dr.select(wide, mi.UInt32(SH), mi.UInt32(CONES)))
@@ -147,5 +130,5 @@ def decide(h: Header, p: ChoiceParams, allowed: bool = True):
     if not allowed:
         switch = dr.zeros(mi.Bool, dr.width(switch))
     h2 = Header(tag=h.tag, streak=dr.select(switch, 0, streak), count=h.count, e=h.e, slot=h.slot,
-                s_delta=h.s_delta, m=h.m, kappa=h.kappa)
+                s_delta=h.s_delta, m=h.m)
     return h2, switch, t

@@ -151,7 +151,7 @@ class AdaptiveCache(PayloadMethod):
         z = dr.zeros(mi.Float, N)
         h = Header(tag=tag, streak=dr.select(fresh, 0, h.streak), count=dr.select(fresh, 0, h.count),
                    e=dr.select(fresh, 0.0, h.e), slot=slot, s_delta=dr.select(fresh, 0.0, h.s_delta),
-                   m=dr.select(fresh, mi.Vector3f(z, z, z), h.m), kappa=dr.select(fresh, 1.0, h.kappa))
+                   m=dr.select(fresh, mi.Vector3f(z, z, z), h.m))
         dr.eval(h.tag, h.slot)
 
         # ------------------------------- every representation updates its own entries
@@ -160,8 +160,7 @@ class AdaptiveCache(PayloadMethod):
         vis_motion = dr.zeros(mi.Bool, N)
         # evaluated before the loop: otherwise their initialisation fuses into the first
         # representation's kernel, a different kernel for each set of representations present
-        el, eu = dr.zeros(mi.Float, N), dr.zeros(mi.Float, N)     # VISIBILITY: listed / unlisted delta energy
-        dr.eval(ed, en, mv, motion, vis_motion, el, eu)
+        dr.eval(ed, en, mv, motion, vis_motion)
         rays = mi.UInt32(rays)
         counts = {}
         for r in REPS:
@@ -184,8 +183,6 @@ class AdaptiveCache(PayloadMethod):
                                                 ctx.frame, self.seed, self.vis_lights)
                 dr.scatter(motion, mo, idx, on)
                 dr.scatter(vis_motion, mo, idx, on)
-                dr.scatter(el, st[3], idx, on)
-                dr.scatter(eu, st[4], idx, on)
             elif r == CONES:
                 out, mo, st = cones_rep.update(sc, rec, si, key, ry, dr.gather(mi.Bool, unsettled, idx), fr_r, on,
                                                ctx.frame, self.seed, self.cone_params)
@@ -199,13 +196,13 @@ class AdaptiveCache(PayloadMethod):
             dr.scatter(ed, st[0], idx, on)
             dr.scatter(en, st[1], idx, on)
             dr.scatter(mv, st[2], idx, on)
-            dr.eval(pool.data, ed, en, mv, motion, vis_motion, el, eu)
+            dr.eval(pool.data, ed, en, mv, motion, vis_motion)
         # a listed delta light went dark: the statistics restart from a short window
         h.count = dr.select(vis_motion, dr.minimum(h.count, RESTART_COUNT), h.count)
 
         # ------------------------------- statistics and the choice
         e_d, e_n, m_hat = _means(ed, en, mv, rays)
-        h = ch.update_stats(h, e_d, e_n, m_hat, self.choice, el, eu)
+        h = ch.update_stats(h, e_d, e_n, m_hat, self.choice)
         h, switch, target = ch.decide(h, self.choice, allowed=ctx.frame % self.switch_period == 0)
         if forced is not None:
             switch = dr.zeros(mi.Bool, N)
@@ -264,8 +261,7 @@ class AdaptiveCache(PayloadMethod):
                 dr.scatter(tag, mi.UInt32(dst), idx, on)
                 dr.scatter(slot, s_new, idx, on)
                 dr.eval(tag, slot, self.pools[dst].data)
-        return Header(tag=tag, streak=h.streak, count=h.count, e=h.e, slot=slot, s_delta=h.s_delta, m=h.m,
-                      kappa=h.kappa)
+        return Header(tag=tag, streak=h.streak, count=h.count, e=h.e, slot=slot, s_delta=h.s_delta, m=h.m)
 
     def render(self, ctx, gbuffers, timer):
         out = super().render(ctx, gbuffers, timer)
@@ -279,7 +275,7 @@ class AdaptiveCache(PayloadMethod):
         slot = mi.UInt32(fr.pixel_slot[v])
         ok = mi.Bool(gb.valid) & (slot != INVALID)
         tag = dr.gather(mi.UInt32, self.storage, slot * W, ok) & 3
-        ps = dr.gather(mi.UInt32, self.storage, slot * W + 1, ok) & ch.SLOT_MASK
+        ps = dr.gather(mi.UInt32, self.storage, slot * W + 1, ok)
         tf = dr.gather(mi.Frame3f, fr.si.sh_frame, fr.pixel_index[v], ok)
         si = gb.si
         bsdf = si.bsdf()

@@ -151,7 +151,7 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int
     def cond(k, *state):
         return k < rays
 
-    def body(k, idx, vis, cnt, wl, imp, S, adj, ed, en, m, el, eu, rng):
+    def body(k, idx, vis, cnt, wl, imp, S, adj, ed, en, m, rng):
         u = mi.Point2f(rng.next_float32(), rng.next_float32())
         act = valid & (k < rays)
         ds, w, ok, em = samp.sample(si, u, act)
@@ -193,14 +193,10 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int
             imp[i] = dr.select(r, i1, imp[i])
         handled = hit | rep
         S += dr.select(V & ~handled, w * cos, 0.0)
-        # coverage of the list: unoccluded delta energy of listed and of unlisted lights
-        el = el + dr.select(delta & handled, lum(w) * cos, 0.0)
-        eu = eu + dr.select(delta & ~handled, lum(w) * cos, 0.0)
-        return k + 1, idx, vis, cnt, wl, imp, S, adj, ed, en, m, el, eu, rng
+        return k + 1, idx, vis, cnt, wl, imp, S, adj, ed, en, m, rng
 
-    _, idx, vis, cnt, wl, imp, S, adj, ed, en, m, el, eu, rng = dr.while_loop(
-        state=(mi.UInt32(0), idx, vis, cnt, wl, imp, S, adj, st.ed, st.en, st.m, dr.zeros(mi.Float, N),
-               dr.zeros(mi.Float, N), rng),
+    _, idx, vis, cnt, wl, imp, S, adj, ed, en, m, rng = dr.while_loop(
+        state=(mi.UInt32(0), idx, vis, cnt, wl, imp, S, adj, st.ed, st.en, st.m, rng),
         cond=cond, body=body)
 
     # ----------------------- the residual's running mean (with the energy moved by swaps)
@@ -211,7 +207,7 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int
     E = dr.maximum(E + adj, 0.0)
     E = E + (S / n - E) * dr.minimum(n * dr.rcp(dr.maximum(C, 1.0)), 1.0)
     out = pack(idx, vis, cnt, E, C, K)
-    return out, gone, [ed, en, m, el, eu]
+    return out, gone, [ed, en, m]
 
 
 # ----------------------------------------------------------------------------- shading
