@@ -19,7 +19,7 @@ if __name__ == "__main__" and __package__ is None:
 NAME = "envmap"
 FULL = dict(scene="skylit", maps=["venice", "studio", "spots"], width=320, height=180, frames=120, warmup=10, eval_frames=[59, 119])
 QUICK = dict(scene="skylit", maps=["venice", "spots"], width=160, height=90, frames=24, warmup=10, eval_frames=[23])
-METHODS = ["rt48", "restir", "slc", "slc:max_cones=4", "sh"]
+METHODS = ["rt48", "restir", "slc", "slc:max_cones=4", "sh", "adaptive"]
 
 
 def add_arguments(p):
@@ -41,8 +41,12 @@ def run(opts):
         maps = [m for m in maps if m not in missing]
     variants = [(m, f"{scene}:env={m}") for m in maps]
     specs = opts.methods or ex.available_methods(METHODS)
-    return ex.variant_experiment(opts, NAME, pr, specs, variants, "envmap",
-                                 f"{scene}: error and time per environment map")
+    res = ex.variant_experiment(opts, NAME, pr, specs, variants, "envmap",
+                                f"{scene}: error and time per environment map")
+    from slc.adaptive.viz import add_choice_section
+    c = res["config"]
+    add_choice_section(Path(opts.out) / NAME, res, "envmap", c["width"], c["height"], c["frames"])
+    return res
 
 
 if __name__ == "__main__":

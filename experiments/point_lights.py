@@ -19,7 +19,7 @@ if __name__ == "__main__" and __package__ is None:
 NAME = "point-lights"
 FULL = dict(scene="lamps", lights=[16, 32, 64], width=320, height=180, frames=120, warmup=10, eval_frames=[59, 119])
 QUICK = dict(scene="lamps", lights=[16, 64], width=160, height=90, frames=24, warmup=10, eval_frames=[23])
-METHODS = ["rt48", "restir", "slc", "slc:max_cones=4", "sh"]
+METHODS = ["rt48", "restir", "slc", "slc:max_cones=4", "sh", "adaptive"]
 
 
 def add_arguments(p):
@@ -30,8 +30,19 @@ def add_arguments(p):
 
 def run(opts):
     from slc import experiment as ex
-    return ex.scene_option_sweep(opts, NAME, QUICK, FULL, METHODS, "lights",
-                                 "error and time against the number of point/spot lights")
+    res = ex.scene_option_sweep(opts, NAME, QUICK, FULL, METHODS, "lights",
+                                "error and time against the number of point/spot lights")
+    return _choice(opts, res)
+
+
+def _choice(opts, res):
+    """The adaptive method's representation table and false-colour images."""
+    from pathlib import Path
+
+    from slc.adaptive.viz import add_choice_section
+    c = res["config"]
+    add_choice_section(Path(opts.out) / NAME, res, "lights", c["width"], c["height"], c["frames"])
+    return res
 
 
 if __name__ == "__main__":

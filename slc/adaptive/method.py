@@ -1,0 +1,344 @@
+"""The registered ``adaptive`` method: a per-entry representation chosen from
+the light each surface point receives (visibility of delta lights, cones or
+SH/YCoCg), on the on-surface cache. See docs/adaptive.md."""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from ..cones.packing import words_per_entry
+from ..cones.shading import shade_key, shader_for
+from ..cones.update import ConeParams
+from ..keys import INVALID
+from ..methods import Param, register
+from ..osc.payload import PayloadMethod, RayPolicy
+from ..sh.ycocg import ENCODINGS, encoding as get_encoding
+from . import choice as ch
+from . import cones_rep, sh_rep, visibility
+from .choice import CONES, NONE, SH, VIS, ChoiceParams, Header
+from .pool import Pool
+
+REPS = (VIS, CONES, SH)
+RESTART_COUNT = 4
+
+
+def _subset(mask: mi.Bool):
+    """Lanes of ``mask`` as an index list of width >= 2 (a repeated lane, or two
+    masked lanes when there is none: every kernel runs, with the same IR, in
+    every frame, so none is first built after warm-up), and its lane mask."""
+    idx = dr.compress(mask)
+    n = dr.width(idx)
+    if n >= 2:
+        return idx, dr.opaque(mi.Bool, True, n), n
+    if n == 1:
+        i0 = int(idx[0])          # a width-1 array would enter kernels as a scalar: another IR
+        return mi.UInt32([i0, i0]), dr.opaque(mi.Bool, True, 2), 1
+    return dr.opaque(mi.UInt32, 0, 2), dr.opaque(mi.Bool, False, 2), 0
+
+
+class AdaptiveCache(PayloadMethod):
+    r"""A per-entry representation of the incoming direct light, chosen and
+    changed over time from the entry's own samples (``adaptive``).
+
+    Every on-surface cache entry carries a 3-word header (representation tag,
+    light statistics, the slot of its record) and one record in the pool of
+    its representation:
+
+    - VISIBILITY (delta lights): per-light visibility of the ``vis_lights``
+      delta lights that matter most at the entry plus a residual irradiance;
+      the lights' unoccluded contribution is evaluated exactly at shading;
+    - CONES: the Surface Light Cones record (``max_cones`` cones, 286 bits for 3);
+    - SH: incident radiance in SH with YCoCg chrominance compression.
+
+    Statistics (running means over the entry's samples): the delta-light
+    share of the visible energy :math:`s_\delta` and the mean resultant
+    length :math:`R` of the other light's directions. Choice: VISIBILITY
+    when :math:`s_\delta > 0.5`, else SH when :math:`R < 0.75`, else CONES,
+    with hysteresis bands and ``switch_after`` updates in a row before a
+    switch; a switch converts the old record into the new one through lobes
+    (direction, half-angle, integrated radiance), keeping the energy.
+    New entries start in the scene's prior (VISIBILITY when every emitter
+    is a delta light, SH when every emitter is at infinity, else CONES).
+    Ray policy as ``slc``. See docs/adaptive.md.
+    """
+
+    name = "adaptive"
+    params = (
+        Param("vis_lights", 4, "delta lights with their own visibility per VISIBILITY entry", lo=1, hi=8),
+        Param("max_cones", 3, "cones per CONES entry", lo=1, hi=4),
+        Param("encoding", "y3co1cg1", "SH encoding of SH entries", choices=tuple(ENCODINGS)),
+        Param("sh_count", 128, "SH running-mean count cap (samples)", lo=1, hi=1e6),
+        Param("shade_samples", 16, "cone shading directions per cone", lo=1, hi=1024),
+        Param("glossy_samples", 8, "BSDF samples of the SH radiance per glossy pixel", lo=1, hi=1024),
+        Param("rays_new", 8, "update rays of new and moving entries", lo=1, hi=1024),
+        Param("rays_settled", 1, "update rays of settled entries", lo=1, hi=1024),
+        Param("window", 32, "light statistics' running-mean window (updates)", lo=1, hi=63),
+        Param("switch_after", 3, "updates in a row asking for another representation before a switch", lo=1, hi=63),
+        Param("switch_period", 4, "switches are carried out in every k-th frame only (their conversion "
+              "kernels are traced in those frames)", lo=1, hi=64),
+        Param("theta_delta", 0.5, "delta-light energy share above which VISIBILITY is chosen", lo=0.0, hi=1.0),
+        Param("theta_r", 0.75, "mean resultant length below which SH is chosen", lo=0.0, hi=1.0),
+        Param("start", "prior", "representation of new entries (prior: from the scene's emitters)",
+              choices=("prior", "visibility", "cones", "sh")),
+        Param("force", "auto", "representation of every entry (auto: the choice rule)",
+              choices=("auto", "visibility", "cones", "sh")),
+    ) + PayloadMethod.cache_params
+    words, storage_type = ch.HEADER_WORDS, mi.UInt32
+
+    def __init__(self, scene, **kw):
+        super().__init__(scene, **kw)
+        self.cone_params = ConeParams(max_cones=self.max_cones)
+        self.enc = get_encoding(self.encoding)
+        self.choice = ChoiceParams(window=self.window, theta_delta=self.theta_delta, theta_r=self.theta_r,
+                                   switch_after=self.switch_after)
+        self.prior = self._prior(scene)
+
+    @staticmethod
+    def _prior(scene) -> int:
+        ems = list(scene.mi_scene.emitters())
+        if not ems:
+            return CONES
+        delta = [bool(int(e.flags()) & int(mi.EmitterFlags.Delta)) for e in ems]
+        inf = [bool(int(e.flags()) & int(mi.EmitterFlags.Infinite)) for e in ems]
+        if all(d and not i for d, i in zip(delta, inf)) or all(delta):
+            return VIS
+        if all(i and not d for d, i in zip(delta, inf)):
+            return SH
+        return CONES
+
+    def reset(self):
+        super().reset()
+        self.pools = None
+        # First frame: every kernel (each representation's update and shading, each
+        # conversion) runs, on masked lanes where nothing needs it, so that none is
+        # first built in a later frame; from then on unused ones are skipped.
+        self._warm = False
+        self._counts = {}
+        self._switches = 0
+        self._tags = None
+
+    def _make_pools(self):
+        self.pools = {VIS: Pool("visibility", visibility.words(self.vis_lights)),
+                      CONES: Pool("cones", words_per_entry(self.max_cones)),
+                      SH: Pool("sh", sh_rep.words(self.enc))}
+
+    def ray_policy(self) -> RayPolicy:
+        return RayPolicy(new=self.rays_new, settled=self.rays_settled, moving=self.rays_new)
+
+    # ------------------------------------------------------------------ update
+    def update(self, ctx, fr, rays, unsettled):
+        if self.pools is None:
+            self._make_pools()
+        sc, W = self.scene.mi_scene, self.words
+        N = fr.n_active
+        base = fr.active * W
+        hw = [dr.gather(mi.UInt32, self.storage, base + k) for k in range(W)]
+        h = ch.unpack_header(hw)
+        is_new = mi.Bool(fr.is_new)
+        forced = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.force)
+        start = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.start, self.prior)
+        prior = forced if forced is not None else start
+
+        # ------------------------------- reused slots give back their old records; new ones get a record
+        for r in REPS:
+            self.pools[r].release(h.slot, is_new & (h.tag == r))
+        fresh = is_new | (h.tag == NONE)
+        tag = dr.select(fresh, mi.UInt32(prior), h.tag)
+        slot = dr.select(fresh, mi.UInt32(INVALID), h.slot)
+        for r in REPS:
+            m = fresh & (tag == r)
+            slot = dr.select(m, self.pools[r].acquire(m), slot)
+        z = dr.zeros(mi.Float, N)
+        h = Header(tag=tag, streak=dr.select(fresh, 0, h.streak), count=dr.select(fresh, 0, h.count),
+                   e=dr.select(fresh, 0.0, h.e), slot=slot, s_delta=dr.select(fresh, 0.0, h.s_delta),
+                   m=dr.select(fresh, mi.Vector3f(z, z, z), h.m))
+        dr.eval(h.tag, h.slot)
+
+        # ------------------------------- every representation updates its own entries
+        ed, en, mv = dr.zeros(mi.Float, N), dr.zeros(mi.Float, N), dr.zeros(mi.Vector3f, N)
+        motion = dr.zeros(mi.Bool, N)
+        vis_motion = dr.zeros(mi.Bool, N)
+        # evaluated before the loop: otherwise their initialisation fuses into the first
+        # representation's kernel, a different kernel for each set of representations present
+        dr.eval(ed, en, mv, motion, vis_motion)
+        rays = mi.UInt32(rays)
+        counts = {}
+        for r in REPS:
+            idx, on, counts[r] = _subset(tag == r)
+            if counts[r] == 0 and self._warm:
+                continue        # no lane: no kernel traced (tracing costs as much as a small frame)
+            # entries with many rays side by side (as slc's update): a SIMD packet's loop runs as many
+            # iterations as its largest ray count
+            order = dr.argsort(dr.gather(mi.UInt32, rays, idx), descending=True)
+            idx, on = dr.gather(mi.UInt32, idx, order), dr.gather(mi.Bool, on, order)
+            pool = self.pools[r]
+            ps = dr.gather(mi.UInt32, slot, idx)
+            rec = pool.gather(ps, on)
+            si = dr.gather(mi.SurfaceInteraction3f, fr.si, idx)
+            key = dr.gather(mi.UInt32, fr.keys, idx)
+            ry = dr.gather(mi.UInt32, rays, idx)
+            fr_r = dr.gather(mi.Bool, fresh, idx)
+            if r == VIS:
+                out, mo, st = visibility.update(sc, rec, si, key, ry, dr.gather(mi.Bool, unsettled, idx), fr_r, on,
+                                                ctx.frame, self.seed, self.vis_lights)
+                dr.scatter(motion, mo, idx, on)
+                dr.scatter(vis_motion, mo, idx, on)
+            elif r == CONES:
+                out, mo, st = cones_rep.update(sc, rec, si, key, ry, dr.gather(mi.Bool, unsettled, idx), fr_r, on,
+                                               ctx.frame, self.seed, self.cone_params)
+                dr.scatter(motion, mo, idx, on)
+            else:
+                out, st = sh_rep.update(sc, rec, si, key, ry, fr_r, on, ctx.frame, self.seed, self.enc,
+                                        self.sh_count)
+            dr.eval(out, st)
+            del rec
+            pool.scatter(out, ps, on)
+            dr.scatter(ed, st[0], idx, on)
+            dr.scatter(en, st[1], idx, on)
+            dr.scatter(mv, st[2], idx, on)
+            dr.eval(pool.data, ed, en, mv, motion, vis_motion)
+        # a listed delta light went dark: the statistics restart from a short window
+        h.count = dr.select(vis_motion, dr.minimum(h.count, RESTART_COUNT), h.count)
+
+        # ------------------------------- statistics and the choice
+        e_d, e_n, m_hat = _means(ed, en, mv, rays)
+        h = ch.update_stats(h, e_d, e_n, m_hat, self.choice)
+        h, switch, target = ch.decide(h, self.choice, allowed=ctx.frame % self.switch_period == 0)
+        if forced is not None:
+            switch = dr.zeros(mi.Bool, N)
+        dr.eval(switch, target)
+        h = self._switch(fr, h, switch, target)
+        for k, w in enumerate(ch.pack_header(h)):
+            dr.scatter(self.storage, w, base + k)
+        self._tags = h.tag
+        self._counts = {r: int(dr.count(h.tag == r)[0]) for r in REPS}
+        dr.eval(self.storage, self._tags)
+        return motion
+
+    def _switch(self, fr, h: Header, switch: mi.Bool, target: mi.UInt32) -> Header:
+        """Convert the records of switching entries (old representation ->
+        lobes -> new representation), then move them between pools. One small
+        kernel per (old, new) pair that occurs: the conversion of all pairs in
+        one kernel was traced in every frame with a switch and cost more than
+        the update itself (skylit: 400 ms a frame)."""
+        sc, K, Kv = self.scene.mi_scene, self.max_cones, self.vis_lights
+        tag, slot = mi.UInt32(h.tag), mi.UInt32(h.slot)
+        self._switches = int(dr.count(switch)[0]) if dr.width(switch) else 0
+        if self._switches == 0 and self._warm:
+            return h
+        for src in REPS:
+            for dst in REPS:
+                if dst == src:
+                    continue
+                idx, on, n = _subset(switch & (h.tag == src) & (target == dst))
+                if n == 0 and self._warm:
+                    continue
+                old = dr.gather(mi.UInt32, h.slot, idx)
+                si = dr.gather(mi.SurfaceInteraction3f, fr.si, idx)
+                n_l = dr.width(idx)
+                rec = self.pools[src].gather(old, on)
+                # ------------------------------- old record -> lobes
+                if src == VIS:
+                    lobes = visibility.lobes(sc, rec, si, on, Kv)
+                elif src == CONES:
+                    lobes = cones_rep.lobes(rec, on, K)
+                else:
+                    lobes = sh_rep.lobes(rec, on, self.enc)
+                # ------------------------------- lobes -> new record
+                if dst == VIS:
+                    E = sh_rep.irradiance_at_normal(rec, self.enc) if src == SH else \
+                        cones_rep.irradiance_at_normal(lobes)
+                    new = visibility.from_irradiance(E, n_l, Kv)
+                elif dst == CONES:
+                    new = cones_rep.from_lobes(lobes, n_l, self.cone_params)
+                else:
+                    new = sh_rep.from_lobes(lobes, n_l, self.enc)
+                dr.eval(new)
+                del rec
+                s_new = self.pools[dst].acquire(on)
+                self.pools[dst].scatter(new, s_new, on)
+                self.pools[src].release(old, on)
+                dr.scatter(tag, mi.UInt32(dst), idx, on)
+                dr.scatter(slot, s_new, idx, on)
+                dr.eval(tag, slot, self.pools[dst].data)
+        return Header(tag=tag, streak=h.streak, count=h.count, e=h.e, slot=slot, s_delta=h.s_delta, m=h.m)
+
+    def render(self, ctx, gbuffers, timer):
+        out = super().render(ctx, gbuffers, timer)
+        if self.pools is not None:
+            self._warm = True
+        return out
+
+    # ------------------------------------------------------------------ shade
+    def shade(self, ctx, fr, v, gb):
+        sc, W = self.scene.mi_scene, self.words
+        slot = mi.UInt32(fr.pixel_slot[v])
+        ok = mi.Bool(gb.valid) & (slot != INVALID)
+        tag = dr.gather(mi.UInt32, self.storage, slot * W, ok) & 3
+        ps = dr.gather(mi.UInt32, self.storage, slot * W + 1, ok)
+        tf = dr.gather(mi.Frame3f, fr.si.sh_frame, fr.pixel_index[v], ok)
+        si = gb.si
+        bsdf = si.bsdf()
+        m_v, m_c, m_s = ok & (tag == VIS), ok & (tag == CONES), ok & (tag == SH)
+        # a representation no active entry uses is not traced (no pixel can need it)
+        used = self._counts if self._warm else {}
+        # each representation's shading is its own kernel, added into an evaluated sum (the same
+        # kernels whichever representations are present)
+        L = dr.zeros(mi.Color3f, gb.size)
+        dr.eval(L)
+        parts = []
+        if used.get(VIS, 1):
+            parts.append(lambda: visibility.shade(sc, self.pools[VIS].gather(ps, m_v), si, bsdf, m_v,
+                                                  self.vis_lights))
+        if used.get(CONES, 1):
+            parts.append(lambda: shader_for(self, self.max_cones)(
+                self.pools[CONES].data, dr.select(m_c, ps, 0), m_c, si, tf, self.shade_samples,
+                shade_key(ctx.frame, self.seed)))
+        if used.get(SH, 1):
+            parts.append(lambda: sh_rep.shade(self.pools[SH].gather(ps, m_s), si, bsdf, tf, m_s, self.enc,
+                                              self.seed, self.glossy_samples))
+        for part in parts:
+            Lr = part()
+            dr.eval(Lr)
+            L = L + Lr
+            dr.eval(L)
+        return L
+
+    # ------------------------------------------------------------------ reports
+    def pixel_tags(self, fr, v, gb) -> mi.UInt32:
+        """Representation tag of each pixel's entry (NONE where there is none)."""
+        slot = mi.UInt32(fr.pixel_slot[v])
+        ok = mi.Bool(gb.valid) & (slot != INVALID)
+        return dr.select(ok, dr.gather(mi.UInt32, self.storage, slot * self.words, ok) & 3, NONE)
+
+    def memory_bytes(self) -> int:
+        if self.cache is None:
+            return 0
+        pools = sum(p.bytes_allocated() for p in self.pools.values()) if self.pools else 0
+        return int(self.cache.memory_bytes()) + int(self.cache.entries_allocated()) * self.payload_bytes() + pools
+
+    def stats(self) -> dict:
+        out = super().stats()
+        if self.pools is None:
+            return out
+        tags = self._tags
+        n = max(dr.width(tags), 1) if tags is not None else 1
+        for r in REPS:
+            name = ch.NAMES[r]
+            cnt = int(dr.count(tags == r)[0]) if tags is not None and dr.width(tags) else 0
+            out[f"share_{name}"] = cnt / n
+            out[f"bytes_{name}"] = float(self.pools[r].bytes_allocated())
+            out[f"records_{name}"] = float(self.pools[r].used)
+        out["switches"] = float(self._switches)
+        out["payload_bytes"] = out.get("payload_bytes", 0.0) + sum(float(p.bytes_allocated())
+                                                                   for p in self.pools.values())
+        return out
+
+
+def _means(ed, en, mv, rays):
+    inv = dr.rcp(mi.Float(dr.maximum(mi.UInt32(rays), 1)))
+    return ed * inv, en * inv, mv * inv
+
+
+register("adaptive", AdaptiveCache,
+         help="per-entry representation chosen from the entry's light: delta-light visibility, cones or SH/YCoCg")

@@ -1,0 +1,166 @@
+r"""SH representation: incident direct radiance as spherical harmonics with
+YCoCg chrominance compression (:mod:`slc.sh`, default Y3Co1Cg1: 11
+coefficients), in the entry's local frame, in a pool of its own.
+
+Record: the coefficients and the update count, one float word each. Update
+as the ``sh`` method (:class:`slc.sh.method.SHSurfaceCache`):
+:math:`\hat\lambda_{lm} = \frac1n \sum_k w_k V_k Y_{lm}(\omega_k)`,
+:math:`\lambda \leftarrow \lambda + n(\hat\lambda - \lambda)/C`, C the sample count
+capped at ``max_count`` (the ``sh`` method counts updates: a 1-sample update then
+weighs as much as an 8-sample one); lights below the surface are dropped. Shading: the
+Ramamoorthi-Hanrahan irradiance for diffuse-only BSDFs (chrominance by the
+"ratio" rule of :func:`slc.sh.project.irradiance`: the paper's offset rule
+shifted the colour of a constant sky on a plane by 5%), BSDF samples of the
+reconstructed radiance otherwise (the ``sh`` method's shading, copied here
+to read the pool and the local frame).
+
+Conversion. To lobes: one cone about the mean direction of the luminance,
+:math:`\mathbf d \propto (\lambda_{1,1}, \lambda_{1,-1}, \lambda_{1,0})`, with
+integrated radiance :math:`\sqrt{4\pi}\lambda_{00}` per channel and the
+half-angle of a uniform cone of the same mean resultant length
+:math:`R = |\int L\omega| / \int L`: :math:`\cos\alpha = 2R - 1`. From lobes:
+each lobe (d, alpha, L) projected as a uniform cone, band l attenuated by
+:math:`g_0 = 1`, :math:`g_1 = (1 + c)/2`, :math:`g_2 = c(1 + c)/2`,
+:math:`c = \cos\alpha`.
+"""
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+
+from ..keys import STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng
+from ..sh.basis import C1, band_of, basis
+from ..sh.project import irradiance, project, radiance
+from .sampling import lum, sampler_of
+
+CONVERT_COUNT = 4.0
+
+
+def words(enc) -> int:
+    return enc.n + 1
+
+
+def unpack(rec, enc):
+    f = [dr.reinterpret_array(mi.Float, mi.UInt32(w)) for w in rec]
+    return f[:enc.n], f[enc.n]
+
+
+def pack(coeffs, C):
+    return [dr.reinterpret_array(mi.UInt32, mi.Float(c)) for c in list(coeffs) + [C]]
+
+
+def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int, enc, max_count: int):
+    """One update cycle of SH records. Returns (new words, stats values)."""
+    n_c = enc.n
+    N = dr.width(key)
+    samp = sampler_of(scene)
+    valid = mi.Bool(on) & si.is_valid()
+    frame_l = si.sh_frame
+    ng = mi.Vector3f(si.n)
+    rng = keyed_rng(key, seed, frame, STREAM_SH_UPDATE)
+    z = dr.zeros(mi.Float, N)
+
+    def cond(i, *state):
+        return i < rays
+
+    def body(i, acc, ed, en, m, rng):
+        u = mi.Point2f(rng.next_float32(), rng.next_float32())
+        ds, w, ok, _ = samp.sample(si, u, valid & (i < rays))
+        ok &= (dr.dot(ds.d, ng) > 0.0) & dr.all(dr.isfinite(w))
+        ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), ok)
+        s = frame_l.to_local(ds.d)
+        c = dr.select(ok, lum(w) * dr.maximum(s.z, 0.0), 0.0)
+        ed = ed + dr.select(ds.delta, c, 0.0)
+        cn = dr.select(ds.delta, 0.0, c)
+        en, m = en + cn, m + s * cn
+        cs = project(enc, s, dr.select(ok, w, 0.0))
+        return i + 1, [a + b for a, b in zip(acc, cs)], ed, en, m, rng
+
+    acc0 = [mi.Float(z) for _ in range(n_c)]
+    _, acc, ed, en, m, _ = dr.while_loop(state=(mi.UInt32(0), acc0, z, mi.Float(z), mi.Vector3f(z, z, z), rng),
+                                         cond=cond, body=body)
+    inv = dr.rcp(mi.Float(dr.maximum(mi.UInt32(rays), 1)))
+    coeffs, C = unpack(rec, enc)
+    fresh = mi.Bool(fresh)
+    # the count is in samples (as the cones' C): a cycle of n samples weighs n / C
+    n_s = mi.Float(dr.maximum(mi.UInt32(rays), 1))
+    C = dr.select(fresh, 0.0, C)
+    C = dr.minimum(C + n_s, float(max_count))
+    a = dr.minimum(n_s * dr.rcp(C), 1.0)
+    out = []
+    for c in range(n_c):
+        old = dr.select(fresh, 0.0, coeffs[c])
+        out.append(dr.fma(a, acc[c] * inv - old, old))
+    return pack(out, C), [ed, en, m]
+
+
+def shade(rec, si, bsdf, tf, active, enc, seed: int, glossy_samples: int) -> mi.Color3f:
+    """L_o of the pixels from their SH records; ``tf`` each entry's local frame."""
+    coeffs, _ = unpack(rec, enc)
+    ctx_b = mi.BSDFContext()
+    flags = bsdf.flags()
+    diffuse_only = ~mi.has_flag(flags, mi.BSDFFlags.Glossy) & ~mi.has_flag(flags, mi.BSDFFlags.Delta)
+    # ------------------- diffuse: closed-form irradiance at the pixel's normal
+    nrm = tf.to_local(mi.Vector3f(si.sh_frame.n))
+    E = mi.Color3f(*irradiance(enc, coeffs, nrm, chroma="ratio"))
+    rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, active & diffuse_only))
+    L = dr.select(active & diffuse_only & (si.wi.z > 0.0), rho * E * (1.0 / math.pi), 0.0)
+    # ------------------- glossy: BSDF samples of the reconstructed radiance
+    g = active & ~diffuse_only
+    sampler = keyed_rng(dr.arange(mi.UInt32, dr.width(g)), seed, 0, STREAM_SH_SHADE)
+    ns = dr.opaque(mi.UInt32, glossy_samples)
+
+    def cond(i, Lg, sampler):
+        return (i < ns) & g
+
+    def body(i, Lg, sampler):
+        u1 = sampler.next_float32()
+        u2 = mi.Point2f(sampler.next_float32(), sampler.next_float32())
+        bs, bw = bsdf.sample(ctx_b, si, u1, u2, g)
+        okj = g & (bs.pdf > 0.0)
+        Li = mi.Color3f(*radiance(enc, coeffs, tf.to_local(si.to_world(bs.wo))))
+        return i + 1, Lg + dr.select(okj, mi.Color3f(bw) * Li, 0.0), sampler
+
+    _, Lg, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body)
+    L += Lg * (1.0 / float(glossy_samples))
+    return dr.select(active, L, 0.0)
+
+
+def lobes(rec, active, enc):
+    """The record as one lobe (see the module)."""
+    coeffs, _ = unpack(rec, enc)
+    o = enc.offsets
+    dc = [coeffs[o[c]] * math.sqrt(4.0 * math.pi) for c in range(3)]     # integral of each channel
+    Lr = mi.Color3f(*enc.to_rgb(*dc))
+    Lr = dr.maximum(Lr, 0.0)
+    k = C1 * 4.0 * math.pi / 3.0
+    v = mi.Vector3f(coeffs[3], coeffs[1], coeffs[2]) * k          # Y channel: (x, y, z) <- (1,1), (1,-1), (1,0)
+    y0 = dc[0]
+    R = dr.select(y0 > 0.0, dr.norm(v) / dr.select(y0 > 0.0, y0, 1.0), 0.0)
+    R = dr.clip(R, 0.0, 1.0)
+    d = dr.select(dr.norm(v) > 0.0, dr.normalize(v), mi.Vector3f(0.0, 0.0, 1.0))
+    alpha = dr.acos(dr.clip(2.0 * R - 1.0, -1.0, 1.0))
+    return [(d, alpha, Lr, mi.Bool(active) & (y0 > 0.0))]
+
+
+def from_lobes(lobes, n_lanes: int, enc):
+    """Coefficients of the lobes, each a uniform cone (band factors g_l)."""
+    out = [dr.zeros(mi.Float, n_lanes) for _ in range(enc.n)]
+    for d, a, Lr, m in lobes:
+        c = dr.cos(a)
+        g = (1.0, 0.5 * (1.0 + c), c * 0.5 * (1.0 + c))
+        Y = basis(d[0], d[1], d[2], enc.max_bands)
+        chans = enc.to_space(Lr[0], Lr[1], Lr[2])
+        k = 0
+        for ch, cnt in enumerate(enc.counts):
+            for i in range(cnt):
+                out[k] = out[k] + dr.select(m, chans[ch] * Y[i] * g[band_of(i)], 0.0)
+                k += 1
+    return pack(out, dr.full(mi.Float, CONVERT_COUNT, n_lanes))
+
+
+def irradiance_at_normal(rec, enc) -> mi.Color3f:
+    coeffs, _ = unpack(rec, enc)
+    return mi.Color3f(*irradiance(enc, coeffs, mi.Vector3f(0.0, 0.0, 1.0), chroma="ratio"))

@@ -1,0 +1,261 @@
+r"""VISIBILITY representation: per-light visibility of the few delta lights
+(point, spot, directional) that matter at an entry, plus a residual.
+
+Record (``K + 2`` words, ``K = vis_lights``, default 4)::
+
+    K x [ light index (16) | visibility v (unorm 8) | count (4) | spare (4) ]
+    residual irradiance E_r (3 x 18-bit e6m12) | its count C_r (8)
+
+Shading at a pixel x (no rays): the lights' unoccluded contribution is
+evaluated exactly at x (the emitter's own ``sample_direction``, which is
+deterministic for a delta light), the visibility comes from the entry:
+
+.. math:: L_o(x) = \sum_{i \le K} f_r(x, \omega_i, \omega_o) \frac{I_i(\omega_i)}{d_i^2}\, v_i
+          \;+\; f_r(x, n, \omega_o)\, E_r ,
+
+the residual (light of other emitters and of delta lights outside the list)
+treated as arriving along the normal (exact for a Lambertian BSDF).
+
+Update, per light sample of emitter j at the entry (visible V, cosine c):
+a delta light in the list updates its visibility,
+:math:`v_i \leftarrow v_i + (V - v_i)/\min(n_i + 1, 16)`; a delta light not in
+the list replaces the list's least important light when its unoccluded
+irradiance is larger (importance = luminance of
+:math:`I_i/d_i^2 \cos\theta_i`, exact, recomputed every update); the
+evicted light's estimate :math:`E_i v_i` moves into :math:`E_r` and the
+newcomer's :math:`E_j V` out of it (energy kept). All other samples feed
+the residual's running mean, :math:`E_r \leftarrow E_r + n(\hat E_r - E_r)/C_r` (:math:`C_r`
+the sample count, at most 255, or 4 cycles while the entry is new or moving)
+with :math:`\hat E_r = \frac1n\sum_k [k \text{ not in the list}]\, w_k V_k c_k`.
+"""
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+
+from ..cones.packing import _Reader, _Writer, decode_radiance, encode_radiance
+from ..keys import keyed_rng
+from .sampling import SampleStats, lum, sampler_of
+
+EMPTY = 0xFFFF
+STREAM_VIS = 0x3C6EF372
+VIS_WINDOW = 16
+RES_MAX_COUNT = 255                 # as the cones' C (8 bits)
+UNSETTLED_COUNT = 4         # residual count cap of new and moving entries, in update cycles
+RESIDUAL_ALPHA = math.radians(60.0)     # the residual as a lobe (conversion): a 60-degree cone about n
+
+
+def words(K: int) -> int:
+    return K + 2
+
+
+def unpack(w, K: int):
+    idx = [w[i] & 0xFFFF for i in range(K)]
+    vis = [mi.Float((w[i] >> 16) & 0xFF) * (1.0 / 255.0) for i in range(K)]
+    cnt = [(w[i] >> 24) & 0xF for i in range(K)]
+    rd = _Reader([w[K], w[K + 1]])
+    E = mi.Color3f(*[decode_radiance(rd.get(18)) for _ in range(3)])
+    C = mi.Float(rd.get(8))
+    return idx, vis, cnt, E, C
+
+
+def pack(idx, vis, cnt, E, C, K: int):
+    out = []
+    for i in range(K):
+        v = mi.UInt32(dr.clip(dr.round(vis[i] * 255.0), 0.0, 255.0))
+        out.append((mi.UInt32(idx[i]) & 0xFFFF) | (v << 16) | (dr.minimum(mi.UInt32(cnt[i]), 15) << 24))
+    wr = _Writer(2)
+    for ch in range(3):
+        wr.put(encode_radiance(E[ch]), 18)
+    wr.put(mi.UInt32(dr.clip(dr.round(C), 0.0, 255.0)), 8)
+    return out + wr.words
+
+
+def empty(n: int, K: int):
+    return ([dr.full(mi.UInt32, EMPTY, n) for _ in range(K)], [dr.zeros(mi.Float, n) for _ in range(K)],
+            [dr.zeros(mi.UInt32, n) for _ in range(K)], dr.zeros(mi.Color3f, n), dr.zeros(mi.Float, n))
+
+
+def _slot(lst, i):
+    """Element ``i`` (a per-lane index) of a per-slot list."""
+    r = lst[0]
+    for j in range(1, len(lst)):
+        r = dr.select(i == j, lst[j], r)
+    return r
+
+
+def light_at(emitters_dr, si, idx, active):
+    """(direction sample, I/d^2 RGB) of emitter ``idx`` at ``si``: exact and
+    unoccluded for a delta light (0 where inactive or the index is empty)."""
+    active = mi.Bool(active) & (mi.UInt32(idx) != EMPTY)
+    ptr = dr.gather(mi.EmitterPtr, emitters_dr, dr.select(active, idx, 0), active)
+    ds, w = ptr.sample_direction(si, mi.Point2f(0.5, 0.5), active)
+    ok = active & (ds.pdf > 0.0)
+    return ds, dr.select(ok, mi.Color3f(w), 0.0)
+
+
+# ----------------------------------------------------------------------------- update
+
+def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int, seed: int, K: int):
+    """One update cycle of VISIBILITY records ``rec`` (lists of words, one lane
+    per entry) at the entries' points ``si``. A listed light whose unoccluded
+    irradiance here is now 0 (switched off, turned or moved away) is dropped
+    and reported as motion. Unsettled entries (new, moving) cap the
+    residual's count at ``UNSETTLED_COUNT``. Returns (new words, motion,
+    stats values)."""
+    sc = scene
+    N = dr.width(key)
+    samp = sampler_of(sc)
+    em_dr = sc.emitters_dr()
+    valid = mi.Bool(on) & si.is_valid()
+    frame_l = si.sh_frame
+    nrm = frame_l.n
+
+    # ----------------------- unpack (fresh records start empty)
+    idx, vis, cnt, E, C = unpack(rec, K)
+    e_idx, e_vis, e_cnt, e_E, e_C = empty(N, K)
+    fresh = mi.Bool(fresh)
+    idx = [dr.select(fresh, e_idx[i], idx[i]) for i in range(K)]
+    vis = [dr.select(fresh, e_vis[i], vis[i]) for i in range(K)]
+    cnt = [dr.select(fresh, e_cnt[i], cnt[i]) for i in range(K)]
+    E, C = dr.select(fresh, e_E, E), dr.select(fresh, e_C, C)
+
+    # ----------------------- the listed lights' exact unoccluded irradiance here
+    # one emitter call site in a loop over the list: a call is traced once per emitter
+    # instance, so K call sites would trace K times as much
+    def lcond(i, wl):
+        return i < K
+
+    def lbody(i, wl):
+        ds, w = light_at(em_dr, si, _slot(idx, i), valid)
+        wc = w * dr.maximum(dr.dot(ds.d, nrm), 0.0)
+        return i + 1, [dr.select(i == j, wc, wl[j]) for j in range(K)]
+
+    _, wl = dr.while_loop(state=(mi.UInt32(0), [dr.zeros(mi.Color3f, N) for _ in range(K)]), cond=lcond, body=lbody)
+    imp = []
+    gone = mi.Bool(False)
+    for i in range(K):
+        dead = valid & (idx[i] != EMPTY) & ~(lum(wl[i]) > 0.0)
+        gone |= dead & (vis[i] > 0.0)
+        idx[i] = dr.select(dead, EMPTY, idx[i])
+        imp.append(dr.select(idx[i] != EMPTY, lum(wl[i]), -1.0))
+
+    rng = keyed_rng(key, seed, frame, STREAM_VIS)
+    st = SampleStats(N)
+    S = dr.zeros(mi.Color3f, N)
+    adj = dr.zeros(mi.Color3f, N)
+
+    # ----------------------- light samples, one at a time per entry
+    def cond(k, *state):
+        return k < rays
+
+    def body(k, idx, vis, cnt, wl, imp, S, adj, ed, en, m, rng):
+        u = mi.Point2f(rng.next_float32(), rng.next_float32())
+        act = valid & (k < rays)
+        ds, w, ok, em = samp.sample(si, u, act)
+        ok &= dr.all(dr.isfinite(w))
+        V = ok & ~sc.ray_test(si.spawn_ray_to(ds.p), ok)
+        cos = dr.maximum(dr.dot(ds.d, nrm), 0.0)
+        Vf = dr.select(V, 1.0, 0.0)
+        c = lum(w) * cos * Vf
+        delta = ok & ds.delta
+        # statistics
+        ed = ed + dr.select(delta, c, 0.0)
+        en_k = dr.select(delta, 0.0, c)
+        en = en + en_k
+        m = m + frame_l.to_local(ds.d) * en_k
+        # the light's own unoccluded irradiance (w has the choice pmf ds.pdf in it)
+        w1 = w * ds.pdf * cos
+        i1 = lum(w1)
+        hit = mi.Bool(False)
+        for i in range(K):
+            h = delta & (idx[i] == em)
+            hit |= h
+            a = dr.rcp(mi.Float(dr.minimum(cnt[i] + 1, VIS_WINDOW)))
+            vis[i] = dr.select(h, dr.fma(a, Vf - vis[i], vis[i]), vis[i])
+            cnt[i] = dr.select(h, dr.minimum(cnt[i] + 1, 15), cnt[i])
+        # least important listed light
+        jmin, imin = mi.UInt32(0), mi.Float(imp[0])
+        for i in range(1, K):
+            b = imp[i] < imin
+            imin = dr.select(b, imp[i], imin)
+            jmin = dr.select(b, i, jmin)
+        rep = delta & ~hit & (i1 > imin) & (cos > 0.0)
+        for i in range(K):
+            r = rep & (jmin == i)
+            adj += dr.select(r & (idx[i] != EMPTY), wl[i] * vis[i], 0.0) - dr.select(r, w1 * Vf, 0.0)
+            idx[i] = dr.select(r, mi.UInt32(em), idx[i])
+            vis[i] = dr.select(r, Vf, vis[i])
+            cnt[i] = dr.select(r, 1, cnt[i])
+            wl[i] = dr.select(r, w1, wl[i])
+            imp[i] = dr.select(r, i1, imp[i])
+        handled = hit | rep
+        S += dr.select(V & ~handled, w * cos, 0.0)
+        return k + 1, idx, vis, cnt, wl, imp, S, adj, ed, en, m, rng
+
+    _, idx, vis, cnt, wl, imp, S, adj, ed, en, m, rng = dr.while_loop(
+        state=(mi.UInt32(0), idx, vis, cnt, wl, imp, S, adj, st.ed, st.en, st.m, rng),
+        cond=cond, body=body)
+
+    # ----------------------- the residual's running mean (with the energy moved by swaps)
+    # the count is in samples (as the cones' C): a cycle of n samples weighs n / C
+    n = mi.Float(dr.maximum(mi.UInt32(rays), 1))
+    cap = dr.select(mi.Bool(unsettled) | gone, float(UNSETTLED_COUNT) * n, float(RES_MAX_COUNT))
+    C = dr.minimum(dr.minimum(C, cap - n) + n, cap)
+    E = dr.maximum(E + adj, 0.0)
+    E = E + (S / n - E) * dr.minimum(n * dr.rcp(dr.maximum(C, 1.0)), 1.0)
+    out = pack(idx, vis, cnt, E, C, K)
+    return out, gone, [ed, en, m]
+
+
+# ----------------------------------------------------------------------------- shading
+
+def shade(scene: mi.Scene, rec, si, bsdf, active, K: int) -> mi.Color3f:
+    """L_o of the pixels ``si`` from their VISIBILITY records (see the module)."""
+    em_dr = scene.emitters_dr()
+    idx, vis, cnt, E, C = unpack(rec, K)
+    ctx = mi.BSDFContext()
+    active = mi.Bool(active)
+
+    def cond(i, L):
+        return (i < K) & active
+
+    def body(i, L):                      # one emitter and one BSDF call site (see update)
+        ii, vi = _slot(idx, i), _slot(vis, i)
+        m = active & (ii != EMPTY) & (vi > 0.0)
+        ds, w = light_at(em_dr, si, ii, m)
+        f = bsdf.eval(ctx, si, si.to_local(ds.d), m)
+        return i + 1, L + dr.select(m, mi.Color3f(f) * w * vi, 0.0)
+
+    _, L = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(active))), cond=cond, body=body)
+    fn = bsdf.eval(ctx, si, mi.Vector3f(0.0, 0.0, 1.0), active)
+    L += dr.select(active, mi.Color3f(fn) * E, 0.0)
+    return L
+
+
+# ----------------------------------------------------------------------------- conversion
+
+def lobes(scene: mi.Scene, rec, si, active, K: int):
+    """The record as lobes (local direction, half-angle, integrated radiance RGB,
+    mask): one Dirac lobe per listed light (I/d^2 v at the entry) and the
+    residual as a 60-degree cone about the normal (E_r / mean cosine)."""
+    em_dr = scene.emitters_dr()
+    idx, vis, cnt, E, C = unpack(rec, K)
+    out = []
+    for i in range(K):
+        m = mi.Bool(active) & (idx[i] != EMPTY)
+        ds, w = light_at(em_dr, si, idx[i], m)
+        out.append((si.sh_frame.to_local(ds.d), mi.Float(0.0), w * vis[i], m & (dr.max(w * vis[i]) > 0.0)))
+    mean_cos = 0.5 * (1.0 + math.cos(RESIDUAL_ALPHA))
+    out.append((mi.Vector3f(0.0, 0.0, 1.0), mi.Float(RESIDUAL_ALPHA), E * (1.0 / mean_cos),
+                mi.Bool(active) & (dr.max(E) > 0.0)))
+    return out
+
+
+def from_irradiance(E, n: int, K: int):
+    """A record with no listed light and residual ``E`` (the energy of another
+    representation at the normal); the lights come in with the next samples."""
+    idx, vis, cnt, _, _ = empty(n, K)
+    return pack(idx, vis, cnt, E, dr.full(mi.Float, 4.0, n), K)

@@ -1,0 +1,197 @@
+"""The adaptive cache (slc/adaptive): the choice of representation per entry
+and its accuracy against ground truth and closed forms, switching, the pool
+allocator and the header packing. Small images (32x32) on planes."""
+import math
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from slc import emitter_sampling, methods
+from slc.adaptive import choice as ch
+from slc.adaptive.pool import Pool
+from slc.groundtruth import ground_truth
+from slc.keys import INVALID
+from slc.scenes import CameraPath, SceneBuilder, diffuse
+from slc.views import Viewer
+
+from helpers import plane_under_rect_light, rect_irradiance, render_frames
+
+W = H = 32
+
+
+def _still(scene):
+    cam = scene.path(0).at(0)
+    return Viewer("v0", lambda f: cam)
+
+
+def _plane(name, light):
+    b = SceneBuilder(name)
+    b.add_quad([0, 0, 0], [2, 0, 0], [0, 0, -2], bsdf=diffuse([0.5] * 3), name="plane")
+    light(b)
+    cam = CameraPath([([0.0, 0.8, 1.2], [0.0, 0.0, 0.0])], frames=64, fov=60)
+    return b.build([cam, cam, cam])
+
+
+def _valid(gb):
+    return np.array(gb.valid).reshape(H, W)
+
+
+def test_point_light_chooses_visibility_and_matches_ground_truth():
+    """Started as cones (not the scene's prior), the entries' delta-light share
+    is 1, so they switch to VISIBILITY; the shading is then exact up to the
+    8-bit visibility (1 here: the plane is unoccluded)."""
+    scene = _plane("adaptive_point", lambda b: b.add_point_light([0.2, 1.0, 0.1], [3.0] * 3))
+    m = methods.create("adaptive:start=cones", scene, seed=1)
+    imgs, gbs = render_frames(scene, m, [_still(scene)], 12, W, H)
+    st = m.stats()
+    assert st["share_visibility"] == 1.0 and st["records_cones"] == 0, st
+    gt = ground_truth(scene, gbs[0], 11, "v0", spp=64, use_cache=False)   # a point light: exact per sample
+    ok = _valid(gbs[0])
+    err = np.abs(imgs[0][ok] - gt[ok]).mean() / gt[ok].mean()
+    assert err < 0.01, err                                   # measured 4e-6
+
+
+def test_large_area_light_chooses_cones():
+    scene = plane_under_rect_light(half=1.0, height=1.0, radiance=2.0, name="adaptive_area")
+    m = methods.create("adaptive:start=sh", scene, seed=1)   # started as SH: the statistics move it to cones
+    imgs, gbs = render_frames(scene, m, [_still(scene)], 24, W, H)
+    st = m.stats()
+    assert st["share_cones"] > 0.9, st
+    # and the cones converge to the closed-form irradiance (mean over the image)
+    p = np.array(gbs[0].si.p).T
+    ok = np.array(gbs[0].valid)
+    E = rect_irradiance(p[ok, 0], p[ok, 2], -1.0, 1.0, -1.0, 1.0, 1.0, 2.0)
+    Lo = imgs[0].reshape(-1, 3)[ok, 0]
+    assert abs(Lo.mean() - (0.5 / math.pi * E).mean()) / (0.5 / math.pi * E).mean() < 0.03
+
+
+def test_constant_environment_chooses_sh_and_matches_closed_form():
+    """A constant sky of radiance L over an open diffuse plane: L_o = rho L."""
+    L = np.array([0.8, 0.85, 1.0])
+    scene = _plane("adaptive_env", lambda b: b.add_envmap(rgb=list(L)))
+    m = methods.create("adaptive:start=cones", scene, seed=1)
+    imgs, gbs = render_frames(scene, m, [_still(scene)], 64, W, H)
+    st = m.stats()
+    assert st["share_sh"] > 0.9, st
+    ok = _valid(gbs[0])
+    mean = imgs[0][ok].mean(axis=0)
+    rel = np.abs(mean - 0.5 * L) / (0.5 * L)
+    assert rel.max() < 0.02, rel
+
+
+SWITCH_FRAMES = 50       # frames after the light change by which 90% of the entries have chosen cones
+JUMP = 0.03              # bound on the frame-to-frame change of the image mean once the light has changed
+
+
+def _point_then_area():
+    def lights(b):
+        b.add_point_light([0.0, 1.0, 0.0], [2.0] * 3, name="bulb")
+        b.add_quad([0, 1.0, 0], [0.6, 0, 0], [0, 0, 0.6], bsdf=diffuse([0, 0, 0]), emission=[0.0] * 3,
+                   name="panel")
+    return _plane("adaptive_switch", lights)
+
+
+def _set_lights(scene, point, area):
+    params = mi.traverse(scene.mi_scene)
+    for k in params.keys():
+        if k.endswith("intensity.value"):
+            params[k] = mi.Color3f(point)
+        elif k.endswith("emitter.radiance.value"):
+            params[k] = mi.Color3f(area)
+    params.update()
+    emitter_sampling.clear_cache()
+    emitter_sampling.for_scene(scene.mi_scene)
+
+
+def test_point_to_area_switch_changes_the_choice_without_energy_jumps():
+    scene = _point_then_area()
+    _set_lights(scene, 2.0, 0.0)
+    m = methods.create("adaptive", scene, seed=3)
+    v = _still(scene)
+    render_frames(scene, m, [v], 16, W, H)
+    assert m.stats()["share_visibility"] > 0.95
+    _set_lights(scene, 0.0, 2.0)
+    means, shares, sw = [], [], []
+    for f in range(16, 16 + SWITCH_FRAMES + 10):
+        imgs, gbs = render_frames(scene, m, [v], 1, W, H, start=f)
+        ok = _valid(gbs[0])
+        means.append(imgs[0][ok].mean())
+        st = m.stats()
+        shares.append(st["share_cones"])
+        sw.append(st["switches"])
+    first = next((i for i, s in enumerate(shares) if s >= 0.9), None)
+    assert first is not None and first < SWITCH_FRAMES, shares
+    assert sum(sw) > 0
+    # no jump: once the residual has picked up the new light (the first frames converge towards
+    # it), the image mean changes by less than JUMP per frame, also in the frames with switches
+    jumps = np.abs(np.diff(means)) / np.array(means[1:])
+    assert jumps[8:].max() < JUMP, (jumps.max(), np.argmax(jumps))
+    gt = ground_truth(scene, gbs[0], f, "v0", spp=256, use_cache=False)
+    assert abs(means[-1] - gt[ok].mean()) / gt[ok].mean() < 0.05
+
+
+def test_still_camera_frame_to_frame_change_is_bounded():
+    """Two emitters (a point light and a square light): mixed choices, still
+    camera; after start-up the image mean moves by less than 2% a frame."""
+    def lights(b):
+        b.add_point_light([0.6, 0.8, 0.0], [1.0] * 3)
+        b.add_quad([-0.5, 1.0, 0], [0.3, 0, 0], [0, 0, 0.3], bsdf=diffuse([0, 0, 0]), emission=[4.0] * 3,
+                   name="panel")
+    scene = _plane("adaptive_still", lights)
+    m = methods.create("adaptive", scene, seed=2)
+    v = _still(scene)
+    render_frames(scene, m, [v], 16, W, H)
+    means = []
+    for f in range(16, 40):
+        imgs, gbs = render_frames(scene, m, [v], 1, W, H, start=f)
+        means.append(imgs[0][_valid(gbs[0])].mean())
+    jumps = np.abs(np.diff(means)) / np.array(means[1:])
+    assert jumps.max() < 0.02, jumps.max()
+
+
+def test_pool_allocates_unique_slots_and_reuses_freed_ones():
+    p = Pool("t", 2, initial=4)
+    a = np.array(p.acquire(mi.Bool([True, False, True, True])))
+    assert a[1] == INVALID and len(set(a[[0, 2, 3]])) == 3 and p.used == 3
+    p.release(mi.UInt32(a), mi.Bool([True, False, False, True]))
+    assert p.used == 1
+    b = np.array(p.acquire(mi.Bool([True] * 100)))          # grows
+    assert len(set(b)) == 100 and a[2] not in set(b) and p.capacity >= 101
+
+
+def test_header_round_trip():
+    h = ch.Header(tag=mi.UInt32([1, 3]), streak=mi.UInt32([2, 63]), count=mi.UInt32([5, 63]),
+                  e=mi.Float([0.25, 1e6]), slot=mi.UInt32([7, INVALID]), s_delta=mi.Float([1.0, 0.3]),
+                  m=mi.Vector3f([0.0, 0.5], [0.0, -0.2], [1.0, 0.6]))
+    g = ch.unpack_header(ch.pack_header(h))
+    assert list(g.tag) == [1, 3] and list(g.streak) == [2, 63] and list(g.count) == [5, 63]
+    assert list(g.slot) == [7, INVALID]
+    assert np.allclose(np.array(g.e), [0.25, 1e6], rtol=1e-3)
+    assert np.allclose(np.array(g.s_delta), [1.0, 0.3], atol=1 / 255)
+    assert np.allclose(np.array(g.m), np.array(h.m), atol=1 / 127)
+
+
+def test_hysteresis():
+    p = ch.ChoiceParams()
+    def hdr(tag, s, mz):
+        return ch.Header(tag=mi.UInt32(tag), streak=mi.UInt32(0), count=mi.UInt32(10), e=mi.Float(1.0),
+                         slot=mi.UInt32(0), s_delta=mi.Float(s), m=mi.Vector3f(0.0, 0.0, mz))
+    # inside the band the current representation stays
+    assert ch.target_of(hdr(ch.VIS, 0.45, 1.0), p)[0] == ch.VIS
+    assert ch.target_of(hdr(ch.CONES, 0.55, 1.0), p)[0] == ch.CONES
+    assert ch.target_of(hdr(ch.SH, 0.0, 0.78), p)[0] == ch.SH
+    assert ch.target_of(hdr(ch.CONES, 0.0, 0.72), p)[0] == ch.CONES
+    assert ch.target_of(hdr(ch.CONES, 0.0, 0.6), p)[0] == ch.SH
+    # a switch needs switch_after updates in a row
+    h = hdr(ch.CONES, 0.9, 1.0)
+    for k in range(p.switch_after):
+        h, sw, t = ch.decide(h, p)
+        assert bool(sw[0]) == (k == p.switch_after - 1)
+
+
+def test_bad_settings():
+    scene = _plane("adaptive_bad", lambda b: b.add_point_light([0, 1, 0], [1.0] * 3))
+    for spec in ("adaptive:vis_lights=0", "adaptive:start=foo", "adaptive:theta_r=2"):
+        with pytest.raises(methods.MethodError):
+            methods.create(spec, scene)
