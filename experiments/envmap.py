@@ -44,9 +44,7 @@ def run(opts):
     res = ex.variant_experiment(opts, NAME, pr, specs, variants, "envmap",
                                 f"{scene}: error and time per environment map")
     from slc.adaptive.viz import add_choice_section
-    c = res["config"]
-    add_choice_section(Path(opts.out) / NAME, res, "envmap", c["width"], c["height"], c["frames"])
-    return res
+    return add_choice_section(opts, NAME, res, "envmap")
 
 
 if __name__ == "__main__":

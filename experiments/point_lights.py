@@ -32,17 +32,8 @@ def run(opts):
     from slc import experiment as ex
     res = ex.scene_option_sweep(opts, NAME, QUICK, FULL, METHODS, "lights",
                                 "error and time against the number of point/spot lights")
-    return _choice(opts, res)
-
-
-def _choice(opts, res):
-    """The adaptive method's representation table and false-colour images."""
-    from pathlib import Path
-
     from slc.adaptive.viz import add_choice_section
-    c = res["config"]
-    add_choice_section(Path(opts.out) / NAME, res, "lights", c["width"], c["height"], c["frames"])
-    return res
+    return add_choice_section(opts, NAME, res, "lights")
 
 
 if __name__ == "__main__":

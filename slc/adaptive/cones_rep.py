@@ -16,7 +16,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..cones.packing import pack, unpack
-from ..cones.update import ConeParams, empty_state, end_cycle, insert_sample, shrink_step, shrink_test_dirs
+from ..cones.update import ConeParams, empty_state, end_cycle, insert_sample, shrink_step, shrink_test
 from ..keys import STREAM_CONE_UPDATE, keyed_rng
 from .sampling import lum, sampler_of
 
@@ -69,19 +69,7 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int
         cond=cond, body=body)
 
     # ----------------------------------------------- shrink test: one ray per cone
-    period = max(int(p.shrink_period), 1)
-    phase = dr.opaque(mi.UInt32, frame % period)
-    do_shrink = valid & (mi.Bool(unsettled) | (((key + phase) % period) == 0))
-    us = [sampler.next_float32() for _ in range(K)]
-    dirs, tested = shrink_test_dirs(D, A, n, us, p)
-    hits = []
-    for i in range(K):
-        tested[i] = tested[i] & do_shrink
-        ray = si.spawn_ray(frame_l.to_world(dirs[i]))
-        si2 = scene.ray_intersect(ray, tested[i])
-        em = si2.emitter(scene, tested[i])
-        Le = mi.Color3f(em.eval(si2, tested[i]))
-        hits.append(tested[i] & (dr.max(Le) > 0.0))
+    dirs, tested, hits = shrink_test(scene, si, D, A, n, key, valid, mi.Bool(unsettled), sampler, frame, p)
     D, A, L, S, n, beta, dropped, shrunk = shrink_step(D, A, L, S, n, beta, dirs, hits, tested, p)
 
     # ----------------------------------------------- close the cycle and pack

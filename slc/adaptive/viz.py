@@ -72,14 +72,18 @@ def choice_table(rows: list[dict], field: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def add_choice_section(out_dir: Path, results: dict, field: str, width: int, height: int, frames: int) -> None:
-    """Append the choice table to ``results.md`` and write a false-colour image
-    of the choice per scene variant (``images/SCENE_choice.png``), for the
-    adaptive specs among the results' methods."""
+def add_choice_section(opts, name: str, results: dict, field: str) -> dict:
+    """Append the choice table to experiment ``name``'s ``results.md`` and write
+    a false-colour image of the choice per scene variant
+    (``images/SCENE_choice.png``), for the adaptive specs among the results'
+    methods. Returns ``results``."""
     from ..experiment import each_scene
+    out_dir = Path(opts.out) / name
+    c = results["config"]
+    width, height, frames = c["width"], c["height"], c["frames"]
     specs = [s for s in results["config"].get("methods", []) if s.split(":")[0] == "adaptive"]
     if not specs:
-        return
+        return results
     md_path = Path(out_dir) / "results.md"
     text = md_path.read_text() if md_path.exists() else ""
     text += ("\n## Representation chosen by `adaptive` (share of the entries active in the last frame)\n\n"
@@ -95,3 +99,4 @@ def add_choice_section(out_dir: Path, results: dict, field: str, width: int, hei
         text += (f"- `{s.name}`: pixels by representation: visibility {100 * sh['visibility']:.0f}%, "
                  f"cones {100 * sh['cones']:.0f}%, sh {100 * sh['sh']:.0f}%\n")
     io.write_text(md_path, text)
+    return results

@@ -305,6 +305,26 @@ def shrink_test_dirs(D, A, n, u, p: ConeParams):
     return dirs, tested
 
 
+def shrink_test(scene: mi.Scene, si: mi.SurfaceInteraction3f, D, A, n, key: mi.UInt32, valid: mi.Bool,
+                unsettled: mi.Bool, sampler, frame: int, p: ConeParams):
+    """Trace one shrink-test ray per cone (paper Sec. 3.3) of the ``valid``
+    entries: at every update of an ``unsettled`` entry, else every
+    ``shrink_period``-th frame (staggered by ``key``). Returns (directions,
+    tested masks, hit-a-light masks) per cone."""
+    period = max(int(p.shrink_period), 1)
+    phase = dr.opaque(mi.UInt32, frame % period)  # opaque: no recompilation per frame
+    do_shrink = valid & (unsettled | (((key + phase) % period) == 0))
+    us = [sampler.next_float32() for _ in range(p.max_cones)]
+    dirs, tested = shrink_test_dirs(D, A, n, us, p)
+    hits = []
+    for i in range(p.max_cones):
+        tested[i] = tested[i] & do_shrink
+        si2 = scene.ray_intersect(si.spawn_ray(si.sh_frame.to_world(dirs[i])), tested[i])
+        Le = mi.Color3f(si2.emitter(scene, tested[i]).eval(si2, tested[i]))
+        hits.append(tested[i] & (dr.max(Le) > 0.0))
+    return dirs, tested, hits
+
+
 # ----------------------------------------------------------------------------- the update kernel
 
 def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: mi.SurfaceInteraction3f,
@@ -423,19 +443,7 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_
         labels=("k", "D", "A", "L", "S", "n", "beta", "sampler", "q0", "q1"))
 
     # ----------------------------------------------- shrink test: one ray per cone
-    period = max(int(p.shrink_period), 1)
-    phase = dr.opaque(mi.UInt32, frame % period)  # opaque: no recompilation per frame
-    do_shrink = valid & (unsettled | (((key + phase) % period) == 0))
-    us = [sampler.next_float32() for _ in range(K)]
-    dirs, tested = shrink_test_dirs(D, A, n, us, p)
-    hits = []
-    for i in range(K):
-        tested[i] = tested[i] & do_shrink
-        ray = si.spawn_ray(frame_l.to_world(dirs[i]))
-        si2 = scene.ray_intersect(ray, tested[i])
-        em = si2.emitter(scene, tested[i])
-        Le = mi.Color3f(em.eval(si2, tested[i]))
-        hits.append(tested[i] & (dr.max(Le) > 0.0))
+    dirs, tested, hits = shrink_test(scene, si, D, A, n, key, valid, mi.Bool(unsettled), sampler, frame, p)
     # A light that left (switched off, moved away) leaves a cone whose rim tests
     # miss but which only shrinks by epsilon alpha per test, with its L_c and C
     # kept: it would fade as (1 - n/C) per cycle, 255 cycles for a settled entry.
