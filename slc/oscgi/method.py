@@ -120,9 +120,12 @@ class OSCGI(PayloadMethod):
         # ------------------- primary rays: one jittered cosine ray per texel -------------------
         lane = dr.arange(mi.UInt32, N * D)
         e, k = lane // D, lane % D
-        si = dr.gather(mi.SurfaceInteraction3f, fr.si, e)
+        si = dr.zeros(mi.SurfaceInteraction3f, N * D)                 # only what spawn_ray needs
+        si.p = mi.Point3f(*[dr.gather(mi.Float, fr.si.p[c], e) for c in range(3)])
+        si.n = mi.Vector3f(*[dr.gather(mi.Float, fr.si.n[c], e) for c in range(3)])
+        n_sh = mi.Vector3f(*[dr.gather(mi.Float, fr.si.sh_frame.n[c], e) for c in range(3)])
         s = keyed_rng(dr.gather(mi.UInt32, fr.keys, e) * D + k, self.seed, ctx.frame, STREAM_PRIMARY)
-        d = mi.Frame3f(si.sh_frame.n).to_world(G.direction(k, mi.Point2f(s.next_float32(), s.next_float32())))
+        d = mi.Frame3f(n_sh).to_world(G.direction(k, mi.Point2f(s.next_float32(), s.next_float32())))
         ok = dr.dot(d, si.n) > 0.0                      # above the geometric surface
         hit = sc.ray_intersect(si.spawn_ray(d), ok)
 
@@ -231,9 +234,10 @@ class OSCGI(PayloadMethod):
     def render(self, ctx, gbuffers, timer):
         out = super().render(ctx, gbuffers, timer)
         if self.cache is not None:
+            self._cells = self.secondary.used_cells()
             self.memory_log.append((int(self.cache.memory_bytes())
                                     + int(self.cache.entries_allocated()) * self.payload_bytes(),
-                                    self.secondary.used_bytes()))
+                                    self._cells * 4 * self.secondary.words_per_slot()))
         return out
 
     # ------------------------------------------------------------------ reports
@@ -246,7 +250,7 @@ class OSCGI(PayloadMethod):
         if self.secondary is not None:
             sec = self.secondary
             r = sec.reuse
-            out.update({"secondary_cells": float(sec.used_cells()), "secondary_updated": float(sec.updated),
+            out.update({"secondary_cells": float(getattr(self, "_cells", 0)), "secondary_updated": float(sec.updated),
                         "secondary_overflow": float(sec.overflow),
                         "secondary_reuse_mean": float(dr.mean(mi.Float(r))[0]) if dr.width(r) else 0.0})
             if self.memory_log:
