@@ -82,8 +82,8 @@ class SecondaryCache:
         self.pending = dr.full(mi.UInt32, NO_RING, cap)     # ring requested for the next update
         self.rep = dr.zeros(mi.Float, cap * _REP)
         self.layers = dr.zeros(mi.Float, cap * 3 * self.B)
-        self.reuse = mi.UInt32()                              # primary hits per touched cell, last frame
-        self.overflow = 0
+        self._reuse_count = dr.zeros(mi.UInt32, self.slots)   # primary hits per cell, last frame
+        self._overflow = mi.UInt32(0)                         # kept lazy: no sync inside a timed stage
         self.updated = 0
         dr.eval(self.keys, self.count, self.pending, self.rep, self.layers)
 
@@ -137,7 +137,7 @@ class SecondaryCache:
             dr.eval(found, act, slot)
             if r % 2 == 1 and not dr.any(act):       # most requests settle in one or two rounds
                 break
-        self.overflow += int(dr.count(act)[0])
+        self._overflow = self._overflow + mi.UInt32(dr.count(act))
         return found
 
     def _set_rep(self, slots: mi.UInt32, ok: mi.Bool, p: mi.Point3f, n: mi.Vector3f, albedo: mi.Color3f) -> None:
@@ -181,7 +181,18 @@ class SecondaryCache:
         """Primary hits per touched cell this frame (the reuse histogram)."""
         cnt = dr.zeros(mi.UInt32, self.slots)
         dr.scatter_reduce(dr.ReduceOp.Add, cnt, mi.UInt32(1), slots, ok)
-        self.reuse = dr.gather(mi.UInt32, cnt, dr.compress(cnt > 0))
+        self._reuse_count = cnt
+
+    @property
+    def overflow(self) -> int:
+        """Requests that found no slot, since the last reset."""
+        return int(self._overflow[0])
+
+    @property
+    def reuse(self) -> mi.UInt32:
+        """Primary hits of each cell touched in the last frame."""
+        cnt = self._reuse_count
+        return dr.gather(mi.UInt32, cnt, dr.compress(cnt > 0))
 
     def update(self, frame: int, req: mi.UInt32) -> mi.UInt32:
         """Update every requested cell once (see the module); returns the updated slots."""
