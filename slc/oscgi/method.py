@@ -62,7 +62,10 @@ class OSCGI(PayloadMethod):
     the emission seen directly is added by the pipeline).
 
     Storage per entry: 3 R^2 radiance words, the irradiance (3 words) and the update count.
-    Ray policy: every update traces R^2 rays per entry (the ray policy's counts are not used).
+    Ray budget (the ray policy): an entry's first update traces all R^2 texels, later updates
+    ``texel_rays`` of them in rotation (texel k when k = c mod R^2/``texel_rays``, c the update
+    number), each traced texel blended with 1/min(its own sample count, ``n_max``); light samples
+    (``output=full``) only feed the traced texels.
     """
 
     name = "osc-gi"
@@ -72,6 +75,8 @@ class OSCGI(PayloadMethod):
               choices=("full", "indirect")),
         Param("bounces", 2, "indirect bounces (layers of the secondary caches)", lo=1, hi=8),
         Param("hemi", 8, "hemisphere texels per side of a primary cache entry", lo=2, hi=16),
+        Param("texel_rays", 32, "texels traced per settled entry and update (new entries: all; divides hemi^2)",
+              lo=1, hi=256),
         Param("n_max", 8, "EMA cap: blend factor 1/min(n, n_max)", lo=1, hi=256),
         Param("secondary_cm", 30.0, "secondary cell edge [cm]", lo=1.0, hi=1000.0),
         Param("secondary_rays", 32, "cosine rays per secondary cell update", lo=1, hi=1024),
@@ -92,9 +97,14 @@ class OSCGI(PayloadMethod):
     def validate(self):
         if self.output not in ("full", "indirect"):
             raise MethodError(f"{self.name}: output must be full or indirect")
+        D = self.hemi * self.hemi
+        if self.texel_rays > D or D % self.texel_rays:
+            raise MethodError(f"{self.name}: texel_rays must divide hemi^2 = {D} (got {self.texel_rays})")
 
     def ray_policy(self) -> RayPolicy:
-        return RayPolicy(new=1, settled=1, moving=1)
+        """All texels for an entry's first update, ``texel_rays`` afterwards (texels in rotation)."""
+        D = self.hemi * self.hemi
+        return RayPolicy(new=D, new_updates=1, settled=self.texel_rays, moving=D, motion_updates=1)
 
     def reset(self):
         super().reset()
@@ -117,16 +127,27 @@ class OSCGI(PayloadMethod):
         sc, G, W, sec = self.scene.mi_scene, self.grid, self.words, self.secondary
         D, N = G.n, fr.n_active
 
-        # ------------------- primary rays: one jittered cosine ray per texel -------------------
+        # ------- primary rays: one jittered cosine ray per texel of this update's share -------
+        # texel k of an entry is traced in its first update and, afterwards, in update c when
+        # k = c (mod S), S = hemi^2 / texel_rays: every texel once per S updates
         lane = dr.arange(mi.UInt32, N * D)
         e, k = lane // D, lane % D
+        S = D // self.texel_rays
+        is_new = dr.gather(mi.Bool, fr.is_new, e)
+        seed_slot = dr.gather(mi.UInt32, fr.seed_slot, e)
+        seeded = is_new & (seed_slot != INVALID)
+        slot = dr.gather(mi.UInt32, fr.active, e)
+        c_old = dr.select(is_new, dr.select(seeded, 1.0, 0.0), dr.gather(mi.Float, self.storage, slot * W + 3 * D + 3))
+        c = mi.UInt32(c_old) + 1                                     # this update's number
+        full = dr.gather(mi.UInt32, rays, e) >= D
+        traced = full | ((k % S) == (c % S))
         si = dr.zeros(mi.SurfaceInteraction3f, N * D)                 # only what spawn_ray needs
         si.p = mi.Point3f(*[dr.gather(mi.Float, fr.si.p[c], e) for c in range(3)])
         si.n = mi.Vector3f(*[dr.gather(mi.Float, fr.si.n[c], e) for c in range(3)])
         n_sh = mi.Vector3f(*[dr.gather(mi.Float, fr.si.sh_frame.n[c], e) for c in range(3)])
         s = keyed_rng(dr.gather(mi.UInt32, fr.keys, e) * D + k, self.seed, ctx.frame, STREAM_PRIMARY)
         d = mi.Frame3f(n_sh).to_world(G.direction(k, mi.Point2f(s.next_float32(), s.next_float32())))
-        ok = dr.dot(d, si.n) > 0.0                      # above the geometric surface
+        ok = traced & (dr.dot(d, si.n) > 0.0)           # this update's texels, above the geometric surface
         hit = sc.ray_intersect(si.spawn_ray(d), ok)
 
         # ------------- secondary caches: cells of the hits, requests, update (all shared) -------------
@@ -166,25 +187,22 @@ class OSCGI(PayloadMethod):
             dr.eval(scratch)
             sample = [sample[c] + dr.gather(mi.Float, scratch, lane * 3 + c) for c in range(3)]
 
-        # ------------------- temporal EMA per texel; new entries start from their seed -------------------
-        is_new = dr.gather(mi.Bool, fr.is_new, e)
-        seed_slot = dr.gather(mi.UInt32, fr.seed_slot, e)
-        seeded = is_new & (seed_slot != INVALID)
-        slot = dr.gather(mi.UInt32, fr.active, e)
+        # ------------ temporal EMA per traced texel; new entries start from their seed ------------
+        # a texel's own sample count: c for full updates, about 1 + ceil((c - 1) / S) in rotation
         src = dr.select(seeded, seed_slot, slot)
         keep = ~is_new | seeded
-        c_old = dr.select(is_new, dr.select(seeded, 1.0, 0.0), dr.gather(mi.Float, self.storage, slot * W + 3 * D + 3))
         cnt = c_old + 1.0
-        a = dr.rcp(dr.minimum(cnt, float(self.n_max)))
+        c_k = dr.select(full, cnt, 1.0 + mi.Float((c - 1 + S - 1) // S))
+        a = dr.select(traced, dr.rcp(dr.minimum(c_k, float(self.n_max))), 0.0)
         new = []
-        for c in range(3):
-            old = dr.gather(mi.Float, self.storage, src * W + k * 3 + c, keep)
-            new.append(dr.fma(a, sample[c] - old, old))
+        for ch in range(3):
+            old = dr.gather(mi.Float, self.storage, src * W + k * 3 + ch, keep)
+            new.append(dr.fma(a, dr.select(traced, sample[ch], old) - old, old))
         E = [dr.block_sum(x, D) * G.texel_weight for x in new]      # per entry: (pi/R^2) sum_k L_k
         dr.eval(*new, *E, cnt)
-        for c in range(3):
-            dr.scatter(self.storage, new[c], slot * W + k * 3 + c)
-            dr.scatter(self.storage, E[c], fr.active * W + 3 * D + c)
+        for ch in range(3):
+            dr.scatter(self.storage, new[ch], slot * W + k * 3 + ch)
+            dr.scatter(self.storage, E[ch], fr.active * W + 3 * D + ch)
         dr.scatter(self.storage, cnt, slot * W + 3 * D + 3, k == 0)
         return dr.zeros(mi.Bool, N)
 
