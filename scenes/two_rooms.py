@@ -5,11 +5,13 @@ z in [-1.5, 1.5]; the wall between them is the box x in [0.1, 0.2]. The wall is 
 off the 10 cm / 30 cm grid lines: a 30 cm world cell [0, 0.3) straddles it. Every room has its
 own floor, ceiling and walls (quads facing into the room) unless ``shared_floor=1``: then one
 floor quad runs under both rooms (the hard case for caches keyed by surface: the floor on both
-sides of the wall is one shape). Path 0 ("lit") looks around room A, path 1 ("dark") room B.
+sides of the wall is one shape). A rough-metal block stands in room A. Path 0 ("lit") walks
+around room A looking at the wall, path 1 ("dark") around room B, path 2 ("lit_floor") around
+room A looking at its floor.
 
 Unit: one scene unit is one metre (``unit=1.0``).
 """
-from slc.scenes import CameraPath, SceneBuilder, diffuse
+from slc.scenes import CameraPath, SceneBuilder, diffuse, rough_conductor
 
 ROOM_A = (-1.9, 0.1)
 ROOM_B = (0.2, 2.2)
@@ -39,8 +41,13 @@ def build(**options):
     b.add_box([ROOM_A[1], 0.0, -HALF_Z], [ROOM_B[0], HEIGHT, HALF_Z], bsdf=white, name="wall")
     b.add_quad([-0.9, HEIGHT - 0.02, 0], [0.3, 0, 0], [0, 0, 0.3], bsdf=diffuse([0, 0, 0]),
                emission=LIGHT_RADIANCE, name="light")
+    b.add_box([-1.4, 0.0, -1.2], [-1.0, 0.8, -0.8], bsdf=rough_conductor(0.2, "Al"), name="metal_block")
+    # walks of 7 m around each room (5 s at walking speed), looking at the wall between the rooms
+    loop_a = [[-1.6, 1.3, 1.2], [-0.3, 1.2, 1.2], [-0.3, 1.4, -1.0], [-1.6, 1.2, -1.0], [-1.6, 1.3, 1.2]]
+    loop_b = [[2.0 - (x + 1.9), y, z] for x, y, z in loop_a]
     paths = [
-        CameraPath([([-1.7, 1.3, 1.3], [0.1, 0.6, -0.6]), ([-1.5, 1.2, 1.2], [0.1, 0.5, -0.8])], fov=70, name="lit"),
-        CameraPath([([2.0, 1.3, 1.3], [0.2, 0.6, -0.6]), ([1.8, 1.2, 1.2], [0.2, 0.5, -0.8])], fov=70, name="dark"),
+        CameraPath([(o, [0.1, 0.7, 0.0]) for o in loop_a], fov=70, name="lit"),
+        CameraPath([(o, [0.2, 0.7, 0.0]) for o in loop_b], fov=70, name="dark"),
+        CameraPath([(o, [-0.9, 0.0, 0.0]) for o in loop_a], fov=70, name="lit_floor"),
     ]
     return b.build(paths, exposure=1.0, unit=1.0, meeting_center=[0.15, 1.2, 0.0], description=__doc__.strip())
