@@ -160,12 +160,13 @@ def run(opts) -> dict:
                         f_pt = _equal_time(pts, r["time_ms"])
                         r["pt_flip_equal_time"] = f_pt
                         r["flip_vs_pt_equal_time"] = (r["flip"] / f_pt) if f_pt else None
-            experiment.speed_error_plot(out / f"speed_error_{s.name}.png",
-                                        [r for r in srows if r["group"] == "full"],
-                                        f"{s.name}: full light, time vs FLIP ({W}x{H})")
-            experiment.speed_error_plot(out / f"speed_error_indirect_{s.name}.png",
-                                        [r for r in srows if r["group"] == "indirect"],
-                                        f"{s.name}: indirect light, time vs FLIP ({W}x{H})")
+            if srows:
+                experiment.speed_error_plot(out / f"speed_error_{s.name}.png",
+                                            [r for r in srows if r["group"] == "full"],
+                                            f"{s.name}: full light, time vs FLIP ({W}x{H})")
+                experiment.speed_error_plot(out / f"speed_error_indirect_{s.name}.png",
+                                            [r for r in srows if r["group"] == "indirect"],
+                                            f"{s.name}: indirect light, time vs FLIP ({W}x{H})")
             # ----------------------------------- multi-viewer -----------------------------------
             if not opts.no_multi:
                 mw, mh = preset["multi_res"]
