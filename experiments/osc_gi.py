@@ -213,7 +213,7 @@ def run(opts) -> dict:
           f"{cfg.ref_spp}-path indirect; indirect: the indirect reference); times are medians on a shared CPU "
           f"(compare within this table only). Memory: primary = on-surface cache + payloads, secondary = cells "
           f"in use (the table is allocated up front: secondary_table_mb in results.json).\n\n"
-          + experiment.markdown_table(rows, cols) + "\n")
+          + (experiment.markdown_table(rows, cols) if rows else "(single-viewer runs skipped)") + "\n")
     if multi:
         md += ("\n## Multi-viewer\n\n" + experiment.markdown_table(
             multi, [("scene", "scene"), ("viewers", "viewers"), ("measured_overlap", "measured overlap %"),
