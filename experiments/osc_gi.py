@@ -1,0 +1,251 @@
+"""osc-gi: global illumination with on-surface radiance caches (the slides' tables and figures).
+
+Per scene (one viewer on the scene's first camera path, moving):
+
+- ``osc-gi`` (full light: direct + indirect) through the common pipeline against the reference of
+  its kind (:func:`slc.references.reference_for`: 2048-sample direct + the indirect reference with
+  the method's bounces), with the slides' timing split: *cache* (the on-surface cache's requests,
+  allocation, queue), *effect* (primary and secondary cache updates: all rays), *display* (shading
+  the pixels from the primary caches); memory of the primary caches (on-surface cache + payloads)
+  and of the secondary cells in use, min and max over the path; the secondary-cache reuse
+  histogram (primary-cache rays per touched cell, last frame);
+- path tracing (``pt``, full light) at several sample counts, for the speed-against-error plot and
+  the FLIP of PT at osc-gi's time (log-log interpolation between the two PT points around it);
+- the indirect light alone: ``osc-gi:output=indirect``, ``pt`` (indirect) and ``crc`` against the
+  indirect reference;
+- multi-viewer (unless ``--no-multi``): 1, 4, 16 viewers at about 70% overlap
+  (:func:`slc.views.overlap_rig`), time against viewer count;
+- ablations (unless ``--no-ablations``): secondary cells of 15/60 cm, 1 and 3 bounces (each against
+  its own reference), cells not keyed by shape (``--quick``: 60 cm and 1 bounce only).
+
+The full preset runs cornell and atrium at 160x90 (24 frames); ``--quick`` cornell at 64x36
+(8 frames).
+
+    python experiments/osc_gi.py --quick
+    slc run osc-gi --quick [--scene cornell]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+if __name__ == "__main__" and __package__ is None:  # runnable alone
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+NAME = "osc-gi"
+
+FULL = dict(scenes=["cornell", "atrium"], width=160, height=90, frames=24, warmup=8, eval_frames=[23],
+            ref_spp=256, pt_spp=[1, 2, 4, 8, 16, 32], viewers=[1, 4, 16], overlap=0.7, multi_res=(64, 36),
+            multi_frames=10, ablations=["osc-gi:secondary_cm=15", "osc-gi:secondary_cm=60", "osc-gi:bounces=1",
+                                        "osc-gi:bounces=3", "osc-gi:shape_key=0"])
+QUICK = dict(scenes=["cornell"], width=64, height=36, frames=8, warmup=3, eval_frames=[7],
+             ref_spp=64, pt_spp=[1, 4], viewers=[1, 4, 16], overlap=0.7, multi_res=(32, 18), multi_frames=6,
+             ablations=["osc-gi:secondary_cm=60", "osc-gi:bounces=1"])
+CACHE_STAGES = ("requests", "allocate", "queue")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quick", action="store_true", help="small preset: cornell only, 64x36, 8 frames")
+    p.add_argument("--scene", action="append", help="scene name or .xml path (repeatable)")
+    p.add_argument("--out", default="out", help="output folder (results go to OUT/osc-gi)")
+    p.add_argument("--res", help="WxH (default 160x90, quick 64x36)")
+    p.add_argument("--frames", type=int, help="frames per sequence")
+    p.add_argument("--no-multi", action="store_true", help="skip the multi-viewer runs")
+    p.add_argument("--no-ablations", action="store_true", help="skip the ablations")
+    p.add_argument("--only-multi", action="store_true", help="run the multi-viewer part only")
+    p.add_argument("--seed", type=int, default=0)
+
+
+def _split(stages: dict) -> dict:
+    return {"cache_ms": sum(stages.get(k, 0.0) for k in CACHE_STAGES), "effect_ms": stages.get("update", 0.0),
+            "display_ms": stages.get("shade", 0.0)}
+
+
+def _equal_time(pt_rows, t):
+    """FLIP of PT at time t, log-log interpolation between the PT points around t (None outside)."""
+    import math
+    pts = sorted((r["time_ms"], r["flip"]) for r in pt_rows if r["time_ms"] > 0 and r["flip"] > 0)
+    for (t0, f0), (t1, f1) in zip(pts, pts[1:]):
+        if t0 <= t <= t1 and t1 > t0:
+            a = (math.log(t) - math.log(t0)) / (math.log(t1) - math.log(t0))
+            return math.exp(math.log(f0) + a * (math.log(f1) - math.log(f0)))
+    return None
+
+
+def _reuse_plot(path, hist, title):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from slc import io
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    b = hist["bins"]
+    labels = [f"{lo}" if hi == lo + 1 else (f"{lo}-{hi - 1}" if hi < 1 << 20 else f">={lo}")
+              for lo, hi in zip(b, b[1:])]
+    ax.bar(range(len(labels)), hist["counts"])
+    ax.set_xticks(range(len(labels)), labels, fontsize=7)
+    ax.set_xlabel("primary-cache rays per secondary cell (one frame)")
+    ax.set_ylabel("secondary cells")
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    io.write_figure(path, fig, dpi=120)
+    plt.close(fig)
+
+
+def run(opts) -> dict:
+    import dataclasses
+
+    from tqdm import tqdm
+
+    from slc import experiment, methods, views
+    from slc.pipeline import RunConfig, run_sequence
+
+    preset = experiment.apply_common(opts, QUICK if opts.quick else FULL)
+    W, H = preset["width"], preset["height"]
+    out = Path(opts.out) / NAME
+    names = experiment.load_and_validate(opts.scene or preset["scenes"], [], bool(opts.scene))
+    cfg = RunConfig(width=W, height=H, frames=preset["frames"], warmup=preset["warmup"],
+                    eval_frames=preset["eval_frames"], seed=opts.seed, ref_spp=preset["ref_spp"],
+                    measure_overlap=False)
+    main_specs = [] if opts.only_multi else ["osc-gi"] + [f"pt:spp={n}" for n in preset["pt_spp"]]
+    ind_specs = [] if opts.only_multi else (["osc-gi:output=indirect"]
+                                            + [f"pt:spp={n},output=indirect" for n in preset["pt_spp"][:3]] + ["crc"])
+    abl_specs = [] if opts.no_ablations or opts.only_multi else list(preset["ablations"])
+    for spec in main_specs + ind_specs + abl_specs:      # bad specs stop the run before any work
+        methods.parse_spec(spec)
+
+    rows, multi, hists = [], [], {}
+    n_runs = len(names) * (len(main_specs) + len(ind_specs) + len(abl_specs))
+    with tqdm(total=n_runs * preset["frames"], desc=NAME, unit="frame", disable=None) as bar:
+        for s in experiment.each_scene(names):
+            v = views.single(s)
+
+            def one(spec, group, cfg=cfg, viewers=v):
+                m = methods.create(spec, s, seed=opts.seed)
+                bar.set_postfix_str(f"{s.name}/{spec}")
+                res = run_sequence(s, m, viewers, cfg, progress=bar)
+                row = {"scene": s.name, **res.row(), "setting": spec, "label": m.label or m.name,
+                       "group": group, "output": m.output, "bounces": getattr(m, "bounces", None),
+                       "family": spec.split(":")[0], "resolution": f"{cfg.width}x{cfg.height}"}
+                row.pop("frames_ms", None)
+                row.update(_split(res.stages))
+                if spec.startswith("osc-gi"):
+                    log = m.memory_log[cfg.warmup:] or m.memory_log
+                    row.update({"primary_mb_min": min(p for p, _ in log) / 2 ** 20,
+                                "primary_mb_max": max(p for p, _ in log) / 2 ** 20,
+                                "secondary_mb_min": min(q for _, q in log) / 2 ** 20,
+                                "secondary_mb_max": max(q for _, q in log) / 2 ** 20,
+                                "secondary_table_mb": m.secondary.memory_bytes() / 2 ** 20,
+                                "bytes_per_entry": m.payload_bytes()})
+                return row, res, m
+
+            for spec in main_specs + ind_specs + abl_specs:
+                group = "full" if spec in main_specs else ("indirect" if spec in ind_specs else "ablation")
+                row, res, m = one(spec, group)
+                rows.append(row)
+                if spec in ("osc-gi", "osc-gi:output=indirect") or spec == "pt:spp=1":
+                    experiment.save_strip(out, s, row["label"], res)
+                if spec == "osc-gi":
+                    hists[s.name] = m.secondary.reuse_histogram()
+                    row["reuse_histogram"] = hists[s.name]
+                    _reuse_plot(out / f"reuse_{s.name}.png", hists[s.name],
+                                f"{s.name}: secondary-cache reuse ({W}x{H}, 1 viewer)")
+            # ----------------------------- equal-time comparison with PT -----------------------------
+            srows = [r for r in rows if r["scene"] == s.name]
+            for grp in ("full", "indirect"):
+                pts = [r for r in srows if r["group"] == grp and r["family"] == "pt"]
+                for r in srows:
+                    if r["group"] == grp and r["family"] != "pt":
+                        f_pt = _equal_time(pts, r["time_ms"])
+                        r["pt_flip_equal_time"] = f_pt
+                        r["flip_vs_pt_equal_time"] = (r["flip"] / f_pt) if f_pt else None
+            if srows:
+                experiment.speed_error_plot(out / f"speed_error_{s.name}.png",
+                                            [r for r in srows if r["group"] == "full"],
+                                            f"{s.name}: full light, time vs FLIP ({W}x{H})")
+                experiment.speed_error_plot(out / f"speed_error_indirect_{s.name}.png",
+                                            [r for r in srows if r["group"] == "indirect"],
+                                            f"{s.name}: indirect light, time vs FLIP ({W}x{H})")
+            # ----------------------------------- multi-viewer -----------------------------------
+            if not opts.no_multi:
+                mw, mh = preset["multi_res"]
+                mcfg = dataclasses.replace(cfg, width=mw, height=mh, frames=preset["multi_frames"],
+                                           warmup=preset["multi_frames"] // 2, eval_frames=[], measure_overlap=True)
+                # a throwaway run first: its kernels (at this resolution) are then in the kernel cache
+                run_sequence(s, methods.create("osc-gi", s, seed=opts.seed), v, mcfg)
+                for n in preset["viewers"]:
+                    vs = views.overlap_rig(s, n, preset["overlap"]) if n > 1 else v
+                    m = methods.create("osc-gi", s, seed=opts.seed)
+                    res = run_sequence(s, m, vs, mcfg)
+                    r = {"scene": s.name, "viewers": n, "target_overlap": preset["overlap"], "time_ms": res.time_ms,
+                         "measured_overlap": res.stats.get("measured_overlap"), "memory_mb": res.memory_mb,
+                         "entries": res.stats.get("active_entries"), "secondary_cells": res.stats.get("secondary_cells"),
+                         "method": "osc-gi", "resolution": f"{mw}x{mh}",
+                         "compiled_after_warmup": res.compiled_after_warmup, **_split(res.stages)}
+                    multi.append(r)
+                one_v = next(r for r in multi if r["scene"] == s.name and r["viewers"] == 1)
+                for r in multi:
+                    if r["scene"] == s.name:
+                        r["time_vs_one"] = r["time_ms"] / max(one_v["time_ms"], 1e-9)
+                experiment.time_vs_viewers_plot(out / f"time_vs_viewers_{s.name}.png",
+                                                [r for r in multi if r["scene"] == s.name],
+                                                f"{s.name}: osc-gi, {mw}x{mh} per viewer, overlap "
+                                                f"{preset['overlap']:.0%}")
+
+    # ------------------------------------------- report -------------------------------------------
+    config = {"quick": bool(opts.quick), "scenes": names, **{k: v for k, v in preset.items() if k != "scenes"},
+              "seed": opts.seed,
+              "reference": "full: 2048-sample direct ground truth + indirect reference (ref_spp paths, the "
+                           "method's bounces); indirect rows: the indirect reference alone",
+              "timing": "cache = on-surface cache requests/allocate/queue, effect = primary + secondary cache "
+                        "updates, display = shading; medians after warm-up on a shared 2-core CPU: ratios only"}
+    all_rows = rows + [dict(r, group="multi") for r in multi]
+    results = experiment.results_object(NAME, config, experiment.strip_private(all_rows))
+    cols = [("scene", "scene"), ("group", "group"), ("setting", "method"), ("time_ms", "t [ms]"),
+            ("cache_ms", "cache"), ("effect_ms", "effect"), ("display_ms", "display"), ("flip", "FLIP"),
+            ("psnr", "PSNR"), ("ssim", "SSIM"), ("pt_flip_equal_time", "PT FLIP @ equal t"),
+            ("flip_vs_pt_equal_time", "FLIP / PT"), ("primary_mb_min", "primary MB min"),
+            ("primary_mb_max", "primary MB max"), ("secondary_mb_min", "secondary MB min"),
+            ("secondary_mb_max", "secondary MB max"), ("memory_mb", "memory [MB]")]
+    md = (f"# {NAME}\n\n{W}x{H}, {cfg.frames} frames ({cfg.warmup} warm-up), one moving viewer; quality on frames "
+          f"{cfg.evaluated()} against the reference of each method's output (full: 2048-spp direct + "
+          f"{cfg.ref_spp}-path indirect; indirect: the indirect reference); times are medians on a shared CPU "
+          f"(compare within this table only). Memory: primary = on-surface cache + payloads, secondary = cells "
+          f"in use (the table is allocated up front: secondary_table_mb in results.json).\n\n"
+          + (experiment.markdown_table(rows, cols) if rows else "(single-viewer runs skipped)") + "\n")
+    if multi:
+        md += ("\n## Multi-viewer\n\n" + experiment.markdown_table(
+            multi, [("scene", "scene"), ("viewers", "viewers"), ("measured_overlap", "measured overlap %"),
+                    ("time_ms", "t [ms]"), ("time_vs_one", "t / 1 viewer"), ("entries", "entries"),
+                    ("secondary_cells", "secondary cells"), ("memory_mb", "memory [MB]")]) + "\n")
+    md += "\n## Targets\n\n"
+    for name in names:
+        r = next((x for x in rows if x["scene"] == name and x["setting"] == "osc-gi"), None)
+        ri = next((x for x in rows if x["scene"] == name and x["setting"] == "osc-gi:output=indirect"), None)
+        crc = next((x for x in rows if x["scene"] == name and x["setting"] == "crc"), None)
+        m16 = next((x for x in multi if x["scene"] == name and x["viewers"] == 16), None)
+        if m16:
+            md += (f"- {name}: 16 viewers at {m16['measured_overlap'] or 0:.0f}% measured overlap cost "
+                   f"{m16['time_vs_one']:.2f}x one viewer (target <= 4)\n")
+        if r is None:
+            continue
+        ratio = r.get("flip_vs_pt_equal_time")
+        md += (f"- {name}: FLIP {r['flip']:.4f}; PT at equal time "
+               + (f"{r['pt_flip_equal_time']:.4f} -> osc-gi / PT = {ratio:.2f} (target <= 0.70)" if ratio else
+                  "outside the measured PT range (see the plot)") + "\n")
+        if ri is not None and crc is not None:
+            md += (f"- {name}, indirect light: osc-gi FLIP {ri['flip']:.4f} vs crc {crc['flip']:.4f} "
+                   f"(target: lower)\n")
+        if hists.get(name):
+            h = hists[name]
+            md += f"- {name}: secondary reuse, mean {h['mean']:.1f} primary rays per cell (max {h['max']})\n"
+    experiment.write_results(out, results, md)
+    print(md)
+    print(f"results: {out / 'results.json'}")
+    return results
+
+
+if __name__ == "__main__":
+    from slc.cli import run_experiment_standalone
+    sys.exit(run_experiment_standalone(__file__))

@@ -1,0 +1,280 @@
+"""The registered ``osc-gi`` method: global illumination from primary radiance caches in the
+on-surface cache and secondary radiance caches in a hashed world grid (``docs/osc-gi.md``)."""
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+
+from ..keys import INVALID, keyed_rng
+from ..lights import sample_light, visible
+from ..methods import MethodError, Param, register
+from ..osc.cache import OnSurfaceCache
+from ..osc.payload import PayloadMethod, RayPolicy
+from .hemisphere import HemiGrid
+from .secondary import SecondaryCache
+
+STREAM_PRIMARY = 0x05C61001
+STREAM_PRIMARY_DIRECT = 0x05C61002
+STREAM_SHADE = 0x05C61003
+INITIAL_ENTRIES = 1 << 14     # the pool starts small and doubles on demand (entries are ~0.8 KB)
+
+
+def _cache_params():
+    """The on-surface cache's settings with the slides' defaults: 2x2 blocks ("reduced block size
+    to 2x2 instead of 8x8") and mip bias 2 (one entry per about 2x2 pixels)."""
+    out = []
+    for p in PayloadMethod.cache_params:
+        if p.name == "block":
+            p = Param("block", 2, p.help, choices=p.choices)
+        elif p.name == "bias":
+            p = Param("bias", 2.0, p.help, lo=p.lo, hi=p.hi)
+        out.append(p)
+    return tuple(out)
+
+
+class OSCGI(PayloadMethod):
+    r"""Radiance caching with on-surface caches (``osc-gi``, Tatzgern et al. 2024).
+
+    *Primary caches*: every requested on-surface cache entry x (its own surface point, rays offset
+    along its normal) keeps the incoming radiance over its hemisphere in ``hemi`` x ``hemi`` texels
+    of the cosine-weighted concentric map (:class:`~slc.oscgi.hemisphere.HemiGrid`, frame of the
+    entry's shading normal). Each update traces one jittered cosine ray per texel; a ray's hit y
+    falls in a secondary cell whose outgoing radiance :math:`L_o(y)` (layer ``bounces``) is the
+    texel's new sample; with ``output=full``, ``direct_rays`` light samples (next-event
+    estimation, :func:`slc.lights.sample_light` + shadow ray) are binned into the texels of their
+    directions, :math:`\hat L_k \mathrel{+}= \frac{L_e\cos\theta}{n\,p\,\pi/R^2}[\omega\in k]`.
+    Temporal filter: :math:`L_k \leftarrow L_k + (\hat L_k - L_k)/\min(c, N_{max})`, c the
+    entry's update count (an EMA over ``n_max`` samples once settled); a new entry starts from
+    its LOD seed (a coarser entry) when the cache gives one.
+
+    *Secondary caches*: :class:`~slc.oscgi.secondary.SecondaryCache`, cells of
+    ``secondary_cm`` cm keyed by position, normal bin and shape, storing outgoing diffuse radiance
+    in ``bounces`` layers (direct light by ``light_samples`` light samples, indirect by
+    ``secondary_rays`` cosine rays into other cells), so the primary point receives light after
+    1..``bounces`` reflections, the paths of the indirect reference.
+
+    *Shading* (no rays): diffuse-only BSDFs exactly from the texels,
+    :math:`L_o = \frac{\rho}{\pi} E,\ E = \frac{\pi}{R^2}\sum_k L_k`; other BSDFs by
+    ``glossy_samples`` BSDF samples of the hemisphere, :math:`\frac{1}{n}\sum_j w_j L_{k(\omega_j)}`.
+    ``output``: ``indirect`` (light after at least one reflection) or ``full`` (direct + indirect;
+    the emission seen directly is added by the pipeline).
+
+    Storage per entry: 3 R^2 radiance words, the irradiance (3 words) and the update count.
+    Ray budget (the ray policy): an entry's first update traces all R^2 texels, later updates
+    ``texel_rays`` of them in rotation (texel k when k = c mod R^2/``texel_rays``, c the update
+    number), each traced texel blended with 1/min(its own sample count, ``n_max``); light samples
+    (``output=full``) only feed the traced texels.
+    """
+
+    name = "osc-gi"
+    output = "full"
+    params = (
+        Param("output", "full", "what is returned: direct + indirect, or indirect light only",
+              choices=("full", "indirect")),
+        Param("bounces", 2, "indirect bounces (layers of the secondary caches)", lo=1, hi=8),
+        Param("hemi", 8, "hemisphere texels per side of a primary cache entry", lo=2, hi=16),
+        Param("texel_rays", 32, "texels traced per settled entry and update (new entries: all; divides hemi^2)",
+              lo=1, hi=256),
+        Param("n_max", 8, "EMA cap: blend factor 1/min(n, n_max)", lo=1, hi=256),
+        Param("secondary_cm", 30.0, "secondary cell edge [cm]", lo=1.0, hi=1000.0),
+        Param("secondary_rays", 32, "cosine rays per secondary cell update", lo=1, hi=1024),
+        Param("light_samples", 4, "light samples per secondary cell update", lo=1, hi=1024),
+        Param("direct_rays", 8, "light samples per primary entry update (output=full)", lo=1, hi=1024),
+        Param("glossy_samples", 8, "BSDF samples of the hemisphere per glossy pixel", lo=1, hi=1024),
+        Param("secondary_slots", 16, "log2 of the secondary hash-table size", lo=8, hi=24),
+        Param("shape_key", True, "secondary cells keyed by shape too (no sharing across shapes)"),
+    ) + _cache_params()
+    storage_type = mi.Float
+
+    def __init__(self, scene, **kw):
+        super().__init__(scene, **kw)
+        self.grid = HemiGrid(self.hemi)
+        self.words = 3 * self.grid.n + 4           # radiance per texel, irradiance, count
+        self.label = None if self.output == "full" else "osc-gi:output=indirect"
+
+    def validate(self):
+        if self.output not in ("full", "indirect"):
+            raise MethodError(f"{self.name}: output must be full or indirect")
+        D = self.hemi * self.hemi
+        if self.texel_rays > D or D % self.texel_rays:
+            raise MethodError(f"{self.name}: texel_rays must divide hemi^2 = {D} (got {self.texel_rays})")
+
+    def ray_policy(self) -> RayPolicy:
+        """All texels for an entry's first update, ``texel_rays`` afterwards (texels in rotation)."""
+        D = self.hemi * self.hemi
+        return RayPolicy(new=D, new_updates=1, settled=self.texel_rays, moving=D, motion_updates=1)
+
+    def reset(self):
+        super().reset()
+        self.secondary = None
+        self.memory_log = []          # per frame: (primary bytes, secondary bytes in use)
+
+    def _make_cache(self):
+        cache = self._cache_arg
+        if cache is None:
+            cache = OnSurfaceCache(self.scene, block_size=self.block, bias=self.bias, evict_after=self.evict_after,
+                                   max_blocks=max(1, INITIAL_ENTRIES // (self.block * self.block)))
+        self.cache = cache
+        unit = float(getattr(self.scene, "unit", 1.0) or 1.0)
+        self.secondary = SecondaryCache(self.scene.mi_scene, self.secondary_cm / 100.0 * unit, self.bounces,
+                                        self.n_max, self.secondary_rays, self.light_samples,
+                                        1 << self.secondary_slots, shape_key=self.shape_key, seed=self.seed)
+
+    # ----------------------------------------------------------------- update
+    def update(self, ctx, fr, rays, unsettled):
+        sc, G, W, sec = self.scene.mi_scene, self.grid, self.words, self.secondary
+        D, N = G.n, fr.n_active
+
+        # ------- primary rays: one jittered cosine ray per texel of this update's share -------
+        # texel k of an entry is traced in its first update and, afterwards, in update c when
+        # k = c (mod S), S = hemi^2 / texel_rays: every texel once per S updates
+        lane = dr.arange(mi.UInt32, N * D)
+        e, k = lane // D, lane % D
+        S = D // self.texel_rays
+        is_new = dr.gather(mi.Bool, fr.is_new, e)
+        seed_slot = dr.gather(mi.UInt32, fr.seed_slot, e)
+        seeded = is_new & (seed_slot != INVALID)
+        slot = dr.gather(mi.UInt32, fr.active, e)
+        c_old = dr.select(is_new, dr.select(seeded, 1.0, 0.0), dr.gather(mi.Float, self.storage, slot * W + 3 * D + 3))
+        c = mi.UInt32(c_old) + 1                                     # this update's number
+        full = dr.gather(mi.UInt32, rays, e) >= D
+        traced = full | ((k % S) == (c % S))
+        si = dr.zeros(mi.SurfaceInteraction3f, N * D)                 # only what spawn_ray needs
+        si.p = mi.Point3f(*[dr.gather(mi.Float, fr.si.p[c], e) for c in range(3)])
+        si.n = mi.Vector3f(*[dr.gather(mi.Float, fr.si.n[c], e) for c in range(3)])
+        n_sh = mi.Vector3f(*[dr.gather(mi.Float, fr.si.sh_frame.n[c], e) for c in range(3)])
+        s = keyed_rng(dr.gather(mi.UInt32, fr.keys, e) * D + k, self.seed, ctx.frame, STREAM_PRIMARY)
+        d = mi.Frame3f(n_sh).to_world(G.direction(k, mi.Point2f(s.next_float32(), s.next_float32())))
+        ok = traced & (dr.dot(d, si.n) > 0.0)           # this update's texels, above the geometric surface
+        hit = sc.ray_intersect(si.spawn_ray(d), ok)
+
+        # ------------- secondary caches: cells of the hits, requests, update (all shared) -------------
+        slots, hok = sec.touch(hit, d, ok)
+        req = sec.begin_frame()
+        sec.request(req, slots, hok, 1)
+        sec.record_reuse(slots, hok)
+        sec.update(ctx.frame, req)
+        sample = sec.radiance(slots, hok)              # outgoing radiance of the hit's cell
+        dr.eval(sample)
+
+        # ----------------- direct light (output=full): light samples binned into texels -----------------
+        sample = [sample[c] for c in range(3)]
+        if self.output == "full":
+            scratch = dr.zeros(mi.Float, N * D * 3)
+            sie, frame_e = fr.si, mi.Frame3f(fr.si.sh_frame.n)
+            base = dr.arange(mi.UInt32, N) * D
+            sd = keyed_rng(fr.keys, self.seed, ctx.frame, STREAM_PRIMARY_DIRECT)
+            nd = dr.opaque(mi.UInt32, self.direct_rays)
+            scale = 1.0 / (self.direct_rays * G.texel_weight)
+
+            def cond(i, sd):
+                return i < nd
+
+            def body(i, sd):
+                u = mi.Point2f(sd.next_float32(), sd.next_float32())
+                ds, w, okd = sample_light(sc, sie, u, mi.Bool(True))
+                loc = frame_e.to_local(ds.d)
+                okd &= (dr.dot(ds.d, sie.n) > 0.0) & (loc.z > 0.0) & dr.all(dr.isfinite(w))
+                okd = visible(sc, sie, ds, okd)
+                t = (base + G.texel(loc)) * 3
+                for c in range(3):
+                    dr.scatter_add(scratch, w[c] * loc.z * scale, t + c, okd)
+                return i + 1, sd
+
+            dr.while_loop(state=(mi.UInt32(0), sd), cond=cond, body=body, labels=("i", "sd"))
+            dr.eval(scratch)
+            sample = [sample[c] + dr.gather(mi.Float, scratch, lane * 3 + c) for c in range(3)]
+
+        # ------------ temporal EMA per traced texel; new entries start from their seed ------------
+        # a texel's own sample count: c for full updates, about 1 + ceil((c - 1) / S) in rotation
+        src = dr.select(seeded, seed_slot, slot)
+        keep = ~is_new | seeded
+        cnt = c_old + 1.0
+        c_k = dr.select(full, cnt, 1.0 + mi.Float((c - 1 + S - 1) // S))
+        a = dr.select(traced, dr.rcp(dr.minimum(c_k, float(self.n_max))), 0.0)
+        new = []
+        for ch in range(3):
+            old = dr.gather(mi.Float, self.storage, src * W + k * 3 + ch, keep)
+            new.append(dr.fma(a, dr.select(traced, sample[ch], old) - old, old))
+        E = [dr.block_sum(x, D) * G.texel_weight for x in new]      # per entry: (pi/R^2) sum_k L_k
+        dr.eval(*new, *E, cnt)
+        for ch in range(3):
+            dr.scatter(self.storage, new[ch], slot * W + k * 3 + ch)
+            dr.scatter(self.storage, E[ch], fr.active * W + 3 * D + ch)
+        dr.scatter(self.storage, cnt, slot * W + 3 * D + 3, k == 0)
+        return dr.zeros(mi.Bool, N)
+
+    # ------------------------------------------------------------------ shade
+    def shade(self, ctx, fr, v, gb):
+        G, W, D = self.grid, self.words, self.grid.n
+        slot, idx = mi.UInt32(fr.pixel_slot[v]), mi.UInt32(fr.pixel_index[v])
+        si = gb.si
+        ok = mi.Bool(gb.valid) & (slot != INVALID) & (si.wi.z > 0.0)
+        bsdf = si.bsdf()
+        flags = bsdf.flags()
+        diffuse_only = ~mi.has_flag(flags, mi.BSDFFlags.Glossy) & ~mi.has_flag(flags, mi.BSDFFlags.Delta)
+
+        # ------------------------ diffuse: rho / pi * E, E from the texels ------------------------
+        E = mi.Color3f(*[dr.gather(mi.Float, self.storage, slot * W + 3 * D + c, ok & diffuse_only)
+                         for c in range(3)])
+        rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, ok & diffuse_only))
+        L = dr.select(ok & diffuse_only, rho * E * (1.0 / math.pi), 0.0)
+
+        # ------------- glossy: BSDF importance sampling of the entry's hemisphere texels -------------
+        g = ok & ~diffuse_only
+        n_e = mi.Vector3f(*[dr.gather(mi.Float, fr.si.sh_frame.n[c], idx, g) for c in range(3)])
+        frame_e = mi.Frame3f(n_e)
+        sampler = keyed_rng(dr.arange(mi.UInt32, gb.size), self.seed, ctx.frame, STREAM_SHADE)
+        ns = dr.opaque(mi.UInt32, self.glossy_samples)
+        bctx = mi.BSDFContext()
+
+        def cond(i, Lg, sampler):
+            return (i < ns) & g
+
+        def body(i, Lg, sampler):
+            u1 = sampler.next_float32()
+            u2 = mi.Point2f(sampler.next_float32(), sampler.next_float32())
+            bs, bw = bsdf.sample(bctx, si, u1, u2, g)
+            loc = frame_e.to_local(si.to_world(bs.wo))
+            okj = g & (bs.pdf > 0.0) & (loc.z > 0.0)
+            t = slot * W + G.texel(loc) * 3
+            Li = mi.Color3f(*[dr.gather(mi.Float, self.storage, t + c, okj) for c in range(3)])
+            return i + 1, Lg + dr.select(okj, mi.Color3f(bw) * Li, 0.0), sampler
+
+        _, Lg, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
+                                 labels=("i", "Lg", "sampler"))
+        L += Lg * (1.0 / float(self.glossy_samples))
+        return dr.select(ok, L, 0.0)
+
+    # ------------------------------------------------------------------ frame
+    def render(self, ctx, gbuffers, timer):
+        out = super().render(ctx, gbuffers, timer)
+        if self.cache is not None:
+            self._cells = self.secondary.used_cells()
+            self.memory_log.append((int(self.cache.memory_bytes())
+                                    + int(self.cache.entries_allocated()) * self.payload_bytes(),
+                                    self._cells * 4 * self.secondary.words_per_slot()))
+        return out
+
+    # ------------------------------------------------------------------ reports
+    def memory_bytes(self) -> int:
+        """Primary caches (the on-surface cache and its payloads) + the secondary hash table."""
+        return super().memory_bytes() + (self.secondary.memory_bytes() if self.secondary is not None else 0)
+
+    def stats(self) -> dict:
+        out = super().stats()
+        if self.secondary is not None:
+            sec = self.secondary
+            r = sec.reuse
+            out.update({"secondary_cells": float(getattr(self, "_cells", 0)), "secondary_updated": float(sec.updated),
+                        "secondary_overflow": float(sec.overflow),
+                        "secondary_reuse_mean": float(dr.mean(mi.Float(r))[0]) if dr.width(r) else 0.0})
+            if self.memory_log:
+                out["primary_mb"] = self.memory_log[-1][0] / 2 ** 20
+                out["secondary_mb"] = self.memory_log[-1][1] / 2 ** 20
+        return out
+
+
+register("osc-gi", OSCGI, help="GI from primary (on-surface, hemisphere) and secondary (world-grid) radiance caches")

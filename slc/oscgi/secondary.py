@@ -1,0 +1,284 @@
+r"""Secondary radiance caches: a hashed world grid of coarse cells on the surfaces that the
+primary caches' rays hit (the slides' "secondary caches ... span ~30 cm x 30 cm, quantized to
+allow for more reuse").
+
+A cell is keyed by the hit's quantised position ``floor(p / h)`` (``h`` = the cell size), the
+dominant axis and sign of its front-facing geometric normal (6 bins: the two sides of a wall never
+share a cell) and, by default, the hit's shape (``shape_key``: two rooms whose floors are separate
+shapes never share a cell even where a 30 cm cell straddles the wall between them; the journal's
+secondary caches are on-surface texels of islands, which never straddle two islands either).
+The key is a 32-bit TEA hash of these; its home slot a second hash word. The table is open
+addressing with linear probing over ``slots`` entries, filled without races in ``probes`` rounds
+of gather / ``scatter_reduce(min)`` / gather (the smallest key wins a contested empty slot, the
+others probe on): the same requests give the same table on every run. Cells are never evicted
+(a request that finds no slot within ``probes`` gets no cell and counts as overflow).
+
+Each cell stores the *outgoing diffuse* radiance of its surface, :math:`L_o = \rho E / \pi`, in
+``bounces`` layers: layer 1 holds direct light only, layer b adds light that arrived after b-1
+further bounces,
+
+.. math:: L^{(1)} = \frac{\rho}{\pi} E_{dir}, \qquad
+          L^{(b)} = \rho\Big(\frac{E_{dir}}{\pi} + \frac{1}{n}\sum_{j=1}^{n} L^{(b-1)}(c_j)\Big),
+
+with :math:`E_{dir}` from ``light_samples`` samples of the project's light sampling
+(:func:`slc.lights.sample_light`, shadow rays) and n = ``rays`` cosine-distributed rays whose hits
+fall in cells :math:`c_j` (their layer b-1 of the previous update; an emitter or the environment
+hit by such a ray adds nothing, since next-event estimation already counts that light). A primary
+cache reads layer ``bounces``, so that the primary point receives light after exactly
+1..``bounces`` reflections, the paths of :func:`slc.references.indirect_light`. Bounces accumulate
+over frames: layer b of a cell is at most b-1 updates behind.
+
+Points: a cell is updated from a representative point, the hit (lowest lane) that touched it last;
+as hits move over the cell from frame to frame, the temporal average spans the cell.
+Update set: every cell hit by a primary ray this frame (ring 1) and every cell hit by a ring-r
+cell's rays in the previous frame (ring r+1 <= ``bounces``); ring ``bounces`` needs direct light only
+and traces no rays. Temporal filter: exponential moving average with blend factor
+1 / min(n, ``n_max``), n the cell's update count.
+"""
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..keys import INVALID, keyed_rng
+from ..lights import sample_light, visible
+
+EMPTY = INVALID
+NO_RING = 0xFFFF
+STREAM_SECONDARY = 0x05EC0001
+_REP = 9          # representative point (3), front normal (3), diffuse albedo (3)
+
+
+def front_normal(si: mi.SurfaceInteraction3f, d: mi.Vector3f) -> mi.Vector3f:
+    """Geometric normal of a hit, on the side the ray ``d`` came from."""
+    return dr.select(dr.dot(si.n, d) > 0.0, -si.n, si.n)
+
+
+class SecondaryCache:
+    """Hashed grid of secondary radiance cells (see the module).
+
+    Parameters: ``cell`` (edge in scene units), ``bounces`` (layers), ``n_max`` (EMA cap),
+    ``rays`` (cosine rays per cell update, 32), ``light_samples`` (per cell update, 4),
+    ``slots`` (table size, a power of two), ``probes`` (linear-probing rounds), ``shape_key``."""
+
+    def __init__(self, mi_scene: mi.Scene, cell: float, bounces: int = 2, n_max: int = 8, rays: int = 32,
+                 light_samples: int = 4, slots: int = 1 << 16, probes: int = 16, shape_key: bool = True,
+                 seed: int = 0):
+        if slots & (slots - 1):
+            raise ValueError("slots must be a power of two")
+        self.sc, self.h, self.B = mi_scene, float(cell), int(bounces)
+        self.n_max, self.rays, self.light_samples = int(n_max), int(rays), int(light_samples)
+        self.slots, self.probes, self.shape_key, self.seed = int(slots), int(probes), bool(shape_key), int(seed)
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        cap = self.slots
+        self.keys = dr.full(mi.UInt32, EMPTY, cap)
+        self.count = dr.zeros(mi.UInt32, cap)
+        self.pending = dr.full(mi.UInt32, NO_RING, cap)     # ring requested for the next update
+        self.rep = dr.zeros(mi.Float, cap * _REP)
+        self.layers = dr.zeros(mi.Float, cap * 3 * self.B)
+        self._reuse_count = dr.zeros(mi.UInt32, self.slots)   # primary hits per cell, last frame
+        self._overflow = mi.UInt32(0)                         # kept lazy: no sync inside a timed stage
+        self.updated = 0
+        dr.eval(self.keys, self.count, self.pending, self.rep, self.layers)
+
+    def words_per_slot(self) -> int:
+        return 3 + _REP + 3 * self.B       # key, count, ring + representative point + layers
+
+    def memory_bytes(self) -> int:
+        """The whole table (allocated up front)."""
+        return 4 * self.words_per_slot() * self.slots
+
+    def used_cells(self) -> int:
+        return int(dr.count(self.keys != EMPTY)[0])
+
+    def used_bytes(self) -> int:
+        return 4 * self.words_per_slot() * self.used_cells()
+
+    # ------------------------------------------------------------------ keys
+    def key_of(self, si: mi.SurfaceInteraction3f, d: mi.Vector3f):
+        """(key, home slot, front normal) of hits ``si`` reached along ``d``."""
+        nf = front_normal(si, d)
+        c = mi.Vector3i(dr.floor(si.p / self.h))
+        a = dr.abs(nf)
+        axis = dr.select((a.x >= a.y) & (a.x >= a.z), 0, dr.select(a.y >= a.z, 1, 2))
+        neg = dr.select(axis == 0, nf.x < 0.0, dr.select(axis == 1, nf.y < 0.0, nf.z < 0.0))
+        bin_ = mi.UInt32(axis * 2) + dr.select(neg, 1, 0)
+        shape = dr.reinterpret_array(mi.UInt32, si.shape) if self.shape_key else mi.UInt32(0)
+        ux, uy, uz = (dr.reinterpret_array(mi.UInt32, v) for v in (c.x, c.y, c.z))
+        k0, _ = mi.sample_tea_32(ux, uy, 4)
+        key, home = mi.sample_tea_32(k0 ^ (uz * 0x9E3779B9), bin_ | (shape << 3), 4)
+        key = dr.minimum(key, EMPTY - 1)
+        return key, home & (self.slots - 1), nf
+
+    def find_or_insert(self, key: mi.UInt32, home: mi.UInt32, active: mi.Bool) -> mi.UInt32:
+        """Slot of each key (inserted when absent); INVALID where inactive or the table is full."""
+        mask = self.slots - 1
+        slot, act = mi.UInt32(home), mi.Bool(active)
+        found = dr.full(mi.UInt32, INVALID, dr.width(key))
+        dr.eval(slot, act, found)
+        for r in range(self.probes):
+            # ------------- claim the probed slot where it is empty (smallest key wins) -------------
+            cur = dr.gather(mi.UInt32, self.keys, slot, act)
+            dr.eval(cur)                  # read before the claim (and no copy of the table on write)
+            dr.scatter_reduce(dr.ReduceOp.Min, self.keys, key, slot, act & (cur == EMPTY))
+            dr.eval(self.keys)
+            # --------------------- ours now (or already)? else probe the next slot ---------------------
+            cur = dr.gather(mi.UInt32, self.keys, slot, act)
+            mine = act & (cur == key)
+            found = dr.select(mine, slot, found)
+            act &= ~mine
+            slot = dr.select(act, (slot + 1) & mask, slot)
+            dr.eval(found, act, slot)
+            if r % 2 == 1 and not dr.any(act):       # most requests settle in one or two rounds
+                break
+        self._overflow = self._overflow + mi.UInt32(dr.count(act))
+        return found
+
+    def _set_rep(self, slots: mi.UInt32, ok: mi.Bool, p: mi.Point3f, n: mi.Vector3f, albedo: mi.Color3f) -> None:
+        """Each touched cell's representative point: the lowest lane that touched it."""
+        lane = dr.arange(mi.UInt32, dr.width(slots))
+        win = dr.full(mi.UInt32, INVALID, self.slots)
+        dr.scatter_reduce(dr.ReduceOp.Min, win, lane, slots, ok)
+        dr.eval(win)
+        w = ok & (dr.gather(mi.UInt32, win, slots, ok) == lane)
+        for j, v in enumerate((p.x, p.y, p.z, n.x, n.y, n.z, albedo.x, albedo.y, albedo.z)):
+            dr.scatter(self.rep, v, slots * _REP + j, w)
+        dr.eval(self.rep)
+
+    def touch(self, si: mi.SurfaceInteraction3f, d: mi.Vector3f, active: mi.Bool):
+        """Cells of the hits ``si`` of rays along ``d`` (inserted when new, representative point
+        refreshed). Returns (slots, valid mask)."""
+        ok = active & si.is_valid()
+        key, home, nf = self.key_of(si, d)
+        slots = self.find_or_insert(key, home, ok)
+        ok &= slots != INVALID
+        albedo = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, ok))
+        self._set_rep(slots, ok, si.p, nf, albedo)
+        return slots, ok
+
+    def radiance(self, slots: mi.UInt32, ok: mi.Bool, layer: int | None = None) -> mi.Color3f:
+        """Outgoing radiance of cells (layer ``bounces`` by default)."""
+        b = (self.B if layer is None else layer) - 1
+        base = (slots * self.B + b) * 3
+        return mi.Color3f(*[dr.gather(mi.Float, self.layers, base + c, ok) for c in range(3)])
+
+    # ------------------------------------------------------------------ update
+    def begin_frame(self) -> mi.UInt32:
+        """The requests carried from the previous update (ring per slot); the caller adds ring 1."""
+        req, self.pending = self.pending, dr.full(mi.UInt32, NO_RING, self.slots)
+        return req
+
+    def request(self, req: mi.UInt32, slots: mi.UInt32, ok: mi.Bool, ring: int = 1) -> None:
+        dr.scatter_reduce(dr.ReduceOp.Min, req, mi.UInt32(ring), slots, ok)
+
+    def record_reuse(self, slots: mi.UInt32, ok: mi.Bool) -> None:
+        """Primary hits per touched cell this frame (the reuse histogram)."""
+        cnt = dr.zeros(mi.UInt32, self.slots)
+        dr.scatter_reduce(dr.ReduceOp.Add, cnt, mi.UInt32(1), slots, ok)
+        self._reuse_count = cnt
+
+    @property
+    def overflow(self) -> int:
+        """Requests that found no slot, since the last reset."""
+        return int(self._overflow[0])
+
+    @property
+    def reuse(self) -> mi.UInt32:
+        """Primary hits of each cell touched in the last frame."""
+        cnt = self._reuse_count
+        return dr.gather(mi.UInt32, cnt, dr.compress(cnt > 0))
+
+    def update(self, frame: int, req: mi.UInt32) -> mi.UInt32:
+        """Update every requested cell once (see the module); returns the updated slots."""
+        sc, B = self.sc, self.B
+        cells = dr.compress(req <= B)
+        n = dr.width(cells)
+        self.updated = n
+        if n == 0:
+            return cells
+        ring = dr.gather(mi.UInt32, req, cells)
+        rep = [dr.gather(mi.Float, self.rep, cells * _REP + j) for j in range(_REP)]
+        p, nrm, rho = mi.Point3f(*rep[0:3]), mi.Vector3f(*rep[3:6]), mi.Color3f(*rep[6:9])
+        keys = dr.gather(mi.UInt32, self.keys, cells)
+        si = dr.zeros(mi.SurfaceInteraction3f, n)
+        si.p, si.n, si.sh_frame, si.wi = p, nrm, mi.Frame3f(nrm), mi.Vector3f(0, 0, 1)
+        lit = dr.max(rho) > 0.0
+
+        # ------------------- direct light at the representative point (NEE) -------------------
+        sampler = keyed_rng(keys, self.seed, frame, STREAM_SECONDARY)
+        ns = dr.opaque(mi.UInt32, self.light_samples)
+
+        def cond(i, E, sampler):
+            return i < ns
+
+        def body(i, E, sampler):
+            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
+            ds, w, ok = sample_light(sc, si, u, lit)
+            cos = dr.dot(ds.d, nrm)
+            ok &= (cos > 0.0) & dr.all(dr.isfinite(w))
+            ok = visible(sc, si, ds, ok)
+            return i + 1, E + dr.select(ok, w * cos, 0.0), sampler
+
+        _, E_dir, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
+                                    labels=("i", "E", "sampler"))
+        E_dir = E_dir / float(max(self.light_samples, 1))
+        L_dir = E_dir * (1.0 / math.pi)
+        dr.eval(L_dir)
+
+        # ------------- cosine rays to other cells: layers b-1 of their previous update -------------
+        mean = [mi.Color3f(0.0) for _ in range(B - 1)]
+        if B > 1:
+            R = self.rays
+            lane = dr.arange(mi.UInt32, n * R)
+            c_of, j = lane // R, lane % R
+            tracing = dr.gather(mi.UInt32, ring, c_of) < B
+            tracing &= dr.gather(mi.Bool, lit, c_of)
+            s2 = keyed_rng(dr.gather(mi.UInt32, keys, c_of) * R + j, self.seed, frame, STREAM_SECONDARY + 1)
+            u = mi.Point2f(s2.next_float32(), s2.next_float32())
+            sil = dr.gather(mi.SurfaceInteraction3f, si, c_of)
+            d = sil.sh_frame.to_world(mi.warp.square_to_cosine_hemisphere(u))
+            hit = sc.ray_intersect(sil.spawn_ray(d), tracing)
+            hit_slots, hok = self.touch(hit, d, tracing)
+            hok &= dr.dot(hit.n, d) != 0.0
+            next_ring = dr.gather(mi.UInt32, ring, c_of) + 1
+            dr.scatter_reduce(dr.ReduceOp.Min, self.pending, next_ring, hit_slots, hok & (next_ring <= B))
+            for b in range(1, B):
+                Lh = self.radiance(hit_slots, hok, layer=b)
+                mean[b - 1] = mi.Color3f(*[dr.block_sum(Lh[c], R) for c in range(3)]) * (1.0 / R)
+            dr.eval(self.pending, *mean)
+            traced = ring < B
+        else:
+            traced = dr.zeros(mi.Bool, n)
+
+        # ----------------------------- new layers, EMA, write back -----------------------------
+        new = [rho * L_dir]
+        for b in range(1, B):
+            new.append(dr.select(traced, rho * (L_dir + mean[b - 1]), new[0]))
+        cnt = dr.minimum(dr.gather(mi.UInt32, self.count, cells) + 1, 0xFFFF)
+        a = dr.rcp(mi.Float(dr.minimum(cnt, self.n_max)))
+        vals = []
+        for b in range(B):
+            for c in range(3):
+                idx = (cells * B + b) * 3 + c
+                old = dr.gather(mi.Float, self.layers, idx)
+                vals.append((idx, dr.fma(a, new[b][c] - old, old)))
+        dr.eval(*[v for _, v in vals])
+        for idx, v in vals:
+            dr.scatter(self.layers, v, idx)
+        dr.scatter(self.count, cnt, cells)
+        dr.eval(self.layers, self.count)
+        return cells
+
+    # ------------------------------------------------------------------ reports
+    def reuse_histogram(self, bins=(1, 2, 4, 8, 16, 32, 64, 128, 256, 1 << 30)) -> dict:
+        """Touched cells by primary hits per cell, in bins [bins[i], bins[i+1])."""
+        r = np.asarray(self.reuse, dtype=np.int64)
+        h, _ = np.histogram(r, bins=list(bins))
+        return {"bins": list(bins), "counts": h.tolist(), "cells": int(r.size),
+                "mean": float(r.mean()) if r.size else 0.0, "max": int(r.max()) if r.size else 0}
