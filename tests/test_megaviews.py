@@ -60,15 +60,15 @@ def test_culling_is_conservative(setup):
         assert not np.any(cosang > 1e-6), f"pair ({S[i]}, {V[i]}) culled but visible"
 
 
-def test_traversal_visits_no_pair_twice_and_multipass_is_exact(setup):
+def test_traversal_visits_no_pair_twice_and_chunking_is_exact(setup):
     _, sh, _, vh = setup
     one = tv.Traversal(sh, vh, 16, record=True).run()
     pairs = np.concatenate(one.record)
     keys = pairs[:, 0] * vh.size + pairs[:, 1]
     assert len(np.unique(keys)) == len(keys)
     assert one.stats.rendered > 0 and one.stats.passes == 1
-    # a tiny budget forces multi-pass splitting: same pairs, same maps, lower peak
-    small = tv.Traversal(sh, vh, 16, budget_pairs=2000, record=True).run()
+    # a tiny budget with split="chunk": same pairs, same maps, lower peak
+    small = tv.Traversal(sh, vh, 16, budget_pairs=2000, record=True, split="chunk").run()
     p2 = np.concatenate(small.record)
     k2 = p2[:, 0] * vh.size + p2[:, 1]
     assert len(np.unique(k2)) == len(k2)
@@ -77,7 +77,30 @@ def test_traversal_visits_no_pair_twice_and_multipass_is_exact(setup):
     assert np.array_equal(np.array(small.depth), np.array(one.depth))
 
 
-def test_fused_maps_match_brute_force(setup):
+def test_view_split_multipass(setup):
+    """The paper's multi-pass (Sec. 4.2): passes from the view nodes of the
+    multi-pass level. A fixed level 2 visits no pair twice, makes one pass
+    per level-2 view node and renders from no view node above level 2; with
+    the level found from a small budget, the pair-queue peak stays within the
+    budget (the stopped passes' pairs are counted as wasted)."""
+    _, sh, _, vh = setup
+    one = tv.Traversal(sh, vh, 16).run()
+    fixed = tv.Traversal(sh, vh, 16, split_level=2, record=True).run()
+    p = np.concatenate(fixed.record)
+    keys = p[:, 0] * vh.size + p[:, 1]
+    assert len(np.unique(keys)) == len(keys)
+    assert np.all(vh.level_np[p[:, 1]] >= 2)
+    assert fixed.stats.passes == int(vh.level_start[3] - vh.level_start[2])
+    assert fixed.stats.wasted_pairs == 0 and fixed.stats.split_level == 2
+    budget = one.stats.peak_pairs // 4
+    auto = tv.Traversal(sh, vh, 16, budget_pairs=budget).run()
+    assert auto.stats.split_level >= 1 and auto.stats.wasted_pairs > 0
+    assert auto.stats.peak_pairs <= budget < one.stats.peak_pairs
+
+
+@pytest.mark.parametrize("kw", [{}, {"split_level": 2}, {"budget_pairs": 60000}, {"mode": "viewonly"}],
+                         ids=["one-pass", "split-level-2", "split-auto", "view-only"])
+def test_fused_maps_match_brute_force(setup, kw):
     """Allowed difference (the paper's approximations): a node is rendered
     once for a view node when it projects below one texel, so its texel may
     move by one texel and its depth by the node's extent. Checked: (a) every
@@ -88,7 +111,8 @@ def test_fused_maps_match_brute_force(setup):
     of a node rendered below a texel plus the leaf size) for >= 95%."""
     _, sh, vpls, vh = setup
     R = 16
-    mv = tv.render_maps(sh, vh, R, "megaviews", multi_pixel=False)
+    kw = dict(kw)
+    mv = tv.render_maps(sh, vh, R, kw.pop("mode", "megaviews"), multi_pixel=False, **kw)
     flat = ViewHierarchy(vpls.position, vpls.normal, math.pi / 2, flat=True)
     bf = tv.render_maps(sh, flat, R, "brute", multi_pixel=False)
     single = np.flatnonzero(vh.n_views_np[vh.leaf_of_view_np] == 1)
