@@ -74,7 +74,8 @@ def generate(mi_scene: mi.Scene, n: int, bounces: int = 1, seed: int = 0) -> VPL
     idx = dr.arange(mi.UInt32, n)
     keep = vs.position.shape[0]
     frac = float(keep) / float(n)   # drop VPLs uniformly: rescale the flux of the kept ones
-    return VPLSet(dr.gather(mi.SurfaceInteraction3f, vs.si, idx), dr.gather(mi.Color3f, vs.flux, idx) * frac,
+    return VPLSet(dr.gather(mi.SurfaceInteraction3f, vs.si, idx),
+                  dr.gather(mi.Color3f, vs.flux, idx) * dr.opaque(mi.Float, frac),
                   vs.position[:n], vs.normal[:n], vs.bounce[:n])
 
 
@@ -85,7 +86,7 @@ def _generate(mi_scene: mi.Scene, n: int, bounces: int = 1, seed: int = 0) -> VP
     u = [sampler.next_float32() for _ in range(5)]
     ray, w, _ = mi_scene.sample_emitter_ray(mi.Float(0.0), u[0], mi.Point2f(u[1], u[2]), mi.Point2f(u[3], u[4]),
                                            mi.Bool(True))
-    thr = mi.Color3f(w) / float(paths)
+    thr = mi.Color3f(w) / dr.opaque(mi.Float, float(paths))   # opaque: no kernel per VPL count
     active = dr.isfinite(thr[0] + thr[1] + thr[2])
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
     sis, fluxes, valids = [], [], []
@@ -197,9 +198,9 @@ def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cu
     cut = dr.opaque(mi.Float, float(cutoff) if use_cut else 0.0)
     si, active = gb.si, gb.valid
     x = si.p
-    eps = mi.Float(scene_h.leaf_radius)
+    eps = dr.opaque(mi.Float, scene_h.leaf_radius)
     R = maps.layout.R
-    dmin = float(d_min if d_min is not None else 0.05 * scene_h.tree.edge)
+    dmin = dr.opaque(mi.Float, float(d_min if d_min is not None else 0.05 * scene_h.tree.edge))
     bsdf_x = si.bsdf()
     ctx = mi.BSDFContext()
 
