@@ -73,7 +73,7 @@ from .hierarchy import SceneHierarchy, ViewHierarchy
 
 INV_SQRT3 = 1.0 / math.sqrt(3.0)  # sphere radius -> half edge of the cubic voxel
 PAIR_BYTES = 8          # two 32-bit node ids, as in the paper (64 bits per pair)
-DEFAULT_BUDGET = 1 << 24  # pairs (128 MB of pair queue)
+DEFAULT_BUDGET = 1 << 25  # pairs (256 MB of pair queue at 8 bytes per pair; ~2 GB of Dr.Jit work arrays)
 
 
 @dataclass
@@ -167,7 +167,7 @@ def _splat(depth, layout: pb.Layout, slot, p, pv, r_surf, active, multi_pixel: b
 class Traversal:
     """Runs the concurrent traversal of ``scene_h`` x ``view_h`` into maps of
     resolution ``R`` (see module docstring). Parameters: ``cull`` (default
-    True), ``budget_pairs`` (multi-pass threshold, default 16M pairs),
+    True), ``budget_pairs`` (multi-pass threshold, default 32M pairs),
     ``record`` (keep every processed pair, for tests)."""
 
     def __init__(self, scene_h: SceneHierarchy, view_h: ViewHierarchy, R: int = 16, cull: bool = True,
