@@ -168,7 +168,11 @@ class Traversal:
     """Runs the concurrent traversal of ``scene_h`` x ``view_h`` into maps of
     resolution ``R`` (see module docstring). Parameters: ``cull`` (default
     True), ``budget_pairs`` (multi-pass threshold, default 32M pairs),
-    ``record`` (keep every processed pair, for tests)."""
+    ``record`` (keep every processed pair, for tests), ``multi_pixel``
+    (mip splats of leaf pairs larger than a texel, default True), ``split``
+    (``"view"``, default, or ``"chunk"``), ``split_level`` (None: found from
+    the budget; else the fixed multi-pass level), ``scene_start``
+    (``"root"``, default, or ``"leaves"``: the view-only traversal)."""
 
     def __init__(self, scene_h: SceneHierarchy, view_h: ViewHierarchy, R: int = 16, cull: bool = True,
                  budget_pairs: int = DEFAULT_BUDGET, record: bool = False, multi_pixel: bool = True,
