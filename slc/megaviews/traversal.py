@@ -298,7 +298,11 @@ class Traversal:
         st.passes += 1
         # work stack: ("queue", qs, qv) or ("expand", ss, sv, sub, first, cnt)
         chunks = [(a, min(a + self.budget, n0)) for a in range(0, n0, self.budget)]
-        stack = [("queue", mi.UInt32(qs_np[a:b]), mi.UInt32(qv_np[a:b])) for a, b in reversed(chunks)]
+        stack = []
+        for a, b in reversed(chunks):
+            qs, qv = mi.UInt32(qs_np[a:b]), mi.UInt32(qv_np[a:b])
+            dr.make_opaque(qs, qv)   # a one-pair start (a pass root) must not become a kernel literal
+            stack.append(("queue", qs, qv))
         live, processed = n0, 0
         while stack:
             item = stack.pop()
@@ -367,8 +371,9 @@ def brute_force(scene_h: SceneHierarchy, view_h: ViewHierarchy, R: int = 16, cul
     for v0 in range(0, V.size, per):
         nv_ = min(per, V.size - v0)
         j = dr.arange(mi.UInt32, nl * nv_)
-        qs = leaf0 + j % nl
-        qv = v0 + j // nl
+        nl_ = dr.opaque(mi.UInt32, nl)   # opaque: one kernel for every chunk and scene
+        qs = dr.opaque(mi.UInt32, leaf0) + j % nl_
+        qv = dr.opaque(mi.UInt32, v0) + j // nl_
         cs = dr.gather(mi.Point3f, S.centre, qs)
         rs = dr.gather(mi.Float, S.radius, qs)
         ps = dr.gather(mi.Point3f, S.pos, qs)
@@ -424,7 +429,7 @@ def fuse(maps: Maps) -> None:
     for l in range(1, V.depth + 1):
         a, b = int(V.level_start[l]), int(V.level_start[l + 1])
         j = dr.arange(mi.UInt32, (b - a) * base)
-        node = a + j // base
+        node = dr.opaque(mi.UInt32, a) + j // base   # opaque: one kernel whatever the level sizes
         t = j % base
         par = dr.gather(mi.UInt32, V.parent, node)
         dp = dr.gather(mi.Float, maps.depth, par * lay.texels + t)
