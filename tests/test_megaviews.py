@@ -244,7 +244,9 @@ def test_distance_cutoff(small_frame):
     ("megaviews:views=0", "views"), ("megaviews:res=0", "res"), ("megaviews:res=12", "power of two"),
     ("manylods:scene_depth=0", "scene_depth"), ("brute:view_depth=13", "view_depth"),
     ("megaviews:samples=0", "samples"), ("megaviews:mode=brute", "unknown setting"),
-    ("megaviews:budget=-1", "budget"), ("megaviews:fusion=2", "fusion")])
+    ("megaviews:budget=-1", "budget"), ("megaviews:fusion=2", "fusion"), ("megaviews:split=x", "split"),
+    ("megaviews:split_level=-2", "split_level"), ("megaviews:cutoff=-1", "cutoff"), ("megaviews:cull=2", "cull"),
+    ("megaviews:scene_h=3", "scene_h")])
 def test_bad_settings_are_refused(spec, word):
     from slc.methods import MethodError, create
     with pytest.raises(MethodError) as e:
