@@ -109,7 +109,7 @@ class SceneHierarchy:
     """
 
     def __init__(self, mi_scene: mi.Scene, depth: int = SCENE_DEPTH, points_per_leaf: float = 3.0,
-                 seed: int = 1, max_points: int = 1_500_000):
+                 seed: int = 1, max_points: int = 8_000_000):
         self.depth = int(depth)
         bb = mi_scene.bbox()
         shapes = [s for s in mi_scene.shapes() if not s.is_emitter()]

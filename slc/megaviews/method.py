@@ -41,7 +41,15 @@ class ManyViewIR(Method):
         Param("scene_depth", SCENE_DEPTH, "scene octree levels (the paper: 11 on a GPU)", lo=1, hi=12),
         Param("view_depth", VIEW_DEPTH, "view octree levels", lo=1, hi=12),
         Param("samples", 64, "VPL samples per pixel", lo=1, hi=1 << 16),
-        Param("cull_level", 2, "view-hierarchy level cut for per-pixel culling", lo=0, hi=12),
+        Param("cull_level", 6, "view-hierarchy level down to which gathering culls VPL nodes (the paper: 6)",
+              lo=0, hi=12),
+        Param("cutoff", 0.0, "gathering distance cut-off, fraction of the scene cube edge (0: off)", lo=0.0, hi=4.0),
+        Param("cull", True, "frustum culling of scene-view pairs in the traversal (0: Fig. 10's culling-off run)"),
+        Param("scene_h", True, "use the scene hierarchy (0: scene leaves x view root, the view-only run of Sec. 4.1)"),
+        Param("split", "view", "multi-pass split: 'view' (the paper's, at the view root) or 'chunk' (exact chunks)",
+              choices=("view", "chunk")),
+        Param("split_level", -1, "multi-pass level of the view split (-1: found from the budget, as the paper)",
+              lo=-1, hi=12),
         Param("filter", 4, "cross-bilateral filter radius in pixels (0: off)", lo=0, hi=32),
         Param("fusion", True, "fuse maps top-down (0: queries walk the ancestors)"),
         Param("budget", tv.DEFAULT_BUDGET, "pair-queue budget in pairs (multi-pass above it)",
@@ -97,17 +105,20 @@ class ManyViewIR(Method):
         with (timer.stage("view_hierarchy") if timer is not None else nullcontext()):
             tree = ViewHierarchy(vpls.position, vpls.normal, phi, self.view_depth)
             flat = None if self.mode == "megaviews" else ViewHierarchy(vpls.position, vpls.normal, phi, flat=True)
-        maps = tv.render_maps(sh, tree if flat is None else flat, self.res, self.mode,
+        mode = "viewonly" if (self.mode == "megaviews" and not self.scene_h) else self.mode
+        maps = tv.render_maps(sh, tree if flat is None else flat, self.res, mode, cull=self.cull,
                               budget_pairs=self.budget, fusion=self.fusion, timer=timer,
-                              multi_pixel=self.multi_pixel)
+                              multi_pixel=self.multi_pixel, split=self.split,
+                              split_level=None if self.split_level < 0 else self.split_level)
         self._maps, self._vh = maps, tree
         self.last_stats = maps.stats.as_dict()
         return maps, tree
 
     def gather(self, gb, vpls: vp.VPLSet, maps, tree, seed: int):
         """Indirect light at the G-buffer points (gathering, then the filter)."""
-        L = vp.gather(self.scene_hierarchy(), vpls, maps, gb, self.samples, seed, self.cull_level,
-                      cull_tree=tree, fused=self.fusion)
+        sh = self.scene_hierarchy()
+        L = vp.gather(sh, vpls, maps, gb, self.samples, seed, self.cull_level, cull_tree=tree,
+                      fused=self.fusion, cutoff=self.cutoff * sh.tree.edge)
         return vp.bilateral(gb, L, self.filter) if self.filter > 0 else L
 
     def render(self, ctx, gbuffers, timer):

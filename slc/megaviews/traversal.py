@@ -28,10 +28,25 @@ in one step, either
    children of the chosen node are paired with the other node
    (``dr.compress`` compacts the queue).
 
-Multi-pass: when a level's children would exceed ``budget_pairs``, the
-subdivided pairs are split into chunks that fit and processed one after
-the other, depth-first over chunks (the pair-queue peak is then bounded by
-the budget times the traversal depth).
+Multi-pass (Sec. 4.2), ``split``:
+
+* ``"view"`` (default, the paper's): the work is split at the view
+  hierarchy. Passes start from ``(s_0, v)`` for view nodes ``v`` of the
+  multi-pass level ``split_level``; with ``split_level=None`` the level is
+  found as the paper does, starting from the view root: a pass whose pair
+  queue would exceed ``budget_pairs`` is stopped and replaced by one pass
+  per child of its view node ("split the children again until the pair
+  queue fits"). What a stopped pass already rendered stays (every render
+  is valid for all views of its view node; min-depth splats are
+  idempotent), the pairs it processed are counted in ``pairs`` and
+  ``wasted_pairs``. Shared rendering above the multi-pass level is lost,
+  as in the paper. A pass from a view leaf that still exceeds the budget
+  falls back to chunking.
+* ``"chunk"``: the subdivided pairs of a level are cut into chunks that fit
+  and processed depth-first: exactly the same pairs and maps as one pass.
+
+``scene_start="leaves"`` is the view-hierarchy-only traversal of Sec. 4.1
+(no scene hierarchy: every scene leaf is paired with the view root).
 
 Fusion (Sec. 3.2, Image Queries): top-down over the view levels every
 child map takes the minimum of its own depth and its parent's, whose depth
@@ -58,7 +73,7 @@ from .hierarchy import SceneHierarchy, ViewHierarchy
 
 INV_SQRT3 = 1.0 / math.sqrt(3.0)  # sphere radius -> half edge of the cubic voxel
 PAIR_BYTES = 8          # two 32-bit node ids, as in the paper (64 bits per pair)
-DEFAULT_BUDGET = 1 << 24  # pairs (128 MB of pair queue)
+DEFAULT_BUDGET = 1 << 25  # pairs (256 MB of pair queue at 8 bytes per pair; ~2 GB of Dr.Jit work arrays)
 
 
 @dataclass
@@ -69,8 +84,10 @@ class TraversalStats:
     multi_pixel: int = 0      # leaf pairs splatted into a coarser mip level
     shared_views: int = 0     # sum over rendered pairs of the views in v_j
     peak_pairs: int = 0       # pair-queue peak (live pairs, all pending chunks)
-    passes: int = 1           # chunks processed (1 = no multi-pass split)
+    passes: int = 1           # passes/chunks processed (1 = no multi-pass split)
     levels: int = 0
+    split_level: int = 0      # deepest view level a pass started from (paper's multi-pass level)
+    wasted_pairs: int = 0     # pairs of passes stopped for exceeding the budget (view split)
 
     @property
     def views_per_render(self) -> float:
@@ -150,17 +167,29 @@ def _splat(depth, layout: pb.Layout, slot, p, pv, r_surf, active, multi_pixel: b
 class Traversal:
     """Runs the concurrent traversal of ``scene_h`` x ``view_h`` into maps of
     resolution ``R`` (see module docstring). Parameters: ``cull`` (default
-    True), ``budget_pairs`` (multi-pass threshold, default 16M pairs),
-    ``record`` (keep every processed pair, for tests)."""
+    True), ``budget_pairs`` (multi-pass threshold, default 32M pairs),
+    ``record`` (keep every processed pair, for tests), ``multi_pixel``
+    (mip splats of leaf pairs larger than a texel, default True), ``split``
+    (``"view"``, default, or ``"chunk"``), ``split_level`` (None: found from
+    the budget; else the fixed multi-pass level), ``scene_start``
+    (``"root"``, default, or ``"leaves"``: the view-only traversal)."""
 
     def __init__(self, scene_h: SceneHierarchy, view_h: ViewHierarchy, R: int = 16, cull: bool = True,
-                 budget_pairs: int = DEFAULT_BUDGET, record: bool = False, multi_pixel: bool = True):
+                 budget_pairs: int = DEFAULT_BUDGET, record: bool = False, multi_pixel: bool = True,
+                 split: str = "view", split_level: int | None = None, scene_start: str = "root"):
+        if split not in ("view", "chunk"):
+            raise ValueError(f"split must be 'view' or 'chunk', got {split!r}")
+        if scene_start not in ("root", "leaves"):
+            raise ValueError(f"scene_start must be 'root' or 'leaves', got {scene_start!r}")
         self.S, self.V = scene_h, view_h
         self.multi_pixel = bool(multi_pixel)
         self.layout = pb.Layout(R)
         self.cull = bool(cull)
         self.budget = int(max(budget_pairs, 64))
         self.record = [] if record else None
+        self.split = "chunk" if view_h.flat else split
+        self.split_level = split_level
+        self.scene_start = scene_start
 
     # ---------------- one level: classify, render, collect subdivisions ----------------
     def _step(self, depth, qs, qv, st: TraversalStats):
@@ -222,17 +251,59 @@ class Traversal:
         dr.eval(ns, nv)
         return ns, nv
 
+    def _start(self, views: np.ndarray):
+        """Initial pairs of a pass: (scene root or every scene leaf) x ``views``."""
+        S = self.S
+        if self.scene_start == "leaves":
+            sn = np.arange(int(S.tree.level_start[S.depth]), S.size, dtype=np.uint32)
+        else:
+            sn = np.zeros(1, np.uint32)
+        qs = np.repeat(sn[None, :], len(views), 0).ravel()
+        qv = np.repeat(np.asarray(views, np.uint32), len(sn))
+        return qs, qv
+
     def run(self) -> Maps:
         V, lay = self.V, self.layout
         st = TraversalStats(passes=0)
         depth = dr.full(mi.Float, pb.EMPTY, V.size * lay.texels)
-        roots = mi.UInt32(np.asarray(V.roots_np, np.uint32))
+        if self.split == "chunk" or V.flat:
+            self._run_pass(depth, np.asarray(V.roots_np), st, abort=False)
+        else:
+            lvl = 0 if self.split_level is None else int(min(self.split_level, V.depth))
+            a, b = int(V.level_start[lvl]), int(V.level_start[lvl + 1])
+            todo = list(range(b - 1, a - 1, -1))   # a stack of pass roots (view nodes)
+            cc, fc = V.child_count_np, V.tree.first_child
+            floor = lvl   # the multi-pass level: raised when a pass does not fit
+            while todo:
+                v = todo.pop()
+                lv = int(V.level_np[v])
+                can_split = self.split_level is None and cc[v] > 0
+                if can_split and lv < floor:   # a pass at this level did not fit: start deeper
+                    todo.extend(range(int(fc[v] + cc[v]) - 1, int(fc[v]) - 1, -1))
+                    continue
+                st.split_level = max(st.split_level, lv)
+                done = self._run_pass(depth, np.array([v]), st, abort=can_split)
+                if not done:   # over budget: one pass per child of v (Sec. 4.2)
+                    floor = max(floor, lv + 1)
+                    todo.extend(range(int(fc[v] + cc[v]) - 1, int(fc[v]) - 1, -1))
+        st.passes = max(st.passes, 1)
+        return Maps(lay, depth, V.size, V, stats=st, record=self.record)
+
+    def _run_pass(self, depth, views: np.ndarray, st: TraversalStats, abort: bool) -> bool:
+        """One pass from ``(scene start, views)``. With ``abort`` it stops
+        (returns False) as soon as a level's pairs would exceed the budget;
+        otherwise levels over the budget are chunked. True when finished."""
+        qs_np, qv_np = self._start(views)
+        n0 = len(qs_np)
+        st.passes += 1
         # work stack: ("queue", qs, qv) or ("expand", ss, sv, sub, first, cnt)
-        n0 = dr.width(roots)
         chunks = [(a, min(a + self.budget, n0)) for a in range(0, n0, self.budget)]
-        stack = [("queue", dr.zeros(mi.UInt32, b - a), dr.gather(mi.UInt32, roots, dr.arange(mi.UInt32, a, b)))
-                 for a, b in reversed(chunks)]
-        live = n0
+        stack = []
+        for a, b in reversed(chunks):
+            qs, qv = mi.UInt32(qs_np[a:b]), mi.UInt32(qv_np[a:b])
+            dr.make_opaque(qs, qv)   # a one-pair start (a pass root) must not become a kernel literal
+            stack.append(("queue", qs, qv))
+        live, processed = n0, 0
         while stack:
             item = stack.pop()
             if item[0] == "expand":
@@ -242,10 +313,10 @@ class Traversal:
                 live += dr.width(qs)
             else:
                 _, qs, qv = item
-                st.passes += 1
             st.peak_pairs = max(st.peak_pairs, live)
             n = dr.width(qs)
             st.pairs += n
+            processed += n
             st.levels += 1
             if self.record is not None:
                 self.record.append(np.stack([np.array(qs, np.int64), np.array(qv, np.int64)], 1))
@@ -255,15 +326,17 @@ class Traversal:
                 continue
             ss, sv, sub, first, cnt = out
             m = dr.width(ss)
-            live += m
-            st.peak_pairs = max(st.peak_pairs, live)
             pre = np.cumsum(np.array(cnt, np.int64))
             total = int(pre[-1])
+            if live + m + total > self.budget and abort:
+                st.wasted_pairs += processed
+                return False
+            live += m
             st.peak_pairs = max(st.peak_pairs, live + total)
             if total <= self.budget:
                 stack.append(("expand", ss, sv, sub, first, cnt))
                 continue
-            # ------------------- multi-pass: split into chunks -------------------
+            # ------------------- chunking: split a level that does not fit -------------------
             k = int(math.ceil(total / self.budget))
             bounds = np.searchsorted(pre, np.arange(1, k) * (total / k))
             bounds = np.unique(np.concatenate([[0], bounds, [m]]))
@@ -275,9 +348,7 @@ class Traversal:
                 parts.append(("expand",) + tuple(dr.gather(type(x), x, r) for x in (ss, sv, sub, first, cnt)))
             st.passes += len(parts) - 1
             stack.extend(reversed(parts))
-        st.passes = max(st.passes, 1)
-        maps = Maps(lay, depth, V.size, V, stats=st, record=self.record)
-        return maps
+        return True
 
 
 # -----------------------------------------------------------------------------
@@ -300,8 +371,9 @@ def brute_force(scene_h: SceneHierarchy, view_h: ViewHierarchy, R: int = 16, cul
     for v0 in range(0, V.size, per):
         nv_ = min(per, V.size - v0)
         j = dr.arange(mi.UInt32, nl * nv_)
-        qs = leaf0 + j % nl
-        qv = v0 + j // nl
+        nl_ = dr.opaque(mi.UInt32, nl)   # opaque: one kernel for every chunk and scene
+        qs = dr.opaque(mi.UInt32, leaf0) + j % nl_
+        qv = dr.opaque(mi.UInt32, v0) + j // nl_
         cs = dr.gather(mi.Point3f, S.centre, qs)
         rs = dr.gather(mi.Float, S.radius, qs)
         ps = dr.gather(mi.Point3f, S.pos, qs)
@@ -357,7 +429,7 @@ def fuse(maps: Maps) -> None:
     for l in range(1, V.depth + 1):
         a, b = int(V.level_start[l]), int(V.level_start[l + 1])
         j = dr.arange(mi.UInt32, (b - a) * base)
-        node = a + j // base
+        node = dr.opaque(mi.UInt32, a) + j // base   # opaque: one kernel whatever the level sizes
         t = j % base
         par = dr.gather(mi.UInt32, V.parent, node)
         dp = dr.gather(mi.Float, maps.depth, par * lay.texels + t)
@@ -412,9 +484,12 @@ def lookup(maps: Maps, view: mi.UInt32, x: mi.Point3f, active, bias: mi.Float, f
 
 def render_maps(scene_h: SceneHierarchy, view_h: ViewHierarchy, R: int = 16, mode: str = "megaviews",
                 cull: bool = True, budget_pairs: int = DEFAULT_BUDGET, fusion: bool = True,
-                record: bool = False, timer=None, multi_pixel: bool = True) -> Maps:
+                record: bool = False, timer=None, multi_pixel: bool = True, split: str = "view",
+                split_level: int | None = None) -> Maps:
     """Shadow/depth maps of all views: ``mode`` is ``megaviews`` (octree
-    view hierarchy), ``manylods`` or ``brute`` (flat view sets)."""
+    view hierarchy), ``viewonly`` (octree view hierarchy, no scene
+    hierarchy: scene leaves x view root), ``manylods`` or ``brute`` (flat
+    view sets)."""
     from contextlib import nullcontext
 
     def stage(name):
@@ -424,7 +499,8 @@ def render_maps(scene_h: SceneHierarchy, view_h: ViewHierarchy, R: int = 16, mod
         if mode == "brute":
             maps = brute_force(scene_h, view_h, R, cull, budget_pairs, multi_pixel)
         else:
-            maps = Traversal(scene_h, view_h, R, cull, budget_pairs, record, multi_pixel).run()
+            maps = Traversal(scene_h, view_h, R, cull, budget_pairs, record, multi_pixel, split, split_level,
+                             "leaves" if mode == "viewonly" else "root").run()
     with stage("push"):
         if maps.stats.multi_pixel > 0:
             push(maps)

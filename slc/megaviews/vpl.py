@@ -13,9 +13,11 @@ Gathering (per pixel, subsampled, hierarchical culling)
               f_x(\omega_{xk})\cos\theta_x\, f_k(\omega_{kx})\cos\theta_k\,
               \frac{\Phi_k}{\max(d^2, d_{min}^2)}\, V_k(x)
 
-    The view hierarchy is cut at level ``cull_level``; nodes whose cone
-    (with their radius, the culling test of the traversal) cannot see
-    ``x`` are culled; ``C(x)`` counts the VPLs of the remaining nodes and
+    The view hierarchy is walked depth first (stackless, skip pointers)
+    down to level ``cull_level`` (the paper: 6); a node whose cone (with its
+    radius, the culling test of the traversal) cannot see ``x``, or whose
+    bound lies beyond the distance cut-off ``cutoff`` (optional), is culled
+    with its subtree; ``C(x)`` counts the VPLs of the nodes reached and
     the ``S`` samples are drawn systematically (one random offset per
     pixel) from them, so the estimate is unbiased over the VPLs that can
     contribute. ``V_k(x)`` is the depth test in VPL ``k``'s dual-paraboloid
@@ -72,7 +74,8 @@ def generate(mi_scene: mi.Scene, n: int, bounces: int = 1, seed: int = 0) -> VPL
     idx = dr.arange(mi.UInt32, n)
     keep = vs.position.shape[0]
     frac = float(keep) / float(n)   # drop VPLs uniformly: rescale the flux of the kept ones
-    return VPLSet(dr.gather(mi.SurfaceInteraction3f, vs.si, idx), dr.gather(mi.Color3f, vs.flux, idx) * frac,
+    return VPLSet(dr.gather(mi.SurfaceInteraction3f, vs.si, idx),
+                  dr.gather(mi.Color3f, vs.flux, idx) * dr.opaque(mi.Float, frac),
                   vs.position[:n], vs.normal[:n], vs.bounce[:n])
 
 
@@ -83,7 +86,7 @@ def _generate(mi_scene: mi.Scene, n: int, bounces: int = 1, seed: int = 0) -> VP
     u = [sampler.next_float32() for _ in range(5)]
     ray, w, _ = mi_scene.sample_emitter_ray(mi.Float(0.0), u[0], mi.Point2f(u[1], u[2]), mi.Point2f(u[3], u[4]),
                                            mi.Bool(True))
-    thr = mi.Color3f(w) / float(paths)
+    thr = mi.Color3f(w) / dr.opaque(mi.Float, float(paths))   # opaque: no kernel per VPL count
     active = dr.isfinite(thr[0] + thr[1] + thr[2])
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
     sis, fluxes, valids = [], [], []
@@ -144,43 +147,82 @@ def _generate(mi_scene: mi.Scene, n: int, bounces: int = 1, seed: int = 0) -> VP
 # Gathering
 # -----------------------------------------------------------------------------
 
-def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cull_level: int = 2,
+def cull_walk(V: ViewHierarchy, cull_level: int):
+    """Depth-first order of the view nodes of levels ``0..cull_level`` with
+    skip pointers, for a stackless hierarchical walk: ``(nodes, skip, accept)``
+    where ``skip[i]`` is the first DFS position after node ``i``'s subtree and
+    ``accept[i]`` marks the nodes whose VPLs are gathered (level
+    ``cull_level`` or a shallower leaf)."""
+    t = V.tree
+    lc = int(min(cull_level, V.depth))
+    sel = np.flatnonzero(t.level <= lc)
+    order = np.lexsort((t.level[sel], t.first_point[sel]))   # by first point, ancestors first
+    nodes = sel[order]
+    fp = t.first_point[nodes]
+    end = fp + t.point_count[nodes]
+    skip = np.searchsorted(fp, end, side="left")
+    accept = (t.level[nodes] == lc) | (t.child_count[nodes] == 0)
+    return nodes, skip, accept
+
+
+def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cull_level: int = 6,
            cull_tree: ViewHierarchy | None = None, fused: bool = True, bias_leaf: float = 2.0,
-           bias_slope: float = 2.0, d_min: float | None = None, shadows: bool = True) -> mi.Color3f:
-    """Subsampled VPL gathering at the G-buffer points (see module docstring)."""
+           bias_slope: float = 2.0, d_min: float | None = None, shadows: bool = True,
+           cutoff: float = 0.0) -> mi.Color3f:
+    """Subsampled VPL gathering at the G-buffer points (see module docstring).
+
+    ``cull_level``: the view hierarchy is walked depth first down to this
+    level (the paper: 6), skipping the subtree of every node culled for
+    ``x``; the VPLs of the nodes reached at that level are sampled.
+    ``cutoff`` (> 0, world units): distance cut-off, view nodes whose bounding
+    sphere lies farther than ``cutoff`` from ``x`` are culled in the same
+    walk and sampled VPLs farther than ``cutoff`` contribute nothing (the
+    estimate is then of the VPLs within ``cutoff``: a bias, as in [OBS*15])."""
     V = cull_tree if cull_tree is not None else maps.view_h
     if V.flat:
         raise ValueError("gathering needs an octree view hierarchy for culling")
     order = mi.UInt32(np.asarray(V.tree.order, np.uint32))
-    lc = int(min(cull_level, V.depth))
-    a, b = int(V.level_start[lc]), int(V.level_start[lc + 1])
-    first_np = V.tree.first_point[a:b]
-    cnt_np = V.tree.point_count[a:b]
-    first = mi.UInt32(first_np.astype(np.uint32))
-    count = mi.UInt32(cnt_np.astype(np.uint32))
-    ncentre = dr.gather(mi.Point3f, V.centre, dr.arange(mi.UInt32, a, b))
-    nradius = dr.gather(mi.Float, V.radius, dr.arange(mi.UInt32, a, b))
-    ndir = mi.Vector3f(dr.gather(mi.Point3f, V.dir, dr.arange(mi.UInt32, a, b)))
-    npsi = dr.gather(mi.Float, V.theta, dr.arange(mi.UInt32, a, b)) + V.phi_value
-    K = dr.opaque(mi.UInt32, b - a)
+    nodes_np, skip_np, accept_np = cull_walk(V, cull_level)
+    nodes = mi.UInt32(nodes_np.astype(np.uint32))
+    first = mi.UInt32(V.tree.first_point[nodes_np].astype(np.uint32))
+    count = mi.UInt32(V.tree.point_count[nodes_np].astype(np.uint32))
+    skip = mi.UInt32(skip_np.astype(np.uint32))
+    accept = mi.Bool(accept_np)
+    ncentre = dr.gather(mi.Point3f, V.centre, nodes)
+    nradius = dr.gather(mi.Float, V.radius, nodes)
+    ndir = mi.Vector3f(dr.gather(mi.Point3f, V.dir, nodes))
+    npsi = dr.gather(mi.Float, V.theta, nodes) + V.phi_value
+    K = dr.opaque(mi.UInt32, len(nodes_np))
     S = dr.opaque(mi.UInt32, int(samples))
+    use_cut = cutoff > 0.0
+    cut = dr.opaque(mi.Float, float(cutoff) if use_cut else 0.0)
     si, active = gb.si, gb.valid
     x = si.p
-    eps = mi.Float(scene_h.leaf_radius)
+    eps = dr.opaque(mi.Float, scene_h.leaf_radius)
     R = maps.layout.R
-    dmin = float(d_min if d_min is not None else 0.05 * scene_h.tree.edge)
+    dmin = dr.opaque(mi.Float, float(d_min if d_min is not None else 0.05 * scene_h.tree.edge))
     bsdf_x = si.bsdf()
     ctx = mi.BSDFContext()
+
+    def visit(i):
+        """(VPLs gathered from DFS node i, next DFS position)."""
+        c_ = dr.gather(mi.Point3f, ncentre, i)
+        r_ = dr.gather(mi.Float, nradius, i)
+        culled = tv.cull_test(x, eps, c_, r_, dr.gather(mi.Vector3f, ndir, i), dr.gather(mi.Float, npsi, i))
+        if use_cut:
+            culled |= dr.norm(c_ - x) - r_ > cut
+        acc = dr.gather(mi.Bool, accept, i)
+        n_i = dr.select(~culled & acc, dr.gather(mi.UInt32, count, i), 0)
+        nxt = dr.select(culled | acc, dr.gather(mi.UInt32, skip, i), i + 1)
+        return n_i, nxt
 
     # ----------------- pass 1: C(x), VPLs of the non-culled nodes -----------------
     def c_cond(i, C):
         return active & (i < K)
 
     def c_body(i, C):
-        c = tv.cull_test(x, eps, dr.gather(mi.Point3f, ncentre, i), dr.gather(mi.Float, nradius, i),
-                         dr.gather(mi.Vector3f, ndir, i), dr.gather(mi.Float, npsi, i))
-        C += dr.select(c, 0, dr.gather(mi.UInt32, count, i))
-        return i + 1, C
+        n_i, nxt = visit(i)
+        return nxt, C + n_i
 
     _, C = dr.while_loop(state=(mi.UInt32(0), mi.UInt32(0)), cond=c_cond, body=c_body)
 
@@ -188,15 +230,13 @@ def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cu
     sampler = rng(gb.size, seed, stream=77)
     xi = sampler.next_float32()
     Cf = mi.Float(C)
-    step = Cf / mi.Float(S)
+    step = Cf / dr.maximum(mi.Float(S), 1.0)
 
     def cond(i, s, cum, L):
         return active & (C > 0) & (i < K) & (s < S)
 
     def body(i, s, cum, L):
-        c = tv.cull_test(x, eps, dr.gather(mi.Point3f, ncentre, i), dr.gather(mi.Float, nradius, i),
-                         dr.gather(mi.Vector3f, ndir, i), dr.gather(mi.Float, npsi, i))
-        n_i = dr.select(c, 0, dr.gather(mi.UInt32, count, i))
+        n_i, nxt = visit(i)
         t = (mi.Float(s) + xi) * step
         inside = t < mi.Float(cum + n_i)
         # ---- emit sample s from node i ----
@@ -213,18 +253,20 @@ def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cu
         fk = mi.Color3f(bsdf_k.eval(ctx, si_k, si_k.to_local(-w), inside))
         contrib = fx * fk * phi_k / dr.maximum(dist2, dmin * dmin)
         ok = inside & (dr.max(contrib) > 0.0)
+        if use_cut:
+            ok &= dist <= cut
         if shadows:
             bias = bias_leaf * eps + bias_slope * dist * (2.0 / R)
             ok = tv.lookup(maps, k, x, ok, bias, fused)
         L += dr.select(ok, contrib, 0.0)
         s = dr.select(inside, s + 1, s)
         cum = dr.select(inside, cum, cum + n_i)
-        i = dr.select(inside, i, i + 1)
+        i = dr.select(inside, i, nxt)
         return i, s, cum, L
 
     _, _, _, L = dr.while_loop(state=(mi.UInt32(0), mi.UInt32(0), mi.UInt32(0), mi.Color3f(0.0)),
                                cond=cond, body=body)
-    return dr.select(active, L * Cf / mi.Float(S), 0.0)
+    return dr.select(active, L * Cf / dr.maximum(mi.Float(S), 1.0), 0.0)
 
 
 # -----------------------------------------------------------------------------
