@@ -17,7 +17,9 @@ slot within ``probes`` gets no cell and counts as overflow.
 start of a frame. Freeing slots of a linear-probing table would cut the probe chains of the cells
 behind them, so the table is rebuilt instead: the surviving keys are inserted into an empty
 table (deterministic, as above) and their data move with them; a freed slot is thus reused from
-a reset state (count 0, layers 0).
+a reset state (count 0, layers 0). With eviction on, the table is also brought down to
+``max_load`` (1/4) of its slots at the start of a frame by freeing the least recently touched
+cells, so that the frame's new cells find slots within ``probes`` rounds.
 
 *Budget*: at most ``budget`` cells are updated per frame (0: all requested). The requested cells
 are ranked least-sampled first (update count), then oldest update, then slot; the others keep
@@ -74,17 +76,18 @@ class SecondaryCache:
     Parameters: ``cell`` (edge in scene units), ``bounces`` (layers), ``n_max`` (EMA cap),
     ``rays`` (cosine rays per cell update, 32), ``light_samples`` (per cell update, 4),
     ``slots`` (table size, a power of two), ``probes`` (linear-probing rounds), ``shape_key``,
-    ``budget`` (cell updates per frame, 0: unlimited), ``evict_after`` (frames unused, 0: never)."""
+    ``budget`` (cell updates per frame, 0: unlimited), ``evict_after`` (frames unused, 0: never),
+    ``max_load`` (with eviction on: cells kept at the start of a frame, as a fraction of ``slots``)."""
 
     def __init__(self, mi_scene: mi.Scene, cell: float, bounces: int = 2, n_max: int = 8, rays: int = 32,
                  light_samples: int = 4, slots: int = 1 << 16, probes: int = 16, shape_key: bool = True,
-                 seed: int = 0, budget: int = 0, evict_after: int = 0):
+                 seed: int = 0, budget: int = 0, evict_after: int = 0, max_load: float = 0.25):
         if slots & (slots - 1):
             raise ValueError("slots must be a power of two")
         self.sc, self.h, self.B = mi_scene, float(cell), int(bounces)
         self.n_max, self.rays, self.light_samples = int(n_max), int(rays), int(light_samples)
         self.slots, self.probes, self.shape_key, self.seed = int(slots), int(probes), bool(shape_key), int(seed)
-        self.budget, self.evict_after = int(budget), int(evict_after)
+        self.budget, self.evict_after, self.max_load = int(budget), int(evict_after), float(max_load)
         self.laps = Laps(False)
         self.reset()
 
@@ -220,7 +223,15 @@ class SecondaryCache:
         live = self.keys != EMPTY
         f = dr.opaque(mi.UInt32, self.frame)
         old = live & (f - self.used >= self.evict_after) & (self.used < f)
-        n_old = int(dr.count(old)[0])
+        n_live, n_old = int(dr.count(live)[0]), int(dr.count(old)[0])
+        cap = int(self.slots * self.max_load)
+        if n_live - n_old > cap:
+            # ------- over the load cap: also free the least recently touched (then lowest slot) -------
+            idx = np.asarray(dr.compress(live & ~old), dtype=np.int64)
+            u = np.asarray(dr.gather(mi.UInt32, self.used, mi.UInt32(idx.astype(np.uint32))), dtype=np.int64)
+            drop = idx[np.lexsort((idx, u))[: n_live - n_old - cap]]
+            dr.scatter(old, True, mi.UInt32(np.sort(drop).astype(np.uint32)))
+            n_old += drop.size
         if n_old == 0:
             return 0
         keep = dr.compress(live & ~old)
