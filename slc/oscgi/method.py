@@ -169,7 +169,10 @@ class OSCGI(PayloadMethod):
         sec.update(ctx.frame, req)
         laps.lap("secondary_update")
         sample = sec.radiance(slots, hok)              # outgoing radiance of the hit's cell
-        dr.eval(sample)
+        # a hit cell never updated yet (over the budget) holds no value: the texel is not blended
+        # (it keeps its value) rather than pulled towards 0, unless it has no value yet either
+        empty = hok & ~sec.updated_once(slots, hok)
+        dr.eval(sample, empty)
 
         # ----------------- direct light (output=full): light samples binned into texels -----------------
         sample = [sample[c] for c in range(3)]
@@ -207,7 +210,7 @@ class OSCGI(PayloadMethod):
         keep = ~is_new | seeded
         cnt = c_old + 1.0
         c_k = dr.select(full, cnt, 1.0 + mi.Float((c - 1 + S - 1) // S))
-        a = dr.select(traced, dr.rcp(dr.minimum(c_k, float(self.n_max))), 0.0)
+        a = dr.select(traced & ~(empty & (c_k > 1.0)), dr.rcp(dr.minimum(c_k, float(self.n_max))), 0.0)
         new = []
         for ch in range(3):
             old = dr.gather(mi.Float, self.storage, src * W + k * 3 + ch, keep)

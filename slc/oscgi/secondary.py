@@ -13,8 +13,8 @@ of gather / ``scatter_reduce(min)`` / gather (the smallest key wins a contested 
 others probe on): the same requests give the same table on every run. A request that finds no
 slot within ``probes`` gets no cell and counts as overflow.
 
-*Eviction*: a cell not touched (hit by any cache ray) for ``evict_after`` frames is freed at the
-start of a frame. Freeing slots of a linear-probing table would cut the probe chains of the cells
+*Eviction*: a cell not touched (hit by any cache ray) in ``evict_after`` whole frames is freed at
+the start of the next one (touched last in frame u: freed at the start of frame u + K + 1). Freeing slots of a linear-probing table would cut the probe chains of the cells
 behind them, so the table is rebuilt instead: the surviving keys are inserted into an empty
 table (deterministic, as above) and their data move with them; a freed slot is thus reused from
 a reset state (count 0, layers 0). With eviction on, the table is also brought down to
@@ -22,7 +22,8 @@ a reset state (count 0, layers 0). With eviction on, the table is also brought d
 cells, so that the frame's new cells find slots within ``probes`` rounds.
 
 *Budget*: at most ``budget`` cells are updated per frame (0: all requested). The requested cells
-are ranked least-sampled first (update count), then oldest update, then slot; the others keep
+are ranked by ring (the cells primary rays read this frame first), then least-sampled (update
+count), then oldest update, then slot; the others keep
 their value (their EMA is simply not advanced this frame) and their ring requests lapse.
 
 Each cell stores the *outgoing diffuse* radiance of its surface, :math:`L_o = \rho E / \pi`, in
@@ -199,6 +200,10 @@ class SecondaryCache:
         self.laps.lap("touch_rep")
         return slots, ok
 
+    def updated_once(self, slots: mi.UInt32, ok: mi.Bool) -> mi.Bool:
+        """Whether cells hold a value (updated at least once)."""
+        return ok & (dr.gather(mi.UInt32, self.count, slots, ok) > 0)
+
     def radiance(self, slots: mi.UInt32, ok: mi.Bool, layer: int | None = None) -> mi.Color3f:
         """Outgoing radiance of cells (layer ``bounces`` by default)."""
         b = (self.B if layer is None else layer) - 1
@@ -222,7 +227,7 @@ class SecondaryCache:
         with the others (see the module); returns the number freed."""
         live = self.keys != EMPTY
         f = dr.opaque(mi.UInt32, self.frame)
-        old = live & (f - self.used >= self.evict_after) & (self.used < f)
+        old = live & (f - self.used > self.evict_after) & (self.used < f)   # K whole frames unused
         n_live, n_old = int(dr.count(live)[0]), int(dr.count(old)[0])
         cap = int(self.slots * self.max_load)
         if n_live - n_old > cap:
@@ -235,6 +240,11 @@ class SecondaryCache:
         if n_old == 0:
             return 0
         keep = dr.compress(live & ~old)
+        if dr.width(keep) == 0:                # nothing survives: a fresh table
+            ov, frame = self._overflow, self.frame
+            self.reset()
+            self._overflow, self.evicted, self.frame = ov, n_old, frame
+            return n_old
         per_slot = [(self.home, 1), (self.used, 1), (self.stamp, 1), (self.count, 1), (self.pending, 1),
                     (self._reuse_count, 1), (self.rep, _REP), (self.layers, 3 * self.B)]
         data = [(type(a), [dr.gather(type(a), a, keep * w + j) for j in range(w)], w) for a, w in per_slot]
@@ -287,9 +297,10 @@ class SecondaryCache:
         if 0 < self.budget < dr.width(cells):
             # ----------- budget: least-sampled first, then oldest update, then slot -----------
             c_np = np.asarray(cells, dtype=np.int64)
+            rg = np.asarray(dr.gather(mi.UInt32, req, cells), dtype=np.int64)
             cnt = np.asarray(dr.gather(mi.UInt32, self.count, cells), dtype=np.int64)
             age = self.frame - np.asarray(dr.gather(mi.UInt32, self.stamp, cells), dtype=np.int64)
-            order = np.lexsort((c_np, -age, cnt))[: self.budget]
+            order = np.lexsort((c_np, -age, cnt, rg))[: self.budget]
             cells = mi.UInt32(np.sort(c_np[order]).astype(np.uint32))
         n = dr.width(cells)
         self.updated = n
