@@ -85,7 +85,7 @@ class OSCGI(PayloadMethod):
         Param("direct_rays", 8, "light samples per primary entry update (output=full)", lo=1, hi=1024),
         Param("glossy_samples", 8, "BSDF samples of the hemisphere per glossy pixel", lo=1, hi=1024),
         Param("secondary_slots", 17, "log2 of the secondary hash-table size", lo=8, hi=24),
-        Param("secondary_budget", 1024, "secondary cell updates per frame, least-sampled first (0: all)",
+        Param("secondary_budget", 8192, "secondary cell updates per frame, least-sampled first (0: all)",
               lo=0, hi=1 << 24),
         Param("secondary_evict", 4, "free secondary cells unused for this many frames (0: never)", lo=0, hi=1 << 16),
         Param("shape_key", True, "secondary cells keyed by shape too (no sharing across shapes)"),
