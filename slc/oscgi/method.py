@@ -54,7 +54,10 @@ class OSCGI(PayloadMethod):
     ``secondary_cm`` cm keyed by position, normal bin and shape, storing outgoing diffuse radiance
     in ``bounces`` layers (direct light by ``light_samples`` light samples, indirect by
     ``secondary_rays`` cosine rays into other cells), so the primary point receives light after
-    1..``bounces`` reflections, the paths of the indirect reference.
+    1..``bounces`` reflections, the paths of the indirect reference. At most ``secondary_budget``
+    cells are updated per frame (ring 1 first, then least-sampled, then oldest; the others keep
+    their value, and a texel does not blend a sample from a cell never updated unless it has no
+    value either); cells unused for ``secondary_evict`` frames are freed.
 
     *Shading* (no rays): diffuse-only BSDFs exactly from the texels,
     :math:`L_o = \frac{\rho}{\pi} E,\ E = \frac{\pi}{R^2}\sum_k L_k`; other BSDFs by

@@ -81,7 +81,7 @@ class SecondaryCache:
     ``max_load`` (with eviction on: cells kept at the start of a frame, as a fraction of ``slots``)."""
 
     def __init__(self, mi_scene: mi.Scene, cell: float, bounces: int = 2, n_max: int = 8, rays: int = 32,
-                 light_samples: int = 4, slots: int = 1 << 16, probes: int = 16, shape_key: bool = True,
+                 light_samples: int = 4, slots: int = 1 << 16, probes: int = 32, shape_key: bool = True,
                  seed: int = 0, budget: int = 0, evict_after: int = 0, max_load: float = 0.25):
         if slots & (slots - 1):
             raise ValueError("slots must be a power of two")
