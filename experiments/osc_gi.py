@@ -18,8 +18,11 @@ Per scene (one viewer on the scene's first camera path, moving):
 - ablations (unless ``--no-ablations``): secondary cells of 15/60 cm, 1 and 3 bounces (each against
   its own reference), cells not keyed by shape (``--quick``: 60 cm and 1 bounce only).
 
+- with ``--laps``: one more osc-gi run per scene with the update's sub-stage clock
+  (:class:`slc.oscgi.laps.Laps`; host syncs between stages), written as ``update_laps_ms``.
+
 The full preset runs cornell and atrium at 160x90 (24 frames); ``--quick`` cornell at 64x36
-(8 frames).
+(8 frames, PT at 1, 2, 4, 8, 16 spp).
 
     python experiments/osc_gi.py --quick
     slc run osc-gi --quick [--scene cornell]

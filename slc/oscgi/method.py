@@ -116,7 +116,8 @@ class OSCGI(PayloadMethod):
     def reset(self):
         super().reset()
         self.secondary = None
-        self.laps = Laps(getattr(self, "_profile", False), getattr(self, "_profile_skip", 0))   # sub-stage split of update (off: no syncs)
+        # sub-stage clock of update (off unless an experiment sets _profile: no host syncs)
+        self.laps = Laps(getattr(self, "_profile", False), getattr(self, "_profile_skip", 0))
         self.memory_log = []          # per frame: (primary bytes, secondary bytes in use)
 
     def _make_cache(self):

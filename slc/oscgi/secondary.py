@@ -14,8 +14,8 @@ others probe on): the same requests give the same table on every run. A request 
 slot within ``probes`` gets no cell and counts as overflow.
 
 *Eviction*: a cell not touched (hit by any cache ray) in ``evict_after`` whole frames is freed at
-the start of the next one (touched last in frame u: freed at the start of frame u + K + 1). Freeing slots of a linear-probing table would cut the probe chains of the cells
-behind them, so the table is rebuilt instead: the surviving keys are inserted into an empty
+the start of the next one (touched last in frame u: freed at the start of frame u + K + 1).
+Freeing slots of a linear-probing table would cut the probe chains of the cells behind them, so the table is rebuilt instead: the surviving keys are inserted into an empty
 table (deterministic, as above) and their data move with them; a freed slot is thus reused from
 a reset state (count 0, layers 0). With eviction on, the table is also brought down to
 ``max_load`` (1/4) of its slots at the start of a frame by freeing the least recently touched
@@ -158,7 +158,6 @@ class SecondaryCache:
             dr.eval(found, act, slot)
             if r % 2 == 1 and not dr.any(act):       # most requests settle in one or two rounds
                 break
-        self.rounds = getattr(self, "rounds", []) + [r + 1]
         self._overflow = self._overflow + mi.UInt32(dr.count(act))
         got = found != INVALID
         dr.scatter(self.home, home, found, got)
