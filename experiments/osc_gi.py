@@ -18,8 +18,11 @@ Per scene (one viewer on the scene's first camera path, moving):
 - ablations (unless ``--no-ablations``): secondary cells of 15/60 cm, 1 and 3 bounces (each against
   its own reference), cells not keyed by shape (``--quick``: 60 cm and 1 bounce only).
 
+- with ``--laps``: one more osc-gi run per scene with the update's sub-stage clock
+  (:class:`slc.oscgi.laps.Laps`; host syncs between stages), written as ``update_laps_ms``.
+
 The full preset runs cornell and atrium at 160x90 (24 frames); ``--quick`` cornell at 64x36
-(8 frames).
+(8 frames, PT at 1, 2, 4, 8, 16 spp).
 
     python experiments/osc_gi.py --quick
     slc run osc-gi --quick [--scene cornell]
@@ -40,7 +43,7 @@ FULL = dict(scenes=["cornell", "atrium"], width=160, height=90, frames=24, warmu
             multi_frames=10, ablations=["osc-gi:secondary_cm=15", "osc-gi:secondary_cm=60", "osc-gi:bounces=1",
                                         "osc-gi:bounces=3", "osc-gi:shape_key=0"])
 QUICK = dict(scenes=["cornell"], width=64, height=36, frames=8, warmup=3, eval_frames=[7],
-             ref_spp=64, pt_spp=[1, 4], viewers=[1, 4, 16], overlap=0.7, multi_res=(32, 18), multi_frames=6,
+             ref_spp=64, pt_spp=[1, 2, 4, 8, 16], viewers=[1, 4, 16], overlap=0.7, multi_res=(32, 18), multi_frames=6,
              ablations=["osc-gi:secondary_cm=60", "osc-gi:bounces=1"])
 CACHE_STAGES = ("requests", "allocate", "queue")
 
@@ -54,6 +57,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-multi", action="store_true", help="skip the multi-viewer runs")
     p.add_argument("--no-ablations", action="store_true", help="skip the ablations")
     p.add_argument("--only-multi", action="store_true", help="run the multi-viewer part only")
+    p.add_argument("--laps", action="store_true",
+                   help="one more osc-gi run with the update's sub-stage clock (host syncs between stages)")
     p.add_argument("--seed", type=int, default=0)
 
 
@@ -115,7 +120,7 @@ def run(opts) -> dict:
     for spec in main_specs + ind_specs + abl_specs:      # bad specs stop the run before any work
         methods.parse_spec(spec)
 
-    rows, multi, hists = [], [], {}
+    rows, multi, hists, laps = [], [], {}, {}
     n_runs = len(names) * (len(main_specs) + len(ind_specs) + len(abl_specs))
     with tqdm(total=n_runs * preset["frames"], desc=NAME, unit="frame", disable=None) as bar:
         for s in experiment.each_scene(names):
@@ -151,6 +156,13 @@ def run(opts) -> dict:
                     row["reuse_histogram"] = hists[s.name]
                     _reuse_plot(out / f"reuse_{s.name}.png", hists[s.name],
                                 f"{s.name}: secondary-cache reuse ({W}x{H}, 1 viewer)")
+            if getattr(opts, "laps", False) and not opts.only_multi:
+                # ------ the update's sub-stages (a separate run: the clock's syncs split kernels) ------
+                m = methods.create("osc-gi", s, seed=opts.seed)
+                m._profile, m._profile_skip = True, cfg.warmup
+                m.reset()
+                run_sequence(s, m, v, cfg)
+                laps[s.name] = {k: round(x, 2) for k, x in m.laps.per_frame().items()}
             # ----------------------------- equal-time comparison with PT -----------------------------
             srows = [r for r in rows if r["scene"] == s.name]
             for grp in ("full", "indirect"):
@@ -202,6 +214,8 @@ def run(opts) -> dict:
                         "updates, display = shading; medians after warm-up on a shared 2-core CPU: ratios only"}
     all_rows = rows + [dict(r, group="multi") for r in multi]
     results = experiment.results_object(NAME, config, experiment.strip_private(all_rows))
+    if laps:
+        results["update_laps_ms"] = laps
     cols = [("scene", "scene"), ("group", "group"), ("setting", "method"), ("time_ms", "t [ms]"),
             ("cache_ms", "cache"), ("effect_ms", "effect"), ("display_ms", "display"), ("flip", "FLIP"),
             ("psnr", "PSNR"), ("ssim", "SSIM"), ("pt_flip_equal_time", "PT FLIP @ equal t"),
@@ -219,6 +233,9 @@ def run(opts) -> dict:
             multi, [("scene", "scene"), ("viewers", "viewers"), ("measured_overlap", "measured overlap %"),
                     ("time_ms", "t [ms]"), ("time_vs_one", "t / 1 viewer"), ("entries", "entries"),
                     ("secondary_cells", "secondary cells"), ("memory_mb", "memory [MB]")]) + "\n")
+    for name, lp in laps.items():
+        md += (f"\n## Update sub-stages, {name} (ms per frame after warm-up, separate run with host syncs)\n\n"
+               + ", ".join(f"{k} {x:.1f}" for k, x in lp.items()) + "\n")
     md += "\n## Targets\n\n"
     for name in names:
         r = next((x for x in rows if x["scene"] == name and x["setting"] == "osc-gi"), None)

@@ -76,6 +76,84 @@ def test_secondary_table_insert_is_unique_and_deterministic():
     assert np.array_equal(np.array(tab2.find_or_insert(keys, home, mi.Bool(True))), s1)
 
 
+def test_eviction_keeps_a_small_table_from_overflowing_and_frees_unused_cells():
+    """A table of 256 slots fed 64 new keys a frame for 30 frames (1,920 distinct cells): with
+    eviction (unused for K = 2 frames, load cap 1/4) no request ever overflows; without it the
+    table fills and requests overflow (the check can fail). A cell unused for K frames is freed,
+    and a key inserted later into its slot starts from a reset state."""
+    sc = mi.load_dict({"type": "scene"})
+
+    def feed(tab, frames=30):
+        for f in range(frames):
+            tab.begin_frame(f)
+            keys = mi.UInt32((np.arange(64, dtype=np.uint32) + 64 * f) * 2654435761 % 4000000000 + 1)
+            slots = np.array(tab.find_or_insert(keys, keys % tab.slots, mi.Bool(True)))
+            assert tab.used_cells() <= tab.slots
+        return slots
+
+    tab = SecondaryCache(sc, 0.3, slots=1 << 8, evict_after=2)
+    feed(tab)
+    assert tab.overflow == 0 and tab.used_cells() <= 64 + 64 + 64
+    full = SecondaryCache(sc, 0.3, slots=1 << 8, evict_after=0)
+    feed(full)
+    assert full.overflow > 0 and full.used_cells() == 256
+
+    # ------- key A used at frame 0 only: freed at frame K; key B with A's home reuses its slot -------
+    tab = SecondaryCache(sc, 0.3, slots=1 << 8, evict_after=2)
+    tab.begin_frame(0)
+    a = mi.UInt32([12345])
+    sa = tab.find_or_insert(a, mi.UInt32([7]), mi.Bool(True))
+    assert np.array(sa)[0] == 7
+    dr.scatter(tab.count, mi.UInt32(5), sa)
+    dr.scatter(tab.layers, mi.Float(1.0), dr.arange(mi.UInt32, 3 * tab.B) + 7 * 3 * tab.B)
+    tab.begin_frame(2)
+    assert 12345 in np.array(tab.keys)                    # unused in frames 1, 2: kept
+    tab.begin_frame(3)
+    assert tab.evicted == 1 and 12345 not in np.array(tab.keys) and tab.used_cells() == 0
+    sb = tab.find_or_insert(mi.UInt32([999]), mi.UInt32([7]), mi.Bool(True))
+    assert np.array(sb)[0] == 7
+    assert np.array(tab.count)[7] == 0 and not np.array(tab.layers)[7 * 3 * tab.B:8 * 3 * tab.B].any()
+
+
+def test_eviction_moves_the_surviving_cells_with_their_data():
+    """The rebuild after eviction keeps every survivor findable under its key, with its data."""
+    sc = mi.load_dict({"type": "scene"})
+    tab = SecondaryCache(sc, 0.3, slots=1 << 8, probes=64, evict_after=1, max_load=0.5)
+    tab.begin_frame(0)
+    old = mi.UInt32(np.arange(1, 41, dtype=np.uint32) * 7919)
+    tab.find_or_insert(old, old % 16, mi.Bool(True))          # contended homes: long probe chains
+    assert tab.overflow == 0 and tab.used_cells() == 40
+    tab.begin_frame(1)
+    keep = mi.UInt32(np.arange(1, 41, 2, dtype=np.uint32) * 7919)
+    s_keep = tab.find_or_insert(keep, keep % 16, mi.Bool(True))
+    dr.scatter(tab.count, keep, s_keep)                       # a value per cell to follow
+    tab.begin_frame(2)                                        # the 20 others, unused in frame 1 (K = 1)
+    assert tab.evicted == 20 and tab.used_cells() == 20
+    s2 = tab.find_or_insert(keep, keep % 16, mi.Bool(True))
+    assert tab.used_cells() == 20                             # found, not inserted again
+    assert np.array_equal(np.array(dr.gather(mi.UInt32, tab.count, s2)), np.array(keep))
+
+
+def test_budget_updates_the_least_sampled_cells_and_keeps_the_others(dcornell):
+    """With a budget of 64 cell updates a frame, exactly 64 of the requested cells are updated,
+    those with the lowest update counts; the other cells' layers and counts are unchanged."""
+    m, _, (img,) = _run(dcornell, "osc-gi:secondary_budget=64", views.single(dcornell), 4)
+    sec = m.secondary
+    assert np.isfinite(img).all() and sec.requested > 64 and sec.updated == 64
+    live = sec.keys != 0xFFFFFFFF
+    req = dr.select(live, mi.UInt32(1), mi.UInt32(0xFFFF))   # request every cell as ring 1
+    cnt0, lay0 = np.array(sec.count), np.array(sec.layers).reshape(-1, 3 * sec.B)
+    sec.frame = 4
+    done = np.array(sec.update(4, req))
+    cnt1, lay1 = np.array(sec.count), np.array(sec.layers).reshape(-1, 3 * sec.B)
+    assert done.size == 64
+    changed = np.nonzero(cnt1 != cnt0)[0]
+    assert np.array_equal(np.sort(changed), np.sort(done))
+    others = np.setdiff1d(np.nonzero(np.array(live))[0], done)
+    assert cnt0[done].max() <= cnt0[others].min()            # least-sampled first
+    assert np.array_equal(lay1[others], lay0[others]) and np.array_equal(cnt1[others], cnt0[others])
+
+
 def test_settings_are_checked(dcornell):
     with pytest.raises(MethodError):
         methods.create("osc-gi:output=direct", dcornell)

@@ -13,6 +13,7 @@ from ..methods import MethodError, Param, register
 from ..osc.cache import OnSurfaceCache
 from ..osc.payload import PayloadMethod, RayPolicy
 from .hemisphere import HemiGrid
+from .laps import Laps
 from .secondary import SecondaryCache
 
 STREAM_PRIMARY = 0x05C61001
@@ -53,7 +54,10 @@ class OSCGI(PayloadMethod):
     ``secondary_cm`` cm keyed by position, normal bin and shape, storing outgoing diffuse radiance
     in ``bounces`` layers (direct light by ``light_samples`` light samples, indirect by
     ``secondary_rays`` cosine rays into other cells), so the primary point receives light after
-    1..``bounces`` reflections, the paths of the indirect reference.
+    1..``bounces`` reflections, the paths of the indirect reference. At most ``secondary_budget``
+    cells are updated per frame (ring 1 first, then least-sampled, then oldest; the others keep
+    their value, and a texel does not blend a sample from a cell never updated unless it has no
+    value either); cells unused for ``secondary_evict`` frames are freed.
 
     *Shading* (no rays): diffuse-only BSDFs exactly from the texels,
     :math:`L_o = \frac{\rho}{\pi} E,\ E = \frac{\pi}{R^2}\sum_k L_k`; other BSDFs by
@@ -83,7 +87,10 @@ class OSCGI(PayloadMethod):
         Param("light_samples", 4, "light samples per secondary cell update", lo=1, hi=1024),
         Param("direct_rays", 8, "light samples per primary entry update (output=full)", lo=1, hi=1024),
         Param("glossy_samples", 8, "BSDF samples of the hemisphere per glossy pixel", lo=1, hi=1024),
-        Param("secondary_slots", 16, "log2 of the secondary hash-table size", lo=8, hi=24),
+        Param("secondary_slots", 17, "log2 of the secondary hash-table size", lo=8, hi=24),
+        Param("secondary_budget", 8192, "secondary cell updates per frame, least-sampled first (0: all)",
+              lo=0, hi=1 << 24),
+        Param("secondary_evict", 4, "free secondary cells unused for this many frames (0: never)", lo=0, hi=1 << 16),
         Param("shape_key", True, "secondary cells keyed by shape too (no sharing across shapes)"),
     ) + _cache_params()
     storage_type = mi.Float
@@ -109,6 +116,8 @@ class OSCGI(PayloadMethod):
     def reset(self):
         super().reset()
         self.secondary = None
+        # sub-stage clock of update (off unless an experiment sets _profile: no host syncs)
+        self.laps = Laps(getattr(self, "_profile", False), getattr(self, "_profile_skip", 0))
         self.memory_log = []          # per frame: (primary bytes, secondary bytes in use)
 
     def _make_cache(self):
@@ -120,12 +129,16 @@ class OSCGI(PayloadMethod):
         unit = float(getattr(self.scene, "unit", 1.0) or 1.0)
         self.secondary = SecondaryCache(self.scene.mi_scene, self.secondary_cm / 100.0 * unit, self.bounces,
                                         self.n_max, self.secondary_rays, self.light_samples,
-                                        1 << self.secondary_slots, shape_key=self.shape_key, seed=self.seed)
+                                        1 << self.secondary_slots, shape_key=self.shape_key, seed=self.seed,
+                                        budget=self.secondary_budget, evict_after=self.secondary_evict)
+        self.secondary.laps = self.laps
 
     # ----------------------------------------------------------------- update
     def update(self, ctx, fr, rays, unsettled):
         sc, G, W, sec = self.scene.mi_scene, self.grid, self.words, self.secondary
         D, N = G.n, fr.n_active
+        laps = self.laps
+        laps.start()
 
         # ------- primary rays: one jittered cosine ray per texel of this update's share -------
         # texel k of an entry is traced in its first update and, afterwards, in update c when
@@ -149,15 +162,21 @@ class OSCGI(PayloadMethod):
         d = mi.Frame3f(n_sh).to_world(G.direction(k, mi.Point2f(s.next_float32(), s.next_float32())))
         ok = traced & (dr.dot(d, si.n) > 0.0)           # this update's texels, above the geometric surface
         hit = sc.ray_intersect(si.spawn_ray(d), ok)
+        laps.lap("primary_rays", hit)
 
         # ------------- secondary caches: cells of the hits, requests, update (all shared) -------------
+        req = sec.begin_frame(ctx.frame)              # eviction first: slots move in a rebuild
         slots, hok = sec.touch(hit, d, ok)
-        req = sec.begin_frame()
         sec.request(req, slots, hok, 1)
         sec.record_reuse(slots, hok)
+        laps.lap("secondary_lookup", slots, hok, req)
         sec.update(ctx.frame, req)
+        laps.lap("secondary_update")
         sample = sec.radiance(slots, hok)              # outgoing radiance of the hit's cell
-        dr.eval(sample)
+        # a hit cell never updated yet (over the budget) holds no value: the texel is not blended
+        # (it keeps its value) rather than pulled towards 0, unless it has no value yet either
+        empty = hok & ~sec.updated_once(slots, hok)
+        dr.eval(sample, empty)
 
         # ----------------- direct light (output=full): light samples binned into texels -----------------
         sample = [sample[c] for c in range(3)]
@@ -180,12 +199,14 @@ class OSCGI(PayloadMethod):
                 okd = visible(sc, sie, ds, okd)
                 t = (base + G.texel(loc)) * 3
                 for c in range(3):
-                    dr.scatter_add(scratch, w[c] * loc.z * scale, t + c, okd)
+                    # Direct: the default (Expand) bakes the size of scratch into the kernel
+                    dr.scatter_add(scratch, w[c] * loc.z * scale, t + c, okd, mode=dr.ReduceMode.Direct)
                 return i + 1, sd
 
             dr.while_loop(state=(mi.UInt32(0), sd), cond=cond, body=body, labels=("i", "sd"))
             dr.eval(scratch)
             sample = [sample[c] + dr.gather(mi.Float, scratch, lane * 3 + c) for c in range(3)]
+            laps.lap("primary_direct")
 
         # ------------ temporal EMA per traced texel; new entries start from their seed ------------
         # a texel's own sample count: c for full updates, about 1 + ceil((c - 1) / S) in rotation
@@ -193,7 +214,7 @@ class OSCGI(PayloadMethod):
         keep = ~is_new | seeded
         cnt = c_old + 1.0
         c_k = dr.select(full, cnt, 1.0 + mi.Float((c - 1 + S - 1) // S))
-        a = dr.select(traced, dr.rcp(dr.minimum(c_k, float(self.n_max))), 0.0)
+        a = dr.select(traced & ~(empty & (c_k > 1.0)), dr.rcp(dr.minimum(c_k, float(self.n_max))), 0.0)
         new = []
         for ch in range(3):
             old = dr.gather(mi.Float, self.storage, src * W + k * 3 + ch, keep)
@@ -204,6 +225,7 @@ class OSCGI(PayloadMethod):
             dr.scatter(self.storage, new[ch], slot * W + k * 3 + ch)
             dr.scatter(self.storage, E[ch], fr.active * W + 3 * D + ch)
         dr.scatter(self.storage, cnt, slot * W + 3 * D + 3, k == 0)
+        laps.lap("primary_ema", self.storage)
         return dr.zeros(mi.Bool, N)
 
     # ------------------------------------------------------------------ shade
@@ -269,7 +291,8 @@ class OSCGI(PayloadMethod):
             sec = self.secondary
             r = sec.reuse
             out.update({"secondary_cells": float(getattr(self, "_cells", 0)), "secondary_updated": float(sec.updated),
-                        "secondary_overflow": float(sec.overflow),
+                        "secondary_overflow": float(sec.overflow), "secondary_requested": float(sec.requested),
+                        "secondary_evicted": float(sec.evicted),
                         "secondary_reuse_mean": float(dr.mean(mi.Float(r))[0]) if dr.width(r) else 0.0})
             if self.memory_log:
                 out["primary_mb"] = self.memory_log[-1][0] / 2 ** 20

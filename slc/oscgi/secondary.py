@@ -10,8 +10,21 @@ secondary caches are on-surface texels of islands, which never straddle two isla
 The key is a 32-bit TEA hash of these; its home slot a second hash word. The table is open
 addressing with linear probing over ``slots`` entries, filled without races in ``probes`` rounds
 of gather / ``scatter_reduce(min)`` / gather (the smallest key wins a contested empty slot, the
-others probe on): the same requests give the same table on every run. Cells are never evicted
-(a request that finds no slot within ``probes`` gets no cell and counts as overflow).
+others probe on): the same requests give the same table on every run. A request that finds no
+slot within ``probes`` gets no cell and counts as overflow.
+
+*Eviction*: a cell not touched (hit by any cache ray) in ``evict_after`` whole frames is freed at
+the start of the next one (touched last in frame u: freed at the start of frame u + K + 1).
+Freeing slots of a linear-probing table would cut the probe chains of the cells behind them, so the table is rebuilt instead: the surviving keys are inserted into an empty
+table (deterministic, as above) and their data move with them; a freed slot is thus reused from
+a reset state (count 0, layers 0). With eviction on, the table is also brought down to
+``max_load`` (1/4) of its slots at the start of a frame by freeing the least recently touched
+cells, so that the frame's new cells find slots within ``probes`` rounds.
+
+*Budget*: at most ``budget`` cells are updated per frame (0: all requested). The requested cells
+are ranked by ring (the cells primary rays read this frame first), then least-sampled (update
+count), then oldest update, then slot; the others keep
+their value (their EMA is simply not advanced this frame) and their ring requests lapse.
 
 Each cell stores the *outgoing diffuse* radiance of its surface, :math:`L_o = \rho E / \pi`, in
 ``bounces`` layers: layer 1 holds direct light only, layer b adds light that arrived after b-1
@@ -45,6 +58,7 @@ import numpy as np
 
 from ..keys import INVALID, keyed_rng
 from ..lights import sample_light, visible
+from .laps import Laps
 
 EMPTY = INVALID
 NO_RING = 0xFFFF
@@ -62,33 +76,40 @@ class SecondaryCache:
 
     Parameters: ``cell`` (edge in scene units), ``bounces`` (layers), ``n_max`` (EMA cap),
     ``rays`` (cosine rays per cell update, 32), ``light_samples`` (per cell update, 4),
-    ``slots`` (table size, a power of two), ``probes`` (linear-probing rounds), ``shape_key``."""
+    ``slots`` (table size, a power of two), ``probes`` (linear-probing rounds), ``shape_key``,
+    ``budget`` (cell updates per frame, 0: unlimited), ``evict_after`` (frames unused, 0: never),
+    ``max_load`` (with eviction on: cells kept at the start of a frame, as a fraction of ``slots``)."""
 
     def __init__(self, mi_scene: mi.Scene, cell: float, bounces: int = 2, n_max: int = 8, rays: int = 32,
-                 light_samples: int = 4, slots: int = 1 << 16, probes: int = 16, shape_key: bool = True,
-                 seed: int = 0):
+                 light_samples: int = 4, slots: int = 1 << 16, probes: int = 32, shape_key: bool = True,
+                 seed: int = 0, budget: int = 0, evict_after: int = 0, max_load: float = 0.25):
         if slots & (slots - 1):
             raise ValueError("slots must be a power of two")
         self.sc, self.h, self.B = mi_scene, float(cell), int(bounces)
         self.n_max, self.rays, self.light_samples = int(n_max), int(rays), int(light_samples)
         self.slots, self.probes, self.shape_key, self.seed = int(slots), int(probes), bool(shape_key), int(seed)
+        self.budget, self.evict_after, self.max_load = int(budget), int(evict_after), float(max_load)
+        self.laps = Laps(False)
         self.reset()
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
         cap = self.slots
         self.keys = dr.full(mi.UInt32, EMPTY, cap)
+        self.home = dr.zeros(mi.UInt32, cap)                # home slot of the key (for rebuilds)
+        self.used = dr.zeros(mi.UInt32, cap)                # last frame touched
+        self.stamp = dr.zeros(mi.UInt32, cap)               # last frame updated
         self.count = dr.zeros(mi.UInt32, cap)
         self.pending = dr.full(mi.UInt32, NO_RING, cap)     # ring requested for the next update
         self.rep = dr.zeros(mi.Float, cap * _REP)
         self.layers = dr.zeros(mi.Float, cap * 3 * self.B)
         self._reuse_count = dr.zeros(mi.UInt32, self.slots)   # primary hits per cell, last frame
         self._overflow = mi.UInt32(0)                         # kept lazy: no sync inside a timed stage
-        self.updated = 0
-        dr.eval(self.keys, self.count, self.pending, self.rep, self.layers)
+        self.updated, self.requested, self.evicted, self.frame = 0, 0, 0, 0
+        dr.eval(self.keys, self.home, self.used, self.stamp, self.count, self.pending, self.rep, self.layers)
 
     def words_per_slot(self) -> int:
-        return 3 + _REP + 3 * self.B       # key, count, ring + representative point + layers
+        return 6 + _REP + 3 * self.B       # key, home, used, stamp, count, ring + rep. point + layers
 
     def memory_bytes(self) -> int:
         """The whole table (allocated up front)."""
@@ -138,29 +159,49 @@ class SecondaryCache:
             if r % 2 == 1 and not dr.any(act):       # most requests settle in one or two rounds
                 break
         self._overflow = self._overflow + mi.UInt32(dr.count(act))
+        got = found != INVALID
+        dr.scatter(self.home, home, found, got)
+        dr.scatter(self.used, dr.opaque(mi.UInt32, self.frame), found, got)
+        dr.eval(self.home, self.used)
         return found
 
-    def _set_rep(self, slots: mi.UInt32, ok: mi.Bool, p: mi.Point3f, n: mi.Vector3f, albedo: mi.Color3f) -> None:
-        """Each touched cell's representative point: the lowest lane that touched it."""
+    def _set_rep(self, slots: mi.UInt32, ok: mi.Bool, si: mi.SurfaceInteraction3f, n: mi.Vector3f) -> None:
+        """Each touched cell's representative point: the lowest lane that touched it. The albedo
+        (a BSDF call) is evaluated on the winning lanes only (one per touched cell)."""
         lane = dr.arange(mi.UInt32, dr.width(slots))
         win = dr.full(mi.UInt32, INVALID, self.slots)
         dr.scatter_reduce(dr.ReduceOp.Min, win, lane, slots, ok)
         dr.eval(win)
         w = ok & (dr.gather(mi.UInt32, win, slots, ok) == lane)
-        for j, v in enumerate((p.x, p.y, p.z, n.x, n.y, n.z, albedo.x, albedo.y, albedo.z)):
-            dr.scatter(self.rep, v, slots * _REP + j, w)
+        idx = dr.compress(w)
+        if dr.width(idx) == 0:
+            return
+        sw = dr.gather(mi.SurfaceInteraction3f, si, idx)
+        nw = mi.Vector3f(*[dr.gather(mi.Float, n[c], idx) for c in range(3)])
+        albedo = mi.Color3f(sw.bsdf().eval_diffuse_reflectance(sw, True))
+        sl = dr.gather(mi.UInt32, slots, idx)
+        for j, v in enumerate((sw.p.x, sw.p.y, sw.p.z, nw.x, nw.y, nw.z, albedo.x, albedo.y, albedo.z)):
+            dr.scatter(self.rep, v, sl * _REP + j)
         dr.eval(self.rep)
 
     def touch(self, si: mi.SurfaceInteraction3f, d: mi.Vector3f, active: mi.Bool):
         """Cells of the hits ``si`` of rays along ``d`` (inserted when new, representative point
         refreshed). Returns (slots, valid mask)."""
+        dr.eval(si)                   # once: else every kernel below would trace the rays again
         ok = active & si.is_valid()
         key, home, nf = self.key_of(si, d)
+        dr.eval(ok, nf)
+        self.laps.lap("touch_key", key, home)
         slots = self.find_or_insert(key, home, ok)
+        self.laps.lap("touch_find")
         ok &= slots != INVALID
-        albedo = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, ok))
-        self._set_rep(slots, ok, si.p, nf, albedo)
+        self._set_rep(slots, ok, si, nf)
+        self.laps.lap("touch_rep")
         return slots, ok
+
+    def updated_once(self, slots: mi.UInt32, ok: mi.Bool) -> mi.Bool:
+        """Whether cells hold a value (updated at least once)."""
+        return ok & (dr.gather(mi.UInt32, self.count, slots, ok) > 0)
 
     def radiance(self, slots: mi.UInt32, ok: mi.Bool, layer: int | None = None) -> mi.Color3f:
         """Outgoing radiance of cells (layer ``bounces`` by default)."""
@@ -169,10 +210,63 @@ class SecondaryCache:
         return mi.Color3f(*[dr.gather(mi.Float, self.layers, base + c, ok) for c in range(3)])
 
     # ------------------------------------------------------------------ update
-    def begin_frame(self) -> mi.UInt32:
-        """The requests carried from the previous update (ring per slot); the caller adds ring 1."""
+    def begin_frame(self, frame: int | None = None) -> mi.UInt32:
+        """Start a frame: evict cells unused for ``evict_after`` frames, then return the requests
+        carried from the previous update (ring per slot); the caller adds ring 1."""
+        if frame is not None:
+            self.frame = int(frame)
+        self.evicted = 0
+        if self.evict_after > 0:
+            self.evict()
         req, self.pending = self.pending, dr.full(mi.UInt32, NO_RING, self.slots)
         return req
+
+    def evict(self) -> int:
+        """Free the cells not touched in the last ``evict_after`` frames by rebuilding the table
+        with the others (see the module); returns the number freed."""
+        live = self.keys != EMPTY
+        f = dr.opaque(mi.UInt32, self.frame)
+        old = live & (f - self.used > self.evict_after) & (self.used < f)   # K whole frames unused
+        n_live, n_old = int(dr.count(live)[0]), int(dr.count(old)[0])
+        cap = int(self.slots * self.max_load)
+        if n_live - n_old > cap:
+            # ------- over the load cap: also free the least recently touched (then lowest slot) -------
+            idx = np.asarray(dr.compress(live & ~old), dtype=np.int64)
+            u = np.asarray(dr.gather(mi.UInt32, self.used, mi.UInt32(idx.astype(np.uint32))), dtype=np.int64)
+            drop = idx[np.lexsort((idx, u))[: n_live - n_old - cap]]
+            dr.scatter(old, True, mi.UInt32(np.sort(drop).astype(np.uint32)))
+            n_old += drop.size
+        if n_old == 0:
+            return 0
+        keep = dr.compress(live & ~old)
+        if dr.width(keep) == 0:                # nothing survives: a fresh table
+            ov, frame = self._overflow, self.frame
+            self.reset()
+            self._overflow, self.evicted, self.frame = ov, n_old, frame
+            return n_old
+        per_slot = [(self.home, 1), (self.used, 1), (self.stamp, 1), (self.count, 1), (self.pending, 1),
+                    (self._reuse_count, 1), (self.rep, _REP), (self.layers, 3 * self.B)]
+        data = [(type(a), [dr.gather(type(a), a, keep * w + j) for j in range(w)], w) for a, w in per_slot]
+        kk, kh = dr.gather(mi.UInt32, self.keys, keep), dr.gather(mi.UInt32, self.home, keep)
+        dr.eval(kk, kh, *[v for _, vs, _ in data for v in vs])
+        # ------------- an empty table, the surviving keys re-inserted, their data moved -------------
+        self.keys = dr.full(mi.UInt32, EMPTY, self.slots)
+        ov = self._overflow
+        new = self.find_or_insert(kk, kh, mi.Bool(True))
+        self._overflow = ov            # the table only shrinks: every survivor finds a slot
+        ok = new != INVALID
+        fresh = [dr.zeros(mi.UInt32, self.slots), dr.zeros(mi.UInt32, self.slots), dr.zeros(mi.UInt32, self.slots),
+                 dr.zeros(mi.UInt32, self.slots), dr.full(mi.UInt32, NO_RING, self.slots),
+                 dr.zeros(mi.UInt32, self.slots), dr.zeros(mi.Float, self.slots * _REP),
+                 dr.zeros(mi.Float, self.slots * 3 * self.B)]
+        for arr, (_, vs, w) in zip(fresh, data):
+            for j, v in enumerate(vs):
+                dr.scatter(arr, v, new * w + j, ok)
+        dr.eval(*fresh)
+        (self.home, self.used, self.stamp, self.count, self.pending, self._reuse_count, self.rep,
+         self.layers) = fresh
+        self.evicted = n_old
+        return n_old
 
     def request(self, req: mi.UInt32, slots: mi.UInt32, ok: mi.Bool, ring: int = 1) -> None:
         dr.scatter_reduce(dr.ReduceOp.Min, req, mi.UInt32(ring), slots, ok)
@@ -198,6 +292,15 @@ class SecondaryCache:
         """Update every requested cell once (see the module); returns the updated slots."""
         sc, B = self.sc, self.B
         cells = dr.compress(req <= B)
+        self.requested = dr.width(cells)
+        if 0 < self.budget < dr.width(cells):
+            # ----------- budget: least-sampled first, then oldest update, then slot -----------
+            c_np = np.asarray(cells, dtype=np.int64)
+            rg = np.asarray(dr.gather(mi.UInt32, req, cells), dtype=np.int64)
+            cnt = np.asarray(dr.gather(mi.UInt32, self.count, cells), dtype=np.int64)
+            age = self.frame - np.asarray(dr.gather(mi.UInt32, self.stamp, cells), dtype=np.int64)
+            order = np.lexsort((c_np, -age, cnt, rg))[: self.budget]
+            cells = mi.UInt32(np.sort(c_np[order]).astype(np.uint32))
         n = dr.width(cells)
         self.updated = n
         if n == 0:
@@ -230,6 +333,7 @@ class SecondaryCache:
         E_dir = E_dir / float(max(self.light_samples, 1))
         L_dir = E_dir * (1.0 / math.pi)
         dr.eval(L_dir)
+        self.laps.lap("sec_direct")
 
         # ------------- cosine rays to other cells: layers b-1 of their previous update -------------
         mean = [mi.Color3f(0.0) for _ in range(B - 1)]
@@ -244,6 +348,7 @@ class SecondaryCache:
             sil = dr.gather(mi.SurfaceInteraction3f, si, c_of)
             d = sil.sh_frame.to_world(mi.warp.square_to_cosine_hemisphere(u))
             hit = sc.ray_intersect(sil.spawn_ray(d), tracing)
+            self.laps.lap("sec_rays", hit)
             hit_slots, hok = self.touch(hit, d, tracing)
             hok &= dr.dot(hit.n, d) != 0.0
             next_ring = dr.gather(mi.UInt32, ring, c_of) + 1
@@ -252,6 +357,7 @@ class SecondaryCache:
                 Lh = self.radiance(hit_slots, hok, layer=b)
                 mean[b - 1] = mi.Color3f(*[dr.block_sum(Lh[c], R) for c in range(3)]) * (1.0 / R)
             dr.eval(self.pending, *mean)
+            self.laps.lap("sec_touch")
             traced = ring < B
         else:
             traced = dr.zeros(mi.Bool, n)
@@ -272,7 +378,8 @@ class SecondaryCache:
         for idx, v in vals:
             dr.scatter(self.layers, v, idx)
         dr.scatter(self.count, cnt, cells)
-        dr.eval(self.layers, self.count)
+        dr.scatter(self.stamp, dr.opaque(mi.UInt32, frame), cells)
+        dr.eval(self.layers, self.count, self.stamp)
         return cells
 
     # ------------------------------------------------------------------ reports
