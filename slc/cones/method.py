@@ -80,6 +80,8 @@ class SurfaceLightCones(PayloadMethod):
         Param("fetch", "nearest", "the nearest entry (the paper's), the 4 surrounding entries weighted bilinearly, "
               "or one of the 4 drawn per pixel and frame with the bilinear weights as probabilities",
               choices=("nearest", "bilinear", "stochastic")),
+        Param("batch", "off", "viewers: shade all viewers' pixels in one launch (nearest fetch; the same images as "
+              "per viewer); off: one launch per viewer", choices=("off", "viewers")),
     ) + PayloadMethod.cache_params
 
     def __init__(self, scene, **kw):
@@ -121,6 +123,53 @@ class SurfaceLightCones(PayloadMethod):
             slot = self._stochastic_tap(gb, slot, ctx.frame)
         return shader_for(self, self.max_cones)(self.storage, slot, ok, gb.si, tf, self.shade_samples,
                                                 shade_key(ctx.frame, self.seed))
+
+    def shade_all(self, ctx, fr, gbuffers):
+        """All viewers' pixels. With ``batch=viewers`` and the nearest fetch, the
+        viewers' G-buffers are concatenated and shaded in one launch, then split:
+        each pixel keeps the random-number key it has per viewer (its index within
+        its own viewer, the frame's key), so the images are the per-viewer ones
+        bit for bit. Otherwise (and for one viewer) :meth:`shade` per viewer."""
+        if self.batch != "viewers" or self.fetch != "nearest" or len(gbuffers) < 2:
+            return super().shade_all(ctx, fr, gbuffers)
+        sizes = [gb.size for gb in gbuffers]
+        offsets = [sum(sizes[:v]) for v in range(len(sizes))]
+        total = sum(sizes)
+
+        # ------------------- the viewers' pixels, one after another -------------------
+        si = dr.empty(mi.SurfaceInteraction3f, total)
+        slot = dr.empty(mi.UInt32, total)
+        index = dr.empty(mi.UInt32, total)
+        valid = dr.empty(mi.Bool, total)
+        pid = self._batch_pid(sizes)
+        for v, gb in enumerate(gbuffers):
+            at = dr.arange(mi.UInt32, sizes[v]) + dr.opaque(mi.UInt32, offsets[v])
+            dr.scatter(si, gb.si, at)
+            dr.scatter(slot, mi.UInt32(fr.pixel_slot[v]), at)
+            dr.scatter(index, mi.UInt32(fr.pixel_index[v]), at)
+            dr.scatter(valid, mi.Bool(gb.valid), at)
+        ok = valid & (slot != INVALID)
+        tf = dr.gather(mi.Frame3f, fr.si.sh_frame, index, ok)
+
+        # ------------------- one launch, split per viewer -------------------
+        out = shader_for(self, self.max_cones)(self.storage, slot, ok, si, tf, self.shade_samples,
+                                               shade_key(ctx.frame, self.seed), pid)
+        return [dr.gather(mi.Color3f, out, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, off))
+                for n, off in zip(sizes, offsets)]
+
+    def _batch_pid(self, sizes):
+        """Each batched pixel's index within its own viewer (kept while the sizes hold)."""
+        key = tuple(sizes)
+        cached = getattr(self, "_pid_cache", None)
+        if cached is None or cached[0] != key:
+            pid = dr.empty(mi.UInt32, sum(sizes))
+            off = 0
+            for n in sizes:
+                dr.scatter(pid, dr.arange(mi.UInt32, n), dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, off))
+                off += n
+            dr.eval(pid)
+            self._pid_cache = cached = (key, pid)
+        return cached[1]
 
     def _shade_bilinear(self, gb, slot, ok, tf, frame):
         """Bilinear fetch: the 4 entries around the pixel's cache coordinate, each

@@ -89,18 +89,22 @@ def _lambertian(bsdf, si, active):
 
 def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.SurfaceInteraction3f,
                  bsdf: mi.BSDFPtr, texel_frame: mi.Frame3f, max_cones: int, n_total: mi.UInt32,
-                 key: mi.UInt32, adaptive: bool = True, rotate: bool = True) -> mi.Color3f:
+                 key: mi.UInt32, adaptive: bool = True, rotate: bool = True,
+                 pid: mi.UInt32 | None = None) -> mi.Color3f:
     """Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
     ``slot``; ``texel_frame`` is the local frame of each pixel's entry (the frame its
     cone directions are stored in). ``n_total`` directions per live cone and ``key``
-    are opaque scalars; ``adaptive`` / ``rotate`` see :class:`ConeShading`. Entries
+    are opaque scalars; ``adaptive`` / ``rotate`` see :class:`ConeShading`. ``pid``
+    keys each pixel's random numbers (default: its index in the arrays; several viewers
+    shaded in one launch pass each pixel's index within its own viewer). Entries
     without cones and inactive pixels give 0."""
     K = max_cones
     D, A, L, C, n = unpack(gather_words(storage, slot, K, active), K)
     Dw = [dr.normalize(texel_frame.to_world(D[i])) for i in range(K)]
     ctx = mi.BSDFContext()
     zero = dr.select(active, mi.Float(0.0), mi.Float(0.0))     # a zero of the pixels' width
-    pid = dr.arange(mi.UInt32, dr.width(slot))
+    if pid is None:
+        pid = dr.arange(mi.UInt32, dr.width(slot))
 
     # ------------------- the cones: live, Dirac, solid angle, density -------------------
     live = [active & (n > i) for i in range(K)]
@@ -272,10 +276,13 @@ class ConeShading:
         self.recordings = 0          # recordings made, including those of a dropped frozen function
         self.calls = 0
 
-    def __call__(self, storage, slot, active, si, texel_frame, n_samples: int = 16, key: int = 0) -> mi.Color3f:
+    def __call__(self, storage, slot, active, si, texel_frame, n_samples: int = 16, key: int = 0,
+                 pid: mi.UInt32 | None = None) -> mi.Color3f:
+        """Shade the pixels ``si``; ``pid``: the random-number key per pixel (default:
+        the index in the arrays; see :func:`shade_kernel`)."""
         out = self.kernel(storage, mi.UInt32(slot), mi.Bool(active), si, si.bsdf(), texel_frame, self.max_cones,
                           dr.opaque(mi.UInt32, max(int(n_samples), 1)), dr.opaque(mi.UInt32, int(key)),
-                          self.adaptive, self.rotate)
+                          self.adaptive, self.rotate, pid)
         if self.frozen:
             self.calls += 1
             self.recordings = int(self.kernel.n_recordings)

@@ -9,13 +9,15 @@ runs the frame and a subclass writes only the part that differs::
         words = 4                                     # 32-bit words per entry
         def update(self, ctx, fr, rays, unsettled):   # write self.storage, return motion
         def shade(self, ctx, fr, v, gb):              # one viewer's pixels from the entries
+        def shade_all(self, ctx, fr, gbuffers):       # optional: all viewers at once
 
 :meth:`PayloadMethod.render` does, per frame: the cache's requests
 (:class:`slc.osc.protocol.FrameRequests`), storage growth to the cache's
 capacity, the ray policy of every active entry (from the payload's own
 per-entry state: new, moving or settled), the payload's ``update`` (stage
 "update"), the policy state's advance with the motion the update reports,
-and ``shade`` for every viewer (stage "shade"). Memory is the cache's own
+and ``shade_all`` (stage "shade"): by default ``shade`` for every viewer; a
+subclass may shade all viewers' pixels in one launch instead. Memory is the cache's own
 structures plus the allocated entries times :meth:`payload_bytes`.
 """
 from __future__ import annotations
@@ -152,6 +154,13 @@ class PayloadMethod(Method):
     def shade(self, ctx, fr: FrameRequests, v: int, gb) -> mi.Color3f:
         """Viewer ``v``'s pixels from the entries ``fr.pixel_slot[v]`` (no rays)."""
 
+    def shade_all(self, ctx, fr: FrameRequests, gbuffers) -> list:
+        """Every viewer's pixels (a list of ``mi.Color3f``, one per G-buffer), called
+        once per frame with at least one active entry. Default: :meth:`shade` per
+        viewer. A subclass may batch the viewers into one launch; its images must be
+        those of :meth:`shade` (random numbers keyed per viewer as there)."""
+        return [self.shade(ctx, fr, v, gb) for v, gb in enumerate(gbuffers)]
+
     # ------------------------------------------------------------------ state
     def reset(self):
         self.cache = None
@@ -203,8 +212,10 @@ class PayloadMethod(Method):
 
         # ------------------------------- shade every viewer from the entries
         with timer.stage("shade") as st:
-            outs = [self.shade(ctx, fr, v, gb) if n_active > 0 else dr.zeros(mi.Color3f, gb.size)
-                    for v, gb in enumerate(gbuffers)]
+            if n_active > 0:
+                outs = list(self.shade_all(ctx, fr, gbuffers))
+            else:
+                outs = [dr.zeros(mi.Color3f, gb.size) for gb in gbuffers]
             st.outputs(*outs)
         self._last = {"active_entries": n_active, "motion_entries": motion}
         return outs
