@@ -134,7 +134,12 @@ class AdaptiveCache(PayloadMethod):
         base = fr.active * W
         hw = [dr.gather(mi.UInt32, self.storage, base + k) for k in range(W)]
         h = ch.unpack_header(hw)
-        is_new = mi.Bool(fr.is_new)
+        # In frame 0 every entry is new: is_new, the rays and everything computed from them
+        # (tags, counts, the switch mask) would be literals that Dr.Jit folds into the kernels,
+        # so the frame-0 warm-up would trace other kernels than a frame with real switches.
+        # Opaque values keep the IR independent of the data (docs/adaptive.md, Cost).
+        is_new, rays, unsettled = mi.Bool(fr.is_new), mi.UInt32(rays), mi.Bool(unsettled)
+        dr.make_opaque(is_new, rays, unsettled)
         forced = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.force)
         start = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.start, self.prior)
         prior = forced if forced is not None else start
@@ -152,7 +157,7 @@ class AdaptiveCache(PayloadMethod):
         h = Header(tag=tag, streak=dr.select(fresh, 0, h.streak), count=dr.select(fresh, 0, h.count),
                    e=dr.select(fresh, 0.0, h.e), slot=slot, s_delta=dr.select(fresh, 0.0, h.s_delta),
                    m=dr.select(fresh, mi.Vector3f(z, z, z), h.m))
-        dr.eval(h.tag, h.slot)
+        _opaque_header(h)
 
         # ------------------------------- every representation updates its own entries
         ed, en, mv = dr.zeros(mi.Float, N), dr.zeros(mi.Float, N), dr.zeros(mi.Vector3f, N)
@@ -160,8 +165,7 @@ class AdaptiveCache(PayloadMethod):
         vis_motion = dr.zeros(mi.Bool, N)
         # evaluated before the loop: otherwise their initialisation fuses into the first
         # representation's kernel, a different kernel for each set of representations present
-        dr.eval(ed, en, mv, motion, vis_motion)
-        rays = mi.UInt32(rays)
+        dr.make_opaque(ed, en, mv, motion, vis_motion)
         counts = {}
         for r in REPS:
             idx, on, counts[r] = _subset(tag == r)
@@ -206,7 +210,8 @@ class AdaptiveCache(PayloadMethod):
         h, switch, target = ch.decide(h, self.choice, allowed=ctx.frame % self.switch_period == 0)
         if forced is not None:
             switch = dr.zeros(mi.Bool, N)
-        dr.eval(switch, target)
+        _opaque_header(h)
+        dr.make_opaque(switch, target)
         h = self._switch(fr, h, switch, target)
         for k, w in enumerate(ch.pack_header(h)):
             dr.scatter(self.storage, w, base + k)
@@ -333,6 +338,11 @@ class AdaptiveCache(PayloadMethod):
         out["payload_bytes"] = out.get("payload_bytes", 0.0) + sum(float(p.bytes_allocated())
                                                                    for p in self.pools.values())
         return out
+
+
+def _opaque_header(h: Header) -> None:
+    """Evaluate every header field to memory (literals too: see ``update``)."""
+    dr.make_opaque(h.tag, h.streak, h.count, h.e, h.slot, h.s_delta, h.m)
 
 
 def _means(ed, en, mv, rays):
