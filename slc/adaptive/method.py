@@ -20,6 +20,7 @@ from .pool import Pool
 
 REPS = (VIS, CONES, SH)
 RESTART_COUNT = 4
+WARM_FRAMES = 2            # frames that run every kernel (see reset)
 
 
 def _subset(mask: mi.Bool):
@@ -109,10 +110,14 @@ class AdaptiveCache(PayloadMethod):
     def reset(self):
         super().reset()
         self.pools = None
-        # First frame: every kernel (each representation's update and shading, each
-        # conversion) runs, on masked lanes where nothing needs it, so that none is
-        # first built in a later frame; from then on unused ones are skipped.
+        # First WARM_FRAMES frames: every kernel (each representation's update and shading,
+        # each conversion) runs, on masked lanes where nothing needs it, so that none is
+        # first built in a later frame; from then on unused ones are skipped. Two frames:
+        # the cache's first frame hands over some inputs (of the entries' interactions) in
+        # another form than later frames, so a kernel run only in frame 0 is built again
+        # when first needed (frame 5 on the atrium: the first SH update).
         self._warm = False
+        self._frames_seen = 0
         self._counts = {}
         self._switches = 0
         self._tags = None
@@ -271,7 +276,8 @@ class AdaptiveCache(PayloadMethod):
     def render(self, ctx, gbuffers, timer):
         out = super().render(ctx, gbuffers, timer)
         if self.pools is not None:
-            self._warm = True
+            self._frames_seen += 1
+            self._warm = self._frames_seen >= WARM_FRAMES
         return out
 
     # ------------------------------------------------------------------ shade
