@@ -306,14 +306,21 @@ class AdaptiveCache(PayloadMethod):
                 self.pools[CONES].data, dr.select(m_c, ps, 0), m_c, si, tf, self.shade_samples,
                 shade_key(ctx.frame, self.seed)))
         if used.get(SH, 1):
-            parts.append(lambda: sh_rep.shade(self.pools[SH].gather(ps, m_s), si, bsdf, tf, m_s, self.enc,
-                                              self.seed, self.glossy_samples))
+            parts.append(lambda: self._sh_shading()(self.pools[SH].gather(ps, m_s), m_s, si, tf))
         for part in parts:
             Lr = part()
             dr.eval(Lr)
             L = L + Lr
             dr.eval(L)
         return L
+
+    def _sh_shading(self) -> sh_rep.SHShading:
+        """The SH pool's shading, frozen (made on first use; unfrozen in an
+        animated scene, where every frame would record it again)."""
+        if getattr(self, "_sh_shade", None) is None:
+            self._sh_shade = sh_rep.SHShading(self.encoding, self.seed, self.glossy_samples,
+                                              freeze=not bool(getattr(self.scene, "dynamic", False)))
+        return self._sh_shade
 
     # ------------------------------------------------------------------ reports
     def pixel_tags(self, fr, v, gb) -> mi.UInt32:
