@@ -171,10 +171,12 @@ class AdaptiveCache(PayloadMethod):
         # evaluated before the loop: otherwise their initialisation fuses into the first
         # representation's kernel, a different kernel for each set of representations present
         dr.make_opaque(ed, en, mv, motion, vis_motion)
-        counts = {}
+        # every representation's lanes before the first update kernel: a compression waits for
+        # the kernels queued before it, and the host traces the next update while one runs
+        subsets = {r: _subset(tag == r) for r in REPS}
         for r in REPS:
-            idx, on, counts[r] = _subset(tag == r)
-            if counts[r] == 0 and self._warm:
+            idx, on, n_r = subsets[r]
+            if n_r == 0 and self._warm:
                 continue        # no lane: no kernel traced (tracing costs as much as a small frame)
             # entries with many rays side by side (as slc's update): a SIMD packet's loop runs as many
             # iterations as its largest ray count
