@@ -150,14 +150,19 @@ class AdaptiveCache(PayloadMethod):
         prior = forced if forced is not None else start
 
         # ------------------------------- reused slots give back their old records; new ones get a record
-        for r in REPS:
-            self.pools[r].release(h.slot, is_new & (h.tag == r))
+        # (all lane counts read back at once; a pool with no lane is skipped once warm)
         fresh = is_new | (h.tag == NONE)
         tag = dr.select(fresh, mi.UInt32(prior), h.tag)
         slot = dr.select(fresh, mi.UInt32(INVALID), h.slot)
-        for r in REPS:
-            m = fresh & (tag == r)
-            slot = dr.select(m, self.pools[r].acquire(m), slot)
+        rel = [is_new & (h.tag == r) for r in REPS]
+        acq = [fresh & (tag == r) for r in REPS]
+        n_rel_acq = _tally([m & (h.slot != INVALID) for m in rel] + acq)
+        for r, m, n in zip(REPS, rel, n_rel_acq[:3]):
+            if n or not self._warm:
+                self.pools[r].release(h.slot, m, n)
+        for r, m, n in zip(REPS, acq, n_rel_acq[3:]):
+            if n or not self._warm:
+                slot = dr.select(m, self.pools[r].acquire(m, n), slot)
         z = dr.zeros(mi.Float, N)
         h = Header(tag=tag, streak=dr.select(fresh, 0, h.streak), count=dr.select(fresh, 0, h.count),
                    e=dr.select(fresh, 0.0, h.e), slot=slot, s_delta=dr.select(fresh, 0.0, h.s_delta),
@@ -214,16 +219,20 @@ class AdaptiveCache(PayloadMethod):
         # ------------------------------- statistics and the choice
         e_d, e_n, m_hat = _means(ed, en, mv, rays)
         h = ch.update_stats(h, e_d, e_n, m_hat, self.choice)
-        h, switch, target = ch.decide(h, self.choice, allowed=ctx.frame % self.switch_period == 0)
+        allowed = ctx.frame % self.switch_period == 0
+        h, switch, target = ch.decide(h, self.choice, allowed=allowed)
         if forced is not None:
             switch = dr.zeros(mi.Bool, N)
         _opaque_header(h)
-        dr.make_opaque(switch, target)
-        h = self._switch(fr, h, switch, target)
+        if allowed or not self._warm:
+            dr.make_opaque(switch, target)
+            h = self._switch(fr, h, switch, target)
+        else:
+            self._switches = 0          # between switch frames: nothing to count or convert
         for k, w in enumerate(ch.pack_header(h)):
             dr.scatter(self.storage, w, base + k)
         self._tags = h.tag
-        self._counts = {r: int(dr.count(h.tag == r)[0]) for r in REPS}
+        self._counts = dict(zip(REPS, _tally([h.tag == r for r in REPS])))
         dr.eval(self.storage, self._tags)
         return motion
 
@@ -353,6 +362,15 @@ class AdaptiveCache(PayloadMethod):
         out["payload_bytes"] = out.get("payload_bytes", 0.0) + sum(float(p.bytes_allocated())
                                                                    for p in self.pools.values())
         return out
+
+
+def _tally(masks) -> list:
+    """The number of true lanes of each mask (same width), read back together:
+    one wait for the queued kernels instead of one per mask."""
+    hist = dr.zeros(mi.UInt32, max(len(masks), 2))     # width >= 2: never loaded as a scalar
+    for i, m in enumerate(masks):
+        dr.scatter_reduce(dr.ReduceOp.Add, hist, mi.UInt32(1), mi.UInt32(i), mi.Bool(m))
+    return [int(x) for x in hist.numpy()[:len(masks)]]
 
 
 def _opaque_header(h: Header) -> None:
