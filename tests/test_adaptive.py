@@ -9,6 +9,8 @@ import pytest
 
 from slc import emitter_sampling, methods
 from slc.adaptive import choice as ch
+from slc.adaptive import sh_rep
+from slc.adaptive.method import _tally
 from slc.adaptive.pool import Pool
 from slc.groundtruth import ground_truth
 from slc.keys import INVALID
@@ -78,6 +80,20 @@ def test_constant_environment_chooses_sh_and_matches_closed_form():
     mean = imgs[0][ok].mean(axis=0)
     rel = np.abs(mean - 0.5 * L) / (0.5 * L)
     assert rel.max() < 0.02, rel
+
+
+def test_frozen_sh_shading_matches_unfrozen_and_records_once():
+    """The SH shading is traced once and replayed (dr.freeze): the images equal
+    those of the unfrozen shading bit for bit, and 8 frames record it once."""
+    scene = _plane("adaptive_env_frozen", lambda b: b.add_envmap(rgb=[0.8, 0.85, 1.0]))
+    out = {}
+    for frozen in (True, False):
+        m = methods.create("adaptive:force=sh", scene, seed=1)
+        m._sh_shade = sh_rep.SHShading(m.encoding, m.seed, m.glossy_samples, freeze=frozen)
+        imgs, _ = render_frames(scene, m, [_still(scene)], 8, W, H)
+        out[frozen] = (imgs[0], m._sh_shade.recordings, m._sh_shade.frozen)
+    assert out[True][2] and out[True][1] == 1, out[True][1:]
+    assert np.array_equal(out[True][0], out[False][0])
 
 
 SWITCH_FRAMES = 50       # frames after the light change by which 90% of the entries have chosen cones
@@ -158,6 +174,12 @@ def test_pool_allocates_unique_slots_and_reuses_freed_ones():
     assert p.used == 1
     b = np.array(p.acquire(mi.Bool([True] * 100)))          # grows
     assert len(set(b)) == 100 and a[2] not in set(b) and p.capacity >= 101
+
+
+def test_tally_counts_every_mask_with_one_read_back():
+    a, b = mi.Bool([True, False, True, True]), mi.Bool([False] * 4)
+    assert _tally([a, b, ~b]) == [3, 0, 4]
+    assert _tally([mi.Bool([True])]) == [1]
 
 
 def test_header_round_trip():

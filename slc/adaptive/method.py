@@ -20,6 +20,7 @@ from .pool import Pool
 
 REPS = (VIS, CONES, SH)
 RESTART_COUNT = 4
+WARM_FRAMES = 2            # frames that run every kernel (see reset)
 
 
 def _subset(mask: mi.Bool):
@@ -109,10 +110,14 @@ class AdaptiveCache(PayloadMethod):
     def reset(self):
         super().reset()
         self.pools = None
-        # First frame: every kernel (each representation's update and shading, each
-        # conversion) runs, on masked lanes where nothing needs it, so that none is
-        # first built in a later frame; from then on unused ones are skipped.
+        # First WARM_FRAMES frames: every kernel (each representation's update and shading,
+        # each conversion) runs, on masked lanes where nothing needs it, so that none is
+        # first built in a later frame; from then on unused ones are skipped. Two frames:
+        # the cache's first frame hands over some inputs (of the entries' interactions) in
+        # another form than later frames, so a kernel run only in frame 0 is built again
+        # when first needed (frame 5 on the atrium: the first SH update).
         self._warm = False
+        self._frames_seen = 0
         self._counts = {}
         self._switches = 0
         self._tags = None
@@ -134,25 +139,35 @@ class AdaptiveCache(PayloadMethod):
         base = fr.active * W
         hw = [dr.gather(mi.UInt32, self.storage, base + k) for k in range(W)]
         h = ch.unpack_header(hw)
-        is_new = mi.Bool(fr.is_new)
+        # In frame 0 every entry is new: is_new, the rays and everything computed from them
+        # (tags, counts, the switch mask) would be literals that Dr.Jit folds into the kernels,
+        # so the frame-0 warm-up would trace other kernels than a frame with real switches.
+        # Opaque values keep the IR independent of the data (docs/adaptive.md, Cost).
+        is_new, rays, unsettled = mi.Bool(fr.is_new), mi.UInt32(rays), mi.Bool(unsettled)
+        dr.make_opaque(is_new, rays, unsettled)
         forced = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.force)
         start = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.start, self.prior)
         prior = forced if forced is not None else start
 
         # ------------------------------- reused slots give back their old records; new ones get a record
-        for r in REPS:
-            self.pools[r].release(h.slot, is_new & (h.tag == r))
+        # (all lane counts read back at once; a pool with no lane is skipped once warm)
         fresh = is_new | (h.tag == NONE)
         tag = dr.select(fresh, mi.UInt32(prior), h.tag)
         slot = dr.select(fresh, mi.UInt32(INVALID), h.slot)
-        for r in REPS:
-            m = fresh & (tag == r)
-            slot = dr.select(m, self.pools[r].acquire(m), slot)
+        rel = [is_new & (h.tag == r) for r in REPS]
+        acq = [fresh & (tag == r) for r in REPS]
+        n_rel_acq = _tally([m & (h.slot != INVALID) for m in rel] + acq)
+        for r, m, n in zip(REPS, rel, n_rel_acq[:3]):
+            if n or not self._warm:
+                self.pools[r].release(h.slot, m, n)
+        for r, m, n in zip(REPS, acq, n_rel_acq[3:]):
+            if n or not self._warm:
+                slot = dr.select(m, self.pools[r].acquire(m, n), slot)
         z = dr.zeros(mi.Float, N)
         h = Header(tag=tag, streak=dr.select(fresh, 0, h.streak), count=dr.select(fresh, 0, h.count),
                    e=dr.select(fresh, 0.0, h.e), slot=slot, s_delta=dr.select(fresh, 0.0, h.s_delta),
                    m=dr.select(fresh, mi.Vector3f(z, z, z), h.m))
-        dr.eval(h.tag, h.slot)
+        _opaque_header(h)
 
         # ------------------------------- every representation updates its own entries
         ed, en, mv = dr.zeros(mi.Float, N), dr.zeros(mi.Float, N), dr.zeros(mi.Vector3f, N)
@@ -160,12 +175,13 @@ class AdaptiveCache(PayloadMethod):
         vis_motion = dr.zeros(mi.Bool, N)
         # evaluated before the loop: otherwise their initialisation fuses into the first
         # representation's kernel, a different kernel for each set of representations present
-        dr.eval(ed, en, mv, motion, vis_motion)
-        rays = mi.UInt32(rays)
-        counts = {}
+        dr.make_opaque(ed, en, mv, motion, vis_motion)
+        # every representation's lanes before the first update kernel: a compression waits for
+        # the kernels queued before it, and the host traces the next update while one runs
+        subsets = {r: _subset(tag == r) for r in REPS}
         for r in REPS:
-            idx, on, counts[r] = _subset(tag == r)
-            if counts[r] == 0 and self._warm:
+            idx, on, n_r = subsets[r]
+            if n_r == 0 and self._warm:
                 continue        # no lane: no kernel traced (tracing costs as much as a small frame)
             # entries with many rays side by side (as slc's update): a SIMD packet's loop runs as many
             # iterations as its largest ray count
@@ -203,15 +219,20 @@ class AdaptiveCache(PayloadMethod):
         # ------------------------------- statistics and the choice
         e_d, e_n, m_hat = _means(ed, en, mv, rays)
         h = ch.update_stats(h, e_d, e_n, m_hat, self.choice)
-        h, switch, target = ch.decide(h, self.choice, allowed=ctx.frame % self.switch_period == 0)
+        allowed = ctx.frame % self.switch_period == 0
+        h, switch, target = ch.decide(h, self.choice, allowed=allowed)
         if forced is not None:
             switch = dr.zeros(mi.Bool, N)
-        dr.eval(switch, target)
-        h = self._switch(fr, h, switch, target)
+        _opaque_header(h)
+        if allowed or not self._warm:
+            dr.make_opaque(switch, target)
+            h = self._switch(fr, h, switch, target)
+        else:
+            self._switches = 0          # between switch frames: nothing to count or convert
         for k, w in enumerate(ch.pack_header(h)):
             dr.scatter(self.storage, w, base + k)
         self._tags = h.tag
-        self._counts = {r: int(dr.count(h.tag == r)[0]) for r in REPS}
+        self._counts = dict(zip(REPS, _tally([h.tag == r for r in REPS])))
         dr.eval(self.storage, self._tags)
         return motion
 
@@ -266,7 +287,8 @@ class AdaptiveCache(PayloadMethod):
     def render(self, ctx, gbuffers, timer):
         out = super().render(ctx, gbuffers, timer)
         if self.pools is not None:
-            self._warm = True
+            self._frames_seen += 1
+            self._warm = self._frames_seen >= WARM_FRAMES
         return out
 
     # ------------------------------------------------------------------ shade
@@ -295,14 +317,21 @@ class AdaptiveCache(PayloadMethod):
                 self.pools[CONES].data, dr.select(m_c, ps, 0), m_c, si, tf, self.shade_samples,
                 shade_key(ctx.frame, self.seed)))
         if used.get(SH, 1):
-            parts.append(lambda: sh_rep.shade(self.pools[SH].gather(ps, m_s), si, bsdf, tf, m_s, self.enc,
-                                              self.seed, self.glossy_samples))
+            parts.append(lambda: self._sh_shading()(self.pools[SH].gather(ps, m_s), m_s, si, tf))
         for part in parts:
             Lr = part()
             dr.eval(Lr)
             L = L + Lr
             dr.eval(L)
         return L
+
+    def _sh_shading(self) -> sh_rep.SHShading:
+        """The SH pool's shading, frozen (made on first use; unfrozen in an
+        animated scene, where every frame would record it again)."""
+        if getattr(self, "_sh_shade", None) is None:
+            self._sh_shade = sh_rep.SHShading(self.encoding, self.seed, self.glossy_samples,
+                                              freeze=not bool(getattr(self.scene, "dynamic", False)))
+        return self._sh_shade
 
     # ------------------------------------------------------------------ reports
     def pixel_tags(self, fr, v, gb) -> mi.UInt32:
@@ -333,6 +362,20 @@ class AdaptiveCache(PayloadMethod):
         out["payload_bytes"] = out.get("payload_bytes", 0.0) + sum(float(p.bytes_allocated())
                                                                    for p in self.pools.values())
         return out
+
+
+def _tally(masks) -> list:
+    """The number of true lanes of each mask (same width), read back together:
+    one wait for the queued kernels instead of one per mask."""
+    hist = dr.zeros(mi.UInt32, max(len(masks), 2))     # width >= 2: never loaded as a scalar
+    for i, m in enumerate(masks):
+        dr.scatter_reduce(dr.ReduceOp.Add, hist, mi.UInt32(1), mi.UInt32(i), mi.Bool(m))
+    return [int(x) for x in hist.numpy()[:len(masks)]]
+
+
+def _opaque_header(h: Header) -> None:
+    """Evaluate every header field to memory (literals too: see ``update``)."""
+    dr.make_opaque(h.tag, h.streak, h.count, h.e, h.slot, h.s_delta, h.m)
 
 
 def _means(ed, en, mv, rays):

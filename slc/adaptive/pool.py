@@ -71,10 +71,12 @@ class Pool:
         dr.eval(self.data, self.free)
 
     # ------------------------------------------------------------------ alloc / free
-    def acquire(self, mask: mi.Bool) -> mi.UInt32:
-        """A fresh slot for every true lane of ``mask`` (INVALID elsewhere). The
+    def acquire(self, mask: mi.Bool, n: int | None = None) -> mi.UInt32:
+        """A fresh slot for every true lane of ``mask`` (INVALID elsewhere); ``n``,
+        when given, is the mask's lane count (else counted here: a wait). The
         record's contents are stale: the caller initialises it."""
-        n = int(dr.count(mask)[0]) if dr.width(mask) else 0
+        if n is None:
+            n = int(dr.count(mask)[0]) if dr.width(mask) else 0
         # no early exit when n == 0: the same kernels run in every frame (none built after warm-up)
         self._grow(n)
         rank = _exclusive_rank(mask)
@@ -85,10 +87,13 @@ class Pool:
         dr.eval(slot)
         return slot
 
-    def release(self, slot: mi.UInt32, mask: mi.Bool) -> None:
-        """Return the slots of the true lanes of ``mask`` to the free list (each once)."""
+    def release(self, slot: mi.UInt32, mask: mi.Bool, n: int | None = None) -> None:
+        """Return the slots of the true lanes of ``mask`` to the free list (each
+        once); ``n``, when given, is the count of true lanes of ``mask`` with a
+        valid slot (else counted here: a wait)."""
         mask = mi.Bool(mask) & (mi.UInt32(slot) != INVALID)
-        n = int(dr.count(mask)[0]) if dr.width(mask) else 0
+        if n is None:
+            n = int(dr.count(mask)[0]) if dr.width(mask) else 0
         rank = _exclusive_rank(mask)
         dr.scatter(self.free, mi.UInt32(slot), dr.opaque(mi.UInt32, self.top) + rank, mask)
         self.top += n

@@ -33,6 +33,7 @@ import mitsuba as mi
 from ..keys import STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng
 from ..sh.basis import C1, band_of, basis
 from ..sh.project import irradiance, project, radiance
+from ..sh.ycocg import encoding as get_encoding
 from .sampling import lum, sampler_of
 
 CONVERT_COUNT = 4.0
@@ -164,3 +165,39 @@ def from_lobes(lobes, n_lanes: int, enc):
 def irradiance_at_normal(rec, enc) -> mi.Color3f:
     coeffs, _ = unpack(rec, enc)
     return mi.Color3f(*irradiance(enc, coeffs, mi.Vector3f(0.0, 0.0, 1.0), chroma="ratio"))
+
+
+# ----------------------------------------------------------------------------- frozen shading
+
+def _shade_kernel(rec, active, si, bsdf, tf, enc_name: str, seed: int, glossy_samples: int):
+    """:func:`shade` (the body of :class:`SHShading`'s frozen function)."""
+    return shade(rec, si, bsdf, tf, active, get_encoding(enc_name), seed, glossy_samples)
+
+
+class SHShading:
+    """:func:`shade` on an SH pool, traced once and replayed (``dr.freeze``, as
+    :class:`slc.cones.shading.ConeShading`): tracing the SH shading (basis,
+    BSDF sampling loop) cost more host time than its kernel. The pixels' records
+    (gathered outside: the pool's width changes when it grows, the pixels' does
+    not), mask and interactions are the frozen function's inputs; the encoding, seed
+    and glossy sample count are fixed per instance. A static scene whose
+    function was recorded more than ``max_recordings`` times, or an animated
+    scene (recorded again every frame), shades unfrozen."""
+
+    def __init__(self, enc_name: str, seed: int, glossy_samples: int, freeze: bool = True,
+                 max_recordings: int = 4):
+        self.enc_name, self.seed, self.glossy_samples = str(enc_name), int(seed), int(glossy_samples)
+        self.max_recordings = int(max_recordings)
+        self.frozen = bool(freeze)
+        self.kernel = dr.freeze(_shade_kernel, warn_after=self.max_recordings + 1) if freeze else _shade_kernel
+        self.recordings = 0
+
+    def __call__(self, rec, active, si, tf) -> mi.Color3f:
+        out = self.kernel([mi.UInt32(w) for w in rec], mi.Bool(active), si, si.bsdf(), tf, self.enc_name,
+                          self.seed, self.glossy_samples)
+        if self.frozen:
+            self.recordings = int(self.kernel.n_recordings)
+            if self.recordings > self.max_recordings:
+                self.kernel.clear()
+                self.kernel, self.frozen = _shade_kernel, False
+        return out
