@@ -106,7 +106,15 @@ def build(**options):
 
     d = {"type": "scene", "integrator": {"type": "direct"}}
     n = 0
-    for s in src.shapes():
+    # Mitsuba's loader (merging meshes of one material) returns the shapes in an
+    # order that changes from run to run; the cache layout and its keys follow the
+    # shape order, so the shapes are numbered in a fixed order here.
+    def order(s):
+        b = s.bbox()
+        return (s.id(), s.bsdf().id() if s.bsdf() is not None else "", s.face_count() if s.is_mesh() else 0,
+                s.vertex_count() if s.is_mesh() else 0, tuple(b.min), tuple(b.max))
+
+    for s in sorted(src.shapes(), key=order):
         if s.is_emitter() or not s.is_mesh():
             continue  # the file's tiny analytic sphere light
         n += 1

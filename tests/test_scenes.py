@@ -193,3 +193,22 @@ def test_scene_without_shapes_raises():
     b.add_point_light([0, 2, 0], [10.0] * 3)
     with pytest.raises(SceneError, match="no shapes"):
         b.build([CameraPath([([0, 1, 3], [0, 0, 0])], fov=45)])
+
+
+def test_sponza_shape_order_is_the_same_in_every_process():
+    """Mitsuba's XML loader returns sponza's merged meshes in an order that changes
+    from run to run; the cache layout and its keys follow the shape order, so
+    ``scenes/sponza.py`` numbers the shapes in a fixed order. Two processes must
+    see the same shapes in the same order (it differed before the fix)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    if not (scenes.SHARED_DIR / "scenes" / "sponza" / "sponza.xml").exists():
+        pytest.skip("sponza needs ../shared/scenes/sponza")
+    code = ("from slc import backend; backend.init(); from slc import scenes; "
+            "s = scenes.load('sponza'); "
+            "print([(sh.id(), sh.face_count()) for sh in s.mi_scene.shapes()])")
+    root = Path(__file__).resolve().parents[1]
+    outs = [subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, check=True)
+            .stdout.strip().splitlines()[-1] for _ in range(3)]
+    assert outs[0] == outs[1] == outs[2]
