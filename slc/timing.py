@@ -87,7 +87,8 @@ class StageTimer:
     def stage(self, name: str):
         st = _Stage()
         dr.sync_thread()
-        history = dr.flag(dr.JitFlag.KernelHistory)
+        # A disabled timer (NullTimer) leaves the kernel history to whoever turned it on.
+        history = self.enabled and dr.flag(dr.JitFlag.KernelHistory)
         if history:
             _pull()
             mark = len(_HISTORY)
