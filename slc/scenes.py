@@ -604,7 +604,12 @@ def load_xml(path: Path, exposure: float = 1.0, unit: float = 1.0) -> Scene:
     if not path.exists():
         raise SceneError(f"scene file not found: {path}")
     try:
-        sc = mi.load_file(str(path))
+        # optimize=False: Mitsuba's loader otherwise merges meshes that share a
+        # material and returns the merged meshes in an order that changes from
+        # run to run (seen on Sponza); the cache layout, its keys and the
+        # emitter table follow the shape order, so two runs with the same seed
+        # gave different images. Unmerged, the shapes keep the file's order.
+        sc = mi.load_file(str(path), optimize=False)
     except Exception as e:  # Mitsuba raises RuntimeError with a long message
         msg = str(e).strip().splitlines()
         last = msg[-1] if msg else type(e).__name__
