@@ -387,7 +387,7 @@ class CRCCache(Method):
         if points is None:
             P = self._jittered(self.grid.center(cell), sampler)
         else:
-            P = dr.gather(mi.Point3f, points, cell)
+            P = mi.Vector3f(dr.gather(mi.Point3f, points, cell))   # the type _jittered() gives
         Xk = dr.gather(mi.Point3f, X, j)
         Nk = dr.gather(mi.Vector3f, N, j)
         Pk = dr.gather(mi.Color3f, phi, j)
@@ -540,7 +540,7 @@ class CRCCache(Method):
         interpolation (grid) error."""
         si, active = gb.si, gb.valid & (gb.si.wi.z > 0.0)
         n = front_normal(si)
-        q = si.p + n * (0.5 * self.grid.h)
+        q = mi.Point3f(si.p + n * (0.5 * self.grid.h))
         if self.geometry is None:
             self._voxelize()
         X, N, phi, n_e = self._lights(frame)
