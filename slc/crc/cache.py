@@ -211,19 +211,29 @@ class CRCCache(Method):
         c = np.asarray(cam.origin, float) + f * (self.ahead * self.world.h)
         return np.floor((c - self.world.lo) / self.world.h).astype(np.int64) - self.window // 2
 
+    def in_window(self, p: mi.Point3f, q: mi.Point3f) -> mi.Bool:
+        """Shaded points the window serves: the lookup point q's trilinear
+        stencil lies in the window and so does the point p's own cell (whose
+        depth occupancy, dilated by one cell, marks that stencil)."""
+        return self.grid.stencil_inside(q) & self.grid.cell_of(p)[1]
+
     def _cell_offset(self) -> mi.Vector3i:
         return mi.Vector3i(*(dr.opaque(mi.Int32, int(x)) for x in self.offset))
 
     def _key(self, cell: mi.UInt32) -> mi.UInt32:
-        """Random-stream key of a cache cell: its flat index, or in a moving
-        window its world cell (on the world lattice padded by the window), so
-        a cell draws the same numbers wherever the window is."""
+        """Random-stream key of a cache cell: its flat index; in a moving
+        window, the flat index of its world cell (the same key as with
+        volume=scene), or for a cell outside the scene's grid ``n_world`` +
+        its index on the world lattice padded by the window. So a cell draws
+        the same numbers wherever the window is, and as the scene grid's."""
         if not self.moving:
             return cell
         P = self.window
         nx, ny, _ = self.world.dims
-        i = self.grid.unflat(cell) + self._cell_offset() + P
-        return mi.UInt32((i.z * (ny + 2 * P) + i.y) * (nx + 2 * P) + i.x)
+        i = self.grid.unflat(cell) + self._cell_offset()
+        ip = i + P
+        outside = mi.UInt32(self.world.n_cells) + mi.UInt32((ip.z * (ny + 2 * P) + ip.y) * (nx + 2 * P) + ip.x)
+        return dr.select(self.world.inside(i), self.world.flat(i), outside)
 
     def _world_occupancy(self) -> mi.UInt32:
         """The (dilated) geometry occupancy of the window's cells, read from
@@ -526,7 +536,7 @@ class CRCCache(Method):
         n = front_normal(si)
         q = si.p + n * (0.5 * self.grid.h)
         if self.moving:         # outside the window: no cached indirect light
-            active &= self.grid.stencil_inside(q)
+            active &= self.in_window(si.p, q)
         coeffs = self._lookup(self.cache, q, active)
         E = mi.Color3f(*irradiance(self.enc, coeffs, n, self.presence, self.bleeding, chroma=self.chroma))
         rho = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, active))
