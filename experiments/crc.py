@@ -770,7 +770,8 @@ def _markdown(rows, prof_rows, path_rows, sweep_rows, preset, names, term_rows=(
                f"{TERMS_SAMPLES}x (what stays is systematic). *noise*: RGB3 against RGB3 with another seed "
                "(two independent estimates). *fp16*: the RGB3 cache (high samples) stored as float16 against "
                "float32. *interpolation* (1 bounce): the grid cache against the estimator evaluated at each "
-               "shaded point's own lookup point, both at the high sample count. *ref noise*: the indirect "
+               "shaded point's own lookup point, both at the high sample count (includes that per-point "
+               "estimate's own noise). *ref noise*: the indirect "
                "reference against one with 4x its paths. Against the reference: RGB3 at both sample counts; "
                "*unfiltered*: the estimator at the shaded points.\n\n"
                "| scene | b | encoding offset / ratio | same at high samples | noise (2 seeds) | fp16 | "
@@ -781,7 +782,7 @@ def _markdown(rows, prof_rows, path_rows, sweep_rows, preset, names, term_rows=(
                    f"{t['encoding_offset_hi']:.2f} / {t['encoding_ratio_hi']:.2f} | {t['noise_two_seeds']:.2f} | "
                    f"{t['quantisation_fp16']:.4f} | {_f(t['interpolation'])} | {t['reference_noise']:.2f} | "
                    f"{t['rgb3_vs_ref']:.2f} / {t['rgb3_hi_vs_ref']:.2f} / {t['rgb3_vs_ref4']:.2f} | "
-                   f"{_f(t['unfiltered_hi_vs_ref'])} | {t['rgb3_hi_mean_over_ref']} | "
+                   f"{_f(t['unfiltered_hi_vs_ref'])} | {', '.join(f'{v:.2f}' for v in t['rgb3_hi_mean_over_ref'])} | "
                    f"{t['indirect_share']:.2f} |\n")
     # ------------------------------- moving volume -------------------------------
     if moving_rows:
