@@ -3,6 +3,8 @@ the viewer, moved in whole cells): coefficients are scrolled, not
 recomputed; a scrolled window equals a freshly computed one at the cells
 both hold; moving builds no kernels; shaded points outside the window get
 no cached light."""
+import gc
+
 import drjit as dr
 import numpy as np
 import pytest
@@ -87,7 +89,10 @@ def test_moving_window_builds_no_kernels(atrium):
     before build no kernel (none compiled, none loaded from disk: the
     window's origin and shift are opaque inputs). Would fail if the origin
     were baked into the kernels as a literal, as before this change."""
-    dr.eval()               # flush work left queued by earlier tests (it would run inside our kernels)
+    # Free what earlier tests left: their scenes' emitters, once collected, change the set of instances
+    # a virtual call (the RSM's sample_ray) dispatches over, hence its kernel; and flush queued work
+    gc.collect()
+    dr.eval()
     dr.sync_thread()
     v = views.single(atrium)
     gbs = gbuffers_for(atrium, v, 0, W, H)

@@ -111,6 +111,14 @@ class CRCCache(Method):
        and Hanrahan), back to RGB (``presence`` scales Y, ``bleeding``
        CoCg), outgoing diffuse radiance rho(x) E / pi.
 
+    Moving volume (``volume="camera"``, the paper's Sec. 7): the cache grid
+    is a ``window``^3 window of the world lattice (the ``resolution`` grid
+    over the scene box) whose centre cell holds the first viewer's camera
+    (moved ``ahead`` cells along its view); when it moves by whole cells
+    the blended coefficients and the blend history are scrolled
+    (:meth:`place`), the geometry volume stays global, and shaded points
+    the window does not serve (:meth:`in_window`) get 0.
+
     Random numbers: one stream per light path, per frame (RSM rotation),
     per (cell, sample) and per cell (:func:`slc.keys.keyed_rng`, keyed by
     the *cell* index, not by the position in the compacted list of active
@@ -247,8 +255,8 @@ class CRCCache(Method):
     def _scroll(self, delta: np.ndarray) -> None:
         """Move the window by ``delta`` whole cells: every coefficient (and
         the blend history) is copied from the cell that held the same world
-        position; cells entering the window start empty. One gather kernel,
-        the shift an opaque input (no kernel build per move)."""
+        position; cells entering the window start empty. Gathers only (no
+        recomputation), the shift an opaque input (no kernel build per move)."""
         n, nc = self.grid.n_cells, self.enc.n
         d = mi.Vector3i(*(dr.opaque(mi.Int32, int(x)) for x in delta))
         lane = dr.arange(mi.UInt32, nc * n)
@@ -543,7 +551,7 @@ class CRCCache(Method):
         return dr.select(active, rho * E * (1.0 / math.pi), 0.0)
 
     def shade_unfiltered(self, frame: int, gb) -> mi.Color3f:
-        """Diagnostic (1 bounce): the first-bounce estimator evaluated at each
+        """Diagnostic (1 bounce, volume=scene): the first-bounce estimator evaluated at each
         G-buffer point's own lookup point p + n h/2 (no grid, no trilinear
         interpolation, no jitter, no temporal blend), with ``samples`` VPLs;
         the difference to :meth:`shade` at equal sample count is the
