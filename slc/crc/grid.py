@@ -43,10 +43,6 @@ class Grid:
     def finer(self, factor: int = GEOMETRY_FACTOR) -> "Grid":
         return Grid(lo=self.lo.copy(), h=self.h / factor, dims=tuple(d * factor for d in self.dims))
 
-    def shifted(self, cells) -> "Grid":
-        """The same lattice moved by a whole number of cells (a moving volume)."""
-        return Grid(lo=self.lo + np.asarray(cells, float) * self.h, h=self.h, dims=self.dims)
-
     # ---------------------------- Dr.Jit helpers ----------------------------
     def origin(self) -> mi.Vector3f:
         """``lo`` as an opaque kernel input, not a literal: a moving volume
