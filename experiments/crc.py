@@ -58,6 +58,13 @@ BUDGET = ["y3co1cg1", "y2co2cg2"]
 PROFILED = ["rgb3", "y3co1cg1"]
 RECONSTRUCT_REPEATS = 5
 #: our earlier choices, kept as named settings (run as Y3Co1Cg1 variants)
+#: the error terms: sample multiplier of the low-noise runs, seed offset of the noise run
+TERMS_SAMPLES = 4
+#: the moving volume: window side as a fraction of the grid resolution, camera-path frames per
+#: rendered frame (a faster walk, so that the window moves within the quick preset's frames),
+#: window centre ahead of the viewer [cells] (0: centred at the viewer, the paper); scenes whose
+#: cameras stay outside the scene box (the Cornell box) are not run
+MOVING = dict(window_fraction=0.5, step=20, ahead=0.0, skip=("cornell",))
 VARIANTS = {"paths": dict(first_bounce="paths"),
             "dense": dict(march_samples=0, secondary_march_samples=0),
             "stride10": dict(depth_stride=10)}
@@ -177,6 +184,177 @@ def _profile_rows(scene_name: str, nb: int, prof: dict, specs: dict) -> list[dic
                 r[f"{enc}_vs_rgb3_median"] = r[f"{enc}_median"] / max(r["rgb3_median"], 1e-9)
         rows.append(r)
     return rows
+
+
+# ---------------------------------------------------------------------------
+# Error terms and the moving volume
+# ---------------------------------------------------------------------------
+
+def _last_image(scene, viewers, spec: str, W: int, H: int, frames: int, seed: int):
+    """(method, G-buffer, indirect image) of the last of ``frames`` frames."""
+    from slc import methods
+    from slc.methods import FrameContext
+    from slc.pipeline import gbuffers_for
+    from slc.references import image_of
+    from slc.timing import NullTimer
+    m = methods.create(spec, scene, seed=seed)
+    for f in range(frames):
+        gbs = gbuffers_for(scene, viewers, f, W, H)
+        out = m.render(FrameContext(f), gbs, NullTimer())
+    return m, gbs[0], image_of("indirect", gbs[0], out[0])
+
+
+def _error_terms(scene, viewers, nb: int, common: dict, W: int, H: int, frames: int, seed: int,
+                 ref_spp: int, direct_spp: int) -> dict:
+    """The terms of the errors, each measured alone at the last frame
+    (composited: ground-truth direct + indirect; Lab RMSE, percent):
+
+    - encoding: Y3Co1Cg1 (offset / ratio decoding) against RGB3 of the same
+      sampling (the paper's comparison), at the default sample count and at
+      ``TERMS_SAMPLES`` x samples (what stays is systematic);
+    - noise: RGB3 against RGB3 with another seed (two independent
+      estimates: sqrt(2) x one estimate's noise);
+    - quantisation: the RGB3 cache stored as float16 (the GPU's RGBA16F
+      render targets) against float32;
+    - interpolation (1 bounce): the grid cache against the first-bounce
+      estimator evaluated at each shaded point's own lookup point (no grid,
+      jitter, trilinear interpolation or blend), both at the high sample count;
+    - reference noise: the indirect reference at ``ref_spp`` against 4x as
+      many paths;
+    - RGB3 against the reference at both sample counts, and the
+      unfiltered estimator against it (what the grid adds)."""
+    import drjit as dr
+    import mitsuba as mi
+    import numpy as np
+
+    from slc.metrics import lab_rmse
+    from slc.references import image_of, reference_for
+    f = frames - 1
+
+    def spec(**kw):
+        return _spec({**common, "bounces": nb, **kw})
+
+    m0, gb, rgb = _last_image(scene, viewers, spec(encoding="rgb3"), W, H, frames, seed)
+    hi = TERMS_SAMPLES * m0.samples
+    direct = reference_for("direct", scene, gb, f, gb.viewer, spp=direct_spp)
+    ind = reference_for("indirect", scene, gb, f, gb.viewer, spp=ref_spp, bounces=nb)
+    ind4 = reference_for("indirect", scene, gb, f, gb.viewer, spp=4 * ref_spp, bounces=nb)
+    x = scene.exposure
+
+    def L(a, b):
+        return lab_rmse(direct + a, direct + b, x)
+
+    img = {"rgb3": rgb}
+    for name, kw in (("offset", dict(encoding="y3co1cg1")), ("ratio", dict(encoding="y3co1cg1", chroma="ratio")),
+                     ("seed", dict(encoding="rgb3"))):
+        img[name] = _last_image(scene, viewers, spec(**kw), W, H, frames, seed + (1 if name == "seed" else 0))[2]
+    mh, _, img["rgb3_hi"] = _last_image(scene, viewers, spec(encoding="rgb3", samples=hi), W, H, frames, seed)
+    img["offset_hi"] = _last_image(scene, viewers, spec(encoding="y3co1cg1", samples=hi), W, H, frames, seed)[2]
+    img["ratio_hi"] = _last_image(scene, viewers, spec(encoding="y3co1cg1", chroma="ratio", samples=hi),
+                                  W, H, frames, seed)[2]
+    out = {"scene": scene.name, "bounces": nb, "samples": m0.samples, "samples_hi": hi,
+           "encoding_offset": L(img["rgb3"], img["offset"]), "encoding_ratio": L(img["rgb3"], img["ratio"]),
+           "encoding_offset_hi": L(img["rgb3_hi"], img["offset_hi"]),
+           "encoding_ratio_hi": L(img["rgb3_hi"], img["ratio_hi"]),
+           "noise_two_seeds": L(img["rgb3"], img["seed"]),
+           "noise_vs_hi": L(img["rgb3_hi"], img["rgb3"]),
+           "rgb3_vs_ref": L(ind, img["rgb3"]), "rgb3_hi_vs_ref": L(ind, img["rgb3_hi"]),
+           "reference_noise": L(ind4, ind), "rgb3_vs_ref4": L(ind4, img["rgb3"])}
+    # ------------------------------ quantisation ------------------------------
+    c32 = mh.cache
+    mh.cache = mi.Float(np.array(c32, dtype=np.float32).astype(np.float16).astype(np.float32))
+    out["quantisation_fp16"] = L(img["rgb3_hi"], image_of("indirect", gb, mh.shade(gb)))
+    mh.cache = c32
+    # ------------------------------ interpolation ------------------------------
+    out["interpolation"] = out["unfiltered_hi_vs_ref"] = None
+    if nb == 1:
+        unf = image_of("indirect", gb, mh.shade_unfiltered(f, gb))
+        dr.eval()
+        out["interpolation"] = L(unf, img["rgb3_hi"])
+        out["unfiltered_hi_vs_ref"] = L(ind, unf)
+    # mean indirect light over the reference's, per channel
+    out["rgb3_hi_mean_over_ref"] = (img["rgb3_hi"].reshape(-1, 3).mean(0)
+                                    / np.maximum(ind.reshape(-1, 3).mean(0), 1e-12)).round(3).tolist()
+    out["indirect_share"] = float(np.mean(ind) / max(float(np.mean(direct + ind)), 1e-12))
+    return out
+
+
+def _moving(scene, viewers, nb: int, common: dict, W: int, H: int, frames: int, seed: int, ref_spp: int,
+            direct_spp: int) -> dict:
+    """The moving volume (``volume=camera``) against the grid over the whole
+    scene, Y3Co1Cg1, on the camera path at ``MOVING['step']`` path frames
+    per rendered frame, both on the same G-buffers in alternating order.
+    Times: median ms per frame after 2 warm-up frames; kernels built or
+    loaded by the moving cache after warm-up and after its first move (the
+    first move builds the scroll kernel; slc.timing.KernelCounter);
+    errors at the last frame (composited, Lab RMSE): each against the
+    reference over the image and over the pixels inside the window, and the
+    two caches against each other inside the window."""
+    import statistics
+
+    import numpy as np
+
+    from slc import methods
+    from slc.crc.cache import front_normal
+    from slc.methods import FrameContext
+    from slc.metrics import lab_rmse
+    from slc.pipeline import gbuffers_for
+    from slc.references import image_of, reference_for
+    from slc.timing import KernelCounter, StageTimer
+    window = max(4, int(round(common["resolution"] * MOVING["window_fraction"])))
+    sp_scene = _spec({**common, "bounces": nb})
+    sp_cam = _spec({**common, "bounces": nb, "volume": "camera", "window": window, "ahead": MOVING["ahead"]})
+    ms, mc = methods.create(sp_scene, scene, seed=seed), methods.create(sp_cam, scene, seed=seed)
+    ts, tc = StageTimer(), StageTimer()
+    built, warm, first_move = 0, 2, None
+    with KernelCounter() as kc:
+        for k in range(frames):
+            f = k * MOVING["step"]
+            gbs = gbuffers_for(scene, viewers, f, W, H)
+            order = [(ms, ts, "s"), (mc, tc, "c")]
+            for m, t, tag in (order if k % 2 == 0 else order[::-1]):
+                kc.take()
+                t.begin_frame()
+                out = m.render(FrameContext(f), gbs, t)
+                t.end_frame()
+                n = kc.take()
+                if tag == "c":
+                    # kernels built after warm-up and after the first move (which builds the scroll kernel)
+                    if first_move is not None and k >= warm:
+                        built += n
+                    if first_move is None and m.moves:
+                        first_move = k
+                if tag == "s":
+                    img_s = out[0]
+                else:
+                    img_c = out[0]
+    gb = gbs[0]
+    direct = reference_for("direct", scene, gb, f, gb.viewer, spp=direct_spp)
+    ind = reference_for("indirect", scene, gb, f, gb.viewer, spp=ref_spp, bounces=nb)
+    a, b = image_of("indirect", gb, img_s), image_of("indirect", gb, img_c)
+    q = gb.si.p + front_normal(gb.si) * (0.5 * mc.grid.h)
+    inside = np.array(gb.valid & mc.in_window(gb.si.p, q)).reshape(H, W)
+    x = scene.exposure
+
+    def err(r, t, mask=None):
+        d = direct
+        if mask is not None:
+            if not mask.any():
+                return None
+            d, r, t = direct[mask][None], r[mask][None], t[mask][None]
+        return lab_rmse(d + r, d + t, x)
+
+    med = lambda t, key: statistics.median(fr.get(key, 0.0) for fr in t.frames[warm:])  # noqa: E731
+    return {"scene": scene.name, "bounces": nb, "window": window, "window_cells": mc.grid.n_cells,
+            "grid_cells": ms.grid.n_cells, "step": MOVING["step"], "frames": frames, "last_frame": f,
+            "moves": mc.moves, "first_move_frame": first_move, "kernels_built_after_warmup": built,
+            "time_scene_ms": med(ts, "total"), "time_camera_ms": med(tc, "total"),
+            "scroll_ms": med(tc, "scroll"), "time_camera_vs_scene": med(tc, "total") / max(med(ts, "total"), 1e-9),
+            "active_scene": ms.n_active, "active_camera": mc.n_active,
+            "inside_fraction": float(inside.sum() / max(int(np.array(gb.valid).sum()), 1)),
+            "lab_rmse_ref_scene": err(ind, a), "lab_rmse_ref_camera": err(ind, b),
+            "lab_rmse_ref_scene_inside": err(ind, a, inside), "lab_rmse_ref_camera_inside": err(ind, b, inside),
+            "camera_vs_scene_inside": err(a, b, inside)}
 
 
 # ---------------------------------------------------------------------------
@@ -401,7 +579,7 @@ def run(opts) -> dict:
     plans = {nb: [{**common, "bounces": nb, "variant": "", **c} for c in _configs(nb)]
              + _extra_specs(opts.methods, nb, common) for nb in preset["bounces"]}
 
-    rows, prof_rows, path_rows, sweep_rows = [], [], [], []
+    rows, prof_rows, path_rows, sweep_rows, term_rows, moving_rows = [], [], [], [], [], []
     total = len(names) * sum(len(p) for p in plans.values()) * preset["frames"]
     with tqdm(total=total, desc=NAME, unit="frame", disable=None) as bar:
         for si, s in enumerate(experiment.each_scene(names)):
@@ -479,6 +657,14 @@ def run(opts) -> dict:
                 prof = _profile(s, viewers, list(specs.values()), W, H, preset["profile_frames"],
                                 min(3, preset["profile_frames"] - 1), opts.seed)
                 prof_rows += _profile_rows(s.name, nb, prof, specs)
+                # ------------------------ error terms, moving volume ------------------------
+                bar.set_postfix_str(f"{s.name}/terms/b{nb}")
+                term_rows.append(_error_terms(s, viewers, nb, common, W, H, preset["frames"], opts.seed,
+                                              preset["ref_spp"], preset["direct_spp"]))
+                if s.name not in MOVING["skip"]:
+                    bar.set_postfix_str(f"{s.name}/moving/b{nb}")
+                    moving_rows.append(_moving(s, viewers, nb, common, W, H, preset["frames"], opts.seed,
+                                               preset["ref_spp"], preset["direct_spp"]))
             # ------------------------------ Figs. 5 and 10 ------------------------------
             if 1 in preset["bounces"]:
                 bar.set_postfix_str(f"{s.name}/path")
@@ -507,12 +693,19 @@ def run(opts) -> dict:
     results["profile"] = prof_rows
     results["fig5_path"] = path_rows
     results["fig10_sweep"] = sweep_rows
-    experiment.write_results(out, results, _markdown(rows, prof_rows, path_rows, sweep_rows, preset, names))
+    results["error_terms"] = term_rows
+    results["moving"] = moving_rows
+    experiment.write_results(out, results, _markdown(rows, prof_rows, path_rows, sweep_rows, preset, names,
+                                                     term_rows, moving_rows))
     print(f"results: {out / 'results.json'}")
     return results
 
 
-def _markdown(rows, prof_rows, path_rows, sweep_rows, preset, names) -> str:
+def _f(v, fmt="{:.2f}"):
+    return "-" if v is None else fmt.format(v)
+
+
+def _markdown(rows, prof_rows, path_rows, sweep_rows, preset, names, term_rows=(), moving_rows=()) -> str:
     from slc import experiment
     W, H = preset["width"], preset["height"]
     cols = [("scene", "scene"), ("bounces", "b"), ("variant", "variant"), ("visibility", "visibility"),
@@ -569,6 +762,49 @@ def _markdown(rows, prof_rows, path_rows, sweep_rows, preset, names) -> str:
             md += (f"| {r['scene']} | {r['resolution']} | {r['cells']} | {r['occupancy_ratio']:.3f} | "
                    + " | ".join(f"{r.get(k, 0.0):.2f}" for k in st) + f" | {r['total_ms']:.2f} | "
                    f"{r['voxelize_ms']:.0f} |\n")
+    # ------------------------------- error terms -------------------------------
+    if term_rows:
+        md += ("\n## Error terms (Lab RMSE [%] of the composited image, last frame, each term alone)\n\n"
+               "*encoding*: Y3Co1Cg1 against RGB3 of the same sampling (the paper's Table 1 comparison), "
+               "offset (the paper's) / ratio decoding, at the default samples per cache point and at "
+               f"{TERMS_SAMPLES}x (what stays is systematic). *noise*: RGB3 against RGB3 with another seed "
+               "(two independent estimates). *fp16*: the RGB3 cache (high samples) stored as float16 against "
+               "float32. *interpolation* (1 bounce): the grid cache against the estimator evaluated at each "
+               "shaded point's own lookup point, both at the high sample count (includes that per-point "
+               "estimate's own noise). *ref noise*: the indirect "
+               "reference against one with 4x its paths. Against the reference: RGB3 at both sample counts; "
+               "*unfiltered*: the estimator at the shaded points.\n\n"
+               "| scene | b | encoding offset / ratio | same at high samples | noise (2 seeds) | fp16 | "
+               "interpolation | ref noise | RGB3 vs ref / high samples / vs 4x ref | unfiltered vs ref | "
+               "RGB3 (high) mean / ref (R, G, B) | indirect share |\n|" + "---|" * 12 + "\n")
+        for t in term_rows:
+            md += (f"| {t['scene']} | {t['bounces']} | {t['encoding_offset']:.2f} / {t['encoding_ratio']:.2f} | "
+                   f"{t['encoding_offset_hi']:.2f} / {t['encoding_ratio_hi']:.2f} | {t['noise_two_seeds']:.2f} | "
+                   f"{t['quantisation_fp16']:.4f} | {_f(t['interpolation'])} | {t['reference_noise']:.2f} | "
+                   f"{t['rgb3_vs_ref']:.2f} / {t['rgb3_hi_vs_ref']:.2f} / {t['rgb3_vs_ref4']:.2f} | "
+                   f"{_f(t['unfiltered_hi_vs_ref'])} | {', '.join(f'{v:.2f}' for v in t['rgb3_hi_mean_over_ref'])} | "
+                   f"{t['indirect_share']:.2f} |\n")
+    # ------------------------------- moving volume -------------------------------
+    if moving_rows:
+        md += ("\n## Moving volume (volume=camera) against the grid over the scene (Y3Co1Cg1)\n\n"
+               f"A window of `window` cells per side of the same lattice, re-centred on the viewer in whole "
+               f"cells (coefficients scrolled); the camera walks {MOVING['step']} path frames per rendered frame; "
+               "both caches render the same G-buffers in alternating order. Times: median ms per frame after 2 "
+               "warm-up frames (load-sensitive; the ratio is side by side). Kernels: built or loaded by the "
+               "moving cache after warm-up and after its first move (which builds the scroll kernel once). "
+               "Lab RMSE at the last frame against the reference, over the image and "
+               "over the pixels inside the window (outside it the moving cache gives no indirect light; the "
+               "paper blends in an ambient colour there).\n\n"
+               "| scene | b | window | cells (window / scene) | moves | kernels built | t scene [ms] | "
+               "t camera [ms] | camera / scene | scroll [ms] | pixels inside | Lab RMSE vs ref: scene / camera | "
+               "inside: scene / camera | camera vs scene inside |\n|" + "---|" * 14 + "\n")
+        for r in moving_rows:
+            md += (f"| {r['scene']} | {r['bounces']} | {r['window']} | {r['window_cells']} / {r['grid_cells']} | "
+                   f"{r['moves']} | {r['kernels_built_after_warmup']} | {r['time_scene_ms']:.1f} | "
+                   f"{r['time_camera_ms']:.1f} | {r['time_camera_vs_scene']:.2f} | {r['scroll_ms']:.2f} | "
+                   f"{r['inside_fraction']:.2f} | {_f(r['lab_rmse_ref_scene'])} / {_f(r['lab_rmse_ref_camera'])} | "
+                   f"{_f(r['lab_rmse_ref_scene_inside'])} / {_f(r['lab_rmse_ref_camera_inside'])} | "
+                   f"{_f(r['camera_vs_scene_inside'])} |\n")
     # ----------------------------------- targets -----------------------------------
     md += "\n## Targets\n\n"
     for name in names:
@@ -590,6 +826,21 @@ def _markdown(rows, prof_rows, path_rows, sweep_rows, preset, names) -> str:
                    f"{y1['lab_rmse_ref']:.2f}%, RGB3 {rgb['lab_rmse_ref']:.2f}% (target < 1% on non-Cornell "
                    f"scenes); occupancy ratio {rgb['occupancy_ratio']:.2f}, occupancy on/off time "
                    f"{rgb['time_ms'] / max(off['time_ms'], 1e-9):.2f}\n")
+            t = next((x for x in term_rows if x["scene"] == name and x["bounces"] == nb), None)
+            if t is not None:
+                md += (f"  - error terms: encoding (offset) {t['encoding_offset']:.2f}% ({t['encoding_offset_hi']:.2f}% "
+                       f"at {t['samples_hi']} samples: systematic), ratio {t['encoding_ratio']:.2f}% "
+                       f"({t['encoding_ratio_hi']:.2f}%); noise {t['noise_two_seeds']:.2f}% between seeds; fp16 "
+                       f"{t['quantisation_fp16']:.4f}%; interpolation {_f(t['interpolation'])}%; reference noise "
+                       f"{t['reference_noise']:.2f}%; RGB3 vs reference {t['rgb3_vs_ref']:.2f}% "
+                       f"({t['rgb3_hi_vs_ref']:.2f}% at {t['samples_hi']} samples)\n")
+            mv = next((x for x in moving_rows if x["scene"] == name and x["bounces"] == nb), None)
+            if mv is not None:
+                md += (f"  - moving volume ({mv['window']}^3 of {mv['grid_cells']} cells): {mv['moves']} moves, "
+                       f"{mv['kernels_built_after_warmup']} kernels built after warm-up, time {mv['time_camera_vs_scene']:.2f}x "
+                       f"the scene grid's (scroll {mv['scroll_ms']:.2f} ms); Lab RMSE vs reference inside the window "
+                       f"{_f(mv['lab_rmse_ref_camera_inside'])}% (scene grid {_f(mv['lab_rmse_ref_scene_inside'])}%), "
+                       f"whole image {_f(mv['lab_rmse_ref_camera'])}% ({_f(mv['lab_rmse_ref_scene'])}%)\n")
     return md
 
 

@@ -290,4 +290,5 @@ def test_stages_split_by_encoding_dependence(cornell):
     m.render(FrameContext(0), gbs, t)
     t.end_frame()
     stages = set(t.frames[0]) - {"total"}
-    assert stages == set(CRCCache.COEFFICIENT_STAGES) | set(CRCCache.FIXED_STAGES)
+    # ("scroll" runs only with the moving volume, volume=camera: tests/test_crc_moving.py)
+    assert stages == (set(CRCCache.COEFFICIENT_STAGES) | set(CRCCache.FIXED_STAGES)) - {"scroll"}

@@ -111,6 +111,14 @@ class CRCCache(Method):
        and Hanrahan), back to RGB (``presence`` scales Y, ``bleeding``
        CoCg), outgoing diffuse radiance rho(x) E / pi.
 
+    Moving volume (``volume="camera"``, the paper's Sec. 7): the cache grid
+    is a ``window``^3 window of the world lattice (the ``resolution`` grid
+    over the scene box) whose centre cell holds the first viewer's camera
+    (moved ``ahead`` cells along its view); when it moves by whole cells
+    the blended coefficients and the blend history are scrolled
+    (:meth:`place`), the geometry volume stays global, and shaded points
+    the window does not serve (:meth:`in_window`) get 0.
+
     Random numbers: one stream per light path, per frame (RSM rotation),
     per (cell, sample) and per cell (:func:`slc.keys.keyed_rng`, keyed by
     the *cell* index, not by the position in the compacted list of active
@@ -151,13 +159,24 @@ class CRCCache(Method):
         Param("bleeding", 1.0, "scale of Co, Cg (artistic control)", lo=0.0, hi=16.0),
         Param("chroma", "offset", "chroma decoding: the paper's offset or the constant-chromaticity ratio",
               choices=("offset", "ratio")),
+        Param("volume", "scene", "grid over the whole scene box, or a moving window around the first viewer's "
+              "camera (re-centred in whole cells, coefficients scrolled)", choices=("scene", "camera")),
+        Param("window", 10, "cells per side of the moving window (volume=camera)", lo=4, hi=256),
+        Param("ahead", 0.0, "window centre ahead of the camera along its view [cells] (volume=camera; "
+              "0: centred at the viewer, as in the paper)", lo=0.0, hi=256.0),
     )
 
     def __init__(self, scene, **kw):
         super().__init__(scene, **kw)
         self.enc = get_encoding(self.encoding)
-        self.grid = Grid.around(scene.bbox_min, scene.bbox_max, self.resolution)
-        self.geo = self.grid.finer(GEOMETRY_FACTOR)
+        # the world lattice (cell size h) and the geometry volume cover the scene box; the cache grid is
+        # the world grid itself, or with volume=camera a window of it moved in whole cells
+        self.world = Grid.around(scene.bbox_min, scene.bbox_max, self.resolution)
+        self.geo = self.world.finer(GEOMETRY_FACTOR)
+        self.moving = self.volume == "camera"
+        self.offset = np.zeros(3, dtype=np.int64)     # window corner in world cells
+        self.moves = 0
+        self.grid = self._window_grid() if self.moving else self.world
         self.voxelize_ms = 0.0
         self._voxel_time = None
         # the precomputed Halton rectangles: cell samples over the RSM atlas, RSM position samples
@@ -177,6 +196,7 @@ class CRCCache(Method):
         self.active = None
         self.n_active = 0
         self._volumes = 1
+        self._placed = False
 
     def _voxelize(self) -> None:
         t = self.scene.time
@@ -184,11 +204,86 @@ class CRCCache(Method):
             return
         t0 = time.perf_counter()
         self.geometry = volume.voxelize(volume.scene_triangles(self.scene.mi_scene), self.geo)
-        self.geo_occ = volume.dilate(volume.occupancy_from_geometry(self.geometry, self.grid), self.grid)
+        self.geo_occ = volume.dilate(volume.occupancy_from_geometry(self.geometry, self.world), self.world)
         dr.eval(self.geometry, self.geo_occ)
         dr.sync_thread()
         self.voxelize_ms = (time.perf_counter() - t0) * 1e3
         self._voxel_time = t
+
+    # ------------------------------------------------------- moving volume
+    def _window_offset(self, gbuffers) -> np.ndarray:
+        """World-cell corner of the window whose centre cell holds the first
+        viewer's camera (moved ``ahead`` cells along its view)."""
+        cam = gbuffers[0].camera
+        f, _, _ = cam.basis()
+        c = np.asarray(cam.origin, float) + f * (self.ahead * self.world.h)
+        return np.floor((c - self.world.lo) / self.world.h).astype(np.int64) - self.window // 2
+
+    def in_window(self, p: mi.Point3f, q: mi.Point3f) -> mi.Bool:
+        """Shaded points the window serves: the lookup point q's trilinear
+        stencil lies in the window and so does the point p's own cell (whose
+        depth occupancy, dilated by one cell, marks that stencil)."""
+        return self.grid.stencil_inside(q) & self.grid.cell_of(p)[1]
+
+    def _cell_offset(self) -> mi.Vector3i:
+        return mi.Vector3i(*(dr.opaque(mi.Int32, int(x)) for x in self.offset))
+
+    def _key(self, cell: mi.UInt32) -> mi.UInt32:
+        """Random-stream key of a cache cell: its flat index; in a moving
+        window, the flat index of its world cell (the same key as with
+        volume=scene), or for a cell outside the scene's grid ``n_world`` +
+        its index on the world lattice padded by the window. So a cell draws
+        the same numbers wherever the window is, and as the scene grid's."""
+        if not self.moving:
+            return cell
+        P = self.window
+        nx, ny, _ = self.world.dims
+        i = self.grid.unflat(cell) + self._cell_offset()
+        ip = i + P
+        outside = mi.UInt32(self.world.n_cells) + mi.UInt32((ip.z * (ny + 2 * P) + ip.y) * (nx + 2 * P) + ip.x)
+        return dr.select(self.world.inside(i), self.world.flat(i), outside)
+
+    def _world_occupancy(self) -> mi.UInt32:
+        """The (dilated) geometry occupancy of the window's cells, read from
+        the world's."""
+        if not self.moving:
+            return self.geo_occ
+        j = self.grid.unflat(dr.arange(mi.UInt32, self.grid.n_cells)) + self._cell_offset()
+        ok = self.world.inside(j)
+        return dr.gather(mi.UInt32, self.geo_occ, dr.select(ok, self.world.flat(j), 0), ok)
+
+    def _scroll(self, delta: np.ndarray) -> None:
+        """Move the window by ``delta`` whole cells: every coefficient (and
+        the blend history) is copied from the cell that held the same world
+        position; cells entering the window start empty. Gathers only (no
+        recomputation), the shift an opaque input (no kernel build per move)."""
+        n, nc = self.grid.n_cells, self.enc.n
+        d = mi.Vector3i(*(dr.opaque(mi.Int32, int(x)) for x in delta))
+        lane = dr.arange(mi.UInt32, nc * n)
+        c, idx = lane // n, lane % n
+        j = self.grid.unflat(idx) + d
+        ok = self.grid.inside(j)
+        src = dr.select(ok, self.grid.flat(j), 0)
+        self.cache = dr.gather(mi.Float, self.cache, src + c * n, ok)
+        jh = self.grid.unflat(dr.arange(mi.UInt32, n)) + d
+        okh = self.grid.inside(jh)
+        self.hist = dr.gather(mi.UInt32, self.hist, dr.select(okh, self.grid.flat(jh), 0), okh)
+
+    def place(self, offset) -> None:
+        """Put the window's corner at world cell ``offset``, scrolling the
+        coefficients when the cache holds any."""
+        offset = np.asarray(offset, dtype=np.int64)
+        delta = offset - self.offset
+        if not np.any(delta):
+            return
+        self.offset = offset
+        if self._placed:
+            self._scroll(delta)
+            self.moves += 1
+        self.grid = self._window_grid()
+
+    def _window_grid(self) -> Grid:
+        return Grid(lo=self.world.lo + self.offset * self.world.h, h=self.world.h, dims=(self.window,) * 3)
 
     # ----------------------------------------------------------- coefficients
     def _lookup(self, vol: mi.Float, q: mi.Point3f, active: mi.Bool) -> list:
@@ -217,7 +312,7 @@ class CRCCache(Method):
                 occ |= volume.depth_occupancy(self.grid, [gb], self.stride_for(gb.width, gb.height))
             occ = volume.dilate(occ, self.grid)
         else:
-            occ = self.geo_occ
+            occ = self._world_occupancy()
         return dr.compress(occ != 0)
 
     def stride_for(self, width: int, height: int) -> int:
@@ -284,16 +379,19 @@ class CRCCache(Method):
         off = mi.Vector3f(sampler.next_float32(), sampler.next_float32(), sampler.next_float32()) - 0.5
         return Pc + off * (self.jitter * self.grid.h)
 
-    def _first_bounce_samples(self, frame: int, cells: mi.UInt32, X, N, phi, n_e: int):
-        """(omega_k, L_k) of every (cell, sample) lane: VPL choice and visibility."""
+    def _first_bounce_samples(self, frame: int, cells: mi.UInt32, X, N, phi, n_e: int, points=None):
+        """(omega_k, L_k) of every (cell, sample) lane: VPL choice and visibility.
+        ``points`` (diagnostic): receive at these points (one per entry of
+        ``cells``, no jitter) instead of the jittered cell centres."""
         geo, ns = self.geo, self.samples
         d2min = (self.min_distance * self.grid.h) ** 2
         cell, i = self._lanes(cells, ns)
-        sampler = keyed_rng(cell * ns + i, self.seed, frame, STREAM_CRC + _FIRST_BOUNCE)
+        key = self._key(cell)
+        sampler = keyed_rng(key * ns + i, self.seed, frame, STREAM_CRC + _FIRST_BOUNCE)
         # ------------------------------- VPL choice -------------------------------
         if self.first_bounce == "rsm":
             R = self.rsm_size
-            rot = keyed_rng(cell, self.seed, frame, STREAM_CRC + _ROTATION)   # one per cell
+            rot = keyed_rng(key, self.seed, frame, STREAM_CRC + _ROTATION)   # one per cell
             h = dr.gather(mi.Point2f, self._halton_cells, i)
             ux = h.x + rot.next_float32()
             uy = h.y + rot.next_float32()
@@ -304,7 +402,10 @@ class CRCCache(Method):
             j = e * (R * R) + y * R + (x - e * R)
         else:
             j = dr.minimum(mi.UInt32(sampler.next_float32() * self.vpls), self.vpls - 1)
-        P = self._jittered(self.grid.center(cell), sampler)
+        if points is None:
+            P = self._jittered(self.grid.center(cell), sampler)
+        else:
+            P = mi.Vector3f(dr.gather(mi.Point3f, points, cell))   # the type _jittered() gives
         Xk = dr.gather(mi.Point3f, X, j)
         Nk = dr.gather(mi.Vector3f, N, j)
         Pk = dr.gather(mi.Color3f, phi, j)
@@ -327,7 +428,7 @@ class CRCCache(Method):
         """(omega, lookup point, normal, albedo, hit) of every (cell, ray) lane."""
         geo, h, nr = self.geo, self.grid.h, self.secondary_rays
         cell, i = self._lanes(cells, nr)
-        sampler = keyed_rng(cell * nr + i, self.seed, frame, STREAM_CRC + _SECONDARY + bounce)
+        sampler = keyed_rng(self._key(cell) * nr + i, self.seed, frame, STREAM_CRC + _SECONDARY + bounce)
         d = mi.warp.square_to_uniform_sphere(mi.Point2f(sampler.next_float32(), sampler.next_float32()))
         P = self._jittered(self.grid.center(cell), sampler)
         # ----------------------- nearest visible surface point -----------------------
@@ -361,8 +462,11 @@ class CRCCache(Method):
             hit = dr.gather(mi.Bool, hit_all, k)
             d = dr.gather(mi.Vector3f, d_all, k)
             nrm = dr.gather(mi.Vector3f, n_all, k)
+            q = dr.gather(mi.Point3f, q_all, k, hit)
+            if self.moving:     # a hit whose stencil leaves the window reads nothing
+                hit &= self.grid.stencil_inside(q)
             rho = dr.gather(mi.Color3f, rho_all, k, hit)
-            coeffs = self._lookup(vin, dr.gather(mi.Point3f, q_all, k, hit), hit)
+            coeffs = self._lookup(vin, q, hit)
             E = irradiance(enc, coeffs, nrm, clamp=True, chroma=self.chroma)
             L = dr.select(hit, rho * mi.Color3f(*E) * (1.0 / math.pi), 0.0)
             return i + 1, [a + b for a, b in zip(acc, project(enc, d, L))]
@@ -388,11 +492,19 @@ class CRCCache(Method):
     def update(self, frame: int, gbuffers, timer) -> None:
         """Rebuild the cache for this frame (all stages but reconstruction)."""
         self._voxelize()
+        if self.moving:
+            with timer.stage("scroll") as st:
+                self.place(self._window_offset(gbuffers))
+                st.outputs(self.cache, self.hist)
+            self._placed = True
         with timer.stage("occupancy") as st:
             cells = self._occupancy(gbuffers)
             st.outputs(cells)
         self.active = cells
         self.n_active = nc = dr.width(cells)
+        if nc == 0:     # no cache point (e.g. a moving window over empty space): nothing to update
+            self.hist = dr.zeros(mi.UInt32, self.grid.n_cells)
+            return
         with timer.stage("lights") as st:
             X, N, phi, n_e = self._lights(frame)
             st.outputs(X, N, phi)
@@ -430,7 +542,29 @@ class CRCCache(Method):
         """Outgoing diffuse indirect radiance rho E / pi at the G-buffer points."""
         si, active = gb.si, gb.valid & (gb.si.wi.z > 0.0)
         n = front_normal(si)
-        coeffs = self._lookup(self.cache, si.p + n * (0.5 * self.grid.h), active)
+        q = si.p + n * (0.5 * self.grid.h)
+        if self.moving:         # outside the window: no cached indirect light
+            active &= self.in_window(si.p, q)
+        coeffs = self._lookup(self.cache, q, active)
+        E = mi.Color3f(*irradiance(self.enc, coeffs, n, self.presence, self.bleeding, chroma=self.chroma))
+        rho = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, active))
+        return dr.select(active, rho * E * (1.0 / math.pi), 0.0)
+
+    def shade_unfiltered(self, frame: int, gb) -> mi.Color3f:
+        """Diagnostic (1 bounce, volume=scene): the first-bounce estimator evaluated at each
+        G-buffer point's own lookup point p + n h/2 (no grid, no trilinear
+        interpolation, no jitter, no temporal blend), with ``samples`` VPLs;
+        the difference to :meth:`shade` at equal sample count is the
+        interpolation (grid) error."""
+        si, active = gb.si, gb.valid & (gb.si.wi.z > 0.0)
+        n = front_normal(si)
+        q = mi.Point3f(si.p + n * (0.5 * self.grid.h))
+        if self.geometry is None:
+            self._voxelize()
+        X, N, phi, n_e = self._lights(frame)
+        pts = dr.arange(mi.UInt32, dr.width(q))
+        omega, L = self._first_bounce_samples(frame, pts, X, N, phi, n_e, points=q)
+        coeffs = self._sum(omega, L, dr.width(q), self.samples, float(n_e) / float(self.samples))
         E = mi.Color3f(*irradiance(self.enc, coeffs, n, self.presence, self.bleeding, chroma=self.chroma))
         rho = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, active))
         return dr.select(active, rho * E * (1.0 / math.pi), 0.0)
@@ -446,7 +580,7 @@ class CRCCache(Method):
 
     # ---------------------------------------------------------------- figures
     #: stages whose work scales with the coefficient count (where compression can save)
-    COEFFICIENT_STAGES = ("bounce1_project", "bounce2_project", "blend", "reconstruct")
+    COEFFICIENT_STAGES = ("bounce1_project", "bounce2_project", "blend", "reconstruct", "scroll")
     #: stages independent of the encoding (marching, light injection, occupancy)
     FIXED_STAGES = ("occupancy", "lights", "bounce1_march", "bounce2_march")
 
@@ -463,4 +597,5 @@ class CRCCache(Method):
 
     def stats(self) -> dict:
         return {"occupancy_ratio": self.occupancy_ratio(), "active_cells": self.n_active,
-                "cells": self.grid.n_cells, "coefficients": self.enc.n, "voxelize_ms": self.voxelize_ms}
+                "cells": self.grid.n_cells, "coefficients": self.enc.n, "voxelize_ms": self.voxelize_ms,
+                "window_moves": self.moves}

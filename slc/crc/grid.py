@@ -44,9 +44,14 @@ class Grid:
         return Grid(lo=self.lo.copy(), h=self.h / factor, dims=tuple(d * factor for d in self.dims))
 
     # ---------------------------- Dr.Jit helpers ----------------------------
+    def origin(self) -> mi.Vector3f:
+        """``lo`` as an opaque kernel input, not a literal: a moving volume
+        changes it without recompiling the kernels that use it."""
+        return mi.Vector3f(*(dr.opaque(mi.Float, float(x)) for x in self.lo))
+
     def coords(self, p: mi.Point3f) -> mi.Vector3f:
         """Continuous cell coordinates of world points (cell i spans [i, i+1))."""
-        return (p - mi.Vector3f(*self.lo.tolist())) / self.h
+        return (p - self.origin()) / self.h
 
     def flat(self, i: mi.Vector3i) -> mi.UInt32:
         nx, ny, _ = self.dims
@@ -71,7 +76,15 @@ class Grid:
 
     def center(self, idx: mi.UInt32) -> mi.Point3f:
         i = self.unflat(idx)
-        return mi.Point3f(*self.lo.tolist()) + (mi.Vector3f(i) + 0.5) * self.h
+        return mi.Point3f(self.origin() + (mi.Vector3f(i) + 0.5) * self.h)
+
+    def stencil_inside(self, q: mi.Point3f) -> mi.Bool:
+        """The 8 cache points interpolated at ``q`` all lie in the grid
+        (trilinear() clamps otherwise)."""
+        nx, ny, nz = self.dims
+        u = self.coords(q) - 0.5
+        return ((u.x >= 0.0) & (u.y >= 0.0) & (u.z >= 0.0)
+                & (u.x <= nx - 1) & (u.y <= ny - 1) & (u.z <= nz - 1))
 
     def trilinear(self, q: mi.Point3f):
         """The 8 (flat index, weight) pairs interpolating cache points (cell
