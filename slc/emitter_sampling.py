@@ -279,9 +279,8 @@ class EmitterSampler:
         # per alias entry: one packed row of ROW floats (see ROW_* and docs/emitter-sampling.md)
         if self.size >= 1 << 24:
             raise ValueError(f"emitter table too large ({self.size} entries; indices are stored as float32)")
+        self._cells = mi.Float(np.stack([q, alias], axis=1).astype(np.float32).ravel())
         rows_np = np.zeros((self.size, ROW), np.float32)
-        rows_np[:, ROW_Q] = q
-        rows_np[:, ROW_ALIAS] = alias
         rows_np[:, ROW_P0:ROW_P0 + 3] = np.concatenate(P0)
         rows_np[:, ROW_E0:ROW_E0 + 3] = np.concatenate(E0)
         rows_np[:, ROW_E1:ROW_E1 + 3] = np.concatenate(E1)
@@ -367,8 +366,7 @@ class EmitterSampler:
             k, ux = _alias_lookup(u.x, self._N, self._N1, self._eq, self._ealias, active)
 
         # ------------------------ entry within it: by u.y ------------------------
-        # the emitter's segment of the table, then its alias cell j: one packed row, and the
-        # row of the alias where the cell is not kept (masked: only for those lanes)
+        # the emitter's segment of the table, its alias cell j (q, alias), then the chosen entry's row
         if self._seg_params is not None:
             off, cnt_f = self._seg_params[0]
             for e, (o, c) in enumerate(self._seg_params[1:], start=1):
@@ -380,11 +378,10 @@ class EmitterSampler:
         x = u.y * cnt_f
         j = dr.minimum(mi.UInt32(x), mi.UInt32(cnt_f) - 1)
         frac = x - mi.Float(j)
-        row = _row(self._rows, off + j, active)
-        q = row[ROW_Q]
+        cell = dr.gather(mi.Point2f, self._cells, off + j, active)
+        q = cell.x
         keep = frac < q
-        alias = mi.UInt32(row[ROW_ALIAS])
-        row = dr.select(keep, row, _row(self._rows, off + alias, active & ~keep))
+        row = _row(self._rows, off + dr.select(keep, j, mi.UInt32(cell.y)), active)
         uy = dr.select(keep, frac / dr.select(q > 0.0, q, 1.0), (frac - q) / dr.select(q < 1.0, 1.0 - q, 1.0))
         u2 = mi.Point2f(ux, dr.clip(uy, 0.0, 0.99999994))
 

@@ -47,7 +47,8 @@ def test_rows_hold_the_triangles_and_their_area_distribution():
         area = 0.5 * np.linalg.norm(np.cross(e0, e1), axis=1)
         assert np.allclose(r[:, emitter_sampling.ROW_PA] * area.sum(), t.pmf[i], rtol=1e-5)
         # probability of each entry implied by the alias cells: (q_j + sum of (1 - q) of cells aliasing to it) / c
-        q, alias = r[:, emitter_sampling.ROW_Q].astype(np.float64), r[:, emitter_sampling.ROW_ALIAS].astype(int)
+        cells = _arr(t._cells).reshape(-1, 2)[o:o + c]
+        q, alias = cells[:, 0].astype(np.float64), cells[:, 1].astype(int)
         p = q.copy()
         np.add.at(p, alias, 1.0 - q)
         assert np.allclose(p / c, area / area.sum(), atol=1e-6)
