@@ -10,8 +10,9 @@ its ``sample_direction`` through a virtual call (on the LLVM backend, one
 indirect call per emitter kind per lane, after a gather of the pointer),
 and a mesh emitter then samples a triangle from its own area table. Here
 both choices are O(1) table lookups (alias tables built once per
-scene); positions, normals, radiance and probabilities are gathered from
-flat arrays. Emitters the table does not model (spot, directional,
+scene); a sample reads two packed records (its alias cell, then its entry's
+row of 16 floats: geometry, radiance, probability, emitter), each by one
+packet gather. Emitters the table does not model (spot, directional,
 environment and constant lights, textured radiance, shapes other than
 meshes, rectangles and spheres) are sampled by Mitsuba, in a masked call
 that runs for their lanes only.

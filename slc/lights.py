@@ -13,7 +13,9 @@ truths always use the reference, so that they stay an independent check.
 Either way the weight ``w`` is ``L_e / pdf`` with the emitter choice
 already folded in, so ``f * w * V`` is an unbiased one-sample estimate of
 direct illumination, and :func:`light_pdf` / :func:`light_pdf_hit` give the
-density of the sampler in use (for MIS).
+density of the sampler in use (for MIS). :class:`SurfaceBSDF` evaluates the
+BSDFs of fixed shading points for many directions (RT-N), diffuse ones
+without the virtual call.
 """
 from __future__ import annotations
 
