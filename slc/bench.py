@@ -22,18 +22,45 @@ import mitsuba as mi
 
 from . import scenes, views
 from .baselines.rt import RandomLightSampling
-from .lights import emitter_sampling_as, rng, sample_light, sampler
+from .lights import emitter_sampling_as, rng, sample_light, sampler, visible
 from .pipeline import gbuffers_for
 
 SAMPLERS = ("mitsuba", "table")
 
 
-def _timed(fn) -> float:
+def _timed(fn) -> tuple[float, float]:
+    """(wall ms, of which host ms: the time until ``fn`` returned its unevaluated result,
+    i.e. Python and Dr.Jit tracing)."""
     dr.sync_thread()
     t0 = time.perf_counter()
-    dr.eval(fn())
+    out = fn()
+    t1 = time.perf_counter()
+    dr.eval(out)
     dr.sync_thread()
-    return (time.perf_counter() - t0) * 1e3
+    t2 = time.perf_counter()
+    return (t2 - t0) * 1e3, (t1 - t0) * 1e3
+
+
+STAGES = ("sample", "sample+ray")
+
+
+def _partial_loop(sc, gb, n: int, stage: str) -> mi.Color3f:
+    """RT-N's loop cut after a stage: the light samples alone (``sample``), or
+    with their shadow rays (``sample+ray``); no BSDF. Same samples as RT-N."""
+    si, active = gb.si, gb.valid
+    smp = rng(gb.size, 0, stream=1)
+    n_opaque = dr.opaque(mi.UInt32, n)
+
+    def body(i, L, smp):
+        ds, w, ok = sample_light(sc, si, mi.Point2f(smp.next_float32(), smp.next_float32()), active)
+        if stage == "sample+ray":
+            ok = visible(sc, si, ds, ok)
+        return i + 1, L + dr.select(ok, w, 0.0), smp
+
+    with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
+        _, L, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), smp), cond=lambda i, L, s: i < n_opaque,
+                                body=body)
+    return L
 
 
 def bench_rays(scene_name: str = "atrium", width: int = 320, height: int = 180, n: int = 16,
@@ -79,15 +106,23 @@ def bench_rays(scene_name: str = "atrium", width: int = 320, height: int = 180, 
                 return light_samples()
 
         calls[mode] = {"raw": raw, "ours": ours, "sample": sample_only}
+    # where the default sampler's rt-N time goes: its loop cut after each stage
+    for st in STAGES:
+        def part(st=st):
+            with emitter_sampling_as("table"):
+                return _partial_loop(sc, gb, n, st)
+        calls["table"]["loop:" + st] = part
 
     # --------------- interleaved rounds ---------------
-    times = {(mode, k): [] for mode in SAMPLERS for k in ("raw", "ours", "sample")}
+    times = {(mode, k): [] for mode in SAMPLERS for k in calls[mode]}
+    host = {key: [] for key in times}
     for r in range(repeats + 1):
         for mode in SAMPLERS:
             for k, fn in calls[mode].items():
-                t = _timed(fn)
+                t, h = _timed(fn)
                 if r > 0:
                     times[(mode, k)].append(t)
+                    host[(mode, k)].append(h)
     med = {key: statistics.median(v) for key, v in times.items()}
 
     out = {"scene": s.name, "rays": count, "n": n, "width": width, "height": height, "samplers": {}}
@@ -95,10 +130,21 @@ def bench_rays(scene_name: str = "atrium", width: int = 320, height: int = 180, 
         raw_ms, ours_ms, smp_ms = med[(mode, "raw")], med[(mode, "ours")], med[(mode, "sample")]
         out["samplers"][mode] = {"raw_ms": raw_ms, "ours_ms": ours_ms, "sample_ms": smp_ms,
                                  "raw_mrays": count / raw_ms / 1e3, "ours_mrays": count / ours_ms / 1e3,
-                                 "ratio": ours_ms / raw_ms, "table": info[mode]}
+                                 "ratio": ours_ms / raw_ms, "table": info[mode],
+                                 "ours_host_ms": statistics.median(host[(mode, "ours")])}
+    out["stages"] = {st: med[("table", "loop:" + st)] for st in STAGES}
+    out["load"] = _loadavg()
     # the default sampler's figures at the top level (as before)
     out.update({k: out["samplers"]["table"][k] for k in ("raw_ms", "ours_ms", "raw_mrays", "ours_mrays", "ratio")})
     return out
+
+
+def _loadavg() -> list[float] | None:
+    try:
+        with open("/proc/loadavg") as f:
+            return [float(x) for x in f.read().split()[:3]]
+    except (OSError, ValueError):
+        return None
 
 
 def report_lines(r: dict) -> list[str]:
@@ -115,7 +161,15 @@ def report_lines(r: dict) -> list[str]:
                   f"  light sampling alone    : {x['sample_ms']:8.2f} ms",
                   f"  rt{n} (sample+ray+BSDF) : {x['ours_ms']:8.2f} ms  {x['ours_mrays']:7.1f} Mrays/s",
                   f"  ratio ours/raw          : {x['ratio']:.2f}x (target <= 1.5x)"]
+    t = r["samplers"]["table"]
+    raw, st = t["raw_ms"], r.get("stages", {})
+    if st:
+        lines.append(f" where rt{n}'s time goes (table; rt{n}'s loop cut after each stage, / raw ray_test): "
+                     f"samples {st['sample'] / raw:.2f}x, + shadow rays {st['sample+ray'] / raw:.2f}x, "
+                     f"+ BSDF (rt{n}) {t['ratio']:.2f}x, of which host (tracing) {t['ours_host_ms'] / raw:.2f}x")
     a, b = r["samplers"]["mitsuba"], r["samplers"]["table"]
     lines.append(f" table / mitsuba: rt{n} {b['ours_ms'] / a['ours_ms']:.2f}x, "
                  f"light sampling {b['sample_ms'] / a['sample_ms']:.2f}x")
+    if r.get("load"):
+        lines.append(" load average (1, 5, 15 min) after the run: " + ", ".join(f"{x:.2f}" for x in r["load"]))
     return lines

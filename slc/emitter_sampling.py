@@ -10,8 +10,9 @@ its ``sample_direction`` through a virtual call (on the LLVM backend, one
 indirect call per emitter kind per lane, after a gather of the pointer),
 and a mesh emitter then samples a triangle from its own area table. Here
 both choices are O(1) table lookups (alias tables built once per
-scene); positions, normals, radiance and probabilities are gathered from
-flat arrays. Emitters the table does not model (spot, directional,
+scene); a sample reads two packed records (its alias cell, then its entry's
+row of 16 floats: geometry, radiance, probability, emitter), each by one
+packet gather. Emitters the table does not model (spot, directional,
 environment and constant lights, textured radiance, shapes other than
 meshes, rectangles and spheres) are sampled by Mitsuba, in a masked call
 that runs for their lanes only.
@@ -32,6 +33,16 @@ import numpy as np
 # POINT: a point light; OTHER: sampled by Mitsuba's own ``sample_direction``.
 MESH, RECT, SPHERE, POINT, OTHER = 0, 1, 2, 3, 4
 KIND_NAMES = {MESH: "mesh", RECT: "rectangle", SPHERE: "sphere", POINT: "point", OTHER: "mitsuba"}
+
+# One packed row of ROW = 16 float32 per alias entry, read by one packet gather (Dr.Jit bundles a
+# power-of-two run of contiguous elements into vector loads): the entry's alias cell (keep
+# probability q, alias as a local index stored as a float), its geometry (p0 and two edges e0, e1;
+# sphere: centre and (r, 0, 0); point light: position), radiance or intensity L, the area density
+# with the emitter choice folded in (pa = P(e)/A_e; P(e) for spheres, points and others) and the
+# emitter's index into scene.emitters() (stored as a float: exact below 2^24).
+ROW = 16
+SEG_SELECT_MAX = 8   # up to this many emitters, their table segments are selected, not gathered
+ROW_Q, ROW_ALIAS, ROW_P0, ROW_E0, ROW_E1, ROW_L, ROW_PA, ROW_EM = 0, 1, 2, 5, 8, 11, 14, 15
 
 CHOICES = ("power", "uniform")
 # Emitter choice of the per-scene samplers (for_scene). 'uniform' (Mitsuba's) by default: the power-
@@ -255,26 +266,29 @@ class EmitterSampler:
             q[o:o + c], alias[o:o + c] = alias_table(x / tot if tot > 0 else np.full(c, 1.0 / c))
         eq, ealias = alias_table(pmf / pmf.sum() if pmf.sum() > 0 else np.full(N, 1.0 / N))
         self._uniform = self.choice == "uniform" or bool(np.allclose(pmf, 1.0 / N, rtol=0, atol=0))
-        self._seg_off = mi.UInt32(offsets.astype(np.uint32))
-        self._seg_cnt = mi.UInt32(counts.astype(np.uint32))
+        self._seg = mi.Float(np.stack([offsets, counts], axis=1).astype(np.float32).ravel())
+        # few emitters: their segments as kernel parameters (opaque: no recompilation when they
+        # change), picked by a chain of selects instead of a gather
+        self._seg_params = [(dr.opaque(mi.UInt32, int(o)), dr.opaque(mi.Float, float(c)))
+                            for o, c in zip(offsets, counts)] if N <= SEG_SELECT_MAX else None
         self._eq = mi.Float(eq.astype(np.float32))
         self._ealias = mi.UInt32(ealias.astype(np.uint32))
         self._N = dr.opaque(mi.Float, float(N))
         self._N1 = dr.opaque(mi.UInt32, N - 1)
         self.n_emitters = N
 
-        def f3(a):
-            a = np.concatenate(a).astype(np.float32)
-            return mi.Point3f(a[:, 0], a[:, 1], a[:, 2])
-
-        # per alias entry
-        self._q = mi.Float(q.astype(np.float32))
-        self._alias = mi.UInt32(alias.astype(np.uint32))
-        self._em = mi.UInt32(np.concatenate(ent_em).astype(np.uint32))
-        self._kind = mi.UInt32(np.concatenate(ent_kind).astype(np.uint32))
-        self._pa = mi.Float(np.concatenate(ent_pa).astype(np.float32))
-        self._p0, self._e0, self._e1 = f3(P0), mi.Vector3f(f3(E0)), mi.Vector3f(f3(E1))
-        self._L = mi.Color3f(f3(ent_L))
+        # per alias entry: one packed row of ROW floats (see ROW_* and docs/emitter-sampling.md)
+        if self.size >= 1 << 24:
+            raise ValueError(f"emitter table too large ({self.size} entries; indices are stored as float32)")
+        self._cells = mi.Float(np.stack([q, alias], axis=1).astype(np.float32).ravel())
+        rows_np = np.zeros((self.size, ROW), np.float32)
+        rows_np[:, ROW_P0:ROW_P0 + 3] = np.concatenate(P0)
+        rows_np[:, ROW_E0:ROW_E0 + 3] = np.concatenate(E0)
+        rows_np[:, ROW_E1:ROW_E1 + 3] = np.concatenate(E1)
+        rows_np[:, ROW_L:ROW_L + 3] = np.concatenate(ent_L)
+        rows_np[:, ROW_PA] = np.concatenate(ent_pa)
+        rows_np[:, ROW_EM] = np.concatenate(ent_em)
+        self._rows = mi.Float(rows_np.ravel())
         # per emitter (index into scene.emitters())
         self._e_kind = mi.UInt32(e_kind)
         self._e_pmf = mi.Float(e_pmf.astype(np.float32))
@@ -302,14 +316,14 @@ class EmitterSampler:
             t = dr.arange(mi.UInt32, m)
             corner = [dr.gather(mi.UInt32, F, 3 * t + c) for c in range(3)]
             P = [mi.Point3f(*[dr.gather(mi.Float, V, 3 * f + a) for a in range(3)]) for f in corner]
-            at = off + t
-            self._p0 = mi.Point3f(_scattered(self._p0, P[0], at))
-            self._e0 = mi.Vector3f(_scattered(self._e0, P[1] - P[0], at))
-            self._e1 = mi.Vector3f(_scattered(self._e1, P[2] - P[0], at))
+            at = (off + t) * ROW
+            for col, val in ((ROW_P0, P[0]), (ROW_E0, P[1] - P[0]), (ROW_E1, P[2] - P[0])):
+                for a in range(3):
+                    dr.scatter(self._rows, val[a], at + (col + a))
             rec[1] = V
             moved = True
         if moved:
-            dr.eval(self._p0, self._e0, self._e1)
+            dr.eval(self._rows)
         return moved
 
     def rebuild(self) -> None:
@@ -353,21 +367,34 @@ class EmitterSampler:
             k, ux = _alias_lookup(u.x, self._N, self._N1, self._eq, self._ealias, active)
 
         # ------------------------ entry within it: by u.y ------------------------
-        off = dr.gather(mi.UInt32, self._seg_off, k, active)
-        cnt = dr.gather(mi.UInt32, self._seg_cnt, k, active)
-        j, uy = _alias_lookup(u.y, mi.Float(cnt), cnt - 1, self._q, self._alias, active, off)
-        ent = off + j
-        u2 = mi.Point2f(ux, uy)
+        # the emitter's segment of the table, its alias cell j (q, alias), then the chosen entry's row
+        if self._seg_params is not None:
+            off, cnt_f = self._seg_params[0]
+            for e, (o, c) in enumerate(self._seg_params[1:], start=1):
+                pick = k == e
+                off, cnt_f = dr.select(pick, o, off), dr.select(pick, c, cnt_f)
+        else:
+            seg = dr.gather(mi.Point2f, self._seg, k, active)
+            off, cnt_f = mi.UInt32(seg.x), seg.y
+        x = u.y * cnt_f
+        j = dr.minimum(mi.UInt32(x), mi.UInt32(cnt_f) - 1)
+        frac = x - mi.Float(j)
+        cell = dr.gather(mi.Point2f, self._cells, off + j, active)
+        q = cell.x
+        keep = frac < q
+        row = _row(self._rows, off + dr.select(keep, j, mi.UInt32(cell.y)), active)
+        uy = dr.select(keep, frac / dr.select(q > 0.0, q, 1.0), (frac - q) / dr.select(q < 1.0, 1.0 - q, 1.0))
+        u2 = mi.Point2f(ux, dr.clip(uy, 0.0, 0.99999994))
 
+        em = mi.UInt32(row[ROW_EM])
+        pa = row[ROW_PA]
+        p0 = mi.Point3f(row[ROW_P0], row[ROW_P0 + 1], row[ROW_P0 + 2])
+        Le = mi.Color3f(row[ROW_L], row[ROW_L + 1], row[ROW_L + 2])
         present = set(self.kinds_present)
         if len(present) == 1:   # one kind (e.g. emissive meshes only): no per-lane kind
             kind = mi.UInt32(self.kinds_present[0])
         else:
-            kind = dr.gather(mi.UInt32, self._kind, ent, active)
-        em = dr.gather(mi.UInt32, self._em, ent, active)
-        pa = dr.gather(mi.Float, self._pa, ent, active)
-        p0 = dr.gather(mi.Point3f, self._p0, ent, active)
-        Le = dr.gather(mi.Color3f, self._L, ent, active)
+            kind = dr.gather(mi.UInt32, self._e_kind, em, active)
 
         p = mi.Point3f(p0)
         n = dr.zeros(mi.Vector3f, dr.width(active))
@@ -377,8 +404,8 @@ class EmitterSampler:
         # ------------------ triangles and rectangles: uniform in area ------------------
         if present & {MESH, RECT}:
             flat = active & ((kind == MESH) | (kind == RECT))
-            e0 = dr.gather(mi.Vector3f, self._e0, ent, flat)
-            e1 = dr.gather(mi.Vector3f, self._e1, ent, flat)
+            e0 = mi.Vector3f(row[ROW_E0], row[ROW_E0 + 1], row[ROW_E0 + 2])
+            e1 = mi.Vector3f(row[ROW_E1], row[ROW_E1 + 1], row[ROW_E1 + 2])
             nf = dr.normalize(dr.cross(e0, e1))   # the geometric normal (rectangles: oriented at set-up)
             b = mi.warp.square_to_uniform_triangle(u2)
             b = dr.select(kind == MESH, mi.Vector2f(b), mi.Vector2f(u2))
@@ -543,6 +570,11 @@ def _scattered(arr, value, index):
         dr.scatter(a, value[c], index)
         out.append(a)
     return out
+
+
+def _row(rows: mi.Float, index: mi.UInt32, active: mi.Bool) -> mi.ArrayXf:
+    """The packed table row ``index`` (ROW floats), one packet gather."""
+    return dr.gather(mi.ArrayXf, rows, index, active, shape=(ROW, dr.width(index)))
 
 
 def _alias_lookup(u, n_f, n_1, q_arr, alias_arr, active, offset=None):

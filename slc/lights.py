@@ -13,7 +13,9 @@ truths always use the reference, so that they stay an independent check.
 Either way the weight ``w`` is ``L_e / pdf`` with the emitter choice
 already folded in, so ``f * w * V`` is an unbiased one-sample estimate of
 direct illumination, and :func:`light_pdf` / :func:`light_pdf_hit` give the
-density of the sampler in use (for MIS).
+density of the sampler in use (for MIS). :class:`SurfaceBSDF` evaluates the
+BSDFs of fixed shading points for many directions (RT-N), diffuse ones
+without the virtual call.
 """
 from __future__ import annotations
 
@@ -22,6 +24,7 @@ import os
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from . import emitter_sampling
 
@@ -122,13 +125,94 @@ def visible(scene: mi.Scene, si: mi.SurfaceInteraction3f, ds: mi.DirectionSample
     return active & ~scene.ray_test(si.spawn_ray_to(ds.p), active)
 
 
-def direct_sample(scene: mi.Scene, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, u: mi.Point2f,
+class SurfaceBSDF:
+    r"""The BSDFs of a fixed set of shading points ``si``, evaluated for many
+    directions (RT-N's N light samples per pixel).
+
+    Smooth diffuse BSDFs (Mitsuba's ``diffuse``) are evaluated without the
+    virtual call over BSDFs: their value is
+    :math:`f(\omega_i, \omega_o)\cos\theta_o = k_d \max(\cos\theta_o, 0)`
+    with :math:`k_d = \rho(x)/\pi` (0 where :math:`\cos\theta_i \le 0`),
+    and :math:`k_d` is read once per point through the BSDF itself (its
+    ``eval`` at :math:`\omega_o = (0, 0, 1)`), so a textured albedo is
+    looked up at each point's own ``uv``, once instead of once per sample.
+    The product is Mitsuba's own, in the same order (bit-identical). Every
+    other BSDF goes through ``bsdf.eval`` for its lanes only, and in a scene
+    whose shapes all have diffuse BSDFs that call is not traced at all.
+
+    Parameters: ``scene`` (``mi.Scene``), ``si`` (shading points),
+    ``active`` (mask), ``ctx`` (``mi.BSDFContext()``; a context that
+    disables diffuse reflection or asks for the adjoint transport keeps the
+    virtual call for every lane). Build it outside symbolic loops (it reads
+    the scene's BSDFs on the host the first time)."""
+
+    def __init__(self, scene: mi.Scene, si: mi.SurfaceInteraction3f, active: mi.Bool,
+                 ctx: mi.BSDFContext | None = None):
+        self.si, self.ctx = si, ctx if ctx is not None else mi.BSDFContext()
+        self.bsdf = si.bsdf()
+        table, all_diffuse = _diffuse_table(scene)
+        plain = (self.ctx.mode == mi.TransportMode.Radiance and self.ctx.component == 0xFFFFFFFF
+                 and self.ctx.type_mask == int(mi.BSDFFlags.All))
+        if table is None or not plain:
+            self.diffuse, self.others, self.kd = mi.Bool(False), True, None
+            return
+        rid = dr.reinterpret_array(mi.UInt32, self.bsdf)
+        ok = mi.Bool(active) & (self.bsdf != None) & (rid < dr.width(table))  # noqa: E711 (BSDFPtr comparison)
+        self.diffuse = dr.gather(mi.Bool, table, rid, ok) & ok
+        self.others = not all_diffuse
+        # k_d = rho / pi: Mitsuba's own eval at wo = +z (cos theta_o = 1, an exact product)
+        self.kd = mi.Color3f(self.bsdf.eval(self.ctx, si, mi.Vector3f(0.0, 0.0, 1.0), self.diffuse))
+
+    def eval(self, wo: mi.Vector3f, active: mi.Bool) -> mi.Color3f:
+        """BSDF value times cosine for the local direction ``wo``."""
+        if self.kd is None:
+            return mi.Color3f(self.bsdf.eval(self.ctx, self.si, wo, active))
+        f = dr.select(self.diffuse & (wo.z > 0.0), self.kd * wo.z, 0.0)
+        if self.others:
+            g = self.bsdf.eval(self.ctx, self.si, wo, mi.Bool(active) & ~self.diffuse)
+            f = dr.select(self.diffuse, f, mi.Color3f(g))
+        return dr.select(active, f, 0.0)
+
+
+_DIFFUSE: dict[int, tuple] = {}
+_DIFFUSE_CLASS = "SmoothDiffuse"
+
+
+def _diffuse_table(scene: mi.Scene):
+    """(Bool per BSDF registry id: smooth diffuse; True if every shape's BSDF is),
+    cached per scene; (None, False) for scenes with instances (whose BSDFs are not
+    listed by ``scene.shapes()``)."""
+    shapes = scene.shapes()
+    hit = _DIFFUSE.get(id(scene))
+    if hit is not None and hit[0] is (shapes[0] if shapes else None):
+        return hit[1], hit[2]
+    if dr.flag(dr.JitFlag.SymbolicScope):
+        raise RuntimeError("build slc.lights.SurfaceBSDF outside symbolic loops")
+    bsdfs = [sh.bsdf() for sh in shapes if sh.bsdf() is not None]
+    if any(sh.class_name() in ("Instance", "ShapeGroup") for sh in shapes) or not bsdfs:
+        table, all_diffuse = None, False
+    else:
+        ids = [int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(b))[0]) for b in bsdfs]
+        flags = np.zeros(max(ids) + 1, bool)
+        for i, b in zip(ids, bsdfs):
+            flags[i] = b.class_name() == _DIFFUSE_CLASS
+        table, all_diffuse = mi.Bool(flags), bool(all(flags[i] for i in ids))
+    _DIFFUSE[id(scene)] = (shapes[0] if shapes else None, table, all_diffuse)
+    return table, all_diffuse
+
+
+def direct_sample(scene: mi.Scene, si: mi.SurfaceInteraction3f, bsdf, u: mi.Point2f,
                   active: mi.Bool, ctx: mi.BSDFContext | None = None) -> mi.Color3f:
-    """One light sample + shadow ray + BSDF evaluation (cosine included)."""
+    """One light sample + shadow ray + BSDF evaluation (cosine included).
+    ``bsdf`` is ``si.bsdf()`` or a :class:`SurfaceBSDF` of ``si`` (faster
+    when the same points take many samples)."""
     ctx = ctx if ctx is not None else mi.BSDFContext()
     ds, w, ok = sample_light(scene, si, u, active)
     ok = visible(scene, si, ds, ok)
-    f = bsdf.eval(ctx, si, si.to_local(ds.d), ok)
+    if isinstance(bsdf, SurfaceBSDF):
+        f = bsdf.eval(si.to_local(ds.d), ok)
+    else:
+        f = bsdf.eval(ctx, si, si.to_local(ds.d), ok)
     return dr.select(ok, mi.Color3f(f) * w, 0.0)
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ..lights import direct_sample, rng
+from ..lights import SurfaceBSDF, direct_sample, rng
 from ..methods import Method, Param, register
 
 
@@ -17,7 +17,8 @@ class RandomLightSampling(Method):
     Each sample picks an emitter and a point on it (``slc.lights.sample_light``:
     the scene's emitter table, or ``scene.sample_emitter_direction`` with
     ``SLC_EMITTER_SAMPLING=mitsuba``), traces one shadow ray and evaluates
-    the BSDF (cosine included). Emitted radiance of directly seen emitters is
+    the BSDF (cosine included; :class:`slc.lights.SurfaceBSDF`: diffuse
+    BSDFs without the virtual call, their albedo read once per pixel). Emitted radiance of directly seen emitters is
     added by the pipeline (:func:`slc.gbuffer.compose`).
 
     Memory: none beyond the frame (per-viewer output buffer of 12 bytes per
@@ -35,8 +36,8 @@ class RandomLightSampling(Method):
         sc = self.scene.mi_scene
         sampler = rng(gb.size, self.seed_for(frame, viewer_index), stream=1)
         si, active = gb.si, gb.valid
-        bsdf = si.bsdf()
         ctx = mi.BSDFContext()
+        bsdf = SurfaceBSDF(sc, si, active, ctx)   # diffuse albedo read once per pixel, not per sample
         n_opaque = dr.opaque(mi.UInt32, self.n)
 
         # ------------------ N light samples in a symbolic loop ------------------
@@ -48,8 +49,11 @@ class RandomLightSampling(Method):
             L += direct_sample(sc, si, bsdf, u, active, ctx)
             return i + 1, L, sampler
 
-        _, L, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
-                                labels=("i", "L", "sampler"))
+        # every state variable changes in the body: no loop-invariant state to find, so the body
+        # is traced once (with OptimizeLoops, Dr.Jit traces it a second time to look for some)
+        with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
+            _, L, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
+                                    labels=("i", "L", "sampler"))
         return L / float(max(self.n, 1))
 
     def render(self, ctx, gbuffers, timer):
