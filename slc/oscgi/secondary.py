@@ -94,6 +94,13 @@ class SecondaryCache:
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
+        self._alloc()
+        if self.evict_after > 0 and not getattr(self, "_warm", False):
+            self._warm = True           # once per table (reset() is also the eviction's "nothing survives")
+            self._warm_rebuild()
+            self._alloc()
+
+    def _alloc(self) -> None:
         cap = self.slots
         self.keys = dr.full(mi.UInt32, EMPTY, cap)
         self.home = dr.zeros(mi.UInt32, cap)                # home slot of the key (for rebuilds)
@@ -225,17 +232,11 @@ class SecondaryCache:
         """Free the cells not touched in the last ``evict_after`` frames by rebuilding the table
         with the others (see the module); returns the number freed."""
         live = self.keys != EMPTY
-        f = dr.opaque(mi.UInt32, self.frame)
-        old = live & (f - self.used > self.evict_after) & (self.used < f)   # K whole frames unused
+        old = self._old(live)
         n_live, n_old = int(dr.count(live)[0]), int(dr.count(old)[0])
         cap = int(self.slots * self.max_load)
         if n_live - n_old > cap:
-            # ------- over the load cap: also free the least recently touched (then lowest slot) -------
-            idx = np.asarray(dr.compress(live & ~old), dtype=np.int64)
-            u = np.asarray(dr.gather(mi.UInt32, self.used, mi.UInt32(idx.astype(np.uint32))), dtype=np.int64)
-            drop = idx[np.lexsort((idx, u))[: n_live - n_old - cap]]
-            dr.scatter(old, True, mi.UInt32(np.sort(drop).astype(np.uint32)))
-            n_old += drop.size
+            n_old += self._drop_least_recent(live, old, n_live - n_old - cap)
         if n_old == 0:
             return 0
         keep = dr.compress(live & ~old)
@@ -244,6 +245,27 @@ class SecondaryCache:
             self.reset()
             self._overflow, self.evicted, self.frame = ov, n_old, frame
             return n_old
+        self._rebuild(keep)
+        self.evicted = n_old
+        return n_old
+
+    def _old(self, live: mi.Bool) -> mi.Bool:
+        """Live cells not touched in the last ``evict_after`` whole frames."""
+        f = dr.opaque(mi.UInt32, self.frame)
+        return live & (f - self.used > self.evict_after) & (self.used < f)
+
+    def _drop_least_recent(self, live: mi.Bool, old: mi.Bool, n: int) -> int:
+        """Over the load cap: mark (in ``old``) the ``n`` least recently touched live cells that
+        are not old yet (then lowest slot); returns how many were marked."""
+        idx = np.asarray(dr.compress(live & ~old), dtype=np.int64)
+        u = np.asarray(dr.gather(mi.UInt32, self.used, mi.UInt32(idx.astype(np.uint32))), dtype=np.int64)
+        drop = idx[np.lexsort((idx, u))[:n]]
+        dr.scatter(old, True, mi.UInt32(np.sort(drop).astype(np.uint32)))
+        return int(drop.size)
+
+    def _rebuild(self, keep: mi.UInt32) -> None:
+        """An empty table with the cells at slots ``keep`` (evaluated, ascending) re-inserted and
+        their data moved; every other slot in its reset state."""
         per_slot = [(self.home, 1), (self.used, 1), (self.stamp, 1), (self.count, 1), (self.pending, 1),
                     (self._reuse_count, 1), (self.rep, _REP), (self.layers, 3 * self.B)]
         data = [(type(a), [dr.gather(type(a), a, keep * w + j) for j in range(w)], w) for a, w in per_slot]
@@ -265,8 +287,31 @@ class SecondaryCache:
         dr.eval(*fresh)
         (self.home, self.used, self.stamp, self.count, self.pending, self._reuse_count, self.rep,
          self.layers) = fresh
-        self.evicted = n_old
-        return n_old
+
+    def _warm_rebuild(self) -> None:
+        """Build the kernels of an eviction (the selection of old cells, the over-cap selection
+        and the rebuild) on a stand-in table of three cells, so that the first real eviction,
+        often after an experiment's warm-up frames, builds none. The caller then allocates the
+        table afresh. The stand-in must look like a running table to the JIT: distinct arrays in
+        memory (equal literal arrays are one variable, and gathers from literals are folded) and
+        at least two survivors (a width-1 array is read as a scalar)."""
+        U, F, n = mi.UInt32, mi.Float, self.slots
+        i = dr.arange(U, n)
+        self.keys = dr.select(i < 3, i + 1, EMPTY)
+        self.home, self.used, self.stamp, self.count = (dr.full(U, 1 + j, n) for j in range(4))
+        self.pending, self._reuse_count = dr.full(U, 5, n), dr.full(U, 6, n)
+        self.rep, self.layers = dr.full(F, 7.0, n * _REP), dr.full(F, 8.0, n * 3 * self.B)
+        dr.make_opaque(self.keys, self.home, self.used, self.stamp, self.count, self.pending, self.rep,
+                       self.layers, self._reuse_count)
+        ov, frame = self._overflow, self.frame
+        self.frame = 0
+        live = self.keys != EMPTY
+        old = self._old(live)                             # none (used = 2 > frame 0)
+        dr.count(live), dr.count(old)
+        dr.eval(dr.compress(live & ~old))                 # evict()'s selection without the cap
+        self._drop_least_recent(live, old, 1)             # the cap: one of the three dropped
+        self._rebuild(dr.compress(live & ~old))           # two survivors
+        self._overflow, self.frame = ov, frame
 
     def request(self, req: mi.UInt32, slots: mi.UInt32, ok: mi.Bool, ring: int = 1) -> None:
         dr.scatter_reduce(dr.ReduceOp.Min, req, mi.UInt32(ring), slots, ok)
