@@ -23,12 +23,13 @@ INITIAL_ENTRIES = 1 << 14     # the pool starts small and doubles on demand (ent
 
 
 def _cache_params():
-    """The on-surface cache's settings with the slides' defaults: 2x2 blocks ("reduced block size
-    to 2x2 instead of 8x8") and mip bias 2 (one entry per about 2x2 pixels)."""
+    """The on-surface cache's settings: mip bias 2 as in the slides (one entry per about 2x2
+    pixels) and 4x4 blocks (the slides: 2x2; the cache's per-frame request flag spans every
+    virtual block, 4x more of them at 2x2: see docs/osc-gi.md)."""
     out = []
     for p in PayloadMethod.cache_params:
         if p.name == "block":
-            p = Param("block", 2, p.help, choices=p.choices)
+            p = Param("block", 4, p.help, choices=p.choices)
         elif p.name == "bias":
             p = Param("bias", 2.0, p.help, lo=p.lo, hi=p.hi)
         out.append(p)
@@ -154,32 +155,40 @@ class OSCGI(PayloadMethod):
         c = mi.UInt32(c_old) + 1                                     # this update's number
         full = dr.gather(mi.UInt32, rays, e) >= D
         traced = full | ((k % S) == (c % S))
-        si = dr.zeros(mi.SurfaceInteraction3f, N * D)                 # only what spawn_ray needs
-        si.p = mi.Point3f(*[dr.gather(mi.Float, fr.si.p[c], e) for c in range(3)])
-        si.n = mi.Vector3f(*[dr.gather(mi.Float, fr.si.n[c], e) for c in range(3)])
-        n_sh = mi.Vector3f(*[dr.gather(mi.Float, fr.si.sh_frame.n[c], e) for c in range(3)])
-        s = keyed_rng(dr.gather(mi.UInt32, fr.keys, e) * D + k, self.seed, ctx.frame, STREAM_PRIMARY)
-        d = mi.Frame3f(n_sh).to_world(G.direction(k, mi.Point2f(s.next_float32(), s.next_float32())))
-        ok = traced & (dr.dot(d, si.n) > 0.0)           # this update's texels, above the geometric surface
-        hit = sc.ray_intersect(si.spawn_ray(d), ok)
+        dr.eval(traced, c_old)
+        # ---- only this update's texels from here on (a compact lane list tl into the N x D lanes) ----
+        tl = dr.compress(traced)
+        et, kt = tl // D, tl % D
+        si = dr.zeros(mi.SurfaceInteraction3f, dr.width(tl))          # only what spawn_ray needs
+        si.p = mi.Point3f(*[dr.gather(mi.Float, fr.si.p[c], et) for c in range(3)])
+        si.n = mi.Vector3f(*[dr.gather(mi.Float, fr.si.n[c], et) for c in range(3)])
+        n_sh = mi.Vector3f(*[dr.gather(mi.Float, fr.si.sh_frame.n[c], et) for c in range(3)])
+        s = keyed_rng(dr.gather(mi.UInt32, fr.keys, et) * D + kt, self.seed, ctx.frame, STREAM_PRIMARY)
+        d = mi.Frame3f(n_sh).to_world(G.direction(kt, mi.Point2f(s.next_float32(), s.next_float32())))
+        ok = dr.dot(d, si.n) > 0.0                      # above the geometric surface
+        ray = si.spawn_ray(d)
+        hit = sec.trace(ray, ok)
         laps.lap("primary_rays", hit)
 
         # ------------- secondary caches: cells of the hits, requests, update (all shared) -------------
         req = sec.begin_frame(ctx.frame)              # eviction first: slots move in a rebuild
-        slots, hok = sec.touch(hit, d, ok)
+        slots, hok = sec.touch(hit, ray, ok)
         sec.request(req, slots, hok, 1)
         sec.record_reuse(slots, hok)
         laps.lap("secondary_lookup", slots, hok, req)
         sec.update(ctx.frame, req)
         laps.lap("secondary_update")
-        sample = sec.radiance(slots, hok)              # outgoing radiance of the hit's cell
+        Lc = sec.radiance(slots, hok)                  # outgoing radiance of the hit's cell
         # a hit cell never updated yet (over the budget) holds no value: the texel is not blended
         # (it keeps its value) rather than pulled towards 0, unless it has no value yet either
-        empty = hok & ~sec.updated_once(slots, hok)
-        dr.eval(sample, empty)
+        sample = [dr.zeros(mi.Float, N * D) for _ in range(3)]
+        empty = dr.zeros(mi.Bool, N * D)
+        for ch in range(3):
+            dr.scatter(sample[ch], Lc[ch], tl)
+        dr.scatter(empty, hok & ~sec.updated_once(slots, hok), tl)
+        dr.eval(*sample, empty)
 
         # ----------------- direct light (output=full): light samples binned into texels -----------------
-        sample = [sample[c] for c in range(3)]
         if self.output == "full":
             scratch = dr.zeros(mi.Float, N * D * 3)
             sie, frame_e = fr.si, mi.Frame3f(fr.si.sh_frame.n)

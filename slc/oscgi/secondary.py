@@ -172,9 +172,17 @@ class SecondaryCache:
         dr.eval(self.home, self.used)
         return found
 
-    def _set_rep(self, slots: mi.UInt32, ok: mi.Bool, si: mi.SurfaceInteraction3f, n: mi.Vector3f) -> None:
+    def trace(self, ray: mi.Ray3f, active=True) -> mi.SurfaceInteraction3f:
+        """Hits of cache rays: position, geometric normal and shape only
+        (``RayFlags.Minimal``): the cell key needs no more, and the full interaction (for the
+        albedo) is computed again for the one representative lane per cell."""
+        return self.sc.ray_intersect(ray, mi.RayFlags.Minimal, False, active)
+
+    def _set_rep(self, slots: mi.UInt32, ok: mi.Bool, si: mi.SurfaceInteraction3f, n: mi.Vector3f,
+                 ray: mi.Ray3f) -> None:
         """Each touched cell's representative point: the lowest lane that touched it. The albedo
-        (a BSDF call) is evaluated on the winning lanes only (one per touched cell)."""
+        (a BSDF call on the full interaction, traced again) is evaluated on the winning lanes only
+        (one per touched cell)."""
         lane = dr.arange(mi.UInt32, dr.width(slots))
         win = dr.full(mi.UInt32, INVALID, self.slots)
         dr.scatter_reduce(dr.ReduceOp.Min, win, lane, slots, ok)
@@ -183,26 +191,28 @@ class SecondaryCache:
         idx = dr.compress(w)
         if dr.width(idx) == 0:
             return
-        sw = dr.gather(mi.SurfaceInteraction3f, si, idx)
+        p = mi.Point3f(*[dr.gather(mi.Float, si.p[c], idx) for c in range(3)])
         nw = mi.Vector3f(*[dr.gather(mi.Float, n[c], idx) for c in range(3)])
-        albedo = mi.Color3f(sw.bsdf().eval_diffuse_reflectance(sw, True))
+        rw = dr.gather(mi.Ray3f, ray, idx)
+        sw = self.sc.ray_intersect(rw, True)
+        albedo = mi.Color3f(sw.bsdf().eval_diffuse_reflectance(sw, sw.is_valid()))
         sl = dr.gather(mi.UInt32, slots, idx)
-        for j, v in enumerate((sw.p.x, sw.p.y, sw.p.z, nw.x, nw.y, nw.z, albedo.x, albedo.y, albedo.z)):
+        for j, v in enumerate((p.x, p.y, p.z, nw.x, nw.y, nw.z, albedo.x, albedo.y, albedo.z)):
             dr.scatter(self.rep, v, sl * _REP + j)
         dr.eval(self.rep)
 
-    def touch(self, si: mi.SurfaceInteraction3f, d: mi.Vector3f, active: mi.Bool):
-        """Cells of the hits ``si`` of rays along ``d`` (inserted when new, representative point
-        refreshed). Returns (slots, valid mask)."""
+    def touch(self, si: mi.SurfaceInteraction3f, ray: mi.Ray3f, active: mi.Bool):
+        """Cells of the hits ``si`` (from :meth:`trace`) of ``ray`` (inserted when new,
+        representative point refreshed). Returns (slots, valid mask)."""
         dr.eval(si)                   # once: else every kernel below would trace the rays again
         ok = active & si.is_valid()
-        key, home, nf = self.key_of(si, d)
+        key, home, nf = self.key_of(si, ray.d)
         dr.eval(ok, nf)
         self.laps.lap("touch_key", key, home)
         slots = self.find_or_insert(key, home, ok)
         self.laps.lap("touch_find")
         ok &= slots != INVALID
-        self._set_rep(slots, ok, si, nf)
+        self._set_rep(slots, ok, si, nf, ray)
         self.laps.lap("touch_rep")
         return slots, ok
 
@@ -385,22 +395,29 @@ class SecondaryCache:
         if B > 1:
             R = self.rays
             lane = dr.arange(mi.UInt32, n * R)
-            c_of, j = lane // R, lane % R
+            c_of = lane // R
             tracing = dr.gather(mi.UInt32, ring, c_of) < B
             tracing &= dr.gather(mi.Bool, lit, c_of)
+            # ---- only the tracing lanes (cells of ring < B with albedo) from here on ----
+            tl = dr.compress(tracing)
+            c_of, j = tl // R, tl % R
             s2 = keyed_rng(dr.gather(mi.UInt32, keys, c_of) * R + j, self.seed, frame, STREAM_SECONDARY + 1)
             u = mi.Point2f(s2.next_float32(), s2.next_float32())
             sil = dr.gather(mi.SurfaceInteraction3f, si, c_of)
             d = sil.sh_frame.to_world(mi.warp.square_to_cosine_hemisphere(u))
-            hit = sc.ray_intersect(sil.spawn_ray(d), tracing)
+            ray = sil.spawn_ray(d)
+            hit = self.trace(ray)
             self.laps.lap("sec_rays", hit)
-            hit_slots, hok = self.touch(hit, d, tracing)
+            hit_slots, hok = self.touch(hit, ray, mi.Bool(True))
             hok &= dr.dot(hit.n, d) != 0.0
             next_ring = dr.gather(mi.UInt32, ring, c_of) + 1
             dr.scatter_reduce(dr.ReduceOp.Min, self.pending, next_ring, hit_slots, hok & (next_ring <= B))
             for b in range(1, B):
                 Lh = self.radiance(hit_slots, hok, layer=b)
-                mean[b - 1] = mi.Color3f(*[dr.block_sum(Lh[c], R) for c in range(3)]) * (1.0 / R)
+                full = [dr.zeros(mi.Float, n * R) for _ in range(3)]
+                for c in range(3):
+                    dr.scatter(full[c], Lh[c], tl)
+                mean[b - 1] = mi.Color3f(*[dr.block_sum(full[c], R) for c in range(3)]) * (1.0 / R)
             dr.eval(self.pending, *mean)
             self.laps.lap("sec_touch")
             traced = ring < B
