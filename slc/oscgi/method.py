@@ -15,6 +15,7 @@ from ..osc.payload import PayloadMethod, RayPolicy
 from .hemisphere import HemiGrid
 from .laps import Laps
 from .secondary import SecondaryCache
+from .spatial import SpatialFilter
 
 STREAM_PRIMARY = 0x05C61001
 STREAM_PRIMARY_DIRECT = 0x05C61002
@@ -93,13 +94,19 @@ class OSCGI(PayloadMethod):
               lo=0, hi=1 << 24),
         Param("secondary_evict", 4, "free secondary cells unused for this many frames (0: never)", lo=0, hi=1 << 16),
         Param("shape_key", True, "secondary cells keyed by shape too (no sharing across shapes)"),
+        Param("filter_radius", 0, "spatial filter radius in texels inside islands (0: off; the slides: 3)",
+              lo=0, hi=8),
+        Param("filter_angle", 25.0, "spatial filter: largest normal difference and parallax turn [deg]",
+              lo=0.0, hi=90.0),
+        Param("parallax", True, "spatial filter: parallax-corrected directions"),
     ) + _cache_params()
     storage_type = mi.Float
 
     def __init__(self, scene, **kw):
         super().__init__(scene, **kw)
         self.grid = HemiGrid(self.hemi)
-        self.words = 3 * self.grid.n + 4           # radiance per texel, irradiance, count
+        self.words = 3 * self.grid.n + 5           # radiance per texel, irradiance, count, mean 1/t
+        self.filter = SpatialFilter(self.filter_radius, self.filter_angle, self.parallax)
         self.label = None if self.output == "full" else "osc-gi:output=indirect"
 
     def validate(self):
@@ -186,7 +193,11 @@ class OSCGI(PayloadMethod):
         for ch in range(3):
             dr.scatter(sample[ch], Lc[ch], tl)
         dr.scatter(empty, hok & ~sec.updated_once(slots, hok), tl)
-        dr.eval(*sample, empty)
+        # mean inverse hit distance of the entry's rays this update (a miss: 0), for the filter
+        inv_t, n_t = dr.zeros(mi.Float, N * D), dr.zeros(mi.Float, N * D)
+        dr.scatter(inv_t, dr.select(hit.is_valid(), dr.rcp(dr.maximum(hit.t, 1e-6)), 0.0), tl, ok)
+        dr.scatter(n_t, 1.0, tl, ok)
+        dr.eval(*sample, empty, inv_t, n_t)
 
         # ----------------- direct light (output=full): light samples binned into texels -----------------
         if self.output == "full":
@@ -229,15 +240,37 @@ class OSCGI(PayloadMethod):
             old = dr.gather(mi.Float, self.storage, src * W + k * 3 + ch, keep)
             new.append(dr.fma(a, dr.select(traced, sample[ch], old) - old, old))
         E = [dr.block_sum(x, D) * G.texel_weight for x in new]      # per entry: (pi/R^2) sum_k L_k
-        dr.eval(*new, *E, cnt)
+        # the mean inverse hit distance, EMA over updates (the seed's value for a seeded entry)
+        n_e, s_e = dr.block_sum(n_t, D), dr.block_sum(inv_t, D)
+        c_e = dr.gather(mi.Float, c_old, dr.arange(mi.UInt32, N) * D) + 1.0
+        src_e = dr.select(dr.gather(mi.Bool, seeded, dr.arange(mi.UInt32, N) * D), fr.seed_slot, fr.active)
+        keep_e = ~fr.is_new | (fr.seed_slot != INVALID)
+        d_old = dr.gather(mi.Float, self.storage, src_e * W + 3 * D + 4, keep_e)
+        a_e = dr.select(n_e > 0.0, dr.rcp(dr.minimum(c_e, float(self.n_max))), 0.0)
+        d_new = dr.fma(a_e, s_e * dr.rcp(dr.maximum(n_e, 1.0)) - d_old, d_old)
+        dr.eval(*new, *E, cnt, d_new)
         for ch in range(3):
             dr.scatter(self.storage, new[ch], slot * W + k * 3 + ch)
             dr.scatter(self.storage, E[ch], fr.active * W + 3 * D + ch)
         dr.scatter(self.storage, cnt, slot * W + 3 * D + 3, k == 0)
+        dr.scatter(self.storage, d_new, fr.active * W + 3 * D + 4)
         laps.lap("primary_ema", self.storage)
         return dr.zeros(mi.Bool, N)
 
     # ------------------------------------------------------------------ shade
+    def shade_all(self, ctx, fr, gbuffers):
+        """Every viewer's pixels; with the spatial filter on (``filter_radius`` > 0), from a
+        filtered copy of the active entries (:class:`~slc.oscgi.spatial.SpatialFilter`, timed with
+        the display), the temporal state left unfiltered."""
+        if self.filter.r <= 0:
+            return super().shade_all(ctx, fr, gbuffers)
+        raw = self.storage
+        self.storage = self.filter.apply(self.cache, raw, fr, self.grid, self.words)
+        try:
+            return super().shade_all(ctx, fr, gbuffers)
+        finally:
+            self.storage = raw
+
     def shade(self, ctx, fr, v, gb):
         G, W, D = self.grid, self.words, self.grid.n
         slot, idx = mi.UInt32(fr.pixel_slot[v]), mi.UInt32(fr.pixel_index[v])
