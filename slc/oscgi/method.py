@@ -174,12 +174,12 @@ class OSCGI(PayloadMethod):
         d = mi.Frame3f(n_sh).to_world(G.direction(kt, mi.Point2f(s.next_float32(), s.next_float32())))
         ok = dr.dot(d, si.n) > 0.0                      # above the geometric surface
         ray = si.spawn_ray(d)
-        hit = sec.trace(ray, ok)
-        laps.lap("primary_rays", hit)
+        hit, hit_shape = sec.trace(ray, ok)
+        laps.lap("primary_rays", hit, hit_shape)
 
         # ------------- secondary caches: cells of the hits, requests, update (all shared) -------------
         req = sec.begin_frame(ctx.frame)              # eviction first: slots move in a rebuild
-        slots, hok = sec.touch(hit, ray, ok)
+        slots, hok = sec.touch((hit, hit_shape), ray, ok)
         sec.request(req, slots, hok, 1)
         sec.record_reuse(slots, hok)
         laps.lap("secondary_lookup", slots, hok, req)

@@ -129,15 +129,17 @@ class SecondaryCache:
         return 4 * self.words_per_slot() * self.used_cells()
 
     # ------------------------------------------------------------------ keys
-    def key_of(self, si: mi.SurfaceInteraction3f, d: mi.Vector3f):
-        """(key, home slot, front normal) of hits ``si`` reached along ``d``."""
+    def key_of(self, si: mi.SurfaceInteraction3f, d: mi.Vector3f, shape_index: mi.UInt32):
+        """(key, home slot, front normal) of hits ``si`` reached along ``d`` on the shapes
+        ``shape_index`` (indices into ``scene.shapes()``: the same in every process, unlike the
+        shape pointers)."""
         nf = front_normal(si, d)
         c = mi.Vector3i(dr.floor(si.p / self.h))
         a = dr.abs(nf)
         axis = dr.select((a.x >= a.y) & (a.x >= a.z), 0, dr.select(a.y >= a.z, 1, 2))
         neg = dr.select(axis == 0, nf.x < 0.0, dr.select(axis == 1, nf.y < 0.0, nf.z < 0.0))
         bin_ = mi.UInt32(axis * 2) + dr.select(neg, 1, 0)
-        shape = dr.reinterpret_array(mi.UInt32, si.shape) if self.shape_key else mi.UInt32(0)
+        shape = mi.UInt32(shape_index) if self.shape_key else mi.UInt32(0)
         ux, uy, uz = (dr.reinterpret_array(mi.UInt32, v) for v in (c.x, c.y, c.z))
         k0, _ = mi.sample_tea_32(ux, uy, 4)
         key, home = mi.sample_tea_32(k0 ^ (uz * 0x9E3779B9), bin_ | (shape << 3), 4)
@@ -172,11 +174,12 @@ class SecondaryCache:
         dr.eval(self.home, self.used)
         return found
 
-    def trace(self, ray: mi.Ray3f, active=True) -> mi.SurfaceInteraction3f:
-        """Hits of cache rays: position, geometric normal and shape only
+    def trace(self, ray: mi.Ray3f, active=True):
+        """(hits, shape index) of cache rays: position, geometric normal and shape only
         (``RayFlags.Minimal``): the cell key needs no more, and the full interaction (for the
         albedo) is computed again for the one representative lane per cell."""
-        return self.sc.ray_intersect(ray, mi.RayFlags.Minimal, False, active)
+        pi = self.sc.ray_intersect_preliminary(ray, coherent=False, active=active)
+        return pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active), mi.UInt32(pi.shape_index)
 
     def _set_rep(self, slots: mi.UInt32, ok: mi.Bool, si: mi.SurfaceInteraction3f, n: mi.Vector3f,
                  ray: mi.Ray3f) -> None:
@@ -201,12 +204,13 @@ class SecondaryCache:
             dr.scatter(self.rep, v, sl * _REP + j)
         dr.eval(self.rep)
 
-    def touch(self, si: mi.SurfaceInteraction3f, ray: mi.Ray3f, active: mi.Bool):
-        """Cells of the hits ``si`` (from :meth:`trace`) of ``ray`` (inserted when new,
-        representative point refreshed). Returns (slots, valid mask)."""
-        dr.eval(si)                   # once: else every kernel below would trace the rays again
+    def touch(self, hits, ray: mi.Ray3f, active: mi.Bool):
+        """Cells of the hits ``(si, shape index)`` (from :meth:`trace`) of ``ray`` (inserted when
+        new, representative point refreshed). Returns (slots, valid mask)."""
+        si, sidx = hits
+        dr.eval(si, sidx)             # once: else every kernel below would trace the rays again
         ok = active & si.is_valid()
-        key, home, nf = self.key_of(si, ray.d)
+        key, home, nf = self.key_of(si, ray.d, sidx)
         dr.eval(ok, nf)
         self.laps.lap("touch_key", key, home)
         slots = self.find_or_insert(key, home, ok)
@@ -276,6 +280,10 @@ class SecondaryCache:
     def _rebuild(self, keep: mi.UInt32) -> None:
         """An empty table with the cells at slots ``keep`` (evaluated, ascending) re-inserted and
         their data moved; every other slot in its reset state."""
+        # every array in memory (a literal one, e.g. ``pending`` with one bounce, would fold into the
+        # gathers below and give another kernel than the one built by _warm_rebuild)
+        dr.make_opaque(self.home, self.used, self.stamp, self.count, self.pending, self._reuse_count, self.rep,
+                       self.layers)
         per_slot = [(self.home, 1), (self.used, 1), (self.stamp, 1), (self.count, 1), (self.pending, 1),
                     (self._reuse_count, 1), (self.rep, _REP), (self.layers, 3 * self.B)]
         data = [(type(a), [dr.gather(type(a), a, keep * w + j) for j in range(w)], w) for a, w in per_slot]
@@ -406,9 +414,9 @@ class SecondaryCache:
             sil = dr.gather(mi.SurfaceInteraction3f, si, c_of)
             d = sil.sh_frame.to_world(mi.warp.square_to_cosine_hemisphere(u))
             ray = sil.spawn_ray(d)
-            hit = self.trace(ray)
-            self.laps.lap("sec_rays", hit)
-            hit_slots, hok = self.touch(hit, ray, mi.Bool(True))
+            hit, hsh = self.trace(ray)
+            self.laps.lap("sec_rays", hit, hsh)
+            hit_slots, hok = self.touch((hit, hsh), ray, mi.Bool(True))
             hok &= dr.dot(hit.n, d) != 0.0
             next_ring = dr.gather(mi.UInt32, ring, c_of) + 1
             dr.scatter_reduce(dr.ReduceOp.Min, self.pending, next_ring, hit_slots, hok & (next_ring <= B))
