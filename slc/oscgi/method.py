@@ -174,12 +174,13 @@ class OSCGI(PayloadMethod):
         d = mi.Frame3f(n_sh).to_world(G.direction(kt, mi.Point2f(s.next_float32(), s.next_float32())))
         ok = dr.dot(d, si.n) > 0.0                      # above the geometric surface
         ray = si.spawn_ray(d)
-        hit, hit_shape = sec.trace(ray, ok)
-        laps.lap("primary_rays", hit, hit_shape)
+        hits = sec.trace(ray, ok)            # (interaction, shape index, preliminary intersection)
+        hit = hits[0]
+        laps.lap("primary_rays", *hits)
 
         # ------------- secondary caches: cells of the hits, requests, update (all shared) -------------
         req = sec.begin_frame(ctx.frame)              # eviction first: slots move in a rebuild
-        slots, hok = sec.touch((hit, hit_shape), ray, ok)
+        slots, hok = sec.touch(hits, ray, ok)
         sec.request(req, slots, hok, 1)
         sec.record_reuse(slots, hok)
         laps.lap("secondary_lookup", slots, hok, req)

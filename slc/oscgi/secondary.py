@@ -175,17 +175,17 @@ class SecondaryCache:
         return found
 
     def trace(self, ray: mi.Ray3f, active=True):
-        """(hits, shape index) of cache rays: position, geometric normal and shape only
+        """(hits, shape index, preliminary intersection) of cache rays: position, geometric normal and shape only
         (``RayFlags.Minimal``): the cell key needs no more, and the full interaction (for the
         albedo) is computed again for the one representative lane per cell."""
         pi = self.sc.ray_intersect_preliminary(ray, coherent=False, active=active)
-        return pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active), mi.UInt32(pi.shape_index)
+        return pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active), mi.UInt32(pi.shape_index), pi
 
     def _set_rep(self, slots: mi.UInt32, ok: mi.Bool, si: mi.SurfaceInteraction3f, n: mi.Vector3f,
-                 ray: mi.Ray3f) -> None:
+                 ray: mi.Ray3f, pi) -> None:
         """Each touched cell's representative point: the lowest lane that touched it. The albedo
-        (a BSDF call on the full interaction, traced again) is evaluated on the winning lanes only
-        (one per touched cell)."""
+        (a BSDF call on the full interaction, computed from the lane's preliminary intersection)
+        is evaluated on the winning lanes only (one per touched cell)."""
         lane = dr.arange(mi.UInt32, dr.width(slots))
         win = dr.full(mi.UInt32, INVALID, self.slots)
         dr.scatter_reduce(dr.ReduceOp.Min, win, lane, slots, ok)
@@ -197,7 +197,7 @@ class SecondaryCache:
         p = mi.Point3f(*[dr.gather(mi.Float, si.p[c], idx) for c in range(3)])
         nw = mi.Vector3f(*[dr.gather(mi.Float, n[c], idx) for c in range(3)])
         rw = dr.gather(mi.Ray3f, ray, idx)
-        sw = self.sc.ray_intersect(rw, True)
+        sw = dr.gather(type(pi), pi, idx).compute_surface_interaction(rw, mi.RayFlags.All, True)
         albedo = mi.Color3f(sw.bsdf().eval_diffuse_reflectance(sw, sw.is_valid()))
         sl = dr.gather(mi.UInt32, slots, idx)
         for j, v in enumerate((p.x, p.y, p.z, nw.x, nw.y, nw.z, albedo.x, albedo.y, albedo.z)):
@@ -207,8 +207,8 @@ class SecondaryCache:
     def touch(self, hits, ray: mi.Ray3f, active: mi.Bool):
         """Cells of the hits ``(si, shape index)`` (from :meth:`trace`) of ``ray`` (inserted when
         new, representative point refreshed). Returns (slots, valid mask)."""
-        si, sidx = hits
-        dr.eval(si, sidx)             # once: else every kernel below would trace the rays again
+        si, sidx, pi = hits
+        dr.eval(si, sidx, pi)         # once: else every kernel below would trace the rays again
         ok = active & si.is_valid()
         key, home, nf = self.key_of(si, ray.d, sidx)
         dr.eval(ok, nf)
@@ -216,7 +216,7 @@ class SecondaryCache:
         slots = self.find_or_insert(key, home, ok)
         self.laps.lap("touch_find")
         ok &= slots != INVALID
-        self._set_rep(slots, ok, si, nf, ray)
+        self._set_rep(slots, ok, si, nf, ray, pi)
         self.laps.lap("touch_rep")
         return slots, ok
 
@@ -414,9 +414,10 @@ class SecondaryCache:
             sil = dr.gather(mi.SurfaceInteraction3f, si, c_of)
             d = sil.sh_frame.to_world(mi.warp.square_to_cosine_hemisphere(u))
             ray = sil.spawn_ray(d)
-            hit, hsh = self.trace(ray)
-            self.laps.lap("sec_rays", hit, hsh)
-            hit_slots, hok = self.touch((hit, hsh), ray, mi.Bool(True))
+            hits = self.trace(ray)
+            hit = hits[0]
+            self.laps.lap("sec_rays", *hits)
+            hit_slots, hok = self.touch(hits, ray, mi.Bool(True))
             hok &= dr.dot(hit.n, d) != 0.0
             next_ring = dr.gather(mi.UInt32, ring, c_of) + 1
             dr.scatter_reduce(dr.ReduceOp.Min, self.pending, next_ring, hit_slots, hok & (next_ring <= B))
