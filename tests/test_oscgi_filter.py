@@ -1,17 +1,23 @@
-"""The spatial filter of osc-gi (slc/oscgi/spatial.py) on a field with a closed form: inside the
+"""New entries seeded from finer levels (at the end), and the spatial filter of osc-gi
+(slc/oscgi/spatial.py) on a field with a closed form: inside the
 furnace sphere (uniform emission E, albedo rho) the incoming radiance is the same in every
 direction at every point, so a correct filter (weights normalised, parallax-corrected directions
 mapped to the neighbour's texels, the irradiance re-summed) keeps the mean and adds no error."""
 import sys
 from pathlib import Path
 
+import drjit as dr
 import numpy as np
 import pytest
 
-from slc import views
+from slc import methods, views
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_oscgi import _run, furnace  # noqa: E402
+
+
+def methods_create(scene, spec):
+    return methods.create(spec, scene, seed=0)
 
 
 @pytest.fixture(scope="module")
@@ -38,3 +44,30 @@ def test_filter_keeps_a_uniform_field_and_lowers_its_noise(sphere, parallax):
     assert np.abs(filt - raw).max() > 0.0
     e_raw, e_filt = np.abs(raw - expect).mean(), np.abs(filt - expect).mean()
     assert e_filt <= e_raw, (e_filt, e_raw)
+
+
+def test_new_coarser_entries_start_from_their_finer_entries():
+    """Frames at 64x36, then one at 16x9 (coarser cache levels, new entries without a coarser
+    seed): with ``seed_finer`` the new entries start from the mean of the finer entries under
+    them, so that first frame is closer to the reference than a start from nothing."""
+    from slc import check, references
+    from slc.methods import FrameContext
+    from slc.pipeline import gbuffers_for
+    from slc.timing import NullTimer
+    from test_crc import diffuse_cornell
+    s = diffuse_cornell()
+    v = views.single(s)
+    errs = {}
+    for sf in (1, 0):
+        m = methods_create(s, f"osc-gi:output=indirect,seed_finer={sf}")
+        for f in range(8):
+            m.render(FrameContext(f), gbuffers_for(s, v, 0, 64, 36), NullTimer())
+        gbs = gbuffers_for(s, v, 0, 16, 9)
+        out = m.render(FrameContext(8), gbs, NullTimer())
+        img = references.image_of("indirect", gbs[0], out[0])
+        ref = references.reference_for("indirect", s, gbs[0], 0, "seed_finer", spp=256, bounces=2)
+        errs[sf] = float(np.abs(img - ref).mean() / ref.mean())
+        if sf:
+            seeded = int(dr.count(m._finer_seeded)[0])
+    assert seeded > 0, seeded
+    assert errs[1] < errs[0], errs

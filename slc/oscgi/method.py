@@ -94,6 +94,7 @@ class OSCGI(PayloadMethod):
               lo=0, hi=1 << 24),
         Param("secondary_evict", 4, "free secondary cells unused for this many frames (0: never)", lo=0, hi=1 << 16),
         Param("shape_key", True, "secondary cells keyed by shape too (no sharing across shapes)"),
+        Param("seed_finer", True, "new entries without a coarser seed start from their finer level's entries"),
         Param("filter_radius", 0, "spatial filter radius in texels inside islands (0: off; the slides: 3)",
               lo=0, hi=8),
         Param("filter_angle", 25.0, "spatial filter: largest normal difference and parallax turn [deg]",
@@ -158,7 +159,21 @@ class OSCGI(PayloadMethod):
         seed_slot = dr.gather(mi.UInt32, fr.seed_slot, e)
         seeded = is_new & (seed_slot != INVALID)
         slot = dr.gather(mi.UInt32, fr.active, e)
-        c_old = dr.select(is_new, dr.select(seeded, 1.0, 0.0), dr.gather(mi.Float, self.storage, slot * W + 3 * D + 3))
+        # ------- new entries without a coarser seed: the mean of their finer entries, if any -------
+        kids = self._finer_seeds(fr)
+        n_kids = sum(dr.select(dr.gather(mi.UInt32, kd, e) != INVALID, 1.0, 0.0) for kd in kids)
+        fine = is_new & ~seeded & (n_kids > 0.0)
+        self._finer_seeded = dr.gather(mi.Bool, fine, dr.arange(mi.UInt32, N) * D)   # per entry (tests)
+        fine_old = []
+        for ch in range(3):
+            acc = mi.Float(0.0)
+            for kd in kids:
+                ks = dr.gather(mi.UInt32, kd, e)
+                acc += dr.gather(mi.Float, self.storage, ks * W + k * 3 + ch, fine & (ks != INVALID))
+            fine_old.append(acc * dr.rcp(dr.maximum(n_kids, 1.0)))
+        dr.eval(*fine_old, fine)
+        c_old = dr.select(is_new, dr.select(seeded | fine, 1.0, 0.0),
+                          dr.gather(mi.Float, self.storage, slot * W + 3 * D + 3))
         c = mi.UInt32(c_old) + 1                                     # this update's number
         full = dr.gather(mi.UInt32, rays, e) >= D
         traced = full | ((k % S) == (c % S))
@@ -238,7 +253,7 @@ class OSCGI(PayloadMethod):
         a = dr.select(traced & ~(empty & (c_k > 1.0)), dr.rcp(dr.minimum(c_k, float(self.n_max))), 0.0)
         new = []
         for ch in range(3):
-            old = dr.gather(mi.Float, self.storage, src * W + k * 3 + ch, keep)
+            old = dr.select(fine, fine_old[ch], dr.gather(mi.Float, self.storage, src * W + k * 3 + ch, keep))
             new.append(dr.fma(a, dr.select(traced, sample[ch], old) - old, old))
         E = [dr.block_sum(x, D) * G.texel_weight for x in new]      # per entry: (pi/R^2) sum_k L_k
         # the mean inverse hit distance, EMA over updates (the seed's value for a seeded entry)
@@ -257,6 +272,33 @@ class OSCGI(PayloadMethod):
         dr.scatter(self.storage, d_new, fr.active * W + 3 * D + 4)
         laps.lap("primary_ema", self.storage)
         return dr.zeros(mi.Bool, N)
+
+    def _finer_seeds(self, fr) -> list:
+        """Per active entry, the slots of the 4 entries of the next finer level covering it
+        (INVALID where absent, not mapped, new this frame, never updated, or where the entry is
+        not new, has a coarser seed or is at level 0): the slides seed new entries from the
+        adjacent levels, coarser and finer; the on-surface cache gives the coarser one."""
+        N, W, D = fr.n_active, self.words, self.grid.n
+        L, pool = getattr(self.cache, "layout", None), getattr(self.cache, "pool", None)
+        if not self.seed_finer or L is None or pool is None:
+            return []
+        new_now = dr.zeros(mi.Bool, dr.width(self.storage) // W)     # entries new this frame
+        dr.scatter(new_now, True, fr.active, fr.is_new)
+        isl, lvl, tx, ty = pool.entry_texels(fr.active)
+        need = fr.is_new & (fr.seed_slot == INVALID) & (lvl > 0)
+        key = isl * L.levels + dr.maximum(lvl, 1) - 1
+        wl, hl = L.key_extent(key, need)
+        kids = []
+        for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+            cx, cy = tx * 2 + dx, ty * 2 + dy
+            m = need & (mi.Int32(cx) < wl) & (mi.Int32(cy) < hl)
+            sl = pool.slot(L.vblock(key, cx, cy, m), L.within(cx, cy), m)
+            m &= sl != INVALID
+            m &= ~dr.gather(mi.Bool, new_now, sl, m)
+            m &= dr.gather(mi.Float, self.storage, sl * W + 3 * D + 3, m) > 0.0
+            kids.append(dr.select(m, sl, INVALID))
+        dr.eval(*kids)
+        return kids
 
     # ------------------------------------------------------------------ shade
     def shade_all(self, ctx, fr, gbuffers):
