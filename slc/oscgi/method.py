@@ -262,7 +262,7 @@ class OSCGI(PayloadMethod):
         src_e = dr.select(dr.gather(mi.Bool, seeded, dr.arange(mi.UInt32, N) * D), fr.seed_slot, fr.active)
         keep_e = ~fr.is_new | (fr.seed_slot != INVALID)
         d_old = dr.gather(mi.Float, self.storage, src_e * W + 3 * D + 4, keep_e)
-        a_e = dr.select(n_e > 0.0, dr.rcp(dr.minimum(c_e, float(self.n_max))), 0.0)
+        a_e = dr.select(n_e > 0.0, dr.select(keep_e, dr.rcp(dr.minimum(c_e, float(self.n_max))), 1.0), 0.0)
         d_new = dr.fma(a_e, s_e * dr.rcp(dr.maximum(n_e, 1.0)) - d_old, d_old)
         dr.eval(*new, *E, cnt, d_new)
         for ch in range(3):
