@@ -38,13 +38,20 @@ if __name__ == "__main__" and __package__ is None:  # runnable alone
 
 NAME = "osc-gi"
 
+FILTER_ABLATIONS = ["osc-gi:filter_radius=3", "osc-gi:filter_radius=3,parallax=0",
+                    "osc-gi:output=indirect,filter_radius=3", "osc-gi:output=indirect,filter_radius=3,parallax=0"]
+# overlap: the rig's target (calibrated on another cache): 0.75 measured 76% with osc-gi's cache at
+# 16 viewers on cornell (0.7: 55%, 0.8: 80%), inside the target's 60-80%
 FULL = dict(scenes=["cornell", "atrium"], width=160, height=90, frames=24, warmup=8, eval_frames=[23],
-            ref_spp=256, pt_spp=[1, 2, 4, 8, 16, 32], viewers=[1, 4, 16], overlap=0.7, multi_res=(64, 36),
-            multi_frames=10, ablations=["osc-gi:secondary_cm=15", "osc-gi:secondary_cm=60", "osc-gi:bounces=1",
-                                        "osc-gi:bounces=3", "osc-gi:shape_key=0"])
+            ref_spp=256, pt_spp=[1, 2, 4, 8, 16, 32], viewers=[1, 4, 16], overlap=0.75, multi_res=(64, 36),
+            multi_frames=10, ablations=FILTER_ABLATIONS + ["osc-gi:secondary_cm=15", "osc-gi:secondary_cm=60",
+                                                           "osc-gi:bounces=1", "osc-gi:bounces=3", "osc-gi:shape_key=0"],
+            memory_res=[(64, 36), (128, 72), (256, 144), (480, 270)])
 QUICK = dict(scenes=["cornell"], width=64, height=36, frames=8, warmup=3, eval_frames=[7],
-             ref_spp=64, pt_spp=[1, 2, 4, 8, 16], viewers=[1, 4, 16], overlap=0.7, multi_res=(32, 18), multi_frames=6,
-             ablations=["osc-gi:secondary_cm=60", "osc-gi:bounces=1"])
+             ref_spp=64, pt_spp=[1, 2, 4, 8, 16], viewers=[1, 4, 16], overlap=0.75, multi_res=(32, 18), multi_frames=6,
+             ablations=FILTER_ABLATIONS + ["osc-gi:secondary_cm=60", "osc-gi:bounces=1"],
+             memory_res=[(64, 36), (128, 72), (256, 144)])
+SLIDES_1080P_MB = (300, 700)        # the slides' single-viewer memory at 1080p (GPU)
 CACHE_STAGES = ("requests", "allocate", "queue")
 
 
@@ -57,6 +64,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-multi", action="store_true", help="skip the multi-viewer runs")
     p.add_argument("--no-ablations", action="store_true", help="skip the ablations")
     p.add_argument("--only-multi", action="store_true", help="run the multi-viewer part only")
+    p.add_argument("--no-memory", action="store_true", help="skip the memory-against-resolution runs")
     p.add_argument("--laps", action="store_true",
                    help="one more osc-gi run with the update's sub-stage clock (host syncs between stages)")
     p.add_argument("--seed", type=int, default=0)
@@ -98,6 +106,41 @@ def _reuse_plot(path, hist, title):
     plt.close(fig)
 
 
+def _memory_scaling(s, v, resolutions, seed) -> list:
+    """osc-gi's memory at several resolutions (one viewer, 3 frames): the primary caches (the
+    on-surface cache + payloads of the allocated entries), the secondary cells in use and the
+    secondary table; a least-squares line in the pixel count through the primary + secondary
+    figures, evaluated at 1920 x 1080 (the slides' single-viewer 300-700 MB)."""
+    import numpy as np
+
+    from slc import methods
+    from slc.pipeline import RunConfig, run_sequence
+    out = []
+    for w, h in resolutions:
+        m = methods.create("osc-gi", s, seed=seed)
+        run_sequence(s, m, v, RunConfig(width=w, height=h, frames=3, warmup=1, eval_frames=[], seed=seed,
+                                        measure_overlap=False))
+        prim, sec = m.memory_log[-1]
+        out.append({"scene": s.name, "resolution": f"{w}x{h}", "pixels": w * h,
+                    "entries": int(m.cache.entries_allocated()), "primary_mb": prim / 2 ** 20,
+                    "secondary_mb": sec / 2 ** 20, "secondary_table_mb": m.secondary.memory_bytes() / 2 ** 20,
+                    "transient_filter_mb": 0.0 if m.filter.r <= 0 else 4 * dr_width(m.storage) / 2 ** 20})
+    px = np.array([r["pixels"] for r in out], dtype=np.float64)
+    y = np.array([r["primary_mb"] + r["secondary_mb"] for r in out])
+    if len(out) >= 2:
+        slope, icpt = np.polyfit(px, y, 1)
+        est = float(slope * 1920 * 1080 + icpt)
+        for r in out:
+            r["estimate_1080p_mb"] = est
+            r["estimate_1080p_with_table_mb"] = est + r["secondary_table_mb"]
+    return out
+
+
+def dr_width(x) -> int:
+    import drjit as dr
+    return dr.width(x)
+
+
 def run(opts) -> dict:
     import dataclasses
 
@@ -120,7 +163,7 @@ def run(opts) -> dict:
     for spec in main_specs + ind_specs + abl_specs:      # bad specs stop the run before any work
         methods.parse_spec(spec)
 
-    rows, multi, hists, laps = [], [], {}, {}
+    rows, multi, hists, laps, memory = [], [], {}, {}, []
     n_runs = len(names) * (len(main_specs) + len(ind_specs) + len(abl_specs))
     with tqdm(total=n_runs * preset["frames"], desc=NAME, unit="frame", disable=None) as bar:
         for s in experiment.each_scene(names):
@@ -192,7 +235,7 @@ def run(opts) -> dict:
                     res = run_sequence(s, m, vs, mcfg)
                     r = {"scene": s.name, "viewers": n, "target_overlap": preset["overlap"], "time_ms": res.time_ms,
                          "measured_overlap": res.stats.get("measured_overlap"), "memory_mb": res.memory_mb,
-                         "entries": res.stats.get("active_entries"), "secondary_cells": res.stats.get("secondary_cells"),
+                         "memory_per_viewer_mb": res.memory_mb / n, "entries": res.stats.get("active_entries"), "secondary_cells": res.stats.get("secondary_cells"),
                          "method": "osc-gi", "resolution": f"{mw}x{mh}",
                          "compiled_after_warmup": res.compiled_after_warmup, **_split(res.stages)}
                     multi.append(r)
@@ -205,6 +248,10 @@ def run(opts) -> dict:
                                                 f"{s.name}: osc-gi, {mw}x{mh} per viewer, overlap "
                                                 f"{preset['overlap']:.0%}")
 
+            # ------------------- memory against resolution, extrapolated to 1080p -------------------
+            if not getattr(opts, "no_memory", False) and not opts.only_multi:
+                memory.extend(_memory_scaling(s, v, preset["memory_res"], opts.seed))
+
     # ------------------------------------------- report -------------------------------------------
     config = {"quick": bool(opts.quick), "scenes": names, **{k: v for k, v in preset.items() if k != "scenes"},
               "seed": opts.seed,
@@ -216,6 +263,8 @@ def run(opts) -> dict:
     results = experiment.results_object(NAME, config, experiment.strip_private(all_rows))
     if laps:
         results["update_laps_ms"] = laps
+    if memory:
+        results["memory_scaling"] = memory
     cols = [("scene", "scene"), ("group", "group"), ("setting", "method"), ("time_ms", "t [ms]"),
             ("cache_ms", "cache"), ("effect_ms", "effect"), ("display_ms", "display"), ("flip", "FLIP"),
             ("psnr", "PSNR"), ("ssim", "SSIM"), ("pt_flip_equal_time", "PT FLIP @ equal t"),
@@ -232,7 +281,27 @@ def run(opts) -> dict:
         md += ("\n## Multi-viewer\n\n" + experiment.markdown_table(
             multi, [("scene", "scene"), ("viewers", "viewers"), ("measured_overlap", "measured overlap %"),
                     ("time_ms", "t [ms]"), ("time_vs_one", "t / 1 viewer"), ("entries", "entries"),
-                    ("secondary_cells", "secondary cells"), ("memory_mb", "memory [MB]")]) + "\n")
+                    ("secondary_cells", "secondary cells"), ("memory_mb", "memory [MB]"),
+                    ("memory_per_viewer_mb", "memory / viewer [MB]")]) + "\n")
+    st_rows = [r for r in rows if r["family"] == "osc-gi" and r["group"] in ("full", "indirect")]
+    if st_rows:
+        md += ("\n## Where the frame time goes (osc-gi; wall ms per stage / of which kernel execution; the rest "
+               "is host time: Python tracing of the kernels, launches, syncs)\n\n")
+        for r in st_rows:
+            st, kk = r.get("stages_ms", {}), r.get("stages_kernel_ms", {})
+            md += (f"- {r['scene']} {r['setting']}: " + ", ".join(
+                f"{k} {st.get(k, 0.0):.1f} / {kk.get(k, 0.0):.1f}" for k in ("requests", "allocate", "queue", "update",
+                                                                            "shade")) + "\n")
+        for r in rows:
+            if r["family"] == "pt" and r["group"] == "full":
+                md += (f"- {r['scene']} {r['setting']}: shade {r['stages_ms'].get('shade', 0.0):.1f} / "
+                       f"{r.get('stages_kernel_ms', {}).get('shade', 0.0):.1f}\n")
+    if memory:
+        md += ("\n## Memory against resolution (one viewer, 3 frames)\n\n" + experiment.markdown_table(
+            memory, [("scene", "scene"), ("resolution", "resolution"), ("entries", "entries"),
+                     ("primary_mb", "primary MB"), ("secondary_mb", "secondary MB in use"),
+                     ("secondary_table_mb", "secondary table MB"),
+                     ("estimate_1080p_mb", "1080p estimate MB (primary + secondary in use)")]) + "\n")
     for name, lp in laps.items():
         md += (f"\n## Update sub-stages, {name} (ms per frame after warm-up, separate run with host syncs)\n\n"
                + ", ".join(f"{k} {x:.1f}" for k, x in lp.items()) + "\n")
@@ -243,8 +312,10 @@ def run(opts) -> dict:
         crc = next((x for x in rows if x["scene"] == name and x["setting"] == "crc"), None)
         m16 = next((x for x in multi if x["scene"] == name and x["viewers"] == 16), None)
         if m16:
-            md += (f"- {name}: 16 viewers at {m16['measured_overlap'] or 0:.0f}% measured overlap cost "
-                   f"{m16['time_vs_one']:.2f}x one viewer (target <= 4)\n")
+            ov = m16['measured_overlap'] or 0
+            md += (f"- {name}: 16 viewers at {ov:.0f}% measured overlap cost "
+                   f"{m16['time_vs_one']:.2f}x one viewer (target <= 4 at 60-80% overlap"
+                   + ("" if 60 <= ov <= 80 else ": overlap outside that range") + ")\n")
         if r is None:
             continue
         ratio = r.get("flip_vs_pt_equal_time")
@@ -254,6 +325,12 @@ def run(opts) -> dict:
         if ri is not None and crc is not None:
             md += (f"- {name}, indirect light: osc-gi FLIP {ri['flip']:.4f} vs crc {crc['flip']:.4f} "
                    f"(target: lower)\n")
+        mem = next((x for x in memory if x["scene"] == name and "estimate_1080p_mb" in x), None)
+        if mem:
+            md += (f"- {name}: memory per viewer at 1080p (linear in pixels from {memory[0]['resolution']}-"
+                   f"{[x for x in memory if x['scene'] == name][-1]['resolution']}): {mem['estimate_1080p_mb']:.0f} MB "
+                   f"+ the secondary table {mem['secondary_table_mb']:.0f} MB (slides: {SLIDES_1080P_MB[0]}-"
+                   f"{SLIDES_1080P_MB[1]} MB on GPU)\n")
         if hists.get(name):
             h = hists[name]
             md += f"- {name}: secondary reuse, mean {h['mean']:.1f} primary rays per cell (max {h['max']})\n"

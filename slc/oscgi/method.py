@@ -15,6 +15,7 @@ from ..osc.payload import PayloadMethod, RayPolicy
 from .hemisphere import HemiGrid
 from .laps import Laps
 from .secondary import SecondaryCache
+from .spatial import SpatialFilter
 
 STREAM_PRIMARY = 0x05C61001
 STREAM_PRIMARY_DIRECT = 0x05C61002
@@ -23,12 +24,13 @@ INITIAL_ENTRIES = 1 << 14     # the pool starts small and doubles on demand (ent
 
 
 def _cache_params():
-    """The on-surface cache's settings with the slides' defaults: 2x2 blocks ("reduced block size
-    to 2x2 instead of 8x8") and mip bias 2 (one entry per about 2x2 pixels)."""
+    """The on-surface cache's settings: mip bias 2 as in the slides (one entry per about 2x2
+    pixels) and 4x4 blocks (the slides: 2x2; the cache's per-frame request flag spans every
+    virtual block, 4x more of them at 2x2: see docs/osc-gi.md)."""
     out = []
     for p in PayloadMethod.cache_params:
         if p.name == "block":
-            p = Param("block", 2, p.help, choices=p.choices)
+            p = Param("block", 4, p.help, choices=p.choices)
         elif p.name == "bias":
             p = Param("bias", 2.0, p.help, lo=p.lo, hi=p.hi)
         out.append(p)
@@ -92,13 +94,20 @@ class OSCGI(PayloadMethod):
               lo=0, hi=1 << 24),
         Param("secondary_evict", 4, "free secondary cells unused for this many frames (0: never)", lo=0, hi=1 << 16),
         Param("shape_key", True, "secondary cells keyed by shape too (no sharing across shapes)"),
+        Param("seed_finer", True, "new entries without a coarser seed start from their finer level's entries"),
+        Param("filter_radius", 0, "spatial filter radius in texels inside islands (0: off; the slides: 3)",
+              lo=0, hi=8),
+        Param("filter_angle", 25.0, "spatial filter: largest normal difference and parallax turn [deg]",
+              lo=0.0, hi=90.0),
+        Param("parallax", True, "spatial filter: parallax-corrected directions"),
     ) + _cache_params()
     storage_type = mi.Float
 
     def __init__(self, scene, **kw):
         super().__init__(scene, **kw)
         self.grid = HemiGrid(self.hemi)
-        self.words = 3 * self.grid.n + 4           # radiance per texel, irradiance, count
+        self.words = 3 * self.grid.n + 5           # radiance per texel, irradiance, count, mean 1/t
+        self.filter = SpatialFilter(self.filter_radius, self.filter_angle, self.parallax)
         self.label = None if self.output == "full" else "osc-gi:output=indirect"
 
     def validate(self):
@@ -150,36 +159,63 @@ class OSCGI(PayloadMethod):
         seed_slot = dr.gather(mi.UInt32, fr.seed_slot, e)
         seeded = is_new & (seed_slot != INVALID)
         slot = dr.gather(mi.UInt32, fr.active, e)
-        c_old = dr.select(is_new, dr.select(seeded, 1.0, 0.0), dr.gather(mi.Float, self.storage, slot * W + 3 * D + 3))
+        # ------- new entries without a coarser seed: the mean of their finer entries, if any -------
+        kids = self._finer_seeds(fr)
+        n_kids = sum(dr.select(dr.gather(mi.UInt32, kd, e) != INVALID, 1.0, 0.0) for kd in kids)
+        fine = is_new & ~seeded & (n_kids > 0.0)
+        self._finer_seeded = dr.gather(mi.Bool, fine, dr.arange(mi.UInt32, N) * D)   # per entry (tests)
+        fine_old = []
+        for ch in range(3):
+            acc = mi.Float(0.0)
+            for kd in kids:
+                ks = dr.gather(mi.UInt32, kd, e)
+                acc += dr.gather(mi.Float, self.storage, ks * W + k * 3 + ch, fine & (ks != INVALID))
+            fine_old.append(acc * dr.rcp(dr.maximum(n_kids, 1.0)))
+        dr.eval(*fine_old, fine)
+        c_old = dr.select(is_new, dr.select(seeded | fine, 1.0, 0.0),
+                          dr.gather(mi.Float, self.storage, slot * W + 3 * D + 3))
         c = mi.UInt32(c_old) + 1                                     # this update's number
         full = dr.gather(mi.UInt32, rays, e) >= D
         traced = full | ((k % S) == (c % S))
-        si = dr.zeros(mi.SurfaceInteraction3f, N * D)                 # only what spawn_ray needs
-        si.p = mi.Point3f(*[dr.gather(mi.Float, fr.si.p[c], e) for c in range(3)])
-        si.n = mi.Vector3f(*[dr.gather(mi.Float, fr.si.n[c], e) for c in range(3)])
-        n_sh = mi.Vector3f(*[dr.gather(mi.Float, fr.si.sh_frame.n[c], e) for c in range(3)])
-        s = keyed_rng(dr.gather(mi.UInt32, fr.keys, e) * D + k, self.seed, ctx.frame, STREAM_PRIMARY)
-        d = mi.Frame3f(n_sh).to_world(G.direction(k, mi.Point2f(s.next_float32(), s.next_float32())))
-        ok = traced & (dr.dot(d, si.n) > 0.0)           # this update's texels, above the geometric surface
-        hit = sc.ray_intersect(si.spawn_ray(d), ok)
-        laps.lap("primary_rays", hit)
+        dr.eval(traced, c_old)
+        # ---- only this update's texels from here on (a compact lane list tl into the N x D lanes) ----
+        tl = dr.compress(traced)
+        et, kt = tl // D, tl % D
+        si = dr.zeros(mi.SurfaceInteraction3f, dr.width(tl))          # only what spawn_ray needs
+        si.p = mi.Point3f(*[dr.gather(mi.Float, fr.si.p[c], et) for c in range(3)])
+        si.n = mi.Vector3f(*[dr.gather(mi.Float, fr.si.n[c], et) for c in range(3)])
+        n_sh = mi.Vector3f(*[dr.gather(mi.Float, fr.si.sh_frame.n[c], et) for c in range(3)])
+        s = keyed_rng(dr.gather(mi.UInt32, fr.keys, et) * D + kt, self.seed, ctx.frame, STREAM_PRIMARY)
+        d = mi.Frame3f(n_sh).to_world(G.direction(kt, mi.Point2f(s.next_float32(), s.next_float32())))
+        ok = dr.dot(d, si.n) > 0.0                      # above the geometric surface
+        ray = si.spawn_ray(d)
+        hits = sec.trace(ray, ok)            # (interaction, shape index, preliminary intersection)
+        hit = hits[0]
+        laps.lap("primary_rays", *hits)
 
         # ------------- secondary caches: cells of the hits, requests, update (all shared) -------------
         req = sec.begin_frame(ctx.frame)              # eviction first: slots move in a rebuild
-        slots, hok = sec.touch(hit, d, ok)
+        slots, hok = sec.touch(hits, ray, ok)
         sec.request(req, slots, hok, 1)
         sec.record_reuse(slots, hok)
         laps.lap("secondary_lookup", slots, hok, req)
         sec.update(ctx.frame, req)
         laps.lap("secondary_update")
-        sample = sec.radiance(slots, hok)              # outgoing radiance of the hit's cell
+        Lc = sec.radiance(slots, hok)                  # outgoing radiance of the hit's cell
         # a hit cell never updated yet (over the budget) holds no value: the texel is not blended
         # (it keeps its value) rather than pulled towards 0, unless it has no value yet either
-        empty = hok & ~sec.updated_once(slots, hok)
-        dr.eval(sample, empty)
+        sample = [dr.zeros(mi.Float, N * D) for _ in range(3)]
+        empty = dr.zeros(mi.Bool, N * D)
+        for ch in range(3):
+            dr.scatter(sample[ch], Lc[ch], tl)
+        dr.scatter(empty, hok & ~sec.updated_once(slots, hok), tl)
+        # mean inverse hit distance of the entry's rays this update (a miss: 0), for the filter
+        inv_t, n_t = dr.zeros(mi.Float, N * D), dr.zeros(mi.Float, N * D)
+        dr.scatter(inv_t, dr.select(hit.is_valid(), dr.rcp(dr.maximum(hit.t, 1e-6)), 0.0), tl, ok)
+        dr.scatter(n_t, 1.0, tl, ok)
+        dr.eval(*sample, empty, inv_t, n_t)
 
         # ----------------- direct light (output=full): light samples binned into texels -----------------
-        sample = [sample[c] for c in range(3)]
         if self.output == "full":
             scratch = dr.zeros(mi.Float, N * D * 3)
             sie, frame_e = fr.si, mi.Frame3f(fr.si.sh_frame.n)
@@ -217,18 +253,67 @@ class OSCGI(PayloadMethod):
         a = dr.select(traced & ~(empty & (c_k > 1.0)), dr.rcp(dr.minimum(c_k, float(self.n_max))), 0.0)
         new = []
         for ch in range(3):
-            old = dr.gather(mi.Float, self.storage, src * W + k * 3 + ch, keep)
+            old = dr.select(fine, fine_old[ch], dr.gather(mi.Float, self.storage, src * W + k * 3 + ch, keep))
             new.append(dr.fma(a, dr.select(traced, sample[ch], old) - old, old))
         E = [dr.block_sum(x, D) * G.texel_weight for x in new]      # per entry: (pi/R^2) sum_k L_k
-        dr.eval(*new, *E, cnt)
+        # the mean inverse hit distance, EMA over updates (the seed's value for a seeded entry)
+        n_e, s_e = dr.block_sum(n_t, D), dr.block_sum(inv_t, D)
+        c_e = dr.gather(mi.Float, c_old, dr.arange(mi.UInt32, N) * D) + 1.0
+        src_e = dr.select(dr.gather(mi.Bool, seeded, dr.arange(mi.UInt32, N) * D), fr.seed_slot, fr.active)
+        keep_e = ~fr.is_new | (fr.seed_slot != INVALID)
+        d_old = dr.gather(mi.Float, self.storage, src_e * W + 3 * D + 4, keep_e)
+        a_e = dr.select(n_e > 0.0, dr.select(keep_e, dr.rcp(dr.minimum(c_e, float(self.n_max))), 1.0), 0.0)
+        d_new = dr.fma(a_e, s_e * dr.rcp(dr.maximum(n_e, 1.0)) - d_old, d_old)
+        dr.eval(*new, *E, cnt, d_new)
         for ch in range(3):
             dr.scatter(self.storage, new[ch], slot * W + k * 3 + ch)
             dr.scatter(self.storage, E[ch], fr.active * W + 3 * D + ch)
         dr.scatter(self.storage, cnt, slot * W + 3 * D + 3, k == 0)
+        dr.scatter(self.storage, d_new, fr.active * W + 3 * D + 4)
         laps.lap("primary_ema", self.storage)
         return dr.zeros(mi.Bool, N)
 
+    def _finer_seeds(self, fr) -> list:
+        """Per active entry, the slots of the 4 entries of the next finer level covering it
+        (INVALID where absent, not mapped, new this frame, never updated, or where the entry is
+        not new, has a coarser seed or is at level 0): the slides seed new entries from the
+        adjacent levels, coarser and finer; the on-surface cache gives the coarser one."""
+        N, W, D = fr.n_active, self.words, self.grid.n
+        L, pool = getattr(self.cache, "layout", None), getattr(self.cache, "pool", None)
+        if not self.seed_finer or L is None or pool is None:
+            return []
+        new_now = dr.zeros(mi.Bool, dr.width(self.storage) // W)     # entries new this frame
+        dr.scatter(new_now, True, fr.active, fr.is_new)
+        isl, lvl, tx, ty = pool.entry_texels(fr.active)
+        need = fr.is_new & (fr.seed_slot == INVALID) & (lvl > 0)
+        key = isl * L.levels + dr.maximum(lvl, 1) - 1
+        wl, hl = L.key_extent(key, need)
+        kids = []
+        for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+            cx, cy = tx * 2 + dx, ty * 2 + dy
+            m = need & (mi.Int32(cx) < wl) & (mi.Int32(cy) < hl)
+            sl = pool.slot(L.vblock(key, cx, cy, m), L.within(cx, cy), m)
+            m &= sl != INVALID
+            m &= ~dr.gather(mi.Bool, new_now, sl, m)
+            m &= dr.gather(mi.Float, self.storage, sl * W + 3 * D + 3, m) > 0.0
+            kids.append(dr.select(m, sl, INVALID))
+        dr.eval(*kids)
+        return kids
+
     # ------------------------------------------------------------------ shade
+    def shade_all(self, ctx, fr, gbuffers):
+        """Every viewer's pixels; with the spatial filter on (``filter_radius`` > 0), from a
+        filtered copy of the active entries (:class:`~slc.oscgi.spatial.SpatialFilter`, timed with
+        the display), the temporal state left unfiltered."""
+        if self.filter.r <= 0:
+            return super().shade_all(ctx, fr, gbuffers)
+        raw = self.storage
+        self.storage = self.filter.apply(self.cache, raw, fr, self.grid, self.words)
+        try:
+            return super().shade_all(ctx, fr, gbuffers)
+        finally:
+            self.storage = raw
+
     def shade(self, ctx, fr, v, gb):
         G, W, D = self.grid, self.words, self.grid.n
         slot, idx = mi.UInt32(fr.pixel_slot[v]), mi.UInt32(fr.pixel_index[v])

@@ -94,6 +94,13 @@ class SecondaryCache:
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
+        self._alloc()
+        if self.evict_after > 0 and not getattr(self, "_warm", False):
+            self._warm = True           # once per table (reset() is also the eviction's "nothing survives")
+            self._warm_rebuild()
+            self._alloc()
+
+    def _alloc(self) -> None:
         cap = self.slots
         self.keys = dr.full(mi.UInt32, EMPTY, cap)
         self.home = dr.zeros(mi.UInt32, cap)                # home slot of the key (for rebuilds)
@@ -122,15 +129,17 @@ class SecondaryCache:
         return 4 * self.words_per_slot() * self.used_cells()
 
     # ------------------------------------------------------------------ keys
-    def key_of(self, si: mi.SurfaceInteraction3f, d: mi.Vector3f):
-        """(key, home slot, front normal) of hits ``si`` reached along ``d``."""
+    def key_of(self, si: mi.SurfaceInteraction3f, d: mi.Vector3f, shape_index: mi.UInt32):
+        """(key, home slot, front normal) of hits ``si`` reached along ``d`` on the shapes
+        ``shape_index`` (indices into ``scene.shapes()``: the same in every process, unlike the
+        shape pointers)."""
         nf = front_normal(si, d)
         c = mi.Vector3i(dr.floor(si.p / self.h))
         a = dr.abs(nf)
         axis = dr.select((a.x >= a.y) & (a.x >= a.z), 0, dr.select(a.y >= a.z, 1, 2))
         neg = dr.select(axis == 0, nf.x < 0.0, dr.select(axis == 1, nf.y < 0.0, nf.z < 0.0))
         bin_ = mi.UInt32(axis * 2) + dr.select(neg, 1, 0)
-        shape = dr.reinterpret_array(mi.UInt32, si.shape) if self.shape_key else mi.UInt32(0)
+        shape = mi.UInt32(shape_index) if self.shape_key else mi.UInt32(0)
         ux, uy, uz = (dr.reinterpret_array(mi.UInt32, v) for v in (c.x, c.y, c.z))
         k0, _ = mi.sample_tea_32(ux, uy, 4)
         key, home = mi.sample_tea_32(k0 ^ (uz * 0x9E3779B9), bin_ | (shape << 3), 4)
@@ -165,9 +174,18 @@ class SecondaryCache:
         dr.eval(self.home, self.used)
         return found
 
-    def _set_rep(self, slots: mi.UInt32, ok: mi.Bool, si: mi.SurfaceInteraction3f, n: mi.Vector3f) -> None:
+    def trace(self, ray: mi.Ray3f, active=True):
+        """(hits, shape index, preliminary intersection) of cache rays: position, geometric normal and shape only
+        (``RayFlags.Minimal``): the cell key needs no more, and the full interaction (for the
+        albedo) is computed again for the one representative lane per cell."""
+        pi = self.sc.ray_intersect_preliminary(ray, coherent=False, active=active)
+        return pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active), mi.UInt32(pi.shape_index), pi
+
+    def _set_rep(self, slots: mi.UInt32, ok: mi.Bool, si: mi.SurfaceInteraction3f, n: mi.Vector3f,
+                 ray: mi.Ray3f, pi) -> None:
         """Each touched cell's representative point: the lowest lane that touched it. The albedo
-        (a BSDF call) is evaluated on the winning lanes only (one per touched cell)."""
+        (a BSDF call on the full interaction, computed from the lane's preliminary intersection)
+        is evaluated on the winning lanes only (one per touched cell)."""
         lane = dr.arange(mi.UInt32, dr.width(slots))
         win = dr.full(mi.UInt32, INVALID, self.slots)
         dr.scatter_reduce(dr.ReduceOp.Min, win, lane, slots, ok)
@@ -176,26 +194,29 @@ class SecondaryCache:
         idx = dr.compress(w)
         if dr.width(idx) == 0:
             return
-        sw = dr.gather(mi.SurfaceInteraction3f, si, idx)
+        p = mi.Point3f(*[dr.gather(mi.Float, si.p[c], idx) for c in range(3)])
         nw = mi.Vector3f(*[dr.gather(mi.Float, n[c], idx) for c in range(3)])
-        albedo = mi.Color3f(sw.bsdf().eval_diffuse_reflectance(sw, True))
+        rw = dr.gather(mi.Ray3f, ray, idx)
+        sw = dr.gather(type(pi), pi, idx).compute_surface_interaction(rw, mi.RayFlags.All, True)
+        albedo = mi.Color3f(sw.bsdf().eval_diffuse_reflectance(sw, sw.is_valid()))
         sl = dr.gather(mi.UInt32, slots, idx)
-        for j, v in enumerate((sw.p.x, sw.p.y, sw.p.z, nw.x, nw.y, nw.z, albedo.x, albedo.y, albedo.z)):
+        for j, v in enumerate((p.x, p.y, p.z, nw.x, nw.y, nw.z, albedo.x, albedo.y, albedo.z)):
             dr.scatter(self.rep, v, sl * _REP + j)
         dr.eval(self.rep)
 
-    def touch(self, si: mi.SurfaceInteraction3f, d: mi.Vector3f, active: mi.Bool):
-        """Cells of the hits ``si`` of rays along ``d`` (inserted when new, representative point
-        refreshed). Returns (slots, valid mask)."""
-        dr.eval(si)                   # once: else every kernel below would trace the rays again
+    def touch(self, hits, ray: mi.Ray3f, active: mi.Bool):
+        """Cells of the hits ``(si, shape index)`` (from :meth:`trace`) of ``ray`` (inserted when
+        new, representative point refreshed). Returns (slots, valid mask)."""
+        si, sidx, pi = hits
+        dr.eval(si, sidx, pi)         # once: else every kernel below would trace the rays again
         ok = active & si.is_valid()
-        key, home, nf = self.key_of(si, d)
+        key, home, nf = self.key_of(si, ray.d, sidx)
         dr.eval(ok, nf)
         self.laps.lap("touch_key", key, home)
         slots = self.find_or_insert(key, home, ok)
         self.laps.lap("touch_find")
         ok &= slots != INVALID
-        self._set_rep(slots, ok, si, nf)
+        self._set_rep(slots, ok, si, nf, ray, pi)
         self.laps.lap("touch_rep")
         return slots, ok
 
@@ -225,17 +246,11 @@ class SecondaryCache:
         """Free the cells not touched in the last ``evict_after`` frames by rebuilding the table
         with the others (see the module); returns the number freed."""
         live = self.keys != EMPTY
-        f = dr.opaque(mi.UInt32, self.frame)
-        old = live & (f - self.used > self.evict_after) & (self.used < f)   # K whole frames unused
+        old = self._old(live)
         n_live, n_old = int(dr.count(live)[0]), int(dr.count(old)[0])
         cap = int(self.slots * self.max_load)
         if n_live - n_old > cap:
-            # ------- over the load cap: also free the least recently touched (then lowest slot) -------
-            idx = np.asarray(dr.compress(live & ~old), dtype=np.int64)
-            u = np.asarray(dr.gather(mi.UInt32, self.used, mi.UInt32(idx.astype(np.uint32))), dtype=np.int64)
-            drop = idx[np.lexsort((idx, u))[: n_live - n_old - cap]]
-            dr.scatter(old, True, mi.UInt32(np.sort(drop).astype(np.uint32)))
-            n_old += drop.size
+            n_old += self._drop_least_recent(live, old, n_live - n_old - cap)
         if n_old == 0:
             return 0
         keep = dr.compress(live & ~old)
@@ -244,6 +259,31 @@ class SecondaryCache:
             self.reset()
             self._overflow, self.evicted, self.frame = ov, n_old, frame
             return n_old
+        self._rebuild(keep)
+        self.evicted = n_old
+        return n_old
+
+    def _old(self, live: mi.Bool) -> mi.Bool:
+        """Live cells not touched in the last ``evict_after`` whole frames."""
+        f = dr.opaque(mi.UInt32, self.frame)
+        return live & (f - self.used > self.evict_after) & (self.used < f)
+
+    def _drop_least_recent(self, live: mi.Bool, old: mi.Bool, n: int) -> int:
+        """Over the load cap: mark (in ``old``) the ``n`` least recently touched live cells that
+        are not old yet (then lowest slot); returns how many were marked."""
+        idx = np.asarray(dr.compress(live & ~old), dtype=np.int64)
+        u = np.asarray(dr.gather(mi.UInt32, self.used, mi.UInt32(idx.astype(np.uint32))), dtype=np.int64)
+        drop = idx[np.lexsort((idx, u))[:n]]
+        dr.scatter(old, True, mi.UInt32(np.sort(drop).astype(np.uint32)))
+        return int(drop.size)
+
+    def _rebuild(self, keep: mi.UInt32) -> None:
+        """An empty table with the cells at slots ``keep`` (evaluated, ascending) re-inserted and
+        their data moved; every other slot in its reset state."""
+        # every array in memory (a literal one, e.g. ``pending`` with one bounce, would fold into the
+        # gathers below and give another kernel than the one built by _warm_rebuild)
+        dr.make_opaque(self.home, self.used, self.stamp, self.count, self.pending, self._reuse_count, self.rep,
+                       self.layers)
         per_slot = [(self.home, 1), (self.used, 1), (self.stamp, 1), (self.count, 1), (self.pending, 1),
                     (self._reuse_count, 1), (self.rep, _REP), (self.layers, 3 * self.B)]
         data = [(type(a), [dr.gather(type(a), a, keep * w + j) for j in range(w)], w) for a, w in per_slot]
@@ -265,8 +305,31 @@ class SecondaryCache:
         dr.eval(*fresh)
         (self.home, self.used, self.stamp, self.count, self.pending, self._reuse_count, self.rep,
          self.layers) = fresh
-        self.evicted = n_old
-        return n_old
+
+    def _warm_rebuild(self) -> None:
+        """Build the kernels of an eviction (the selection of old cells, the over-cap selection
+        and the rebuild) on a stand-in table of three cells, so that the first real eviction,
+        often after an experiment's warm-up frames, builds none. The caller then allocates the
+        table afresh. The stand-in must look like a running table to the JIT: distinct arrays in
+        memory (equal literal arrays are one variable, and gathers from literals are folded) and
+        at least two survivors (a width-1 array is read as a scalar)."""
+        U, F, n = mi.UInt32, mi.Float, self.slots
+        i = dr.arange(U, n)
+        self.keys = dr.select(i < 3, i + 1, EMPTY)
+        self.home, self.used, self.stamp, self.count = (dr.full(U, 1 + j, n) for j in range(4))
+        self.pending, self._reuse_count = dr.full(U, 5, n), dr.full(U, 6, n)
+        self.rep, self.layers = dr.full(F, 7.0, n * _REP), dr.full(F, 8.0, n * 3 * self.B)
+        dr.make_opaque(self.keys, self.home, self.used, self.stamp, self.count, self.pending, self.rep,
+                       self.layers, self._reuse_count)
+        ov, frame = self._overflow, self.frame
+        self.frame = 0
+        live = self.keys != EMPTY
+        old = self._old(live)                             # none (used = 2 > frame 0)
+        dr.count(live), dr.count(old)
+        dr.eval(dr.compress(live & ~old))                 # evict()'s selection without the cap
+        self._drop_least_recent(live, old, 1)             # the cap: one of the three dropped
+        self._rebuild(dr.compress(live & ~old))           # two survivors
+        self._overflow, self.frame = ov, frame
 
     def request(self, req: mi.UInt32, slots: mi.UInt32, ok: mi.Bool, ring: int = 1) -> None:
         dr.scatter_reduce(dr.ReduceOp.Min, req, mi.UInt32(ring), slots, ok)
@@ -340,22 +403,30 @@ class SecondaryCache:
         if B > 1:
             R = self.rays
             lane = dr.arange(mi.UInt32, n * R)
-            c_of, j = lane // R, lane % R
+            c_of = lane // R
             tracing = dr.gather(mi.UInt32, ring, c_of) < B
             tracing &= dr.gather(mi.Bool, lit, c_of)
+            # ---- only the tracing lanes (cells of ring < B with albedo) from here on ----
+            tl = dr.compress(tracing)
+            c_of, j = tl // R, tl % R
             s2 = keyed_rng(dr.gather(mi.UInt32, keys, c_of) * R + j, self.seed, frame, STREAM_SECONDARY + 1)
             u = mi.Point2f(s2.next_float32(), s2.next_float32())
             sil = dr.gather(mi.SurfaceInteraction3f, si, c_of)
             d = sil.sh_frame.to_world(mi.warp.square_to_cosine_hemisphere(u))
-            hit = sc.ray_intersect(sil.spawn_ray(d), tracing)
-            self.laps.lap("sec_rays", hit)
-            hit_slots, hok = self.touch(hit, d, tracing)
+            ray = sil.spawn_ray(d)
+            hits = self.trace(ray)
+            hit = hits[0]
+            self.laps.lap("sec_rays", *hits)
+            hit_slots, hok = self.touch(hits, ray, mi.Bool(True))
             hok &= dr.dot(hit.n, d) != 0.0
             next_ring = dr.gather(mi.UInt32, ring, c_of) + 1
             dr.scatter_reduce(dr.ReduceOp.Min, self.pending, next_ring, hit_slots, hok & (next_ring <= B))
             for b in range(1, B):
                 Lh = self.radiance(hit_slots, hok, layer=b)
-                mean[b - 1] = mi.Color3f(*[dr.block_sum(Lh[c], R) for c in range(3)]) * (1.0 / R)
+                full = [dr.zeros(mi.Float, n * R) for _ in range(3)]
+                for c in range(3):
+                    dr.scatter(full[c], Lh[c], tl)
+                mean[b - 1] = mi.Color3f(*[dr.block_sum(full[c], R) for c in range(3)]) * (1.0 / R)
             dr.eval(self.pending, *mean)
             self.laps.lap("sec_touch")
             traced = ring < B
