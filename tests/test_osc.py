@@ -450,3 +450,24 @@ def test_reused_slot_starts_from_reset_state(cornell):
         seq_fresh.append(sorted(set((np.array(fresh.policy_state)[np.array(ff.active)] & 0xFFFF).tolist())))
     assert seq == seq_fresh
     assert seq[0] == [1] and seq[-1] == [10]
+
+
+@pytest.mark.parametrize("n_vblocks", [1, 63, 64, 65, 5000, 300_000])
+def test_requested_blocks_equal_one_flag_per_block(n_vblocks):
+    """The two-level request flags (pages of 64 blocks, then blocks of the
+    requested pages) give the same blocks in the same order as one flag per
+    virtual block, for several viewers with invalid pixels and repeats."""
+    from slc.osc.requests import requested_blocks
+    rng = np.random.default_rng(n_vblocks)
+    reqs = []
+    for n in (0, 1, 257, 4096):
+        vb = rng.integers(0, n_vblocks, n).astype(np.uint32)
+        if n > 1:   # clusters, as pixels of one surface request neighbouring blocks
+            vb[: n // 2] = np.minimum(vb[0] + rng.integers(0, 70, n // 2), n_vblocks - 1)
+        valid = rng.random(n) < 0.8
+        reqs.append((mi.Bool(valid), mi.UInt32(vb), None, None))
+    flag = np.zeros(n_vblocks, bool)
+    for valid, vb, _, _ in reqs:
+        flag[np.array(vb)[np.array(valid)]] = True
+    got = np.array(requested_blocks(reqs, n_vblocks))
+    assert np.array_equal(got, np.flatnonzero(flag).astype(np.uint32))

@@ -32,7 +32,7 @@ from .blocks import BlockPool, widen
 from .islands import DEFAULT_MAX_ANGLE, DEFAULT_MAX_TRIANGLES
 from .layout import CacheLayout
 from .protocol import BILINEAR_TAPS, ENTRY_TEXELS, FrameRequests
-from .requests import bilinear_taps, dedupe, lod_seeds
+from .requests import bilinear_taps, dedupe, lod_seeds, requested_blocks
 from .surface import TexelPoints
 
 DEFAULT_CAPACITY_ENTRIES = 2 ** 20   # default initial pool: 1M entries (16384 blocks of 8x8), at most the virtual size
@@ -118,16 +118,13 @@ class OnSurfaceCache:
         # ---------------------------------------------------------- 1. requests
         with timer.stage("requests") as st:
             reqs = [L.pixel_texels(gb) for gb in gbuffers]
-            flag = dr.zeros(mi.Bool, max(L.n_vblocks, 1))
-            for valid, vb, _, _ in reqs:
-                dr.scatter(flag, True, vb, valid)
-            st.outputs(flag, *[x for r in reqs for x in r])
+            req_vb = requested_blocks(reqs, L.n_vblocks)
+            st.outputs(req_vb, *[x for r in reqs for x in r])
 
         # ---------------------------------------------------------- 2. allocate + slot dedupe
         with timer.stage("allocate") as st:
             self.tick += 1
             evicted = pool.evict(self.tick, self.evict_after)
-            req_vb = dr.compress(flag)
             if dr.width(req_vb) == 0:      # nothing cacheable in view (or no viewer)
                 self._frame_stats(evicted=evicted)
                 return FrameRequests.empty(frame, gbuffers)

@@ -7,8 +7,40 @@ import drjit as dr
 import mitsuba as mi
 
 from ..keys import INVALID
-from .blocks import BlockPool
+from .blocks import PAGE_SHIFT, BlockPool
 from .layout import CacheLayout
+
+
+def requested_blocks(reqs, n_vblocks: int) -> mi.UInt32:
+    """The virtual blocks any viewer's pixels request, unique and ascending.
+
+    Two-level flags, so that the per-frame cost grows with the requested
+    pages of 64 blocks and not with the scene's whole virtual space (one
+    flag per virtual block cost two 32-40 ms compress steps a frame on
+    osc-gi's 2x2 blocks, 10.9M flags): 1. flag the pages (``vb >> 6``),
+    compress them; 2. number the requested pages, flag the blocks inside
+    them, compress, map back. The result equals compressing one flag per
+    virtual block (same blocks, same order)."""
+    span = 1 << PAGE_SHIFT
+    reqs = [r for r in reqs if dr.width(r[1]) > 0]
+    n_pages = max(-(-int(n_vblocks) // span), 1)
+    # ------------------------------------------------------------------ 1. pages
+    page_flag = dr.zeros(mi.Bool, n_pages)
+    for valid, vb, _, _ in reqs:
+        dr.scatter(page_flag, True, vb >> PAGE_SHIFT, valid)
+    pages = dr.compress(page_flag)
+    n_req = dr.width(pages)
+    if n_req == 0:
+        return pages
+    # ------------------------------------------------------------------ 2. blocks of the requested pages
+    page_slot = dr.zeros(mi.UInt32, n_pages)
+    dr.scatter(page_slot, dr.arange(mi.UInt32, n_req), pages)
+    flag = dr.zeros(mi.Bool, n_req * span)
+    for valid, vb, _, _ in reqs:
+        slot = dr.gather(mi.UInt32, page_slot, vb >> PAGE_SHIFT, valid)
+        dr.scatter(flag, True, (slot << PAGE_SHIFT) | (vb & (span - 1)), valid)
+    idx = dr.compress(flag)
+    return (dr.gather(mi.UInt32, pages, idx >> PAGE_SHIFT) << PAGE_SHIFT) | (idx & (span - 1))
 
 
 def dedupe(pool: BlockPool, reqs, req_phys):
