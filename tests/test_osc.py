@@ -471,3 +471,26 @@ def test_requested_blocks_equal_one_flag_per_block(n_vblocks):
         flag[np.array(vb)[np.array(valid)]] = True
     got = np.array(requested_blocks(reqs, n_vblocks))
     assert np.array_equal(got, np.flatnonzero(flag).astype(np.uint32))
+
+
+def test_requested_blocks_build_no_kernel_for_one_page():
+    """A frame whose pixels fall in one page of 64 blocks runs the kernels of
+    a frame with many pages (a width-1 list would load as a scalar and build
+    new kernels after warm-up)."""
+    from slc.osc.requests import requested_blocks
+    n = 100_000
+
+    def run(vbs):
+        vb = mi.UInt32(np.array(vbs, np.uint32))
+        return np.array(requested_blocks([(dr.full(mi.Bool, True, len(vbs)), vb, None, None)], n))
+
+    rng = np.random.default_rng(1)
+    for _ in range(2):   # warm-up: many pages
+        run(rng.integers(0, n, 300))
+    from slc.timing import KernelCounter
+    with KernelCounter() as kc:
+        kc.take()
+        got = run([640, 641, 700, 641, 650, 640] * 50)          # one page (10), four blocks
+        n_built = kc.take()
+    assert list(got) == [640, 641, 650, 700]
+    assert n_built == 0, f"{n_built} kernels built for a one-page frame"

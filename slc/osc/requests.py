@@ -7,7 +7,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..keys import INVALID
-from .blocks import PAGE_SHIFT, BlockPool
+from .blocks import PAGE_SHIFT, BlockPool, widen
 from .layout import CacheLayout
 
 
@@ -33,8 +33,12 @@ def requested_blocks(reqs, n_vblocks: int) -> mi.UInt32:
     if n_req == 0:
         return pages
     # ------------------------------------------------------------------ 2. blocks of the requested pages
+    # (one requested page: widened, with its copy numbered 0 too, so that the
+    # kernels are those of longer lists; see blocks.widen)
+    pages = widen(pages)
     page_slot = dr.zeros(mi.UInt32, n_pages)
-    dr.scatter(page_slot, dr.arange(mi.UInt32, n_req), pages)
+    dr.scatter(page_slot, dr.minimum(dr.arange(mi.UInt32, dr.width(pages)), dr.opaque(mi.UInt32, n_req - 1)),
+               pages)
     flag = dr.zeros(mi.Bool, n_req * span)
     for valid, vb, _, _ in reqs:
         slot = dr.gather(mi.UInt32, page_slot, vb >> PAGE_SHIFT, valid)
