@@ -218,13 +218,17 @@ class Traversal:
         # ------------------------------ Subdivision ------------------------------
         subdiv = ~culled & ~render
         sub_v = ~v_leaf & (s_leaf | (0.5 * rs < rv))
-        nviews = dr.gather(mi.UInt32, V.n_views, qv)
+        # one kernel classifies and splats; the counts then reduce its stored outputs (counting the
+        # unevaluated masks made Dr.Jit recompute the whole classification once per count)
+        share = dr.select(render, dr.gather(mi.UInt32, V.n_views, qv), 0)
+        multi = render & (mu > 0)
+        dr.eval(depth, culled, render, multi, share, subdiv, sub_v)
         c_cull = dr.count(culled)
         c_rend = dr.count(render)
-        c_multi = dr.count(render & (mu > 0))
-        c_share = dr.sum(dr.select(render, mi.UInt64(nviews), 0))
+        c_multi = dr.count(multi)
+        c_share = dr.sum(mi.UInt64(share))
         c_sub = dr.count(subdiv)
-        dr.eval(depth, c_cull, c_rend, c_multi, c_share, c_sub, subdiv, sub_v)
+        dr.eval(c_cull, c_rend, c_multi, c_share, c_sub)
         st.culled += int(c_cull[0])
         st.rendered += int(c_rend[0])
         st.multi_pixel += int(c_multi[0])
