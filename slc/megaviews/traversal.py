@@ -161,7 +161,7 @@ def _splat(depth, layout: pb.Layout, slot, p, pv, r_surf, active, multi_pixel: b
     off = dr.gather(mi.UInt32, mi.UInt32(layout.offset[:-1]), mu)
     idx = slot * layout.texels + off + (face * Rm + ty) * Rm + tx
     # Direct atomics: the LLVM default (Expand, below dr.expand_threshold() texels) bakes the map
-    # array's size into the kernel (one build per view count) and copies the maps per core per level
+    # array's size into the kernel (one build per view count) and keeps a copy of the maps per core
     dr.scatter_reduce(dr.ReduceOp.Min, depth, dist, idx, active, mode=dr.ReduceMode.Direct)
     return mu
 
