@@ -335,6 +335,12 @@ def _summary(names, rows) -> list:
             out.append(f"{name}: megaviews {b['views'] / a['views']:.0f}x views ({a['views']}->{b['views']}) cost "
                        f"{b['time_ms'] / max(a['time_ms'], 1e-9):.2f}x time: exponent {e:.2f} (target <= 0.5: "
                        f"{'met' if e <= 0.5 else 'missed'}); pairs exponent {ep:.2f}")
+            lg = math.log(b["views"] / a["views"])
+            per = {k: math.log(max(b[f"{k}_ms"], 1e-6) / max(a[f"{k}_ms"], 1e-6)) / lg
+                   for k in STAGES if a.get(f"{k}_ms", 0) > 0.05 and b.get(f"{k}_ms", 0) > 0.05}
+            out.append(f"{name}: megaviews exponent per stage: " + ", ".join(f"{k} {v:.2f}" for k, v in per.items())
+                       + "; traversal time per pair " + ", ".join(
+                           f"{r['views']}: {1e3 * r['traverse_ms'] / max(r['pairs'], 1):.2f} us" for r in mv))
             if len(ml) >= 2:
                 mls = sorted(ml.values(), key=lambda r: r["views"])
                 e2 = math.log(mls[-1]["time_ms"] / mls[0]["time_ms"]) / math.log(mls[-1]["views"] / mls[0]["views"])

@@ -30,17 +30,37 @@ VIEW_DEPTH = 7
 EMPTY_COUNT = 0
 
 
+def aligned(a, dtype) -> np.ndarray:
+    """A contiguous copy of ``a`` in a 64-byte aligned numpy buffer.
+
+    Dr.Jit maps a numpy array without copying and marks it unaligned when its
+    address is not a multiple of the vector width; every kernel reading it then
+    differs (``align 1`` loads) from the one for an aligned array, so a kernel
+    fed per-frame numpy data would be built again in whichever frame numpy's
+    allocator returned the other kind of address."""
+    a = np.ascontiguousarray(a, dtype)
+    buf = np.empty(a.nbytes + 64, np.uint8)
+    off = (-buf.ctypes.data) % 64
+    out = buf[off:off + a.nbytes].view(a.dtype).reshape(a.shape)
+    out[...] = a
+    return out
+
+
 def _f(a):
-    return mi.Float(np.ascontiguousarray(a, np.float32))
+    return mi.Float(aligned(a, np.float32))
 
 
 def _p3(a):
-    a = np.ascontiguousarray(a, np.float32)
-    return mi.Point3f(a[:, 0], a[:, 1], a[:, 2])
+    a = np.asarray(a, np.float32)
+    return mi.Point3f(_f(a[:, 0]), _f(a[:, 1]), _f(a[:, 2]))
 
 
 def _u(a):
-    return mi.UInt32(np.ascontiguousarray(a, np.uint32))
+    return mi.UInt32(aligned(a, np.uint32))
+
+
+def _b(a):
+    return mi.Bool(aligned(a, np.bool_))
 
 
 def _np3(v, k: int) -> np.ndarray:

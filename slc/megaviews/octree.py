@@ -79,12 +79,17 @@ class Octree:
 
     def reduce(self, values: np.ndarray, op=np.add) -> np.ndarray:
         """Per-node reduction (``np.add``, ``np.minimum``, ``np.maximum``) of
-        per-point ``values`` (given in input order) over each node's points."""
+        per-point ``values`` (given in input order) over each node's points:
+        the leaves reduce their points, every other level its children
+        (contiguous), so the points are read once, not once per level."""
         v = np.asarray(values)[self.order]
         out = np.empty((self.size,) + v.shape[1:], v.dtype)
-        for l in range(self.depth + 1):  # per level: first points increase and partition
+        a, b = self.level_start[self.depth], self.level_start[self.depth + 1]
+        out[a:b] = op.reduceat(v, self.first_point[a:b], axis=0)
+        for l in range(self.depth - 1, -1, -1):   # children of a level are contiguous and in order
             a, b = self.level_start[l], self.level_start[l + 1]
-            out[a:b] = op.reduceat(v, self.first_point[a:b], axis=0)
+            ca = self.level_start[l + 1]
+            out[a:b] = op.reduceat(out[ca:self.level_start[l + 2]], self.first_child[a:b] - ca, axis=0)
         return out
 
 

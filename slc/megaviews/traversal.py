@@ -69,7 +69,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import paraboloid as pb
-from .hierarchy import SceneHierarchy, ViewHierarchy
+from .hierarchy import SceneHierarchy, ViewHierarchy, _u
 
 INV_SQRT3 = 1.0 / math.sqrt(3.0)  # sphere radius -> half edge of the cubic voxel
 PAIR_BYTES = 8          # two 32-bit node ids, as in the paper (64 bits per pair)
@@ -160,7 +160,9 @@ def _splat(depth, layout: pb.Layout, slot, p, pv, r_surf, active, multi_pixel: b
     face, tx, ty = pb.texel(vs, Rm)
     off = dr.gather(mi.UInt32, mi.UInt32(layout.offset[:-1]), mu)
     idx = slot * layout.texels + off + (face * Rm + ty) * Rm + tx
-    dr.scatter_reduce(dr.ReduceOp.Min, depth, dist, idx, active)
+    # Direct atomics: the LLVM default (Expand, below dr.expand_threshold() texels) bakes the map
+    # array's size into the kernel (one build per view count) and keeps a copy of the maps per core
+    dr.scatter_reduce(dr.ReduceOp.Min, depth, dist, idx, active, mode=dr.ReduceMode.Direct)
     return mu
 
 
@@ -216,13 +218,17 @@ class Traversal:
         # ------------------------------ Subdivision ------------------------------
         subdiv = ~culled & ~render
         sub_v = ~v_leaf & (s_leaf | (0.5 * rs < rv))
-        nviews = dr.gather(mi.UInt32, V.n_views, qv)
+        # one kernel classifies and splats; the counts then reduce its stored outputs (counting the
+        # unevaluated masks made Dr.Jit recompute the whole classification once per count)
+        share = dr.select(render, dr.gather(mi.UInt32, V.n_views, qv), 0)
+        multi = render & (mu > 0)
+        dr.eval(depth, culled, render, multi, share, subdiv, sub_v)
         c_cull = dr.count(culled)
         c_rend = dr.count(render)
-        c_multi = dr.count(render & (mu > 0))
-        c_share = dr.sum(dr.select(render, mi.UInt64(nviews), 0))
+        c_multi = dr.count(multi)
+        c_share = dr.sum(mi.UInt64(share))
         c_sub = dr.count(subdiv)
-        dr.eval(depth, c_cull, c_rend, c_multi, c_share, c_sub, subdiv, sub_v)
+        dr.eval(c_cull, c_rend, c_multi, c_share, c_sub)
         st.culled += int(c_cull[0])
         st.rendered += int(c_rend[0])
         st.multi_pixel += int(c_multi[0])
@@ -300,7 +306,7 @@ class Traversal:
         chunks = [(a, min(a + self.budget, n0)) for a in range(0, n0, self.budget)]
         stack = []
         for a, b in reversed(chunks):
-            qs, qv = mi.UInt32(qs_np[a:b]), mi.UInt32(qv_np[a:b])
+            qs, qv = _u(qs_np[a:b]), _u(qv_np[a:b])   # aligned: see hierarchy.aligned
             dr.make_opaque(qs, qv)   # a one-pair start (a pass root) must not become a kernel literal
             stack.append(("queue", qs, qv))
         live, processed = n0, 0

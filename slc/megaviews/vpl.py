@@ -45,7 +45,7 @@ import numpy as np
 from ..gbuffer import to_image  # noqa: F401  (callers use vpl.to_image)
 from ..lights import rng
 from . import traversal as tv
-from .hierarchy import ViewHierarchy
+from .hierarchy import ViewHierarchy, _b, _np3, _u
 
 
 @dataclass
@@ -130,16 +130,13 @@ def _generate(mi_scene: mi.Scene, n: int, bounces: int = 1, seed: int = 0) -> VP
             dr.scatter(flux, f_, dst)
             off += k
         del idx_np, src
-    dr.eval(si, flux)
-    P = np.array(si.p, np.float64).T.reshape(-1, 3) if np.array(si.p).shape[0] == 3 else np.array(si.p)
-    N = np.array(si.n, np.float64)
-    N = N.T if N.shape[0] == 3 and N.ndim == 2 else N
-    N = N.reshape(-1, 3)
-    wi_world = np.array(si.to_world(si.wi), np.float64)
-    wi_world = (wi_world.T if wi_world.shape[0] == 3 else wi_world).reshape(-1, 3)
+    wi_world = si.to_world(si.wi)
+    dr.eval(si, flux, wi_world)
+    # numpy copies one component at a time: converting a 3-vector whole runs a
+    # kernel with the VPL count baked in (component strides), rebuilt per frame
+    P, N, wi_world = _np3(si.p, dr.width(flux)), _np3(si.n, dr.width(flux)), _np3(wi_world, dr.width(flux))
     side = np.sign(np.sum(N * wi_world, axis=1))
     N = N * np.where(side == 0, 1.0, side)[:, None]
-    P = np.asarray(P).reshape(-1, 3)
     return VPLSet(si, flux, P, N, np.concatenate(all_b) if all_b else np.zeros(0))
 
 
@@ -181,13 +178,13 @@ def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cu
     V = cull_tree if cull_tree is not None else maps.view_h
     if V.flat:
         raise ValueError("gathering needs an octree view hierarchy for culling")
-    order = mi.UInt32(np.asarray(V.tree.order, np.uint32))
+    order = _u(V.tree.order)
     nodes_np, skip_np, accept_np = cull_walk(V, cull_level)
-    nodes = mi.UInt32(nodes_np.astype(np.uint32))
-    first = mi.UInt32(V.tree.first_point[nodes_np].astype(np.uint32))
-    count = mi.UInt32(V.tree.point_count[nodes_np].astype(np.uint32))
-    skip = mi.UInt32(skip_np.astype(np.uint32))
-    accept = mi.Bool(accept_np)
+    nodes = _u(nodes_np)
+    first = _u(V.tree.first_point[nodes_np])
+    count = _u(V.tree.point_count[nodes_np])
+    skip = _u(skip_np)
+    accept = _b(accept_np)
     ncentre = dr.gather(mi.Point3f, V.centre, nodes)
     nradius = dr.gather(mi.Float, V.radius, nodes)
     ndir = mi.Vector3f(dr.gather(mi.Point3f, V.dir, nodes))
