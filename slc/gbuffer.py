@@ -9,11 +9,19 @@ camera parameters, so a moving camera never recompiles a kernel.
 Motion vectors reproject each hit into the previous frame's camera
 (camera motion only: a moving object's own motion is not included, which
 the temporal reuse of ReSTIR then rejects by its depth/normal tests).
+
+Several viewers: besides one :class:`GBuffer` per viewer, the frame's
+G-buffers are also laid out as one array (:class:`Layers`, attached to each
+G-buffer by :func:`attach_layers`), as a multi-view renderer's layered
+G-buffer (a texture array) would hold them, so that a method can process all
+viewers' pixels in one launch without first copying them together in its own
+timed stages. The layered copy is made here, with the G-buffer (untimed, as
+the G-buffer itself).
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
@@ -47,10 +55,52 @@ class GBuffer:
     prim_uv: mi.Point2f
     footprint: mi.Float
     viewer: str = ""
+    layers: "Layers | None" = field(default=None, repr=False)   # the frame's viewers as one array
+    layer: int = 0                                                 # this viewer's index in ``layers``
 
     @property
     def size(self) -> int:
         return self.width * self.height
+
+
+@dataclass
+class Layers:
+    """The G-buffers of one frame's viewers one after another in one array:
+    viewer ``v``'s pixel ``i`` is at ``offsets[v] + i``. ``si`` and ``valid`` as in
+    :class:`GBuffer`; ``pixel`` is each entry's pixel index within its own viewer."""
+    si: mi.SurfaceInteraction3f
+    valid: mi.Bool
+    pixel: mi.UInt32
+    sizes: tuple
+    offsets: tuple
+
+    @property
+    def size(self) -> int:
+        return sum(self.sizes)
+
+
+def attach_layers(gbuffers: list) -> Layers | None:
+    """Lay the G-buffers ``gbuffers`` (one frame, several viewers) out as one
+    :class:`Layers` and attach it to each (``gb.layers``, ``gb.layer``); the
+    per-viewer G-buffers are unchanged. Nothing for fewer than two viewers."""
+    if len(gbuffers) < 2:
+        return None
+    sizes = tuple(gb.size for gb in gbuffers)
+    offsets = tuple(sum(sizes[:v]) for v in range(len(sizes)))
+    total = sum(sizes)
+    si = dr.empty(mi.SurfaceInteraction3f, total)
+    valid = dr.empty(mi.Bool, total)
+    pixel = dr.empty(mi.UInt32, total)
+    for gb, n, off in zip(gbuffers, sizes, offsets):
+        at = dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, off)
+        dr.scatter(si, gb.si, at)
+        dr.scatter(valid, mi.Bool(gb.valid), at)
+        dr.scatter(pixel, dr.arange(mi.UInt32, n), at)
+    dr.eval(si, valid, pixel)
+    lay = Layers(si, valid, pixel, sizes, offsets)
+    for v, gb in enumerate(gbuffers):
+        gb.layers, gb.layer = lay, v
+    return lay
 
 
 def _opaque_camera(cam: Camera, width: int, height: int):

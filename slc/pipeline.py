@@ -88,11 +88,14 @@ class RunResult:
 
 
 def gbuffers_for(scene, viewers, frame: int, width: int, height: int) -> list:
+    """One G-buffer per viewer; with several viewers they are also laid out as one
+    array (:func:`slc.gbuffer.attach_layers`), as part of G-buffer generation."""
     scene.set_frame(frame)
     out = []
     for v in viewers:
         prev = v.camera(frame - 1) if frame > 0 else None
         out.append(gbuf.render_gbuffer(scene, v.camera(frame), width, height, prev, v.name))
+    gbuf.attach_layers(out)
     return out
 
 

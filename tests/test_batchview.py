@@ -28,7 +28,7 @@ def test_batched_images_equal_per_viewer(atrium, fetch):
     glossy and Lambertian pixels: the batched images equal the per-viewer ones exactly.
     The bilinear fetch is not batched (taps are per viewer) and falls back."""
     rig = views.overlap_rig(atrium, 3, 0.6)
-    m0, per_viewer = _run(atrium, f"slc:fetch={fetch}", rig)
+    m0, per_viewer = _run(atrium, f"slc:fetch={fetch},batch=off", rig)
     m1, batched = _run(atrium, f"slc:fetch={fetch},batch=viewers", rig)
     assert len(batched) == 3
     assert all(img.max() > 0 for img in batched)
@@ -47,7 +47,7 @@ def test_batched_images_equal_per_viewer(atrium, fetch):
 def test_single_viewer_unchanged_by_batch(atrium):
     """One viewer takes the per-viewer path (nothing to batch)."""
     rig = views.overlap_rig(atrium, 1, 1.0)
-    _, a = _run(atrium, "slc", rig)
+    _, a = _run(atrium, "slc:batch=off", rig)
     _, b = _run(atrium, "slc:batch=viewers", rig)
     assert np.array_equal(a[0], b[0])
 

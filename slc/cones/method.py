@@ -80,8 +80,11 @@ class SurfaceLightCones(PayloadMethod):
         Param("fetch", "nearest", "the nearest entry (the paper's), the 4 surrounding entries weighted bilinearly, "
               "or one of the 4 drawn per pixel and frame with the bilinear weights as probabilities",
               choices=("nearest", "bilinear", "stochastic")),
-        Param("batch", "off", "viewers: shade all viewers' pixels in one launch (nearest fetch; the same images as "
-              "per viewer); off: one launch per viewer", choices=("off", "viewers")),
+        Param("horizon", "clip", "Lambertian pixels with a cone across the horizon: the exact integral over the "
+              "part of the cone above it (clip) or MIS sampling as for glossy pixels (sample)",
+              choices=("clip", "sample")),
+        Param("batch", "viewers", "viewers: shade all viewers' pixels in one launch (nearest fetch; the same images "
+              "as per viewer); off: one launch per viewer", choices=("off", "viewers")),
     ) + PayloadMethod.cache_params
 
     def __init__(self, scene, **kw):
@@ -125,29 +128,37 @@ class SurfaceLightCones(PayloadMethod):
                                                 shade_key(ctx.frame, self.seed))
 
     def shade_all(self, ctx, fr, gbuffers):
-        """All viewers' pixels. With ``batch=viewers`` and the nearest fetch, the
-        viewers' G-buffers are concatenated and shaded in one launch, then split:
-        each pixel keeps the random-number key it has per viewer (its index within
-        its own viewer, the frame's key), so the images are the per-viewer ones
-        bit for bit. Otherwise (and for one viewer) :meth:`shade` per viewer."""
+        """All viewers' pixels. With ``batch=viewers`` (the default) and the nearest
+        fetch, all viewers' pixels are shaded in one launch, then split: each pixel
+        keeps the random-number key it has per viewer (its index within its own
+        viewer, the frame's key), so the images are the per-viewer ones bit for bit.
+        The G-buffers' surface interactions come from the frame's layered G-buffer
+        (``gb.layers``, :func:`slc.gbuffer.attach_layers`) when there is one, else
+        they are concatenated here; the cache's per-viewer slots are concatenated
+        here. Otherwise (and for one viewer) :meth:`shade` per viewer."""
         if self.batch != "viewers" or self.fetch != "nearest" or len(gbuffers) < 2:
             return super().shade_all(ctx, fr, gbuffers)
+        lay = gbuffers[0].layers
+        if lay is None or any(gb.layers is not lay or gb.layer != v for v, gb in enumerate(gbuffers)):
+            lay = None
         sizes = [gb.size for gb in gbuffers]
         offsets = [sum(sizes[:v]) for v in range(len(sizes))]
         total = sum(sizes)
 
         # ------------------- the viewers' pixels, one after another -------------------
-        si = dr.empty(mi.SurfaceInteraction3f, total)
         slot = dr.empty(mi.UInt32, total)
         index = dr.empty(mi.UInt32, total)
-        valid = dr.empty(mi.Bool, total)
-        pid = self._batch_pid(sizes)
+        if lay is None:
+            si, valid, pid = dr.empty(mi.SurfaceInteraction3f, total), dr.empty(mi.Bool, total), self._batch_pid(sizes)
+        else:
+            si, valid, pid = lay.si, lay.valid, lay.pixel
         for v, gb in enumerate(gbuffers):
             at = dr.arange(mi.UInt32, sizes[v]) + dr.opaque(mi.UInt32, offsets[v])
-            dr.scatter(si, gb.si, at)
             dr.scatter(slot, mi.UInt32(fr.pixel_slot[v]), at)
             dr.scatter(index, mi.UInt32(fr.pixel_index[v]), at)
-            dr.scatter(valid, mi.Bool(gb.valid), at)
+            if lay is None:
+                dr.scatter(si, gb.si, at)
+                dr.scatter(valid, mi.Bool(gb.valid), at)
         ok = valid & (slot != INVALID)
         tf = dr.gather(mi.Frame3f, fr.si.sh_frame, index, ok)
 

@@ -23,8 +23,9 @@ Every sample, whatever its strategy, contributes
 which is unbiased for the integral. Cones narrower than ``ALPHA_DELTA`` (point
 lights) are Dirac cones: one evaluation on the axis, ``f_r cos L_c``, weight 1.
 BSDF samples of a Dirac lobe (mirrors) see ``\tilde L`` with weight 1.
-Purely Lambertian pixels whose cones clear the horizon use the exact cone
-integral ``(rho/pi) sum_c L_c (n . d_c)(1 + cos alpha_c)/2`` (no loop).
+Purely Lambertian pixels use the exact cone integral (no loop):
+``(rho/pi) sum_c L_c (n . d_c)(1 + cos alpha_c)/2`` for cones clear of the horizon, the
+integral of the cosine over the part of the cap above it for cones across it.
 
 Sample counts: ``n_samples`` (n_S) directions, fewer for rough lobes (``n_S' =
 ceil(n_S clip(q, 1/4, 1))``), split per pixel into ``n_C`` cone directions per live cone
@@ -90,11 +91,11 @@ def _lambertian(bsdf, si, active):
 def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.SurfaceInteraction3f,
                  bsdf: mi.BSDFPtr, texel_frame: mi.Frame3f, max_cones: int, n_total: mi.UInt32,
                  key: mi.UInt32, adaptive: bool = True, rotate: bool = True,
-                 pid: mi.UInt32 | None = None) -> mi.Color3f:
+                 pid: mi.UInt32 | None = None, horizon: bool = True) -> mi.Color3f:
     """Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
     ``slot``; ``texel_frame`` is the local frame of each pixel's entry (the frame its
     cone directions are stored in). ``n_total`` directions per live cone and ``key``
-    are opaque scalars; ``adaptive`` / ``rotate`` see :class:`ConeShading`. ``pid``
+    are opaque scalars; ``adaptive`` / ``rotate`` / ``horizon`` see :class:`ConeShading`. ``pid``
     keys each pixel's random numbers (default: its index in the arrays; several viewers
     shaded in one launch pass each pixel's index within its own viewer). Entries
     without cones and inactive pixels give 0."""
@@ -130,15 +131,35 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
         return dr.select(den > 0.0, dr.rcp(den), 0.0)
 
     # ------------------- Lambertian pixels: the cone integral in closed form -------------------
+    # A cone clear of the horizon: (1/Omega_c) int_c cos = (n . d_c)(1 + cos alpha_c)/2. With
+    # ``horizon``, a cone across it (alpha_c < pi/2) takes the exact integral of cos over the
+    # part of its cap above the horizon (Snyder 1996; Lagarde and de Rousiers 2014, sphere
+    # lights): int = (cos_d acos(y) - x sin_d sqrt(1 - y^2)) sin^2(alpha) + atan(sin_d sqrt(1 - y^2) / x),
+    # x = cot(alpha), y = -x cos_d / sin_d; a cap wholly below (or a Dirac cone below) adds 0.
+    # Cones wider than a hemisphere across the horizon still go to sampling.
     lambert = _lambertian(bsdf, si, active)
     nrm = si.sh_frame.n
     closed = mi.Color3f(zero)
     for i in range(K):
         cos_d = dr.dot(nrm, Dw[i])
+        sin_d = dr.safe_sqrt(1.0 - dr.square(cos_d))
         # above the horizon: angle(n, d) + alpha < pi/2  <=>  cos(angle + alpha) > 0
-        above = (cos_d * dr.cos(A[i]) - dr.safe_sqrt(1.0 - dr.square(cos_d)) * dr.sin(A[i])) > 0.0
-        lambert &= ~live[i] | above
-        closed += dr.select(live[i], L[i] * (cos_d * 0.5 * (1.0 + dr.cos(A[i]))), 0.0)
+        above = (cos_d * dr.cos(A[i]) - sin_d * dr.sin(A[i])) > 0.0
+        full = L[i] * (cos_d * 0.5 * (1.0 + dr.cos(A[i])))
+        if horizon:
+            sa, ca = dr.sin(A[i]), dr.cos(A[i])
+            x = ca * dr.rcp(dr.maximum(sa, 1e-30))
+            y = dr.clip(-x * cos_d * dr.rcp(dr.maximum(sin_d, 1e-30)), -1.0, 1.0)
+            sy = sin_d * dr.safe_sqrt(1.0 - dr.square(y))
+            part = (cos_d * dr.acos(y) - x * sy) * dr.square(sa) + dr.atan2(sy, x)
+            inv_om_i = dr.rcp(dr.maximum(2.0 * math.pi * h[i], 1e-30))
+            across = dr.select(delta[i], L[i] * dr.maximum(cos_d, 0.0), L[i] * (dr.maximum(part, 0.0) * inv_om_i))
+            below = (cos_d * ca + sin_d * sa) <= 0.0                      # the whole cap under the horizon
+            lambert &= ~live[i] | above | (A[i] < 0.5 * math.pi)
+            closed += dr.select(live[i], dr.select(above, full, dr.select(below, 0.0, across)), 0.0)
+        else:
+            lambert &= ~live[i] | above
+            closed += dr.select(live[i], full, 0.0)
     rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert))
     closed = rho * closed * (1.0 / math.pi)
     sampled = active & ~lambert & (n > 0)
@@ -246,7 +267,9 @@ class ConeShading:
     cone's ``n_samples`` between the strategies by the lobe's width against the cones;
     False: half and half), ``rotate=True`` (rotate the patterns per pixel and key; False:
     the same pattern everywhere), ``freeze=True`` (record the kernel launches once and
-    replay them), ``animated=False`` (the scene's meshes move), ``max_recordings=4``.
+    replay them), ``animated=False`` (the scene's meshes move), ``max_recordings=4``,
+    ``horizon=True`` (Lambertian pixels whose cones cross the horizon use the exact
+    clipped-cap integral; False: they are sampled, as before December 2026).
 
     Freezing pays only while its recordings are replayed. Each instance owns its frozen
     function, so recordings are freed with the method and never shared between scenes.
@@ -261,9 +284,9 @@ class ConeShading:
     """
 
     def __init__(self, max_cones: int, adaptive: bool = True, rotate: bool = True, freeze: bool = True,
-                 animated: bool = False, max_recordings: int = 4):
+                 animated: bool = False, max_recordings: int = 4, horizon: bool = True):
         self.max_cones = int(max_cones)
-        self.adaptive, self.rotate = bool(adaptive), bool(rotate)
+        self.adaptive, self.rotate, self.horizon = bool(adaptive), bool(rotate), bool(horizon)
         self.animated, self.max_recordings = bool(animated), int(max_recordings)
         self.frozen = bool(freeze)
         # one frozen function per instance: recordings live and die with the method
@@ -282,7 +305,7 @@ class ConeShading:
         the index in the arrays; see :func:`shade_kernel`)."""
         out = self.kernel(storage, mi.UInt32(slot), mi.Bool(active), si, si.bsdf(), texel_frame, self.max_cones,
                           dr.opaque(mi.UInt32, max(int(n_samples), 1)), dr.opaque(mi.UInt32, int(key)),
-                          self.adaptive, self.rotate, pid)
+                          self.adaptive, self.rotate, pid, self.horizon)
         if self.frozen:
             self.calls += 1
             self.recordings = int(self.kernel.n_recordings)
@@ -307,11 +330,13 @@ class ConeShading:
 
 def shader_for(owner, max_cones: int) -> ConeShading:
     """The :class:`ConeShading` of ``owner`` (a method instance), made on first use
-    (animated when the owner's scene is, see :class:`ConeShading`)."""
+    (animated when the owner's scene is, see :class:`ConeShading`; the horizon
+    treatment from the owner's ``horizon`` setting, default ``clip``)."""
     sh = getattr(owner, "_cone_shading", None)
     if sh is None or sh.max_cones != int(max_cones):
         scene = getattr(owner, "scene", None)
-        sh = ConeShading(max_cones, animated=bool(getattr(scene, "dynamic", False)))
+        sh = ConeShading(max_cones, animated=bool(getattr(scene, "dynamic", False)),
+                         horizon=getattr(owner, "horizon", "clip") == "clip")
         owner._cone_shading = sh
     return sh
 
