@@ -65,7 +65,7 @@ class AdaptiveCache(PayloadMethod):
 
     name = "adaptive"
     params = (
-        Param("vis_lights", 4, "delta lights with their own visibility per VISIBILITY entry", lo=1, hi=8),
+        Param("vis_lights", 8, "delta lights with their own visibility per VISIBILITY entry", lo=1, hi=8),
         Param("max_cones", 3, "cones per CONES entry", lo=1, hi=4),
         Param("encoding", "y3co1cg1", "SH encoding of SH entries", choices=tuple(ENCODINGS)),
         Param("sh_count", 128, "SH running-mean count cap (samples)", lo=1, hi=1e6),
@@ -82,7 +82,9 @@ class AdaptiveCache(PayloadMethod):
         Param("switch_period", 4, "switches are carried out in every k-th frame only (their conversion "
               "kernels are traced in those frames)", lo=1, hi=64),
         Param("theta_delta", 0.5, "delta-light energy share above which VISIBILITY is chosen", lo=0.0, hi=1.0),
-        Param("theta_r", 0.75, "mean resultant length below which SH is chosen", lo=0.0, hi=1.0),
+        Param("theta_r", 0.6, "mean resultant length below which SH is chosen", lo=0.0, hi=1.0),
+        Param("sh_when", "environment", "SH is a candidate of the choice only in scenes with an environment "
+              "(infinite, non-delta) emitter, or always", choices=("environment", "always")),
         Param("start", "prior", "representation of new entries (prior: from the scene's emitters)",
               choices=("prior", "visibility", "cones", "sh")),
         Param("force", "auto", "representation of every entry (auto: the choice rule)",
@@ -95,8 +97,15 @@ class AdaptiveCache(PayloadMethod):
         self.cone_params = ConeParams(max_cones=self.max_cones)
         self.enc = get_encoding(self.encoding)
         self.choice = ChoiceParams(window=self.window, theta_delta=self.theta_delta, theta_r=self.theta_r,
-                                   switch_after=self.switch_after)
+                                   switch_after=self.switch_after,
+                                   allow_sh=self.sh_when == "always" or self._has_environment(scene))
         self.prior = self._prior(scene)
+
+    @staticmethod
+    def _has_environment(scene) -> bool:
+        """Whether an emitter is infinite and not a delta (an environment map or constant sky)."""
+        return any(bool(int(e.flags()) & int(mi.EmitterFlags.Infinite))
+                   and not bool(int(e.flags()) & int(mi.EmitterFlags.Delta)) for e in scene.mi_scene.emitters())
 
     @staticmethod
     def _prior(scene) -> int:
