@@ -45,7 +45,7 @@ class ChoiceParams:
     window: int = 32              # statistics' running-mean window (updates)
     theta_delta: float = 0.5      # delta-light energy share for VISIBILITY
     h_delta: float = 0.15
-    theta_r: float = 0.6          # mean resultant length below which light is "wide" (SH)
+    theta_r: float = 0.75         # mean resultant length below which light is "wide" (SH)
     h_r: float = 0.06
     switch_after: int = 3         # updates in a row with another target before switching
     min_count: int = 2            # updates of statistics before the first switch

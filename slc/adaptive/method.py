@@ -82,7 +82,7 @@ class AdaptiveCache(PayloadMethod):
         Param("switch_period", 4, "switches are carried out in every k-th frame only (their conversion "
               "kernels are traced in those frames)", lo=1, hi=64),
         Param("theta_delta", 0.5, "delta-light energy share above which VISIBILITY is chosen", lo=0.0, hi=1.0),
-        Param("theta_r", 0.6, "mean resultant length below which SH is chosen", lo=0.0, hi=1.0),
+        Param("theta_r", 0.75, "mean resultant length below which SH is chosen", lo=0.0, hi=1.0),
         Param("sh_when", "environment", "SH is a candidate of the choice only in scenes with an environment "
               "(infinite, non-delta) emitter, or always", choices=("environment", "always")),
         Param("start", "prior", "representation of new entries (prior: from the scene's emitters)",
