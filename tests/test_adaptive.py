@@ -96,6 +96,69 @@ def test_frozen_sh_shading_matches_unfrozen_and_records_once():
     assert np.array_equal(out[True][0], out[False][0])
 
 
+def _plane_points(scene, n=64):
+    """Interactions on the plane of ``scene`` at n points (rays straight down)."""
+    import drjit as dr
+    rng = np.random.default_rng(3)
+    xz = rng.uniform(-1.5, 1.5, (n, 2))
+    o = mi.Point3f(xz[:, 0], np.full(n, 0.5), xz[:, 1])
+    si = scene.mi_scene.ray_intersect(mi.Ray3f(o, mi.Vector3f(0.0, -1.0, 0.0)))
+    dr.eval(si)
+    return si
+
+
+def test_cone_pool_update_is_slc_update_bit_for_bit():
+    """The adaptive cone pool runs slc's own update cycle (slc.cones.update.update_cycle
+    through a SampleObserver): from the same records, keys, rays, policy state and seed
+    its new records equal those of slc's update_entries word for word, over cycles of
+    the ray ramp (stratified samples from first_sample) and a moving cycle (C capped,
+    a second sequence), and the observer's statistics are those of the samples."""
+    import drjit as dr
+
+    from slc.adaptive import cones_rep
+    from slc.cones.packing import words_per_entry
+    from slc.cones.update import ConeParams, update_entries
+    from slc.osc.payload import RayPolicy
+
+    scene = _plane("adaptive_cone_bits", lambda b: (b.add_quad([0, 1.0, 0], [0.3, 0, 0], [0, 0, 0.3],
+                                                             bsdf=diffuse([0, 0, 0]), emission=[4.0] * 3,
+                                                             name="lamp"),
+                                                  b.add_point_light([0.8, 0.7, 0.2], [1.0] * 3)))
+    si = _plane_points(scene)
+    n = dr.width(si)
+    assert bool(dr.all(si.is_valid()))
+    p, K = ConeParams(max_cones=3), 3
+    Wd = words_per_entry(K)
+    keys = dr.arange(mi.UInt32, n) * 7 + 11
+    policy = RayPolicy(new=32, new_updates=20, halve_every=4, settled=1, moving=8)
+    storage = dr.zeros(mi.UInt32, n * Wd)
+    recs = [dr.zeros(mi.UInt32, n) for _ in range(Wd)]
+    state = dr.zeros(mi.UInt32, n)
+    slots = dr.arange(mi.UInt32, n)
+    stats_sum = 0.0
+    for f in range(6):
+        is_new = dr.full(mi.Bool, f == 0, n)
+        motion_in = dr.full(mi.Bool, f == 4, n)          # frame 5: every entry in its moving phase
+        rays, unsettled = policy.rays(state)
+        moving = (state >> 16) > 0
+        first = policy.samples_before(state)
+        storage, _ = update_entries(scene.mi_scene, storage, slots, si, rays, unsettled, is_new,
+                                    dr.full(mi.UInt32, INVALID, n), keys, f, 5, p, moving=moving,
+                                    first_sample=first, strata=~moving)
+        recs, mo, st = cones_rep.update(scene.mi_scene, recs, si, keys, rays, unsettled, moving, first, is_new,
+                                        dr.full(mi.Bool, True, n), f, 5, p)
+        dr.eval(recs, st)
+        ref = np.array(storage).reshape(n, Wd)
+        ours = np.stack([np.array(w) for w in recs], axis=1)
+        assert np.array_equal(ref, ours), f
+        ed, en = np.array(st[0]), np.array(st[1])
+        assert np.isfinite(ed).all() and (ed >= 0).all() and (en >= 0).all()
+        assert (ed > 0).any() and (en > 0).any()          # both kinds of light are seen
+        stats_sum += float(ed.sum() + en.sum())
+        state = policy.advance(state, mo | motion_in)
+    assert stats_sum > 0
+
+
 SWITCH_FRAMES = 50       # frames after the light change by which 90% of the entries have chosen cones
 JUMP = 0.03              # bound on the frame-to-frame change of the image mean once the light has changed
 

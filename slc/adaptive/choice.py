@@ -49,6 +49,7 @@ class ChoiceParams:
     h_r: float = 0.06
     switch_after: int = 3         # updates in a row with another target before switching
     min_count: int = 2            # updates of statistics before the first switch
+    allow_sh: bool = True         # SH is a candidate (the method: only in scenes with an environment emitter)
 
 
 @dataclass
@@ -115,6 +116,8 @@ def target_of(h: Header, p: ChoiceParams) -> mi.UInt32:
     vis = h.s_delta > dr.select(is_vis, p.theta_delta - p.h_delta, p.theta_delta + p.h_delta)
     R = resultant(h)
     wide = R < dr.select(is_sh, p.theta_r + p.h_r, p.theta_r - p.h_r)
+    if not p.allow_sh:
+        wide = dr.zeros(mi.Bool, dr.width(R))
     t = dr.select(vis, mi.UInt32(VIS), dr.select(wide, mi.UInt32(SH), mi.UInt32(CONES)))
     return dr.select(h.e > 0.0, t, h.tag)
 

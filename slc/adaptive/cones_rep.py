@@ -2,80 +2,54 @@ r"""CONES representation: the Surface Light Cones record of :mod:`slc.cones`
 (insertion cases A-D, accumulation count, shrink test, 286-bit packing for 3
 cones) in a pool of its own.
 
-:func:`update` is :func:`slc.cones.update._updated_words` (copied, because
-that module is not ours to change) with two differences: samples come from
-the emitter table with their emitter (:mod:`slc.adaptive.sampling`), and
-the cycle's light statistics are returned for the choice rule. Shading is
+:func:`update` is the ``slc`` method's own update cycle
+(:func:`slc.cones.update.update_cycle`: same light sampler, same per-entry
+R2 samples, same ray ramp through the shared ray policy), on records of the
+pool, with a :class:`~slc.cones.update.SampleObserver` that gathers the
+cycle's light statistics for the choice rule. Shading is
 :class:`slc.cones.shading.ConeShading` on the pool, unchanged.
 """
 from __future__ import annotations
-
-import math
 
 import drjit as dr
 import mitsuba as mi
 
 from ..cones.packing import pack, unpack
-from ..cones.update import ConeParams, empty_state, end_cycle, insert_sample, shrink_step, shrink_test
-from ..keys import STREAM_CONE_UPDATE, keyed_rng
-from .sampling import lum, sampler_of
+from ..cones.update import ConeParams, SampleObserver, empty_state, end_cycle, insert_sample, update_cycle
+from .sampling import lum
 
 CONVERT_COUNT = 4.0     # C of a record converted from another representation: new samples take over fast
 
 
-def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int, seed: int, p: ConeParams):
-    """One update cycle of cone records ``rec`` (packed words, one lane per entry).
-    Returns (new words, motion, stats values)."""
-    K = p.max_cones
-    N = dr.width(key)
-    samp = sampler_of(scene)
-    valid = mi.Bool(on) & si.is_valid()
+class _LightStats(SampleObserver):
+    """The choice rule's per-entry sums over a cycle's samples (see
+    :class:`slc.adaptive.sampling.SampleStats`): visible delta-light energy
+    ``ed``, other energy ``en`` and its direction-weighted sum ``m``, each
+    sample's energy being ``lum(w) max(s_z, 0)``."""
 
-    # ----------------------------------------------- unpack (fresh records start empty)
-    D, A, L, C, n = unpack(rec, K)
-    eD, eA, eL, eC, en0 = empty_state(N, K)
-    fresh = mi.Bool(fresh)
-    D = [dr.select(fresh, eD[i], D[i]) for i in range(K)]
-    A = [dr.select(fresh, eA[i], A[i]) for i in range(K)]
-    L = [dr.select(fresh, eL[i], L[i]) for i in range(K)]
-    C, n = dr.select(fresh, eC, C), dr.select(fresh, en0, n)
+    def init(self, n: int) -> tuple:
+        return (dr.zeros(mi.Float, n), dr.zeros(mi.Float, n), dr.zeros(mi.Vector3f, n))
 
-    frame_l = si.sh_frame
-    sampler = keyed_rng(key, seed, frame, STREAM_CONE_UPDATE)
-    rays = mi.UInt32(rays)
-    S = [dr.zeros(mi.Color3f, N) for _ in range(K)]
-    beta = dr.zeros(mi.Float, N)
-    z = dr.zeros(mi.Float, N)
-
-    # ----------------------------------------------- light samples, one at a time per entry
-    def cond(k, *state):
-        return k < rays
-
-    def body(k, D, A, L, S, n, beta, ed, enn, m, sampler):
-        u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
-        ds, w, ok, _ = samp.sample(si, u, valid & (k < rays))
-        ok &= dr.all(dr.isfinite(w))
-        ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), ok)
-        s = dr.normalize(frame_l.to_local(ds.d))
+    def observe(self, extra, ds, w, ok, s):
+        ed, en, m = extra
         c = dr.select(ok, lum(w) * dr.maximum(s.z, 0.0), 0.0)
-        ed = ed + dr.select(ds.delta, c, 0.0)
         cn = dr.select(ds.delta, 0.0, c)
-        enn, m = enn + cn, m + s * cn
-        D, A, L, S, n, beta, _ = insert_sample(D, A, L, S, n, beta, s, w, ok, p)
-        return k + 1, D, A, L, S, n, beta, ed, enn, m, sampler
+        return ed + dr.select(ds.delta, c, 0.0), en + cn, m + s * cn
 
-    _, D, A, L, S, n, beta, ed, enn, m, sampler = dr.while_loop(
-        state=(mi.UInt32(0), D, A, L, S, n, beta, z, mi.Float(z), mi.Vector3f(z, z, z), sampler),
-        cond=cond, body=body)
 
-    # ----------------------------------------------- shrink test: one ray per cone
-    dirs, tested, hits = shrink_test(scene, si, D, A, n, key, valid, mi.Bool(unsettled), sampler, frame, p)
-    D, A, L, S, n, beta, dropped, shrunk = shrink_step(D, A, L, S, n, beta, dirs, hits, tested, p)
-
-    # ----------------------------------------------- close the cycle and pack
-    L, C, reduced = end_cycle(L, S, C, n, beta, rays, mi.Bool(unsettled), p)
-    motion = valid & (reduced | dropped | (beta * (180.0 / math.pi) > p.beta_min_deg))
-    return pack(D, A, L, C, n, K), motion, [ed, enn, m]
+def update(scene: mi.Scene, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame: int, seed: int,
+           p: ConeParams):
+    """One update cycle of cone records ``rec`` (packed words, one lane per
+    entry): :func:`slc.cones.update.update_cycle`, the ``slc`` method's update
+    (its light sampler, per-entry R2 samples from ``first_sample`` where not
+    ``moving``, C capped for ``moving`` entries), with ``fresh`` records
+    restarting empty (no LOD seed) and the choice rule's statistics gathered
+    from the same samples. Returns (new words, motion, stats values)."""
+    moving = mi.Bool(moving)
+    words, motion, _, _, st = update_cycle(
+        scene, unpack(rec, p.max_cones), key, si, rays, unsettled, moving, fresh, first_sample, ~moving, frame,
+        seed, p, valid=mi.Bool(on) & si.is_valid(), observer=_LightStats())
+    return words, motion, list(st)
 
 
 def lobes(rec, active, K: int):

@@ -65,13 +65,17 @@ class AdaptiveCache(PayloadMethod):
 
     name = "adaptive"
     params = (
-        Param("vis_lights", 4, "delta lights with their own visibility per VISIBILITY entry", lo=1, hi=8),
+        Param("vis_lights", 8, "delta lights with their own visibility per VISIBILITY entry", lo=1, hi=8),
         Param("max_cones", 3, "cones per CONES entry", lo=1, hi=4),
         Param("encoding", "y3co1cg1", "SH encoding of SH entries", choices=tuple(ENCODINGS)),
         Param("sh_count", 128, "SH running-mean count cap (samples)", lo=1, hi=1e6),
         Param("shade_samples", 16, "cone shading directions per cone", lo=1, hi=1024),
         Param("glossy_samples", 8, "BSDF samples of the SH radiance per glossy pixel", lo=1, hi=1024),
-        Param("rays_new", 8, "update rays of new and moving entries", lo=1, hi=1024),
+        Param("rays_new", 32, "update rays of a new entry (its first update; see halve_every)", lo=1, hi=1024),
+        Param("new_updates", 20, "updates for which an entry counts as new", lo=1, hi=4096),
+        Param("halve_every", 4, "a new entry's rays halve every this many updates (0: rays_new throughout)",
+              lo=0, hi=4096),
+        Param("rays_moving", 8, "update rays of entries after detected motion", lo=1, hi=1024),
         Param("rays_settled", 1, "update rays of settled entries", lo=1, hi=1024),
         Param("window", 32, "light statistics' running-mean window (updates)", lo=1, hi=63),
         Param("switch_after", 3, "updates in a row asking for another representation before a switch", lo=1, hi=63),
@@ -79,6 +83,8 @@ class AdaptiveCache(PayloadMethod):
               "kernels are traced in those frames)", lo=1, hi=64),
         Param("theta_delta", 0.5, "delta-light energy share above which VISIBILITY is chosen", lo=0.0, hi=1.0),
         Param("theta_r", 0.75, "mean resultant length below which SH is chosen", lo=0.0, hi=1.0),
+        Param("sh_when", "environment", "SH is a candidate of the choice only in scenes with an environment "
+              "(infinite, non-delta) emitter, or always", choices=("environment", "always")),
         Param("start", "prior", "representation of new entries (prior: from the scene's emitters)",
               choices=("prior", "visibility", "cones", "sh")),
         Param("force", "auto", "representation of every entry (auto: the choice rule)",
@@ -91,8 +97,15 @@ class AdaptiveCache(PayloadMethod):
         self.cone_params = ConeParams(max_cones=self.max_cones)
         self.enc = get_encoding(self.encoding)
         self.choice = ChoiceParams(window=self.window, theta_delta=self.theta_delta, theta_r=self.theta_r,
-                                   switch_after=self.switch_after)
+                                   switch_after=self.switch_after,
+                                   allow_sh=self.sh_when == "always" or self._has_environment(scene))
         self.prior = self._prior(scene)
+
+    @staticmethod
+    def _has_environment(scene) -> bool:
+        """Whether an emitter is infinite and not a delta (an environment map or constant sky)."""
+        return any(bool(int(e.flags()) & int(mi.EmitterFlags.Infinite))
+                   and not bool(int(e.flags()) & int(mi.EmitterFlags.Delta)) for e in scene.mi_scene.emitters())
 
     @staticmethod
     def _prior(scene) -> int:
@@ -128,7 +141,8 @@ class AdaptiveCache(PayloadMethod):
                       SH: Pool("sh", sh_rep.words(self.enc))}
 
     def ray_policy(self) -> RayPolicy:
-        return RayPolicy(new=self.rays_new, settled=self.rays_settled, moving=self.rays_new)
+        return RayPolicy(new=self.rays_new, new_updates=self.new_updates, halve_every=self.halve_every,
+                         settled=self.rays_settled, moving=self.rays_moving)
 
     # ------------------------------------------------------------------ update
     def update(self, ctx, fr, rays, unsettled):
@@ -144,7 +158,12 @@ class AdaptiveCache(PayloadMethod):
         # so the frame-0 warm-up would trace other kernels than a frame with real switches.
         # Opaque values keep the IR independent of the data (docs/adaptive.md, Cost).
         is_new, rays, unsettled = mi.Bool(fr.is_new), mi.UInt32(rays), mi.Bool(unsettled)
-        dr.make_opaque(is_new, rays, unsettled)
+        # the entries' ray-policy state before this update (as slc: moving entries cap C and
+        # leave the stratified sequence; the others continue it after the samples they drew)
+        pstate = dr.select(is_new, 0, dr.gather(mi.UInt32, self.policy_state, fr.active))
+        moving = (pstate >> 16) > 0
+        first_sample = self.ray_policy().samples_before(pstate)
+        dr.make_opaque(is_new, rays, unsettled, moving, first_sample)
         forced = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.force)
         start = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.start, self.prior)
         prior = forced if forced is not None else start
@@ -200,8 +219,9 @@ class AdaptiveCache(PayloadMethod):
                 dr.scatter(motion, mo, idx, on)
                 dr.scatter(vis_motion, mo, idx, on)
             elif r == CONES:
-                out, mo, st = cones_rep.update(sc, rec, si, key, ry, dr.gather(mi.Bool, unsettled, idx), fr_r, on,
-                                               ctx.frame, self.seed, self.cone_params)
+                out, mo, st = cones_rep.update(sc, rec, si, key, ry, dr.gather(mi.Bool, unsettled, idx),
+                                               dr.gather(mi.Bool, moving, idx), dr.gather(mi.UInt32, first_sample, idx),
+                                               fr_r, on, ctx.frame, self.seed, self.cone_params)
                 dr.scatter(motion, mo, idx, on)
             else:
                 out, st = sh_rep.update(sc, rec, si, key, ry, fr_r, on, ctx.frame, self.seed, self.enc,

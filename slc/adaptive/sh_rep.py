@@ -11,8 +11,8 @@ weighs as much as an 8-sample one); lights below the surface are dropped. Shadin
 Ramamoorthi-Hanrahan irradiance for diffuse-only BSDFs (chrominance by the
 "ratio" rule of :func:`slc.sh.project.irradiance`: the paper's offset rule
 shifted the colour of a constant sky on a plane by 5%), BSDF samples of the
-reconstructed radiance otherwise (the ``sh`` method's shading, copied here
-to read the pool and the local frame).
+reconstructed radiance otherwise: the ``sh`` method's shading
+(:func:`slc.sh.shading.shade_radiance`) on the pool's local-frame coefficients.
 
 Conversion. To lobes: one cone about the mean direction of the luminance,
 :math:`\mathbf d \propto (\lambda_{1,1}, \lambda_{1,-1}, \lambda_{1,0})`, with
@@ -33,6 +33,7 @@ import mitsuba as mi
 from ..keys import STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng
 from ..sh.basis import C1, band_of, basis
 from ..sh.project import irradiance, project, radiance
+from ..sh.shading import shade_radiance
 from ..sh.ycocg import encoding as get_encoding
 from .sampling import lum, sampler_of
 
@@ -98,35 +99,15 @@ def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int
 
 
 def shade(rec, si, bsdf, tf, active, enc, seed: int, glossy_samples: int) -> mi.Color3f:
-    """L_o of the pixels from their SH records; ``tf`` each entry's local frame."""
+    """L_o of the pixels from their SH records (:func:`slc.sh.shading.shade_radiance`);
+    ``tf`` each entry's local frame, in which the coefficients live."""
     coeffs, _ = unpack(rec, enc)
-    ctx_b = mi.BSDFContext()
-    flags = bsdf.flags()
-    diffuse_only = ~mi.has_flag(flags, mi.BSDFFlags.Glossy) & ~mi.has_flag(flags, mi.BSDFFlags.Delta)
-    # ------------------- diffuse: closed-form irradiance at the pixel's normal
     nrm = tf.to_local(mi.Vector3f(si.sh_frame.n))
-    E = mi.Color3f(*irradiance(enc, coeffs, nrm, chroma="ratio"))
-    rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, active & diffuse_only))
-    L = dr.select(active & diffuse_only & (si.wi.z > 0.0), rho * E * (1.0 / math.pi), 0.0)
-    # ------------------- glossy: BSDF samples of the reconstructed radiance
-    g = active & ~diffuse_only
-    sampler = keyed_rng(dr.arange(mi.UInt32, dr.width(g)), seed, 0, STREAM_SH_SHADE)
-    ns = dr.opaque(mi.UInt32, glossy_samples)
-
-    def cond(i, Lg, sampler):
-        return (i < ns) & g
-
-    def body(i, Lg, sampler):
-        u1 = sampler.next_float32()
-        u2 = mi.Point2f(sampler.next_float32(), sampler.next_float32())
-        bs, bw = bsdf.sample(ctx_b, si, u1, u2, g)
-        okj = g & (bs.pdf > 0.0)
-        Li = mi.Color3f(*radiance(enc, coeffs, tf.to_local(si.to_world(bs.wo))))
-        return i + 1, Lg + dr.select(okj, mi.Color3f(bw) * Li, 0.0), sampler
-
-    _, Lg, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body)
-    L += Lg * (1.0 / float(glossy_samples))
-    return dr.select(active, L, 0.0)
+    return shade_radiance(
+        si, bsdf, active,
+        lambda: mi.Color3f(*irradiance(enc, coeffs, nrm, chroma="ratio")),
+        lambda d, m: (mi.Color3f(*radiance(enc, coeffs, tf.to_local(d))), m),
+        keyed_rng(dr.arange(mi.UInt32, dr.width(active)), seed, 0, STREAM_SH_SHADE), glossy_samples)
 
 
 def lobes(rec, active, enc):

@@ -375,31 +375,82 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
 
 def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_new, seed_slot, first_sample,
                    strata, frame, seed, p: ConeParams):
-    """The update kernel proper: unpack, insert samples, shrink, end the cycle,
-    pack. Returns the evaluated (words, motion, shrunk, dropped)."""
-    from .packing import gather_words, pack, unpack
+    """The update kernel proper on the packed ``storage``: unpack the active
+    entries (and the LOD seeds of new ones), :func:`update_cycle`, pack.
+    Returns the evaluated (words, motion, shrunk, dropped)."""
+    from .packing import gather_words, unpack
     K = p.max_cones
-    N = dr.width(active)
-    valid = si.is_valid()
-
-    # ----------------------------------------------- unpack (or reset / seed new entries)
-    D, A, L, C, n = unpack(gather_words(storage, active, K), K)
+    state = unpack(gather_words(storage, active, K), K)
     seed_slot = mi.UInt32(seed_slot)
     has_seed = mi.Bool(is_new) & (seed_slot != INVALID)
-    sD, sA, sL, sC, sn = unpack(gather_words(storage, dr.select(has_seed, seed_slot, 0), K, has_seed), K)
+    seeds = unpack(gather_words(storage, dr.select(has_seed, seed_slot, 0), K, has_seed), K)
+    words, motion, shrunk, dropped, _ = update_cycle(
+        scene, state, key, si, rays, unsettled, moving, is_new, first_sample, strata, frame, seed, p,
+        seeds=seeds, has_seed=has_seed)
+    dr.eval(*words, motion, shrunk, dropped)
+    return words, motion, shrunk, dropped
+
+
+class SampleObserver:
+    """Hook of :func:`update_cycle` for callers that need more than the cones
+    from the cycle's light samples (the adaptive cache's light statistics):
+    :meth:`init` gives extra loop state (a tuple of Dr.Jit arrays, one lane
+    per entry), :meth:`observe` folds one sample into it. The observer only
+    reads the samples: the cones are the same with or without one."""
+
+    def init(self, n: int) -> tuple:
+        return ()
+
+    def observe(self, extra: tuple, ds: mi.DirectionSample3f, w: mi.Color3f, ok: mi.Bool,
+                s: mi.Vector3f) -> tuple:
+        """``ds`` the light sample, ``w`` its weight L_e G / pdf, ``ok`` valid and
+        visible, ``s`` its direction in the entry's local frame."""
+        return extra
+
+
+def update_cycle(scene, state, key, si, rays, unsettled, moving, is_new, first_sample, strata, frame, seed,
+                 p: ConeParams, seeds=None, has_seed=None, valid=None, observer: SampleObserver | None = None):
+    """One update cycle of unpacked cone records ``state = (D, A, L, C, n)``
+    (one lane per entry, as :func:`slc.cones.packing.unpack` returns it):
+    new entries (``is_new``) restart empty, or from their LOD seed's unpacked
+    record ``seeds`` where ``has_seed``; ``rays`` light samples per entry from
+    the stratified sequence (see below), insertion (cases A-D), the shrink test,
+    the end of the cycle. ``valid`` (default: the interaction's) masks the lanes
+    that sample; ``observer`` (a :class:`SampleObserver`) sees every sample.
+    Shared by ``slc`` (through :func:`update_entries`) and the adaptive cache's
+    cone pool. Returns (packed words, motion, shrunk, dropped, observer state);
+    nothing evaluated."""
+    from .packing import pack
+    K = p.max_cones
+    N = dr.width(key)
+    valid = si.is_valid() if valid is None else mi.Bool(valid)
+    D, A, L, C, n = (list(state[0]), list(state[1]), list(state[2]), state[3], state[4])
+
+    # ----------------------------------------------- reset / seed new entries
     eD, eA, eL, eC, en = empty_state(N, K)
-    for i in range(K):
-        D[i] = dr.select(has_seed, sD[i], dr.select(is_new, eD[i], D[i]))
-        A[i] = dr.select(has_seed, sA[i], dr.select(is_new, eA[i], A[i]))
-        L[i] = dr.select(has_seed, sL[i], dr.select(is_new, eL[i], L[i]))
-    C = dr.select(has_seed, dr.minimum(sC, p.seed_c_max), dr.select(is_new, eC, C))
-    n = dr.select(has_seed, sn, dr.select(is_new, en, n))
+    is_new = mi.Bool(is_new)
+    if seeds is None:
+        for i in range(K):
+            D[i] = dr.select(is_new, eD[i], D[i])
+            A[i] = dr.select(is_new, eA[i], A[i])
+            L[i] = dr.select(is_new, eL[i], L[i])
+        C = dr.select(is_new, eC, C)
+        n = dr.select(is_new, en, n)
+    else:
+        sD, sA, sL, sC, sn = seeds
+        for i in range(K):
+            D[i] = dr.select(has_seed, sD[i], dr.select(is_new, eD[i], D[i]))
+            A[i] = dr.select(has_seed, sA[i], dr.select(is_new, eA[i], A[i]))
+            L[i] = dr.select(has_seed, sL[i], dr.select(is_new, eL[i], L[i]))
+        C = dr.select(has_seed, dr.minimum(sC, p.seed_c_max), dr.select(is_new, eC, C))
+        n = dr.select(has_seed, sn, dr.select(is_new, en, n))
 
     frame_l = si.sh_frame
     sampler = keyed_rng(key, seed, frame, STREAM_CONE_UPDATE)
     rays = mi.UInt32(rays)
     S = [dr.zeros(mi.Color3f, N) for _ in range(K)]
     beta = dr.zeros(mi.Float, N)
+    extra = observer.init(N) if observer is not None else ()
 
     # ----------------------------------------------- light samples, one at a time per entry
     # Stratified over the entry's life: sample j of the entry is the R2 point
@@ -421,10 +472,10 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_
     else:
         q0 = q1 = dr.zeros(mi.UInt32, N)
 
-    def cond(k, D, A, L, S, n, beta, sampler, q0, q1):
+    def cond(k, D, A, L, S, n, beta, sampler, q0, q1, extra):
         return k < rays
 
-    def body(k, D, A, L, S, n, beta, sampler, q0, q1):
+    def body(k, D, A, L, S, n, beta, sampler, q0, q1, extra):
         if p.stratified:
             # top 24 bits: a float32 in [0, 1)
             u = mi.Point2f(mi.Float(q0 >> 8) * (1.0 / 16777216.0), mi.Float(q1 >> 8) * (1.0 / 16777216.0))
@@ -435,12 +486,14 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_
         ok &= dr.all(dr.isfinite(w))
         ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), ok)
         s = dr.normalize(frame_l.to_local(ds.d))
+        if observer is not None:
+            extra = observer.observe(extra, ds, w, ok, s)
         D, A, L, S, n, beta, _ = insert_sample(D, A, L, S, n, beta, s, w, ok, p)
-        return k + 1, D, A, L, S, n, beta, sampler, q0, q1
+        return k + 1, D, A, L, S, n, beta, sampler, q0, q1, extra
 
-    _, D, A, L, S, n, beta, sampler, _, _ = dr.while_loop(
-        state=(mi.UInt32(0), D, A, L, S, n, beta, sampler, q0, q1), cond=cond, body=body,
-        labels=("k", "D", "A", "L", "S", "n", "beta", "sampler", "q0", "q1"))
+    _, D, A, L, S, n, beta, sampler, _, _, extra = dr.while_loop(
+        state=(mi.UInt32(0), D, A, L, S, n, beta, sampler, q0, q1, extra), cond=cond, body=body,
+        labels=("k", "D", "A", "L", "S", "n", "beta", "sampler", "q0", "q1", "extra"))
 
     # ----------------------------------------------- shrink test: one ray per cone
     dirs, tested, hits = shrink_test(scene, si, D, A, n, key, valid, mi.Bool(unsettled), sampler, frame, p)
@@ -465,6 +518,4 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_
     # ----------------------------------------------- close the cycle and pack
     L, C, reduced = end_cycle(L, S, C, n, beta, rays, moving, p)
     motion = valid & (reduced | dropped | (beta * (180.0 / math.pi) > p.beta_min_deg))
-    words = pack(D, A, L, C, n, K)
-    dr.eval(*words, motion, shrunk, dropped)
-    return words, motion, shrunk, dropped
+    return pack(D, A, L, C, n, K), motion, shrunk, dropped, extra

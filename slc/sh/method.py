@@ -2,8 +2,6 @@
 compressed chrominance) in the on-surface cache."""
 from __future__ import annotations
 
-import math
-
 import drjit as dr
 import mitsuba as mi
 
@@ -12,6 +10,7 @@ from ..lights import sample_light, visible
 from ..methods import Param, register
 from ..osc.payload import PayloadMethod, RayPolicy
 from .project import irradiance, project, radiance
+from .shading import shade_radiance
 from .ycocg import ENCODINGS, encoding as get_encoding
 
 
@@ -112,37 +111,13 @@ class SHSurfaceCache(PayloadMethod):
         si = gb.si
         ok = mi.Bool(gb.valid) & (slot != INVALID)
         coeffs = [dr.gather(mi.Float, self.storage, slot * W + c, ok) for c in range(n)]
-        bsdf = si.bsdf()
-        ctx_b = mi.BSDFContext()
-        flags = bsdf.flags()
-        diffuse_only = ~mi.has_flag(flags, mi.BSDFFlags.Glossy) & ~mi.has_flag(flags, mi.BSDFFlags.Delta)
-
-        # ------------------- diffuse: closed-form irradiance -------------------
         nrm = mi.Vector3f(si.sh_frame.n)
-        E = mi.Color3f(*irradiance(enc, coeffs, nrm, self.presence, self.bleeding))
-        rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, ok & diffuse_only))
-        L = dr.select(diffuse_only & (si.wi.z > 0.0), rho * E * (1.0 / math.pi), 0.0)
-
-        # -------------- glossy: BSDF samples of the reconstructed radiance --------------
-        g = ok & ~diffuse_only
-        sampler = keyed_rng(dr.arange(mi.UInt32, gb.size), self.seed, 0, STREAM_SH_SHADE)
-        ns = dr.opaque(mi.UInt32, self.glossy_samples)
-
-        def cond(i, Lg, sampler):
-            return (i < ns) & g
-
-        def body(i, Lg, sampler):
-            u1 = sampler.next_float32()
-            u2 = mi.Point2f(sampler.next_float32(), sampler.next_float32())
-            bs, bw = bsdf.sample(ctx_b, si, u1, u2, g)
-            okj = g & (bs.pdf > 0.0)
-            Li = mi.Color3f(*radiance(enc, coeffs, si.to_world(bs.wo), self.presence, self.bleeding))
-            return i + 1, Lg + dr.select(okj, mi.Color3f(bw) * Li, 0.0), sampler
-
-        _, Lg, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
-                                 labels=("i", "Lg", "sampler"))
-        L += Lg * (1.0 / float(self.glossy_samples))
-        return dr.select(ok, L, 0.0)
+        # world-frame coefficients: the irradiance at the shading normal, the radiance towards d
+        return shade_radiance(
+            si, si.bsdf(), ok,
+            lambda: mi.Color3f(*irradiance(enc, coeffs, nrm, self.presence, self.bleeding)),
+            lambda d, m: (mi.Color3f(*radiance(enc, coeffs, d, self.presence, self.bleeding)), m),
+            keyed_rng(dr.arange(mi.UInt32, gb.size), self.seed, 0, STREAM_SH_SHADE), self.glossy_samples)
 
 
 register("sh", SHSurfaceCache,
