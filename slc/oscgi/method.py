@@ -2,7 +2,6 @@
 on-surface cache and secondary radiance caches in a hashed world grid (``docs/osc-gi.md``)."""
 from __future__ import annotations
 
-import math
 
 import drjit as dr
 import mitsuba as mi
@@ -12,6 +11,7 @@ from ..lights import sample_light, visible
 from ..methods import MethodError, Param, register
 from ..osc.cache import OnSurfaceCache
 from ..osc.payload import PayloadMethod, RayPolicy
+from ..sh.shading import diffuse_only, shade_radiance
 from .hemisphere import HemiGrid
 from .laps import Laps
 from .secondary import SecondaryCache
@@ -320,40 +320,25 @@ class OSCGI(PayloadMethod):
         si = gb.si
         ok = mi.Bool(gb.valid) & (slot != INVALID) & (si.wi.z > 0.0)
         bsdf = si.bsdf()
-        flags = bsdf.flags()
-        diffuse_only = ~mi.has_flag(flags, mi.BSDFFlags.Glossy) & ~mi.has_flag(flags, mi.BSDFFlags.Delta)
-
-        # ------------------------ diffuse: rho / pi * E, E from the texels ------------------------
-        E = mi.Color3f(*[dr.gather(mi.Float, self.storage, slot * W + 3 * D + c, ok & diffuse_only)
-                         for c in range(3)])
-        rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, ok & diffuse_only))
-        L = dr.select(ok & diffuse_only, rho * E * (1.0 / math.pi), 0.0)
-
-        # ------------- glossy: BSDF importance sampling of the entry's hemisphere texels -------------
-        g = ok & ~diffuse_only
+        d_only = diffuse_only(bsdf)
+        g = ok & ~d_only
         n_e = mi.Vector3f(*[dr.gather(mi.Float, fr.si.sh_frame.n[c], idx, g) for c in range(3)])
         frame_e = mi.Frame3f(n_e)
-        sampler = keyed_rng(dr.arange(mi.UInt32, gb.size), self.seed, ctx.frame, STREAM_SHADE)
-        ns = dr.opaque(mi.UInt32, self.glossy_samples)
-        bctx = mi.BSDFContext()
 
-        def cond(i, Lg, sampler):
-            return (i < ns) & g
+        def irradiance():
+            # diffuse: E from the entry's irradiance words
+            return mi.Color3f(*[dr.gather(mi.Float, self.storage, slot * W + 3 * D + c, ok & d_only)
+                                for c in range(3)])
 
-        def body(i, Lg, sampler):
-            u1 = sampler.next_float32()
-            u2 = mi.Point2f(sampler.next_float32(), sampler.next_float32())
-            bs, bw = bsdf.sample(bctx, si, u1, u2, g)
-            loc = frame_e.to_local(si.to_world(bs.wo))
-            okj = g & (bs.pdf > 0.0) & (loc.z > 0.0)
+        def radiance(d, m):
+            # glossy: the entry's hemisphere texel towards d (BSDF importance sampling)
+            loc = frame_e.to_local(d)
+            m = m & (loc.z > 0.0)
             t = slot * W + G.texel(loc) * 3
-            Li = mi.Color3f(*[dr.gather(mi.Float, self.storage, t + c, okj) for c in range(3)])
-            return i + 1, Lg + dr.select(okj, mi.Color3f(bw) * Li, 0.0), sampler
+            return mi.Color3f(*[dr.gather(mi.Float, self.storage, t + c, m) for c in range(3)]), m
 
-        _, Lg, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
-                                 labels=("i", "Lg", "sampler"))
-        L += Lg * (1.0 / float(self.glossy_samples))
-        return dr.select(ok, L, 0.0)
+        sampler = keyed_rng(dr.arange(mi.UInt32, gb.size), self.seed, ctx.frame, STREAM_SHADE)
+        return shade_radiance(si, bsdf, ok, irradiance, radiance, sampler, self.glossy_samples)
 
     # ------------------------------------------------------------------ frame
     def render(self, ctx, gbuffers, timer):

@@ -4,7 +4,9 @@ closed form and BSDF samples of the radiance.
 :func:`shade_radiance` is shared by the caches that store incident radiance
 per entry and shade a pixel from it: the ``sh`` method
 (:mod:`slc.sh.method`, world-frame coefficients) and the adaptive cache's SH
-pool (:mod:`slc.adaptive.sh_rep`, coefficients in the entry's local frame).
+pool (:mod:`slc.adaptive.sh_rep`, coefficients in the entry's local frame)
+and the GI caches' primary entries (:mod:`slc.oscgi.method`, 8x8 hemisphere
+texels and an irradiance sum).
 The field is passed as two callables, so the estimator stays one piece of
 code whatever the field's storage:
 
