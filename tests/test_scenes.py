@@ -200,18 +200,23 @@ def test_sponza_shape_order_is_the_same_in_every_process():
     from run to run; the cache layout and its keys follow the shape order, so
     ``scenes/sponza.py`` numbers the shapes in a fixed order. Two processes must
     see the same shapes in the same order (it differed before the fix)."""
+    if not (scenes.SHARED_DIR / "scenes" / "sponza" / "sponza.xml").exists():
+        pytest.skip("sponza needs ../shared/scenes/sponza")
+    outs = _last_lines_of_three_processes(
+        "s = scenes.load('sponza'); print([(sh.id(), sh.face_count()) for sh in s.mi_scene.shapes()])")
+    assert outs[0] == outs[1] == outs[2]
+
+
+def _last_lines_of_three_processes(code: str) -> list[str]:
+    """The last printed line of ``code`` run in three fresh processes (after
+    ``backend.init()`` and ``from slc import scenes``)."""
     import subprocess
     import sys
     from pathlib import Path
-    if not (scenes.SHARED_DIR / "scenes" / "sponza" / "sponza.xml").exists():
-        pytest.skip("sponza needs ../shared/scenes/sponza")
-    code = ("from slc import backend; backend.init(); from slc import scenes; "
-            "s = scenes.load('sponza'); "
-            "print([(sh.id(), sh.face_count()) for sh in s.mi_scene.shapes()])")
+    code = "from slc import backend; backend.init(); from slc import scenes; " + code
     root = Path(__file__).resolve().parents[1]
-    outs = [subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, check=True)
+    return [subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, check=True)
             .stdout.strip().splitlines()[-1] for _ in range(3)]
-    assert outs[0] == outs[1] == outs[2]
 
 
 def test_xml_scene_shape_order_is_the_same_in_every_process():
@@ -220,17 +225,11 @@ def test_xml_scene_shape_order_is_the_same_in_every_process():
     in the same order. Loaded with plain ``mi.load_file`` the
     order differed between processes (``load_xml`` turns Mitsuba's mesh
     merging off, which returned the merged meshes in a varying order)."""
-    import subprocess
-    import sys
-    from pathlib import Path
     xml = scenes.SHARED_DIR / "scenes" / "sponza" / "sponza.xml"
     if not xml.exists():
         pytest.skip("needs ../shared/scenes/sponza")
-    code = ("from slc import backend; backend.init(); from slc import scenes; "
-            f"s = scenes.load_xml({str(xml)!r}); "
-            "print([(sh.id(), sh.primitive_count(), sh.class_name()) for sh in s.mi_scene.shapes()], "
-            "len(s.mi_scene.emitters()), len(s.mi_scene.sensors()))")
-    root = Path(__file__).resolve().parents[1]
-    outs = [subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, check=True)
-            .stdout.strip().splitlines()[-1] for _ in range(3)]
+    outs = _last_lines_of_three_processes(
+        f"s = scenes.load_xml({str(xml)!r}); "
+        "print([(sh.id(), sh.primitive_count(), sh.class_name()) for sh in s.mi_scene.shapes()], "
+        "len(s.mi_scene.emitters()), len(s.mi_scene.sensors()))")
     assert outs[0] == outs[1] == outs[2]
