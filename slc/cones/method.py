@@ -10,7 +10,7 @@ from ..osc.payload import PayloadMethod, RayPolicy
 from ..osc.protocol import BILINEAR_TAPS
 from .packing import words_per_entry
 from .shading import shade_key, shader_for
-from .update import ConeParams, update_entries
+from .update import ConeParams, update_entries, updater_for
 
 
 class SurfaceLightCones(PayloadMethod):
@@ -110,7 +110,8 @@ class SurfaceLightCones(PayloadMethod):
         self.storage, motion = update_entries(
             self.scene.mi_scene, self.storage, fr.active, fr.si, rays, unsettled, fr.is_new, fr.seed_slot,
             fr.keys, ctx.frame, self.seed, self.cone_params, info,
-            moving=moving, first_sample=policy.samples_before(state), strata=~moving)
+            moving=moving, first_sample=policy.samples_before(state), strata=~moving,
+            updater=updater_for(self))
         self._info = info
         return motion
 

@@ -58,6 +58,28 @@ class ConeParams:
     gone_turn: float = math.radians(40.0)   # rad; the turn a left light counts as (40 deg: the largest C reduction, /3)
 
 
+
+# ----------------------------------------------------------------------------- frame keys
+
+def frame_u32(frame) -> mi.UInt32:
+    """The frame number as an opaque :class:`mi.UInt32` (a Python int is made
+    opaque, so that a new frame never recompiles a kernel; a ``mi.UInt32`` is
+    kept, so that a frozen update takes the frame as an input, not a key)."""
+    return dr.opaque(mi.UInt32, int(frame) & 0xFFFFFFFF) if isinstance(frame, int) else mi.UInt32(frame)
+
+
+def frame_rng(keys: mi.UInt32, seed: int, frame: mi.UInt32, stream: int) -> mi.PCG32:
+    """:func:`slc.keys.keyed_rng` for a frame held in a ``mi.UInt32``: the same
+    (seed, frame, stream) mix as :func:`slc.keys.stream_key`, wrapped modulo
+    2^32 in the kernel instead of in Python, so the same streams bit for bit."""
+    keys = mi.UInt32(keys)
+    mix = frame * 0x85EBCA77 + ((int(seed) * 0x9E3779B1 + int(stream)) & 0xFFFFFFFF)
+    v0, v1 = mi.sample_tea_32(keys, mix, 6)
+    rng = mi.PCG32()
+    rng.seed(mi.UInt64(v0) | (mi.UInt64(v1) << 32), mi.UInt64(keys))
+    return rng
+
+
 # ----------------------------------------------------------------------------- geometry
 
 def angle_between(a, b):
@@ -312,7 +334,7 @@ def shrink_test(scene: mi.Scene, si: mi.SurfaceInteraction3f, D, A, n, key: mi.U
     ``shrink_period``-th frame (staggered by ``key``). Returns (directions,
     tested masks, hit-a-light masks) per cone."""
     period = max(int(p.shrink_period), 1)
-    phase = dr.opaque(mi.UInt32, frame % period)  # opaque: no recompilation per frame
+    phase = frame_u32(frame) % period  # opaque: no recompilation per frame
     do_shrink = valid & (unsettled | (((key + phase) % period) == 0))
     us = [sampler.next_float32() for _ in range(p.max_cones)]
     dirs, tested = shrink_test_dirs(D, A, n, us, p)
@@ -331,7 +353,7 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
                    rays: mi.UInt32, unsettled: mi.Bool, is_new: mi.Bool, seed_slot: mi.UInt32, keys: mi.UInt32,
                    frame: int, seed: int, p: ConeParams, stats: dict | None = None,
                    moving: mi.Bool | None = None, first_sample: mi.UInt32 | None = None,
-                   strata: mi.Bool | None = None):
+                   strata: mi.Bool | None = None, updater: "ConeUpdate | None" = None):
     """One update cycle of every active entry (one lane per entry, samples processed
     sequentially in a loop so no update is lost). Reads and writes the packed
     ``storage`` (``capacity * words_per_entry`` UInt32). ``rays`` and ``unsettled``
@@ -342,35 +364,53 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     :func:`end_cycle`); ``first_sample`` (default 0) is the index of the cycle's
     first sample in the entry's stratified sequence where ``strata`` (default:
     not ``moving``) holds; elsewhere the cycle's samples continue a second
-    per-entry sequence at ``frame x rays``. Returns (storage, motion
-    mask per active entry)."""
-    from .packing import scatter_words
+    per-entry sequence at ``frame x rays``. ``updater`` (a :class:`ConeUpdate`,
+    default: none) runs the kernel traced once and replayed; without it the
+    kernel is traced on every call. Returns (storage, motion mask per active entry)."""
     if dr.width(active) == 0:
         return storage, mi.Bool()
     N = dr.width(active)
-    rays = mi.UInt32(rays)
     moving = dr.zeros(mi.Bool, N) if moving is None else mi.Bool(moving)
     first_sample = dr.zeros(mi.UInt32, N) if first_sample is None else mi.UInt32(first_sample)
     strata = ~moving if strata is None else mi.Bool(strata)
     # Entries with 8 samples side by side, so that a SIMD packet's loop does not
     # run 8 iterations for 1-sample lanes (random numbers are keyed by slot, so
-    # the order changes nothing in the results).
+    # the order changes nothing in the results). Outside the frozen kernel:
+    # dr.argsort bakes the array's length into its kernels.
     order = dr.argsort(mi.UInt32(rays), descending=True)
-    act = dr.gather(mi.UInt32, active, order)
-    key = dr.gather(mi.UInt32, keys, order)
-    words, motion_o, shrunk_o, dropped_o = _updated_words(
-        scene, storage, act, key, dr.gather(type(si), si, order), dr.gather(mi.UInt32, rays, order),
-        dr.gather(mi.Bool, unsettled, order), dr.gather(mi.Bool, moving, order), dr.gather(mi.Bool, is_new, order),
-        dr.gather(mi.UInt32, seed_slot, order), dr.gather(mi.UInt32, first_sample, order), dr.gather(mi.Bool, strata, order), frame, seed, p)
+    kernel = updater if updater is not None else _update_kernel
+    storage, motion_o, shrunk_o, dropped_o = kernel(
+        scene, light_inputs(scene), storage, order, mi.UInt32(active), mi.UInt32(keys), si, mi.UInt32(rays), mi.Bool(unsettled), moving,
+        mi.Bool(is_new), mi.UInt32(seed_slot), first_sample, strata, frame_u32(frame), int(seed), p)
     motion = dr.zeros(mi.Bool, N)
     dr.scatter(motion, motion_o, order)
     if stats is not None:
         stats["shrunk"] = shrunk_o
         stats["dropped"] = dropped_o
+    return storage, motion
+
+
+def _update_kernel(scene, lights, storage, order, active, keys, si, rays, unsettled, moving, is_new, seed_slot,
+                   first_sample, strata, frame, seed, p: ConeParams):
+    """The update proper, in the lane order ``order``: gather the inputs,
+    :func:`_updated_words`, write the words back into ``storage``. Every
+    argument that changes from frame to frame is a Dr.Jit array (``frame``
+    an opaque ``mi.UInt32``), and nothing here reads an array's width, so
+    that :class:`ConeUpdate` can trace it once and replay it for any number
+    of entries. ``lights`` (:func:`light_inputs`) is not read here: it declares
+    the emitter table's arrays, which :func:`slc.lights.sample_light` reads, as
+    inputs of the frozen function. Returns (storage, motion, shrunk, dropped), the masks in lane order."""
+    from .packing import scatter_words
+    act = dr.gather(mi.UInt32, active, order)
+    words, motion_o, shrunk_o, dropped_o = _updated_words(
+        scene, storage, act, dr.gather(mi.UInt32, keys, order), dr.gather(type(si), si, order),
+        dr.gather(mi.UInt32, rays, order), dr.gather(mi.Bool, unsettled, order), dr.gather(mi.Bool, moving, order),
+        dr.gather(mi.Bool, is_new, order), dr.gather(mi.UInt32, seed_slot, order),
+        dr.gather(mi.UInt32, first_sample, order), dr.gather(mi.Bool, strata, order), frame, seed, p)
     # Every intermediate that read ``storage`` died with _updated_words' locals, so
     # the scatter below writes in place (a live reader would force a full copy).
     scatter_words(storage, words, act, p.max_cones)
-    return storage, motion
+    return storage, motion_o, shrunk_o, dropped_o
 
 
 def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_new, seed_slot, first_sample,
@@ -389,6 +429,89 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_
         seeds=seeds, has_seed=has_seed)
     dr.eval(*words, motion, shrunk, dropped)
     return words, motion, shrunk, dropped
+
+
+def light_inputs(scene) -> list:
+    """The Dr.Jit arrays of the scene's emitter table (:mod:`slc.emitter_sampling`;
+    empty with Mitsuba's sampling), refreshed for moved emissive meshes. A frozen
+    function may read only arrays reachable from its inputs: passing these makes
+    the table an input (read at each replay, so a refreshed table is followed)."""
+    from ..lights import sampler
+    s = sampler(scene)
+    if s is None:
+        return []
+
+    def arrays(v):
+        if isinstance(v, dr.ArrayBase):
+            return [v]
+        if isinstance(v, (list, tuple)):
+            return [a for x in v for a in arrays(x)]
+        return []
+    return [a for k in sorted(vars(s)) for a in arrays(vars(s)[k])]
+
+
+class ConeUpdate:
+    r"""The cone update kernel (:func:`_update_kernel`) traced once and replayed
+    (``dr.freeze``): tracing the update (the sample loop, cases A-D, the shrink
+    test, packing) costs tens of milliseconds of Python per frame whatever the
+    number of entries; a replay launches the recorded kernels on the frame's
+    arrays. Images are those of the traced kernel bit for bit.
+
+    Parameters (defaults): ``freeze=True`` (False: trace on every call),
+    ``animated=False`` (the scene's meshes move), ``max_recordings=4``.
+
+    A recording is reused while its inputs keep their layout: the frame number is
+    an opaque ``mi.UInt32`` input and the number of active entries, the storage's
+    size (it grows with the cache) may change between calls without a new recording;
+    what forces one is a change of which inputs share a width (e.g. an input of
+    width 1: one active entry), or a change of the scene's traversed state. As
+    :class:`slc.cones.shading.ConeShading`: in a static scene a function recorded
+    more than ``max_recordings`` times is dropped (traced from then on); in an
+    animated one it keeps 2 recordings and is dropped once 8 calls show that almost
+    every call records."""
+
+    def __init__(self, freeze: bool = True, animated: bool = False, max_recordings: int = 4):
+        self.animated, self.max_recordings = bool(animated), int(max_recordings)
+        self.frozen = bool(freeze)
+        # one frozen function per instance: recordings live and die with the method
+        if not freeze:
+            self.kernel = _update_kernel
+        elif self.animated:
+            self.kernel = dr.freeze(_update_kernel, limit=2, warn_after=1 << 30)
+        else:
+            self.kernel = dr.freeze(_update_kernel, warn_after=self.max_recordings + 1)
+        self.recordings = 0          # recordings made, including those of a dropped frozen function
+        self.calls = 0
+
+    def __call__(self, *args):
+        out = self.kernel(*args)
+        if self.frozen:
+            self.calls += 1
+            self.recordings = int(self.kernel.n_recordings)
+            if self.animated:
+                drop = self.calls >= 8 and self.recordings > 0.9 * self.calls
+            else:
+                drop = self.recordings > self.max_recordings
+            if drop:
+                self.kernel.clear()
+                self.kernel, self.frozen = _update_kernel, False
+        return out
+
+    @property
+    def n_recordings(self) -> int:
+        """Recordings made by this instance's frozen function (0 when never frozen)."""
+        return self.recordings
+
+
+def updater_for(owner) -> ConeUpdate:
+    """The :class:`ConeUpdate` of ``owner`` (a method instance), made on first use
+    (animated when the owner's scene is)."""
+    up = getattr(owner, "_cone_update", None)
+    if up is None:
+        scene = getattr(owner, "scene", None)
+        up = ConeUpdate(animated=bool(getattr(scene, "dynamic", False)))
+        owner._cone_update = up
+    return up
 
 
 class SampleObserver:
@@ -446,7 +569,8 @@ def update_cycle(scene, state, key, si, rays, unsettled, moving, is_new, first_s
         n = dr.select(has_seed, sn, dr.select(is_new, en, n))
 
     frame_l = si.sh_frame
-    sampler = keyed_rng(key, seed, frame, STREAM_CONE_UPDATE)
+    frame = frame_u32(frame)
+    sampler = frame_rng(key, seed, frame, STREAM_CONE_UPDATE)
     rays = mi.UInt32(rays)
     S = [dr.zeros(mi.Color3f, N) for _ in range(K)]
     beta = dr.zeros(mi.Float, N)
@@ -466,7 +590,7 @@ def update_cycle(scene, state, key, si, rays, unsettled, moving, is_new, first_s
     if p.stratified:
         shift = keyed_rng(key, seed, 0, STREAM_CONE_STRATA)
         s0, s1, m0, m1 = (shift.next_uint32(), shift.next_uint32(), shift.next_uint32(), shift.next_uint32())
-        j = dr.select(strata, mi.UInt32(first_sample), dr.opaque(mi.UInt32, frame & 0xFFFFFF) * rays)
+        j = dr.select(strata, mi.UInt32(first_sample), (frame & 0xFFFFFF) * rays)
         q0 = dr.select(strata, s0, m0) + j * R2_STEP[0]
         q1 = dr.select(strata, s1, m1) + j * R2_STEP[1]
     else:

@@ -1,0 +1,80 @@
+"""issue 13: the cone update traced once and replayed (``slc.cones.update.ConeUpdate``,
+``dr.freeze``): the same images bit for bit as the update traced every frame, and a
+bounded number of recordings over a run whose active entries and storage change size."""
+import numpy as np
+import pytest
+
+from helpers import plane_under_rect_light
+from slc.cones.update import ConeUpdate
+from slc.methods import FrameContext, create
+from slc.osc import OnSurfaceCache
+from slc.pipeline import gbuffers_for
+from slc.scenes import CameraPath, SceneBuilder, diffuse, rough_conductor
+from slc.timing import NullTimer
+from slc.views import single
+from test_cones import _moving_scene
+
+W, H = 40, 30
+
+
+def _growing_scene():
+    """Static scene, camera sliding sideways over 24 frames: the OSC allocates new blocks
+    (a 2-block pool: the storage grows) and the number of active entries changes."""
+    b = SceneBuilder("sliding24")
+    b.add_quad([0, 0, 0], [3, 0, 0], [0, 0, -3], bsdf=rough_conductor(0.1, "Al"), name="plane")
+    b.add_quad([0, 1.0, 0], [0.2, 0, 0], [0, 0, 0.2], bsdf=diffuse([0, 0, 0]), emission=[10.0] * 3, name="light")
+    cam = CameraPath([([-1.5, 0.6, 1.0], [-1.5, 0.0, 0.0]), ([1.5, 0.6, 1.0], [1.5, 0.0, 0.0])], frames=24, fov=50)
+    return b.build([cam])
+
+
+def _run(sc, viewers, frames, freeze, grow=False):
+    kw = {"cache": OnSurfaceCache(sc, max_blocks=2)} if grow else {}
+    m = create("slc", sc, **kw)
+    if not freeze:
+        m._cone_update = ConeUpdate(freeze=False)
+    imgs, widths, active = [], [], []
+    for f in range(frames):
+        out = m.render(FrameContext(f), gbuffers_for(sc, viewers, f, W, H), NullTimer())
+        imgs.append([np.array(x) for x in out])
+        widths.append(len(m.storage))
+        active.append(m.requests.n_active)
+    return m, imgs, widths, active
+
+
+@pytest.mark.parametrize("n_views", [1, 4], ids=["1-viewer", "4-viewers"])
+def test_frozen_update_same_images_and_bounded_recordings(n_views):
+    """24 frames of a static scene whose storage grows and whose active-entry count
+    changes every frame: every image equals the one of the update traced every frame,
+    and the frozen update was recorded at most twice (the second recording makes the
+    inputs that changed between the first two calls opaque) and is still frozen."""
+    sc = _growing_scene()
+    viewers = single(sc) * n_views
+    m, imgs, widths, active = _run(sc, viewers, 24, freeze=True, grow=True)
+    _, ref, _, _ = _run(sc, viewers, 24, freeze=False, grow=True)
+    assert widths[-1] > widths[0], widths            # the storage grew during the run
+    assert len(set(active)) > 3, active              # the number of entries changed
+    for f, (a, b) in enumerate(zip(imgs, ref)):
+        for v, (x, y) in enumerate(zip(a, b)):
+            assert np.all(np.isfinite(x))
+            assert np.array_equal(x, y), (f, v)
+    up = m._cone_update
+    assert up.frozen and 1 <= up.n_recordings <= 2, up.n_recordings
+
+
+def test_frozen_update_follows_a_moving_light():
+    """An animated scene (the emitter table is refreshed as the light moves, and is
+    an input of the frozen function): the same images as the traced update over 16
+    frames; at most one recording per frame (ConeUpdate's rule for animated scenes)."""
+    sc = _moving_scene()
+    m, imgs, _, _ = _run(sc, single(sc), 16, freeze=True)
+    _, ref, _, _ = _run(sc, single(sc), 16, freeze=False)
+    for f, (a, b) in enumerate(zip(imgs, ref)):
+        assert np.array_equal(a[0], b[0]), f
+    assert m._cone_update.n_recordings <= 16
+
+
+def test_static_light_replays_without_recording():
+    """A static scene of fixed size: after the first two calls every update is a replay."""
+    sc = plane_under_rect_light(half=0.1, radiance=20.0, bsdf=rough_conductor(0.05, "Al"), name="static_upd")
+    m, _, _, _ = _run(sc, single(sc), 12, freeze=True)
+    assert m._cone_update.calls == 12 and m._cone_update.n_recordings <= 2
