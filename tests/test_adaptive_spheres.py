@@ -53,6 +53,9 @@ def test_table_finds_the_sphere_and_its_closed_form():
     dr.eval(E)
     assert bool(is_s[0]) and abs(float(d.y[0]) - 1.0) < 1e-6
     assert abs(float(E[0][0]) - math.pi * L_E * t.r[i] ** 2 / HEIGHT ** 2) < 1e-3
+    # a square light's four corners are equidistant from its centre too: not a sphere
+    from helpers import plane_under_rect_light
+    assert not SphereLights(plane_under_rect_light(name="sph_rect")).any
 
 
 def test_small_sphere_chooses_visibility_and_matches_ground_truth():

@@ -67,7 +67,7 @@ class AdaptiveCache(PayloadMethod):
 
     name = "adaptive"
     params = (
-        Param("vis_lights", 8, "delta lights with their own visibility per VISIBILITY entry", lo=1, hi=16),
+        Param("vis_lights", 12, "delta or small sphere lights with their own visibility per VISIBILITY entry", lo=1, hi=16),
         Param("sphere_lights", "small", "small sphere lights are listed in VISIBILITY records like delta lights "
               "(small: where r/d < sphere_sin; off: never)", choices=("small", "off")),
         Param("sphere_sin", 0.3, "largest r/d (sine of the half-angle) of a sphere light listed at an entry",

@@ -20,8 +20,9 @@ listed where :math:`\sin\alpha` is below ``max_sin`` (the sphere is small at
 the entry).
 
 Sphere lights: Mitsuba ``sphere`` area lights and triangle meshes whose
-vertices lie on a sphere (all within 10% of the largest distance from their
-bounding-box centre: icospheres, UV spheres), with constant radiance. A
+vertices lie on a sphere (at least 12 vertices, a bounding box whose sides
+agree within 10%, all vertices within 10% of the largest distance from its
+centre: icospheres, UV spheres), with constant radiance. A
 mesh's radius is the area-equivalent :math:`r = \sqrt{A/4\pi}` (keeps the
 flux :math:`\pi L A` of the mesh). Rigidly animated meshes
 (:class:`slc.scenes.Animated`) are followed by transforming the rest-pose
@@ -37,6 +38,7 @@ import mitsuba as mi
 import numpy as np
 
 SHELL = 0.9           # a mesh is a sphere when min / max vertex distance from its centre >= SHELL
+MIN_VERTICES = 12     # ... and its bounding box is a cube (within SHELL) with at least this many vertices
 
 
 def _rgb(value):
@@ -91,11 +93,14 @@ class SphereLights:
                 a = anim.get(sh.id())
                 V = np.asarray(a.rest_positions, float) if a is not None else \
                     np.array(sh.vertex_positions_buffer(), float).reshape(-1, 3)
-                if len(V) < 4:
+                if len(V) < MIN_VERTICES:
                     continue
+                ext = V.max(axis=0) - V.min(axis=0)
+                if ext.max() <= 0.0 or ext.min() < SHELL * ext.max():
+                    continue            # flat or elongated (a quad's corners are equidistant too)
                 c = 0.5 * (V.min(axis=0) + V.max(axis=0))
                 dist = np.linalg.norm(V - c, axis=1)
-                if dist.max() <= 0.0 or dist.min() < SHELL * dist.max():
+                if dist.min() < SHELL * dist.max():
                     continue
                 F = np.array(sh.faces_buffer(), np.int64).reshape(-1, 3)
                 A = 0.5 * float(np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),

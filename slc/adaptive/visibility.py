@@ -1,7 +1,7 @@
 r"""VISIBILITY representation: per-light visibility of the few delta lights
 (point, spot, directional) that matter at an entry, plus a residual.
 
-Record (``K + 2`` words, ``K = vis_lights``, default 4)::
+Record (``K + 2`` words, ``K = vis_lights``, default 12)::
 
     K x [ light index (16) | visibility v (unorm 8) | count (4) | spare (4) ]
     residual irradiance E_r (3 x 18-bit e6m12) | its count C_r (8)
