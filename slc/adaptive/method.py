@@ -68,8 +68,9 @@ class AdaptiveCache(PayloadMethod):
     name = "adaptive"
     params = (
         Param("vis_lights", 12, "delta or small sphere lights with their own visibility per VISIBILITY entry", lo=1, hi=16),
-        Param("sphere_lights", "small", "small sphere lights are listed in VISIBILITY records like delta lights "
-              "(small: where r/d < sphere_sin; off: never)", choices=("small", "off")),
+        Param("sphere_lights", "auto", "small sphere lights are listed in VISIBILITY records like delta lights "
+              "(small: where r/d < sphere_sin; auto: so, in scenes whose every emitter is a delta or sphere "
+              "light; off: never)", choices=("auto", "small", "off")),
         Param("sphere_sin", 0.3, "largest r/d (sine of the half-angle) of a sphere light listed at an entry",
               lo=0.0, hi=1.0),
         Param("max_cones", 3, "cones per CONES entry", lo=1, hi=4),
@@ -106,8 +107,15 @@ class AdaptiveCache(PayloadMethod):
                                    switch_after=self.switch_after,
                                    allow_sh=self.sh_when == "always" or self._has_environment(scene))
         sph = SphereLights(scene, self.sphere_sin) if self.sphere_lights != "off" else None
+        if sph is not None and self.sphere_lights == "auto" and not sph.listable_only:
+            sph = None          # mixed with area lights: two representations' kernels every frame (see docs)
         self.sph = sph if sph is not None and sph.any else None
         self.prior = self._prior(scene, self.sph)
+        # record size: no more slots than the scene has lights that can be listed (atrium: 3 lamps)
+        ems = list(scene.mi_scene.emitters())
+        n_list = sum(1 for i, e in enumerate(ems) if bool(int(e.flags()) & int(mi.EmitterFlags.Delta))
+                     or (self.sph is not None and bool(self.sph.flag[i])))
+        self.vis_k = max(1, min(self.vis_lights, n_list))
 
     @staticmethod
     def _has_environment(scene) -> bool:
@@ -146,7 +154,7 @@ class AdaptiveCache(PayloadMethod):
         self._tags = None
 
     def _make_pools(self):
-        self.pools = {VIS: Pool("visibility", visibility.words(self.vis_lights)),
+        self.pools = {VIS: Pool("visibility", visibility.words(self.vis_k)),
                       CONES: Pool("cones", words_per_entry(self.max_cones)),
                       SH: Pool("sh", sh_rep.words(self.enc))}
 
@@ -227,7 +235,7 @@ class AdaptiveCache(PayloadMethod):
             fr_r = dr.gather(mi.Bool, fresh, idx)
             if r == VIS:
                 out, mo, st = visibility.update(sc, rec, si, key, ry, dr.gather(mi.Bool, unsettled, idx), fr_r, on,
-                                                ctx.frame, self.seed, self.vis_lights, self.sph)
+                                                ctx.frame, self.seed, self.vis_k, self.sph)
                 dr.scatter(motion, mo, idx, on)
                 dr.scatter(vis_motion, mo, idx, on)
             elif r == CONES:
@@ -274,7 +282,7 @@ class AdaptiveCache(PayloadMethod):
         kernel per (old, new) pair that occurs: the conversion of all pairs in
         one kernel was traced in every frame with a switch and cost more than
         the update itself (skylit: 400 ms a frame)."""
-        sc, K, Kv = self.scene.mi_scene, self.max_cones, self.vis_lights
+        sc, K, Kv = self.scene.mi_scene, self.max_cones, self.vis_k
         tag, slot = mi.UInt32(h.tag), mi.UInt32(h.slot)
         self._switches = int(dr.count(switch)[0]) if dr.width(switch) else 0
         if self._switches == 0 and self._warm:
@@ -345,7 +353,7 @@ class AdaptiveCache(PayloadMethod):
         parts = []
         if used.get(VIS, 1):
             parts.append(lambda: visibility.shade(sc, self.pools[VIS].gather(ps, m_v), si, bsdf, m_v,
-                                                  self.vis_lights, self.sph))
+                                                  self.vis_k, self.sph))
         if used.get(CONES, 1):
             parts.append(lambda: shader_for(self, self.max_cones)(
                 self.pools[CONES].data, dr.select(m_c, ps, 0), m_c, si, tf, self.shade_samples,

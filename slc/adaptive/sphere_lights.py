@@ -114,6 +114,12 @@ class SphereLights:
                 continue
             self.flag[i], self.c0[i], self.r[i], self.L[i] = 1, c, r, L
         self.any = bool(self.flag.any())
+        # no delta emitter: listed lights are all spheres, and the emitters' own
+        # sample_direction (a virtual call traced in every listing loop) is never needed
+        self.has_delta = any(bool(int(e.flags()) & int(mi.EmitterFlags.Delta)) for e in ems)
+        # every emitter is a delta or a sphere light
+        self.listable_only = all(bool(int(e.flags()) & int(mi.EmitterFlags.Delta)) or bool(self.flag[i])
+                                 for i, e in enumerate(ems))
         self._time = object()
         self._upload(self.c0)
         self.refresh()

@@ -103,6 +103,8 @@ def light_at(emitters_dr, si, idx, active, sph=None):
     if sph is not None:
         is_s, d_s, _, E_s = sph.light(si.p, ii, active)
         m_d &= ~is_s
+    if sph is not None and not sph.has_delta:      # only sphere lights can be listed
+        return d_s, dr.select(is_s, E_s, 0.0)
     ptr = dr.gather(mi.EmitterPtr, emitters_dr, ii, m_d)
     ds, w = ptr.sample_direction(si, mi.Point2f(0.5, 0.5), m_d)
     ok = m_d & (ds.pdf > 0.0)
