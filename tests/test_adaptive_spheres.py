@@ -126,5 +126,5 @@ def test_moving_sphere_is_followed_without_lag():
         if spec == "adaptive":
             assert m.stats()["share_visibility"] == 1.0, m.stats()
     for f in (7, 13):
-        assert errs[("adaptive", f)] < 0.02, errs                # measured 0.012
+        assert errs[("adaptive", f)] < 0.02, errs                # measured 0.0117, 0.0116 (slc 0.24, 0.21)
         assert errs[("adaptive", f)] < errs[("slc", f)], errs
