@@ -4,7 +4,8 @@ The hangar with 3, 6, 12 and 24 small moving lights (total power kept):
 FLIP and time against the light count for slc with 1-4 cones per entry, rt48
 and restir, a speed-against-error plot per light count and image strips. The
 paper: with many dominant lights three cones are too few and the hangar gets
-noisy; this is the baseline the adaptive representation must beat.
+noisy; this is the baseline the adaptive representation must beat (it lists
+the small sphere lights in VISIBILITY records: docs/adaptive.md).
 
     slc run many-lights --quick [--lights 3 12] [--methods slc rt48]
 """

@@ -16,7 +16,7 @@ import mitsuba as mi
 
 from ..cones.packing import pack, unpack
 from ..cones.update import ConeParams, SampleObserver, empty_state, end_cycle, insert_sample, update_cycle
-from .sampling import lum
+from .sampling import lum, sampler_of
 
 CONVERT_COUNT = 4.0     # C of a record converted from another representation: new samples take over fast
 
@@ -25,7 +25,14 @@ class _LightStats(SampleObserver):
     """The choice rule's per-entry sums over a cycle's samples (see
     :class:`slc.adaptive.sampling.SampleStats`): visible delta-light energy
     ``ed``, other energy ``en`` and its direction-weighted sum ``m``, each
-    sample's energy being ``lum(w) max(s_z, 0)``."""
+    sample's energy being ``lum(w) max(s_z, 0)``. With ``sph`` (the scene's
+    :class:`~slc.adaptive.sphere_lights.SphereLights`) samples of sphere
+    lights small at the entry count as delta-light energy (what a
+    VISIBILITY record can list)."""
+
+    def __init__(self, scene=None, sph=None):
+        self.sph = sph
+        self.samp = sampler_of(scene) if sph is not None else None
 
     def init(self, n: int) -> tuple:
         return (dr.zeros(mi.Float, n), dr.zeros(mi.Float, n), dr.zeros(mi.Vector3f, n))
@@ -33,12 +40,16 @@ class _LightStats(SampleObserver):
     def observe(self, extra, ds, w, ok, s):
         ed, en, m = extra
         c = dr.select(ok, lum(w) * dr.maximum(s.z, 0.0), 0.0)
-        cn = dr.select(ds.delta, 0.0, c)
-        return ed + dr.select(ds.delta, c, 0.0), en + cn, m + s * cn
+        delta = mi.Bool(ds.delta)
+        if self.sph is not None:
+            em, known = self.samp.index_of(ds.emitter, ok & ~delta)
+            delta |= self.sph.small(ds.p - ds.d * ds.dist, em, known)
+        cn = dr.select(delta, 0.0, c)
+        return ed + dr.select(delta, c, 0.0), en + cn, m + s * cn
 
 
 def update(scene: mi.Scene, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame: int, seed: int,
-           p: ConeParams):
+           p: ConeParams, sph=None):
     """One update cycle of cone records ``rec`` (packed words, one lane per
     entry): :func:`slc.cones.update.update_cycle`, the ``slc`` method's update
     (its light sampler, per-entry R2 samples from ``first_sample`` where not
@@ -48,7 +59,7 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, moving, first_sample,
     moving = mi.Bool(moving)
     words, motion, _, _, st = update_cycle(
         scene, unpack(rec, p.max_cones), key, si, rays, unsettled, moving, fresh, first_sample, ~moving, frame,
-        seed, p, valid=mi.Bool(on) & si.is_valid(), observer=_LightStats())
+        seed, p, valid=mi.Bool(on) & si.is_valid(), observer=_LightStats(scene, sph))
     return words, motion, list(st)
 
 

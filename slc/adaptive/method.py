@@ -17,6 +17,7 @@ from . import choice as ch
 from . import cones_rep, sh_rep, visibility
 from .choice import CONES, NONE, SH, VIS, ChoiceParams, Header
 from .pool import Pool
+from .sphere_lights import SphereLights
 
 REPS = (VIS, CONES, SH)
 RESTART_COUNT = 4
@@ -45,9 +46,10 @@ class AdaptiveCache(PayloadMethod):
     light statistics, the slot of its record) and one record in the pool of
     its representation:
 
-    - VISIBILITY (delta lights): per-light visibility of the ``vis_lights``
-      delta lights that matter most at the entry plus a residual irradiance;
-      the lights' unoccluded contribution is evaluated exactly at shading;
+    - VISIBILITY (delta lights, and sphere lights small at the entry): per-light
+      visibility of the ``vis_lights`` lights that matter most at the entry plus
+      a residual irradiance; the lights' unoccluded contribution is evaluated
+      exactly at shading (a sphere light: pi L r^2/d^2 at its current centre);
     - CONES: the Surface Light Cones record (``max_cones`` cones, 286 bits for 3);
     - SH: incident radiance in SH with YCoCg chrominance compression.
 
@@ -65,7 +67,12 @@ class AdaptiveCache(PayloadMethod):
 
     name = "adaptive"
     params = (
-        Param("vis_lights", 8, "delta lights with their own visibility per VISIBILITY entry", lo=1, hi=8),
+        Param("vis_lights", 12, "delta or small sphere lights with their own visibility per VISIBILITY entry", lo=1, hi=16),
+        Param("sphere_lights", "auto", "small sphere lights are listed in VISIBILITY records like delta lights "
+              "(small: where r/d < sphere_sin; auto: so, in scenes whose every emitter is a delta or sphere "
+              "light; off: never)", choices=("auto", "small", "off")),
+        Param("sphere_sin", 0.3, "largest r/d (sine of the half-angle) of a sphere light listed at an entry",
+              lo=0.0, hi=1.0),
         Param("max_cones", 3, "cones per CONES entry", lo=1, hi=4),
         Param("encoding", "y3co1cg1", "SH encoding of SH entries", choices=tuple(ENCODINGS)),
         Param("sh_count", 128, "SH running-mean count cap (samples)", lo=1, hi=1e6),
@@ -99,7 +106,16 @@ class AdaptiveCache(PayloadMethod):
         self.choice = ChoiceParams(window=self.window, theta_delta=self.theta_delta, theta_r=self.theta_r,
                                    switch_after=self.switch_after,
                                    allow_sh=self.sh_when == "always" or self._has_environment(scene))
-        self.prior = self._prior(scene)
+        sph = SphereLights(scene, self.sphere_sin) if self.sphere_lights != "off" else None
+        if sph is not None and self.sphere_lights == "auto" and not sph.listable_only:
+            sph = None          # mixed with area lights: two representations' kernels every frame (see docs)
+        self.sph = sph if sph is not None and sph.any else None
+        self.prior = self._prior(scene, self.sph)
+        # record size: no more slots than the scene has lights that can be listed (atrium: 3 lamps)
+        ems = list(scene.mi_scene.emitters())
+        n_list = sum(1 for i, e in enumerate(ems) if bool(int(e.flags()) & int(mi.EmitterFlags.Delta))
+                     or (self.sph is not None and bool(self.sph.flag[i])))
+        self.vis_k = max(1, min(self.vis_lights, n_list))
 
     @staticmethod
     def _has_environment(scene) -> bool:
@@ -108,11 +124,13 @@ class AdaptiveCache(PayloadMethod):
                    and not bool(int(e.flags()) & int(mi.EmitterFlags.Delta)) for e in scene.mi_scene.emitters())
 
     @staticmethod
-    def _prior(scene) -> int:
+    def _prior(scene, sph=None) -> int:
         ems = list(scene.mi_scene.emitters())
         if not ems:
             return CONES
-        delta = [bool(int(e.flags()) & int(mi.EmitterFlags.Delta)) for e in ems]
+        # sphere lights count as delta lights (listed where small at the entry)
+        delta = [bool(int(e.flags()) & int(mi.EmitterFlags.Delta)) or (sph is not None and bool(sph.flag[i]))
+                 for i, e in enumerate(ems)]
         inf = [bool(int(e.flags()) & int(mi.EmitterFlags.Infinite)) for e in ems]
         if all(d and not i for d, i in zip(delta, inf)) or all(delta):
             return VIS
@@ -136,7 +154,7 @@ class AdaptiveCache(PayloadMethod):
         self._tags = None
 
     def _make_pools(self):
-        self.pools = {VIS: Pool("visibility", visibility.words(self.vis_lights)),
+        self.pools = {VIS: Pool("visibility", visibility.words(self.vis_k)),
                       CONES: Pool("cones", words_per_entry(self.max_cones)),
                       SH: Pool("sh", sh_rep.words(self.enc))}
 
@@ -148,6 +166,8 @@ class AdaptiveCache(PayloadMethod):
     def update(self, ctx, fr, rays, unsettled):
         if self.pools is None:
             self._make_pools()
+        if self.sph is not None:
+            self.sph.refresh()          # sphere lights' centres at the scene's current time
         sc, W = self.scene.mi_scene, self.words
         N = fr.n_active
         base = fr.active * W
@@ -215,17 +235,17 @@ class AdaptiveCache(PayloadMethod):
             fr_r = dr.gather(mi.Bool, fresh, idx)
             if r == VIS:
                 out, mo, st = visibility.update(sc, rec, si, key, ry, dr.gather(mi.Bool, unsettled, idx), fr_r, on,
-                                                ctx.frame, self.seed, self.vis_lights)
+                                                ctx.frame, self.seed, self.vis_k, self.sph)
                 dr.scatter(motion, mo, idx, on)
                 dr.scatter(vis_motion, mo, idx, on)
             elif r == CONES:
                 out, mo, st = cones_rep.update(sc, rec, si, key, ry, dr.gather(mi.Bool, unsettled, idx),
                                                dr.gather(mi.Bool, moving, idx), dr.gather(mi.UInt32, first_sample, idx),
-                                               fr_r, on, ctx.frame, self.seed, self.cone_params)
+                                               fr_r, on, ctx.frame, self.seed, self.cone_params, self.sph)
                 dr.scatter(motion, mo, idx, on)
             else:
                 out, st = sh_rep.update(sc, rec, si, key, ry, fr_r, on, ctx.frame, self.seed, self.enc,
-                                        self.sh_count)
+                                        self.sh_count, self.sph)
             dr.eval(out, st)
             del rec
             pool.scatter(out, ps, on)
@@ -262,7 +282,7 @@ class AdaptiveCache(PayloadMethod):
         kernel per (old, new) pair that occurs: the conversion of all pairs in
         one kernel was traced in every frame with a switch and cost more than
         the update itself (skylit: 400 ms a frame)."""
-        sc, K, Kv = self.scene.mi_scene, self.max_cones, self.vis_lights
+        sc, K, Kv = self.scene.mi_scene, self.max_cones, self.vis_k
         tag, slot = mi.UInt32(h.tag), mi.UInt32(h.slot)
         self._switches = int(dr.count(switch)[0]) if dr.width(switch) else 0
         if self._switches == 0 and self._warm:
@@ -280,7 +300,7 @@ class AdaptiveCache(PayloadMethod):
                 rec = self.pools[src].gather(old, on)
                 # ------------------------------- old record -> lobes
                 if src == VIS:
-                    lobes = visibility.lobes(sc, rec, si, on, Kv)
+                    lobes = visibility.lobes(sc, rec, si, on, Kv, self.sph)
                 elif src == CONES:
                     lobes = cones_rep.lobes(rec, on, K)
                 else:
@@ -314,6 +334,8 @@ class AdaptiveCache(PayloadMethod):
     # ------------------------------------------------------------------ shade
     def shade(self, ctx, fr, v, gb):
         sc, W = self.scene.mi_scene, self.words
+        if self.sph is not None:
+            self.sph.refresh()
         slot = mi.UInt32(fr.pixel_slot[v])
         ok = mi.Bool(gb.valid) & (slot != INVALID)
         tag = dr.gather(mi.UInt32, self.storage, slot * W, ok) & 3
@@ -331,7 +353,7 @@ class AdaptiveCache(PayloadMethod):
         parts = []
         if used.get(VIS, 1):
             parts.append(lambda: visibility.shade(sc, self.pools[VIS].gather(ps, m_v), si, bsdf, m_v,
-                                                  self.vis_lights))
+                                                  self.vis_k, self.sph))
         if used.get(CONES, 1):
             parts.append(lambda: shader_for(self, self.max_cones)(
                 self.pools[CONES].data, dr.select(m_c, ps, 0), m_c, si, tf, self.shade_samples,

@@ -53,8 +53,10 @@ def pack(coeffs, C):
     return [dr.reinterpret_array(mi.UInt32, mi.Float(c)) for c in list(coeffs) + [C]]
 
 
-def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int, enc, max_count: int):
-    """One update cycle of SH records. Returns (new words, stats values)."""
+def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int, enc, max_count: int, sph=None):
+    """One update cycle of SH records. Returns (new words, stats values)
+    (``sph``: small sphere lights count as delta-light energy, see
+    :mod:`slc.adaptive.sphere_lights`)."""
     n_c = enc.n
     N = dr.width(key)
     samp = sampler_of(scene)
@@ -69,13 +71,16 @@ def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int
 
     def body(i, acc, ed, en, m, rng):
         u = mi.Point2f(rng.next_float32(), rng.next_float32())
-        ds, w, ok, _ = samp.sample(si, u, valid & (i < rays))
+        ds, w, ok, em = samp.sample(si, u, valid & (i < rays))
         ok &= (dr.dot(ds.d, ng) > 0.0) & dr.all(dr.isfinite(w))
         ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), ok)
         s = frame_l.to_local(ds.d)
         c = dr.select(ok, lum(w) * dr.maximum(s.z, 0.0), 0.0)
-        ed = ed + dr.select(ds.delta, c, 0.0)
-        cn = dr.select(ds.delta, 0.0, c)
+        delta = mi.Bool(ds.delta)
+        if sph is not None:
+            delta |= sph.small(si.p, em, ok & ~delta)
+        ed = ed + dr.select(delta, c, 0.0)
+        cn = dr.select(delta, 0.0, c)
         en, m = en + cn, m + s * cn
         cs = project(enc, s, dr.select(ok, w, 0.0))
         return i + 1, [a + b for a, b in zip(acc, cs)], ed, en, m, rng

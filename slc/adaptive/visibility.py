@@ -1,7 +1,7 @@
 r"""VISIBILITY representation: per-light visibility of the few delta lights
 (point, spot, directional) that matter at an entry, plus a residual.
 
-Record (``K + 2`` words, ``K = vis_lights``, default 4)::
+Record (``K + 2`` words, ``K = vis_lights``, default 12)::
 
     K x [ light index (16) | visibility v (unorm 8) | count (4) | spare (4) ]
     residual irradiance E_r (3 x 18-bit e6m12) | its count C_r (8)
@@ -27,6 +27,12 @@ newcomer's :math:`E_j V` out of it (energy kept). All other samples feed
 the residual's running mean, :math:`E_r \leftarrow E_r + n(\hat E_r - E_r)/C_r` (:math:`C_r`
 the sample count, at most 255, or 4 cycles while the entry is new or moving)
 with :math:`\hat E_r = \frac1n\sum_k [k \text{ not in the list}]\, w_k V_k c_k`.
+
+Small sphere lights (:mod:`slc.adaptive.sphere_lights`, ``sph``) are listed
+like delta lights where they are small at the entry (:math:`r/d` below
+``sph.max_sin``): their :math:`v_i` is the running mean of shadow rays to
+sampled points on the sphere and their unoccluded term is the closed form
+:math:`\pi L r^2/d^2` towards the current centre.
 """
 from __future__ import annotations
 
@@ -86,21 +92,35 @@ def _slot(lst, i):
     return r
 
 
-def light_at(emitters_dr, si, idx, active):
-    """(direction sample, I/d^2 RGB) of emitter ``idx`` at ``si``: exact and
-    unoccluded for a delta light (0 where inactive or the index is empty)."""
+def light_at(emitters_dr, si, idx, active, sph=None):
+    """(direction, I/d^2 RGB) of emitter ``idx`` at ``si``: exact and
+    unoccluded for a delta light; for a sphere light of ``sph`` the point-light
+    term pi L r^2/d^2 towards its current centre (0 where inactive or the
+    index is empty)."""
     active = mi.Bool(active) & (mi.UInt32(idx) != EMPTY)
-    ptr = dr.gather(mi.EmitterPtr, emitters_dr, dr.select(active, idx, 0), active)
-    ds, w = ptr.sample_direction(si, mi.Point2f(0.5, 0.5), active)
-    ok = active & (ds.pdf > 0.0)
-    return ds, dr.select(ok, mi.Color3f(w), 0.0)
+    ii = dr.select(active, idx, 0)
+    m_d = mi.Bool(active)
+    if sph is not None:
+        is_s, d_s, _, E_s = sph.light(si.p, ii, active)
+        m_d &= ~is_s
+    if sph is not None and not sph.has_delta:      # only sphere lights can be listed
+        return d_s, dr.select(is_s, E_s, 0.0)
+    ptr = dr.gather(mi.EmitterPtr, emitters_dr, ii, m_d)
+    ds, w = ptr.sample_direction(si, mi.Point2f(0.5, 0.5), m_d)
+    ok = m_d & (ds.pdf > 0.0)
+    d, w = ds.d, dr.select(ok, mi.Color3f(w), 0.0)
+    if sph is not None:
+        d = dr.select(is_s, d_s, d)
+        w = dr.select(is_s, E_s, w)
+    return d, w
 
 
 # ----------------------------------------------------------------------------- update
 
-def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int, seed: int, K: int):
+def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int, seed: int, K: int, sph=None):
     """One update cycle of VISIBILITY records ``rec`` (lists of words, one lane
-    per entry) at the entries' points ``si``. A listed light whose unoccluded
+    per entry) at the entries' points ``si`` (``sph``: the scene's
+    :class:`~slc.adaptive.sphere_lights.SphereLights`, or None). A listed light whose unoccluded
     irradiance here is now 0 (switched off, turned or moved away) is dropped
     and reported as motion. Unsettled entries (new, moving) cap the
     residual's count at ``UNSETTLED_COUNT``. Returns (new words, motion,
@@ -129,8 +149,8 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int
         return i < K
 
     def lbody(i, wl):
-        ds, w = light_at(em_dr, si, _slot(idx, i), valid)
-        wc = w * dr.maximum(dr.dot(ds.d, nrm), 0.0)
+        d, w = light_at(em_dr, si, _slot(idx, i), valid, sph)
+        wc = w * dr.maximum(dr.dot(d, nrm), 0.0)
         return i + 1, [dr.select(i == j, wc, wl[j]) for j in range(K)]
 
     _, wl = dr.while_loop(state=(mi.UInt32(0), [dr.zeros(mi.Color3f, N) for _ in range(K)]), cond=lcond, body=lbody)
@@ -161,13 +181,19 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int
         Vf = dr.select(V, 1.0, 0.0)
         c = lum(w) * cos * Vf
         delta = ok & ds.delta
+        # the light's own unoccluded irradiance (w has the choice pmf ds.pdf in it)
+        w1 = w * ds.pdf * cos
+        if sph is not None:
+            # a small sphere light is listed as a delta light, with its closed-form term
+            is_s, d_s, sin_a, E_s = sph.light(si.p, em, ok & ~ds.delta)
+            small = is_s & (sin_a < sph.max_sin)
+            delta |= small
+            w1 = dr.select(small, E_s * dr.maximum(dr.dot(d_s, nrm), 0.0), w1)
         # statistics
         ed = ed + dr.select(delta, c, 0.0)
         en_k = dr.select(delta, 0.0, c)
         en = en + en_k
         m = m + frame_l.to_local(ds.d) * en_k
-        # the light's own unoccluded irradiance (w has the choice pmf ds.pdf in it)
-        w1 = w * ds.pdf * cos
         i1 = lum(w1)
         hit = mi.Bool(False)
         for i in range(K):
@@ -212,7 +238,7 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int
 
 # ----------------------------------------------------------------------------- shading
 
-def shade(scene: mi.Scene, rec, si, bsdf, active, K: int) -> mi.Color3f:
+def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None) -> mi.Color3f:
     """L_o of the pixels ``si`` from their VISIBILITY records (see the module)."""
     em_dr = scene.emitters_dr()
     idx, vis, cnt, E, C = unpack(rec, K)
@@ -225,8 +251,8 @@ def shade(scene: mi.Scene, rec, si, bsdf, active, K: int) -> mi.Color3f:
     def body(i, L):                      # one emitter and one BSDF call site (see update)
         ii, vi = _slot(idx, i), _slot(vis, i)
         m = active & (ii != EMPTY) & (vi > 0.0)
-        ds, w = light_at(em_dr, si, ii, m)
-        f = bsdf.eval(ctx, si, si.to_local(ds.d), m)
+        d, w = light_at(em_dr, si, ii, m, sph)
+        f = bsdf.eval(ctx, si, si.to_local(d), m)
         return i + 1, L + dr.select(m, mi.Color3f(f) * w * vi, 0.0)
 
     _, L = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(active))), cond=cond, body=body)
@@ -237,7 +263,7 @@ def shade(scene: mi.Scene, rec, si, bsdf, active, K: int) -> mi.Color3f:
 
 # ----------------------------------------------------------------------------- conversion
 
-def lobes(scene: mi.Scene, rec, si, active, K: int):
+def lobes(scene: mi.Scene, rec, si, active, K: int, sph=None):
     """The record as lobes (local direction, half-angle, integrated radiance RGB,
     mask): one Dirac lobe per listed light (I/d^2 v at the entry) and the
     residual as a 60-degree cone about the normal (E_r / mean cosine)."""
@@ -246,8 +272,8 @@ def lobes(scene: mi.Scene, rec, si, active, K: int):
     out = []
     for i in range(K):
         m = mi.Bool(active) & (idx[i] != EMPTY)
-        ds, w = light_at(em_dr, si, idx[i], m)
-        out.append((si.sh_frame.to_local(ds.d), mi.Float(0.0), w * vis[i], m & (dr.max(w * vis[i]) > 0.0)))
+        d, w = light_at(em_dr, si, idx[i], m, sph)
+        out.append((si.sh_frame.to_local(d), mi.Float(0.0), w * vis[i], m & (dr.max(w * vis[i]) > 0.0)))
     mean_cos = 0.5 * (1.0 + math.cos(RESIDUAL_ALPHA))
     out.append((mi.Vector3f(0.0, 0.0, 1.0), mi.Float(RESIDUAL_ALPHA), E * (1.0 / mean_cos),
                 mi.Bool(active) & (dr.max(E) > 0.0)))
