@@ -26,6 +26,11 @@ BSDF samples of a Dirac lobe (mirrors) see ``\tilde L`` with weight 1.
 Purely Lambertian pixels use the exact cone integral (no loop):
 ``(rho/pi) sum_c L_c (n . d_c)(1 + cos alpha_c)/2`` for cones clear of the horizon, the
 integral of the cosine over the part of the cap above it for cones across it.
+Pixels with Mitsuba's ``principled`` BSDF (no clearcoat, sheen, flatness, anisotropy or
+transmission) whose cones have that closed form skip the quadrature too (``principled="sg"``,
+the default; :func:`_principled_cones`): the diffuse part in closed form with its angular
+factor at each cone axis, the GGX lobe as a Gaussian around the mirror direction of which
+each cap holds a fraction; an approximation, measured in docs/cones.md.
 
 Sample counts: ``n_samples`` (n_S) directions, fewer for rough lobes (``n_S' =
 ceil(n_S clip(q, 1/4, 1))``), split per pixel into ``n_C`` cone directions per live cone
