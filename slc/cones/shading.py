@@ -159,27 +159,47 @@ def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw
     lam_l = dr.rcp(2.0 * dr.square(alpha) * ci)
     r = si.to_world(r_loc)
     E_s = (2.0 * math.pi) * dr.rcp(lam_l) * (1.0 - dr.exp(-2.0 * lam_l))      # int of the SG lobe / S_r
+    # the lobe's widths: a half vector tilted by an angle b moves r by 2b in the plane of
+    # incidence and by 2 cos(theta_o) b across it, so sigma_par = 2 sigma_h, sigma_perp =
+    # 2 cos(theta_o) sigma_h, sigma_h^2 = alpha^2 / 2 (sigma_par sigma_perp = 1 / lambda_l)
+    s_par = math.sqrt(2.0) * alpha
+    s_perp = s_par * ci
+    e_perp = dr.cross(si.sh_frame.n, r)
+    e_perp = dr.select(dr.squared_norm(e_perp) > 1e-12, dr.normalize(e_perp), si.sh_frame.s)
+    e_par = dr.cross(e_perp, r)
 
     # ------------------- per cone: diffuse at the axis, the part of the lobe in the cap -------------------
     out = mi.Color3f(zero)
     for i in range(K):
         d_loc = si.to_local(Dw[i])
-        dd = dr.squared_norm(r - Dw[i])                     # |r - d|^2 = 2 (1 - r . d), precise near 0
+        v = Dw[i] - r
+        dd = dr.squared_norm(v)                             # |r - d|^2 = 2 (1 - r . d), precise near 0
         diff = kd * (fdiff(d_loc) * term[i])
-        # the fraction Psi of the lobe (a 2-D Gaussian of std sigma = lambda_l^-1/2 around r)
-        # inside the cap (radius alpha_c, its axis at angle theta from r):
-        # Psi ~ [Phi((a - t)/s) - Phi((-a - t)/s)] (1 - e^{-a^2/2s^2}) / (2 Phi(a/s) - 1),
-        # exact at t = 0, the 1-D edge for a >> s, area x density for a << s
+        # t: the angle from r to the cone axis; m: its Mahalanobis length in the lobe's widths
         th = 2.0 * dr.asin(dr.minimum(0.5 * dr.sqrt(dd), 1.0))
-        sig = dr.rsqrt(lam_l)
-        k = dr.rcp(math.sqrt(2.0) * sig)
+        sc = th * dr.rsqrt(dr.maximum(dd, 1e-30))
+        m2 = dr.square(dr.dot(v, e_par) * sc / s_par) + dr.square(dr.dot(v, e_perp) * sc / s_perp)
+        # the fraction Psi of the lobe inside the cap (radius a = alpha_c): a Gaussian edge across
+        # the cap's rim, scaled to GGX's own fraction in a disc centred on the peak (its slopes
+        # are a bivariate Student t with 2 degrees of freedom: a disc of slope radius rho holds
+        # rho^2 / (alpha^2 + rho^2), where a Gaussian of the same peak holds 1 - e^{-rho^2/alpha^2}).
+        # With sigma_t = t / m the lobe's width towards the axis (sqrt(s_par s_perp) at t = 0)
+        # and x = a^2 / (2 s_par s_perp) = rho^2 / alpha^2:
+        # Psi ~ [Phi((a - t)/sigma_t) - Phi((-a - t)/sigma_t)] (x / (1 + x)) / (2 Phi(a/sigma_t) - 1):
+        # GGX's fraction at t = 0 (round lobe), the cap's edge for a >> sigma, area x density
+        # for a << sigma
+        sig = dr.select(m2 > 1e-12, th * dr.rsqrt(dr.maximum(m2, 1e-30)), dr.sqrt(s_par * s_perp))
+        isg = dr.rcp(sig)
         a_ = A[i]
-        edge = 0.5 * (dr.erf((a_ - th) * k) - dr.erf((-a_ - th) * k))
-        x2 = dr.square(a_ * k)
-        ctr = dr.select(x2 < 1e-3, x2 * (1.0 - 0.5 * x2), 1.0 - dr.exp(-x2))          # 1 - e^{-a^2/2s^2}
-        psi = edge * ctr * dr.rcp(dr.maximum(dr.erf(a_ * k), 1e-30))
+
+        def t2(u):
+            return dr.erf(u * math.sqrt(0.5))                              # 2 Phi(u) - 1
+
+        edge = 0.5 * (t2((a_ - th) * isg) - t2((-a_ - th) * isg))
+        x = dr.square(a_) * (0.5 / (s_par * s_perp))
+        psi = edge * (x * dr.rcp(1.0 + x)) * dr.rcp(dr.maximum(t2(a_ * isg), 1e-30))
         sg = E_s * psi * inv_om[i]
-        sg = dr.select(delta[i], dr.exp(-0.5 * lam_l * dd), sg)
+        sg = dr.select(delta[i], dr.exp(-0.5 * m2), sg)
         spec = dr.select(below[i], 0.0, S_r * (L[i] * sg))
         out += dr.select(live[i], diff + spec, 0.0)
     return out, m
