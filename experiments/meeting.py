@@ -38,9 +38,12 @@ def run(opts):
     n = max(counts)
     for name in names:
         get = ex.at_viewers(rows, name, n)
-        if "slc" in get and "rt48" in get:
-            md += (f"- {name}, {n} viewers: slc is {ex.ratio(get['rt48']['time_ms'], get['slc']['time_ms']):.2f}x "
-                   f"faster than rt48 (target >= 10x; paper up to 20x); FLIP slc {get['slc']['flip']:.4f} vs "
+        if "rt48" not in get:
+            continue
+        # every slc variant of the run (e.g. slc:principled=sample side by side with the default)
+        for m in [k for k in get if k == "slc" or k.startswith("slc:")]:
+            md += (f"- {name}, {n} viewers: {m} is {ex.ratio(get['rt48']['time_ms'], get[m]['time_ms']):.2f}x "
+                   f"faster than rt48 (target >= 10x; paper up to 20x); FLIP {m} {get[m]['flip']:.4f} vs "
                    f"rt48 {get['rt48']['flip']:.4f}\n")
     md += ("\n## Where the time goes (median ms per stage; kernel execution in brackets, the rest is host "
            "time)\n\n" + stage_table(rows, ("scene", "label", "viewers")))

@@ -83,6 +83,8 @@ class SurfaceLightCones(PayloadMethod):
         Param("horizon", "clip", "Lambertian pixels with a cone across the horizon: the exact integral over the "
               "part of the cone above it (clip) or MIS sampling as for glossy pixels (sample)",
               choices=("clip", "sample")),
+        Param("principled", "sg", "pixels with the principled BSDF: diffuse part in closed form and specular lobe as a "
+              "spherical Gaussian over each cone (sg), or the MIS quadrature (sample)", choices=("sg", "sample")),
         Param("batch", "viewers", "viewers: shade all viewers' pixels in one launch (nearest fetch; the same images "
               "as per viewer); off: one launch per viewer", choices=("off", "viewers")),
     ) + PayloadMethod.cache_params

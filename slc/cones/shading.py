@@ -26,6 +26,11 @@ BSDF samples of a Dirac lobe (mirrors) see ``\tilde L`` with weight 1.
 Purely Lambertian pixels use the exact cone integral (no loop):
 ``(rho/pi) sum_c L_c (n . d_c)(1 + cos alpha_c)/2`` for cones clear of the horizon, the
 integral of the cosine over the part of the cap above it for cones across it.
+Pixels with Mitsuba's ``principled`` BSDF (no clearcoat, sheen, flatness, anisotropy or
+transmission) whose cones have that closed form skip the quadrature too (``principled="sg"``,
+the default; :func:`_principled_cones`): the diffuse part in closed form with its angular
+factor at each cone axis, the GGX lobe as a Gaussian around the mirror direction of which
+each cap holds a fraction; an approximation, measured in docs/cones.md.
 
 Sample counts: ``n_samples`` (n_S) directions, fewer for rough lobes (``n_S' =
 ceil(n_S clip(q, 1/4, 1))``), split per pixel into ``n_C`` cone directions per live cone
@@ -88,14 +93,126 @@ def _lambertian(bsdf, si, active):
         ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & (mi.Frame3f.cos_theta(si.wi) > 0.0)
 
 
+def _schlick_weight(c):
+    m = dr.clip(1.0 - c, 0.0, 1.0)
+    return dr.square(dr.square(m)) * m
+
+
+def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw, term, below, zero):
+    r"""Cone shading of pixels with Mitsuba's ``principled`` BSDF, no quadrature
+    (``principled="sg"``, the default). Returns (value, mask of the pixels it applies to).
+
+    It applies to pixels whose BSDF is ``principled`` (has the ``clearcoat`` and
+    ``base_color`` attributes, diffuse + glossy reflection, no transmission) with
+    clearcoat, sheen, flatness, anisotropy and specular transmission all 0 at the pixel,
+    and whose cones all have the Lambertian closed form; the other pixels keep the MIS
+    quadrature. The parameters are read once per pixel (``eval_attribute``), and the BSDF
+    is evaluated once, at the mirror direction ``r`` of ``w_o``. Per live cone ``c``:
+
+    - diffuse (exact in Mitsuba's model but for its angular factor): ``(1 - metallic)
+      base_color / pi * (f_diff + f_retro)(w_o, d_c) * L_c (1/Omega_c) int_c cos``, the
+      Disney diffuse and retro-reflection factor evaluated once, at the cone axis ``d_c``
+      (the cosine integral is the Lambertian closed form, horizon-clipped);
+    - specular (approximated): the GGX lobe ``f_s cos`` as a spherical Gaussian around
+      ``r``, ``S_r exp(lambda_l (w . r - 1))``, ``lambda_l = 1 / (2 alpha^2 cos theta_o)``
+      (the SG fit of GGX, ``lambda_h = 2 / alpha^2``, warped to reflected directions;
+      Wang et al. 2009), of integral ``E = S_r 2 pi (1 - e^{-2 lambda_l}) / lambda_l``, with
+      its peak ``S_r = f cos(r) - diffuse(r)`` taken from Mitsuba's own ``eval`` (so the
+      Fresnel term, metallic and tint included, is exact at ``r`` and held over the lobe).
+      The cone's part is ``(L_c / Omega_c) E Psi``, ``Psi`` the fraction of the lobe (a
+      planar Gaussian of std ``sigma = lambda_l^-1/2``) inside the cap (radius ``alpha_c``,
+      axis at angle ``t`` from ``r``): ``Psi = [Phi((alpha_c - t)/sigma) - Phi((-alpha_c -
+      t)/sigma)] (1 - e^{-alpha_c^2 / 2 sigma^2}) / (2 Phi(alpha_c/sigma) - 1)``, exact at
+      ``t = 0``, the cap's straight edge for ``alpha_c >> sigma`` and area x density for
+      ``alpha_c << sigma``. A Dirac cone takes the lobe at its axis,
+      ``L_c S_r exp(lambda_l (d_c . r - 1))``. A cap wholly under the horizon adds nothing;
+      the lobe's part under the horizon is not clipped.
+    """
+    # ------------------- which pixels, and their parameters (one read per pixel) -------------------
+    flags = mi.UInt32(bsdf.flags())
+    m = active & bsdf.has_attribute("clearcoat", active) & bsdf.has_attribute("base_color", active) & \
+        mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) & \
+        ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & \
+        (mi.Frame3f.cos_theta(si.wi) > 0.0)
+    for name in ("clearcoat", "sheen", "flatness", "anisotropic", "spec_trans"):
+        m &= bsdf.eval_attribute_1(name, si, m) == 0.0
+    base = mi.Color3f(bsdf.eval_attribute_3("base_color", si, m))
+    rough = bsdf.eval_attribute_1("roughness", si, m)
+    metal = bsdf.eval_attribute_1("metallic", si, m)
+    ci = dr.maximum(mi.Frame3f.cos_theta(si.wi), 1e-4)
+    kd = base * ((1.0 - metal) * (1.0 / math.pi))
+    Fi = _schlick_weight(ci)
+
+    def fdiff(wl):
+        """Mitsuba's principled diffuse + retro-reflection factor for the local direction wl."""
+        co = dr.maximum(mi.Frame3f.cos_theta(wl), 0.0)
+        Fo = _schlick_weight(co)
+        cd = dr.dot(dr.normalize(si.wi + wl), wl)
+        Rr = 2.0 * rough * dr.square(cd)
+        return (1.0 - 0.5 * Fi) * (1.0 - 0.5 * Fo) + Rr * (Fo + Fi + Fo * Fi * (Rr - 1.0))
+
+    # ------------------- the specular lobe's peak and width -------------------
+    r_loc = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
+    f_r = mi.Color3f(bsdf.eval(ctx, si, r_loc, m))
+    S_r = dr.maximum(f_r - kd * (fdiff(r_loc) * ci), 0.0)
+    alpha = dr.maximum(dr.square(rough), 1e-3)
+    lam_l = dr.rcp(2.0 * dr.square(alpha) * ci)
+    r = si.to_world(r_loc)
+    E_s = (2.0 * math.pi) * dr.rcp(lam_l) * (1.0 - dr.exp(-2.0 * lam_l))      # int of the SG lobe / S_r
+    # the lobe's widths: a half vector tilted by an angle b moves r by 2b in the plane of
+    # incidence and by 2 cos(theta_o) b across it, so sigma_par = 2 sigma_h, sigma_perp =
+    # 2 cos(theta_o) sigma_h, sigma_h^2 = alpha^2 / 2 (sigma_par sigma_perp = 1 / lambda_l)
+    s_par = math.sqrt(2.0) * alpha
+    s_perp = s_par * ci
+    e_perp = dr.cross(si.sh_frame.n, r)
+    e_perp = dr.select(dr.squared_norm(e_perp) > 1e-12, dr.normalize(e_perp), si.sh_frame.s)
+    e_par = dr.cross(e_perp, r)
+
+    # ------------------- per cone: diffuse at the axis, the part of the lobe in the cap -------------------
+    out = mi.Color3f(zero)
+    for i in range(K):
+        d_loc = si.to_local(Dw[i])
+        v = Dw[i] - r
+        dd = dr.squared_norm(v)                             # |r - d|^2 = 2 (1 - r . d), precise near 0
+        diff = kd * (fdiff(d_loc) * term[i])
+        # t: the angle from r to the cone axis; m: its Mahalanobis length in the lobe's widths
+        th = 2.0 * dr.asin(dr.minimum(0.5 * dr.sqrt(dd), 1.0))
+        sc = th * dr.rsqrt(dr.maximum(dd, 1e-30))
+        m2 = dr.square(dr.dot(v, e_par) * sc / s_par) + dr.square(dr.dot(v, e_perp) * sc / s_perp)
+        # the fraction Psi of the lobe inside the cap (radius a = alpha_c): a Gaussian edge across
+        # the cap's rim, scaled to GGX's own fraction in a disc centred on the peak (its slopes
+        # are a bivariate Student t with 2 degrees of freedom: a disc of slope radius rho holds
+        # rho^2 / (alpha^2 + rho^2), where a Gaussian of the same peak holds 1 - e^{-rho^2/alpha^2}).
+        # With sigma_t = t / m the lobe's width towards the axis (sqrt(s_par s_perp) at t = 0)
+        # and x = a^2 / (2 s_par s_perp) = rho^2 / alpha^2:
+        # Psi ~ [Phi((a - t)/sigma_t) - Phi((-a - t)/sigma_t)] (x / (1 + x)) / (2 Phi(a/sigma_t) - 1):
+        # GGX's fraction at t = 0 (round lobe), the cap's edge for a >> sigma, area x density
+        # for a << sigma
+        sig = dr.select(m2 > 1e-12, th * dr.rsqrt(dr.maximum(m2, 1e-30)), dr.sqrt(s_par * s_perp))
+        isg = dr.rcp(sig)
+        a_ = A[i]
+
+        def t2(u):
+            return dr.erf(u * math.sqrt(0.5))                              # 2 Phi(u) - 1
+
+        edge = 0.5 * (t2((a_ - th) * isg) - t2((-a_ - th) * isg))
+        x = dr.square(a_) * (0.5 / (s_par * s_perp))
+        psi = edge * (x * dr.rcp(1.0 + x)) * dr.rcp(dr.maximum(t2(a_ * isg), 1e-30))
+        sg = E_s * psi * inv_om[i]
+        sg = dr.select(delta[i], dr.exp(-0.5 * m2), sg)
+        spec = dr.select(below[i], 0.0, S_r * (L[i] * sg))
+        out += dr.select(live[i], diff + spec, 0.0)
+    return out, m
+
+
 def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.SurfaceInteraction3f,
                  bsdf: mi.BSDFPtr, texel_frame: mi.Frame3f, max_cones: int, n_total: mi.UInt32,
                  key: mi.UInt32, adaptive: bool = True, rotate: bool = True,
-                 pid: mi.UInt32 | None = None, horizon: bool = True) -> mi.Color3f:
+                 pid: mi.UInt32 | None = None, horizon: bool = True, principled: bool = True) -> mi.Color3f:
     """Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
     ``slot``; ``texel_frame`` is the local frame of each pixel's entry (the frame its
     cone directions are stored in). ``n_total`` directions per live cone and ``key``
-    are opaque scalars; ``adaptive`` / ``rotate`` / ``horizon`` see :class:`ConeShading`. ``pid``
+    are opaque scalars; ``adaptive`` / ``rotate`` / ``horizon`` / ``principled`` see :class:`ConeShading`. ``pid``
     keys each pixel's random numbers (default: its index in the arrays; several viewers
     shaded in one launch pass each pixel's index within its own viewer). Entries
     without cones and inactive pixels give 0."""
@@ -137,9 +254,10 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     # lights): int = (cos_d acos(y) - x sin_d sqrt(1 - y^2)) sin^2(alpha) + atan(sin_d sqrt(1 - y^2) / x),
     # x = cot(alpha), y = -x cos_d / sin_d; a cap wholly below (or a Dirac cone below) adds 0.
     # Cones wider than a hemisphere across the horizon still go to sampling.
-    lambert = _lambertian(bsdf, si, active)
     nrm = si.sh_frame.n
     closed = mi.Color3f(zero)
+    cones_ok = mi.Bool(active)                 # every live cone has a closed form
+    term, below_c = [], []                     # per cone: L_c (1/Omega_c) int_c cos (0 if not live); cap below
     for i in range(K):
         cos_d = dr.dot(nrm, Dw[i])
         sin_d = dr.safe_sqrt(1.0 - dr.square(cos_d))
@@ -155,14 +273,26 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
             inv_om_i = dr.rcp(dr.maximum(2.0 * math.pi * h[i], 1e-30))
             across = dr.select(delta[i], L[i] * dr.maximum(cos_d, 0.0), L[i] * (dr.maximum(part, 0.0) * inv_om_i))
             below = (cos_d * ca + sin_d * sa) <= 0.0                      # the whole cap under the horizon
-            lambert &= ~live[i] | above | (A[i] < 0.5 * math.pi)
-            closed += dr.select(live[i], dr.select(above, full, dr.select(below, 0.0, across)), 0.0)
+            cones_ok &= ~live[i] | above | (A[i] < 0.5 * math.pi)
+            t = dr.select(live[i], dr.select(above, full, dr.select(below, 0.0, across)), 0.0)
         else:
-            lambert &= ~live[i] | above
-            closed += dr.select(live[i], full, 0.0)
+            below = (cos_d * dr.cos(A[i]) + sin_d * dr.sin(A[i])) <= 0.0
+            cones_ok &= ~live[i] | above
+            t = dr.select(live[i], full, 0.0)
+        closed += t
+        term.append(t)
+        below_c.append(below | (delta[i] & (cos_d <= 0.0)))
+    lambert = _lambertian(bsdf, si, active) & cones_ok
     rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert))
     closed = rho * closed * (1.0 / math.pi)
-    sampled = active & ~lambert & (n > 0)
+
+    # ------------------- principled pixels: diffuse in closed form, specular lobe as an SG -------------------
+    if principled:
+        prin, pfast = _principled_cones(bsdf, si, ctx, active & cones_ok & ~lambert, K, live, delta, A, h, inv_om, L, Dw,
+                                        term, below_c, zero)
+    else:
+        prin, pfast = mi.Color3f(zero), active & False
+    sampled = active & ~lambert & ~pfast & (n > 0)
 
     # ------------------- allocation: how narrow is the lobe against the cones? -------------------
     # q = p_B(r) max_c Omega_c, with r the mirror direction of w_o (the peak of a glossy lobe),
@@ -248,7 +378,7 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     _, acc = dr.while_loop(state=(mi.UInt32(0), acc), cond=bsdf_cond, body=bsdf_body, labels=("t", "acc"))
 
     # raw values: a NaN or Inf made here reaches the image, where check mode names it
-    return dr.select(lambert, closed, acc)
+    return dr.select(lambert, closed, dr.select(pfast, prin, acc))
 
 
 def shade_key(frame: int, seed: int, tap: int = 0) -> int:
@@ -269,7 +399,10 @@ class ConeShading:
     the same pattern everywhere), ``freeze=True`` (record the kernel launches once and
     replay them), ``animated=False`` (the scene's meshes move), ``max_recordings=4``,
     ``horizon=True`` (Lambertian pixels whose cones cross the horizon use the exact
-    clipped-cap integral; False: they are sampled, as before December 2026).
+    clipped-cap integral; False: they are sampled, as before December 2026),
+    ``principled="sg"`` (pixels with Mitsuba's ``principled`` BSDF: diffuse part in
+    closed form, specular lobe as a spherical Gaussian, see :func:`_principled_cones`;
+    ``"sample"``: the MIS quadrature, as before).
 
     Freezing pays only while its recordings are replayed. Each instance owns its frozen
     function, so recordings are freed with the method and never shared between scenes.
@@ -284,9 +417,13 @@ class ConeShading:
     """
 
     def __init__(self, max_cones: int, adaptive: bool = True, rotate: bool = True, freeze: bool = True,
-                 animated: bool = False, max_recordings: int = 4, horizon: bool = True):
+                 animated: bool = False, max_recordings: int = 4, horizon: bool = True,
+                 principled: str = "sg"):
+        if principled not in ("sg", "sample"):
+            raise ValueError(f"principled must be 'sg' or 'sample', not {principled!r}")
         self.max_cones = int(max_cones)
         self.adaptive, self.rotate, self.horizon = bool(adaptive), bool(rotate), bool(horizon)
+        self.principled = principled
         self.animated, self.max_recordings = bool(animated), int(max_recordings)
         self.frozen = bool(freeze)
         # one frozen function per instance: recordings live and die with the method
@@ -305,7 +442,7 @@ class ConeShading:
         the index in the arrays; see :func:`shade_kernel`)."""
         out = self.kernel(storage, mi.UInt32(slot), mi.Bool(active), si, si.bsdf(), texel_frame, self.max_cones,
                           dr.opaque(mi.UInt32, max(int(n_samples), 1)), dr.opaque(mi.UInt32, int(key)),
-                          self.adaptive, self.rotate, pid, self.horizon)
+                          self.adaptive, self.rotate, pid, self.horizon, self.principled == "sg")
         if self.frozen:
             self.calls += 1
             self.recordings = int(self.kernel.n_recordings)
@@ -331,16 +468,20 @@ class ConeShading:
 def shader_for(owner, max_cones: int) -> ConeShading:
     """The :class:`ConeShading` of ``owner`` (a method instance), made on first use
     (animated when the owner's scene is, see :class:`ConeShading`; the horizon
-    treatment from the owner's ``horizon`` setting, default ``clip``)."""
+    treatment from the owner's ``horizon`` setting, default ``clip``; the principled
+    pixels' from its ``principled`` setting, default ``sg``)."""
     sh = getattr(owner, "_cone_shading", None)
     if sh is None or sh.max_cones != int(max_cones):
         scene = getattr(owner, "scene", None)
         sh = ConeShading(max_cones, animated=bool(getattr(scene, "dynamic", False)),
-                         horizon=getattr(owner, "horizon", "clip") == "clip")
+                         horizon=getattr(owner, "horizon", "clip") == "clip",
+                         principled=getattr(owner, "principled", "sg"))
         owner._cone_shading = sh
     return sh
 
 
-def shade_pixels(storage, slot, active, si, texel_frame, max_cones: int, n_samples: int = 16, key: int = 0):
+def shade_pixels(storage, slot, active, si, texel_frame, max_cones: int, n_samples: int = 16, key: int = 0,
+                 principled: str = "sg"):
     """Unfrozen one-off shading (tests, notebooks)."""
-    return ConeShading(max_cones, freeze=False)(storage, slot, active, si, texel_frame, n_samples, key)
+    return ConeShading(max_cones, freeze=False, principled=principled)(storage, slot, active, si, texel_frame,
+                                                                      n_samples, key)
