@@ -30,6 +30,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
+from ..freeze import FrozenFunction
 from ..keys import STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng
 from ..sh.basis import C1, band_of, basis
 from ..sh.project import irradiance, project, radiance
@@ -160,7 +161,7 @@ def _shade_kernel(rec, active, si, bsdf, tf, enc_name: str, seed: int, glossy_sa
     return shade(rec, si, bsdf, tf, active, get_encoding(enc_name), seed, glossy_samples)
 
 
-class SHShading:
+class SHShading(FrozenFunction):
     """:func:`shade` on an SH pool, traced once and replayed (``dr.freeze``, as
     :class:`slc.cones.shading.ConeShading`): tracing the SH shading (basis,
     BSDF sampling loop) cost more host time than its kernel. The pixels' records
@@ -173,17 +174,8 @@ class SHShading:
     def __init__(self, enc_name: str, seed: int, glossy_samples: int, freeze: bool = True,
                  max_recordings: int = 4):
         self.enc_name, self.seed, self.glossy_samples = str(enc_name), int(seed), int(glossy_samples)
-        self.max_recordings = int(max_recordings)
-        self.frozen = bool(freeze)
-        self.kernel = dr.freeze(_shade_kernel, warn_after=self.max_recordings + 1) if freeze else _shade_kernel
-        self.recordings = 0
+        super().__init__(_shade_kernel, freeze, False, max_recordings)
 
     def __call__(self, rec, active, si, tf) -> mi.Color3f:
-        out = self.kernel([mi.UInt32(w) for w in rec], mi.Bool(active), si, si.bsdf(), tf, self.enc_name,
-                          self.seed, self.glossy_samples)
-        if self.frozen:
-            self.recordings = int(self.kernel.n_recordings)
-            if self.recordings > self.max_recordings:
-                self.kernel.clear()
-                self.kernel, self.frozen = _shade_kernel, False
-        return out
+        return super().__call__([mi.UInt32(w) for w in rec], mi.Bool(active), si, si.bsdf(), tf, self.enc_name,
+                                self.seed, self.glossy_samples)

@@ -50,6 +50,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
+from ..freeze import FrozenFunction
 from .packing import gather_words, unpack
 
 GOLDEN = 0.6180339887498949           # 1 / phi: azimuths of the spherical-Fibonacci pattern
@@ -389,7 +390,7 @@ def shade_key(frame: int, seed: int, tap: int = 0) -> int:
     return x ^ (x >> 15)
 
 
-class ConeShading:
+class ConeShading(FrozenFunction):
     r"""Shading of pixels from their cache entries' cones: MIS of cone sampling and
     BSDF sampling (module docstring and docs/cones.md).
 
@@ -424,45 +425,16 @@ class ConeShading:
         self.max_cones = int(max_cones)
         self.adaptive, self.rotate, self.horizon = bool(adaptive), bool(rotate), bool(horizon)
         self.principled = principled
-        self.animated, self.max_recordings = bool(animated), int(max_recordings)
-        self.frozen = bool(freeze)
-        # one frozen function per instance: recordings live and die with the method
-        if not freeze:
-            self.kernel = shade_kernel
-        elif self.animated:
-            self.kernel = dr.freeze(shade_kernel, limit=2, warn_after=1 << 30)
-        else:
-            self.kernel = dr.freeze(shade_kernel, warn_after=self.max_recordings + 1)
-        self.recordings = 0          # recordings made, including those of a dropped frozen function
-        self.calls = 0
+        super().__init__(shade_kernel, freeze, animated, max_recordings)
 
     def __call__(self, storage, slot, active, si, texel_frame, n_samples: int = 16, key: int = 0,
                  pid: mi.UInt32 | None = None) -> mi.Color3f:
         """Shade the pixels ``si``; ``pid``: the random-number key per pixel (default:
         the index in the arrays; see :func:`shade_kernel`)."""
-        out = self.kernel(storage, mi.UInt32(slot), mi.Bool(active), si, si.bsdf(), texel_frame, self.max_cones,
-                          dr.opaque(mi.UInt32, max(int(n_samples), 1)), dr.opaque(mi.UInt32, int(key)),
-                          self.adaptive, self.rotate, pid, self.horizon, self.principled == "sg")
-        if self.frozen:
-            self.calls += 1
-            self.recordings = int(self.kernel.n_recordings)
-            if self.animated:
-                drop = self.calls >= 8 and self.recordings > 0.9 * self.calls
-            else:
-                drop = self.recordings > self.max_recordings
-            if drop:
-                self.kernel.clear()
-                self.kernel, self.frozen = shade_kernel, False
-        return out
-
-    @property
-    def n_recordings(self) -> int:
-        """Recordings made by this instance's frozen function (0 when never frozen)."""
-        return self.recordings
-
-    @property
-    def n_cached_recordings(self) -> int:
-        return int(self.kernel.n_cached_recordings) if self.frozen else 0
+        return super().__call__(storage, mi.UInt32(slot), mi.Bool(active), si, si.bsdf(), texel_frame,
+                                self.max_cones, dr.opaque(mi.UInt32, max(int(n_samples), 1)),
+                                dr.opaque(mi.UInt32, int(key)), self.adaptive, self.rotate, pid, self.horizon,
+                                self.principled == "sg")
 
 
 def shader_for(owner, max_cones: int) -> ConeShading:

@@ -25,6 +25,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..keys import INVALID, STREAM_CONE_UPDATE, keyed_rng
+from ..freeze import FrozenFunction
 from ..lights import sample_light
 
 INF = float("inf")
@@ -450,7 +451,7 @@ def light_inputs(scene) -> list:
     return [a for k in sorted(vars(s)) for a in arrays(vars(s)[k])]
 
 
-class ConeUpdate:
+class ConeUpdate(FrozenFunction):
     r"""The cone update kernel (:func:`_update_kernel`) traced once and replayed
     (``dr.freeze``): tracing the update (the sample loop, cases A-D, the shrink
     test, packing) costs tens of milliseconds of Python per frame whatever the
@@ -471,36 +472,7 @@ class ConeUpdate:
     every call records."""
 
     def __init__(self, freeze: bool = True, animated: bool = False, max_recordings: int = 4):
-        self.animated, self.max_recordings = bool(animated), int(max_recordings)
-        self.frozen = bool(freeze)
-        # one frozen function per instance: recordings live and die with the method
-        if not freeze:
-            self.kernel = _update_kernel
-        elif self.animated:
-            self.kernel = dr.freeze(_update_kernel, limit=2, warn_after=1 << 30)
-        else:
-            self.kernel = dr.freeze(_update_kernel, warn_after=self.max_recordings + 1)
-        self.recordings = 0          # recordings made, including those of a dropped frozen function
-        self.calls = 0
-
-    def __call__(self, *args):
-        out = self.kernel(*args)
-        if self.frozen:
-            self.calls += 1
-            self.recordings = int(self.kernel.n_recordings)
-            if self.animated:
-                drop = self.calls >= 8 and self.recordings > 0.9 * self.calls
-            else:
-                drop = self.recordings > self.max_recordings
-            if drop:
-                self.kernel.clear()
-                self.kernel, self.frozen = _update_kernel, False
-        return out
-
-    @property
-    def n_recordings(self) -> int:
-        """Recordings made by this instance's frozen function (0 when never frozen)."""
-        return self.recordings
+        super().__init__(_update_kernel, freeze, animated, max_recordings)
 
 
 def updater_for(owner) -> ConeUpdate:
