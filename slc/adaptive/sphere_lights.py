@@ -37,18 +37,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..emitter_sampling import _rgb   # a constant radiance value as RGB, or None
+
 SHELL = 0.9           # a mesh is a sphere when min / max vertex distance from its centre >= SHELL
 MIN_VERTICES = 12     # ... and its bounding box is a cube (within SHELL) with at least this many vertices
-
-
-def _rgb(value):
-    try:
-        a = np.array(value, np.float64).ravel()
-    except Exception:
-        return None
-    if a.size == 1:
-        return np.repeat(a, 3)
-    return a[:3] if a.size >= 3 else None
 
 
 class SphereLights:
