@@ -52,8 +52,8 @@ def flipped(g):
     kw = {}
     for f in dataclasses.fields(g):
         v = getattr(g, f.name)
-        if f.name in ("width", "height", "camera", "viewer"):
-            kw[f.name] = v
+        if f.name in ("width", "height", "camera", "viewer") or v is None or isinstance(v, int):
+            kw[f.name] = v     # (layers: none attached to a single G-buffer)
         else:
             kw[f.name] = dr.gather(type(v), v, idx)
     return type(g)(**kw)
