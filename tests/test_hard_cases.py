@@ -247,12 +247,12 @@ def _report(name, img, ref, mask, bounds):
 # on-surface cache, check mode; mean error, per-pixel error):
 #   point-like -0.5%, 14.2%   behind -1.0%, 9.9%   grazing-far +1.2%, 10.8%
 #   half-occluded -0.2%, 8.0%   many-lights -4.8%, 10.7%   moving-stopped +1.4%, 8.6%
-#   switched-off +133%, 133% (a known miss: xfail with the figure while it misses; the
+#   switched-off +144%, 144% (fourth session; +133% before) (a known miss: xfail with the figure while it misses; the
 #   assertion runs, so a fix turns it into a pass)
 SLC_BOUNDS = {"point-like": (0.02, 0.21), "behind": (0.02, 0.15), "grazing-far": (0.02, 0.16),
               "half-occluded": (0.02, 0.12), "many-lights": (0.07, 0.16),
               "moving-stopped": (0.03, 0.13), "switched-off": (0.05, 0.15)}
-SLC_MISSES = {"switched-off": "a light switched off 20 frames ago: measured mean +133%, per-pixel 133% "
+SLC_MISSES = {"switched-off": "a light switched off 20 frames ago: measured mean +144%, per-pixel 144% "
                               "(+194% 2 frames after; rt16 follows at once): a cone whose light went dark "
                               "only decays as a running mean, nothing detects the change"}
 
