@@ -245,9 +245,9 @@ def _report(name, img, ref, mask, bounds):
 # case: (bound on |mean / reference - 1|, bound on per-pixel mean abs error / mean): about
 # 1.5x the measured figures, the mean bound at least 2%. Measured (48x32, default slc on the
 # on-surface cache, check mode; mean error, per-pixel error):
-#   point-like -0.5%, 14.2%   behind -1.0%, 9.9%   grazing-far +1.2%, 10.8%
-#   half-occluded -0.2%, 8.0%   many-lights -4.8%, 10.7%   moving-stopped +1.4%, 8.6%
-#   switched-off +144%, 144% (fourth session; +133% before) (a known miss: xfail with the figure while it misses; the
+#   point-like +0.4%, 5.3%   behind -0.8%, 4.9%   grazing-far +0.9%, 12.1%
+#   half-occluded -0.5%, 6.9%   many-lights -3.4%, 6.5%   moving-stopped +2.2%, 9.1%
+#   switched-off +144%, 144% (fourth session's code; docs/hard-cases.md) (a known miss: xfail with the figure while it misses; the
 #   assertion runs, so a fix turns it into a pass)
 SLC_BOUNDS = {"point-like": (0.02, 0.21), "behind": (0.02, 0.15), "grazing-far": (0.02, 0.16),
               "half-occluded": (0.02, 0.12), "many-lights": (0.07, 0.16),
