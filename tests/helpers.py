@@ -166,3 +166,22 @@ def independent_runs(spec, scene, gbs, seeds, frames=1):
             d = m.render(FrameContext(f), gbs, NullTimer())
         out.append(np.array(d[0], np.float64).T)
     return np.stack(out)
+
+
+def run_case(code: str, *args, timeout: int = 600) -> dict:
+    """Run ``code`` (a script that prints ``RESULT <json>``) with ``args`` in a
+    fresh Python process with the repository on its path; returns the last
+    RESULT as a dict. A fresh process: kernels an earlier test built stay in the
+    process's in-memory cache and would hide a kernel built anew."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    p = subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True, text=True,
+                       env=env, timeout=timeout, cwd=root)
+    assert p.returncode == 0, p.stderr[-3000:]
+    line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")][-1]
+    return json.loads(line[len("RESULT "):])

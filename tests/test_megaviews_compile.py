@@ -8,16 +8,10 @@ arrays mapped by Dr.Jit at unaligned addresses) is removed by
 Each pipeline case runs in a fresh process (as ``tests/test_compile.py``):
 kernels an earlier case built would hide one a case builds anew.
 """
-import json
-import os
-import subprocess
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from helpers import run_case
 FRAMES, WARMUP = 8, 2
 
 _CASE = r"""
@@ -35,19 +29,10 @@ print("RESULT " + json.dumps({"compiled_after_warmup": res.compiled_after_warmup
 """
 
 
-def _env():
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
-    return env
-
-
 @pytest.mark.parametrize("spec", ["megaviews:views=512,scene_depth=5,view_depth=5",
                                   "manylods:views=256,scene_depth=5"])
 def test_no_kernel_built_after_warmup(spec):
-    p = subprocess.run([sys.executable, "-c", _CASE, spec, str(FRAMES), str(WARMUP)], capture_output=True,
-                       text=True, env=_env(), timeout=900, cwd=ROOT)
-    assert p.returncode == 0, p.stderr[-3000:]
-    r = json.loads([x for x in p.stdout.splitlines() if x.startswith("RESULT ")][-1][len("RESULT "):])
+    r = run_case(_CASE, spec, FRAMES, WARMUP, timeout=900)
     per = r["per_frame"]
     assert len(per) == FRAMES and sum(per[:WARMUP]) > 0     # the counter saw the warm-up's kernels
     assert r["compiled_after_warmup"] == sum(per[WARMUP:]) == 0, f"{spec}: kernels built per frame {per}"

@@ -2,15 +2,9 @@
 included (``compiled_after_warmup`` == 0 with Dr.Jit's kernel history, as tests/test_compile.py
 checks for the direct-light methods). The case runs in a fresh process: kernels an earlier test
 built stay in the process's in-memory cache and would hide a kernel built anew."""
-import json
-import os
-import subprocess
-import sys
-from pathlib import Path
-
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from helpers import run_case
 
 _CASE = r"""
 import json, sys
@@ -40,11 +34,7 @@ print("RESULT " + json.dumps({"compiled_after_warmup": res.compiled_after_warmup
 @pytest.mark.parametrize("spec", ["osc-gi", "osc-gi:output=indirect"])
 def test_no_kernel_builds_after_warmup_including_the_first_eviction(spec):
     frames, warmup = 9, 3
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    p = subprocess.run([sys.executable, "-c", _CASE, spec, str(frames), str(warmup)], capture_output=True,
-                       text=True, env=env, timeout=600, cwd=ROOT)
-    assert p.returncode == 0, p.stderr[-3000:]
-    r = json.loads([x for x in p.stdout.splitlines() if x.startswith("RESULT ")][-1][len("RESULT "):])
+    r = run_case(_CASE, spec, frames, warmup)
     # the case is only a check if secondary cells are first evicted in a timed frame
     first = next((i for i, n in enumerate(r["evicted"]) if n > 0), None)
     assert first is not None and first >= warmup, r
