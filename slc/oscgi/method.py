@@ -22,6 +22,7 @@ from .spatial import SpatialFilter
 STREAM_PRIMARY = 0x05C61001
 STREAM_PRIMARY_DIRECT = 0x05C61002
 STREAM_SHADE = 0x05C61003
+STREAM_GLOSSY = 0x05C61004
 INITIAL_ENTRIES = 1 << 14     # the pool starts small and doubles on demand (entries are ~0.8 KB)
 
 
@@ -70,6 +71,34 @@ def _primary_direct_kernel(sc, lights, sie, keys, scratch, mix, nd, scale: float
     dr.while_loop(state=(mi.UInt32(0), sd), cond=cond, body=body, labels=("i", "sd"))
     dr.eval(scratch)
     return scratch
+
+
+def _glossy_kernel(sc, lights, pi, ray, gi, lane_key, mix):
+    """At the hits ``gi`` of primary cache rays on non-diffuse surfaces (glossy, metal), the
+    outgoing radiance towards the entry is view-dependent, which a cell's diffuse radiance cannot
+    hold: one light sample with the hit's BSDF (next-event estimation: the light after one
+    reflection) and one BSDF-sampled ray, whose hit cell's radiance (layer ``bounces`` - 1) the
+    caller adds with the weight. Returns (NEE term, BSDF weight, BSDF ray, its mask)."""
+    ctx = mi.BSDFContext()
+    pw = dr.gather(type(pi), pi, gi)
+    rw = dr.gather(mi.Ray3f, ray, gi)
+    si = pw.compute_surface_interaction(rw, mi.RayFlags.All, True)
+    bsdf = si.bsdf()
+    rng = frame_rng(dr.gather(mi.UInt32, lane_key, gi), mix)
+    # ------------------ next-event estimation at the hit ------------------
+    u = mi.Point2f(rng.next_float32(), rng.next_float32())
+    ds, w, okd = sample_light(sc, si, u, si.is_valid())
+    okd = visible(sc, si, ds, okd)
+    f = mi.Color3f(bsdf.eval(ctx, si, si.to_local(ds.d), okd))
+    Ld = dr.select(okd, f * w, 0.0)
+    # ------------------ one BSDF-sampled bounce ------------------
+    bs, bw = bsdf.sample(ctx, si, rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
+                         si.is_valid())
+    ok2 = si.is_valid() & (bs.pdf > 0.0) & (dr.max(mi.Color3f(bw)) > 0.0)
+    ray2 = si.spawn_ray(si.to_world(bs.wo))
+    bw = dr.select(ok2, mi.Color3f(bw), 0.0)
+    dr.eval(Ld, bw, ray2, ok2)
+    return Ld, bw, ray2, ok2
 
 
 def _cache_params():
@@ -149,6 +178,8 @@ class OSCGI(PayloadMethod):
         Param("filter_angle", 25.0, "spatial filter: largest normal difference and parallax turn [deg]",
               lo=0.0, hi=90.0),
         Param("parallax", True, "spatial filter: parallax-corrected directions"),
+        Param("glossy_hits", True, "primary rays hitting glossy/metal surfaces: NEE + one BSDF ray into a cell "
+              "(else the cell's diffuse radiance: 0 for a metal)"),
         Param("freeze", True, "kernels with shape/BSDF/emitter calls traced once and replayed (dr.freeze)"),
     ) + _cache_params()
     storage_type = mi.Float
@@ -162,6 +193,7 @@ class OSCGI(PayloadMethod):
         # traced once and replayed (FrozenFunction): a new width of the inputs needs no recording
         self._k_ray = FrozenFunction(_primary_ray_kernel, bool(self.freeze), max_recordings=6)
         self._k_direct = FrozenFunction(_primary_direct_kernel, bool(self.freeze), max_recordings=6)
+        self._k_glossy = FrozenFunction(_glossy_kernel, bool(self.freeze), max_recordings=6)
 
     def validate(self):
         if self.output not in ("full", "indirect"):
@@ -246,17 +278,43 @@ class OSCGI(PayloadMethod):
         slots, hok = sec.touch(hits, ray, ok)
         sec.request(req, slots, hok, 1)
         sec.record_reuse(slots, hok)
+        # ----- non-diffuse hits (glossy_hits): NEE + one BSDF ray into a cell (ring 2) per lane -----
+        gl = None
+        if self.glossy_hits:
+            gi = dr.compress(hits[9])
+            if dr.width(gi) > 0:
+                lane_key = dr.gather(mi.UInt32, fr.keys, et) * D + kt
+                gk = self._k_glossy if dr.width(gi) > 1 else _glossy_kernel
+                Ld, bw, ray2, ok2 = gk(sc, light_inputs(sc), hits[4], ray, gi, lane_key,
+                                       stream_key(self.seed, ctx.frame, STREAM_GLOSSY))
+                s2, h2ok = None, mi.Bool(False)
+                if self.bounces > 1:
+                    hits2 = sec.trace(ray2, ok2)
+                    s2, h2ok = sec.touch(hits2, ray2, ok2)
+                    h2ok &= dr.dot(hits2[1], ray2.d) != 0.0
+                    sec.request(req, s2, h2ok, 2)
+                gl = (gi, Ld, bw, s2, h2ok)
         laps.lap("secondary_lookup", slots, hok, req)
         sec.update(ctx.frame, req)
         laps.lap("secondary_update")
         Lc = sec.radiance(slots, hok)                  # outgoing radiance of the hit's cell
         # a hit cell never updated yet (over the budget) holds no value: the texel is not blended
         # (it keeps its value) rather than pulled towards 0, unless it has no value yet either
+        em = hok & ~sec.updated_once(slots, hok)
+        if gl is not None:
+            gi, Ld, bw, s2, h2ok = gl
+            Lg = Ld
+            if s2 is not None:
+                Lg = Lg + bw * sec.radiance(s2, h2ok, layer=self.bounces - 1)
+            Lc = [mi.Float(Lc[ch]) for ch in range(3)]
+            for ch in range(3):
+                dr.scatter(Lc[ch], Lg[ch], gi)
+            dr.scatter(em, h2ok & ~sec.updated_once(s2, h2ok) if s2 is not None else mi.Bool(False), gi)
         sample = [dr.zeros(mi.Float, N * D) for _ in range(3)]
         empty = dr.zeros(mi.Bool, N * D)
         for ch in range(3):
             dr.scatter(sample[ch], Lc[ch], tl)
-        dr.scatter(empty, hok & ~sec.updated_once(slots, hok), tl)
+        dr.scatter(empty, em, tl)
         # mean inverse hit distance of the entry's rays this update (a miss: 0), for the filter
         inv_t, n_t = dr.zeros(mi.Float, N * D), dr.zeros(mi.Float, N * D)
         t_hit = hits[2]

@@ -92,14 +92,16 @@ def _take(v, idx):
 def _trace_kernel(sc, ray, active, h: float, slots: int, shape_key: bool):
     """Cache rays to their hits (``RayFlags.Minimal``) and the hits' cell keys: returns
     (p, geometric normal, t, shape index, preliminary intersection, valid, key, home, front
-    normal), evaluated. Frozen by :class:`SecondaryCache` (the rays of primary and secondary
+    normal, non-diffuse BSDF), evaluated. Frozen by :class:`SecondaryCache` (the rays of primary and secondary
     caches: two recordings)."""
     pi = sc.ray_intersect_preliminary(ray, coherent=False, active=active)
     si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
     sidx = mi.UInt32(pi.shape_index)
     ok = mi.Bool(active) & si.is_valid()
     key, home, nf = cell_key(si, ray.d, sidx, h, slots, shape_key)
-    out = (mi.Point3f(si.p), mi.Vector3f(si.n), mi.Float(si.t), sidx, pi, ok, key, home, nf)
+    flags = pi.shape.bsdf().flags()
+    glossy = ok & (mi.has_flag(flags, mi.BSDFFlags.Glossy) | mi.has_flag(flags, mi.BSDFFlags.Delta))
+    out = (mi.Point3f(si.p), mi.Vector3f(si.n), mi.Float(si.t), sidx, pi, ok, key, home, nf, glossy)
     dr.eval(*out)
     return out
 
@@ -289,7 +291,7 @@ class SecondaryCache:
         geometric normal and shape only (``RayFlags.Minimal``): the cell key needs no more, and
         the full interaction (for the albedo) is computed again for the one representative lane
         per cell. Returns (p, n, t, shape index, preliminary intersection, valid, key, home,
-        front normal)."""
+        front normal, non-diffuse BSDF)."""
         active = dr.zeros(mi.Bool, dr.width(ray.d)) | mi.Bool(active)      # an array of the rays' width
         return self._k_trace(self.sc, ray, active, self.h, self.slots, self.shape_key)
 
