@@ -41,6 +41,10 @@ NAME = "osc-gi"
 
 FILTER_ABLATIONS = ["osc-gi:filter_radius=3", "osc-gi:filter_radius=3,parallax=0",
                     "osc-gi:output=indirect,filter_radius=3", "osc-gi:output=indirect,filter_radius=3,parallax=0"]
+# this session's changes, switched off one at a time (before/after in one run): the frozen kernels of
+# osc-gi and pt, the NEE + BSDF ray at glossy hits; and the finer mip bias
+SESSION_ABLATIONS = ["osc-gi:freeze=0", "osc-gi:glossy_hits=0", "osc-gi:bias=1", "pt:spp=2,freeze=0",
+                     "pt:spp=16,freeze=0"]
 # overlap: the rig's target (calibrated on another cache): 0.75 measured 76% with osc-gi's cache at
 # 16 viewers on cornell (0.7: 55%, 0.8: 80%), inside the target's 60-80%
 FULL = dict(scenes=["cornell", "atrium"], width=160, height=90, frames=24, warmup=8, eval_frames=[23],
@@ -49,10 +53,6 @@ FULL = dict(scenes=["cornell", "atrium"], width=160, height=90, frames=24, warmu
             ablations=SESSION_ABLATIONS + FILTER_ABLATIONS + ["osc-gi:secondary_cm=15", "osc-gi:secondary_cm=60",
                                                            "osc-gi:bounces=1", "osc-gi:bounces=3", "osc-gi:shape_key=0"],
             memory_res=[(64, 36), (128, 72), (256, 144), (480, 270)])
-# this session's changes, switched off one at a time (before/after in one run): the frozen kernels of
-# osc-gi and pt, the NEE + BSDF ray at glossy hits; and the finer mip bias
-SESSION_ABLATIONS = ["osc-gi:freeze=0", "osc-gi:glossy_hits=0", "osc-gi:bias=1", "pt:spp=2,freeze=0",
-                     "pt:spp=16,freeze=0"]
 QUICK = dict(scenes=["cornell"], width=64, height=36, frames=8, warmup=3, eval_frames=[7],
              ref_spp=64, pt_spp=[1, 2, 4, 8, 16, 32, 64], ind_pt=5, viewers=[1, 4, 16], overlap=0.75,
              multi_res=(32, 18), multi_frames=6,
