@@ -139,6 +139,15 @@ class OSCGI(PayloadMethod):
     their value, and a texel does not blend a sample from a cell never updated unless it has no
     value either); cells unused for ``secondary_evict`` frames are freed.
 
+    *Glossy hits* (``glossy_hits``): a primary ray whose hit has a glossy or delta BSDF takes its
+    sample at the hit, since a cell's diffuse radiance cannot hold view-dependent light (and is 0
+    for a metal): one light sample with the hit's BSDF plus one BSDF-sampled ray whose hit cell's
+    layer ``bounces`` - 1 is weighted by :math:`f\cos/p` (that cell requested as ring 2).
+
+    ``freeze`` (on): the kernels with shape, BSDF or emitter calls (cache rays and cell keys,
+    representative albedo, direct light of cells and entries, secondary rays, glossy hits) are
+    traced once and replayed (:class:`slc.freeze.FrozenFunction`); the same images as traced.
+
     *Shading* (no rays): diffuse-only BSDFs exactly from the texels,
     :math:`L_o = \frac{\rho}{\pi} E,\ E = \frac{\pi}{R^2}\sum_k L_k`; other BSDFs by
     ``glossy_samples`` BSDF samples of the hemisphere, :math:`\frac{1}{n}\sum_j w_j L_{k(\omega_j)}`.
