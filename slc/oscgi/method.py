@@ -16,7 +16,7 @@ from ..osc.payload import PayloadMethod, RayPolicy
 from ..sh.shading import diffuse_only, shade_radiance
 from .hemisphere import HemiGrid
 from .laps import Laps
-from .secondary import SecondaryCache, frame_rng
+from .secondary import SecondaryCache, _glossy_kernel, frame_rng
 from .spatial import SpatialFilter
 
 STREAM_PRIMARY = 0x05C61001
@@ -71,34 +71,6 @@ def _primary_direct_kernel(sc, lights, sie, keys, scratch, mix, nd, scale: float
     dr.while_loop(state=(mi.UInt32(0), sd), cond=cond, body=body, labels=("i", "sd"))
     dr.eval(scratch)
     return scratch
-
-
-def _glossy_kernel(sc, lights, pi, ray, gi, lane_key, mix):
-    """At the hits ``gi`` of primary cache rays on non-diffuse surfaces (glossy, metal), the
-    outgoing radiance towards the entry is view-dependent, which a cell's diffuse radiance cannot
-    hold: one light sample with the hit's BSDF (next-event estimation: the light after one
-    reflection) and one BSDF-sampled ray, whose hit cell's radiance (layer ``bounces`` - 1) the
-    caller adds with the weight. Returns (NEE term, BSDF weight, BSDF ray, its mask)."""
-    ctx = mi.BSDFContext()
-    pw = dr.gather(type(pi), pi, gi)
-    rw = dr.gather(mi.Ray3f, ray, gi)
-    si = pw.compute_surface_interaction(rw, mi.RayFlags.All, True)
-    bsdf = si.bsdf()
-    rng = frame_rng(dr.gather(mi.UInt32, lane_key, gi), mix)
-    # ------------------ next-event estimation at the hit ------------------
-    u = mi.Point2f(rng.next_float32(), rng.next_float32())
-    ds, w, okd = sample_light(sc, si, u, si.is_valid())
-    okd = visible(sc, si, ds, okd)
-    f = mi.Color3f(bsdf.eval(ctx, si, si.to_local(ds.d), okd))
-    Ld = dr.select(okd, f * w, 0.0)
-    # ------------------ one BSDF-sampled bounce ------------------
-    bs, bw = bsdf.sample(ctx, si, rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
-                         si.is_valid())
-    ok2 = si.is_valid() & (bs.pdf > 0.0) & (dr.max(mi.Color3f(bw)) > 0.0)
-    ray2 = si.spawn_ray(si.to_world(bs.wo))
-    bw = dr.select(ok2, mi.Color3f(bw), 0.0)
-    dr.eval(Ld, bw, ray2, ok2)
-    return Ld, bw, ray2, ok2
 
 
 def _cache_params():
@@ -234,7 +206,7 @@ class OSCGI(PayloadMethod):
                                         self.n_max, self.secondary_rays, self.light_samples,
                                         1 << self.secondary_slots, shape_key=self.shape_key, seed=self.seed,
                                         budget=self.secondary_budget, evict_after=self.secondary_evict,
-                                        freeze=bool(self.freeze))
+                                        freeze=bool(self.freeze), glossy_hits=bool(self.glossy_hits))
         self.secondary.laps = self.laps
 
     # ----------------------------------------------------------------- update

@@ -184,6 +184,34 @@ def _ray_kernel(p, nrm, keys, tl, mix, R: int):
     return ray
 
 
+def _glossy_kernel(sc, lights, pi, ray, gi, lane_key, mix):
+    """At the hits ``gi`` of cache rays on non-diffuse surfaces (glossy, metal), the
+    outgoing radiance towards the entry is view-dependent, which a cell's diffuse radiance cannot
+    hold: one light sample with the hit's BSDF (next-event estimation: the light after one
+    reflection) and one BSDF-sampled ray, whose hit cell's radiance (layer ``bounces`` - 1) the
+    caller adds with the weight. Returns (NEE term, BSDF weight, BSDF ray, its mask)."""
+    ctx = mi.BSDFContext()
+    pw = dr.gather(type(pi), pi, gi)
+    rw = dr.gather(mi.Ray3f, ray, gi)
+    si = pw.compute_surface_interaction(rw, mi.RayFlags.All, True)
+    bsdf = si.bsdf()
+    rng = frame_rng(dr.gather(mi.UInt32, lane_key, gi), mix)
+    # ------------------ next-event estimation at the hit ------------------
+    u = mi.Point2f(rng.next_float32(), rng.next_float32())
+    ds, w, okd = sample_light(sc, si, u, si.is_valid())
+    okd = visible(sc, si, ds, okd)
+    f = mi.Color3f(bsdf.eval(ctx, si, si.to_local(ds.d), okd))
+    Ld = dr.select(okd, f * w, 0.0)
+    # ------------------ one BSDF-sampled bounce ------------------
+    bs, bw = bsdf.sample(ctx, si, rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
+                         si.is_valid())
+    ok2 = si.is_valid() & (bs.pdf > 0.0) & (dr.max(mi.Color3f(bw)) > 0.0)
+    ray2 = si.spawn_ray(si.to_world(bs.wo))
+    bw = dr.select(ok2, mi.Color3f(bw), 0.0)
+    dr.eval(Ld, bw, ray2, ok2)
+    return Ld, bw, ray2, ok2
+
+
 class SecondaryCache:
     """Hashed grid of secondary radiance cells (see the module).
 
@@ -199,7 +227,7 @@ class SecondaryCache:
     def __init__(self, mi_scene: mi.Scene, cell: float, bounces: int = 2, n_max: int = 8, rays: int = 32,
                  light_samples: int = 4, slots: int = 1 << 16, probes: int = 32, shape_key: bool = True,
                  seed: int = 0, budget: int = 0, evict_after: int = 0, max_load: float = 0.25,
-                 freeze: bool = True):
+                 freeze: bool = True, glossy_hits: bool = True):
         if slots & (slots - 1):
             raise ValueError("slots must be a power of two")
         self.sc, self.h, self.B = mi_scene, float(cell), int(bounces)
@@ -208,11 +236,12 @@ class SecondaryCache:
         self.budget, self.evict_after, self.max_load = int(budget), int(evict_after), float(max_load)
         self.laps = Laps(False)
         # the kernels with BSDF, shape and emitter calls, traced once and replayed (dr.freeze)
-        self.freeze = bool(freeze)
+        self.freeze, self.glossy_hits = bool(freeze), bool(glossy_hits)
         self._k_trace = FrozenFunction(_trace_kernel, self.freeze, max_recordings=6)
         self._k_rep = FrozenFunction(_rep_kernel, self.freeze, max_recordings=6)
         self._k_direct = FrozenFunction(_direct_kernel, self.freeze, max_recordings=6)
         self._k_ray = FrozenFunction(_ray_kernel, self.freeze, max_recordings=6)
+        self._k_glossy = FrozenFunction(_glossy_kernel, self.freeze, max_recordings=6)
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -503,10 +532,25 @@ class SecondaryCache:
             self.laps.lap("sec_rays", *hits)
             hit_slots, hok = self.touch(hits, ray, mi.Bool(True))
             hok &= dr.dot(hits[1], ray.d) != 0.0
+            # ---- rays hitting glossy/metal surfaces: NEE with the hit's BSDF towards the cell
+            # (the light after one reflection there, layer 1 exactly; a lower bound for layers >= 2) ----
+            Lg = None
+            if self.glossy_hits:
+                gi = dr.compress(hits[9])
+                if dr.width(gi) > 0:
+                    lane_key = dr.gather(mi.UInt32, keys, c_of) * R + tl % R
+                    gk = self._k_glossy if dr.width(gi) > 1 else _glossy_kernel
+                    Ld = gk(sc, light_inputs(sc), hits[4], ray, gi, lane_key,
+                            stream_key(self.seed, frame, STREAM_SECONDARY + 2))[0]
+                    Lg = (gi, Ld)
             next_ring = dr.gather(mi.UInt32, ring, c_of) + 1
             dr.scatter_reduce(dr.ReduceOp.Min, self.pending, next_ring, hit_slots, hok & (next_ring <= B))
             for b in range(1, B):
                 Lh = self.radiance(hit_slots, hok, layer=b)
+                if Lg is not None:
+                    Lh = [mi.Float(Lh[c]) for c in range(3)]
+                    for c in range(3):
+                        dr.scatter(Lh[c], Lg[1][c], Lg[0])
                 full = [dr.zeros(mi.Float, n * R) for _ in range(3)]
                 for c in range(3):
                     dr.scatter(full[c], Lh[c], tl)
