@@ -114,7 +114,8 @@ class OSCGI(PayloadMethod):
     *Glossy hits* (``glossy_hits``): a primary ray whose hit has a glossy or delta BSDF takes its
     sample at the hit, since a cell's diffuse radiance cannot hold view-dependent light (and is 0
     for a metal): one light sample with the hit's BSDF plus one BSDF-sampled ray whose hit cell's
-    layer ``bounces`` - 1 is weighted by :math:`f\cos/p` (that cell requested as ring 2).
+    layer ``bounces`` - 1 is weighted by :math:`f\cos/p` (that cell requested as ring 2); a
+    secondary ray hitting such a surface takes the light sample's term alone (layer 1 exactly).
 
     ``freeze`` (on): the kernels with shape, BSDF or emitter calls (cache rays and cell keys,
     representative albedo, direct light of cells and entries, secondary rays, glossy hits) are

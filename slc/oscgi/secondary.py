@@ -41,6 +41,10 @@ cache reads layer ``bounces``, so that the primary point receives light after ex
 1..``bounces`` reflections, the paths of :func:`slc.references.indirect_light`. Bounces accumulate
 over frames: layer b of a cell is at most b-1 updates behind.
 
+Glossy hits (``glossy_hits``): a cell holds diffuse radiance only (0 for a metal); a secondary ray
+whose hit has a glossy or delta BSDF reads instead one light sample with that BSDF towards the
+ray's origin (:func:`_glossy_kernel`), the hit's layer 1 exactly (a lower bound for layers >= 2).
+
 Points: a cell is updated from a representative point, the hit (lowest lane) that touched it last;
 as hits move over the cell from frame to frame, the temporal average spans the cell.
 Update set: every cell hit by a primary ray this frame (ring 1) and every cell hit by a ring-r
