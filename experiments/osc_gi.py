@@ -9,7 +9,7 @@ Per scene (one viewer on the scene's first camera path, moving):
   the pixels from the primary caches); memory of the primary caches (on-surface cache + payloads)
   and of the secondary cells in use, min and max over the path; the secondary-cache reuse
   histogram (primary-cache rays per touched cell, last frame);
-- path tracing (``pt``, full light) at several sample counts, for the speed-against-error plot and
+- path tracing (``pt``, full light, its estimator frozen) at several sample counts, for the speed-against-error plot and
   the FLIP of PT at osc-gi's time (log-log interpolation between the two PT points around it);
 - the indirect light alone: ``osc-gi:output=indirect``, ``pt`` (indirect) and ``crc`` against the
   indirect reference;
@@ -22,7 +22,8 @@ Per scene (one viewer on the scene's first camera path, moving):
   (:class:`slc.oscgi.laps.Laps`; host syncs between stages), written as ``update_laps_ms``.
 
 The full preset runs cornell and atrium at 160x90 (24 frames); ``--quick`` cornell at 64x36
-(8 frames, PT at 1, 2, 4, 8, 16 spp).
+(8 frames, PT at 1-64 spp). Both also run this session's switches one at a time (``SESSION_ABLATIONS``:
+osc-gi and pt not frozen, osc-gi without the glossy-hit rays, osc-gi at mip bias 1).
 
     python experiments/osc_gi.py --quick
     slc run osc-gi --quick [--scene cornell]
@@ -40,16 +41,22 @@ NAME = "osc-gi"
 
 FILTER_ABLATIONS = ["osc-gi:filter_radius=3", "osc-gi:filter_radius=3,parallax=0",
                     "osc-gi:output=indirect,filter_radius=3", "osc-gi:output=indirect,filter_radius=3,parallax=0"]
+# this session's changes, switched off one at a time (before/after in one run): the frozen kernels of
+# osc-gi and pt, the NEE + BSDF ray at glossy hits; and the finer mip bias
+SESSION_ABLATIONS = ["osc-gi:freeze=0", "osc-gi:glossy_hits=0", "osc-gi:bias=1", "pt:spp=2,freeze=0",
+                     "pt:spp=16,freeze=0"]
 # overlap: the rig's target (calibrated on another cache): 0.75 measured 76% with osc-gi's cache at
 # 16 viewers on cornell (0.7: 55%, 0.8: 80%), inside the target's 60-80%
 FULL = dict(scenes=["cornell", "atrium"], width=160, height=90, frames=24, warmup=8, eval_frames=[23],
-            ref_spp=256, pt_spp=[1, 2, 4, 8, 16, 32], viewers=[1, 4, 16], overlap=0.75, multi_res=(64, 36),
-            multi_frames=10, ablations=FILTER_ABLATIONS + ["osc-gi:secondary_cm=15", "osc-gi:secondary_cm=60",
+            ref_spp=256, pt_spp=[1, 2, 4, 8, 16, 32, 64], ind_pt=5, viewers=[1, 4, 16], overlap=0.75,
+            multi_res=(64, 36), multi_frames=10,
+            ablations=SESSION_ABLATIONS + FILTER_ABLATIONS + ["osc-gi:secondary_cm=15", "osc-gi:secondary_cm=60",
                                                            "osc-gi:bounces=1", "osc-gi:bounces=3", "osc-gi:shape_key=0"],
             memory_res=[(64, 36), (128, 72), (256, 144), (480, 270)])
 QUICK = dict(scenes=["cornell"], width=64, height=36, frames=8, warmup=3, eval_frames=[7],
-             ref_spp=64, pt_spp=[1, 2, 4, 8, 16], viewers=[1, 4, 16], overlap=0.75, multi_res=(32, 18), multi_frames=6,
-             ablations=FILTER_ABLATIONS + ["osc-gi:secondary_cm=60", "osc-gi:bounces=1"],
+             ref_spp=64, pt_spp=[1, 2, 4, 8, 16, 32, 64], ind_pt=5, viewers=[1, 4, 16], overlap=0.75,
+             multi_res=(32, 18), multi_frames=6,
+             ablations=SESSION_ABLATIONS + FILTER_ABLATIONS + ["osc-gi:secondary_cm=60", "osc-gi:bounces=1"],
              memory_res=[(64, 36), (128, 72), (256, 144)])
 SLIDES_1080P_MB = (300, 700)        # the slides' single-viewer memory at 1080p (GPU)
 CACHE_STAGES = ("requests", "allocate", "queue")
@@ -158,7 +165,8 @@ def run(opts) -> dict:
                     measure_overlap=False)
     main_specs = [] if opts.only_multi else ["osc-gi"] + [f"pt:spp={n}" for n in preset["pt_spp"]]
     ind_specs = [] if opts.only_multi else (["osc-gi:output=indirect"]
-                                            + [f"pt:spp={n},output=indirect" for n in preset["pt_spp"][:3]] + ["crc"])
+                                            + [f"pt:spp={n},output=indirect" for n in preset["pt_spp"][:preset["ind_pt"]]]
+                                            + ["crc"])
     abl_specs = [] if opts.no_ablations or opts.only_multi else list(preset["ablations"])
     for spec in main_specs + ind_specs + abl_specs:      # bad specs stop the run before any work
         methods.parse_spec(spec)

@@ -205,6 +205,44 @@ def test_converges_to_the_indirect_reference(dcornell):
     assert m.secondary.overflow == 0 and m.secondary.used_cells() > 0
 
 
+def test_glossy_hits_bring_the_light_reflected_by_metal():
+    """The Cornell box with its rough-aluminium block, still camera, 12 frames at 32x18: cache rays
+    hitting the metal read its cell's diffuse radiance (0) without ``glossy_hits``; with it (NEE +
+    one BSDF ray there) the mean indirect light is within 15% of the reference and closer to it
+    than without (measured on the moving quick path: 0.97 vs 0.68 of the reference)."""
+    s = scenes.load("cornell")
+    ratio = {}
+    for g in (1, 0):
+        m, gbs, imgs = _run(s, f"osc-gi:output=indirect,glossy_hits={g}", views.single(s), 12, 32, 18)
+        ref = references.reference_for("indirect", s, gbs[0], 0, "test", spp=128, bounces=m.bounces)
+        assert np.isfinite(imgs[0]).all()
+        ratio[g] = imgs[0].mean() / ref.mean()
+    assert abs(ratio[1] - 1.0) < 0.15, ratio
+    assert abs(ratio[1] - 1.0) < abs(ratio[0] - 1.0) - 0.05, ratio
+
+
+def test_frozen_kernels_give_the_traced_images():
+    """``freeze`` (the kernels with shape/BSDF/emitter calls replayed) changes no pixel: a moving
+    camera (the entry and ray counts change every frame) on the Cornell box with its metal block."""
+    s = scenes.load("cornell")
+    vs = views.single(s)
+    out = {}
+    for fz in (1, 0):
+        m = methods.create(f"osc-gi:freeze={fz}", s)
+        imgs, recs = [], []
+        for f in range(6):
+            gbs = gbuffers_for(s, vs, f, 32, 18)
+            imgs.append(np.array(m.render(FrameContext(f), gbs, NullTimer())[0]))
+            recs.append(m.secondary._k_trace.n_recordings)
+        out[fz] = (imgs, m, recs)
+    for a, b in zip(out[1][0], out[0][0]):
+        assert np.array_equal(a, b)
+    # replayed after the warm-up frames (the first frame's all-new entries lay the inputs out
+    # otherwise: measured 3 + 2 recordings for the primary, secondary and glossy-hit rays)
+    k, recs = out[1][1].secondary._k_trace, out[1][2]
+    assert k.frozen and k.calls >= 15 and recs[2] == recs[-1], (k.calls, recs)
+
+
 def test_full_output_is_direct_plus_indirect(dcornell):
     m, gbs, imgs = _run(dcornell, "osc-gi", views.single(dcornell), 16)
     ref = references.reference_for("full", dcornell, gbs[0], 0, "test", spp=256, bounces=2)

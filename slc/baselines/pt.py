@@ -4,10 +4,74 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ..lights import direct_sample, rng
+from ..freeze import FrozenFunction
+from ..lights import direct_sample, sample_light_reference, visible
 from ..methods import MethodError, Param, register
 from ..methods import Method
-from ..references import indirect_light
+from ..references import _STREAM_INDIRECT
+
+_STREAM_DIRECT = 3
+
+
+def _stream_state(seed: int, stream: int) -> mi.UInt64:
+    """The PCG32 init state of :func:`slc.lights.rng` for (seed, stream), as an opaque array: an
+    input of the frozen kernel (a Python int inside it would be baked into the recording)."""
+    return dr.opaque(mi.UInt64, (int(seed) * 0x9E3779B97F4A7C15 + int(stream) * 0xBF58476D1CE4E5B9)
+                     & 0xFFFFFFFFFFFFFFFF)
+
+
+def _pt_kernel(scene, lights, si0, active0, s_ind, s_dir, spp: int, bounces: int, full: bool):
+    """The estimator of :class:`PathTracing` for the points ``si0`` (``active0`` valid), random
+    streams from the init states ``s_ind`` / ``s_dir``. The indirect part is
+    :func:`slc.references.indirect_light` line for line (same streams: the same numbers for the
+    same seed); ``lights`` (:func:`slc.cones.update.light_inputs`) declares the emitter table
+    read by the project's light sampling (direct part) as an input."""
+    ctx = mi.BSDFContext()
+    idx = dr.arange(mi.UInt64, dr.width(active0))
+    n = dr.opaque(mi.UInt32, spp)
+
+    # ------------------ indirect: BSDF-sampled bounces, NEE after each ------------------
+    sampler = mi.PCG32(size=dr.width(active0), initstate=s_ind, initseq=idx)
+
+    def cond(i, L, sampler):
+        return i < n
+
+    def body(i, L, sampler):
+        si, beta, active = si0, mi.Color3f(1.0), mi.Bool(active0)
+        for _ in range(int(bounces)):
+            bs, bw = si.bsdf().sample(ctx, si, sampler.next_float32(),
+                                      mi.Point2f(sampler.next_float32(), sampler.next_float32()), active)
+            active &= bs.pdf > 0.0
+            beta = dr.select(active, beta * mi.Color3f(bw), 0.0)
+            si = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), active)
+            active &= si.is_valid() & (dr.max(beta) > 0.0)
+            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
+            ds, w, ok = sample_light_reference(scene, si, u, active)
+            ok = visible(scene, si, ds, ok)
+            f = mi.Color3f(si.bsdf().eval(ctx, si, si.to_local(ds.d), ok))
+            L += dr.select(ok, beta * f * w, 0.0)
+        return i + 1, L, sampler
+
+    _, L, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
+                            labels=("i", "L", "sampler"))
+    L = dr.select(active0, L / float(max(spp, 1)), 0.0)
+    if full:
+        # ------------------ direct light: spp light samples ------------------
+        bsdf = si0.bsdf()
+        sd = mi.PCG32(size=dr.width(active0), initstate=s_dir, initseq=idx)
+
+        def cond_d(i, Ld, sd):
+            return i < n
+
+        def body_d(i, Ld, sd):
+            u = mi.Point2f(sd.next_float32(), sd.next_float32())
+            return i + 1, Ld + direct_sample(scene, si0, bsdf, u, active0, ctx), sd
+
+        _, Ld, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sd), cond=cond_d, body=body_d,
+                                 labels=("i", "Ld", "sd"))
+        L = L + Ld / float(spp)
+    dr.eval(L)
+    return L
 
 
 class PathTracing(Method):
@@ -23,6 +87,11 @@ class PathTracing(Method):
 
     ``output=full`` adds direct light by ``spp`` light samples with shadow rays
     (:func:`slc.lights.direct_sample`). No state is kept across frames (no temporal reuse).
+
+    ``freeze`` (on): the estimator is traced once and replayed (:class:`slc.freeze.FrozenFunction`,
+    the frame's random streams passed in as opaque arrays): tracing it (BSDF and emitter calls) cost
+    most of a frame at small resolutions, host time that a real-time renderer does not pay. The
+    images are those of the traced estimator (``freeze=0``) bit for bit.
     """
 
     name = "pt"
@@ -31,37 +100,29 @@ class PathTracing(Method):
         Param("spp", 1, "paths (and direct light samples) per pixel", lo=1, hi=1 << 16),
         Param("bounces", 2, "indirect bounces", lo=1, hi=16),
         Param("output", "full", "direct + indirect, or indirect light only", choices=("full", "indirect")),
+        Param("freeze", True, "trace the estimator once and replay it (dr.freeze)"),
     )
 
     def __init__(self, scene, **kw):
         super().__init__(scene, **kw)
         self.label = f"pt{self.spp}" + ("" if self.output == "full" else ":indirect")
         self._pixels = 0
+        self._kernel = None
 
     def validate(self):
         if self.output not in ("full", "indirect"):
             raise MethodError(f"{self.name}: output must be full or indirect")
 
     def shade(self, gb, frame: int, v: int) -> mi.Color3f:
+        from ..cones.update import light_inputs
+        if self._kernel is None:
+            self._kernel = FrozenFunction(_pt_kernel, bool(self.freeze),
+                                          animated=bool(getattr(self.scene, "dynamic", False)))
         sc, seed = self.scene.mi_scene, self.seed_for(frame, v)
-        L = indirect_light(sc, gb, self.spp, self.bounces, seed=seed)
-        if self.output == "full":
-            si, active, bsdf, ctx = gb.si, gb.valid, gb.si.bsdf(), mi.BSDFContext()
-            sampler = rng(gb.size, seed, stream=3)
-            n = dr.opaque(mi.UInt32, self.spp)
-
-            # ------------------ direct light: spp light samples ------------------
-            def cond(i, Ld, sampler):
-                return i < n
-
-            def body(i, Ld, sampler):
-                u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
-                return i + 1, Ld + direct_sample(sc, si, bsdf, u, active, ctx), sampler
-
-            _, Ld, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
-                                     labels=("i", "Ld", "sampler"))
-            L = L + Ld / float(self.spp)
-        return L
+        return self._kernel(sc, light_inputs(sc), gb.si, mi.Bool(gb.valid),
+                            _stream_state(seed, _STREAM_INDIRECT + int(self.bounces)),
+                            _stream_state(seed, _STREAM_DIRECT), int(self.spp), int(self.bounces),
+                            self.output == "full")
 
     def render(self, ctx, gbuffers, timer):
         self._pixels = sum(g.size for g in gbuffers)

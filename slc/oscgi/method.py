@@ -6,7 +6,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ..keys import INVALID, keyed_rng
+from ..cones.update import light_inputs
+from ..freeze import FrozenFunction
+from ..keys import INVALID, keyed_rng, stream_key
 from ..lights import sample_light, visible
 from ..methods import MethodError, Param, register
 from ..osc.cache import OnSurfaceCache
@@ -14,13 +16,61 @@ from ..osc.payload import PayloadMethod, RayPolicy
 from ..sh.shading import diffuse_only, shade_radiance
 from .hemisphere import HemiGrid
 from .laps import Laps
-from .secondary import SecondaryCache
+from .secondary import SecondaryCache, _glossy_kernel, frame_rng
 from .spatial import SpatialFilter
 
 STREAM_PRIMARY = 0x05C61001
 STREAM_PRIMARY_DIRECT = 0x05C61002
 STREAM_SHADE = 0x05C61003
+STREAM_GLOSSY = 0x05C61004
 INITIAL_ENTRIES = 1 << 14     # the pool starts small and doubles on demand (entries are ~0.8 KB)
+
+
+def _primary_ray_kernel(fr_si, keys, tl, mix, D: int, res: int):
+    """The jittered cosine rays of the traced lanes ``tl`` (entry tl // D, texel tl % D) from the
+    entries' own points ``fr_si``; returns (rays, mask above the geometric surface)."""
+    G = HemiGrid(res)
+    et, kt = tl // D, tl % D
+    si = dr.zeros(mi.SurfaceInteraction3f)   # only what spawn_ray needs; width 1 (a width would be baked)
+    si.p = mi.Point3f(*[dr.gather(mi.Float, fr_si.p[c], et) for c in range(3)])
+    si.n = mi.Vector3f(*[dr.gather(mi.Float, fr_si.n[c], et) for c in range(3)])
+    n_sh = mi.Vector3f(*[dr.gather(mi.Float, fr_si.sh_frame.n[c], et) for c in range(3)])
+    s = frame_rng(dr.gather(mi.UInt32, keys, et) * D + kt, mix)
+    d = mi.Frame3f(n_sh).to_world(G.direction(kt, mi.Point2f(s.next_float32(), s.next_float32())))
+    ok = dr.dot(d, si.n) > 0.0                      # above the geometric surface
+    ray = si.spawn_ray(d)
+    dr.eval(ray, ok)
+    return ray, ok
+
+
+def _primary_direct_kernel(sc, lights, sie, keys, scratch, mix, nd, scale: float, res: int):
+    """``nd`` (opaque) light samples per entry (the project's light sampling, shadow rays) binned
+    into the texels of their directions, added to ``scratch`` (3 words per entry and texel;
+    returned); ``lights`` declares the emitter table as an input."""
+    G = HemiGrid(res)
+    D = G.n
+    frame_e = mi.Frame3f(sie.sh_frame.n)
+    base = dr.arange(mi.UInt32, dr.width(keys)) * D
+    sd = frame_rng(keys, mix)
+
+    def cond(i, sd):
+        return i < nd
+
+    def body(i, sd):
+        u = mi.Point2f(sd.next_float32(), sd.next_float32())
+        ds, w, okd = sample_light(sc, sie, u, mi.Bool(True))
+        loc = frame_e.to_local(ds.d)
+        okd &= (dr.dot(ds.d, sie.n) > 0.0) & (loc.z > 0.0) & dr.all(dr.isfinite(w))
+        okd = visible(sc, sie, ds, okd)
+        t = (base + G.texel(loc)) * 3
+        for c in range(3):
+            # Direct: the default (Expand) bakes the size of scratch into the kernel
+            dr.scatter_add(scratch, w[c] * loc.z * scale, t + c, okd, mode=dr.ReduceMode.Direct)
+        return i + 1, sd
+
+    dr.while_loop(state=(mi.UInt32(0), sd), cond=cond, body=body, labels=("i", "sd"))
+    dr.eval(scratch)
+    return scratch
 
 
 def _cache_params():
@@ -61,6 +111,16 @@ class OSCGI(PayloadMethod):
     their value, and a texel does not blend a sample from a cell never updated unless it has no
     value either); cells unused for ``secondary_evict`` frames are freed.
 
+    *Glossy hits* (``glossy_hits``): a primary ray whose hit has a glossy or delta BSDF takes its
+    sample at the hit, since a cell's diffuse radiance cannot hold view-dependent light (and is 0
+    for a metal): one light sample with the hit's BSDF plus one BSDF-sampled ray whose hit cell's
+    layer ``bounces`` - 1 is weighted by :math:`f\cos/p` (that cell requested as ring 2); a
+    secondary ray hitting such a surface takes the light sample's term alone (layer 1 exactly).
+
+    ``freeze`` (on): the kernels with shape, BSDF or emitter calls (cache rays and cell keys,
+    representative albedo, direct light of cells and entries, secondary rays, glossy hits) are
+    traced once and replayed (:class:`slc.freeze.FrozenFunction`); the same images as traced.
+
     *Shading* (no rays): diffuse-only BSDFs exactly from the texels,
     :math:`L_o = \frac{\rho}{\pi} E,\ E = \frac{\pi}{R^2}\sum_k L_k`; other BSDFs by
     ``glossy_samples`` BSDF samples of the hemisphere, :math:`\frac{1}{n}\sum_j w_j L_{k(\omega_j)}`.
@@ -100,6 +160,9 @@ class OSCGI(PayloadMethod):
         Param("filter_angle", 25.0, "spatial filter: largest normal difference and parallax turn [deg]",
               lo=0.0, hi=90.0),
         Param("parallax", True, "spatial filter: parallax-corrected directions"),
+        Param("glossy_hits", True, "primary rays hitting glossy/metal surfaces: NEE + one BSDF ray into a cell "
+              "(else the cell's diffuse radiance: 0 for a metal)"),
+        Param("freeze", True, "kernels with shape/BSDF/emitter calls traced once and replayed (dr.freeze)"),
     ) + _cache_params()
     storage_type = mi.Float
 
@@ -109,6 +172,10 @@ class OSCGI(PayloadMethod):
         self.words = 3 * self.grid.n + 5           # radiance per texel, irradiance, count, mean 1/t
         self.filter = SpatialFilter(self.filter_radius, self.filter_angle, self.parallax)
         self.label = None if self.output == "full" else "osc-gi:output=indirect"
+        # traced once and replayed (FrozenFunction): a new width of the inputs needs no recording
+        self._k_ray = FrozenFunction(_primary_ray_kernel, bool(self.freeze), max_recordings=6)
+        self._k_direct = FrozenFunction(_primary_direct_kernel, bool(self.freeze), max_recordings=6)
+        self._k_glossy = FrozenFunction(_glossy_kernel, bool(self.freeze), max_recordings=6)
 
     def validate(self):
         if self.output not in ("full", "indirect"):
@@ -139,7 +206,8 @@ class OSCGI(PayloadMethod):
         self.secondary = SecondaryCache(self.scene.mi_scene, self.secondary_cm / 100.0 * unit, self.bounces,
                                         self.n_max, self.secondary_rays, self.light_samples,
                                         1 << self.secondary_slots, shape_key=self.shape_key, seed=self.seed,
-                                        budget=self.secondary_budget, evict_after=self.secondary_evict)
+                                        budget=self.secondary_budget, evict_after=self.secondary_evict,
+                                        freeze=bool(self.freeze), glossy_hits=bool(self.glossy_hits))
         self.secondary.laps = self.laps
 
     # ----------------------------------------------------------------- update
@@ -172,6 +240,7 @@ class OSCGI(PayloadMethod):
                 acc += dr.gather(mi.Float, self.storage, ks * W + k * 3 + ch, fine & (ks != INVALID))
             fine_old.append(acc * dr.rcp(dr.maximum(n_kids, 1.0)))
         dr.eval(*fine_old, fine)
+        acc = None                    # an unevaluated reader of the storage (see the scatters below)
         c_old = dr.select(is_new, dr.select(seeded | fine, 1.0, 0.0),
                           dr.gather(mi.Float, self.storage, slot * W + 3 * D + 3))
         c = mi.UInt32(c_old) + 1                                     # this update's number
@@ -181,16 +250,9 @@ class OSCGI(PayloadMethod):
         # ---- only this update's texels from here on (a compact lane list tl into the N x D lanes) ----
         tl = dr.compress(traced)
         et, kt = tl // D, tl % D
-        si = dr.zeros(mi.SurfaceInteraction3f, dr.width(tl))          # only what spawn_ray needs
-        si.p = mi.Point3f(*[dr.gather(mi.Float, fr.si.p[c], et) for c in range(3)])
-        si.n = mi.Vector3f(*[dr.gather(mi.Float, fr.si.n[c], et) for c in range(3)])
-        n_sh = mi.Vector3f(*[dr.gather(mi.Float, fr.si.sh_frame.n[c], et) for c in range(3)])
-        s = keyed_rng(dr.gather(mi.UInt32, fr.keys, et) * D + kt, self.seed, ctx.frame, STREAM_PRIMARY)
-        d = mi.Frame3f(n_sh).to_world(G.direction(kt, mi.Point2f(s.next_float32(), s.next_float32())))
-        ok = dr.dot(d, si.n) > 0.0                      # above the geometric surface
-        ray = si.spawn_ray(d)
-        hits = sec.trace(ray, ok)            # (interaction, shape index, preliminary intersection)
-        hit = hits[0]
+        ray_k = self._k_ray if dr.width(tl) > 1 else _primary_ray_kernel
+        ray, ok = ray_k(fr.si, fr.keys, tl, stream_key(self.seed, ctx.frame, STREAM_PRIMARY), D, self.hemi)
+        hits = sec.trace(ray, ok)   # (p, n, t, shape index, preliminary intersection, valid, key, home, front n)
         laps.lap("primary_rays", *hits)
 
         # ------------- secondary caches: cells of the hits, requests, update (all shared) -------------
@@ -198,49 +260,58 @@ class OSCGI(PayloadMethod):
         slots, hok = sec.touch(hits, ray, ok)
         sec.request(req, slots, hok, 1)
         sec.record_reuse(slots, hok)
+        # ----- non-diffuse hits (glossy_hits): NEE + one BSDF ray into a cell (ring 2) per lane -----
+        gl = None
+        if self.glossy_hits:
+            gi = dr.compress(hits[9])
+            if dr.width(gi) > 0:
+                lane_key = dr.gather(mi.UInt32, fr.keys, et) * D + kt
+                gk = self._k_glossy if dr.width(gi) > 1 else _glossy_kernel
+                Ld, bw, ray2, ok2 = gk(sc, light_inputs(sc), hits[4], ray, gi, lane_key,
+                                       stream_key(self.seed, ctx.frame, STREAM_GLOSSY))
+                s2, h2ok = None, mi.Bool(False)
+                if self.bounces > 1:
+                    hits2 = sec.trace(ray2, ok2)
+                    s2, h2ok = sec.touch(hits2, ray2, ok2)
+                    h2ok &= dr.dot(hits2[1], ray2.d) != 0.0
+                    sec.request(req, s2, h2ok, 2)
+                gl = (gi, Ld, bw, s2, h2ok)
         laps.lap("secondary_lookup", slots, hok, req)
         sec.update(ctx.frame, req)
         laps.lap("secondary_update")
         Lc = sec.radiance(slots, hok)                  # outgoing radiance of the hit's cell
         # a hit cell never updated yet (over the budget) holds no value: the texel is not blended
         # (it keeps its value) rather than pulled towards 0, unless it has no value yet either
+        em = hok & ~sec.updated_once(slots, hok)
+        if gl is not None:
+            gi, Ld, bw, s2, h2ok = gl
+            Lg = Ld
+            if s2 is not None:
+                Lg = Lg + bw * sec.radiance(s2, h2ok, layer=self.bounces - 1)
+            Lc = [mi.Float(Lc[ch]) for ch in range(3)]
+            for ch in range(3):
+                dr.scatter(Lc[ch], Lg[ch], gi)
+            dr.scatter(em, h2ok & ~sec.updated_once(s2, h2ok) if s2 is not None else mi.Bool(False), gi)
         sample = [dr.zeros(mi.Float, N * D) for _ in range(3)]
         empty = dr.zeros(mi.Bool, N * D)
         for ch in range(3):
             dr.scatter(sample[ch], Lc[ch], tl)
-        dr.scatter(empty, hok & ~sec.updated_once(slots, hok), tl)
+        dr.scatter(empty, em, tl)
         # mean inverse hit distance of the entry's rays this update (a miss: 0), for the filter
         inv_t, n_t = dr.zeros(mi.Float, N * D), dr.zeros(mi.Float, N * D)
-        dr.scatter(inv_t, dr.select(hit.is_valid(), dr.rcp(dr.maximum(hit.t, 1e-6)), 0.0), tl, ok)
+        t_hit = hits[2]
+        dr.scatter(inv_t, dr.select(t_hit != dr.inf, dr.rcp(dr.maximum(t_hit, 1e-6)), 0.0), tl, ok)
         dr.scatter(n_t, 1.0, tl, ok)
         dr.eval(*sample, empty, inv_t, n_t)
 
         # ----------------- direct light (output=full): light samples binned into texels -----------------
         if self.output == "full":
             scratch = dr.zeros(mi.Float, N * D * 3)
-            sie, frame_e = fr.si, mi.Frame3f(fr.si.sh_frame.n)
-            base = dr.arange(mi.UInt32, N) * D
-            sd = keyed_rng(fr.keys, self.seed, ctx.frame, STREAM_PRIMARY_DIRECT)
-            nd = dr.opaque(mi.UInt32, self.direct_rays)
-            scale = 1.0 / (self.direct_rays * G.texel_weight)
-
-            def cond(i, sd):
-                return i < nd
-
-            def body(i, sd):
-                u = mi.Point2f(sd.next_float32(), sd.next_float32())
-                ds, w, okd = sample_light(sc, sie, u, mi.Bool(True))
-                loc = frame_e.to_local(ds.d)
-                okd &= (dr.dot(ds.d, sie.n) > 0.0) & (loc.z > 0.0) & dr.all(dr.isfinite(w))
-                okd = visible(sc, sie, ds, okd)
-                t = (base + G.texel(loc)) * 3
-                for c in range(3):
-                    # Direct: the default (Expand) bakes the size of scratch into the kernel
-                    dr.scatter_add(scratch, w[c] * loc.z * scale, t + c, okd, mode=dr.ReduceMode.Direct)
-                return i + 1, sd
-
-            dr.while_loop(state=(mi.UInt32(0), sd), cond=cond, body=body, labels=("i", "sd"))
-            dr.eval(scratch)
+            direct_k = self._k_direct if N > 1 else _primary_direct_kernel
+            scratch = direct_k(sc, light_inputs(sc), fr.si, fr.keys, scratch,
+                               stream_key(self.seed, ctx.frame, STREAM_PRIMARY_DIRECT),
+                               dr.opaque(mi.UInt32, self.direct_rays), 1.0 / (self.direct_rays * G.texel_weight),
+                               self.hemi)
             sample = [sample[c] + dr.gather(mi.Float, scratch, lane * 3 + c) for c in range(3)]
             laps.lap("primary_direct")
 
@@ -265,6 +336,9 @@ class OSCGI(PayloadMethod):
         a_e = dr.select(n_e > 0.0, dr.select(keep_e, dr.rcp(dr.minimum(c_e, float(self.n_max))), 1.0), 0.0)
         d_new = dr.fma(a_e, s_e * dr.rcp(dr.maximum(n_e, 1.0)) - d_old, d_old)
         dr.eval(*new, *E, cnt, d_new)
+        # no live reader of the storage (unevaluated gathers) may survive the scatters below: Dr.Jit
+        # would copy the whole storage (12.9 MB at 16k entries) before writing into it
+        del old, d_old
         for ch in range(3):
             dr.scatter(self.storage, new[ch], slot * W + k * 3 + ch)
             dr.scatter(self.storage, E[ch], fr.active * W + 3 * D + ch)

@@ -41,6 +41,10 @@ cache reads layer ``bounces``, so that the primary point receives light after ex
 1..``bounces`` reflections, the paths of :func:`slc.references.indirect_light`. Bounces accumulate
 over frames: layer b of a cell is at most b-1 updates behind.
 
+Glossy hits (``glossy_hits``): a cell holds diffuse radiance only (0 for a metal); a secondary ray
+whose hit has a glossy or delta BSDF reads instead one light sample with that BSDF towards the
+ray's origin (:func:`_glossy_kernel`), the hit's layer 1 exactly (a lower bound for layers >= 2).
+
 Points: a cell is updated from a representative point, the hit (lowest lane) that touched it last;
 as hits move over the cell from frame to frame, the temporal average spans the cell.
 Update set: every cell hit by a primary ray this frame (ring 1) and every cell hit by a ring-r
@@ -56,7 +60,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..keys import INVALID, keyed_rng
+from ..cones.update import light_inputs
+from ..freeze import FrozenFunction
+from ..keys import INVALID, stream_key
 from ..lights import sample_light, visible
 from .laps import Laps
 
@@ -71,6 +77,145 @@ def front_normal(si: mi.SurfaceInteraction3f, d: mi.Vector3f) -> mi.Vector3f:
     return dr.select(dr.dot(si.n, d) > 0.0, -si.n, si.n)
 
 
+def frame_rng(keys: mi.UInt32, mix: mi.UInt32) -> mi.PCG32:
+    """:func:`slc.keys.keyed_rng` with its (seed, frame, stream) mix passed in (an opaque
+    ``mi.UInt32`` from :func:`slc.keys.stream_key`): the same streams, and an input rather than
+    a value baked into a frozen function's recording."""
+    keys = mi.UInt32(keys)
+    v0, v1 = mi.sample_tea_32(keys, mi.UInt32(mix), 6)
+    rng = mi.PCG32()
+    rng.seed(mi.UInt64(v0) | (mi.UInt64(v1) << 32), mi.UInt64(keys))
+    return rng
+
+
+def _take(v, idx):
+    """Components of the 3-vector ``v`` at ``idx`` (same type)."""
+    return type(v)(*[dr.gather(mi.Float, v[c], idx) for c in range(3)])
+
+
+def _trace_kernel(sc, ray, active, h: float, slots: int, shape_key: bool):
+    """Cache rays to their hits (``RayFlags.Minimal``) and the hits' cell keys: returns
+    (p, geometric normal, t, shape index, preliminary intersection, valid, key, home, front
+    normal, non-diffuse BSDF), evaluated. Frozen by :class:`SecondaryCache` (the rays of primary and secondary
+    caches: two recordings)."""
+    pi = sc.ray_intersect_preliminary(ray, coherent=False, active=active)
+    si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
+    sidx = mi.UInt32(pi.shape_index)
+    ok = mi.Bool(active) & si.is_valid()
+    key, home, nf = cell_key(si, ray.d, sidx, h, slots, shape_key)
+    flags = pi.shape.bsdf().flags()
+    glossy = ok & (mi.has_flag(flags, mi.BSDFFlags.Glossy) | mi.has_flag(flags, mi.BSDFFlags.Delta))
+    out = (mi.Point3f(si.p), mi.Vector3f(si.n), mi.Float(si.t), sidx, pi, ok, key, home, nf, glossy)
+    dr.eval(*out)
+    return out
+
+
+def cell_key(si, d, shape_index, h: float, slots: int, shape_key: bool):
+    """(key, home slot, front normal) of hits ``si`` reached along ``d`` (see
+    :meth:`SecondaryCache.key_of`)."""
+    nf = front_normal(si, d)
+    c = mi.Vector3i(dr.floor(si.p / h))
+    a = dr.abs(nf)
+    axis = dr.select((a.x >= a.y) & (a.x >= a.z), 0, dr.select(a.y >= a.z, 1, 2))
+    neg = dr.select(axis == 0, nf.x < 0.0, dr.select(axis == 1, nf.y < 0.0, nf.z < 0.0))
+    bin_ = mi.UInt32(axis * 2) + dr.select(neg, 1, 0)
+    shape = mi.UInt32(shape_index) if shape_key else mi.UInt32(0)
+    ux, uy, uz = (dr.reinterpret_array(mi.UInt32, v) for v in (c.x, c.y, c.z))
+    k0, _ = mi.sample_tea_32(ux, uy, 4)
+    key, home = mi.sample_tea_32(k0 ^ (uz * 0x9E3779B9), bin_ | (shape << 3), 4)
+    key = dr.minimum(key, EMPTY - 1)
+    return key, home & (slots - 1), nf
+
+
+def _rep_kernel(pi, ray, idx, slots, p, nf):
+    """The representative points of the winning lanes ``idx``: (slots, the 9 words: position,
+    front normal and the diffuse albedo: the full interaction from the preliminary one, a BSDF
+    call), evaluated. The caller writes them (a frozen function copies an input it writes to)."""
+    pw = dr.gather(type(pi), pi, idx)
+    rw = dr.gather(mi.Ray3f, ray, idx)
+    sw = pw.compute_surface_interaction(rw, mi.RayFlags.All, True)
+    albedo = mi.Color3f(sw.bsdf().eval_diffuse_reflectance(sw, sw.is_valid()))
+    pp, nw = _take(p, idx), _take(nf, idx)
+    sl = dr.gather(mi.UInt32, slots, idx)
+    words = [pp.x, pp.y, pp.z, nw.x, nw.y, nw.z, albedo.x, albedo.y, albedo.z]
+    dr.eval(sl, *words)
+    return sl, words
+
+
+def _direct_kernel(sc, lights, rep, keys_tab, cells, mix, ns, n_samples: float):
+    """Direct light at the representative points of ``cells``: ``ns`` (opaque) light samples
+    (the project's light sampling, shadow rays); ``lights`` declares the emitter table as an
+    input. Returns (E_dir/pi, the outgoing direct radiance before the albedo; point, normal,
+    albedo, key and lit mask of each cell)."""
+    rp = [dr.gather(mi.Float, rep, cells * _REP + j) for j in range(_REP)]
+    p, nrm, rho = mi.Point3f(*rp[0:3]), mi.Vector3f(*rp[3:6]), mi.Color3f(*rp[6:9])
+    keys = dr.gather(mi.UInt32, keys_tab, cells)
+    si = dr.zeros(mi.SurfaceInteraction3f)     # width 1: a literal of the inputs' width would be baked
+    si.p, si.n, si.sh_frame, si.wi = p, nrm, mi.Frame3f(nrm), mi.Vector3f(0, 0, 1)
+    lit = dr.max(rho) > 0.0
+    sampler = frame_rng(keys, mix)
+
+    def cond(i, E, sampler):
+        return i < ns
+
+    def body(i, E, sampler):
+        u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
+        ds, w, ok = sample_light(sc, si, u, lit)
+        cos = dr.dot(ds.d, nrm)
+        ok &= (cos > 0.0) & dr.all(dr.isfinite(w))
+        ok = visible(sc, si, ds, ok)
+        return i + 1, E + dr.select(ok, w * cos, 0.0), sampler
+
+    _, E_dir, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
+                                labels=("i", "E", "sampler"))
+    L_dir = (E_dir / n_samples) * (1.0 / math.pi)
+    dr.eval(L_dir, p, nrm, rho, keys, lit)
+    return L_dir, p, nrm, rho, keys, lit
+
+
+def _ray_kernel(p, nrm, keys, tl, mix, R: int):
+    """The cosine rays of the tracing lanes ``tl`` (cell c = tl // R of the update's cells, ray
+    j = tl % R) from the cells' representative points ``p`` (normals ``nrm``, keys ``keys``)."""
+    c_of, j = tl // R, tl % R
+    s2 = frame_rng(dr.gather(mi.UInt32, keys, c_of) * R + j, mix)
+    u = mi.Point2f(s2.next_float32(), s2.next_float32())
+    sil = dr.zeros(mi.SurfaceInteraction3f)    # width 1: a literal of the inputs' width would be baked
+    sil.p, sil.n = _take(p, c_of), _take(nrm, c_of)
+    sil.sh_frame = mi.Frame3f(sil.n)
+    d = sil.sh_frame.to_world(mi.warp.square_to_cosine_hemisphere(u))
+    ray = sil.spawn_ray(d)
+    dr.eval(ray)
+    return ray
+
+
+def _glossy_kernel(sc, lights, pi, ray, gi, lane_key, mix):
+    """At the hits ``gi`` of cache rays on non-diffuse surfaces (glossy, metal), the
+    outgoing radiance towards the entry is view-dependent, which a cell's diffuse radiance cannot
+    hold: one light sample with the hit's BSDF (next-event estimation: the light after one
+    reflection) and one BSDF-sampled ray, whose hit cell's radiance (layer ``bounces`` - 1) the
+    caller adds with the weight. Returns (NEE term, BSDF weight, BSDF ray, its mask)."""
+    ctx = mi.BSDFContext()
+    pw = dr.gather(type(pi), pi, gi)
+    rw = dr.gather(mi.Ray3f, ray, gi)
+    si = pw.compute_surface_interaction(rw, mi.RayFlags.All, True)
+    bsdf = si.bsdf()
+    rng = frame_rng(dr.gather(mi.UInt32, lane_key, gi), mix)
+    # ------------------ next-event estimation at the hit ------------------
+    u = mi.Point2f(rng.next_float32(), rng.next_float32())
+    ds, w, okd = sample_light(sc, si, u, si.is_valid())
+    okd = visible(sc, si, ds, okd)
+    f = mi.Color3f(bsdf.eval(ctx, si, si.to_local(ds.d), okd))
+    Ld = dr.select(okd, f * w, 0.0)
+    # ------------------ one BSDF-sampled bounce ------------------
+    bs, bw = bsdf.sample(ctx, si, rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
+                         si.is_valid())
+    ok2 = si.is_valid() & (bs.pdf > 0.0) & (dr.max(mi.Color3f(bw)) > 0.0)
+    ray2 = si.spawn_ray(si.to_world(bs.wo))
+    bw = dr.select(ok2, mi.Color3f(bw), 0.0)
+    dr.eval(Ld, bw, ray2, ok2)
+    return Ld, bw, ray2, ok2
+
+
 class SecondaryCache:
     """Hashed grid of secondary radiance cells (see the module).
 
@@ -78,11 +223,15 @@ class SecondaryCache:
     ``rays`` (cosine rays per cell update, 32), ``light_samples`` (per cell update, 4),
     ``slots`` (table size, a power of two), ``probes`` (linear-probing rounds), ``shape_key``,
     ``budget`` (cell updates per frame, 0: unlimited), ``evict_after`` (frames unused, 0: never),
-    ``max_load`` (with eviction on: cells kept at the start of a frame, as a fraction of ``slots``)."""
+    ``max_load`` (with eviction on: cells kept at the start of a frame, as a fraction of ``slots``),
+    ``freeze`` (True: the kernels with shape, BSDF and emitter calls, the ray tracing with the cell
+    keys, the representative albedo, the direct light and the secondary rays, are traced once and
+    replayed by :class:`slc.freeze.FrozenFunction`; same results as traced)."""
 
     def __init__(self, mi_scene: mi.Scene, cell: float, bounces: int = 2, n_max: int = 8, rays: int = 32,
                  light_samples: int = 4, slots: int = 1 << 16, probes: int = 32, shape_key: bool = True,
-                 seed: int = 0, budget: int = 0, evict_after: int = 0, max_load: float = 0.25):
+                 seed: int = 0, budget: int = 0, evict_after: int = 0, max_load: float = 0.25,
+                 freeze: bool = True, glossy_hits: bool = True):
         if slots & (slots - 1):
             raise ValueError("slots must be a power of two")
         self.sc, self.h, self.B = mi_scene, float(cell), int(bounces)
@@ -90,6 +239,13 @@ class SecondaryCache:
         self.slots, self.probes, self.shape_key, self.seed = int(slots), int(probes), bool(shape_key), int(seed)
         self.budget, self.evict_after, self.max_load = int(budget), int(evict_after), float(max_load)
         self.laps = Laps(False)
+        # the kernels with BSDF, shape and emitter calls, traced once and replayed (dr.freeze)
+        self.freeze, self.glossy_hits = bool(freeze), bool(glossy_hits)
+        self._k_trace = FrozenFunction(_trace_kernel, self.freeze, max_recordings=6)
+        self._k_rep = FrozenFunction(_rep_kernel, self.freeze, max_recordings=6)
+        self._k_direct = FrozenFunction(_direct_kernel, self.freeze, max_recordings=6)
+        self._k_ray = FrozenFunction(_ray_kernel, self.freeze, max_recordings=6)
+        self._k_glossy = FrozenFunction(_glossy_kernel, self.freeze, max_recordings=6)
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -133,18 +289,7 @@ class SecondaryCache:
         """(key, home slot, front normal) of hits ``si`` reached along ``d`` on the shapes
         ``shape_index`` (indices into ``scene.shapes()``: the same in every process, unlike the
         shape pointers)."""
-        nf = front_normal(si, d)
-        c = mi.Vector3i(dr.floor(si.p / self.h))
-        a = dr.abs(nf)
-        axis = dr.select((a.x >= a.y) & (a.x >= a.z), 0, dr.select(a.y >= a.z, 1, 2))
-        neg = dr.select(axis == 0, nf.x < 0.0, dr.select(axis == 1, nf.y < 0.0, nf.z < 0.0))
-        bin_ = mi.UInt32(axis * 2) + dr.select(neg, 1, 0)
-        shape = mi.UInt32(shape_index) if self.shape_key else mi.UInt32(0)
-        ux, uy, uz = (dr.reinterpret_array(mi.UInt32, v) for v in (c.x, c.y, c.z))
-        k0, _ = mi.sample_tea_32(ux, uy, 4)
-        key, home = mi.sample_tea_32(k0 ^ (uz * 0x9E3779B9), bin_ | (shape << 3), 4)
-        key = dr.minimum(key, EMPTY - 1)
-        return key, home & (self.slots - 1), nf
+        return cell_key(si, d, shape_index, self.h, self.slots, self.shape_key)
 
     def find_or_insert(self, key: mi.UInt32, home: mi.UInt32, active: mi.Bool) -> mi.UInt32:
         """Slot of each key (inserted when absent); INVALID where inactive or the table is full."""
@@ -175,14 +320,15 @@ class SecondaryCache:
         return found
 
     def trace(self, ray: mi.Ray3f, active=True):
-        """(hits, shape index, preliminary intersection) of cache rays: position, geometric normal and shape only
-        (``RayFlags.Minimal``): the cell key needs no more, and the full interaction (for the
-        albedo) is computed again for the one representative lane per cell."""
-        pi = self.sc.ray_intersect_preliminary(ray, coherent=False, active=active)
-        return pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active), mi.UInt32(pi.shape_index), pi
+        """Hits of cache rays and their cells' keys (:func:`_trace_kernel`, frozen): position,
+        geometric normal and shape only (``RayFlags.Minimal``): the cell key needs no more, and
+        the full interaction (for the albedo) is computed again for the one representative lane
+        per cell. Returns (p, n, t, shape index, preliminary intersection, valid, key, home,
+        front normal, non-diffuse BSDF)."""
+        active = dr.zeros(mi.Bool, dr.width(ray.d)) | mi.Bool(active)      # an array of the rays' width
+        return self._k_trace(self.sc, ray, active, self.h, self.slots, self.shape_key)
 
-    def _set_rep(self, slots: mi.UInt32, ok: mi.Bool, si: mi.SurfaceInteraction3f, n: mi.Vector3f,
-                 ray: mi.Ray3f, pi) -> None:
+    def _set_rep(self, slots: mi.UInt32, ok: mi.Bool, hits, ray: mi.Ray3f) -> None:
         """Each touched cell's representative point: the lowest lane that touched it. The albedo
         (a BSDF call on the full interaction, computed from the lane's preliminary intersection)
         is evaluated on the winning lanes only (one per touched cell)."""
@@ -194,29 +340,24 @@ class SecondaryCache:
         idx = dr.compress(w)
         if dr.width(idx) == 0:
             return
-        p = mi.Point3f(*[dr.gather(mi.Float, si.p[c], idx) for c in range(3)])
-        nw = mi.Vector3f(*[dr.gather(mi.Float, n[c], idx) for c in range(3)])
-        rw = dr.gather(mi.Ray3f, ray, idx)
-        sw = dr.gather(type(pi), pi, idx).compute_surface_interaction(rw, mi.RayFlags.All, True)
-        albedo = mi.Color3f(sw.bsdf().eval_diffuse_reflectance(sw, sw.is_valid()))
-        sl = dr.gather(mi.UInt32, slots, idx)
-        for j, v in enumerate((p.x, p.y, p.z, nw.x, nw.y, nw.z, albedo.x, albedo.y, albedo.z)):
+        # 2 or more lanes replayed (a width-1 input would need a recording of its own)
+        rep_k = self._k_rep if dr.width(idx) > 1 else _rep_kernel
+        sl, words = rep_k(hits[4], ray, idx, slots, hits[0], hits[8])
+        for j, v in enumerate(words):
             dr.scatter(self.rep, v, sl * _REP + j)
         dr.eval(self.rep)
 
     def touch(self, hits, ray: mi.Ray3f, active: mi.Bool):
-        """Cells of the hits ``(si, shape index)`` (from :meth:`trace`) of ``ray`` (inserted when
-        new, representative point refreshed). Returns (slots, valid mask)."""
-        si, sidx, pi = hits
-        dr.eval(si, sidx, pi)         # once: else every kernel below would trace the rays again
-        ok = active & si.is_valid()
-        key, home, nf = self.key_of(si, ray.d, sidx)
-        dr.eval(ok, nf)
-        self.laps.lap("touch_key", key, home)
+        """Cells of the hits (from :meth:`trace`) of ``ray`` (inserted when new, representative
+        point refreshed). Returns (slots, valid mask)."""
+        ok = mi.Bool(active) & hits[5]
+        key, home = hits[6], hits[7]
+        self.laps.lap("touch_key", ok)
         slots = self.find_or_insert(key, home, ok)
         self.laps.lap("touch_find")
         ok &= slots != INVALID
-        self._set_rep(slots, ok, si, nf, ray, pi)
+        dr.eval(ok)
+        self._set_rep(slots, ok, hits, ray)
         self.laps.lap("touch_rep")
         return slots, ok
 
@@ -369,33 +510,13 @@ class SecondaryCache:
         if n == 0:
             return cells
         ring = dr.gather(mi.UInt32, req, cells)
-        rep = [dr.gather(mi.Float, self.rep, cells * _REP + j) for j in range(_REP)]
-        p, nrm, rho = mi.Point3f(*rep[0:3]), mi.Vector3f(*rep[3:6]), mi.Color3f(*rep[6:9])
-        keys = dr.gather(mi.UInt32, self.keys, cells)
-        si = dr.zeros(mi.SurfaceInteraction3f, n)
-        si.p, si.n, si.sh_frame, si.wi = p, nrm, mi.Frame3f(nrm), mi.Vector3f(0, 0, 1)
-        lit = dr.max(rho) > 0.0
+        # kernels replayed for 2 or more lanes (a width-1 input would need a recording of its own)
+        direct_k = self._k_direct if n > 1 else _direct_kernel
 
         # ------------------- direct light at the representative point (NEE) -------------------
-        sampler = keyed_rng(keys, self.seed, frame, STREAM_SECONDARY)
-        ns = dr.opaque(mi.UInt32, self.light_samples)
-
-        def cond(i, E, sampler):
-            return i < ns
-
-        def body(i, E, sampler):
-            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
-            ds, w, ok = sample_light(sc, si, u, lit)
-            cos = dr.dot(ds.d, nrm)
-            ok &= (cos > 0.0) & dr.all(dr.isfinite(w))
-            ok = visible(sc, si, ds, ok)
-            return i + 1, E + dr.select(ok, w * cos, 0.0), sampler
-
-        _, E_dir, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
-                                    labels=("i", "E", "sampler"))
-        E_dir = E_dir / float(max(self.light_samples, 1))
-        L_dir = E_dir * (1.0 / math.pi)
-        dr.eval(L_dir)
+        L_dir, p, nrm, rho, keys, lit = direct_k(
+            sc, light_inputs(sc), self.rep, self.keys, cells, stream_key(self.seed, frame, STREAM_SECONDARY),
+            dr.opaque(mi.UInt32, self.light_samples), float(max(self.light_samples, 1)))
         self.laps.lap("sec_direct")
 
         # ------------- cosine rays to other cells: layers b-1 of their previous update -------------
@@ -408,26 +529,38 @@ class SecondaryCache:
             tracing &= dr.gather(mi.Bool, lit, c_of)
             # ---- only the tracing lanes (cells of ring < B with albedo) from here on ----
             tl = dr.compress(tracing)
-            c_of, j = tl // R, tl % R
-            s2 = keyed_rng(dr.gather(mi.UInt32, keys, c_of) * R + j, self.seed, frame, STREAM_SECONDARY + 1)
-            u = mi.Point2f(s2.next_float32(), s2.next_float32())
-            sil = dr.gather(mi.SurfaceInteraction3f, si, c_of)
-            d = sil.sh_frame.to_world(mi.warp.square_to_cosine_hemisphere(u))
-            ray = sil.spawn_ray(d)
+            c_of = tl // R
+            ray_k = self._k_ray if n > 1 and dr.width(tl) > 1 else _ray_kernel
+            ray = ray_k(p, nrm, keys, tl, stream_key(self.seed, frame, STREAM_SECONDARY + 1), R)
             hits = self.trace(ray)
-            hit = hits[0]
             self.laps.lap("sec_rays", *hits)
             hit_slots, hok = self.touch(hits, ray, mi.Bool(True))
-            hok &= dr.dot(hit.n, d) != 0.0
+            hok &= dr.dot(hits[1], ray.d) != 0.0
+            # ---- rays hitting glossy/metal surfaces: NEE with the hit's BSDF towards the cell
+            # (the light after one reflection there, layer 1 exactly; a lower bound for layers >= 2) ----
+            Lg = None
+            if self.glossy_hits:
+                gi = dr.compress(hits[9])
+                if dr.width(gi) > 0:
+                    lane_key = dr.gather(mi.UInt32, keys, c_of) * R + tl % R
+                    gk = self._k_glossy if dr.width(gi) > 1 else _glossy_kernel
+                    Ld = gk(sc, light_inputs(sc), hits[4], ray, gi, lane_key,
+                            stream_key(self.seed, frame, STREAM_SECONDARY + 2))[0]
+                    Lg = (gi, Ld)
             next_ring = dr.gather(mi.UInt32, ring, c_of) + 1
             dr.scatter_reduce(dr.ReduceOp.Min, self.pending, next_ring, hit_slots, hok & (next_ring <= B))
             for b in range(1, B):
                 Lh = self.radiance(hit_slots, hok, layer=b)
+                if Lg is not None:
+                    Lh = [mi.Float(Lh[c]) for c in range(3)]
+                    for c in range(3):
+                        dr.scatter(Lh[c], Lg[1][c], Lg[0])
                 full = [dr.zeros(mi.Float, n * R) for _ in range(3)]
                 for c in range(3):
                     dr.scatter(full[c], Lh[c], tl)
                 mean[b - 1] = mi.Color3f(*[dr.block_sum(full[c], R) for c in range(3)]) * (1.0 / R)
             dr.eval(self.pending, *mean)
+            Lh = None                     # an unevaluated reader of the layers (written below)
             self.laps.lap("sec_touch")
             traced = ring < B
         else:
@@ -445,7 +578,9 @@ class SecondaryCache:
                 idx = (cells * B + b) * 3 + c
                 old = dr.gather(mi.Float, self.layers, idx)
                 vals.append((idx, dr.fma(a, new[b][c] - old, old)))
-        dr.eval(*[v for _, v in vals])
+        dr.eval(cnt, *[v for _, v in vals])
+        # no unevaluated reader of the written arrays may survive (Dr.Jit would copy them whole)
+        old = None
         for idx, v in vals:
             dr.scatter(self.layers, v, idx)
         dr.scatter(self.count, cnt, cells)
