@@ -48,40 +48,63 @@ from .sampling import SampleStats, lum, sampler_of
 EMPTY = 0xFFFF
 STREAM_VIS = 0x3C6EF372
 VIS_WINDOW = 16
+ENV_WINDOW = 64             # samples in the running mean of the unlisted regions' visible fraction
 RES_MAX_COUNT = 255                 # as the cones' C (8 bits)
 UNSETTLED_COUNT = 4         # residual count cap of new and moving entries, in update cycles
 RESIDUAL_ALPHA = math.radians(60.0)     # the residual as a lobe (conversion): a 60-degree cone about n
 
 
-def words(K: int) -> int:
-    return K + 2
+def words(K: int, env: bool = False) -> int:
+    """Record words: K lights, the residual (2), and with environment regions
+    the unlisted regions' visible fraction (1)."""
+    return K + 2 + (1 if env else 0)
 
 
-def unpack(w, K: int):
+class Record:
+    """An unpacked VISIBILITY record: the K listed lights (index, visible
+    fraction, sample count), the residual irradiance ``E`` and its sample
+    count ``C``, and the unlisted environment regions' visible fraction ``vu``
+    and its sample count ``nu`` (0 without environment regions)."""
+
+    def __init__(self, idx, vis, cnt, E, C, vu, nu):
+        self.idx, self.vis, self.cnt, self.E, self.C, self.vu, self.nu = idx, vis, cnt, E, C, vu, nu
+
+
+def unpack(w, K: int, env: bool = False) -> Record:
     idx = [w[i] & 0xFFFF for i in range(K)]
     vis = [mi.Float((w[i] >> 16) & 0xFF) * (1.0 / 255.0) for i in range(K)]
     cnt = [(w[i] >> 24) & 0xF for i in range(K)]
     rd = _Reader([w[K], w[K + 1]])
     E = mi.Color3f(*[decode_radiance(rd.get(18)) for _ in range(3)])
     C = mi.Float(rd.get(8))
-    return idx, vis, cnt, E, C
+    if env:
+        x = mi.UInt32(w[K + 2])
+        vu, nu = mi.Float(x & 0xFFFF) * (1.0 / 65535.0), mi.UInt32((x >> 16) & 0xFF)
+    else:
+        vu, nu = dr.zeros(mi.Float, dr.width(C)), dr.zeros(mi.UInt32, dr.width(C))
+    return Record(idx, vis, cnt, E, C, vu, nu)
 
 
-def pack(idx, vis, cnt, E, C, K: int):
+def pack(r: Record, K: int, env: bool = False):
     out = []
     for i in range(K):
-        v = mi.UInt32(dr.clip(dr.round(vis[i] * 255.0), 0.0, 255.0))
-        out.append((mi.UInt32(idx[i]) & 0xFFFF) | (v << 16) | (dr.minimum(mi.UInt32(cnt[i]), 15) << 24))
+        v = mi.UInt32(dr.clip(dr.round(r.vis[i] * 255.0), 0.0, 255.0))
+        out.append((mi.UInt32(r.idx[i]) & 0xFFFF) | (v << 16) | (dr.minimum(mi.UInt32(r.cnt[i]), 15) << 24))
     wr = _Writer(2)
     for ch in range(3):
-        wr.put(encode_radiance(E[ch]), 18)
-    wr.put(mi.UInt32(dr.clip(dr.round(C), 0.0, 255.0)), 8)
-    return out + wr.words
+        wr.put(encode_radiance(r.E[ch]), 18)
+    wr.put(mi.UInt32(dr.clip(dr.round(r.C), 0.0, 255.0)), 8)
+    out += wr.words
+    if env:
+        out.append(mi.UInt32(dr.clip(dr.round(r.vu * 65535.0), 0.0, 65535.0))
+                   | (dr.minimum(mi.UInt32(r.nu), 255) << 16))
+    return out
 
 
-def empty(n: int, K: int):
-    return ([dr.full(mi.UInt32, EMPTY, n) for _ in range(K)], [dr.zeros(mi.Float, n) for _ in range(K)],
-            [dr.zeros(mi.UInt32, n) for _ in range(K)], dr.zeros(mi.Color3f, n), dr.zeros(mi.Float, n))
+def empty(n: int, K: int) -> Record:
+    return Record([dr.full(mi.UInt32, EMPTY, n) for _ in range(K)], [dr.zeros(mi.Float, n) for _ in range(K)],
+                  [dr.zeros(mi.UInt32, n) for _ in range(K)], dr.zeros(mi.Color3f, n), dr.zeros(mi.Float, n),
+                  dr.zeros(mi.Float, n), dr.zeros(mi.UInt32, n))
 
 
 def _slot(lst, i):
@@ -92,40 +115,57 @@ def _slot(lst, i):
     return r
 
 
-def light_at(emitters_dr, si, idx, active, sph=None):
+def light_at(emitters_dr, si, idx, active, sph=None, env=None, delta=True):
     """(direction, I/d^2 RGB) of emitter ``idx`` at ``si``: exact and
     unoccluded for a delta light; for a sphere light of ``sph`` the point-light
-    term pi L r^2/d^2 towards its current centre (0 where inactive or the
-    index is empty)."""
+    term pi L r^2/d^2 towards its current centre; for a region of the
+    environment (``env``, index ``env.base + j``) its direction and
+    irradiance per unit cosine Phi_j R_j (0 where inactive or the index is
+    empty). ``delta``: the scene has delta emitters (else their
+    ``sample_direction``, a virtual call, is not traced)."""
     active = mi.Bool(active) & (mi.UInt32(idx) != EMPTY)
     ii = dr.select(active, idx, 0)
     m_d = mi.Bool(active)
+    d = dr.zeros(mi.Vector3f, dr.width(active))
+    w = dr.zeros(mi.Color3f, dr.width(active))
+    if env is not None:
+        is_r, d_r, w_r, _ = env.light(ii, active)
+        m_d &= ~is_r
+        d, w = dr.select(is_r, d_r, d), dr.select(is_r, w_r, w)
     if sph is not None:
-        is_s, d_s, _, E_s = sph.light(si.p, ii, active)
+        is_s, d_s, _, E_s = sph.light(si.p, dr.select(m_d, ii, 0), m_d)
         m_d &= ~is_s
-    if sph is not None and not sph.has_delta:      # only sphere lights can be listed
-        return d_s, dr.select(is_s, E_s, 0.0)
+        d, w = dr.select(is_s, d_s, d), dr.select(is_s, E_s, w)
+    if not delta:      # only spheres and regions can be listed: no emitter call traced
+        return d, w
     ptr = dr.gather(mi.EmitterPtr, emitters_dr, ii, m_d)
-    ds, w = ptr.sample_direction(si, mi.Point2f(0.5, 0.5), m_d)
+    ds, wd = ptr.sample_direction(si, mi.Point2f(0.5, 0.5), m_d)
     ok = m_d & (ds.pdf > 0.0)
-    d, w = ds.d, dr.select(ok, mi.Color3f(w), 0.0)
-    if sph is not None:
-        d = dr.select(is_s, d_s, d)
-        w = dr.select(is_s, E_s, w)
+    d = dr.select(m_d, ds.d, d)
+    w = dr.select(m_d, dr.select(ok, mi.Color3f(wd), 0.0), w)
     return d, w
+
+
+def has_delta(scene: mi.Scene) -> bool:
+    """Whether the scene has a delta emitter (point, spot, directional)."""
+    return any(bool(int(e.flags()) & int(mi.EmitterFlags.Delta)) for e in scene.emitters())
 
 
 # ----------------------------------------------------------------------------- update
 
-def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int, seed: int, K: int, sph=None):
+def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int, seed: int, K: int, sph=None,
+           env=None):
     """One update cycle of VISIBILITY records ``rec`` (lists of words, one lane
     per entry) at the entries' points ``si`` (``sph``: the scene's
     :class:`~slc.adaptive.sphere_lights.SphereLights`, or None). A listed light whose unoccluded
     irradiance here is now 0 (switched off, turned or moved away) is dropped
     and reported as motion. Unsettled entries (new, moving) cap the
     residual's count at ``UNSETTLED_COUNT``. Returns (new words, motion,
-    stats values)."""
+    stats values). ``env``: the environment's bright regions
+    (:class:`~slc.adaptive.env_lights.EnvLights`), listed where wholly above
+    the entry's horizon."""
     sc = scene
+    dl = has_delta(sc)
     N = dr.width(key)
     samp = sampler_of(sc)
     em_dr = sc.emitters_dr()
@@ -134,13 +174,14 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int
     nrm = frame_l.n
 
     # ----------------------- unpack (fresh records start empty)
-    idx, vis, cnt, E, C = unpack(rec, K)
-    e_idx, e_vis, e_cnt, e_E, e_C = empty(N, K)
+    hx = env is not None
+    r0, e0 = unpack(rec, K, hx), empty(N, K)
     fresh = mi.Bool(fresh)
-    idx = [dr.select(fresh, e_idx[i], idx[i]) for i in range(K)]
-    vis = [dr.select(fresh, e_vis[i], vis[i]) for i in range(K)]
-    cnt = [dr.select(fresh, e_cnt[i], cnt[i]) for i in range(K)]
-    E, C = dr.select(fresh, e_E, E), dr.select(fresh, e_C, C)
+    idx = [dr.select(fresh, e0.idx[i], r0.idx[i]) for i in range(K)]
+    vis = [dr.select(fresh, e0.vis[i], r0.vis[i]) for i in range(K)]
+    cnt = [dr.select(fresh, e0.cnt[i], r0.cnt[i]) for i in range(K)]
+    E, C = dr.select(fresh, e0.E, r0.E), dr.select(fresh, e0.C, r0.C)
+    vu, nu = dr.select(fresh, e0.vu, r0.vu), dr.select(fresh, e0.nu, r0.nu)
 
     # ----------------------- the listed lights' exact unoccluded irradiance here
     # one emitter call site in a loop over the list: a call is traced once per emitter
@@ -149,7 +190,7 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int
         return i < K
 
     def lbody(i, wl):
-        d, w = light_at(em_dr, si, _slot(idx, i), valid, sph)
+        d, w = light_at(em_dr, si, _slot(idx, i), valid, sph, env, dl)
         wc = w * dr.maximum(dr.dot(d, nrm), 0.0)
         return i + 1, [dr.select(i == j, wc, wl[j]) for j in range(K)]
 
@@ -171,7 +212,7 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int
     def cond(k, *state):
         return k < rays
 
-    def body(k, idx, vis, cnt, wl, imp, S, adj, ed, en, m, rng):
+    def body(k, idx, vis, cnt, wl, imp, S, adj, vu, nu, ed, en, m, rng):
         u = mi.Point2f(rng.next_float32(), rng.next_float32())
         act = valid & (k < rays)
         ds, w, ok, em = samp.sample(si, u, act)
@@ -189,6 +230,14 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int
             small = is_s & (sin_a < sph.max_sin)
             delta |= small
             w1 = dr.select(small, E_s * dr.maximum(dr.dot(d_s, nrm), 0.0), w1)
+        region = mi.Bool(False)
+        if env is not None:
+            # a sample inside a bright region of the environment (wholly above the horizon)
+            # is that region's sample
+            region, li, _, E_j = env.sample_listable(ds.d, em, nrm, ok & ~delta)
+            delta |= region
+            em = dr.select(region, li, em)
+            w1 = dr.select(region, E_j, w1)
         # statistics
         ed = ed + dr.select(delta, c, 0.0)
         en_k = dr.select(delta, 0.0, c)
@@ -211,18 +260,27 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int
         rep = delta & ~hit & (i1 > imin) & (cos > 0.0)
         for i in range(K):
             r = rep & (jmin == i)
-            adj += dr.select(r & (idx[i] != EMPTY), wl[i] * vis[i], 0.0) - dr.select(r, w1 * Vf, 0.0)
+            # energy moves between the list and E_r; a region's energy is never in E_r
+            # (unlisted regions are the closed form times vu)
+            out_r = env.is_region(idx[i]) if env is not None else mi.Bool(False)
+            adj += dr.select(r & (idx[i] != EMPTY) & ~out_r, wl[i] * vis[i], 0.0) \
+                - dr.select(r & ~region, w1 * Vf, 0.0)
             idx[i] = dr.select(r, mi.UInt32(em), idx[i])
             vis[i] = dr.select(r, Vf, vis[i])
             cnt[i] = dr.select(r, 1, cnt[i])
             wl[i] = dr.select(r, w1, wl[i])
             imp[i] = dr.select(r, i1, imp[i])
         handled = hit | rep
-        S += dr.select(V & ~handled, w * cos, 0.0)
-        return k + 1, idx, vis, cnt, wl, imp, S, adj, ed, en, m, rng
+        # an unlisted region's sample: the unlisted regions' visible fraction
+        unl = region & ~handled
+        au = dr.rcp(mi.Float(dr.minimum(nu + 1, ENV_WINDOW)))
+        vu = dr.select(unl, dr.fma(au, Vf - vu, vu), vu)
+        nu = dr.select(unl, dr.minimum(nu + 1, 255), nu)
+        S += dr.select(V & ~handled & ~unl, w * cos, 0.0)
+        return k + 1, idx, vis, cnt, wl, imp, S, adj, vu, nu, ed, en, m, rng
 
-    _, idx, vis, cnt, wl, imp, S, adj, ed, en, m, rng = dr.while_loop(
-        state=(mi.UInt32(0), idx, vis, cnt, wl, imp, S, adj, st.ed, st.en, st.m, rng),
+    _, idx, vis, cnt, wl, imp, S, adj, vu, nu, ed, en, m, rng = dr.while_loop(
+        state=(mi.UInt32(0), idx, vis, cnt, wl, imp, S, adj, vu, nu, st.ed, st.en, st.m, rng),
         cond=cond, body=body)
 
     # ----------------------- the residual's running mean (with the energy moved by swaps)
@@ -232,16 +290,27 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int
     C = dr.minimum(dr.minimum(C, cap - n) + n, cap)
     E = dr.maximum(E + adj, 0.0)
     E = E + (S / n - E) * dr.minimum(n * dr.rcp(dr.maximum(C, 1.0)), 1.0)
-    out = pack(idx, vis, cnt, E, C, K)
+    out = pack(Record(idx, vis, cnt, E, C, vu, nu), K, hx)
     return out, gone, [ed, en, m]
 
 
 # ----------------------------------------------------------------------------- shading
 
-def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None) -> mi.Color3f:
+def residual(rec: Record, nrm, env, active) -> mi.Color3f:
+    """The record's irradiance not from listed lights at normal ``nrm``: the
+    residual E_r plus the unlisted environment regions' closed form times
+    their visible fraction."""
+    E = mi.Color3f(rec.E)
+    if env is not None:
+        E += env.unlisted_irradiance(nrm, rec.idx, active) * rec.vu
+    return E
+
+
+def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None, env=None) -> mi.Color3f:
     """L_o of the pixels ``si`` from their VISIBILITY records (see the module)."""
-    em_dr = scene.emitters_dr()
-    idx, vis, cnt, E, C = unpack(rec, K)
+    em_dr, dl = scene.emitters_dr(), has_delta(scene)
+    r = unpack(rec, K, env is not None)
+    idx, vis = r.idx, r.vis
     ctx = mi.BSDFContext()
     active = mi.Bool(active)
 
@@ -251,37 +320,41 @@ def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None) -> mi.Color3
     def body(i, L):                      # one emitter and one BSDF call site (see update)
         ii, vi = _slot(idx, i), _slot(vis, i)
         m = active & (ii != EMPTY) & (vi > 0.0)
-        d, w = light_at(em_dr, si, ii, m, sph)
+        d, w = light_at(em_dr, si, ii, m, sph, env, dl)
         f = bsdf.eval(ctx, si, si.to_local(d), m)
         return i + 1, L + dr.select(m, mi.Color3f(f) * w * vi, 0.0)
 
     _, L = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(active))), cond=cond, body=body)
     fn = bsdf.eval(ctx, si, mi.Vector3f(0.0, 0.0, 1.0), active)
-    L += dr.select(active, mi.Color3f(fn) * E, 0.0)
+    L += dr.select(active, mi.Color3f(fn) * residual(r, si.sh_frame.n, env, active), 0.0)
     return L
 
 
 # ----------------------------------------------------------------------------- conversion
 
-def lobes(scene: mi.Scene, rec, si, active, K: int, sph=None):
+def lobes(scene: mi.Scene, rec, si, active, K: int, sph=None, env=None):
     """The record as lobes (local direction, half-angle, integrated radiance RGB,
     mask): one Dirac lobe per listed light (I/d^2 v at the entry) and the
-    residual as a 60-degree cone about the normal (E_r / mean cosine)."""
-    em_dr = scene.emitters_dr()
-    idx, vis, cnt, E, C = unpack(rec, K)
+    residual (with the unlisted regions) as a 60-degree cone about the normal
+    (its irradiance / mean cosine)."""
+    em_dr, dl = scene.emitters_dr(), has_delta(scene)
+    r = unpack(rec, K, env is not None)
     out = []
     for i in range(K):
-        m = mi.Bool(active) & (idx[i] != EMPTY)
-        d, w = light_at(em_dr, si, idx[i], m, sph)
-        out.append((si.sh_frame.to_local(d), mi.Float(0.0), w * vis[i], m & (dr.max(w * vis[i]) > 0.0)))
+        m = mi.Bool(active) & (r.idx[i] != EMPTY)
+        d, w = light_at(em_dr, si, r.idx[i], m, sph, env, dl)
+        out.append((si.sh_frame.to_local(d), mi.Float(0.0), w * r.vis[i], m & (dr.max(w * r.vis[i]) > 0.0)))
     mean_cos = 0.5 * (1.0 + math.cos(RESIDUAL_ALPHA))
+    E = residual(r, si.sh_frame.n, env, active)
     out.append((mi.Vector3f(0.0, 0.0, 1.0), mi.Float(RESIDUAL_ALPHA), E * (1.0 / mean_cos),
                 mi.Bool(active) & (dr.max(E) > 0.0)))
     return out
 
 
-def from_irradiance(E, n: int, K: int):
+def from_irradiance(E, n: int, K: int, env: bool = False):
     """A record with no listed light and residual ``E`` (the energy of another
-    representation at the normal); the lights come in with the next samples."""
-    idx, vis, cnt, _, _ = empty(n, K)
-    return pack(idx, vis, cnt, E, dr.full(mi.Float, 4.0, n), K)
+    representation at the normal); the lights come in with the next samples
+    (the unlisted regions' visible fraction starts with no sample)."""
+    r = empty(n, K)
+    r.E, r.C = mi.Color3f(E), dr.full(mi.Float, 4.0, n)
+    return pack(r, K, env)
