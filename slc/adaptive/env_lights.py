@@ -241,3 +241,31 @@ class EnvLights:
 
         _, E = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(active))), cond=cond, body=body)
         return E
+
+    def unlisted_radiance(self, si, bsdf, listed, vu, active) -> mi.Color3f:
+        r"""Outgoing radiance at the pixels ``si`` from the regions wholly above
+        the horizon and not among the light indices ``listed``, each at its own
+        direction, with the shared visible fraction ``vu``:
+        :math:`v_u \sum_j f_r(\mathbf d_j)\,\Phi_j R_j` (``bsdf.eval`` has the cosine;
+        one BSDF call site in a loop over the regions)."""
+        active = mi.Bool(active) & (mi.Float(vu) > 0.0)
+        listed = [mi.UInt32(x) for x in listed]
+        ctx = mi.BSDFContext()
+        nrm = si.sh_frame.n
+
+        def cond(j, L):
+            return (j < self._n) & active
+
+        def body(j, L):
+            d = dr.gather(mi.Vector3f, self._dir, j, active)
+            w = dr.gather(mi.Color3f, self._w, j, active)
+            s = dr.gather(mi.Float, self._sin, j, active)
+            li = self._base + j
+            on = active & (dr.dot(d, nrm) >= s)
+            for x in listed:
+                on &= x != li
+            f = bsdf.eval(ctx, si, si.to_local(d), on)
+            return j + 1, L + dr.select(on, mi.Color3f(f) * w, 0.0)
+
+        _, L = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(active))), cond=cond, body=body)
+        return L * mi.Float(vu)

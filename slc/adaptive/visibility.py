@@ -326,7 +326,9 @@ def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None, env=None) ->
 
     _, L = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(active))), cond=cond, body=body)
     fn = bsdf.eval(ctx, si, mi.Vector3f(0.0, 0.0, 1.0), active)
-    L += dr.select(active, mi.Color3f(fn) * residual(r, si.sh_frame.n, env, active), 0.0)
+    L += dr.select(active, mi.Color3f(fn) * r.E, 0.0)
+    if env is not None:        # the unlisted regions, each at its own direction
+        L += dr.select(active, env.unlisted_radiance(si, bsdf, idx, r.vu, active), 0.0)
     return L
 
 
