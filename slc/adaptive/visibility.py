@@ -5,6 +5,7 @@ Record (``K + 2`` words, ``K = vis_lights``, default 12)::
 
     K x [ light index (16) | visibility v (unorm 8) | count (4) | spare (4) ]
     residual irradiance E_r (3 x 18-bit e6m12) | its count C_r (8)
+    with environment regions: [ v_u (unorm 16) | its count n_u (8) | spare (8) ]
 
 Shading at a pixel x (no rays): the lights' unoccluded contribution is
 evaluated exactly at x (the emitter's own ``sample_direction``, which is
@@ -25,7 +26,7 @@ irradiance is larger (importance = luminance of
 evicted light's estimate :math:`E_i v_i` moves into :math:`E_r` and the
 newcomer's :math:`E_j V` out of it (energy kept). All other samples feed
 the residual's running mean, :math:`E_r \leftarrow E_r + n(\hat E_r - E_r)/C_r` (:math:`C_r`
-the sample count, at most 255, or 4 cycles while the entry is new or moving)
+the sample count, at most 255, or 4 cycles while the entry is moving)
 with :math:`\hat E_r = \frac1n\sum_k [k \text{ not in the list}]\, w_k V_k c_k`.
 
 Small sphere lights (:mod:`slc.adaptive.sphere_lights`, ``sph``) are listed
@@ -33,6 +34,15 @@ like delta lights where they are small at the entry (:math:`r/d` below
 ``sph.max_sin``): their :math:`v_i` is the running mean of shadow rays to
 sampled points on the sphere and their unoccluded term is the closed form
 :math:`\pi L r^2/d^2` towards the current centre.
+
+Bright small regions of the environment map (:mod:`slc.adaptive.env_lights`,
+``env``) are listed like delta lights where wholly above the entry's horizon
+(index ``env.base + j``, unoccluded term :math:`\Phi_j R_j` along
+:math:`\mathbf d_j`); samples of regions above the horizon but not listed
+update one shared visible fraction :math:`v_u` (running mean of their shadow
+rays, window ``ENV_WINDOW``) instead of :math:`E_r`, and shading adds
+:math:`v_u \sum_j f_r(x, \mathbf d_j, \omega_o)\,\Phi_j R_j` over those regions,
+each at its own direction.
 """
 from __future__ import annotations
 
@@ -50,7 +60,7 @@ STREAM_VIS = 0x3C6EF372
 VIS_WINDOW = 16
 ENV_WINDOW = 64             # samples in the running mean of the unlisted regions' visible fraction
 RES_MAX_COUNT = 255                 # as the cones' C (8 bits)
-UNSETTLED_COUNT = 4         # residual count cap of new and moving entries, in update cycles
+UNSETTLED_COUNT = 4         # residual count cap of moving entries, in update cycles
 RESIDUAL_ALPHA = math.radians(60.0)     # the residual as a lobe (conversion): a 60-degree cone about n
 
 
@@ -153,14 +163,15 @@ def has_delta(scene: mi.Scene) -> bool:
 
 # ----------------------------------------------------------------------------- update
 
-def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int, seed: int, K: int, sph=None,
+def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, seed: int, K: int, sph=None,
            env=None):
     """One update cycle of VISIBILITY records ``rec`` (lists of words, one lane
     per entry) at the entries' points ``si`` (``sph``: the scene's
     :class:`~slc.adaptive.sphere_lights.SphereLights`, or None). A listed light whose unoccluded
     irradiance here is now 0 (switched off, turned or moved away) is dropped
-    and reported as motion. Unsettled entries (new, moving) cap the
-    residual's count at ``UNSETTLED_COUNT``. Returns (new words, motion,
+    and reported as motion. Moving entries (the ray policy's state; new
+    entries are not capped: their light did not move) cap the residual's
+    count at ``UNSETTLED_COUNT`` cycles. Returns (new words, motion,
     stats values). ``env``: the environment's bright regions
     (:class:`~slc.adaptive.env_lights.EnvLights`), listed where wholly above
     the entry's horizon."""
@@ -286,7 +297,7 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, fresh, on, frame: int
     # ----------------------- the residual's running mean (with the energy moved by swaps)
     # the count is in samples (as the cones' C): a cycle of n samples weighs n / C
     n = mi.Float(dr.maximum(mi.UInt32(rays), 1))
-    cap = dr.select(mi.Bool(unsettled) | gone, float(UNSETTLED_COUNT) * n, float(RES_MAX_COUNT))
+    cap = dr.select(mi.Bool(moving) | gone, float(UNSETTLED_COUNT) * n, float(RES_MAX_COUNT))
     C = dr.minimum(dr.minimum(C, cap - n) + n, cap)
     E = dr.maximum(E + adj, 0.0)
     E = E + (S / n - E) * dr.minimum(n * dr.rcp(dr.maximum(C, 1.0)), 1.0)
