@@ -396,8 +396,7 @@ class AdaptiveCache(PayloadMethod):
         dr.eval(L)
         parts = []
         if used.get(VIS, 1):
-            parts.append(lambda: visibility.shade(sc, self.pools[VIS].gather(ps, m_v), si, bsdf, m_v,
-                                                  self.vis_k, self.sph, self.env))
+            parts.append(lambda: self._vis_shading()(self.pools[VIS].gather(ps, m_v), m_v, si, sc))
         if used.get(CONES, 1):
             parts.append(lambda: shader_for(self, self.max_cones)(
                 self.pools[CONES].data, dr.select(m_c, ps, 0), m_c, si, tf, self.shade_samples,
@@ -410,6 +409,14 @@ class AdaptiveCache(PayloadMethod):
             L = L + Lr
             dr.eval(L)
         return L
+
+    def _vis_shading(self) -> visibility.VisShading:
+        """The VISIBILITY pool's shading, frozen (made on first use; unfrozen in
+        an animated scene)."""
+        if getattr(self, "_vis_shade", None) is None:
+            self._vis_shade = visibility.VisShading(self.vis_k, self.sph, self.env,
+                                                    freeze=not bool(getattr(self.scene, "dynamic", False)))
+        return self._vis_shade
 
     def _sh_shading(self) -> sh_rep.SHShading:
         """The SH pool's shading, frozen (made on first use; unfrozen in an

@@ -52,6 +52,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..cones.packing import _Reader, _Writer, decode_radiance, encode_radiance
+from ..freeze import FrozenFunction
 from ..keys import keyed_rng
 from .sampling import SampleStats, lum, sampler_of
 
@@ -371,3 +372,37 @@ def from_irradiance(E, n: int, K: int, env: bool = False):
     r = empty(n, K)
     r.E, r.C = mi.Color3f(E), dr.full(mi.Float, 4.0, n)
     return pack(r, K, env)
+
+
+# ----------------------------------------------------------------------------- frozen shading
+
+class VisShading(FrozenFunction):
+    """:func:`shade` on the pixels' VISIBILITY records, traced once and replayed
+    (``dr.freeze``, as :class:`slc.adaptive.sh_rep.SHShading`): tracing the
+    shading (a BSDF call site in the listed lights' loop and one in the
+    environment regions' loop) cost more host time than its kernel. The
+    records (gathered outside), mask, interactions and the scene are inputs;
+    the sphere and region tables are declared as inputs too (a frozen function
+    reads only arrays reachable from its inputs). ``K``, ``sph`` and ``env``
+    are fixed per instance. Unfrozen in animated scenes (``freeze=False``) and
+    after more than ``max_recordings`` recordings."""
+
+    def __init__(self, K: int, sph=None, env=None, freeze: bool = True, max_recordings: int = 4):
+        self.K, self.sph, self.env = int(K), sph, env
+
+        def kernel(rec, active, si, bsdf, scene, tables):
+            return shade(scene, rec, si, bsdf, active, self.K, self.sph, self.env)
+        super().__init__(kernel, freeze, False, max_recordings)
+
+    def tables(self) -> list:
+        out = []
+        if self.env is not None:
+            e = self.env
+            out += [e._dir, e._w, e._sin, e._label, e._base, e._n, e._env]
+        if self.sph is not None:
+            s = self.sph
+            out += [s._flag, s._c, s._r, s._L]
+        return out
+
+    def __call__(self, rec, active, si, scene) -> mi.Color3f:
+        return super().__call__([mi.UInt32(w) for w in rec], mi.Bool(active), si, si.bsdf(), scene, self.tables())
