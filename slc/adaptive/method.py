@@ -251,8 +251,8 @@ class AdaptiveCache(PayloadMethod):
                 # the residual's memory is cut for moving entries only (as the cones' C): a new
                 # entry's light did not move, and a cap of 4 cycles of its 1-2-ray updates left
                 # its residual a mean of 4-8 samples
-                out, mo, st = visibility.update(sc, rec, si, key, ry, dr.gather(mi.Bool, moving, idx), fr_r, on,
-                                                ctx.frame, self.seed, self.vis_k, self.sph, self.env)
+                out, mo, st = self._vis_update()(sc, rec, si, key, ry, dr.gather(mi.Bool, moving, idx), fr_r, on,
+                                                 ctx.frame)
                 dr.scatter(motion, mo, idx, on)
                 dr.scatter(vis_motion, mo, idx, on)
             elif r == CONES:
@@ -409,6 +409,14 @@ class AdaptiveCache(PayloadMethod):
             L = L + Lr
             dr.eval(L)
         return L
+
+    def _vis_update(self) -> visibility.VisUpdate:
+        """The VISIBILITY update, frozen (made on first use; unfrozen in an
+        animated scene)."""
+        if getattr(self, "_vis_up", None) is None:
+            self._vis_up = visibility.VisUpdate(self.vis_k, self.seed, self.sph, self.env,
+                                                freeze=not bool(getattr(self.scene, "dynamic", False)))
+        return self._vis_up
 
     def _vis_shading(self) -> visibility.VisShading:
         """The VISIBILITY pool's shading, frozen (made on first use; unfrozen in

@@ -165,7 +165,7 @@ def has_delta(scene: mi.Scene) -> bool:
 # ----------------------------------------------------------------------------- update
 
 def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, seed: int, K: int, sph=None,
-           env=None):
+           env=None, mix=None):
     """One update cycle of VISIBILITY records ``rec`` (lists of words, one lane
     per entry) at the entries' points ``si`` (``sph``: the scene's
     :class:`~slc.adaptive.sphere_lights.SphereLights`, or None). A listed light whose unoccluded
@@ -175,7 +175,9 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
     count at ``UNSETTLED_COUNT`` cycles. Returns (new words, motion,
     stats values). ``env``: the environment's bright regions
     (:class:`~slc.adaptive.env_lights.EnvLights`), listed where wholly above
-    the entry's horizon."""
+    the entry's horizon. ``mix``: the random streams' (seed, frame) mix as an
+    opaque array (:func:`slc.keys.stream_key`; the frozen update's input),
+    else computed from ``seed`` and ``frame``."""
     sc = scene
     dl = has_delta(sc)
     N = dr.width(key)
@@ -215,7 +217,12 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
         idx[i] = dr.select(dead, EMPTY, idx[i])
         imp.append(dr.select(idx[i] != EMPTY, lum(wl[i]), -1.0))
 
-    rng = keyed_rng(key, seed, frame, STREAM_VIS)
+    if mix is None:
+        rng = keyed_rng(key, seed, frame, STREAM_VIS)
+    else:                              # keyed_rng with the mix given
+        v0, v1 = mi.sample_tea_32(mi.UInt32(key), mix, 6)
+        rng = mi.PCG32()
+        rng.seed(mi.UInt64(v0) | (mi.UInt64(v1) << 32), mi.UInt64(mi.UInt32(key)))
     st = SampleStats(N)
     S = dr.zeros(mi.Color3f, N)
     adj = dr.zeros(mi.Color3f, N)
@@ -389,20 +396,67 @@ class VisShading(FrozenFunction):
 
     def __init__(self, K: int, sph=None, env=None, freeze: bool = True, max_recordings: int = 4):
         self.K, self.sph, self.env = int(K), sph, env
+        K = int(K)
 
+        # the closure holds no reference to self: a cycle through the frozen function would be
+        # freed by the garbage collector, which may run while another function records (abort)
         def kernel(rec, active, si, bsdf, scene, tables):
-            return shade(scene, rec, si, bsdf, active, self.K, self.sph, self.env)
+            return shade(scene, rec, si, bsdf, active, K, sph, env)
         super().__init__(kernel, freeze, False, max_recordings)
 
-    def tables(self) -> list:
-        out = []
-        if self.env is not None:
-            e = self.env
-            out += [e._dir, e._w, e._sin, e._label, e._base, e._n, e._env]
-        if self.sph is not None:
-            s = self.sph
-            out += [s._flag, s._c, s._r, s._L]
-        return out
-
     def __call__(self, rec, active, si, scene) -> mi.Color3f:
-        return super().__call__([mi.UInt32(w) for w in rec], mi.Bool(active), si, si.bsdf(), scene, self.tables())
+        return super().__call__([mi.UInt32(w) for w in rec], mi.Bool(active), si, si.bsdf(), scene,
+                                _tables(self.sph, self.env))
+
+
+def _tables(sph, env) -> list:
+    """The sphere and region tables' arrays (declared as inputs of a frozen function)."""
+    out = []
+    if env is not None:
+        out += [env._dir, env._w, env._sin, env._label, env._base, env._n, env._env]
+    if sph is not None:
+        out += [sph._flag, sph._c, sph._r, sph._L]
+    return out
+
+
+def _sampler_inputs(scene) -> list:
+    """Every Dr.Jit array of the scene's emitter table (:func:`sampling.sampler_of`,
+    which the update uses whatever ``SLC_EMITTER_SAMPLING`` says, with its
+    emitter index map): declared as inputs of the frozen update."""
+    def arrays(v):
+        if isinstance(v, dr.ArrayBase):
+            return [v]
+        if isinstance(v, (list, tuple)):
+            return [a for x in v for a in arrays(x)]
+        if isinstance(v, dict):
+            return [a for k in sorted(v, key=str) for a in arrays(v[k])]
+        return []
+    smp = sampler_of(scene)
+    return [a for k in sorted(vars(smp)) for a in arrays(vars(smp)[k])]
+
+
+class VisUpdate(FrozenFunction):
+    """:func:`update` traced once and replayed (``dr.freeze``, as ``slc``'s
+    :class:`slc.cones.update.ConeUpdate`): tracing the update (the sample loop
+    with its K unrolled slots) cost more host time than its kernel. Inputs:
+    the scene, the emitter table's arrays (:func:`_sampler_inputs`),
+    the sphere and region tables, the entries' records and interactions, and
+    the random streams' mix (opaque: a new frame is no new recording). ``K``,
+    ``seed``, ``sph`` and ``env`` are fixed per instance. Unfrozen in animated
+    scenes and after more than ``max_recordings`` recordings."""
+
+    def __init__(self, K: int, seed: int, sph=None, env=None, freeze: bool = True, max_recordings: int = 4):
+        self.K, self.seed, self.sph, self.env = int(K), int(seed), sph, env
+        K, seed = int(K), int(seed)
+
+        def kernel(scene, lights, tables, rec, si, key, rays, moving, fresh, on, mix):     # no self (see VisShading)
+            out, gone, st = update(scene, rec, si, key, rays, moving, fresh, on, 0, seed, K, sph, env, mix=mix)
+            dr.eval(out, gone, st)
+            return out, gone, st
+        super().__init__(kernel, freeze, False, max_recordings)
+
+    def __call__(self, scene, rec, si, key, rays, moving, fresh, on, frame: int):
+        from ..keys import stream_key
+        return super().__call__(scene, _sampler_inputs(scene), _tables(self.sph, self.env), [mi.UInt32(w) for w in rec],
+                                si, mi.UInt32(key), mi.UInt32(rays), mi.Bool(moving), mi.Bool(fresh), mi.Bool(on),
+                                stream_key(self.seed, frame, STREAM_VIS))
