@@ -47,7 +47,8 @@ class AdaptiveCache(PayloadMethod):
     light statistics, the slot of its record) and one record in the pool of
     its representation:
 
-    - VISIBILITY (delta lights, and sphere lights small at the entry): per-light
+    - VISIBILITY (delta lights, sphere lights small at the entry, and the
+      environment map's bright small regions, ``env_lights``): per-light
       visibility of the ``vis_lights`` lights that matter most at the entry plus
       a residual irradiance; the lights' unoccluded contribution is evaluated
       exactly at shading (a sphere light: pi L r^2/d^2 at its current centre);
@@ -62,7 +63,9 @@ class AdaptiveCache(PayloadMethod):
     switch; a switch converts the old record into the new one through lobes
     (direction, half-angle, integrated radiance), keeping the energy.
     New entries start in the scene's prior (VISIBILITY when every emitter
-    is a delta light, SH when every emitter is at infinity, else CONES).
+    is a delta light or the environment's regions hold most of its power, SH
+    when every emitter is at infinity, else CONES). A representation fewer
+    than ``min_share`` of the entries ask for is not used.
     Ray policy as ``slc``. See docs/adaptive.md.
     """
 
