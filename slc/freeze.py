@@ -17,6 +17,8 @@ first call. So:
 """
 from __future__ import annotations
 
+import gc
+
 import drjit as dr
 
 
@@ -43,7 +45,16 @@ class FrozenFunction:
         self.calls = 0
 
     def __call__(self, *args):
-        out = self.kernel(*args)
+        # no garbage collection while a function records or replays: the collector freed
+        # cyclic garbage holding Dr.Jit state (an earlier test's objects) in the middle of
+        # a recording, and Dr.Jit aborted the process
+        gc_on = gc.isenabled()
+        gc.disable()
+        try:
+            out = self.kernel(*args)
+        finally:
+            if gc_on:
+                gc.enable()
         if self.frozen:
             self.calls += 1
             self.recordings = int(self.kernel.n_recordings)

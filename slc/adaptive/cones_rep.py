@@ -28,11 +28,14 @@ class _LightStats(SampleObserver):
     sample's energy being ``lum(w) max(s_z, 0)``. With ``sph`` (the scene's
     :class:`~slc.adaptive.sphere_lights.SphereLights`) samples of sphere
     lights small at the entry count as delta-light energy (what a
-    VISIBILITY record can list)."""
+    VISIBILITY record can list); with ``env`` (the environment's bright
+    regions) so do samples in a region with s_z >= 2 sin(alpha_j) (the
+    observer has the sample's local direction, not the entry's normal: a
+    conservative stand-in for the region being wholly above the horizon)."""
 
-    def __init__(self, scene=None, sph=None):
-        self.sph = sph
-        self.samp = sampler_of(scene) if sph is not None else None
+    def __init__(self, scene=None, sph=None, env=None):
+        self.sph, self.env = sph, env
+        self.samp = sampler_of(scene) if (sph is not None or env is not None) else None
 
     def init(self, n: int) -> tuple:
         return (dr.zeros(mi.Float, n), dr.zeros(mi.Float, n), dr.zeros(mi.Vector3f, n))
@@ -44,12 +47,17 @@ class _LightStats(SampleObserver):
         if self.sph is not None:
             em, known = self.samp.index_of(ds.emitter, ok & ~delta)
             delta |= self.sph.small(ds.p - ds.d * ds.dist, em, known)
+        if self.env is not None:
+            em, known = self.samp.index_of(ds.emitter, ok & ~delta)
+            inr, j = self.env.region_of(ds.d, em, known)
+            _, _, _, sj = self.env.light(self.env.base + j, inr)
+            delta |= inr & (s.z >= 2.0 * sj)
         cn = dr.select(delta, 0.0, c)
         return ed + dr.select(delta, c, 0.0), en + cn, m + s * cn
 
 
 def update(scene: mi.Scene, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame: int, seed: int,
-           p: ConeParams, sph=None):
+           p: ConeParams, sph=None, env=None):
     """One update cycle of cone records ``rec`` (packed words, one lane per
     entry): :func:`slc.cones.update.update_cycle`, the ``slc`` method's update
     (its light sampler, per-entry R2 samples from ``first_sample`` where not
@@ -59,7 +67,7 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, moving, first_sample,
     moving = mi.Bool(moving)
     words, motion, _, _, st = update_cycle(
         scene, unpack(rec, p.max_cones), key, si, rays, unsettled, moving, fresh, first_sample, ~moving, frame,
-        seed, p, valid=mi.Bool(on) & si.is_valid(), observer=_LightStats(scene, sph))
+        seed, p, valid=mi.Bool(on) & si.is_valid(), observer=_LightStats(scene, sph, env))
     return words, motion, list(st)
 
 

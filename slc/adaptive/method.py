@@ -17,6 +17,7 @@ from . import choice as ch
 from . import cones_rep, sh_rep, visibility
 from .choice import CONES, NONE, SH, VIS, ChoiceParams, Header
 from .pool import Pool
+from .env_lights import EnvLights
 from .sphere_lights import SphereLights
 
 REPS = (VIS, CONES, SH)
@@ -46,7 +47,8 @@ class AdaptiveCache(PayloadMethod):
     light statistics, the slot of its record) and one record in the pool of
     its representation:
 
-    - VISIBILITY (delta lights, and sphere lights small at the entry): per-light
+    - VISIBILITY (delta lights, sphere lights small at the entry, and the
+      environment map's bright small regions, ``env_lights``): per-light
       visibility of the ``vis_lights`` lights that matter most at the entry plus
       a residual irradiance; the lights' unoccluded contribution is evaluated
       exactly at shading (a sphere light: pi L r^2/d^2 at its current centre);
@@ -61,7 +63,9 @@ class AdaptiveCache(PayloadMethod):
     switch; a switch converts the old record into the new one through lobes
     (direction, half-angle, integrated radiance), keeping the energy.
     New entries start in the scene's prior (VISIBILITY when every emitter
-    is a delta light, SH when every emitter is at infinity, else CONES).
+    is a delta light or the environment's regions hold most of its power, SH
+    when every emitter is at infinity, else CONES). A representation fewer
+    than ``min_share`` of the entries ask for is not used.
     Ray policy as ``slc``. See docs/adaptive.md.
     """
 
@@ -73,6 +77,12 @@ class AdaptiveCache(PayloadMethod):
               "light; off: never)", choices=("auto", "small", "off")),
         Param("sphere_sin", 0.3, "largest r/d (sine of the half-angle) of a sphere light listed at an entry",
               lo=0.0, hi=1.0),
+        Param("env_lights", "auto", "bright small regions of the environment map are listed in VISIBILITY "
+              "records as directional lights (auto: in scenes with an environment emitter whose map has such "
+              "regions; off: never)", choices=("auto", "off")),
+        Param("env_ratio", 10.0, "a pixel of the environment is bright above this multiple of the map's mean "
+              "radiance", lo=1.0, hi=1e6),
+        Param("env_max_sr", 0.05, "largest solid angle (sr) of a bright region listed as a light", lo=0.0, hi=12.6),
         Param("max_cones", 3, "cones per CONES entry", lo=1, hi=4),
         Param("encoding", "y3co1cg1", "SH encoding of SH entries", choices=tuple(ENCODINGS)),
         Param("sh_count", 128, "SH running-mean count cap (samples)", lo=1, hi=1e6),
@@ -92,6 +102,8 @@ class AdaptiveCache(PayloadMethod):
         Param("theta_r", 0.75, "mean resultant length below which SH is chosen", lo=0.0, hi=1.0),
         Param("sh_when", "environment", "SH is a candidate of the choice only in scenes with an environment "
               "(infinite, non-delta) emitter, or always", choices=("environment", "always")),
+        Param("min_share", 0.02, "a representation fewer than this share of the active entries ask for "
+              "is not used (its entries take the scene's prior; 0: no limit)", lo=0.0, hi=1.0),
         Param("start", "prior", "representation of new entries (prior: from the scene's emitters)",
               choices=("prior", "visibility", "cones", "sh")),
         Param("force", "auto", "representation of every entry (auto: the choice rule)",
@@ -110,11 +122,14 @@ class AdaptiveCache(PayloadMethod):
         if sph is not None and self.sphere_lights == "auto" and not sph.listable_only:
             sph = None          # mixed with area lights: two representations' kernels every frame (see docs)
         self.sph = sph if sph is not None and sph.any else None
-        self.prior = self._prior(scene, self.sph)
+        env = EnvLights(scene, self.env_ratio, self.env_max_sr) if self.env_lights == "auto" else None
+        self.env = env if env is not None and env.any else None
+        self.prior = self._prior(scene, self.sph, self.env, self.theta_delta)
         # record size: no more slots than the scene has lights that can be listed (atrium: 3 lamps)
         ems = list(scene.mi_scene.emitters())
         n_list = sum(1 for i, e in enumerate(ems) if bool(int(e.flags()) & int(mi.EmitterFlags.Delta))
                      or (self.sph is not None and bool(self.sph.flag[i])))
+        n_list += self.env.n if self.env is not None else 0
         self.vis_k = max(1, min(self.vis_lights, n_list))
 
     @staticmethod
@@ -124,10 +139,12 @@ class AdaptiveCache(PayloadMethod):
                    and not bool(int(e.flags()) & int(mi.EmitterFlags.Delta)) for e in scene.mi_scene.emitters())
 
     @staticmethod
-    def _prior(scene, sph=None) -> int:
+    def _prior(scene, sph=None, env=None, theta_delta=0.5) -> int:
         ems = list(scene.mi_scene.emitters())
         if not ems:
             return CONES
+        if env is not None and len(ems) == 1 and env.share > theta_delta:
+            return VIS          # the environment alone, most of its power in listable regions
         # sphere lights count as delta lights (listed where small at the entry)
         delta = [bool(int(e.flags()) & int(mi.EmitterFlags.Delta)) or (sph is not None and bool(sph.flag[i]))
                  for i, e in enumerate(ems)]
@@ -154,7 +171,7 @@ class AdaptiveCache(PayloadMethod):
         self._tags = None
 
     def _make_pools(self):
-        self.pools = {VIS: Pool("visibility", visibility.words(self.vis_k)),
+        self.pools = {VIS: Pool("visibility", visibility.words(self.vis_k, self.env is not None)),
                       CONES: Pool("cones", words_per_entry(self.max_cones)),
                       SH: Pool("sh", sh_rep.words(self.enc))}
 
@@ -234,18 +251,21 @@ class AdaptiveCache(PayloadMethod):
             ry = dr.gather(mi.UInt32, rays, idx)
             fr_r = dr.gather(mi.Bool, fresh, idx)
             if r == VIS:
-                out, mo, st = visibility.update(sc, rec, si, key, ry, dr.gather(mi.Bool, unsettled, idx), fr_r, on,
-                                                ctx.frame, self.seed, self.vis_k, self.sph)
+                # the residual's memory is cut for moving entries only (as the cones' C): a new
+                # entry's light did not move, and a cap of 4 cycles of its 1-2-ray updates left
+                # its residual a mean of 4-8 samples
+                out, mo, st = self._vis_update()(sc, rec, si, key, ry, dr.gather(mi.Bool, moving, idx), fr_r, on,
+                                                 ctx.frame)
                 dr.scatter(motion, mo, idx, on)
                 dr.scatter(vis_motion, mo, idx, on)
             elif r == CONES:
                 out, mo, st = cones_rep.update(sc, rec, si, key, ry, dr.gather(mi.Bool, unsettled, idx),
                                                dr.gather(mi.Bool, moving, idx), dr.gather(mi.UInt32, first_sample, idx),
-                                               fr_r, on, ctx.frame, self.seed, self.cone_params, self.sph)
+                                               fr_r, on, ctx.frame, self.seed, self.cone_params, self.sph, self.env)
                 dr.scatter(motion, mo, idx, on)
             else:
                 out, st = sh_rep.update(sc, rec, si, key, ry, fr_r, on, ctx.frame, self.seed, self.enc,
-                                        self.sh_count, self.sph)
+                                        self.sh_count, self.sph, self.env)
             dr.eval(out, st)
             del rec
             pool.scatter(out, ps, on)
@@ -265,6 +285,8 @@ class AdaptiveCache(PayloadMethod):
             switch = dr.zeros(mi.Bool, N)
         _opaque_header(h)
         if allowed or not self._warm:
+            if forced is None and self.min_share > 0.0:
+                switch, target = self._sparse(h, switch, target, start, allowed, N)
             dr.make_opaque(switch, target)
             h = self._switch(fr, h, switch, target)
         else:
@@ -275,6 +297,31 @@ class AdaptiveCache(PayloadMethod):
         self._counts = dict(zip(REPS, _tally([h.tag == r for r in REPS])))
         dr.eval(self.storage, self._tags)
         return motion
+
+    def _sparse(self, h: Header, switch: mi.Bool, target: mi.UInt32, fallback: int, allowed: bool, N: int):
+        """A representation that fewer than ``min_share`` of the active entries
+        ask for (their target) is not used: those entries, and the entries in
+        it, take ``fallback`` (the scene's prior) instead. Tracing a
+        representation's update, shading and conversions costs as much host
+        time as a small frame (skylit:env=spots: 0.4% of the entries in cones
+        cost 40 ms a frame). One read-back of the demand per switch frame; the
+        blocked set enters the kernels as an opaque table (same IR whatever
+        is blocked)."""
+        demand = _tally([target == r for r in REPS])
+        blocked = [False] * 4
+        for r, d in zip(REPS, demand):
+            blocked[r] = bool(r != fallback and d < self.min_share * N)
+        self._blocked = [ch.NAMES[r] for r in REPS if blocked[r]]
+        tbl = mi.Bool(blocked)
+        dr.make_opaque(tbl)
+        bt = dr.gather(mi.Bool, tbl, target)
+        bh = dr.gather(mi.Bool, tbl, h.tag)
+        target = dr.select(bt, mi.UInt32(fallback), target)
+        sw = (switch | bh) & (target != h.tag) & (h.tag != NONE)
+        dr.eval(sw, target)
+        if not allowed:
+            sw = dr.zeros(mi.Bool, N)
+        return sw, target
 
     def _switch(self, fr, h: Header, switch: mi.Bool, target: mi.UInt32) -> Header:
         """Convert the records of switching entries (old representation ->
@@ -300,7 +347,7 @@ class AdaptiveCache(PayloadMethod):
                 rec = self.pools[src].gather(old, on)
                 # ------------------------------- old record -> lobes
                 if src == VIS:
-                    lobes = visibility.lobes(sc, rec, si, on, Kv, self.sph)
+                    lobes = visibility.lobes(sc, rec, si, on, Kv, self.sph, self.env)
                 elif src == CONES:
                     lobes = cones_rep.lobes(rec, on, K)
                 else:
@@ -309,7 +356,7 @@ class AdaptiveCache(PayloadMethod):
                 if dst == VIS:
                     E = sh_rep.irradiance_at_normal(rec, self.enc) if src == SH else \
                         cones_rep.irradiance_at_normal(lobes)
-                    new = visibility.from_irradiance(E, n_l, Kv)
+                    new = visibility.from_irradiance(E, n_l, Kv, self.env is not None)
                 elif dst == CONES:
                     new = cones_rep.from_lobes(lobes, n_l, self.cone_params)
                 else:
@@ -352,8 +399,7 @@ class AdaptiveCache(PayloadMethod):
         dr.eval(L)
         parts = []
         if used.get(VIS, 1):
-            parts.append(lambda: visibility.shade(sc, self.pools[VIS].gather(ps, m_v), si, bsdf, m_v,
-                                                  self.vis_k, self.sph))
+            parts.append(lambda: self._vis_shading()(self.pools[VIS].gather(ps, m_v), m_v, si, sc))
         if used.get(CONES, 1):
             parts.append(lambda: shader_for(self, self.max_cones)(
                 self.pools[CONES].data, dr.select(m_c, ps, 0), m_c, si, tf, self.shade_samples,
@@ -366,6 +412,22 @@ class AdaptiveCache(PayloadMethod):
             L = L + Lr
             dr.eval(L)
         return L
+
+    def _vis_update(self) -> visibility.VisUpdate:
+        """The VISIBILITY update, frozen (made on first use; unfrozen in an
+        animated scene)."""
+        if getattr(self, "_vis_up", None) is None:
+            self._vis_up = visibility.VisUpdate(self.vis_k, self.seed, self.sph, self.env,
+                                                freeze=not bool(getattr(self.scene, "dynamic", False)))
+        return self._vis_up
+
+    def _vis_shading(self) -> visibility.VisShading:
+        """The VISIBILITY pool's shading, frozen (made on first use; unfrozen in
+        an animated scene)."""
+        if getattr(self, "_vis_shade", None) is None:
+            self._vis_shade = visibility.VisShading(self.vis_k, self.sph, self.env,
+                                                    freeze=not bool(getattr(self.scene, "dynamic", False)))
+        return self._vis_shade
 
     def _sh_shading(self) -> sh_rep.SHShading:
         """The SH pool's shading, frozen (made on first use; unfrozen in an

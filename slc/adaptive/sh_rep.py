@@ -54,10 +54,13 @@ def pack(coeffs, C):
     return [dr.reinterpret_array(mi.UInt32, mi.Float(c)) for c in list(coeffs) + [C]]
 
 
-def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int, enc, max_count: int, sph=None):
+def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int, enc, max_count: int, sph=None,
+           env=None):
     """One update cycle of SH records. Returns (new words, stats values)
     (``sph``: small sphere lights count as delta-light energy, see
-    :mod:`slc.adaptive.sphere_lights`)."""
+    :mod:`slc.adaptive.sphere_lights`; ``env``: so do samples of the
+    environment's bright regions wholly above the horizon,
+    :mod:`slc.adaptive.env_lights`)."""
     n_c = enc.n
     N = dr.width(key)
     samp = sampler_of(scene)
@@ -80,6 +83,8 @@ def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int
         delta = mi.Bool(ds.delta)
         if sph is not None:
             delta |= sph.small(si.p, em, ok & ~delta)
+        if env is not None:
+            delta |= env.sample_listable(ds.d, em, frame_l.n, ok & ~delta)[0]
         ed = ed + dr.select(delta, c, 0.0)
         cn = dr.select(delta, 0.0, c)
         en, m = en + cn, m + s * cn
