@@ -204,6 +204,13 @@ class EntryInteractions(FrozenFunction):
 
         super().__init__(kernel, freeze, animated, max_recordings)
 
+    def __del__(self):
+        # Dr.Jit's frozen function sits in a reference cycle and would be freed by the
+        # garbage collector at any time, possibly while another frozen function records
+        # (which aborts the process): free the recordings now, with their owner
+        if self.frozen:
+            self.kernel.clear()
+
 
 def surface_interaction(L, isl, tri, b, mi_scene=None) -> mi.SurfaceInteraction3f:
     """The interaction at (triangle, barycentrics) or, for analytic shapes,
