@@ -71,8 +71,8 @@ class TexelPoints:
         if frozen is not None:
             L = self.layout
             names = _SI_TABLES + (_SI_ANALYTIC_TABLES if L.has_analytic else ())
-            return frozen(L.mi_scene, tuple(getattr(L, k) for k in names), self.slot_tri, self.slot_b,
-                          mi.UInt32(slots), mi.UInt32(isl))
+            return frozen(L.mi_scene, bool(L.has_analytic), tuple(getattr(L, k) for k in names), self.slot_tri,
+                          self.slot_b, mi.UInt32(slots), mi.UInt32(isl))
         tri = dr.gather(mi.UInt32, self.slot_tri, slots)
         b = dr.gather(mi.Point2f, self.slot_b, slots)
         return self.surface_interaction(isl, tri, b)
@@ -169,15 +169,12 @@ class TexelPoints:
 
 
 class _Tables:
-    """The layout's Python settings with its Dr.Jit tables replaced by the
-    frozen function's inputs of the same names."""
+    """What :func:`surface_interaction` reads of a layout, from the frozen
+    function's inputs."""
 
-    def __init__(self, layout, names, arrays):
-        self._layout = layout
+    def __init__(self, names, arrays, mi_scene, has_analytic):
         self.__dict__.update(zip(names, arrays))
-
-    def __getattr__(self, k):
-        return getattr(self._layout, k)
+        self.mi_scene, self.has_analytic = mi_scene, has_analytic
 
     def analytic_point(self, sidx, uv, active=True):
         return CacheLayout.analytic_point(self, sidx, uv, active)
@@ -187,35 +184,38 @@ class EntryInteractions(FrozenFunction):
     """:meth:`TexelPoints.interactions` traced once and replayed (``dr.freeze``):
     rebuilding the active entries' ``SurfaceInteraction3f`` calls every cached
     shape's ``compute_surface_interaction`` (a virtual call), whose tracing was
-    most of the cache's per-frame host time. Inputs: the Mitsuba scene, the
-    layout tables it reads, the per-slot surface points and the frame's active
-    slots and islands (their number may change between calls without a new
-    recording). One instance per cache (``layout``'s Python settings are fixed);
-    the recording policy is :class:`slc.freeze.FrozenFunction`'s."""
+    most of the cache's per-frame host time. Inputs (:func:`_interactions_kernel`):
+    the Mitsuba scene, whether analytic shapes are cached, the layout tables it
+    reads, the per-slot surface points and the frame's active slots and islands
+    (their number may change between calls without a new recording). The kernel
+    is a module function without closure, so that nothing of the cache is held in
+    a reference cycle; the recording policy is :class:`slc.freeze.FrozenFunction`'s."""
 
-    def __init__(self, layout: CacheLayout, freeze: bool = True, animated: bool = False,
-                 max_recordings: int = 4):
-        names = _SI_TABLES + (_SI_ANALYTIC_TABLES if layout.has_analytic else ())
-
-        def kernel(mi_scene, tables, slot_tri, slot_b, slots, isl):
-            tri = dr.gather(mi.UInt32, slot_tri, slots)
-            b = dr.gather(mi.Point2f, slot_b, slots)
-            return surface_interaction(_Tables(layout, names, tables), isl, tri, b, mi_scene)
-
-        super().__init__(kernel, freeze, animated, max_recordings)
+    def __init__(self, freeze: bool = True, animated: bool = False, max_recordings: int = 4):
+        super().__init__(_interactions_kernel, freeze, animated, max_recordings)
 
     def __del__(self):
-        # Dr.Jit's frozen function sits in a reference cycle and would be freed by the
-        # garbage collector at any time, possibly while another frozen function records
-        # (which aborts the process): free the recordings now, with their owner
+        # free the recordings with their owner (refcount), not whenever the garbage
+        # collector gets to them: freeing a recording while another frozen function
+        # records aborts the process
         if self.frozen:
             self.kernel.clear()
 
 
-def surface_interaction(L, isl, tri, b, mi_scene=None) -> mi.SurfaceInteraction3f:
+def _interactions_kernel(mi_scene, has_analytic, tables, slot_tri, slot_b, slots, isl):
+    """The interactions of ``slots`` (island ``isl``) from the per-slot surface
+    points; ``tables`` the layout's arrays named in ``_SI_TABLES`` (and
+    ``_SI_ANALYTIC_TABLES`` when ``has_analytic``). Reads no array's width."""
+    names = _SI_TABLES + (_SI_ANALYTIC_TABLES if has_analytic else ())
+    L = _Tables(names, tables, mi_scene, has_analytic)
+    tri = dr.gather(mi.UInt32, slot_tri, slots)
+    b = dr.gather(mi.Point2f, slot_b, slots)
+    return surface_interaction(L, isl, tri, b)
+
+
+def surface_interaction(L, isl, tri, b) -> mi.SurfaceInteraction3f:
     """The interaction at (triangle, barycentrics) or, for analytic shapes,
-    (u, v) of every lane (see the module)."""
-    mi_scene = L.mi_scene if mi_scene is None else mi_scene
+    (u, v) of every lane (see the module); ``L`` a layout (or :class:`_Tables`)."""
     # nothing reads an array's width (the frozen function replays for any number of lanes)
     shape_idx = dr.gather(mi.UInt32, L.d_isl_shape, isl)
     pi = dr.zeros(mi.PreliminaryIntersection3f)
@@ -224,7 +224,7 @@ def surface_interaction(L, isl, tri, b, mi_scene=None) -> mi.SurfaceInteraction3
     pi.prim_uv = mi.Point2f(b)
     pi.prim_index = tri - dr.gather(mi.UInt32, L.d_tri_base, shape_idx)
     pi.shape_index = shape_idx
-    pi.shape = dr.gather(mi.ShapePtr, mi_scene.shapes_dr(), shape_idx)
+    pi.shape = dr.gather(mi.ShapePtr, L.mi_scene.shapes_dr(), shape_idx)
     ray = mi.Ray3f(mi.Point3f(0.0), mi.Vector3f(0.0, 0.0, 1.0))
     if L.has_analytic:
         # analytic shapes: a ray that starts on the closed-form point (t = 0)
