@@ -66,17 +66,46 @@ class GBuffer:
 @dataclass
 class Layers:
     """The G-buffers of one frame's viewers one after another in one array:
-    viewer ``v``'s pixel ``i`` is at ``offsets[v] + i``. ``si`` and ``valid`` as in
-    :class:`GBuffer`; ``pixel`` is each entry's pixel index within its own viewer."""
+    viewer ``v``'s pixel ``i`` is at ``offsets[v] + i``. ``si``, ``valid``,
+    ``shape_index``, ``prim_index``, ``prim_uv`` and ``footprint`` as in
+    :class:`GBuffer` (so that a cache can map every viewer's pixels to its
+    entries in one launch); ``pixel`` is each entry's pixel index within its own
+    viewer and ``viewer`` its viewer's index."""
     si: mi.SurfaceInteraction3f
     valid: mi.Bool
     pixel: mi.UInt32
     sizes: tuple
     offsets: tuple
+    shape_index: mi.UInt32 = None
+    prim_index: mi.UInt32 = None
+    prim_uv: mi.Point2f = None
+    footprint: mi.Float = None
+    viewer: mi.UInt32 = None
 
     @property
     def size(self) -> int:
         return sum(self.sizes)
+
+
+def _lay_out(gbuffers: list) -> Layers:
+    sizes = tuple(gb.size for gb in gbuffers)
+    offsets = tuple(sum(sizes[:v]) for v in range(len(sizes)))
+    total = sum(sizes)
+    lay = Layers(dr.empty(mi.SurfaceInteraction3f, total), dr.empty(mi.Bool, total), dr.empty(mi.UInt32, total),
+                 sizes, offsets, dr.empty(mi.UInt32, total), dr.empty(mi.UInt32, total),
+                 dr.empty(mi.Point2f, total), dr.empty(mi.Float, total), dr.empty(mi.UInt32, total))
+    for v, (gb, n, off) in enumerate(zip(gbuffers, sizes, offsets)):
+        at = dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, off)
+        dr.scatter(lay.si, gb.si, at)
+        dr.scatter(lay.valid, mi.Bool(gb.valid), at)
+        dr.scatter(lay.pixel, dr.arange(mi.UInt32, n), at)
+        dr.scatter(lay.shape_index, mi.UInt32(gb.shape_index), at)
+        dr.scatter(lay.prim_index, mi.UInt32(gb.prim_index), at)
+        dr.scatter(lay.prim_uv, mi.Point2f(gb.prim_uv), at)
+        dr.scatter(lay.footprint, mi.Float(gb.footprint), at)
+        dr.scatter(lay.viewer, dr.opaque(mi.UInt32, v), at)
+    dr.eval(lay.si, lay.valid, lay.pixel, lay.shape_index, lay.prim_index, lay.prim_uv, lay.footprint, lay.viewer)
+    return lay
 
 
 def attach_layers(gbuffers: list) -> Layers | None:
@@ -85,22 +114,26 @@ def attach_layers(gbuffers: list) -> Layers | None:
     per-viewer G-buffers are unchanged. Nothing for fewer than two viewers."""
     if len(gbuffers) < 2:
         return None
-    sizes = tuple(gb.size for gb in gbuffers)
-    offsets = tuple(sum(sizes[:v]) for v in range(len(sizes)))
-    total = sum(sizes)
-    si = dr.empty(mi.SurfaceInteraction3f, total)
-    valid = dr.empty(mi.Bool, total)
-    pixel = dr.empty(mi.UInt32, total)
-    for gb, n, off in zip(gbuffers, sizes, offsets):
-        at = dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, off)
-        dr.scatter(si, gb.si, at)
-        dr.scatter(valid, mi.Bool(gb.valid), at)
-        dr.scatter(pixel, dr.arange(mi.UInt32, n), at)
-    dr.eval(si, valid, pixel)
-    lay = Layers(si, valid, pixel, sizes, offsets)
+    lay = _lay_out(gbuffers)
     for v, gb in enumerate(gbuffers):
         gb.layers, gb.layer = lay, v
     return lay
+
+
+def layered(gbuffers: list) -> Layers:
+    """The frame's viewers as one :class:`Layers`: the attached one when every
+    G-buffer carries it (no copy); one G-buffer's own arrays (no copy; ``viewer``
+    0); else laid out here (a copy, for callers that did not attach layers)."""
+    if len(gbuffers) == 1:
+        gb = gbuffers[0]
+        return Layers(gb.si, mi.Bool(gb.valid), None, (gb.size,), (0,), mi.UInt32(gb.shape_index),
+                      mi.UInt32(gb.prim_index), mi.Point2f(gb.prim_uv), mi.Float(gb.footprint),
+                      dr.zeros(mi.UInt32, gb.size))
+    lay = gbuffers[0].layers if gbuffers else None
+    if lay is not None and lay.viewer is not None and len(lay.sizes) == len(gbuffers) and \
+            all(gb.layers is lay and gb.layer == v for v, gb in enumerate(gbuffers)):
+        return lay
+    return _lay_out(gbuffers)
 
 
 def _opaque_camera(cam: Camera, width: int, height: int):

@@ -26,6 +26,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .. import gbuffer as gbuf
 from ..keys import INVALID
 from ..timing import NullTimer
 from .blocks import BlockPool, widen
@@ -33,7 +34,7 @@ from .islands import DEFAULT_MAX_ANGLE, DEFAULT_MAX_TRIANGLES
 from .layout import CacheLayout
 from .protocol import BILINEAR_TAPS, ENTRY_TEXELS, FrameRequests
 from .requests import bilinear_taps, dedupe, lod_seeds, requested_blocks
-from .surface import TexelPoints
+from .surface import EntryInteractions, TexelPoints
 
 DEFAULT_CAPACITY_ENTRIES = 2 ** 20   # default initial pool: 1M entries (16384 blocks of 8x8), at most the virtual size
 
@@ -95,6 +96,8 @@ class OnSurfaceCache:
                            measured_overlap=0.0, evicted=0, new_entries=0, new_blocks=0,
                            overflow_blocks=0, pixels=0, capacity=self.capacity)
         self._warned = False
+        self._pending = None
+        self._interactions = EntryInteractions(animated=bool(getattr(self.scene, "dynamic", False)))
 
     def entries_allocated(self) -> int:
         return self.pool.n_blocks * self.layout.block_texels
@@ -106,6 +109,12 @@ class OnSurfaceCache:
         return self.pool.table_bytes() + 16 * self.entries_allocated()
 
     def stats(self) -> dict:
+        p = self._pending
+        if p is not None:      # the last frame's counts, read back here (not in the timed stages)
+            self._pending = None
+            n_multi = int(dr.count(p["multi"])[0]) if dr.width(p["multi"]) else 0
+            self._stats["measured_overlap"] = 100.0 * n_multi / max(p["n_active"], 1)
+            self._stats["pixels"] = int(dr.count(p["valid"])[0]) if dr.width(p["valid"]) else 0
         return dict(self._stats, cache_bytes=self.memory_bytes())
 
     # ------------------------------------------------------------------ frame
@@ -114,12 +123,19 @@ class OnSurfaceCache:
         queue; timed as stages "requests", "allocate", "queue"."""
         timer = timer if timer is not None else NullTimer()
         L, pool = self.layout, self.pool
+        # all viewers' pixels as one array: the frame's layered G-buffer (no copy
+        # when attached, as the pipeline does; one viewer's own arrays)
+        src = gbuf.layered(list(gbuffers)) if gbuffers else None
 
-        # ---------------------------------------------------------- 1. requests
+        # ---------------------------------------------------------- 1. requests (one launch for all viewers)
         with timer.stage("requests") as st:
-            reqs = [L.pixel_texels(gb) for gb in gbuffers]
-            req_vb = requested_blocks(reqs, L.n_vblocks)
-            st.outputs(req_vb, *[x for r in reqs for x in r])
+            if src is None:
+                req = (mi.Bool(), mi.UInt32(), mi.UInt32(), mi.UInt32())
+            else:
+                req = L.pixel_texels(src)
+                dr.eval(req[0], req[1], req[2])    # once: both passes of requested_blocks read them
+            req_vb = requested_blocks([req], L.n_vblocks)
+            st.outputs(req_vb)
 
         # ---------------------------------------------------------- 2. allocate + slot dedupe
         with timer.stage("allocate") as st:
@@ -136,9 +152,10 @@ class OnSurfaceCache:
                               f"not allocated this frame (pixels get INVALID); pass max_blocks or grow=True")
                 self._warned = True
             req_phys = pool.touch(req_vb, self.tick)
-            active, pixel_slot, pixel_index, n_multi = dedupe(pool, reqs, req_phys)
+            active, slots, index, multi = dedupe(pool, [req], req_phys, [src.viewer])
             dr.eval(active)    # apart: n_active may equal a viewer's pixel count (same-sized values fuse)
-            st.outputs(*pixel_slot, *pixel_index, pool.blk_vb, pool.blk_last)
+            st.outputs(slots[0], index[0], multi, pool.blk_vb, pool.blk_last)
+        pixel_slot, pixel_index = self._per_viewer(slots[0], src), self._per_viewer(index[0], src)
 
         # ---------------------------------------------------------- 3. queue: new entries, surface points
         with timer.stage("queue") as st:
@@ -156,20 +173,31 @@ class OnSurfaceCache:
                 # apart from the n-sized values below: a kernel must not depend on
                 # whether n_new happens to equal n_active (same-sized values fuse)
                 dr.eval(seed, self.points.slot_tri, self.points.slot_b)
-            dr.eval(seed, is_new)
-            si = self.points.interactions(active, isl)
+            dr.eval(seed, is_new, isl)
+            si = self.points.interactions(active, isl, self._interactions)
             keys = self._keys(isl, lvl, tx, ty)
             dr.scatter(pool.slot_seen, mi.UInt32(1), active)
             st.outputs(si, is_new, seed, keys, pool.slot_seen)
 
+        # counts are read back in stats(), outside the timed stages
         self._frame_stats(evicted=evicted, entries_requested=n_active, new_entries=n_new,
-                          new_blocks=n_new_blocks, overflow_blocks=overflow, requested_blocks=dr.width(req_vb),
-                          measured_overlap=100.0 * n_multi / max(n_active, 1),
-                          pixels=int(sum(dr.count(r[0]) for r in reqs)[0]))
+                          new_blocks=n_new_blocks, overflow_blocks=overflow, requested_blocks=dr.width(req_vb))
+        self._pending = dict(multi=multi, n_active=n_active, valid=req[0])
         return FrameRequests(frame=frame, active=active, si=si, is_new=is_new, seed_slot=seed, keys=keys,
-                             pixel_slot=pixel_slot, pixel_index=pixel_index)
+                             pixel_slot=pixel_slot, pixel_index=pixel_index,
+                             layer_slot=slots[0], layer_index=index[0])
+
+    @staticmethod
+    def _per_viewer(values, src) -> list:
+        """Per viewer, its part of a value over the layered pixels (unevaluated
+        gathers; the value itself for one viewer)."""
+        if len(src.sizes) == 1:
+            return [values]
+        return [dr.gather(mi.UInt32, values, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, off))
+                for n, off in zip(src.sizes, src.offsets)]
 
     def _frame_stats(self, **kw):
+        self._pending = None
         alloc = self.entries_allocated()
         self._stats = dict(blocks=self.pool.n_blocks, entries_allocated=alloc, entries_requested=0,
                            new_entries=0, new_blocks=0, overflow_blocks=0, requested_blocks=0, pixels=0,

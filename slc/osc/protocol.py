@@ -19,7 +19,10 @@ What the cache gives a payload (:class:`FrameRequests`):
   by it do not depend on who asked).
 - per viewer: ``pixel_slot`` (entry slot of each pixel, INVALID where the
   G-buffer is invalid or nothing is cached) and ``pixel_index`` (the pixel's
-  index into ``active``/``si``, INVALID likewise).
+  index into ``active``/``si``, INVALID likewise); optionally the same for all
+  viewers' pixels in the order of the frame's layered G-buffer
+  (:class:`slc.gbuffer.Layers`): ``layer_slot``, ``layer_index`` (None when
+  the cache does not provide them).
 
 What the cache promises: slots index payload arrays of ``capacity`` entries
 (``capacity`` may grow between frames; payloads grow their arrays to it and
@@ -67,6 +70,8 @@ class FrameRequests:
     keys: mi.UInt32
     pixel_slot: list = field(default_factory=list)
     pixel_index: list = field(default_factory=list)
+    layer_slot: mi.UInt32 | None = None      # pixel_slot of all viewers laid out as the frame's layers
+    layer_index: mi.UInt32 | None = None     # pixel_index likewise (slc.gbuffer.Layers order)
 
     @property
     def n_active(self) -> int:

@@ -47,45 +47,60 @@ def requested_blocks(reqs, n_vblocks: int) -> mi.UInt32:
     return (dr.gather(mi.UInt32, pages, idx >> PAGE_SHIFT) << PAGE_SHIFT) | (idx & (span - 1))
 
 
-def dedupe(pool: BlockPool, reqs, req_phys):
+def dedupe(pool: BlockPool, reqs, req_phys, viewers=None):
     """Unique active slots of this frame over all viewers.
 
-    ``reqs``: per viewer (valid, virtual block, texel in block, level);
-    ``req_phys``: the requested physical blocks, ascending, with their rank
-    in ``pool.blk_rank``. Works on the compact range of requested blocks x
-    B^2 (not the whole pool), so the result stays sorted by slot. A min/max
-    viewer scatter per compact slot also tells which entries more than one
-    viewer asked for.
+    ``reqs``: a list of requests (valid, virtual block, texel in block, level),
+    one per viewer or one for all viewers' pixels laid out together;
+    ``viewers``: each request's viewer index, an int or a per-pixel ``UInt32``
+    (default: the request's position in the list); ``req_phys``: the requested
+    physical blocks, ascending, with their rank in ``pool.blk_rank``. Works on
+    the compact range of requested blocks x B^2 (not the whole pool), so the
+    result stays sorted by slot.
 
-    Returns (active slots, per-viewer pixel slots, per-viewer pixel index
-    into ``active``, number of entries seen by more than one viewer)."""
+    Which entries more than one viewer asked for, without atomics (at full
+    overlap every viewer's pixels hit the same entries, and atomic min/max
+    reductions from both threads on one address were most of the cost): every
+    pixel writes its viewer into its compact slot (a plain scatter: some writer
+    wins), then every pixel whose viewer is not the winner flags the slot. A slot
+    is flagged exactly when two viewers or more wrote to it, whichever won.
+
+    Returns (active slots, per-request pixel slots, per-request pixel index
+    into ``active``, mask over ``active`` of the entries seen by more than one
+    viewer; nothing read back)."""
     B2 = pool.B2
-    ncomp = dr.width(req_phys) * B2
-    vmin = dr.full(mi.UInt32, INVALID, max(ncomp, 1))
-    vmax = dr.zeros(mi.UInt32, max(ncomp, 1))
-    pixel_slot, pix_cid = [], []
+    ncomp = max(dr.width(req_phys) * B2, 1)
+    owner = dr.full(mi.UInt32, INVALID, ncomp)
+    pixel_slot, pix = [], []
     for v, (valid, vb, within, _) in enumerate(reqs):
         ph = pool.phys(vb, valid)
         ok = valid & (ph != INVALID)
         cid = dr.gather(mi.UInt32, pool.blk_rank, ph, ok) * B2 + within
-        viewer = dr.opaque(mi.UInt32, v)
-        # Local mode: the default (Expand on the CPU) bakes the target's size, a per-frame
-        # count, into the kernel: a new kernel every frame
-        dr.scatter_reduce(dr.ReduceOp.Min, vmin, viewer, cid, ok, mode=dr.ReduceMode.Local)
-        dr.scatter_reduce(dr.ReduceOp.Max, vmax, viewer, cid, ok, mode=dr.ReduceMode.Local)
+        vid = v if viewers is None else viewers[v]
+        viewer = dr.opaque(mi.UInt32, vid) if isinstance(vid, int) else mi.UInt32(vid)
+        dr.scatter(owner, viewer, cid, ok)
         pixel_slot.append(dr.select(ok, ph * B2 + within, INVALID))
-        pix_cid.append((ok, cid))
-    act_c = dr.compress(vmin != INVALID)
+        pix.append((ok, cid, viewer))
+    dr.schedule(pixel_slot, [p[1] for p in pix])   # in the owner scatter's kernel
+    act_c = dr.compress(owner != INVALID)
     n_active = dr.width(act_c)
     if n_active == 0:
-        return mi.UInt32(), pixel_slot, [dr.full(mi.UInt32, INVALID, dr.width(s)) for s in pixel_slot], 0
+        return (mi.UInt32(), pixel_slot, [dr.full(mi.UInt32, INVALID, dr.width(s)) for s in pixel_slot],
+                mi.Bool())
     active = dr.gather(mi.UInt32, req_phys, act_c // B2) * B2 + (act_c & (B2 - 1))
-    multi = dr.gather(mi.UInt32, vmax, act_c) != dr.gather(mi.UInt32, vmin, act_c)
-    n_multi = int(dr.count(multi)[0])
-    # pixel -> index into the active list (vmax reused as the map)
-    dr.scatter(vmax, dr.arange(mi.UInt32, n_active), act_c)
-    pixel_index = [dr.select(ok, dr.gather(mi.UInt32, vmax, cid, ok), INVALID) for ok, cid in pix_cid]
-    return active, pixel_slot, pixel_index, n_multi
+    # compact slot -> index into the active list
+    rank = dr.empty(mi.UInt32, ncomp)
+    dr.scatter(rank, dr.arange(mi.UInt32, n_active), act_c)
+    dr.eval(active, rank)
+    # one pass over the pixels: their index into the active list, and the shared flags
+    shared = dr.zeros(mi.Bool, ncomp)
+    pixel_index = []
+    for ok, cid, viewer in pix:
+        dr.scatter(shared, True, cid, ok & (dr.gather(mi.UInt32, owner, cid, ok) != viewer))
+        pixel_index.append(dr.select(ok, dr.gather(mi.UInt32, rank, cid, ok), INVALID))
+    dr.eval(shared, pixel_index)
+    multi = dr.gather(mi.Bool, shared, act_c)     # left unevaluated (read by the cache's stats)
+    return active, pixel_slot, pixel_index, multi
 
 
 def lod_seeds(layout: CacheLayout, pool: BlockPool, isl, lvl, tx, ty) -> mi.UInt32:

@@ -21,8 +21,13 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from ..freeze import FrozenFunction
 from .blocks import _extend
 from .layout import CacheLayout
+
+# the layout tables that surface_interaction reads (passed to the frozen function as inputs)
+_SI_TABLES = ("d_isl_shape", "d_tri_base")
+_SI_ANALYTIC_TABLES = ("d_shape_analytic", "d_shape_kind", "d_shape_xform")
 
 EDGE_INSET = 1e-4     # border entries of analytic shapes stay this far (in u, v) inside the domain
 BORDER_INSET = 1e-3   # clamped border entries move this fraction of the way to the triangle's centroid
@@ -58,8 +63,16 @@ class TexelPoints:
         dr.scatter(self.slot_tri, tri, slots)
         dr.scatter(self.slot_b, b, slots)
 
-    def interactions(self, slots, isl) -> mi.SurfaceInteraction3f:
-        """The surface interaction of every slot (its own point, ``wi`` along the normal)."""
+    def interactions(self, slots, isl, frozen: "EntryInteractions | None" = None) -> mi.SurfaceInteraction3f:
+        """The surface interaction of every slot (its own point, ``wi`` along the
+        normal); with ``frozen`` (an :class:`EntryInteractions`) traced once and
+        replayed: the same values, without tracing Mitsuba's per-shape
+        ``compute_surface_interaction`` every frame."""
+        if frozen is not None:
+            L = self.layout
+            names = _SI_TABLES + (_SI_ANALYTIC_TABLES if L.has_analytic else ())
+            return frozen(L.mi_scene, bool(L.has_analytic), tuple(getattr(L, k) for k in names), self.slot_tri,
+                          self.slot_b, mi.UInt32(slots), mi.UInt32(isl))
         tri = dr.gather(mi.UInt32, self.slot_tri, slots)
         b = dr.gather(mi.Point2f, self.slot_b, slots)
         return self.surface_interaction(isl, tri, b)
@@ -152,34 +165,84 @@ class TexelPoints:
         return dr.select(ana, uv, b)
 
     def surface_interaction(self, isl, tri, b) -> mi.SurfaceInteraction3f:
-        L = self.layout
-        n = dr.width(tri)
-        shape_idx = dr.gather(mi.UInt32, L.d_isl_shape, isl)
-        pi = dr.zeros(mi.PreliminaryIntersection3f, n)
-        pi.t = dr.full(mi.Float, 1.0, n)
-        pi.valid = dr.full(mi.Bool, True, n)
-        pi.prim_uv = mi.Point2f(b)
-        pi.prim_index = tri - dr.gather(mi.UInt32, L.d_tri_base, shape_idx)
-        pi.shape_index = shape_idx
-        pi.shape = dr.gather(mi.ShapePtr, L.mi_scene.shapes_dr(), shape_idx)
-        ray = mi.Ray3f(mi.Point3f(0.0), mi.Vector3f(0.0, 0.0, 1.0))
-        if L.has_analytic:
-            # analytic shapes: a ray that starts on the closed-form point (t = 0)
-            # and Mitsuba's own compute_surface_interaction (which reprojects p
-            # onto the surface and sets uv, frames, derivatives); the disk reads
-            # its object-space (x, y) from prim_uv
-            ana = dr.gather(mi.Bool, L.d_shape_analytic, shape_idx)
-            p, dp_du, dp_dv = L.analytic_point(shape_idx, b, ana)
-            kind = dr.gather(mi.UInt32, L.d_shape_kind, shape_idx, ana)
-            sphi, cphi = dr.sincos(dr.two_pi * b.y)
-            disk = ana & (kind == 2)
-            pi.prim_uv = dr.select(disk, mi.Point2f(b.x * cphi, b.x * sphi), pi.prim_uv)
-            pi.t = dr.select(ana, 0.0, pi.t)
-            n = dr.normalize(dr.cross(dp_du, dp_dv))
-            ray = mi.Ray3f(dr.select(ana, p, ray.o), dr.select(ana, -n, ray.d))
-        si = pi.compute_surface_interaction(ray, mi.RayFlags.All)
-        si.wi = mi.Vector3f(0.0, 0.0, 1.0)     # "viewer" along the shading normal
-        return si
+        return surface_interaction(self.layout, isl, tri, b)
+
+
+class _Tables:
+    """What :func:`surface_interaction` reads of a layout, from the frozen
+    function's inputs."""
+
+    def __init__(self, names, arrays, mi_scene, has_analytic):
+        self.__dict__.update(zip(names, arrays))
+        self.mi_scene, self.has_analytic = mi_scene, has_analytic
+
+    def analytic_point(self, sidx, uv, active=True):
+        return CacheLayout.analytic_point(self, sidx, uv, active)
+
+
+class EntryInteractions(FrozenFunction):
+    """:meth:`TexelPoints.interactions` traced once and replayed (``dr.freeze``):
+    rebuilding the active entries' ``SurfaceInteraction3f`` calls every cached
+    shape's ``compute_surface_interaction`` (a virtual call), whose tracing was
+    most of the cache's per-frame host time. Inputs (:func:`_interactions_kernel`):
+    the Mitsuba scene, whether analytic shapes are cached, the layout tables it
+    reads, the per-slot surface points and the frame's active slots and islands
+    (their number may change between calls without a new recording). The kernel
+    is a module function without closure, so that nothing of the cache is held in
+    a reference cycle; the recording policy is :class:`slc.freeze.FrozenFunction`'s."""
+
+    def __init__(self, freeze: bool = True, animated: bool = False, max_recordings: int = 4):
+        super().__init__(_interactions_kernel, freeze, animated, max_recordings)
+
+    def __del__(self):
+        # free the recordings with their owner (refcount), not whenever the garbage
+        # collector gets to them: freeing a recording while another frozen function
+        # records aborts the process
+        if self.frozen:
+            self.kernel.clear()
+
+
+def _interactions_kernel(mi_scene, has_analytic, tables, slot_tri, slot_b, slots, isl):
+    """The interactions of ``slots`` (island ``isl``) from the per-slot surface
+    points; ``tables`` the layout's arrays named in ``_SI_TABLES`` (and
+    ``_SI_ANALYTIC_TABLES`` when ``has_analytic``). Reads no array's width."""
+    names = _SI_TABLES + (_SI_ANALYTIC_TABLES if has_analytic else ())
+    L = _Tables(names, tables, mi_scene, has_analytic)
+    tri = dr.gather(mi.UInt32, slot_tri, slots)
+    b = dr.gather(mi.Point2f, slot_b, slots)
+    return surface_interaction(L, isl, tri, b)
+
+
+def surface_interaction(L, isl, tri, b) -> mi.SurfaceInteraction3f:
+    """The interaction at (triangle, barycentrics) or, for analytic shapes,
+    (u, v) of every lane (see the module); ``L`` a layout (or :class:`_Tables`)."""
+    # nothing reads an array's width (the frozen function replays for any number of lanes)
+    shape_idx = dr.gather(mi.UInt32, L.d_isl_shape, isl)
+    pi = dr.zeros(mi.PreliminaryIntersection3f)
+    pi.t = mi.Float(1.0)
+    pi.valid = mi.Bool(True)
+    pi.prim_uv = mi.Point2f(b)
+    pi.prim_index = tri - dr.gather(mi.UInt32, L.d_tri_base, shape_idx)
+    pi.shape_index = shape_idx
+    pi.shape = dr.gather(mi.ShapePtr, L.mi_scene.shapes_dr(), shape_idx)
+    ray = mi.Ray3f(mi.Point3f(0.0), mi.Vector3f(0.0, 0.0, 1.0))
+    if L.has_analytic:
+        # analytic shapes: a ray that starts on the closed-form point (t = 0)
+        # and Mitsuba's own compute_surface_interaction (which reprojects p
+        # onto the surface and sets uv, frames, derivatives); the disk reads
+        # its object-space (x, y) from prim_uv
+        ana = dr.gather(mi.Bool, L.d_shape_analytic, shape_idx)
+        p, dp_du, dp_dv = L.analytic_point(shape_idx, b, ana)
+        kind = dr.gather(mi.UInt32, L.d_shape_kind, shape_idx, ana)
+        sphi, cphi = dr.sincos(dr.two_pi * b.y)
+        disk = ana & (kind == 2)
+        pi.prim_uv = dr.select(disk, mi.Point2f(b.x * cphi, b.x * sphi), pi.prim_uv)
+        pi.t = dr.select(ana, 0.0, pi.t)
+        n = dr.normalize(dr.cross(dp_du, dp_dv))
+        ray = mi.Ray3f(dr.select(ana, p, ray.o), dr.select(ana, -n, ray.d))
+    si = pi.compute_surface_interaction(ray, mi.RayFlags.All)
+    si.wi = mi.Vector3f(0.0, 0.0, 1.0)     # "viewer" along the shading normal
+    return si
 
 
 def _closest_on_triangle(c, p0, p1, p2):
