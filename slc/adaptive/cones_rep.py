@@ -15,7 +15,9 @@ import drjit as dr
 import mitsuba as mi
 
 from ..cones.packing import pack, unpack
-from ..cones.update import ConeParams, SampleObserver, empty_state, end_cycle, insert_sample, update_cycle
+from ..cones.update import (ConeParams, SampleObserver, empty_state, end_cycle, frame_u32, insert_sample,
+                            light_inputs, update_cycle)
+from ..freeze import FrozenFunction
 from .sampling import lum, sampler_of
 
 CONVERT_COUNT = 4.0     # C of a record converted from another representation: new samples take over fast
@@ -69,6 +71,45 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, moving, first_sample,
         scene, unpack(rec, p.max_cones), key, si, rays, unsettled, moving, fresh, first_sample, ~moving, frame,
         seed, p, valid=mi.Bool(on) & si.is_valid(), observer=_LightStats(scene, sph, env))
     return words, motion, list(st)
+
+
+class ConesUpdate(FrozenFunction):
+    """:func:`update` traced once and replayed (``dr.freeze``, as ``slc``'s
+    :class:`slc.cones.update.ConeUpdate` and :class:`~slc.adaptive.visibility.VisUpdate`):
+    tracing the cone update cycle (the sample loop, cases A-D, the shrink test,
+    packing, the light statistics) cost ~45 ms of Python per frame on the
+    atrium whatever the number of entries. Inputs: the scene, the emitter
+    tables' arrays (the light sampler's, :func:`slc.cones.update.light_inputs`,
+    and the statistics' :func:`~slc.adaptive.visibility._sampler_inputs`), the
+    sphere and region tables, the entries' records and interactions, and the
+    frame as an opaque ``mi.UInt32`` (a new frame is no new recording). The
+    cone parameters, ``seed``, ``sph`` and ``env`` are fixed per instance.
+    Unfrozen in animated scenes and after more than ``max_recordings``
+    recordings. Images are those of the traced update bit for bit."""
+
+    def __init__(self, p: ConeParams, seed: int, sph=None, env=None, freeze: bool = True, max_recordings: int = 4):
+        self.sph, self.env = sph, env
+        seed = int(seed)
+
+        def kernel(scene, lights, tables, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame):
+            # no reference to the method (see visibility.VisShading)
+            out, motion, st = update(scene, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame,
+                                     seed, p, sph, env)
+            # a statistic the samples never touch (e_delta without delta lights) is a literal zero,
+            # which a recording replays at the recorded width: a select makes it a kernel's output
+            st = [dr.select(on, x, 0.0) for x in st]
+            dr.eval(out, motion, st)
+            return out, motion, st
+        super().__init__(kernel, freeze, False, max_recordings)
+
+    def __call__(self, scene, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame: int):
+        from .visibility import _sampler_inputs, _tables
+        lights = light_inputs(scene)
+        if self.sph is not None or self.env is not None:
+            lights = lights + _sampler_inputs(scene)
+        return super().__call__(scene, lights, _tables(self.sph, self.env), [mi.UInt32(w) for w in rec], si,
+                                mi.UInt32(key), mi.UInt32(rays), mi.Bool(unsettled), mi.Bool(moving),
+                                mi.UInt32(first_sample), mi.Bool(fresh), mi.Bool(on), frame_u32(frame))
 
 
 def lobes(rec, active, K: int):

@@ -259,9 +259,9 @@ class AdaptiveCache(PayloadMethod):
                 dr.scatter(motion, mo, idx, on)
                 dr.scatter(vis_motion, mo, idx, on)
             elif r == CONES:
-                out, mo, st = cones_rep.update(sc, rec, si, key, ry, dr.gather(mi.Bool, unsettled, idx),
-                                               dr.gather(mi.Bool, moving, idx), dr.gather(mi.UInt32, first_sample, idx),
-                                               fr_r, on, ctx.frame, self.seed, self.cone_params, self.sph, self.env)
+                out, mo, st = self._cones_update()(sc, rec, si, key, ry, dr.gather(mi.Bool, unsettled, idx),
+                                                   dr.gather(mi.Bool, moving, idx),
+                                                   dr.gather(mi.UInt32, first_sample, idx), fr_r, on, ctx.frame)
                 dr.scatter(motion, mo, idx, on)
             else:
                 out, st = sh_rep.update(sc, rec, si, key, ry, fr_r, on, ctx.frame, self.seed, self.enc,
@@ -420,6 +420,14 @@ class AdaptiveCache(PayloadMethod):
             self._vis_up = visibility.VisUpdate(self.vis_k, self.seed, self.sph, self.env,
                                                 freeze=not bool(getattr(self.scene, "dynamic", False)))
         return self._vis_up
+
+    def _cones_update(self) -> cones_rep.ConesUpdate:
+        """The CONES update, frozen (made on first use; unfrozen in an animated
+        scene)."""
+        if getattr(self, "_cones_up", None) is None:
+            self._cones_up = cones_rep.ConesUpdate(self.cone_params, self.seed, self.sph, self.env,
+                                                   freeze=not bool(getattr(self.scene, "dynamic", False)))
+        return self._cones_up
 
     def _vis_shading(self) -> visibility.VisShading:
         """The VISIBILITY pool's shading, frozen (made on first use; unfrozen in
