@@ -232,22 +232,6 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     area = [live[i] & ~delta[i] for i in range(K)]                        # cones with a density
     inv_om = [dr.select(area[i], dr.rcp(dr.maximum(2.0 * math.pi * h[i], 1e-30)), 0.0) for i in range(K)]
 
-    def density(w, own=None):
-        """(sum over cones holding w of L_c/Omega_c, of 1/Omega_c); cone ``own`` holds w."""
-        Lt, dt = mi.Color3f(zero), mi.Float(zero)
-        for j in range(K):
-            inside = area[j] & ((1.0 - dr.dot(w, Dw[j])) <= h[j] * (1.0 + 1e-5) + 1e-7)
-            if own == j:
-                inside = area[j]
-            Lt += dr.select(inside, L[j] * inv_om[j], 0.0)
-            dt += dr.select(inside, inv_om[j], 0.0)
-        return Lt, dt
-
-    def mis(pdf_cones, pdf_b):
-        """Balance heuristic: a sample's weight over its pdf, 1 / (n_C sum_c 1/Omega_c + n_B p_B)."""
-        den = nc_f * pdf_cones + nb_f * pdf_b
-        return dr.select(den > 0.0, dr.rcp(den), 0.0)
-
     # ------------------- Lambertian pixels: the cone integral in closed form -------------------
     # A cone clear of the horizon: (1/Omega_c) int_c cos = (n . d_c)(1 + cos alpha_c)/2. With
     # ``horizon``, a cone across it (alpha_c < pi/2) takes the exact integral of cos over the
@@ -267,13 +251,13 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
         full = L[i] * (cos_d * 0.5 * (1.0 + dr.cos(A[i])))
         if horizon:
             sa, ca = dr.sin(A[i]), dr.cos(A[i])
-            x = ca * dr.rcp(dr.maximum(sa, 1e-30))
-            y = dr.clip(-x * cos_d * dr.rcp(dr.maximum(sin_d, 1e-30)), -1.0, 1.0)
-            sy = sin_d * dr.safe_sqrt(1.0 - dr.square(y))
-            part = (cos_d * dr.acos(y) - x * sy) * dr.square(sa) + dr.atan2(sy, x)
-            inv_om_i = dr.rcp(dr.maximum(2.0 * math.pi * h[i], 1e-30))
-            across = dr.select(delta[i], L[i] * dr.maximum(cos_d, 0.0), L[i] * (dr.maximum(part, 0.0) * inv_om_i))
             below = (cos_d * ca + sin_d * sa) <= 0.0                      # the whole cap under the horizon
+            # the clipped-cap integral only where a live cone crosses the horizon (a symbolic
+            # branch: SIMD packets without such a lane skip it)
+            across = dr.if_stmt(
+                args=(cos_d, sin_d, sa, ca, A[i], L[i], delta[i], h[i]),
+                cond=live[i] & ~above & ~below,
+                true_fn=_across_cap, false_fn=lambda *a: mi.Color3f(0.0), label="across")
             cones_ok &= ~live[i] | above | (A[i] < 0.5 * math.pi)
             t = dr.select(live[i], dr.select(above, full, dr.select(below, 0.0, across)), 0.0)
         else:
@@ -284,16 +268,71 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
         term.append(t)
         below_c.append(below | (delta[i] & (cos_d <= 0.0)))
     lambert = _lambertian(bsdf, si, active) & cones_ok
-    rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert))
-    closed = rho * closed * (1.0 / math.pi)
+
+    # Each kind of pixel runs in a symbolic branch of its own (Lambertian closed form,
+    # principled closed form, quadrature): on the LLVM backend a SIMD packet skips a branch
+    # none of its lanes takes, so a pixel pays only for its own kind (the images are the
+    # same bit for bit as with every kind computed for every pixel and selected).
+    def lambert_fn(closed):
+        rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert))
+        return rho * closed * (1.0 / math.pi)
+
+    closed = dr.if_stmt(args=(closed,), cond=lambert, true_fn=lambert_fn,
+                        false_fn=lambda closed: mi.Color3f(0.0), label="lambert")
 
     # ------------------- principled pixels: diffuse in closed form, specular lobe as an SG -------------------
     if principled:
-        prin, pfast = _principled_cones(bsdf, si, ctx, active & cones_ok & ~lambert, K, live, delta, A, h, inv_om, L, Dw,
-                                        term, below_c, zero)
+        pm = active & cones_ok & ~lambert
+        prin, pfast = dr.if_stmt(
+            args=(pm,), cond=pm,
+            true_fn=lambda pm: _principled_cones(bsdf, si, ctx, pm, K, live, delta, A, h, inv_om, L, Dw,
+                                                 term, below_c, zero),
+            false_fn=lambda pm: (mi.Color3f(0.0), mi.Bool(False)), label="principled")
     else:
         prin, pfast = mi.Color3f(zero), active & False
     sampled = active & ~lambert & ~pfast & (n > 0)
+
+    def sampled_fn(sampled):
+        return _quadrature(bsdf, si, ctx, sampled, K, n_total, key, pid, adaptive, rotate, live, delta, area, h,
+                           inv_om, L, A, Dw, zero)
+
+    acc = dr.if_stmt(args=(sampled,), cond=sampled, true_fn=sampled_fn,
+                     false_fn=lambda sampled: mi.Color3f(0.0), label="quadrature")
+
+    # raw values: a NaN or Inf made here reaches the image, where check mode names it
+    return dr.select(lambert, closed, dr.select(pfast, prin, acc))
+
+
+def _across_cap(cos_d, sin_d, sa, ca, A, L, delta, h):
+    """L_c (1/Omega_c) times the integral of cos over the part of the cap (axis at
+    ``cos_d`` from the normal, half-angle ``A``) above the horizon (Snyder 1996)."""
+    x = ca * dr.rcp(dr.maximum(sa, 1e-30))
+    y = dr.clip(-x * cos_d * dr.rcp(dr.maximum(sin_d, 1e-30)), -1.0, 1.0)
+    sy = sin_d * dr.safe_sqrt(1.0 - dr.square(y))
+    part = (cos_d * dr.acos(y) - x * sy) * dr.square(sa) + dr.atan2(sy, x)
+    inv_om_i = dr.rcp(dr.maximum(2.0 * math.pi * h, 1e-30))
+    return dr.select(delta, L * dr.maximum(cos_d, 0.0), L * (dr.maximum(part, 0.0) * inv_om_i))
+
+
+def _quadrature(bsdf, si, ctx, sampled, K, n_total, key, pid, adaptive, rotate, live, delta, area, h, inv_om, L,
+                A, Dw, zero):
+    """The MIS quadrature of the pixels ``sampled`` (the module docstring): returns
+    the sum over their cone and BSDF samples."""
+    def density(w, own=None):
+        """(sum over cones holding w of L_c/Omega_c, of 1/Omega_c); cone ``own`` holds w."""
+        Lt, dt = mi.Color3f(zero), mi.Float(zero)
+        for j in range(K):
+            inside = area[j] & ((1.0 - dr.dot(w, Dw[j])) <= h[j] * (1.0 + 1e-5) + 1e-7)
+            if own == j:
+                inside = area[j]
+            Lt += dr.select(inside, L[j] * inv_om[j], 0.0)
+            dt += dr.select(inside, inv_om[j], 0.0)
+        return Lt, dt
+
+    def mis(pdf_cones, pdf_b):
+        """Balance heuristic: a sample's weight over its pdf, 1 / (n_C sum_c 1/Omega_c + n_B p_B)."""
+        den = nc_f * pdf_cones + nb_f * pdf_b
+        return dr.select(den > 0.0, dr.rcp(den), 0.0)
 
     # ------------------- allocation: how narrow is the lobe against the cones? -------------------
     # q = p_B(r) max_c Omega_c, with r the mirror direction of w_o (the peak of a glossy lobe),
@@ -377,9 +416,7 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
         return t + 1, acc
 
     _, acc = dr.while_loop(state=(mi.UInt32(0), acc), cond=bsdf_cond, body=bsdf_body, labels=("t", "acc"))
-
-    # raw values: a NaN or Inf made here reaches the image, where check mode names it
-    return dr.select(lambert, closed, dr.select(pfast, prin, acc))
+    return acc
 
 
 def shade_key(frame: int, seed: int, tap: int = 0) -> int:
