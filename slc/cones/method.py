@@ -85,6 +85,9 @@ class SurfaceLightCones(PayloadMethod):
               choices=("clip", "sample")),
         Param("principled", "sg", "pixels with the principled BSDF: diffuse part in closed form and specular lobe as a "
               "spherical Gaussian over each cone (sg), or the MIS quadrature (sample)", choices=("sg", "sample")),
+        Param("conductor", "sample", "pixels with an isotropic GGX roughconductor: the MIS quadrature (sample) or the "
+              "lobe as a spherical Gaussian over each cone (sg; scenes whose roughconductors are all GGX)",
+              choices=("sg", "sample")),
         Param("batch", "viewers", "viewers: shade all viewers' pixels in one launch (nearest fetch; the same images "
               "as per viewer); off: one launch per viewer", choices=("off", "viewers")),
     ) + PayloadMethod.cache_params

@@ -156,8 +156,25 @@ def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw
     r_loc = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
     f_r = mi.Color3f(bsdf.eval(ctx, si, r_loc, m))
     S_r = dr.maximum(f_r - kd * (fdiff(r_loc) * ci), 0.0)
-    alpha = dr.maximum(dr.square(rough), 1e-3)
+    lobe = _sg_lobe(si, dr.maximum(dr.square(rough), 1e-3), ci)
+
+    # ------------------- per cone: diffuse at the axis, the part of the lobe in the cap -------------------
+    out = mi.Color3f(zero)
+    for i in range(K):
+        d_loc = si.to_local(Dw[i])
+        diff = kd * (fdiff(d_loc) * term[i])
+        sg, _, _ = _sg_cone(lobe, Dw[i], A[i], inv_om[i], delta[i])
+        spec = dr.select(below[i], 0.0, S_r * (L[i] * sg))
+        out += dr.select(live[i], diff + spec, 0.0)
+    return out, m
+
+
+def _sg_lobe(si, alpha, ci):
+    r"""The GGX lobe of roughness ``alpha`` (GGX's own) around the mirror direction ``r``
+    of ``w_o`` as an anisotropic Gaussian (see :func:`_principled_cones`): (r, E_s,
+    sigma_par, sigma_perp, e_par, e_perp), ``E_s`` its integral over its peak."""
     lam_l = dr.rcp(2.0 * dr.square(alpha) * ci)
+    r_loc = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
     r = si.to_world(r_loc)
     E_s = (2.0 * math.pi) * dr.rcp(lam_l) * (1.0 - dr.exp(-2.0 * lam_l))      # int of the SG lobe / S_r
     # the lobe's widths: a half vector tilted by an angle b moves r by 2b in the plane of
@@ -168,52 +185,83 @@ def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw
     e_perp = dr.cross(si.sh_frame.n, r)
     e_perp = dr.select(dr.squared_norm(e_perp) > 1e-12, dr.normalize(e_perp), si.sh_frame.s)
     e_par = dr.cross(e_perp, r)
+    return r, E_s, s_par, s_perp, e_par, e_perp
 
-    # ------------------- per cone: diffuse at the axis, the part of the lobe in the cap -------------------
+
+def _sg_cone(lobe, Dw, A, inv_om, delta):
+    r"""The share of the lobe ``lobe`` (:func:`_sg_lobe`) that cone (``Dw``, ``A``) sees,
+    per unit of its peak and of the cone's ``L_c``: ``E Psi / Omega_c``, or for a Dirac
+    cone the lobe's value on its axis (see :func:`_principled_cones`)."""
+    r, E_s, s_par, s_perp, e_par, e_perp = lobe
+    v = Dw - r
+    dd = dr.squared_norm(v)                             # |r - d|^2 = 2 (1 - r . d), precise near 0
+    # t: the angle from r to the cone axis; m: its Mahalanobis length in the lobe's widths
+    th = 2.0 * dr.asin(dr.minimum(0.5 * dr.sqrt(dd), 1.0))
+    sc = th * dr.rsqrt(dr.maximum(dd, 1e-30))
+    m2 = dr.square(dr.dot(v, e_par) * sc / s_par) + dr.square(dr.dot(v, e_perp) * sc / s_perp)
+    # the fraction Psi of the lobe inside the cap (radius a = alpha_c): a Gaussian edge across
+    # the cap's rim, scaled to GGX's own fraction in a disc centred on the peak (its slopes
+    # are a bivariate Student t with 2 degrees of freedom: a disc of slope radius rho holds
+    # rho^2 / (alpha^2 + rho^2), where a Gaussian of the same peak holds 1 - e^{-rho^2/alpha^2}).
+    # With sigma_t = t / m the lobe's width towards the axis (sqrt(s_par s_perp) at t = 0)
+    # and x = a^2 / (2 s_par s_perp) = rho^2 / alpha^2:
+    # Psi ~ [Phi((a - t)/sigma_t) - Phi((-a - t)/sigma_t)] (x / (1 + x)) / (2 Phi(a/sigma_t) - 1):
+    # GGX's fraction at t = 0 (round lobe), the cap's edge for a >> sigma, area x density
+    # for a << sigma
+    sig = dr.select(m2 > 1e-12, th * dr.rsqrt(dr.maximum(m2, 1e-30)), dr.sqrt(s_par * s_perp))
+    isg = dr.rcp(sig)
+
+    def t2(u):
+        return dr.erf(u * math.sqrt(0.5))                              # 2 Phi(u) - 1
+
+    edge = 0.5 * (t2((A - th) * isg) - t2((-A - th) * isg))
+    x = dr.square(A) * (0.5 / (s_par * s_perp))
+    psi = edge * (x * dr.rcp(1.0 + x)) * dr.rcp(dr.maximum(t2(A * isg), 1e-30))
+    sg = E_s * psi * inv_om
+    return dr.select(delta, dr.exp(-0.5 * m2), sg), m2, th
+
+
+def _conductor_cones(bsdf, si, ctx, active, K, live, delta, A, inv_om, L, Dw, below, zero):
+    r"""Cone shading of pixels with Mitsuba's isotropic GGX ``roughconductor``, no
+    quadrature (``conductor="sg"``): the lobe ``f_s cos`` as the Gaussian of
+    :func:`_principled_cones`'s specular part, of peak ``S_r = f cos(r)`` from Mitsuba's
+    own ``eval`` at the mirror direction ``r`` (the conductor's Fresnel term exact at ``r``
+    and held over the lobe) and width from the BSDF's ``alpha`` (read per pixel). It
+    applies to pixels whose BSDF has the ``alpha`` attribute and only glossy reflection
+    (no diffuse, Dirac or transmissive lobe; the caller passes only when every
+    roughconductor of the scene uses the GGX distribution). Returns (value, mask)."""
+    flags = mi.UInt32(bsdf.flags())
+    m = active & bsdf.has_attribute("alpha", active) & mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) & \
+        ~mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & \
+        ~mi.has_flag(flags, mi.BSDFFlags.Delta) & (mi.Frame3f.cos_theta(si.wi) > 0.0)
+    alpha = dr.maximum(bsdf.eval_attribute_1("alpha", si, m), 1e-3)
+    ci = dr.maximum(mi.Frame3f.cos_theta(si.wi), 1e-4)
+    r_loc = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
+    S_r = dr.maximum(mi.Color3f(bsdf.eval(ctx, si, r_loc, m)), 0.0)
+    lobe = _sg_lobe(si, alpha, ci)
     out = mi.Color3f(zero)
     for i in range(K):
-        d_loc = si.to_local(Dw[i])
-        v = Dw[i] - r
-        dd = dr.squared_norm(v)                             # |r - d|^2 = 2 (1 - r . d), precise near 0
-        diff = kd * (fdiff(d_loc) * term[i])
-        # t: the angle from r to the cone axis; m: its Mahalanobis length in the lobe's widths
-        th = 2.0 * dr.asin(dr.minimum(0.5 * dr.sqrt(dd), 1.0))
-        sc = th * dr.rsqrt(dr.maximum(dd, 1e-30))
-        m2 = dr.square(dr.dot(v, e_par) * sc / s_par) + dr.square(dr.dot(v, e_perp) * sc / s_perp)
-        # the fraction Psi of the lobe inside the cap (radius a = alpha_c): a Gaussian edge across
-        # the cap's rim, scaled to GGX's own fraction in a disc centred on the peak (its slopes
-        # are a bivariate Student t with 2 degrees of freedom: a disc of slope radius rho holds
-        # rho^2 / (alpha^2 + rho^2), where a Gaussian of the same peak holds 1 - e^{-rho^2/alpha^2}).
-        # With sigma_t = t / m the lobe's width towards the axis (sqrt(s_par s_perp) at t = 0)
-        # and x = a^2 / (2 s_par s_perp) = rho^2 / alpha^2:
-        # Psi ~ [Phi((a - t)/sigma_t) - Phi((-a - t)/sigma_t)] (x / (1 + x)) / (2 Phi(a/sigma_t) - 1):
-        # GGX's fraction at t = 0 (round lobe), the cap's edge for a >> sigma, area x density
-        # for a << sigma
-        sig = dr.select(m2 > 1e-12, th * dr.rsqrt(dr.maximum(m2, 1e-30)), dr.sqrt(s_par * s_perp))
-        isg = dr.rcp(sig)
-        a_ = A[i]
-
-        def t2(u):
-            return dr.erf(u * math.sqrt(0.5))                              # 2 Phi(u) - 1
-
-        edge = 0.5 * (t2((a_ - th) * isg) - t2((-a_ - th) * isg))
-        x = dr.square(a_) * (0.5 / (s_par * s_perp))
-        psi = edge * (x * dr.rcp(1.0 + x)) * dr.rcp(dr.maximum(t2(a_ * isg), 1e-30))
-        sg = E_s * psi * inv_om[i]
-        sg = dr.select(delta[i], dr.exp(-0.5 * m2), sg)
-        spec = dr.select(below[i], 0.0, S_r * (L[i] * sg))
-        out += dr.select(live[i], diff + spec, 0.0)
+        sg, m2, th = _sg_cone(lobe, Dw[i], A[i], inv_om[i], delta[i])
+        # GGX's tail (a Student t) far outweighs the Gaussian's away from r: what the
+        # Gaussian misses at the cone's axis, f cos(d_c) - S_r e^{-m^2/2}, is held over the cap
+        f_c = mi.Color3f(bsdf.eval(ctx, si, si.to_local(Dw[i]), m & live[i]))
+        tail = dr.maximum(f_c - S_r * dr.exp(-0.5 * m2), 0.0)
+        # ... only for caps away from r (inside, the Student-t fraction of the lobe holds its tail)
+        tail *= dr.select(delta[i], 1.0, dr.clip((th - A[i]) * dr.rcp(dr.maximum(A[i], 1e-6)), 0.0, 1.0))
+        out += dr.select(live[i] & ~below[i], L[i] * (S_r * sg + tail), 0.0)
     return out, m
 
 
 def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.SurfaceInteraction3f,
                  bsdf: mi.BSDFPtr, texel_frame: mi.Frame3f, max_cones: int, n_total: mi.UInt32,
                  key: mi.UInt32, adaptive: bool = True, rotate: bool = True,
-                 pid: mi.UInt32 | None = None, horizon: bool = True, principled: bool = True) -> mi.Color3f:
+                 pid: mi.UInt32 | None = None, horizon: bool = True, principled: bool = True,
+                 conductor: bool = False) -> mi.Color3f:
     """Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
     ``slot``; ``texel_frame`` is the local frame of each pixel's entry (the frame its
     cone directions are stored in). ``n_total`` directions per live cone and ``key``
-    are opaque scalars; ``adaptive`` / ``rotate`` / ``horizon`` / ``principled`` see :class:`ConeShading`. ``pid``
+    are opaque scalars; ``adaptive`` / ``rotate`` / ``horizon`` / ``principled`` / ``conductor`` see
+    :class:`ConeShading`. ``pid``
     keys each pixel's random numbers (default: its index in the arrays; several viewers
     shaded in one launch pass each pixel's index within its own viewer). Entries
     without cones and inactive pixels give 0."""
@@ -290,6 +338,15 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
             false_fn=lambda pm: (mi.Color3f(0.0), mi.Bool(False)), label="principled")
     else:
         prin, pfast = mi.Color3f(zero), active & False
+    # ------------------- GGX conductor pixels: the lobe as an SG (an option) -------------------
+    if conductor:
+        cm = active & cones_ok & ~lambert & ~pfast
+        cond_v, cfast = dr.if_stmt(
+            args=(cm,), cond=cm,
+            true_fn=lambda cm: _conductor_cones(bsdf, si, ctx, cm, K, live, delta, A, inv_om, L, Dw, below_c, zero),
+            false_fn=lambda cm: (mi.Color3f(0.0), mi.Bool(False)), label="conductor")
+        prin = dr.select(pfast, prin, cond_v)
+        pfast = pfast | cfast
     sampled = active & ~lambert & ~pfast & (n > 0)
 
     def sampled_fn(sampled):
@@ -440,7 +497,10 @@ class ConeShading(FrozenFunction):
     clipped-cap integral; False: they are sampled, as before December 2026),
     ``principled="sg"`` (pixels with Mitsuba's ``principled`` BSDF: diffuse part in
     closed form, specular lobe as a spherical Gaussian, see :func:`_principled_cones`;
-    ``"sample"``: the MIS quadrature, as before).
+    ``"sample"``: the MIS quadrature, as before), ``conductor="sample"`` (pixels with an
+    isotropic GGX ``roughconductor``: the MIS quadrature; ``"sg"``: the lobe as a spherical
+    Gaussian over each cone, see :func:`_conductor_cones`; only for scenes whose
+    roughconductors all use GGX, :func:`shader_for` checks).
 
     Freezing pays only while its recordings are replayed. Each instance owns its frozen
     function, so recordings are freed with the method and never shared between scenes.
@@ -456,9 +516,12 @@ class ConeShading(FrozenFunction):
 
     def __init__(self, max_cones: int, adaptive: bool = True, rotate: bool = True, freeze: bool = True,
                  animated: bool = False, max_recordings: int = 4, horizon: bool = True,
-                 principled: str = "sg"):
+                 principled: str = "sg", conductor: str = "sample"):
         if principled not in ("sg", "sample"):
             raise ValueError(f"principled must be 'sg' or 'sample', not {principled!r}")
+        if conductor not in ("sg", "sample"):
+            raise ValueError(f"conductor must be 'sg' or 'sample', not {conductor!r}")
+        self.conductor = conductor
         self.max_cones = int(max_cones)
         self.adaptive, self.rotate, self.horizon = bool(adaptive), bool(rotate), bool(horizon)
         self.principled = principled
@@ -471,7 +534,7 @@ class ConeShading(FrozenFunction):
         return super().__call__(storage, mi.UInt32(slot), mi.Bool(active), si, si.bsdf(), texel_frame,
                                 self.max_cones, dr.opaque(mi.UInt32, max(int(n_samples), 1)),
                                 dr.opaque(mi.UInt32, int(key)), self.adaptive, self.rotate, pid, self.horizon,
-                                self.principled == "sg")
+                                self.principled == "sg", self.conductor == "sg")
 
 
 def shader_for(owner, max_cones: int) -> ConeShading:
@@ -482,15 +545,29 @@ def shader_for(owner, max_cones: int) -> ConeShading:
     sh = getattr(owner, "_cone_shading", None)
     if sh is None or sh.max_cones != int(max_cones):
         scene = getattr(owner, "scene", None)
+        conductor = getattr(owner, "conductor", "sample")
+        if conductor == "sg" and scene is not None and not _ggx_conductors_only(scene):
+            conductor = "sample"
         sh = ConeShading(max_cones, animated=bool(getattr(scene, "dynamic", False)),
                          horizon=getattr(owner, "horizon", "clip") == "clip",
-                         principled=getattr(owner, "principled", "sg"))
+                         principled=getattr(owner, "principled", "sg"), conductor=conductor)
         owner._cone_shading = sh
     return sh
 
 
+def _ggx_conductors_only(scene) -> bool:
+    """Whether every ``roughconductor`` of the scene (``slc`` scene or ``mi.Scene``) is
+    GGX (the closed form of :func:`_conductor_cones` assumes it)."""
+    ms = getattr(scene, "mi_scene", scene)
+    for sh in ms.shapes():
+        text = str(sh.bsdf()) if sh.bsdf() is not None else ""
+        if text.startswith("RoughConductor") and "distribution = ggx" not in text:
+            return False
+    return True
+
+
 def shade_pixels(storage, slot, active, si, texel_frame, max_cones: int, n_samples: int = 16, key: int = 0,
-                 principled: str = "sg"):
+                 principled: str = "sg", conductor: str = "sample"):
     """Unfrozen one-off shading (tests, notebooks)."""
-    return ConeShading(max_cones, freeze=False, principled=principled)(storage, slot, active, si, texel_frame,
+    return ConeShading(max_cones, freeze=False, principled=principled, conductor=conductor)(storage, slot, active, si, texel_frame,
                                                                       n_samples, key)
