@@ -99,7 +99,7 @@ def _schlick_weight(c):
     return dr.square(dr.square(m)) * m
 
 
-def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw, term, below, zero):
+def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw, term, below, zero, consts=None):
     r"""Cone shading of pixels with Mitsuba's ``principled`` BSDF, no quadrature
     (``principled="sg"``, the default). Returns (value, mask of the pixels it applies to).
 
@@ -130,16 +130,33 @@ def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw
       the lobe's part under the horizon is not clipped.
     """
     # ------------------- which pixels, and their parameters (one read per pixel) -------------------
-    flags = mi.UInt32(bsdf.flags())
-    m = active & bsdf.has_attribute("clearcoat", active) & bsdf.has_attribute("base_color", active) & \
-        mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) & \
-        ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & \
-        (mi.Frame3f.cos_theta(si.wi) > 0.0)
-    for name in ("clearcoat", "sheen", "flatness", "anisotropic", "spec_trans"):
-        m &= bsdf.eval_attribute_1(name, si, m) == 0.0
-    base = mi.Color3f(bsdf.eval_attribute_3("base_color", si, m))
-    rough = bsdf.eval_attribute_1("roughness", si, m)
-    metal = bsdf.eval_attribute_1("metallic", si, m)
+    # (BSDFs without textures: from the table ``consts``, see :func:`bsdf_table`)
+    if consts is not None:
+        tab = active & (consts[0] == KIND_PRINCIPLED) & (mi.Frame3f.cos_theta(si.wi) > 0.0)
+        active = active & (consts[0] == KIND_OTHER)
+    def read(active):
+        """The parameters through the BSDF's virtual calls (and whether it qualifies)."""
+        flags = mi.UInt32(bsdf.flags())
+        m = active & bsdf.has_attribute("clearcoat", active) & bsdf.has_attribute("base_color", active) & \
+            mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) & \
+            ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & \
+            (mi.Frame3f.cos_theta(si.wi) > 0.0)
+        for name in _ZERO_ATTRS:
+            m &= bsdf.eval_attribute_1(name, si, m) == 0.0
+        return (m, mi.Color3f(bsdf.eval_attribute_3("base_color", si, m)), bsdf.eval_attribute_1("roughness", si, m),
+                bsdf.eval_attribute_1("metallic", si, m))
+
+    if consts is None:
+        m, base, rough, metal = read(active)
+    else:
+        m, base, rough, metal = dr.if_stmt(
+            args=(active,), cond=active, true_fn=read,
+            false_fn=lambda a: (mi.Bool(False), mi.Color3f(0.0), mi.Float(0.0), mi.Float(0.0)), label="read")
+    if consts is not None:
+        base = dr.select(tab, consts[1](), base)
+        rough = dr.select(tab, consts[2](), rough)
+        metal = dr.select(tab, consts[3](), metal)
+        m |= tab
     ci = dr.maximum(mi.Frame3f.cos_theta(si.wi), 1e-4)
     kd = base * ((1.0 - metal) * (1.0 / math.pi))
     Fi = _schlick_weight(ci)
@@ -256,15 +273,16 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
                  bsdf: mi.BSDFPtr, texel_frame: mi.Frame3f, max_cones: int, n_total: mi.UInt32,
                  key: mi.UInt32, adaptive: bool = True, rotate: bool = True,
                  pid: mi.UInt32 | None = None, horizon: bool = True, principled: bool = True,
-                 conductor: bool = False) -> mi.Color3f:
+                 conductor: bool = False, table=None) -> mi.Color3f:
     """Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
     ``slot``; ``texel_frame`` is the local frame of each pixel's entry (the frame its
     cone directions are stored in). ``n_total`` directions per live cone and ``key``
     are opaque scalars; ``adaptive`` / ``rotate`` / ``horizon`` / ``principled`` / ``conductor`` see
     :class:`ConeShading`. ``pid``
     keys each pixel's random numbers (default: its index in the arrays; several viewers
-    shaded in one launch pass each pixel's index within its own viewer). Entries
-    without cones and inactive pixels give 0."""
+    shaded in one launch pass each pixel's index within its own viewer). ``table``
+    (:func:`bsdf_table`, optional) gives the constants of BSDFs without textures.
+    Entries without cones and inactive pixels give 0."""
     K = max_cones
     D, A, L, C, n = unpack(gather_words(storage, slot, K, active), K)
     Dw = [dr.normalize(texel_frame.to_world(D[i])) for i in range(K)]
@@ -272,6 +290,17 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     zero = dr.select(active, mi.Float(0.0), mi.Float(0.0))     # a zero of the pixels' width
     if pid is None:
         pid = dr.arange(mi.UInt32, dr.width(slot))
+    # each pixel's BSDF kind and constants from the table (KIND_OTHER: virtual calls)
+    if table is not None:
+        t_w, t_kind, t_col, t_rough, t_metal = table
+        rid = dr.reinterpret_array(mi.UInt32, bsdf)
+        t_ok = active & (bsdf != None) & (rid < t_w)  # noqa: E711 (BSDFPtr comparison)
+        kind = dr.gather(mi.UInt32, t_kind, rid, t_ok)
+        consts = (kind, lambda: dr.gather(mi.Color3f, t_col, rid, t_ok), lambda: dr.gather(mi.Float, t_rough, rid, t_ok),
+                  lambda: dr.gather(mi.Float, t_metal, rid, t_ok))
+    else:
+        kind = mi.UInt32(KIND_OTHER)
+        consts = None
 
     # ------------------- the cones: live, Dirac, solid angle, density -------------------
     live = [active & (n > i) for i in range(K)]
@@ -322,7 +351,11 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     # none of its lanes takes, so a pixel pays only for its own kind (the images are the
     # same bit for bit as with every kind computed for every pixel and selected).
     def lambert_fn(closed):
-        rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert))
+        if consts is None:
+            rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert))
+        else:
+            tab = kind == KIND_DIFFUSE
+            rho = dr.select(tab, consts[1](), mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert & ~tab)))
         return rho * closed * (1.0 / math.pi)
 
     closed = dr.if_stmt(args=(closed,), cond=lambert, true_fn=lambert_fn,
@@ -334,7 +367,7 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
         prin, pfast = dr.if_stmt(
             args=(pm,), cond=pm,
             true_fn=lambda pm: _principled_cones(bsdf, si, ctx, pm, K, live, delta, A, h, inv_om, L, Dw,
-                                                 term, below_c, zero),
+                                                 term, below_c, zero, consts),
             false_fn=lambda pm: (mi.Color3f(0.0), mi.Bool(False)), label="principled")
     else:
         prin, pfast = mi.Color3f(zero), active & False
@@ -516,7 +549,8 @@ class ConeShading(FrozenFunction):
 
     def __init__(self, max_cones: int, adaptive: bool = True, rotate: bool = True, freeze: bool = True,
                  animated: bool = False, max_recordings: int = 4, horizon: bool = True,
-                 principled: str = "sg", conductor: str = "sample"):
+                 principled: str = "sg", conductor: str = "sample", table=None):
+        self.table = table
         if principled not in ("sg", "sample"):
             raise ValueError(f"principled must be 'sg' or 'sample', not {principled!r}")
         if conductor not in ("sg", "sample"):
@@ -534,7 +568,7 @@ class ConeShading(FrozenFunction):
         return super().__call__(storage, mi.UInt32(slot), mi.Bool(active), si, si.bsdf(), texel_frame,
                                 self.max_cones, dr.opaque(mi.UInt32, max(int(n_samples), 1)),
                                 dr.opaque(mi.UInt32, int(key)), self.adaptive, self.rotate, pid, self.horizon,
-                                self.principled == "sg", self.conductor == "sg")
+                                self.principled == "sg", self.conductor == "sg", self.table)
 
 
 def shader_for(owner, max_cones: int) -> ConeShading:
@@ -550,9 +584,76 @@ def shader_for(owner, max_cones: int) -> ConeShading:
             conductor = "sample"
         sh = ConeShading(max_cones, animated=bool(getattr(scene, "dynamic", False)),
                          horizon=getattr(owner, "horizon", "clip") == "clip",
-                         principled=getattr(owner, "principled", "sg"), conductor=conductor)
+                         principled=getattr(owner, "principled", "sg"), conductor=conductor,
+                         table=bsdf_table(scene) if scene is not None else None)
         owner._cone_shading = sh
     return sh
+
+
+KIND_OTHER, KIND_DIFFUSE, KIND_PRINCIPLED = 0, 1, 2
+_ZERO_ATTRS = ("clearcoat", "sheen", "flatness", "anisotropic", "spec_trans")
+
+
+def bsdf_table(scene):
+    r"""Per-BSDF constants read once on the host, so that the shading kernel gathers them
+    instead of making a virtual call per pixel and attribute (``eval_attribute``,
+    ``eval_diffuse_reflectance``: about half of a principled pixel's cost, measured).
+
+    Indexed by the BSDF's registry id (``dr.reinterpret_array(mi.UInt32, bsdf)``): kind
+    ``KIND_DIFFUSE`` (Mitsuba's ``diffuse`` with a constant reflectance: that reflectance),
+    ``KIND_PRINCIPLED`` (``principled`` whose clearcoat, sheen, flatness, anisotropy and
+    specular transmission are constant 0 and whose base colour, roughness and metallic
+    are constant: those three), else ``KIND_OTHER`` (textured parameters, other BSDFs:
+    the kernel's virtual calls, per pixel as before). The constants are the BSDF's own
+    ``eval_attribute`` / ``eval_diffuse_reflectance`` values (a constant texture ignores
+    the point), so the images are the same bit for bit. Returns (width as an opaque
+    UInt32, kind UInt32, colour Color3f, roughness Float, metallic Float), or None for
+    scenes with instances (their BSDFs are not listed by ``scene.shapes()``)."""
+    import numpy as np
+    ms = getattr(scene, "mi_scene", scene)
+    shapes = ms.shapes()
+    if any(sh.class_name() in ("Instance", "ShapeGroup") for sh in shapes):
+        return None
+    bsdfs = {}
+    for sh in shapes:
+        b = sh.bsdf()
+        if b is not None:
+            bsdfs[int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(b))[0])] = b
+    if not bsdfs:
+        return None
+    W = max(bsdfs) + 1
+    kind = np.zeros(W, np.uint32)
+    col = np.zeros((3, W), np.float32)
+    rough = np.zeros(W, np.float32)
+    metal = np.zeros(W, np.float32)
+    si = dr.zeros(mi.SurfaceInteraction3f, 1)
+    si.wi = mi.Vector3f(0.0, 0.0, 1.0)
+    for rid, b in bsdfs.items():
+        keys = [k for k in mi.traverse(b).keys()]
+
+        def constant(name):
+            own = [k for k in keys if k == name or k.startswith(name + ".")]
+            return own == [name + ".value"]
+        if b.class_name() == "SmoothDiffuse" and constant("reflectance"):
+            kind[rid] = KIND_DIFFUSE
+            col[:, rid] = np.array(b.eval_diffuse_reflectance(si)).reshape(3)
+        elif b.class_name() == "Principled" and all(constant(a) for a in _ZERO_ATTRS + ("base_color", "roughness",
+                                                                                       "metallic")) \
+                and all(float(b.eval_attribute_1(a, si)[0]) == 0.0 for a in _ZERO_ATTRS) \
+                and _principled_flags(int(b.flags())):
+            kind[rid] = KIND_PRINCIPLED
+            col[:, rid] = np.array(b.eval_attribute_3("base_color", si)).reshape(3)
+            rough[rid] = float(b.eval_attribute_1("roughness", si)[0])
+            metal[rid] = float(b.eval_attribute_1("metallic", si)[0])
+    return (dr.opaque(mi.UInt32, W), mi.UInt32(kind), mi.Color3f(col), mi.Float(rough), mi.Float(metal))
+
+
+def _principled_flags(f: int) -> bool:
+    """The flags :func:`_principled_cones` asks for (diffuse + glossy reflection, no
+    transmission, no Dirac lobe)."""
+    F = mi.BSDFFlags
+    return bool(f & int(F.DiffuseReflection)) and bool(f & int(F.GlossyReflection)) and \
+        not (f & int(F.Transmission)) and not (f & int(F.Delta))
 
 
 def _ggx_conductors_only(scene) -> bool:
