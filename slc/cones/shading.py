@@ -273,7 +273,7 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
                  bsdf: mi.BSDFPtr, texel_frame: mi.Frame3f, max_cones: int, n_total: mi.UInt32,
                  key: mi.UInt32, adaptive: bool = True, rotate: bool = True,
                  pid: mi.UInt32 | None = None, horizon: bool = True, principled: bool = True,
-                 conductor: bool = False, table=None) -> mi.Color3f:
+                 conductor: bool = False, table=None, entry_frames=None) -> mi.Color3f:
     """Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
     ``slot``; ``texel_frame`` is the local frame of each pixel's entry (the frame its
     cone directions are stored in). ``n_total`` directions per live cone and ``key``
@@ -281,9 +281,13 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     :class:`ConeShading`. ``pid``
     keys each pixel's random numbers (default: its index in the arrays; several viewers
     shaded in one launch pass each pixel's index within its own viewer). ``table``
-    (:func:`bsdf_table`, optional) gives the constants of BSDFs without textures.
+    (:func:`bsdf_table`, optional) gives the constants of BSDFs without textures. With
+    ``entry_frames`` (the entries' frames), ``texel_frame`` is instead each pixel's index
+    into them (the gather then runs inside this kernel, not as a kernel of its own).
     Entries without cones and inactive pixels give 0."""
     K = max_cones
+    if entry_frames is not None:
+        texel_frame = dr.gather(mi.Frame3f, entry_frames, texel_frame, active)
     D, A, L, C, n = unpack(gather_words(storage, slot, K, active), K)
     Dw = [dr.normalize(texel_frame.to_world(D[i])) for i in range(K)]
     ctx = mi.BSDFContext()
@@ -562,13 +566,14 @@ class ConeShading(FrozenFunction):
         super().__init__(shade_kernel, freeze, animated, max_recordings)
 
     def __call__(self, storage, slot, active, si, texel_frame, n_samples: int = 16, key: int = 0,
-                 pid: mi.UInt32 | None = None) -> mi.Color3f:
+                 pid: mi.UInt32 | None = None, entry_frames=None) -> mi.Color3f:
         """Shade the pixels ``si``; ``pid``: the random-number key per pixel (default:
-        the index in the arrays; see :func:`shade_kernel`)."""
+        the index in the arrays); ``entry_frames``: ``texel_frame`` is an index into
+        them (see :func:`shade_kernel`)."""
         return super().__call__(storage, mi.UInt32(slot), mi.Bool(active), si, si.bsdf(), texel_frame,
                                 self.max_cones, dr.opaque(mi.UInt32, max(int(n_samples), 1)),
                                 dr.opaque(mi.UInt32, int(key)), self.adaptive, self.rotate, pid, self.horizon,
-                                self.principled == "sg", self.conductor == "sg", self.table)
+                                self.principled == "sg", self.conductor == "sg", self.table, entry_frames)
 
 
 def shader_for(owner, max_cones: int) -> ConeShading:
