@@ -45,6 +45,7 @@ Each :class:`ConeShading` (one per method instance) owns its own frozen function
 """
 from __future__ import annotations
 
+import gc
 import math
 
 import drjit as dr
@@ -265,7 +266,11 @@ def _conductor_cones(bsdf, si, ctx, active, K, live, delta, A, inv_om, L, Dw, be
         tail = dr.maximum(f_c - S_r * dr.exp(-0.5 * m2), 0.0)
         # ... only for caps away from r (inside, the Student-t fraction of the lobe holds its tail)
         tail *= dr.select(delta[i], 1.0, dr.clip((th - A[i]) * dr.rcp(dr.maximum(A[i], 1e-6)), 0.0, 1.0))
-        out += dr.select(live[i] & ~below[i], L[i] * (S_r * sg + tail), 0.0)
+        # a cap narrower than the lobe sees f cos nearly constant: f cos(d_c) L_c (blended in
+        # from caps of twice the lobe's width down to caps of its width)
+        b = dr.select(delta[i], 1.0, dr.clip(2.0 - A[i] * dr.rsqrt(lobe[2] * lobe[3]), 0.0, 1.0))
+        val = L[i] * dr.lerp(S_r * sg + tail, f_c, b)
+        out += dr.select(live[i] & ~below[i], val, 0.0)
     return out, m
 
 
@@ -570,6 +575,17 @@ class ConeShading(FrozenFunction):
         """Shade the pixels ``si``; ``pid``: the random-number key per pixel (default:
         the index in the arrays); ``entry_frames``: ``texel_frame`` is an index into
         them (see :func:`shade_kernel`)."""
+        # No garbage collection inside a recording: an object freed there may enqueue a host
+        # function, which Dr.Jit cannot record (the process aborts; seen once in a test run)
+        gc_on = gc.isenabled()
+        gc.disable()
+        try:
+            return self._call(storage, slot, active, si, texel_frame, n_samples, key, pid, entry_frames)
+        finally:
+            if gc_on:
+                gc.enable()
+
+    def _call(self, storage, slot, active, si, texel_frame, n_samples, key, pid, entry_frames):
         return super().__call__(storage, mi.UInt32(slot), mi.Bool(active), si, si.bsdf(), texel_frame,
                                 self.max_cones, dr.opaque(mi.UInt32, max(int(n_samples), 1)),
                                 dr.opaque(mi.UInt32, int(key)), self.adaptive, self.rotate, pid, self.horizon,
