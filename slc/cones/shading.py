@@ -31,6 +31,10 @@ transmission) whose cones have that closed form skip the quadrature too (``princ
 the default; :func:`_principled_cones`): the diffuse part in closed form with its angular
 factor at each cone axis, the GGX lobe as a Gaussian around the mirror direction of which
 each cap holds a fraction; an approximation, measured in docs/cones.md.
+With ``conductor="sg"`` (an option, off by default) isotropic GGX ``roughconductor`` pixels
+get the same Gaussian lobe plus GGX's tail at far cones' axes (:func:`_conductor_cones`).
+Each kind of pixel runs in a symbolic branch of its own, and BSDFs without textures are read
+from a per-scene table (:func:`bsdf_table`) instead of virtual calls (same images).
 
 Sample counts: ``n_samples`` (n_S) directions, fewer for rough lobes (``n_S' =
 ceil(n_S clip(q, 1/4, 1))``), split per pixel into ``n_C`` cone directions per live cone
