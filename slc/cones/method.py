@@ -85,6 +85,9 @@ class SurfaceLightCones(PayloadMethod):
               choices=("clip", "sample")),
         Param("principled", "sg", "pixels with the principled BSDF: diffuse part in closed form and specular lobe as a "
               "spherical Gaussian over each cone (sg), or the MIS quadrature (sample)", choices=("sg", "sample")),
+        Param("conductor", "sample", "pixels with an isotropic GGX roughconductor: the MIS quadrature (sample) or the "
+              "lobe as a spherical Gaussian over each cone (sg; scenes whose roughconductors are all GGX)",
+              choices=("sg", "sample")),
         Param("batch", "viewers", "viewers: shade all viewers' pixels in one launch (nearest fetch; the same images "
               "as per viewer); off: one launch per viewer", choices=("off", "viewers")),
     ) + PayloadMethod.cache_params
@@ -163,11 +166,11 @@ class SurfaceLightCones(PayloadMethod):
                 dr.scatter(si, gb.si, at)
                 dr.scatter(valid, mi.Bool(gb.valid), at)
         ok = valid & (slot != INVALID)
-        tf = dr.gather(mi.Frame3f, fr.si.sh_frame, index, ok)
 
         # ------------------- one launch, split per viewer -------------------
-        out = shader_for(self, self.max_cones)(self.storage, slot, ok, si, tf, self.shade_samples,
-                                               shade_key(ctx.frame, self.seed), pid)
+        # (each pixel's entry frame is gathered inside the launch: ``index`` into the frames)
+        out = shader_for(self, self.max_cones)(self.storage, slot, ok, si, index, self.shade_samples,
+                                               shade_key(ctx.frame, self.seed), pid, fr.si.sh_frame)
         return [dr.gather(mi.Color3f, out, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, off))
                 for n, off in zip(sizes, offsets)]
 

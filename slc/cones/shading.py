@@ -31,6 +31,10 @@ transmission) whose cones have that closed form skip the quadrature too (``princ
 the default; :func:`_principled_cones`): the diffuse part in closed form with its angular
 factor at each cone axis, the GGX lobe as a Gaussian around the mirror direction of which
 each cap holds a fraction; an approximation, measured in docs/cones.md.
+With ``conductor="sg"`` (an option, off by default) isotropic GGX ``roughconductor`` pixels
+get the same Gaussian lobe plus GGX's tail at far cones' axes (:func:`_conductor_cones`).
+Each kind of pixel runs in a symbolic branch of its own, and BSDFs without textures are read
+from a per-scene table (:func:`bsdf_table`) instead of virtual calls (same images).
 
 Sample counts: ``n_samples`` (n_S) directions, fewer for rough lobes (``n_S' =
 ceil(n_S clip(q, 1/4, 1))``), split per pixel into ``n_C`` cone directions per live cone
@@ -45,6 +49,7 @@ Each :class:`ConeShading` (one per method instance) owns its own frozen function
 """
 from __future__ import annotations
 
+import gc
 import math
 
 import drjit as dr
@@ -99,7 +104,7 @@ def _schlick_weight(c):
     return dr.square(dr.square(m)) * m
 
 
-def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw, term, below, zero):
+def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw, term, below, zero, consts=None):
     r"""Cone shading of pixels with Mitsuba's ``principled`` BSDF, no quadrature
     (``principled="sg"``, the default). Returns (value, mask of the pixels it applies to).
 
@@ -130,16 +135,33 @@ def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw
       the lobe's part under the horizon is not clipped.
     """
     # ------------------- which pixels, and their parameters (one read per pixel) -------------------
-    flags = mi.UInt32(bsdf.flags())
-    m = active & bsdf.has_attribute("clearcoat", active) & bsdf.has_attribute("base_color", active) & \
-        mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) & \
-        ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & \
-        (mi.Frame3f.cos_theta(si.wi) > 0.0)
-    for name in ("clearcoat", "sheen", "flatness", "anisotropic", "spec_trans"):
-        m &= bsdf.eval_attribute_1(name, si, m) == 0.0
-    base = mi.Color3f(bsdf.eval_attribute_3("base_color", si, m))
-    rough = bsdf.eval_attribute_1("roughness", si, m)
-    metal = bsdf.eval_attribute_1("metallic", si, m)
+    # (BSDFs without textures: from the table ``consts``, see :func:`bsdf_table`)
+    if consts is not None:
+        tab = active & (consts[0] == KIND_PRINCIPLED) & (mi.Frame3f.cos_theta(si.wi) > 0.0)
+        active = active & (consts[0] == KIND_OTHER)
+    def read(active):
+        """The parameters through the BSDF's virtual calls (and whether it qualifies)."""
+        flags = mi.UInt32(bsdf.flags())
+        m = active & bsdf.has_attribute("clearcoat", active) & bsdf.has_attribute("base_color", active) & \
+            mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) & \
+            ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & \
+            (mi.Frame3f.cos_theta(si.wi) > 0.0)
+        for name in _ZERO_ATTRS:
+            m &= bsdf.eval_attribute_1(name, si, m) == 0.0
+        return (m, mi.Color3f(bsdf.eval_attribute_3("base_color", si, m)), bsdf.eval_attribute_1("roughness", si, m),
+                bsdf.eval_attribute_1("metallic", si, m))
+
+    if consts is None:
+        m, base, rough, metal = read(active)
+    else:
+        m, base, rough, metal = dr.if_stmt(
+            args=(active,), cond=active, true_fn=read,
+            false_fn=lambda a: (mi.Bool(False), mi.Color3f(0.0), mi.Float(0.0), mi.Float(0.0)), label="read")
+    if consts is not None:
+        base = dr.select(tab, consts[1](), base)
+        rough = dr.select(tab, consts[2](), rough)
+        metal = dr.select(tab, consts[3](), metal)
+        m |= tab
     ci = dr.maximum(mi.Frame3f.cos_theta(si.wi), 1e-4)
     kd = base * ((1.0 - metal) * (1.0 / math.pi))
     Fi = _schlick_weight(ci)
@@ -156,8 +178,25 @@ def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw
     r_loc = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
     f_r = mi.Color3f(bsdf.eval(ctx, si, r_loc, m))
     S_r = dr.maximum(f_r - kd * (fdiff(r_loc) * ci), 0.0)
-    alpha = dr.maximum(dr.square(rough), 1e-3)
+    lobe = _sg_lobe(si, dr.maximum(dr.square(rough), 1e-3), ci)
+
+    # ------------------- per cone: diffuse at the axis, the part of the lobe in the cap -------------------
+    out = mi.Color3f(zero)
+    for i in range(K):
+        d_loc = si.to_local(Dw[i])
+        diff = kd * (fdiff(d_loc) * term[i])
+        sg, _, _ = _sg_cone(lobe, Dw[i], A[i], inv_om[i], delta[i])
+        spec = dr.select(below[i], 0.0, S_r * (L[i] * sg))
+        out += dr.select(live[i], diff + spec, 0.0)
+    return out, m
+
+
+def _sg_lobe(si, alpha, ci):
+    r"""The GGX lobe of roughness ``alpha`` (GGX's own) around the mirror direction ``r``
+    of ``w_o`` as an anisotropic Gaussian (see :func:`_principled_cones`): (r, E_s,
+    sigma_par, sigma_perp, e_par, e_perp), ``E_s`` its integral over its peak."""
     lam_l = dr.rcp(2.0 * dr.square(alpha) * ci)
+    r_loc = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
     r = si.to_world(r_loc)
     E_s = (2.0 * math.pi) * dr.rcp(lam_l) * (1.0 - dr.exp(-2.0 * lam_l))      # int of the SG lobe / S_r
     # the lobe's widths: a half vector tilted by an angle b moves r by 2b in the plane of
@@ -168,62 +207,113 @@ def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw
     e_perp = dr.cross(si.sh_frame.n, r)
     e_perp = dr.select(dr.squared_norm(e_perp) > 1e-12, dr.normalize(e_perp), si.sh_frame.s)
     e_par = dr.cross(e_perp, r)
+    return r, E_s, s_par, s_perp, e_par, e_perp
 
-    # ------------------- per cone: diffuse at the axis, the part of the lobe in the cap -------------------
+
+def _sg_cone(lobe, Dw, A, inv_om, delta):
+    r"""The share of the lobe ``lobe`` (:func:`_sg_lobe`) that cone (``Dw``, ``A``) sees,
+    per unit of its peak and of the cone's ``L_c``: ``E Psi / Omega_c``, or for a Dirac
+    cone the lobe's value on its axis (see :func:`_principled_cones`)."""
+    r, E_s, s_par, s_perp, e_par, e_perp = lobe
+    v = Dw - r
+    dd = dr.squared_norm(v)                             # |r - d|^2 = 2 (1 - r . d), precise near 0
+    # t: the angle from r to the cone axis; m: its Mahalanobis length in the lobe's widths
+    th = 2.0 * dr.asin(dr.minimum(0.5 * dr.sqrt(dd), 1.0))
+    sc = th * dr.rsqrt(dr.maximum(dd, 1e-30))
+    m2 = dr.square(dr.dot(v, e_par) * sc / s_par) + dr.square(dr.dot(v, e_perp) * sc / s_perp)
+    # the fraction Psi of the lobe inside the cap (radius a = alpha_c): a Gaussian edge across
+    # the cap's rim, scaled to GGX's own fraction in a disc centred on the peak (its slopes
+    # are a bivariate Student t with 2 degrees of freedom: a disc of slope radius rho holds
+    # rho^2 / (alpha^2 + rho^2), where a Gaussian of the same peak holds 1 - e^{-rho^2/alpha^2}).
+    # With sigma_t = t / m the lobe's width towards the axis (sqrt(s_par s_perp) at t = 0)
+    # and x = a^2 / (2 s_par s_perp) = rho^2 / alpha^2:
+    # Psi ~ [Phi((a - t)/sigma_t) - Phi((-a - t)/sigma_t)] (x / (1 + x)) / (2 Phi(a/sigma_t) - 1):
+    # GGX's fraction at t = 0 (round lobe), the cap's edge for a >> sigma, area x density
+    # for a << sigma
+    sig = dr.select(m2 > 1e-12, th * dr.rsqrt(dr.maximum(m2, 1e-30)), dr.sqrt(s_par * s_perp))
+    isg = dr.rcp(sig)
+
+    def t2(u):
+        return dr.erf(u * math.sqrt(0.5))                              # 2 Phi(u) - 1
+
+    edge = 0.5 * (t2((A - th) * isg) - t2((-A - th) * isg))
+    x = dr.square(A) * (0.5 / (s_par * s_perp))
+    psi = edge * (x * dr.rcp(1.0 + x)) * dr.rcp(dr.maximum(t2(A * isg), 1e-30))
+    sg = E_s * psi * inv_om
+    return dr.select(delta, dr.exp(-0.5 * m2), sg), m2, th
+
+
+def _conductor_cones(bsdf, si, ctx, active, K, live, delta, A, inv_om, L, Dw, below, zero):
+    r"""Cone shading of pixels with Mitsuba's isotropic GGX ``roughconductor``, no
+    quadrature (``conductor="sg"``): the lobe ``f_s cos`` as the Gaussian of
+    :func:`_principled_cones`'s specular part, of peak ``S_r = f cos(r)`` from Mitsuba's
+    own ``eval`` at the mirror direction ``r`` (the conductor's Fresnel term exact at ``r``
+    and held over the lobe) and width from the BSDF's ``alpha`` (read per pixel). It
+    applies to pixels whose BSDF has the ``alpha`` attribute and only glossy reflection
+    (no diffuse, Dirac or transmissive lobe; the caller passes only when every
+    roughconductor of the scene uses the GGX distribution). Returns (value, mask)."""
+    flags = mi.UInt32(bsdf.flags())
+    m = active & bsdf.has_attribute("alpha", active) & mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) & \
+        ~mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & \
+        ~mi.has_flag(flags, mi.BSDFFlags.Delta) & (mi.Frame3f.cos_theta(si.wi) > 0.0)
+    alpha = dr.maximum(bsdf.eval_attribute_1("alpha", si, m), 1e-3)
+    ci = dr.maximum(mi.Frame3f.cos_theta(si.wi), 1e-4)
+    r_loc = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
+    S_r = dr.maximum(mi.Color3f(bsdf.eval(ctx, si, r_loc, m)), 0.0)
+    lobe = _sg_lobe(si, alpha, ci)
     out = mi.Color3f(zero)
     for i in range(K):
-        d_loc = si.to_local(Dw[i])
-        v = Dw[i] - r
-        dd = dr.squared_norm(v)                             # |r - d|^2 = 2 (1 - r . d), precise near 0
-        diff = kd * (fdiff(d_loc) * term[i])
-        # t: the angle from r to the cone axis; m: its Mahalanobis length in the lobe's widths
-        th = 2.0 * dr.asin(dr.minimum(0.5 * dr.sqrt(dd), 1.0))
-        sc = th * dr.rsqrt(dr.maximum(dd, 1e-30))
-        m2 = dr.square(dr.dot(v, e_par) * sc / s_par) + dr.square(dr.dot(v, e_perp) * sc / s_perp)
-        # the fraction Psi of the lobe inside the cap (radius a = alpha_c): a Gaussian edge across
-        # the cap's rim, scaled to GGX's own fraction in a disc centred on the peak (its slopes
-        # are a bivariate Student t with 2 degrees of freedom: a disc of slope radius rho holds
-        # rho^2 / (alpha^2 + rho^2), where a Gaussian of the same peak holds 1 - e^{-rho^2/alpha^2}).
-        # With sigma_t = t / m the lobe's width towards the axis (sqrt(s_par s_perp) at t = 0)
-        # and x = a^2 / (2 s_par s_perp) = rho^2 / alpha^2:
-        # Psi ~ [Phi((a - t)/sigma_t) - Phi((-a - t)/sigma_t)] (x / (1 + x)) / (2 Phi(a/sigma_t) - 1):
-        # GGX's fraction at t = 0 (round lobe), the cap's edge for a >> sigma, area x density
-        # for a << sigma
-        sig = dr.select(m2 > 1e-12, th * dr.rsqrt(dr.maximum(m2, 1e-30)), dr.sqrt(s_par * s_perp))
-        isg = dr.rcp(sig)
-        a_ = A[i]
-
-        def t2(u):
-            return dr.erf(u * math.sqrt(0.5))                              # 2 Phi(u) - 1
-
-        edge = 0.5 * (t2((a_ - th) * isg) - t2((-a_ - th) * isg))
-        x = dr.square(a_) * (0.5 / (s_par * s_perp))
-        psi = edge * (x * dr.rcp(1.0 + x)) * dr.rcp(dr.maximum(t2(a_ * isg), 1e-30))
-        sg = E_s * psi * inv_om[i]
-        sg = dr.select(delta[i], dr.exp(-0.5 * m2), sg)
-        spec = dr.select(below[i], 0.0, S_r * (L[i] * sg))
-        out += dr.select(live[i], diff + spec, 0.0)
+        sg, m2, th = _sg_cone(lobe, Dw[i], A[i], inv_om[i], delta[i])
+        # GGX's tail (a Student t) far outweighs the Gaussian's away from r: what the
+        # Gaussian misses at the cone's axis, f cos(d_c) - S_r e^{-m^2/2}, is held over the cap
+        f_c = mi.Color3f(bsdf.eval(ctx, si, si.to_local(Dw[i]), m & live[i]))
+        tail = dr.maximum(f_c - S_r * dr.exp(-0.5 * m2), 0.0)
+        # ... only for caps away from r (inside, the Student-t fraction of the lobe holds its tail)
+        tail *= dr.select(delta[i], 1.0, dr.clip((th - A[i]) * dr.rcp(dr.maximum(A[i], 1e-6)), 0.0, 1.0))
+        # a cap narrower than the lobe sees f cos nearly constant: f cos(d_c) L_c (blended in
+        # from caps of twice the lobe's width down to caps of its width)
+        b = dr.select(delta[i], 1.0, dr.clip(2.0 - A[i] * dr.rsqrt(lobe[2] * lobe[3]), 0.0, 1.0))
+        val = L[i] * dr.lerp(S_r * sg + tail, f_c, b)
+        out += dr.select(live[i] & ~below[i], val, 0.0)
     return out, m
 
 
 def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.SurfaceInteraction3f,
                  bsdf: mi.BSDFPtr, texel_frame: mi.Frame3f, max_cones: int, n_total: mi.UInt32,
                  key: mi.UInt32, adaptive: bool = True, rotate: bool = True,
-                 pid: mi.UInt32 | None = None, horizon: bool = True, principled: bool = True) -> mi.Color3f:
+                 pid: mi.UInt32 | None = None, horizon: bool = True, principled: bool = True,
+                 conductor: bool = False, table=None, entry_frames=None) -> mi.Color3f:
     """Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
     ``slot``; ``texel_frame`` is the local frame of each pixel's entry (the frame its
     cone directions are stored in). ``n_total`` directions per live cone and ``key``
-    are opaque scalars; ``adaptive`` / ``rotate`` / ``horizon`` / ``principled`` see :class:`ConeShading`. ``pid``
+    are opaque scalars; ``adaptive`` / ``rotate`` / ``horizon`` / ``principled`` / ``conductor`` see
+    :class:`ConeShading`. ``pid``
     keys each pixel's random numbers (default: its index in the arrays; several viewers
-    shaded in one launch pass each pixel's index within its own viewer). Entries
-    without cones and inactive pixels give 0."""
+    shaded in one launch pass each pixel's index within its own viewer). ``table``
+    (:func:`bsdf_table`, optional) gives the constants of BSDFs without textures. With
+    ``entry_frames`` (the entries' frames), ``texel_frame`` is instead each pixel's index
+    into them (the gather then runs inside this kernel, not as a kernel of its own).
+    Entries without cones and inactive pixels give 0."""
     K = max_cones
+    if entry_frames is not None:
+        texel_frame = dr.gather(mi.Frame3f, entry_frames, texel_frame, active)
     D, A, L, C, n = unpack(gather_words(storage, slot, K, active), K)
     Dw = [dr.normalize(texel_frame.to_world(D[i])) for i in range(K)]
     ctx = mi.BSDFContext()
     zero = dr.select(active, mi.Float(0.0), mi.Float(0.0))     # a zero of the pixels' width
     if pid is None:
         pid = dr.arange(mi.UInt32, dr.width(slot))
+    # each pixel's BSDF kind and constants from the table (KIND_OTHER: virtual calls)
+    if table is not None:
+        t_w, t_kind, t_col, t_rough, t_metal = table
+        rid = dr.reinterpret_array(mi.UInt32, bsdf)
+        t_ok = active & (bsdf != None) & (rid < t_w)  # noqa: E711 (BSDFPtr comparison)
+        kind = dr.gather(mi.UInt32, t_kind, rid, t_ok)
+        consts = (kind, lambda: dr.gather(mi.Color3f, t_col, rid, t_ok), lambda: dr.gather(mi.Float, t_rough, rid, t_ok),
+                  lambda: dr.gather(mi.Float, t_metal, rid, t_ok))
+    else:
+        kind = mi.UInt32(KIND_OTHER)
+        consts = None
 
     # ------------------- the cones: live, Dirac, solid angle, density -------------------
     live = [active & (n > i) for i in range(K)]
@@ -231,22 +321,6 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     delta = [live[i] & (A[i] < ALPHA_DELTA) for i in range(K)]
     area = [live[i] & ~delta[i] for i in range(K)]                        # cones with a density
     inv_om = [dr.select(area[i], dr.rcp(dr.maximum(2.0 * math.pi * h[i], 1e-30)), 0.0) for i in range(K)]
-
-    def density(w, own=None):
-        """(sum over cones holding w of L_c/Omega_c, of 1/Omega_c); cone ``own`` holds w."""
-        Lt, dt = mi.Color3f(zero), mi.Float(zero)
-        for j in range(K):
-            inside = area[j] & ((1.0 - dr.dot(w, Dw[j])) <= h[j] * (1.0 + 1e-5) + 1e-7)
-            if own == j:
-                inside = area[j]
-            Lt += dr.select(inside, L[j] * inv_om[j], 0.0)
-            dt += dr.select(inside, inv_om[j], 0.0)
-        return Lt, dt
-
-    def mis(pdf_cones, pdf_b):
-        """Balance heuristic: a sample's weight over its pdf, 1 / (n_C sum_c 1/Omega_c + n_B p_B)."""
-        den = nc_f * pdf_cones + nb_f * pdf_b
-        return dr.select(den > 0.0, dr.rcp(den), 0.0)
 
     # ------------------- Lambertian pixels: the cone integral in closed form -------------------
     # A cone clear of the horizon: (1/Omega_c) int_c cos = (n . d_c)(1 + cos alpha_c)/2. With
@@ -267,13 +341,13 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
         full = L[i] * (cos_d * 0.5 * (1.0 + dr.cos(A[i])))
         if horizon:
             sa, ca = dr.sin(A[i]), dr.cos(A[i])
-            x = ca * dr.rcp(dr.maximum(sa, 1e-30))
-            y = dr.clip(-x * cos_d * dr.rcp(dr.maximum(sin_d, 1e-30)), -1.0, 1.0)
-            sy = sin_d * dr.safe_sqrt(1.0 - dr.square(y))
-            part = (cos_d * dr.acos(y) - x * sy) * dr.square(sa) + dr.atan2(sy, x)
-            inv_om_i = dr.rcp(dr.maximum(2.0 * math.pi * h[i], 1e-30))
-            across = dr.select(delta[i], L[i] * dr.maximum(cos_d, 0.0), L[i] * (dr.maximum(part, 0.0) * inv_om_i))
             below = (cos_d * ca + sin_d * sa) <= 0.0                      # the whole cap under the horizon
+            # the clipped-cap integral only where a live cone crosses the horizon (a symbolic
+            # branch: SIMD packets without such a lane skip it)
+            across = dr.if_stmt(
+                args=(cos_d, sin_d, sa, ca, A[i], L[i], delta[i], h[i]),
+                cond=live[i] & ~above & ~below,
+                true_fn=_across_cap, false_fn=lambda *a: mi.Color3f(0.0), label="across")
             cones_ok &= ~live[i] | above | (A[i] < 0.5 * math.pi)
             t = dr.select(live[i], dr.select(above, full, dr.select(below, 0.0, across)), 0.0)
         else:
@@ -284,16 +358,84 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
         term.append(t)
         below_c.append(below | (delta[i] & (cos_d <= 0.0)))
     lambert = _lambertian(bsdf, si, active) & cones_ok
-    rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert))
-    closed = rho * closed * (1.0 / math.pi)
+
+    # Each kind of pixel runs in a symbolic branch of its own (Lambertian closed form,
+    # principled closed form, quadrature): on the LLVM backend a SIMD packet skips a branch
+    # none of its lanes takes, so a pixel pays only for its own kind (the images are the
+    # same bit for bit as with every kind computed for every pixel and selected).
+    def lambert_fn(closed):
+        if consts is None:
+            rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert))
+        else:
+            tab = kind == KIND_DIFFUSE
+            rho = dr.select(tab, consts[1](), mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert & ~tab)))
+        return rho * closed * (1.0 / math.pi)
+
+    closed = dr.if_stmt(args=(closed,), cond=lambert, true_fn=lambert_fn,
+                        false_fn=lambda closed: mi.Color3f(0.0), label="lambert")
 
     # ------------------- principled pixels: diffuse in closed form, specular lobe as an SG -------------------
     if principled:
-        prin, pfast = _principled_cones(bsdf, si, ctx, active & cones_ok & ~lambert, K, live, delta, A, h, inv_om, L, Dw,
-                                        term, below_c, zero)
+        pm = active & cones_ok & ~lambert
+        prin, pfast = dr.if_stmt(
+            args=(pm,), cond=pm,
+            true_fn=lambda pm: _principled_cones(bsdf, si, ctx, pm, K, live, delta, A, h, inv_om, L, Dw,
+                                                 term, below_c, zero, consts),
+            false_fn=lambda pm: (mi.Color3f(0.0), mi.Bool(False)), label="principled")
     else:
         prin, pfast = mi.Color3f(zero), active & False
+    # ------------------- GGX conductor pixels: the lobe as an SG (an option) -------------------
+    if conductor:
+        cm = active & cones_ok & ~lambert & ~pfast
+        cond_v, cfast = dr.if_stmt(
+            args=(cm,), cond=cm,
+            true_fn=lambda cm: _conductor_cones(bsdf, si, ctx, cm, K, live, delta, A, inv_om, L, Dw, below_c, zero),
+            false_fn=lambda cm: (mi.Color3f(0.0), mi.Bool(False)), label="conductor")
+        prin = dr.select(pfast, prin, cond_v)
+        pfast = pfast | cfast
     sampled = active & ~lambert & ~pfast & (n > 0)
+
+    def sampled_fn(sampled):
+        return _quadrature(bsdf, si, ctx, sampled, K, n_total, key, pid, adaptive, rotate, live, delta, area, h,
+                           inv_om, L, A, Dw, zero)
+
+    acc = dr.if_stmt(args=(sampled,), cond=sampled, true_fn=sampled_fn,
+                     false_fn=lambda sampled: mi.Color3f(0.0), label="quadrature")
+
+    # raw values: a NaN or Inf made here reaches the image, where check mode names it
+    return dr.select(lambert, closed, dr.select(pfast, prin, acc))
+
+
+def _across_cap(cos_d, sin_d, sa, ca, A, L, delta, h):
+    """L_c (1/Omega_c) times the integral of cos over the part of the cap (axis at
+    ``cos_d`` from the normal, half-angle ``A``) above the horizon (Snyder 1996)."""
+    x = ca * dr.rcp(dr.maximum(sa, 1e-30))
+    y = dr.clip(-x * cos_d * dr.rcp(dr.maximum(sin_d, 1e-30)), -1.0, 1.0)
+    sy = sin_d * dr.safe_sqrt(1.0 - dr.square(y))
+    part = (cos_d * dr.acos(y) - x * sy) * dr.square(sa) + dr.atan2(sy, x)
+    inv_om_i = dr.rcp(dr.maximum(2.0 * math.pi * h, 1e-30))
+    return dr.select(delta, L * dr.maximum(cos_d, 0.0), L * (dr.maximum(part, 0.0) * inv_om_i))
+
+
+def _quadrature(bsdf, si, ctx, sampled, K, n_total, key, pid, adaptive, rotate, live, delta, area, h, inv_om, L,
+                A, Dw, zero):
+    """The MIS quadrature of the pixels ``sampled`` (the module docstring): returns
+    the sum over their cone and BSDF samples."""
+    def density(w, own=None):
+        """(sum over cones holding w of L_c/Omega_c, of 1/Omega_c); cone ``own`` holds w."""
+        Lt, dt = mi.Color3f(zero), mi.Float(zero)
+        for j in range(K):
+            inside = area[j] & ((1.0 - dr.dot(w, Dw[j])) <= h[j] * (1.0 + 1e-5) + 1e-7)
+            if own == j:
+                inside = area[j]
+            Lt += dr.select(inside, L[j] * inv_om[j], 0.0)
+            dt += dr.select(inside, inv_om[j], 0.0)
+        return Lt, dt
+
+    def mis(pdf_cones, pdf_b):
+        """Balance heuristic: a sample's weight over its pdf, 1 / (n_C sum_c 1/Omega_c + n_B p_B)."""
+        den = nc_f * pdf_cones + nb_f * pdf_b
+        return dr.select(den > 0.0, dr.rcp(den), 0.0)
 
     # ------------------- allocation: how narrow is the lobe against the cones? -------------------
     # q = p_B(r) max_c Omega_c, with r the mirror direction of w_o (the peak of a glossy lobe),
@@ -377,9 +519,7 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
         return t + 1, acc
 
     _, acc = dr.while_loop(state=(mi.UInt32(0), acc), cond=bsdf_cond, body=bsdf_body, labels=("t", "acc"))
-
-    # raw values: a NaN or Inf made here reaches the image, where check mode names it
-    return dr.select(lambert, closed, dr.select(pfast, prin, acc))
+    return acc
 
 
 def shade_key(frame: int, seed: int, tap: int = 0) -> int:
@@ -403,7 +543,10 @@ class ConeShading(FrozenFunction):
     clipped-cap integral; False: they are sampled, as before December 2026),
     ``principled="sg"`` (pixels with Mitsuba's ``principled`` BSDF: diffuse part in
     closed form, specular lobe as a spherical Gaussian, see :func:`_principled_cones`;
-    ``"sample"``: the MIS quadrature, as before).
+    ``"sample"``: the MIS quadrature, as before), ``conductor="sample"`` (pixels with an
+    isotropic GGX ``roughconductor``: the MIS quadrature; ``"sg"``: the lobe as a spherical
+    Gaussian over each cone, see :func:`_conductor_cones`; only for scenes whose
+    roughconductors all use GGX, :func:`shader_for` checks).
 
     Freezing pays only while its recordings are replayed. Each instance owns its frozen
     function, so recordings are freed with the method and never shared between scenes.
@@ -419,22 +562,38 @@ class ConeShading(FrozenFunction):
 
     def __init__(self, max_cones: int, adaptive: bool = True, rotate: bool = True, freeze: bool = True,
                  animated: bool = False, max_recordings: int = 4, horizon: bool = True,
-                 principled: str = "sg"):
+                 principled: str = "sg", conductor: str = "sample", table=None):
+        self.table = table
         if principled not in ("sg", "sample"):
             raise ValueError(f"principled must be 'sg' or 'sample', not {principled!r}")
+        if conductor not in ("sg", "sample"):
+            raise ValueError(f"conductor must be 'sg' or 'sample', not {conductor!r}")
+        self.conductor = conductor
         self.max_cones = int(max_cones)
         self.adaptive, self.rotate, self.horizon = bool(adaptive), bool(rotate), bool(horizon)
         self.principled = principled
         super().__init__(shade_kernel, freeze, animated, max_recordings)
 
     def __call__(self, storage, slot, active, si, texel_frame, n_samples: int = 16, key: int = 0,
-                 pid: mi.UInt32 | None = None) -> mi.Color3f:
+                 pid: mi.UInt32 | None = None, entry_frames=None) -> mi.Color3f:
         """Shade the pixels ``si``; ``pid``: the random-number key per pixel (default:
-        the index in the arrays; see :func:`shade_kernel`)."""
+        the index in the arrays); ``entry_frames``: ``texel_frame`` is an index into
+        them (see :func:`shade_kernel`)."""
+        # No garbage collection inside a recording: an object freed there may enqueue a host
+        # function, which Dr.Jit cannot record (the process aborts; seen once in a test run)
+        gc_on = gc.isenabled()
+        gc.disable()
+        try:
+            return self._call(storage, slot, active, si, texel_frame, n_samples, key, pid, entry_frames)
+        finally:
+            if gc_on:
+                gc.enable()
+
+    def _call(self, storage, slot, active, si, texel_frame, n_samples, key, pid, entry_frames):
         return super().__call__(storage, mi.UInt32(slot), mi.Bool(active), si, si.bsdf(), texel_frame,
                                 self.max_cones, dr.opaque(mi.UInt32, max(int(n_samples), 1)),
                                 dr.opaque(mi.UInt32, int(key)), self.adaptive, self.rotate, pid, self.horizon,
-                                self.principled == "sg")
+                                self.principled == "sg", self.conductor == "sg", self.table, entry_frames)
 
 
 def shader_for(owner, max_cones: int) -> ConeShading:
@@ -445,15 +604,96 @@ def shader_for(owner, max_cones: int) -> ConeShading:
     sh = getattr(owner, "_cone_shading", None)
     if sh is None or sh.max_cones != int(max_cones):
         scene = getattr(owner, "scene", None)
+        conductor = getattr(owner, "conductor", "sample")
+        if conductor == "sg" and scene is not None and not _ggx_conductors_only(scene):
+            conductor = "sample"
         sh = ConeShading(max_cones, animated=bool(getattr(scene, "dynamic", False)),
                          horizon=getattr(owner, "horizon", "clip") == "clip",
-                         principled=getattr(owner, "principled", "sg"))
+                         principled=getattr(owner, "principled", "sg"), conductor=conductor,
+                         table=bsdf_table(scene) if scene is not None else None)
         owner._cone_shading = sh
     return sh
 
 
+KIND_OTHER, KIND_DIFFUSE, KIND_PRINCIPLED = 0, 1, 2
+_ZERO_ATTRS = ("clearcoat", "sheen", "flatness", "anisotropic", "spec_trans")
+
+
+def bsdf_table(scene):
+    r"""Per-BSDF constants read once on the host, so that the shading kernel gathers them
+    instead of making a virtual call per pixel and attribute (``eval_attribute``,
+    ``eval_diffuse_reflectance``: about half of a principled pixel's cost, measured).
+
+    Indexed by the BSDF's registry id (``dr.reinterpret_array(mi.UInt32, bsdf)``): kind
+    ``KIND_DIFFUSE`` (Mitsuba's ``diffuse`` with a constant reflectance: that reflectance),
+    ``KIND_PRINCIPLED`` (``principled`` whose clearcoat, sheen, flatness, anisotropy and
+    specular transmission are constant 0 and whose base colour, roughness and metallic
+    are constant: those three), else ``KIND_OTHER`` (textured parameters, other BSDFs:
+    the kernel's virtual calls, per pixel as before). The constants are the BSDF's own
+    ``eval_attribute`` / ``eval_diffuse_reflectance`` values (a constant texture ignores
+    the point), so the images are the same bit for bit. Returns (width as an opaque
+    UInt32, kind UInt32, colour Color3f, roughness Float, metallic Float), or None for
+    scenes with instances (their BSDFs are not listed by ``scene.shapes()``)."""
+    import numpy as np
+    ms = getattr(scene, "mi_scene", scene)
+    shapes = ms.shapes()
+    if any(sh.class_name() in ("Instance", "ShapeGroup") for sh in shapes):
+        return None
+    bsdfs = {}
+    for sh in shapes:
+        b = sh.bsdf()
+        if b is not None:
+            bsdfs[int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(b))[0])] = b
+    if not bsdfs:
+        return None
+    W = max(bsdfs) + 1
+    kind = np.zeros(W, np.uint32)
+    col = np.zeros((3, W), np.float32)
+    rough = np.zeros(W, np.float32)
+    metal = np.zeros(W, np.float32)
+    si = dr.zeros(mi.SurfaceInteraction3f, 1)
+    si.wi = mi.Vector3f(0.0, 0.0, 1.0)
+    for rid, b in bsdfs.items():
+        keys = [k for k in mi.traverse(b).keys()]
+
+        def constant(name):
+            own = [k for k in keys if k == name or k.startswith(name + ".")]
+            return own == [name + ".value"]
+        if b.class_name() == "SmoothDiffuse" and constant("reflectance"):
+            kind[rid] = KIND_DIFFUSE
+            col[:, rid] = np.array(b.eval_diffuse_reflectance(si)).reshape(3)
+        elif b.class_name() == "Principled" and all(constant(a) for a in _ZERO_ATTRS + ("base_color", "roughness",
+                                                                                       "metallic")) \
+                and all(float(b.eval_attribute_1(a, si)[0]) == 0.0 for a in _ZERO_ATTRS) \
+                and _principled_flags(int(b.flags())):
+            kind[rid] = KIND_PRINCIPLED
+            col[:, rid] = np.array(b.eval_attribute_3("base_color", si)).reshape(3)
+            rough[rid] = float(b.eval_attribute_1("roughness", si)[0])
+            metal[rid] = float(b.eval_attribute_1("metallic", si)[0])
+    return (dr.opaque(mi.UInt32, W), mi.UInt32(kind), mi.Color3f(col), mi.Float(rough), mi.Float(metal))
+
+
+def _principled_flags(f: int) -> bool:
+    """The flags :func:`_principled_cones` asks for (diffuse + glossy reflection, no
+    transmission, no Dirac lobe)."""
+    F = mi.BSDFFlags
+    return bool(f & int(F.DiffuseReflection)) and bool(f & int(F.GlossyReflection)) and \
+        not (f & int(F.Transmission)) and not (f & int(F.Delta))
+
+
+def _ggx_conductors_only(scene) -> bool:
+    """Whether every ``roughconductor`` of the scene (``slc`` scene or ``mi.Scene``) is
+    GGX (the closed form of :func:`_conductor_cones` assumes it)."""
+    ms = getattr(scene, "mi_scene", scene)
+    for sh in ms.shapes():
+        text = str(sh.bsdf()) if sh.bsdf() is not None else ""
+        if text.startswith("RoughConductor") and "distribution = ggx" not in text:
+            return False
+    return True
+
+
 def shade_pixels(storage, slot, active, si, texel_frame, max_cones: int, n_samples: int = 16, key: int = 0,
-                 principled: str = "sg"):
+                 principled: str = "sg", conductor: str = "sample"):
     """Unfrozen one-off shading (tests, notebooks)."""
-    return ConeShading(max_cones, freeze=False, principled=principled)(storage, slot, active, si, texel_frame,
+    return ConeShading(max_cones, freeze=False, principled=principled, conductor=conductor)(storage, slot, active, si, texel_frame,
                                                                       n_samples, key)
