@@ -140,8 +140,8 @@ class SurfaceLightCones(PayloadMethod):
         viewer, the frame's key), so the images are the per-viewer ones bit for bit.
         The G-buffers' surface interactions come from the frame's layered G-buffer
         (``gb.layers``, :func:`slc.gbuffer.attach_layers`) when there is one, else
-        they are concatenated here; the cache's per-viewer slots are concatenated
-        here. Otherwise (and for one viewer) :meth:`shade` per viewer."""
+        they are concatenated here; the cache's slots come laid out the same way
+        (``fr.layer_slot``, ``fr.layer_index``) or are concatenated here. Otherwise (and for one viewer) :meth:`shade` per viewer."""
         if self.batch != "viewers" or self.fetch != "nearest" or len(gbuffers) < 2:
             return super().shade_all(ctx, fr, gbuffers)
         lay = gbuffers[0].layers
@@ -152,16 +152,22 @@ class SurfaceLightCones(PayloadMethod):
         total = sum(sizes)
 
         # ------------------- the viewers' pixels, one after another -------------------
-        slot = dr.empty(mi.UInt32, total)
-        index = dr.empty(mi.UInt32, total)
+        # the cache's slots laid out as the layers already (FrameRequests.layer_slot) when it
+        # provides them; else the per-viewer slots concatenated here
+        own = fr.layer_slot is not None and fr.layer_index is not None
+        slot = fr.layer_slot if own else dr.empty(mi.UInt32, total)
+        index = fr.layer_index if own else dr.empty(mi.UInt32, total)
         if lay is None:
             si, valid, pid = dr.empty(mi.SurfaceInteraction3f, total), dr.empty(mi.Bool, total), self._batch_pid(sizes)
         else:
             si, valid, pid = lay.si, lay.valid, lay.pixel
         for v, gb in enumerate(gbuffers):
+            if own and lay is not None:
+                break
             at = dr.arange(mi.UInt32, sizes[v]) + dr.opaque(mi.UInt32, offsets[v])
-            dr.scatter(slot, mi.UInt32(fr.pixel_slot[v]), at)
-            dr.scatter(index, mi.UInt32(fr.pixel_index[v]), at)
+            if not own:
+                dr.scatter(slot, mi.UInt32(fr.pixel_slot[v]), at)
+                dr.scatter(index, mi.UInt32(fr.pixel_index[v]), at)
             if lay is None:
                 dr.scatter(si, gb.si, at)
                 dr.scatter(valid, mi.Bool(gb.valid), at)

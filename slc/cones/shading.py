@@ -49,7 +49,6 @@ Each :class:`ConeShading` (one per method instance) owns its own frozen function
 """
 from __future__ import annotations
 
-import gc
 import math
 
 import drjit as dr
@@ -579,17 +578,7 @@ class ConeShading(FrozenFunction):
         """Shade the pixels ``si``; ``pid``: the random-number key per pixel (default:
         the index in the arrays); ``entry_frames``: ``texel_frame`` is an index into
         them (see :func:`shade_kernel`)."""
-        # No garbage collection inside a recording: an object freed there may enqueue a host
-        # function, which Dr.Jit cannot record (the process aborts; seen once in a test run)
-        gc_on = gc.isenabled()
-        gc.disable()
-        try:
-            return self._call(storage, slot, active, si, texel_frame, n_samples, key, pid, entry_frames)
-        finally:
-            if gc_on:
-                gc.enable()
-
-    def _call(self, storage, slot, active, si, texel_frame, n_samples, key, pid, entry_frames):
+        # (no garbage collection inside the call: slc.freeze.FrozenFunction)
         return super().__call__(storage, mi.UInt32(slot), mi.Bool(active), si, si.bsdf(), texel_frame,
                                 self.max_cones, dr.opaque(mi.UInt32, max(int(n_samples), 1)),
                                 dr.opaque(mi.UInt32, int(key)), self.adaptive, self.rotate, pid, self.horizon,
