@@ -264,8 +264,7 @@ class AdaptiveCache(PayloadMethod):
                                                    dr.gather(mi.UInt32, first_sample, idx), fr_r, on, ctx.frame)
                 dr.scatter(motion, mo, idx, on)
             else:
-                out, st = sh_rep.update(sc, rec, si, key, ry, fr_r, on, ctx.frame, self.seed, self.enc,
-                                        self.sh_count, self.sph, self.env)
+                out, st = self._sh_update()(sc, rec, si, key, ry, fr_r, on, ctx.frame)
             dr.eval(out, st)
             del rec
             pool.scatter(out, ps, on)
@@ -428,6 +427,14 @@ class AdaptiveCache(PayloadMethod):
             self._cones_up = cones_rep.ConesUpdate(self.cone_params, self.seed, self.sph, self.env,
                                                    freeze=not bool(getattr(self.scene, "dynamic", False)))
         return self._cones_up
+
+    def _sh_update(self) -> sh_rep.SHUpdate:
+        """The SH update, frozen (made on first use; unfrozen in an animated
+        scene)."""
+        if getattr(self, "_sh_up", None) is None:
+            self._sh_up = sh_rep.SHUpdate(self.encoding, self.seed, self.sh_count, self.sph, self.env,
+                                          freeze=not bool(getattr(self.scene, "dynamic", False)))
+        return self._sh_up
 
     def _vis_shading(self) -> visibility.VisShading:
         """The VISIBILITY pool's shading, frozen (made on first use; unfrozen in
