@@ -131,7 +131,8 @@ class SHUpdate(FrozenFunction):
 
     def __init__(self, enc_name: str, seed: int, max_count: int, sph=None, env=None, freeze: bool = True,
                  max_recordings: int = 4):
-        self.enc_name, self.seed, self.max_count, self.sph, self.env = str(enc_name), int(seed), int(max_count), sph, env
+        self.enc_name, self.seed, self.max_count = str(enc_name), int(seed), int(max_count)
+        self.sph, self.env = sph, env
         enc, seed, max_count = get_encoding(self.enc_name), int(seed), int(max_count)
 
         def kernel(scene, lights, tables, rec, si, key, rays, fresh, on, mix):     # no self (see VisShading)
