@@ -128,6 +128,37 @@ def test_frozen_cones_update_matches_unfrozen_as_entries_change():
         assert np.array_equal(a, c)
 
 
+def test_frozen_sh_update_matches_unfrozen_as_entries_change():
+    """The SH update is traced once and replayed (dr.freeze): under a constant
+    sky (no delta light: the statistics' delta share is a literal zero in the
+    trace) with a moving camera, so that the number of SH entries changes from
+    frame to frame, every frame equals the unfrozen update's bit for bit, and
+    the update stays frozen with at most the warm-up's two recordings."""
+    from slc.pipeline import gbuffers_for
+    from slc.timing import NullTimer
+    from slc.methods import FrameContext
+    b = SceneBuilder("adaptive_sh_frozen")
+    b.add_quad([0, 0, 0], [2, 0, 0], [0, 0, -2], bsdf=diffuse([0.5] * 3), name="plane")
+    b.add_envmap(rgb=[0.8, 0.85, 1.0])
+    cam = CameraPath([([0.0, 0.8, 1.2], [0.0, 0.0, 0.0]), ([0.6, 0.5, 0.6], [0.3, 0.0, -0.2])], frames=10, fov=60)
+    scene = b.build([cam, cam, cam])
+    v = Viewer("v0", lambda f: scene.path(0).at(f))
+    out = {}
+    for frozen in (True, False):
+        m = methods.create("adaptive:force=sh", scene, seed=1)
+        m._sh_up = sh_rep.SHUpdate(m.encoding, m.seed, m.sh_count, m.sph, m.env, freeze=frozen)
+        imgs, counts = [], []
+        for f in range(10):
+            gbs = gbuffers_for(scene, [v], f, W, H)
+            imgs.append(np.array(m.render(FrameContext(f), gbs, NullTimer())[0]))
+            counts.append(m.stats()["active_entries"])
+        out[frozen] = (imgs, counts, m._sh_up.recordings, m._sh_up.frozen)
+    assert len(set(out[True][1][2:])) > 1, out[True][1]          # replayed at other widths
+    assert out[True][3] and 1 <= out[True][2] <= 2, out[True][2:]
+    for a, c in zip(out[True][0], out[False][0]):
+        assert np.array_equal(a, c)
+
+
 def _plane_points(scene, n=64):
     """Interactions on the plane of ``scene`` at n points (rays straight down)."""
     import drjit as dr

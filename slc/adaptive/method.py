@@ -167,6 +167,7 @@ class AdaptiveCache(PayloadMethod):
         self._warm = False
         self._frames_seen = 0
         self._counts = {}
+        self._count_hist = None
         self._switches = 0
         self._tags = None
 
@@ -264,8 +265,7 @@ class AdaptiveCache(PayloadMethod):
                                                    dr.gather(mi.UInt32, first_sample, idx), fr_r, on, ctx.frame)
                 dr.scatter(motion, mo, idx, on)
             else:
-                out, st = sh_rep.update(sc, rec, si, key, ry, fr_r, on, ctx.frame, self.seed, self.enc,
-                                        self.sh_count, self.sph, self.env)
+                out, st = self._sh_update()(sc, rec, si, key, ry, fr_r, on, ctx.frame)
             dr.eval(out, st)
             del rec
             pool.scatter(out, ps, on)
@@ -294,8 +294,12 @@ class AdaptiveCache(PayloadMethod):
         for k, w in enumerate(ch.pack_header(h)):
             dr.scatter(self.storage, w, base + k)
         self._tags = h.tag
-        self._counts = dict(zip(REPS, _tally([h.tag == r for r in REPS])))
-        dr.eval(self.storage, self._tags)
+        # the tags' counts are queued with the frame's last kernels and read back only in
+        # shade (a read-back here waited for this update's kernels before the host could
+        # trace the policy update that follows)
+        self._counts = None
+        self._count_hist = _hist([h.tag == r for r in REPS])
+        dr.eval(self.storage, self._tags, self._count_hist)
         return motion
 
     def _sparse(self, h: Header, switch: mi.Bool, target: mi.UInt32, fallback: int, allowed: bool, N: int):
@@ -392,7 +396,9 @@ class AdaptiveCache(PayloadMethod):
         bsdf = si.bsdf()
         m_v, m_c, m_s = ok & (tag == VIS), ok & (tag == CONES), ok & (tag == SH)
         # a representation no active entry uses is not traced (no pixel can need it)
-        used = self._counts if self._warm else {}
+        if self._counts is None and getattr(self, "_count_hist", None) is not None:
+            self._counts = dict(zip(REPS, _tally(REPS, self._count_hist)))
+        used = (self._counts or {}) if self._warm else {}
         # each representation's shading is its own kernel, added into an evaluated sum (the same
         # kernels whichever representations are present)
         L = dr.zeros(mi.Color3f, gb.size)
@@ -428,6 +434,14 @@ class AdaptiveCache(PayloadMethod):
             self._cones_up = cones_rep.ConesUpdate(self.cone_params, self.seed, self.sph, self.env,
                                                    freeze=not bool(getattr(self.scene, "dynamic", False)))
         return self._cones_up
+
+    def _sh_update(self) -> sh_rep.SHUpdate:
+        """The SH update, frozen (made on first use; unfrozen in an animated
+        scene)."""
+        if getattr(self, "_sh_up", None) is None:
+            self._sh_up = sh_rep.SHUpdate(self.encoding, self.seed, self.sh_count, self.sph, self.env,
+                                          freeze=not bool(getattr(self.scene, "dynamic", False)))
+        return self._sh_up
 
     def _vis_shading(self) -> visibility.VisShading:
         """The VISIBILITY pool's shading, frozen (made on first use; unfrozen in
@@ -476,12 +490,20 @@ class AdaptiveCache(PayloadMethod):
         return out
 
 
-def _tally(masks) -> list:
-    """The number of true lanes of each mask (same width), read back together:
-    one wait for the queued kernels instead of one per mask."""
+def _hist(masks) -> mi.UInt32:
+    """The number of true lanes of each mask (same width) as a queued array
+    (read back by :func:`_tally`)."""
     hist = dr.zeros(mi.UInt32, max(len(masks), 2))     # width >= 2: never loaded as a scalar
     for i, m in enumerate(masks):
         dr.scatter_reduce(dr.ReduceOp.Add, hist, mi.UInt32(1), mi.UInt32(i), mi.Bool(m))
+    return hist
+
+
+def _tally(masks, hist=None) -> list:
+    """The number of true lanes of each mask, read back together: one wait for
+    the queued kernels instead of one per mask (``hist``: :func:`_hist` of
+    ``masks`` queued earlier)."""
+    hist = _hist(masks) if hist is None else hist
     return [int(x) for x in hist.numpy()[:len(masks)]]
 
 

@@ -55,19 +55,26 @@ def pack(coeffs, C):
 
 
 def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int, enc, max_count: int, sph=None,
-           env=None):
+           env=None, mix=None):
     """One update cycle of SH records. Returns (new words, stats values)
     (``sph``: small sphere lights count as delta-light energy, see
     :mod:`slc.adaptive.sphere_lights`; ``env``: so do samples of the
     environment's bright regions wholly above the horizon,
-    :mod:`slc.adaptive.env_lights`)."""
+    :mod:`slc.adaptive.env_lights`). ``mix``: the random streams' (seed,
+    frame) mix as an opaque ``mi.UInt32`` (:func:`slc.keys.stream_key`), in
+    place of ``seed`` and ``frame`` (:class:`SHUpdate`)."""
     n_c = enc.n
     N = dr.width(key)
     samp = sampler_of(scene)
     valid = mi.Bool(on) & si.is_valid()
     frame_l = si.sh_frame
     ng = mi.Vector3f(si.n)
-    rng = keyed_rng(key, seed, frame, STREAM_SH_UPDATE)
+    if mix is None:
+        rng = keyed_rng(key, seed, frame, STREAM_SH_UPDATE)
+    else:                              # keyed_rng with the mix given
+        v0, v1 = mi.sample_tea_32(mi.UInt32(key), mix, 6)
+        rng = mi.PCG32()
+        rng.seed(mi.UInt64(v0) | (mi.UInt64(v1) << 32), mi.UInt64(mi.UInt32(key)))
     z = dr.zeros(mi.Float, N)
 
     def cond(i, *state):
@@ -107,6 +114,42 @@ def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int
         old = dr.select(fresh, 0.0, coeffs[c])
         out.append(dr.fma(a, acc[c] * inv - old, old))
     return pack(out, C), [ed, en, m]
+
+
+class SHUpdate(FrozenFunction):
+    """:func:`update` traced once and replayed (``dr.freeze``, as
+    :class:`~slc.adaptive.visibility.VisUpdate` and
+    :class:`~slc.adaptive.cones_rep.ConesUpdate`): tracing the SH update (the
+    sample loop, the projection on the encoding's basis) was Python work on
+    every frame. Inputs: the scene, the emitter table's arrays
+    (:func:`~slc.adaptive.visibility._sampler_inputs`), the sphere and region
+    tables, the entries' records and interactions, and the random streams' mix
+    (opaque: a new frame is no new recording). The encoding, ``seed``,
+    ``max_count``, ``sph`` and ``env`` are fixed per instance. Unfrozen in
+    animated scenes and after more than ``max_recordings`` recordings. Images
+    are those of the traced update bit for bit."""
+
+    def __init__(self, enc_name: str, seed: int, max_count: int, sph=None, env=None, freeze: bool = True,
+                 max_recordings: int = 4):
+        self.enc_name, self.seed, self.max_count = str(enc_name), int(seed), int(max_count)
+        self.sph, self.env = sph, env
+        enc, seed, max_count = get_encoding(self.enc_name), int(seed), int(max_count)
+
+        def kernel(scene, lights, tables, rec, si, key, rays, fresh, on, mix):     # no self (see VisShading)
+            out, st = update(scene, rec, si, key, rays, fresh, on, 0, seed, enc, max_count, sph, env, mix=mix)
+            # a statistic the samples never touch (e_delta without delta lights) may be a literal
+            # zero, which a recording replays at the recorded width: a select makes it a kernel's output
+            st = [dr.select(on, x, 0.0) for x in st]
+            dr.eval(out, st)
+            return out, st
+        super().__init__(kernel, freeze, False, max_recordings)
+
+    def __call__(self, scene, rec, si, key, rays, fresh, on, frame: int):
+        from ..keys import stream_key
+        from .visibility import _sampler_inputs, _tables
+        return super().__call__(scene, _sampler_inputs(scene), _tables(self.sph, self.env),
+                                [mi.UInt32(w) for w in rec], si, mi.UInt32(key), mi.UInt32(rays), mi.Bool(fresh),
+                                mi.Bool(on), stream_key(self.seed, frame, STREAM_SH_UPDATE))
 
 
 def shade(rec, si, bsdf, tf, active, enc, seed: int, glossy_samples: int) -> mi.Color3f:
