@@ -94,9 +94,18 @@ def indirect_light(mi_scene: mi.Scene, gb: GBuffer, spp: int = INDIRECT_SAMPLES,
                    seed: int = INDIRECT_SEED) -> mi.Color3f:
     """Indirect radiance (1..``bounces`` reflections) leaving each G-buffer
     point towards its camera, ``spp`` paths per pixel (see the module text)."""
-    si0, active0 = gb.si, mi.Bool(gb.valid)
-    ctx = mi.BSDFContext()
     sampler = rng(gb.size, seed, stream=_STREAM_INDIRECT + int(bounces))
+    return indirect_paths(mi_scene, gb.si, mi.Bool(gb.valid), sampler, spp, bounces)
+
+
+def indirect_paths(mi_scene: mi.Scene, si0, active0: mi.Bool, sampler: mi.PCG32, spp: int,
+                   bounces: int) -> mi.Color3f:
+    """The estimator of :func:`indirect_light` at the points ``si0`` with the random
+    numbers of ``sampler`` (one PCG32 lane per point): ``spp`` paths of ``bounces``
+    BSDF-sampled reflections, next-event estimation (Mitsuba's light sampling) after
+    each; the mean over the paths (``spp`` is opaque: no recompilation per count).
+    Shared with the ``pt`` baseline, which passes its own streams."""
+    ctx = mi.BSDFContext()
     n = dr.opaque(mi.UInt32, spp)
 
     def cond(i, L, sampler):

@@ -8,7 +8,7 @@ from ..freeze import FrozenFunction
 from ..lights import direct_sample, sample_light_reference, visible
 from ..methods import MethodError, Param, register
 from ..methods import Method
-from ..references import _STREAM_INDIRECT
+from ..references import _STREAM_INDIRECT, indirect_paths
 
 _STREAM_DIRECT = 3
 
@@ -26,38 +26,14 @@ def _pt_kernel(scene, lights, si0, active0, s_ind, s_dir, spp: int, bounces: int
     :func:`slc.references.indirect_light` line for line (same streams: the same numbers for the
     same seed); ``lights`` (:func:`slc.cones.update.light_inputs`) declares the emitter table
     read by the project's light sampling (direct part) as an input."""
-    ctx = mi.BSDFContext()
     idx = dr.arange(mi.UInt64, dr.width(active0))
-    n = dr.opaque(mi.UInt32, spp)
 
     # ------------------ indirect: BSDF-sampled bounces, NEE after each ------------------
     sampler = mi.PCG32(size=dr.width(active0), initstate=s_ind, initseq=idx)
-
-    def cond(i, L, sampler):
-        return i < n
-
-    def body(i, L, sampler):
-        si, beta, active = si0, mi.Color3f(1.0), mi.Bool(active0)
-        for _ in range(int(bounces)):
-            bs, bw = si.bsdf().sample(ctx, si, sampler.next_float32(),
-                                      mi.Point2f(sampler.next_float32(), sampler.next_float32()), active)
-            active &= bs.pdf > 0.0
-            beta = dr.select(active, beta * mi.Color3f(bw), 0.0)
-            si = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), active)
-            active &= si.is_valid() & (dr.max(beta) > 0.0)
-            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
-            ds, w, ok = sample_light_reference(scene, si, u, active)
-            ok = visible(scene, si, ds, ok)
-            f = mi.Color3f(si.bsdf().eval(ctx, si, si.to_local(ds.d), ok))
-            L += dr.select(ok, beta * f * w, 0.0)
-        return i + 1, L, sampler
-
-    _, L, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
-                            labels=("i", "L", "sampler"))
-    L = dr.select(active0, L / float(max(spp, 1)), 0.0)
+    L = indirect_paths(scene, si0, active0, sampler, spp, bounces)
     if full:
         # ------------------ direct light: spp light samples ------------------
-        bsdf = si0.bsdf()
+        bsdf, ctx, n = si0.bsdf(), mi.BSDFContext(), dr.opaque(mi.UInt32, spp)
         sd = mi.PCG32(size=dr.width(active0), initstate=s_dir, initseq=idx)
 
         def cond_d(i, Ld, sd):
