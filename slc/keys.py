@@ -29,6 +29,17 @@ def stream_key(seed: int, frame: int, stream: int) -> mi.UInt32:
     return dr.opaque(mi.UInt32, (int(seed) * 0x9E3779B1 + int(frame) * 0x85EBCA77 + int(stream)) & 0xFFFFFFFF)
 
 
+def mixed_rng(keys: mi.UInt32, mix: mi.UInt32) -> mi.PCG32:
+    """:func:`keyed_rng` with its (seed, frame, stream) mix given as a ``mi.UInt32``
+    (e.g. :func:`stream_key`'s, or computed inside a kernel): frozen functions take
+    the mix as an input, so a new frame gets new streams without a new recording."""
+    keys = mi.UInt32(keys)
+    v0, v1 = mi.sample_tea_32(keys, mi.UInt32(mix), 6)
+    rng = mi.PCG32()
+    rng.seed(mi.UInt64(v0) | (mi.UInt64(v1) << 32), mi.UInt64(keys))
+    return rng
+
+
 def keyed_rng(keys: mi.UInt32, seed: int, frame: int, stream: int) -> mi.PCG32:
     """One PCG32 stream per key for (seed, frame, stream): state from a
     6-round TEA hash of (key, mix), increment from the key.
@@ -36,8 +47,4 @@ def keyed_rng(keys: mi.UInt32, seed: int, frame: int, stream: int) -> mi.PCG32:
     ``PCG32.seed()`` rather than the constructor: ``PCG32(size, ...)`` adds
     ``arange(size)`` to both inputs, which would tie a key's stream to its
     lane position."""
-    keys = mi.UInt32(keys)
-    v0, v1 = mi.sample_tea_32(keys, stream_key(seed, frame, stream), 6)
-    rng = mi.PCG32()
-    rng.seed(mi.UInt64(v0) | (mi.UInt64(v1) << 32), mi.UInt64(keys))
-    return rng
+    return mixed_rng(keys, stream_key(seed, frame, stream))

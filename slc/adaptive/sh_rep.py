@@ -31,7 +31,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..freeze import FrozenFunction
-from ..keys import STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng
+from ..keys import STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng, mixed_rng
 from ..sh.basis import C1, band_of, basis
 from ..sh.project import irradiance, project, radiance
 from ..sh.shading import shade_radiance
@@ -72,9 +72,7 @@ def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int
     if mix is None:
         rng = keyed_rng(key, seed, frame, STREAM_SH_UPDATE)
     else:                              # keyed_rng with the mix given
-        v0, v1 = mi.sample_tea_32(mi.UInt32(key), mix, 6)
-        rng = mi.PCG32()
-        rng.seed(mi.UInt64(v0) | (mi.UInt64(v1) << 32), mi.UInt64(mi.UInt32(key)))
+        rng = mixed_rng(key, mix)
     z = dr.zeros(mi.Float, N)
 
     def cond(i, *state):

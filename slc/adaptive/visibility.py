@@ -53,7 +53,7 @@ import mitsuba as mi
 
 from ..cones.packing import _Reader, _Writer, decode_radiance, encode_radiance
 from ..freeze import FrozenFunction
-from ..keys import keyed_rng
+from ..keys import keyed_rng, mixed_rng
 from .sampling import SampleStats, lum, sampler_of
 
 EMPTY = 0xFFFF
@@ -220,9 +220,7 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
     if mix is None:
         rng = keyed_rng(key, seed, frame, STREAM_VIS)
     else:                              # keyed_rng with the mix given
-        v0, v1 = mi.sample_tea_32(mi.UInt32(key), mix, 6)
-        rng = mi.PCG32()
-        rng.seed(mi.UInt64(v0) | (mi.UInt64(v1) << 32), mi.UInt64(mi.UInt32(key)))
+        rng = mixed_rng(key, mix)
     st = SampleStats(N)
     S = dr.zeros(mi.Color3f, N)
     adj = dr.zeros(mi.Color3f, N)

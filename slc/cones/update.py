@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from ..keys import INVALID, STREAM_CONE_UPDATE, keyed_rng
+from ..keys import INVALID, STREAM_CONE_UPDATE, keyed_rng, mixed_rng
 from ..freeze import FrozenFunction
 from ..lights import sample_light
 
@@ -73,12 +73,7 @@ def frame_rng(keys: mi.UInt32, seed: int, frame: mi.UInt32, stream: int) -> mi.P
     """:func:`slc.keys.keyed_rng` for a frame held in a ``mi.UInt32``: the same
     (seed, frame, stream) mix as :func:`slc.keys.stream_key`, wrapped modulo
     2^32 in the kernel instead of in Python, so the same streams bit for bit."""
-    keys = mi.UInt32(keys)
-    mix = frame * 0x85EBCA77 + ((int(seed) * 0x9E3779B1 + int(stream)) & 0xFFFFFFFF)
-    v0, v1 = mi.sample_tea_32(keys, mix, 6)
-    rng = mi.PCG32()
-    rng.seed(mi.UInt64(v0) | (mi.UInt64(v1) << 32), mi.UInt64(keys))
-    return rng
+    return mixed_rng(keys, frame * 0x85EBCA77 + ((int(seed) * 0x9E3779B1 + int(stream)) & 0xFFFFFFFF))
 
 
 # ----------------------------------------------------------------------------- geometry

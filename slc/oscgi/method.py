@@ -8,7 +8,7 @@ import mitsuba as mi
 
 from ..cones.update import light_inputs
 from ..freeze import FrozenFunction
-from ..keys import INVALID, keyed_rng, stream_key
+from ..keys import INVALID, keyed_rng, mixed_rng, stream_key
 from ..lights import sample_light, visible
 from ..methods import MethodError, Param, register
 from ..osc.cache import OnSurfaceCache
@@ -16,7 +16,7 @@ from ..osc.payload import PayloadMethod, RayPolicy
 from ..sh.shading import diffuse_only, shade_radiance
 from .hemisphere import HemiGrid
 from .laps import Laps
-from .secondary import SecondaryCache, _glossy_kernel, frame_rng
+from .secondary import SecondaryCache, _glossy_kernel
 from .spatial import SpatialFilter
 
 STREAM_PRIMARY = 0x05C61001
@@ -35,7 +35,7 @@ def _primary_ray_kernel(fr_si, keys, tl, mix, D: int, res: int):
     si.p = mi.Point3f(*[dr.gather(mi.Float, fr_si.p[c], et) for c in range(3)])
     si.n = mi.Vector3f(*[dr.gather(mi.Float, fr_si.n[c], et) for c in range(3)])
     n_sh = mi.Vector3f(*[dr.gather(mi.Float, fr_si.sh_frame.n[c], et) for c in range(3)])
-    s = frame_rng(dr.gather(mi.UInt32, keys, et) * D + kt, mix)
+    s = mixed_rng(dr.gather(mi.UInt32, keys, et) * D + kt, mix)
     d = mi.Frame3f(n_sh).to_world(G.direction(kt, mi.Point2f(s.next_float32(), s.next_float32())))
     ok = dr.dot(d, si.n) > 0.0                      # above the geometric surface
     ray = si.spawn_ray(d)
@@ -51,7 +51,7 @@ def _primary_direct_kernel(sc, lights, sie, keys, scratch, mix, nd, scale: float
     D = G.n
     frame_e = mi.Frame3f(sie.sh_frame.n)
     base = dr.arange(mi.UInt32, dr.width(keys)) * D
-    sd = frame_rng(keys, mix)
+    sd = mixed_rng(keys, mix)
 
     def cond(i, sd):
         return i < nd

@@ -62,7 +62,7 @@ import numpy as np
 
 from ..cones.update import light_inputs
 from ..freeze import FrozenFunction
-from ..keys import INVALID, stream_key
+from ..keys import INVALID, mixed_rng, stream_key
 from ..lights import sample_light, visible
 from .laps import Laps
 
@@ -75,17 +75,6 @@ _REP = 9          # representative point (3), front normal (3), diffuse albedo (
 def front_normal(si: mi.SurfaceInteraction3f, d: mi.Vector3f) -> mi.Vector3f:
     """Geometric normal of a hit, on the side the ray ``d`` came from."""
     return dr.select(dr.dot(si.n, d) > 0.0, -si.n, si.n)
-
-
-def frame_rng(keys: mi.UInt32, mix: mi.UInt32) -> mi.PCG32:
-    """:func:`slc.keys.keyed_rng` with its (seed, frame, stream) mix passed in (an opaque
-    ``mi.UInt32`` from :func:`slc.keys.stream_key`): the same streams, and an input rather than
-    a value baked into a frozen function's recording."""
-    keys = mi.UInt32(keys)
-    v0, v1 = mi.sample_tea_32(keys, mi.UInt32(mix), 6)
-    rng = mi.PCG32()
-    rng.seed(mi.UInt64(v0) | (mi.UInt64(v1) << 32), mi.UInt64(keys))
-    return rng
 
 
 def _take(v, idx):
@@ -153,7 +142,7 @@ def _direct_kernel(sc, lights, rep, keys_tab, cells, mix, ns, n_samples: float):
     si = dr.zeros(mi.SurfaceInteraction3f)     # width 1: a literal of the inputs' width would be baked
     si.p, si.n, si.sh_frame, si.wi = p, nrm, mi.Frame3f(nrm), mi.Vector3f(0, 0, 1)
     lit = dr.max(rho) > 0.0
-    sampler = frame_rng(keys, mix)
+    sampler = mixed_rng(keys, mix)
 
     def cond(i, E, sampler):
         return i < ns
@@ -177,7 +166,7 @@ def _ray_kernel(p, nrm, keys, tl, mix, R: int):
     """The cosine rays of the tracing lanes ``tl`` (cell c = tl // R of the update's cells, ray
     j = tl % R) from the cells' representative points ``p`` (normals ``nrm``, keys ``keys``)."""
     c_of, j = tl // R, tl % R
-    s2 = frame_rng(dr.gather(mi.UInt32, keys, c_of) * R + j, mix)
+    s2 = mixed_rng(dr.gather(mi.UInt32, keys, c_of) * R + j, mix)
     u = mi.Point2f(s2.next_float32(), s2.next_float32())
     sil = dr.zeros(mi.SurfaceInteraction3f)    # width 1: a literal of the inputs' width would be baked
     sil.p, sil.n = _take(p, c_of), _take(nrm, c_of)
@@ -199,7 +188,7 @@ def _glossy_kernel(sc, lights, pi, ray, gi, lane_key, mix):
     rw = dr.gather(mi.Ray3f, ray, gi)
     si = pw.compute_surface_interaction(rw, mi.RayFlags.All, True)
     bsdf = si.bsdf()
-    rng = frame_rng(dr.gather(mi.UInt32, lane_key, gi), mix)
+    rng = mixed_rng(dr.gather(mi.UInt32, lane_key, gi), mix)
     # ------------------ next-event estimation at the hit ------------------
     u = mi.Point2f(rng.next_float32(), rng.next_float32())
     ds, w, okd = sample_light(sc, si, u, si.is_valid())
