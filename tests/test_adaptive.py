@@ -103,25 +103,35 @@ def test_frozen_cones_update_matches_unfrozen_as_entries_change():
     from frame to frame, every frame equals the unfrozen update's bit for bit,
     and the update stays frozen with at most the warm-up's two recordings."""
     from slc.adaptive import cones_rep
-    from slc.pipeline import gbuffers_for
-    from slc.timing import NullTimer
-    from slc.methods import FrameContext
     b = SceneBuilder("adaptive_cones_frozen")
     b.add_quad([0, 0, 0], [2, 0, 0], [0, 0, -2], bsdf=diffuse([0.5] * 3), name="plane")
     b.add_quad([0, 1, 0], [0.5, 0, 0], [0, 0, 0.5], bsdf=diffuse([0, 0, 0]), emission=[4.0] * 3, name="light")
     cam = CameraPath([([0.0, 0.8, 1.2], [0.0, 0.0, 0.0]), ([0.6, 0.5, 0.6], [0.3, 0.0, -0.2])], frames=10, fov=60)
     scene = b.build([cam, cam, cam])
+    _assert_frozen_matches_unfrozen(scene, "adaptive:force=cones", "_cones_up",
+                                    lambda m, frozen: cones_rep.ConesUpdate(m.cone_params, m.seed, m.sph, m.env,
+                                                                            freeze=frozen))
+
+
+def _assert_frozen_matches_unfrozen(scene, spec, attr, make):
+    """Render 10 frames of ``scene`` with the method ``spec`` whose update
+    (``attr``, made by ``make(method, frozen)``) is frozen, then unfrozen: the
+    entry count changes after the warm-up (replays at other widths), the frozen
+    update stays frozen with 1-2 recordings, and every frame is equal bit for bit."""
+    from slc.methods import FrameContext
+    from slc.pipeline import gbuffers_for
+    from slc.timing import NullTimer
     v = Viewer("v0", lambda f: scene.path(0).at(f))
     out = {}
     for frozen in (True, False):
-        m = methods.create("adaptive:force=cones", scene, seed=1)
-        m._cones_up = cones_rep.ConesUpdate(m.cone_params, m.seed, m.sph, m.env, freeze=frozen)
+        m = methods.create(spec, scene, seed=1)
+        setattr(m, attr, make(m, frozen))
         imgs, counts = [], []
         for f in range(10):
             gbs = gbuffers_for(scene, [v], f, W, H)
             imgs.append(np.array(m.render(FrameContext(f), gbs, NullTimer())[0]))
             counts.append(m.stats()["active_entries"])
-        out[frozen] = (imgs, counts, m._cones_up.recordings, m._cones_up.frozen)
+        out[frozen] = (imgs, counts, getattr(m, attr).recordings, getattr(m, attr).frozen)
     assert len(set(out[True][1][2:])) > 1, out[True][1]          # replayed at other widths
     assert out[True][3] and 1 <= out[True][2] <= 2, out[True][2:]
     for a, c in zip(out[True][0], out[False][0]):
@@ -134,29 +144,14 @@ def test_frozen_sh_update_matches_unfrozen_as_entries_change():
     trace) with a moving camera, so that the number of SH entries changes from
     frame to frame, every frame equals the unfrozen update's bit for bit, and
     the update stays frozen with at most the warm-up's two recordings."""
-    from slc.pipeline import gbuffers_for
-    from slc.timing import NullTimer
-    from slc.methods import FrameContext
     b = SceneBuilder("adaptive_sh_frozen")
     b.add_quad([0, 0, 0], [2, 0, 0], [0, 0, -2], bsdf=diffuse([0.5] * 3), name="plane")
     b.add_envmap(rgb=[0.8, 0.85, 1.0])
     cam = CameraPath([([0.0, 0.8, 1.2], [0.0, 0.0, 0.0]), ([0.6, 0.5, 0.6], [0.3, 0.0, -0.2])], frames=10, fov=60)
     scene = b.build([cam, cam, cam])
-    v = Viewer("v0", lambda f: scene.path(0).at(f))
-    out = {}
-    for frozen in (True, False):
-        m = methods.create("adaptive:force=sh", scene, seed=1)
-        m._sh_up = sh_rep.SHUpdate(m.encoding, m.seed, m.sh_count, m.sph, m.env, freeze=frozen)
-        imgs, counts = [], []
-        for f in range(10):
-            gbs = gbuffers_for(scene, [v], f, W, H)
-            imgs.append(np.array(m.render(FrameContext(f), gbs, NullTimer())[0]))
-            counts.append(m.stats()["active_entries"])
-        out[frozen] = (imgs, counts, m._sh_up.recordings, m._sh_up.frozen)
-    assert len(set(out[True][1][2:])) > 1, out[True][1]          # replayed at other widths
-    assert out[True][3] and 1 <= out[True][2] <= 2, out[True][2:]
-    for a, c in zip(out[True][0], out[False][0]):
-        assert np.array_equal(a, c)
+    _assert_frozen_matches_unfrozen(scene, "adaptive:force=sh", "_sh_up",
+                                    lambda m, frozen: sh_rep.SHUpdate(m.encoding, m.seed, m.sh_count, m.sph, m.env,
+                                                                      freeze=frozen))
 
 
 def _plane_points(scene, n=64):
