@@ -4,7 +4,7 @@ bounded number of recordings over a run whose active entries and storage change 
 import numpy as np
 import pytest
 
-from helpers import plane_under_rect_light
+from helpers import plane_under_rect_light, run_case
 from slc.cones.update import ConeUpdate
 from slc.methods import FrameContext, create
 from slc.osc import OnSurfaceCache
@@ -43,16 +43,30 @@ def _run(sc, viewers, frames, freeze, grow=False):
     return m, imgs, widths, active
 
 
+_RECORDINGS = """
+import json, sys
+sys.path.insert(0, "tests")
+import slc.backend  # noqa: F401
+import test_cones_update_freeze as F
+n_views, preload = int(sys.argv[1]), sys.argv[2]
+if preload:
+    from slc import scenes
+    scenes.load(preload)           # loaded and released before the run
+sc = F._growing_scene()
+m, _, widths, _ = F._run(sc, F.single(sc) * n_views, 24, freeze=True, grow=True)
+print("RESULT " + json.dumps(dict(recs=m.recordings_per_frame, widths=widths, frozen=m._cone_update.frozen)))
+"""
+
+
 @pytest.mark.parametrize("n_views", [1, 4], ids=["1-viewer", "4-viewers"])
 def test_frozen_update_same_images_and_bounded_recordings(n_views):
     """24 frames of a static scene whose storage grows and whose active-entry count
     changes every frame: every image equals the one of the update traced every frame,
-    and the frozen update records only in the first frames and replays from then on.
-    In a fresh process it records twice (the second recording makes the inputs that
-    changed between the first two calls opaque); after the atrium test of
-    test_cones_horizon.py in the same process, three times (frames 0-2; cause not
-    found). Asserted: at most 3, none after frame 2 although the storage grows again
-    (frame 11) and the entry count keeps changing, and still frozen at the end."""
+    and (in a fresh process) the frozen update records twice — the second recording
+    makes the inputs that changed between the first two calls opaque — then only
+    replays, although the storage grows again (frame 11) and the entry count keeps
+    changing; still frozen at the end. The recordings are counted in a fresh process
+    because they depend on what the process loaded before: see the next test."""
     sc = _growing_scene()
     viewers = single(sc) * n_views
     m, imgs, widths, active = _run(sc, viewers, 24, freeze=True, grow=True)
@@ -63,10 +77,21 @@ def test_frozen_update_same_images_and_bounded_recordings(n_views):
         for v, (x, y) in enumerate(zip(a, b)):
             assert np.all(np.isfinite(x))
             assert np.array_equal(x, y), (f, v)
-    up, recs = m._cone_update, m.recordings_per_frame
-    assert up.frozen and 1 <= up.n_recordings <= 3, recs
-    assert recs[2:] == [recs[2]] * (len(recs) - 2), recs      # replays only after frame 2
-    assert len(set(widths[3:])) > 1, widths                   # ... also across a growth of the storage
+    r = run_case(_RECORDINGS, n_views, "")
+    recs, widths = r["recs"], r["widths"]
+    assert r["frozen"] and 1 <= recs[-1] <= 2, recs
+    assert recs[1:] == [recs[1]] * (len(recs) - 1), recs      # replays only after frame 1
+    assert len(set(widths[2:])) > 1, widths                   # ... also across a growth of the storage
+
+
+@pytest.mark.xfail(strict=True, reason="open: after another scene (atrium) was loaded and released in the same "
+                   "process, the frozen cone update records at every frame until it is dropped (5 recordings); "
+                   "cause not found (docs/cones.md, 'Frozen update')")
+def test_frozen_update_bounded_after_another_scene():
+    """The same run after the atrium scene was loaded and released in the process
+    (what a test suite or a notebook does): the same bound as in a fresh process."""
+    r = run_case(_RECORDINGS, 1, "atrium")
+    assert r["frozen"] and r["recs"][-1] <= 2, r["recs"]
 
 
 def test_frozen_update_follows_a_moving_light():
