@@ -419,45 +419,40 @@ class AdaptiveCache(PayloadMethod):
             dr.eval(L)
         return L
 
+    def _frozen(self, attr: str, make):
+        """The frozen function kept in ``attr``, made on first use by
+        ``make(freeze)``; unfrozen in an animated scene, where every frame
+        would record it again."""
+        f = getattr(self, attr, None)
+        if f is None:
+            f = make(not bool(getattr(self.scene, "dynamic", False)))
+            setattr(self, attr, f)
+        return f
+
     def _vis_update(self) -> visibility.VisUpdate:
-        """The VISIBILITY update, frozen (made on first use; unfrozen in an
-        animated scene)."""
-        if getattr(self, "_vis_up", None) is None:
-            self._vis_up = visibility.VisUpdate(self.vis_k, self.seed, self.sph, self.env,
-                                                freeze=not bool(getattr(self.scene, "dynamic", False)))
-        return self._vis_up
+        """The VISIBILITY update."""
+        return self._frozen("_vis_up", lambda fz: visibility.VisUpdate(
+            self.vis_k, self.seed, self.sph, self.env, freeze=fz))
 
     def _cones_update(self) -> cones_rep.ConesUpdate:
-        """The CONES update, frozen (made on first use; unfrozen in an animated
-        scene)."""
-        if getattr(self, "_cones_up", None) is None:
-            self._cones_up = cones_rep.ConesUpdate(self.cone_params, self.seed, self.sph, self.env,
-                                                   freeze=not bool(getattr(self.scene, "dynamic", False)))
-        return self._cones_up
+        """The CONES update."""
+        return self._frozen("_cones_up", lambda fz: cones_rep.ConesUpdate(
+            self.cone_params, self.seed, self.sph, self.env, freeze=fz))
 
     def _sh_update(self) -> sh_rep.SHUpdate:
-        """The SH update, frozen (made on first use; unfrozen in an animated
-        scene)."""
-        if getattr(self, "_sh_up", None) is None:
-            self._sh_up = sh_rep.SHUpdate(self.encoding, self.seed, self.sh_count, self.sph, self.env,
-                                          freeze=not bool(getattr(self.scene, "dynamic", False)))
-        return self._sh_up
+        """The SH update."""
+        return self._frozen("_sh_up", lambda fz: sh_rep.SHUpdate(
+            self.encoding, self.seed, self.sh_count, self.sph, self.env, freeze=fz))
 
     def _vis_shading(self) -> visibility.VisShading:
-        """The VISIBILITY pool's shading, frozen (made on first use; unfrozen in
-        an animated scene)."""
-        if getattr(self, "_vis_shade", None) is None:
-            self._vis_shade = visibility.VisShading(self.vis_k, self.sph, self.env,
-                                                    freeze=not bool(getattr(self.scene, "dynamic", False)))
-        return self._vis_shade
+        """The VISIBILITY pool's shading."""
+        return self._frozen("_vis_shade", lambda fz: visibility.VisShading(
+            self.vis_k, self.sph, self.env, freeze=fz))
 
     def _sh_shading(self) -> sh_rep.SHShading:
-        """The SH pool's shading, frozen (made on first use; unfrozen in an
-        animated scene, where every frame would record it again)."""
-        if getattr(self, "_sh_shade", None) is None:
-            self._sh_shade = sh_rep.SHShading(self.encoding, self.seed, self.glossy_samples,
-                                              freeze=not bool(getattr(self.scene, "dynamic", False)))
-        return self._sh_shade
+        """The SH pool's shading."""
+        return self._frozen("_sh_shade", lambda fz: sh_rep.SHShading(
+            self.encoding, self.seed, self.glossy_samples, freeze=fz))
 
     # ------------------------------------------------------------------ reports
     def pixel_tags(self, fr, v, gb) -> mi.UInt32:
