@@ -31,7 +31,6 @@ the last lane computes and writes what the last lane does).
 from __future__ import annotations
 
 import gc
-import weakref
 
 import drjit as dr
 
@@ -52,7 +51,7 @@ class FrozenFunction:
         self.fn = fn
         self.lanes = tuple(lanes)
         self.padded_calls = 0           # calls run on a free width
-        self._taken: set[int] = set()   # lane counts that recorded anew (learned)
+        self._scene_key, self._scene_ws = None, set()
         self.animated, self.max_recordings = bool(animated), int(max_recordings)
         self.frozen = bool(freeze)
         if not freeze:
@@ -96,8 +95,6 @@ class FrozenFunction:
             _cut(out, n, n)             # the cut's kernels made now (see above), result unused
         if self.frozen:
             self.calls += 1
-            if int(self.kernel.n_recordings) > self.recordings and self.calls > 1 and w is not None:
-                self._taken.add(w)      # it recorded anew at this width: avoid it from now on
             self.recordings = int(self.kernel.n_recordings)
             if self.animated:
                 drop = self.calls >= 8 and self.recordings > 0.9 * self.calls
@@ -110,14 +107,25 @@ class FrozenFunction:
 
     def free_width(self, n: int, args) -> int:
         """``n`` if no other input of the call (the arguments not in ``lanes``,
-        the arrays of a Mitsuba scene among them) has width ``n`` and ``n`` did
-        not record anew before; else the next width that is free. Widths 0 and
-        1 are never free (a width-1 array is loaded as a scalar)."""
+        the arrays of a Mitsuba scene among them) has width ``n``, else the
+        next width that is free. Widths 0 and 1 are never free (a width-1 array
+        is loaded as a scalar). A width this misses (an array of the scene that
+        is no parameter) records once: Dr.Jit keeps that recording for the
+        next call of the same width."""
         if n == 0:
             return n
-        taken = {0, 1} | self._taken
+        taken = {0, 1}
         for i, a in enumerate(args):
-            if i not in self.lanes:
+            if i in self.lanes:
+                continue
+            if _is_scene(a):
+                # a scene's widths once per instance (a Mitsuba scene is not weakly
+                # referenceable, and a strong reference would keep a freed scene in
+                # the registry that every frozen function traverses)
+                if self._scene_key != id(a):
+                    self._scene_key, self._scene_ws = id(a), _input_widths(a)
+                taken |= self._scene_ws
+            else:
                 taken |= _input_widths(a)
         w = n
         while w in taken:
@@ -219,7 +227,12 @@ def _lane_index(n: int, w: int):
     return dr.minimum(dr.arange(U, w), dr.opaque(U, n - 1))
 
 
-_SCENE_WIDTHS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+def _is_scene(a) -> bool:
+    try:
+        import mitsuba as mi
+        return isinstance(a, mi.Scene)
+    except ImportError:      # pragma: no cover
+        return False
 
 
 def _input_widths(a) -> set:
@@ -227,23 +240,7 @@ def _input_widths(a) -> set:
     its leaves, or for a Mitsuba scene every traversed parameter and the
     per-mesh arrays Mitsuba keeps beside them (face, vertex counts and their
     multiples, area distributions)."""
-    try:
-        import mitsuba as mi
-        is_scene = isinstance(a, mi.Scene)
-    except ImportError:      # pragma: no cover
-        is_scene = False
-    if not is_scene:
-        return {dr.width(v) for v in _leaves(a)}
-    try:
-        return _SCENE_WIDTHS[a]
-    except (KeyError, TypeError):
-        pass
-    ws = _scene_widths(a)
-    try:
-        _SCENE_WIDTHS[a] = ws
-    except TypeError:        # pragma: no cover (not weak-referenceable)
-        pass
-    return ws
+    return _scene_widths(a) if _is_scene(a) else {dr.width(v) for v in _leaves(a)}
 
 
 def _scene_widths(scene) -> set:
