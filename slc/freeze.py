@@ -14,6 +14,19 @@ first call. So:
   dropped (traced on every call from then on);
 - in an animated scene, the function keeps at most 2 recordings (LRU) and is
   dropped once 8 calls show that almost every call records (> 90%).
+
+Widths that coincide. Dr.Jit keys a recording on which of its inputs share a
+width (their "size equivalence class"), and the inputs include every array of
+the scene (vertex buffers, index buffers, textures). A per-frame lane count
+(the active entries) that happens to equal one of them (the atrium: 2,880 =
+one mesh's index buffer) makes a new key, so the function is recorded again in
+a timed frame, and after ``max_recordings`` such frames it is dropped. A
+function made with ``lanes`` (the positions of its per-lane arguments) runs
+such a call on a width that is free (:meth:`FrozenFunction.free_width`): its
+per-lane arguments get copies of their last lane appended, and its outputs of
+that width are cut back to the call's. Only for functions whose extra lanes
+change nothing: pure functions and plain scatters of equal values (a copy of
+the last lane computes and writes what the last lane does).
 """
 from __future__ import annotations
 
@@ -27,12 +40,18 @@ class FrozenFunction:
 
     Parameters (defaults): ``fn``, ``freeze=True`` (False: ``fn`` traced on
     every call), ``animated=False`` (the scene's meshes move),
-    ``max_recordings=4``. ``calls`` counts the calls made while frozen,
+    ``max_recordings=4``, ``lanes=()`` (positions of the per-lane arguments:
+    a call whose lane count collides with another input's width runs on a
+    free width, see the module). ``calls`` counts the calls made while frozen,
     ``n_recordings`` the recordings made (including those of a dropped
     function), ``frozen`` whether calls are still replayed."""
 
-    def __init__(self, fn, freeze: bool = True, animated: bool = False, max_recordings: int = 4):
+    def __init__(self, fn, freeze: bool = True, animated: bool = False, max_recordings: int = 4,
+                 lanes: tuple = ()):
         self.fn = fn
+        self.lanes = tuple(lanes)
+        self.padded_calls = 0           # calls run on a free width
+        self._scene_key, self._scene_ws = None, set()
         self.animated, self.max_recordings = bool(animated), int(max_recordings)
         self.frozen = bool(freeze)
         if not freeze:
@@ -48,6 +67,21 @@ class FrozenFunction:
         # no garbage collection while a function records or replays: the collector freed
         # cyclic garbage holding Dr.Jit state (an earlier test's objects) in the middle of
         # a recording, and Dr.Jit aborted the process
+        n = w = None
+        if self.frozen and self.lanes:
+            # the inputs evaluated here, together, as the frozen function would: the
+            # per-leaf copies below then read evaluated arrays on every call
+            dr.eval(*[a for a in args if _is_tree(a)])
+            n = _width(args[self.lanes[0]])
+            w = self.free_width(n, args)
+            if self.calls == 0 or w != n:
+                # the first call also pads (by one lane, result unused), so that the
+                # copy kernels exist before a collision needs them in a timed frame
+                padded = self._pad(args, n, w if w != n else n + 1)
+                if w != n:
+                    args = padded
+                    self.padded_calls += 1
+                del padded
         gc_on = gc.isenabled()
         gc.disable()
         try:
@@ -55,6 +89,10 @@ class FrozenFunction:
         finally:
             if gc_on:
                 gc.enable()
+        if n is not None and w != n:
+            out = _cut(out, w, n)
+        elif n is not None and self.calls == 0:
+            _cut(out, n, n)             # the cut's kernels made now (see above), result unused
         if self.frozen:
             self.calls += 1
             self.recordings = int(self.kernel.n_recordings)
@@ -67,6 +105,40 @@ class FrozenFunction:
                 self.kernel, self.frozen = self.fn, False
         return out
 
+    def free_width(self, n: int, args) -> int:
+        """``n`` if no other input of the call (the arguments not in ``lanes``,
+        the arrays of a Mitsuba scene among them) has width ``n``, else the
+        next width that is free. Widths 0 and 1 are never free (a width-1 array
+        is loaded as a scalar). A width this misses (an array of the scene that
+        is no parameter) records once: Dr.Jit keeps that recording for the
+        next call of the same width."""
+        if n == 0:
+            return n
+        taken = {0, 1}
+        for i, a in enumerate(args):
+            if i in self.lanes:
+                continue
+            if _is_scene(a):
+                # a scene's widths once per instance (a Mitsuba scene is not weakly
+                # referenceable, and a strong reference would keep a freed scene in
+                # the registry that every frozen function traverses)
+                if self._scene_key != id(a):
+                    self._scene_key, self._scene_ws = id(a), _input_widths(a)
+                taken |= self._scene_ws
+            else:
+                taken |= _input_widths(a)
+        w = n
+        while w in taken:
+            w += 1
+        return w
+
+    def _pad(self, args, n: int, w: int):
+        """``args`` with the per-lane ones widened from ``n`` to ``w`` lanes
+        (copies of lane ``n - 1``; the index opaque: one kernel for all widths)."""
+        idx = _lane_index(n, w)
+        return tuple(_map_leaves(a, lambda x: _gather_leaf(x, idx, n)) if i in self.lanes else a
+                     for i, a in enumerate(args))
+
     @property
     def n_recordings(self) -> int:
         """Recordings made by this instance's frozen function (0 when never frozen)."""
@@ -76,3 +148,118 @@ class FrozenFunction:
     def n_cached_recordings(self) -> int:
         """Recordings the frozen function holds now (0 once dropped)."""
         return int(self.kernel.n_cached_recordings) if self.frozen else 0
+
+
+# ----------------------------------------------------------------------------- widths
+
+def _index_type():
+    import mitsuba as mi
+    return mi.UInt32
+
+
+def _leaves(x):
+    """The 1-D Dr.Jit arrays of a (nested) array, Dr.Jit struct, or a list /
+    tuple of them."""
+    if isinstance(x, (list, tuple)):
+        for v in x:
+            yield from _leaves(v)
+    elif dr.is_struct_v(x) and not dr.is_array_v(x):
+        for k in type(x).DRJIT_STRUCT:
+            yield from _leaves(getattr(x, k))
+    elif dr.is_array_v(x) and dr.depth_v(x) > 1:
+        for i in range(len(x)):
+            yield from _leaves(x[i])
+    elif dr.is_jit_v(x):
+        yield x
+
+
+def _map_leaves(x, f):
+    """``x`` (an array, a Dr.Jit struct, or a tuple / list of them) with
+    ``f`` applied to each 1-D leaf (structs and nested arrays rebuilt)."""
+    if isinstance(x, (list, tuple)):
+        return type(x)(_map_leaves(v, f) for v in x)
+    if dr.is_struct_v(x) and not dr.is_array_v(x):
+        out = type(x)()
+        for k in type(x).DRJIT_STRUCT:
+            setattr(out, k, _map_leaves(getattr(x, k), f))
+        return out
+    if dr.is_array_v(x) and dr.depth_v(x) > 1:
+        return type(x)(*[_map_leaves(x[i], f) for i in range(len(x))])
+    if dr.is_jit_v(x):
+        return f(x)
+    return x
+
+
+def _is_tree(x) -> bool:
+    """Whether ``x`` is a Dr.Jit array or struct, or a list / tuple of them."""
+    if isinstance(x, (list, tuple)):
+        return all(_is_tree(v) for v in x)
+    return dr.is_array_v(x) or dr.is_struct_v(x)
+
+
+def _width(x) -> int:
+    return max((dr.width(v) for v in _leaves(x)), default=0)
+
+
+def _gather_leaf(x, idx, n: int):
+    """Leaf ``x`` of width ``n`` gathered at ``idx`` and evaluated on its own
+    (other widths: unchanged). One kernel per leaf: its code depends only on
+    the leaf's type, so the kernels made at a first call serve every later
+    call, whichever of its inputs happen to be literals."""
+    if dr.width(x) != n:
+        return x
+    y = dr.gather(type(x), x, idx)
+    dr.eval(y)
+    return y
+
+
+def _cut(out, w: int, n: int):
+    """A padded call's output with its leaves of width ``w`` cut to ``n``
+    lanes (each leaf on its own, as :func:`_gather_leaf`)."""
+    idx = _lane_index(n, n)
+    return _map_leaves(out, lambda x: _gather_leaf(x, idx, w))
+
+
+def _lane_index(n: int, w: int):
+    """Lanes 0 .. w-1 reading lane min(i, n - 1): the padding's and the cut's
+    index (``n`` opaque: the same kernel for every width)."""
+    U = _index_type()
+    return dr.minimum(dr.arange(U, w), dr.opaque(U, n - 1))
+
+
+def _is_scene(a) -> bool:
+    try:
+        import mitsuba as mi
+        return isinstance(a, mi.Scene)
+    except ImportError:      # pragma: no cover
+        return False
+
+
+def _input_widths(a) -> set:
+    """Widths of the Dr.Jit arrays an argument brings into a frozen function:
+    its leaves, or for a Mitsuba scene every traversed parameter and the
+    per-mesh arrays Mitsuba keeps beside them (face, vertex counts and their
+    multiples, area distributions)."""
+    return _scene_widths(a) if _is_scene(a) else {dr.width(v) for v in _leaves(a)}
+
+
+def _scene_widths(scene) -> set:
+    import mitsuba as mi
+    ws = set()
+    params = mi.traverse(scene)
+    for k in params.keys():
+        try:
+            v = params[k]
+        except Exception:        # pragma: no cover (a parameter that cannot be read)
+            continue
+        if dr.is_array_v(v) or dr.is_tensor_v(v):
+            ws.add(dr.width(v))
+            ws.add(len(dr.ravel(v)) if dr.is_array_v(v) else int(dr.prod(v.shape)))
+            if dr.is_tensor_v(v) and len(v.shape) >= 2:
+                h, w = int(v.shape[0]), int(v.shape[1])
+                ws |= {h, w, h * w, h + 1, w + 1, (h + 1) * w, h * (w + 1)}
+    for sh in scene.shapes():
+        if sh.is_mesh():
+            F, V = int(sh.face_count()), int(sh.vertex_count())
+            ws |= {F, V, F + 1, V + 1, 2 * F, 3 * F, 2 * V, 3 * V}
+    return ws

@@ -140,7 +140,8 @@ class SHUpdate(FrozenFunction):
             st = [dr.select(on, x, 0.0) for x in st]
             dr.eval(out, st)
             return out, st
-        super().__init__(kernel, freeze, False, max_recordings)
+        super().__init__(kernel, freeze, False, max_recordings,
+                         lanes=tuple(range(3, 9)))     # rec .. on: per entry (see slc.freeze)
 
     def __call__(self, scene, rec, si, key, rays, fresh, on, frame: int):
         from ..keys import stream_key

@@ -451,7 +451,8 @@ class VisUpdate(FrozenFunction):
             out, gone, st = update(scene, rec, si, key, rays, moving, fresh, on, 0, seed, K, sph, env, mix=mix)
             dr.eval(out, gone, st)
             return out, gone, st
-        super().__init__(kernel, freeze, False, max_recordings)
+        super().__init__(kernel, freeze, False, max_recordings,
+                         lanes=tuple(range(3, 10)))     # rec .. on: per entry (see slc.freeze)
 
     def __call__(self, scene, rec, si, key, rays, moving, fresh, on, frame: int):
         from ..keys import stream_key

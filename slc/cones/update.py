@@ -460,14 +460,18 @@ class ConeUpdate(FrozenFunction):
     an opaque ``mi.UInt32`` input and the number of active entries, the storage's
     size (it grows with the cache) may change between calls without a new recording;
     what forces one is a change of which inputs share a width (e.g. an input of
-    width 1: one active entry), or a change of the scene's traversed state. As
+    width 1: one active entry, or as many entries as a mesh has vertex
+    coordinates: such calls run on a free width, see :mod:`slc.freeze`), or a
+    change of the scene's traversed state. As
     :class:`slc.cones.shading.ConeShading`: in a static scene a function recorded
     more than ``max_recordings`` times is dropped (traced from then on); in an
     animated one it keeps 2 recordings and is dropped once 8 calls show that almost
     every call records."""
 
     def __init__(self, freeze: bool = True, animated: bool = False, max_recordings: int = 4):
-        super().__init__(_update_kernel, freeze, animated, max_recordings)
+        # per-lane: order .. strata (a lane count equal to a scene array's width runs
+        # on a free width; the extra lanes repeat the last one: same words, same slot)
+        super().__init__(_update_kernel, freeze, animated, max_recordings, lanes=tuple(range(3, 14)))
 
 
 def updater_for(owner) -> ConeUpdate:

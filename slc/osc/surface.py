@@ -192,7 +192,8 @@ class EntryInteractions(FrozenFunction):
     a reference cycle; the recording policy is :class:`slc.freeze.FrozenFunction`'s."""
 
     def __init__(self, freeze: bool = True, animated: bool = False, max_recordings: int = 4):
-        super().__init__(_interactions_kernel, freeze, animated, max_recordings)
+        # per-lane: slots, isl (a pure function: padded lanes are cut from the output)
+        super().__init__(_interactions_kernel, freeze, animated, max_recordings, lanes=(5, 6))
 
     def __del__(self):
         # free the recordings with their owner (refcount), not whenever the garbage

@@ -1,0 +1,106 @@
+"""issue 13: a frozen function whose lane count happens to equal the width of
+another input (an array of the scene) is not recorded again (``slc.freeze``:
+such a call runs on a free width, its extra lanes copies of the last one).
+
+Dr.Jit keys a recording on which inputs share a width; the atrium's active
+entries once numbered 2,880, the length of one mesh's index buffer, and the
+cone update was recorded again in a timed frame."""
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+import slc.backend  # noqa: F401
+from slc.freeze import FrozenFunction, _input_widths
+
+
+def _scene():
+    return mi.load_dict({
+        "type": "scene",
+        "floor": {"type": "rectangle", "bsdf": {"type": "diffuse"}},
+        "ball": {"type": "obj", "filename": _sphere_obj()},
+        "light": {"type": "point", "position": [0, 0, 2], "intensity": {"type": "rgb", "value": 1.0}},
+    })
+
+
+def _sphere_obj(path=[]):
+    """A small UV sphere written once (its face count sets the colliding width)."""
+    if path:
+        return path[0]
+    import tempfile
+    n_u, n_v = 12, 6
+    lines = []
+    for j in range(n_v + 1):
+        th = np.pi * j / n_v
+        for i in range(n_u):
+            ph = 2 * np.pi * i / n_u
+            lines.append(f"v {np.sin(th) * np.cos(ph):.6f} {np.cos(th):.6f} {np.sin(th) * np.sin(ph):.6f}")
+    for j in range(n_v):
+        for i in range(n_u):
+            a, b = j * n_u + i + 1, j * n_u + (i + 1) % n_u + 1
+            c, d = a + n_u, b + n_u
+            lines += [f"f {a} {b} {d}", f"f {a} {d} {c}"]
+    f = tempfile.NamedTemporaryFile("w", suffix=".obj", delete=False)
+    f.write("\n".join(lines) + "\n")
+    f.close()
+    path.append(f.name)
+    return f.name
+
+
+def _kernel(scene, table, x, k):
+    # per lane: a gather from a table that is not per lane, and the lane's own key
+    return dr.gather(mi.Float, table, k % 7) + 2.0 * x, k + 1
+
+
+def _calls(ff, scene, widths):
+    table = dr.arange(mi.Float, 7) * 0.5
+    outs = []
+    for n in widths:
+        x = dr.arange(mi.Float, n) * 0.25
+        k = dr.arange(mi.UInt32, n) * 3
+        outs.append([np.array(v) for v in ff(scene, table, x, k)])
+    return outs
+
+
+def test_colliding_lane_count_is_not_recorded_again():
+    scene = _scene()
+    taken = _input_widths(scene)
+    ball = [s for s in scene.shapes() if s.face_count() == 144][0]
+    w = 3 * int(ball.face_count())         # the ball's index buffer: 432 lanes
+    assert w in taken
+    widths = [500, 501, w, 503, w, 505]
+
+    plain = FrozenFunction(_kernel)                          # no lanes declared: records again at w
+    _calls(plain, scene, widths)
+    guarded = FrozenFunction(_kernel, lanes=(2, 3))
+    outs = _calls(guarded, scene, widths)
+
+    assert plain.n_recordings > guarded.n_recordings, (plain.n_recordings, guarded.n_recordings)
+    assert guarded.n_recordings <= 2 and guarded.frozen
+    assert guarded.padded_calls == 2                         # both calls at width w ran padded
+    ref = _calls(FrozenFunction(_kernel, freeze=False), scene, widths)
+    for a, b in zip(outs, ref):                              # padded lanes cut: the same values
+        for u, v in zip(a, b):
+            assert u.shape == v.shape and np.array_equal(u, v)
+
+
+def test_free_width_skips_every_taken_width():
+    scene = _scene()
+    ff = FrozenFunction(_kernel, lanes=(2, 3))
+    table = dr.arange(mi.Float, 7)
+    taken = _input_widths(scene) | {7, 0, 1}
+    for n in (1, 7, 8, max(x for x in taken if x < 5000)):
+        w = ff.free_width(n, (scene, table, None, None))
+        assert w >= n and w not in taken
+        assert all(m in taken for m in range(n, w))          # the first free width from n
+
+
+def test_cone_update_declares_its_lanes():
+    """The cone update's per-lane arguments are exactly those of one width per
+    call (order .. strata), so that padding touches nothing else."""
+    import inspect
+
+    from slc.cones.update import ConeUpdate, _update_kernel
+    names = list(inspect.signature(_update_kernel).parameters)
+    lanes = ConeUpdate().lanes
+    assert [names[i] for i in lanes] == ["order", "active", "keys", "si", "rays", "unsettled", "moving",
+                                         "is_new", "seed_slot", "first_sample", "strata"]
