@@ -9,7 +9,7 @@ import mitsuba as mi
 from ..cones.update import light_inputs
 from ..freeze import FrozenFunction
 from ..keys import INVALID, keyed_rng, mixed_rng, stream_key
-from ..lights import sample_light, visible
+from ..lights import SurfaceBSDF, _diffuse_table, direct_sample, sample_light, visible
 from ..methods import MethodError, Param, register
 from ..osc.cache import OnSurfaceCache
 from ..osc.payload import PayloadMethod, RayPolicy
@@ -23,6 +23,8 @@ STREAM_PRIMARY = 0x05C61001
 STREAM_PRIMARY_DIRECT = 0x05C61002
 STREAM_SHADE = 0x05C61003
 STREAM_GLOSSY = 0x05C61004
+STREAM_PIXEL_DIRECT = 0x05C61005
+DIRECT_METHODS = {"cones": "slc", "restir": "restir"}   # direct=... -> the registered method run beside
 INITIAL_ENTRIES = 1 << 14     # the pool starts small and doubles on demand (entries are ~0.8 KB)
 
 
@@ -71,6 +73,30 @@ def _primary_direct_kernel(sc, lights, sie, keys, scratch, mix, nd, scale: float
     dr.while_loop(state=(mi.UInt32(0), sd), cond=cond, body=body, labels=("i", "sd"))
     dr.eval(scratch)
     return scratch
+
+
+def _pixel_direct_kernel(sc, lights, table, si, active, idx, mix, n):
+    """RT-N direct light of the pixels ``si``: ``n`` (opaque) light samples with shadow rays,
+    :math:`\frac1n\sum_j f\,L_e G V / p` (:func:`slc.lights.direct_sample`); ``idx`` the pixels'
+    stream keys (their width is the launch width), ``lights`` and ``table`` (the diffuse-BSDF table of
+    :class:`slc.lights.SurfaceBSDF`) declare what the kernel reads as inputs."""
+    sampler = mixed_rng(idx, mix)
+    ctx = mi.BSDFContext()
+    bsdf = SurfaceBSDF(sc, si, active, ctx)
+
+    def cond(i, L, sampler):
+        return i < n
+
+    def body(i, L, sampler):
+        u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
+        return i + 1, L + direct_sample(sc, si, bsdf, u, active, ctx), sampler
+
+    with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
+        _, L, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
+                                labels=("i", "L", "sampler"))
+    L = L * dr.rcp(mi.Float(dr.maximum(n, 1)))
+    dr.eval(L)
+    return L
 
 
 def _cache_params():
@@ -145,6 +171,10 @@ class OSCGI(PayloadMethod):
               lo=1, hi=256),
         Param("n_max", 8, "EMA cap: blend factor 1/min(n, n_max)", lo=1, hi=256),
         Param("secondary_cm", 30.0, "secondary cell edge [cm]", lo=1.0, hi=1000.0),
+        Param("secondary_px", 2.0, "secondary cell edge at least this many pixel footprints (median over the first "
+              "frame's pixels; 0: secondary_cm alone)", lo=0.0, hi=1e4),
+        Param("secondary_lod", 0.0, "secondary cells grow with the hit distance t: edge about "
+              "max(secondary_cm, secondary_lod t), in powers of 2 (0: fixed cells)", lo=0.0, hi=4.0),
         Param("secondary_rays", 32, "cosine rays per secondary cell update", lo=1, hi=1024),
         Param("light_samples", 4, "light samples per secondary cell update", lo=1, hi=1024),
         Param("direct_rays", 8, "light samples per primary entry update (output=full)", lo=1, hi=1024),
@@ -163,6 +193,10 @@ class OSCGI(PayloadMethod):
         Param("glossy_hits", True, "primary rays hitting glossy/metal surfaces: NEE + one BSDF ray into a cell "
               "(else the cell's diffuse radiance: 0 for a metal)"),
         Param("freeze", True, "kernels with shape/BSDF/emitter calls traced once and replayed (dr.freeze)"),
+        Param("direct", "rt", "direct light of output=full: cached in the entries (cache), or per pixel by "
+              "direct_n light samples (rt), the cones (slc) or ReSTIR run beside (cones, restir)",
+              choices=("cache", "rt", "cones", "restir")),
+        Param("direct_n", 16, "light samples per pixel with direct=rt", lo=1, hi=1024),
     ) + _cache_params()
     storage_type = mi.Float
 
@@ -176,10 +210,19 @@ class OSCGI(PayloadMethod):
         self._k_ray = FrozenFunction(_primary_ray_kernel, bool(self.freeze), max_recordings=6)
         self._k_direct = FrozenFunction(_primary_direct_kernel, bool(self.freeze), max_recordings=6)
         self._k_glossy = FrozenFunction(_glossy_kernel, bool(self.freeze), max_recordings=6)
+        self._k_pixel = FrozenFunction(_pixel_direct_kernel, bool(self.freeze), max_recordings=6)
+        # direct light in the entries only with output=full, direct=cache; else per pixel (render)
+        self._cache_direct = self.output == "full" and self.direct == "cache"
+        self._sub = None
+        if self.output == "full" and self.direct in DIRECT_METHODS:
+            from .. import methods
+            self._sub = methods.create(DIRECT_METHODS[self.direct], scene, seed=self.seed)
 
     def validate(self):
         if self.output not in ("full", "indirect"):
             raise MethodError(f"{self.name}: output must be full or indirect")
+        if self.direct not in ("cache", "rt") + tuple(DIRECT_METHODS):
+            raise MethodError(f"{self.name}: direct must be cache, rt, cones or restir")
         D = self.hemi * self.hemi
         if self.texel_rays > D or D % self.texel_rays:
             raise MethodError(f"{self.name}: texel_rays must divide hemi^2 = {D} (got {self.texel_rays})")
@@ -195,6 +238,22 @@ class OSCGI(PayloadMethod):
         # sub-stage clock of update (off unless an experiment sets _profile: no host syncs)
         self.laps = Laps(getattr(self, "_profile", False), getattr(self, "_profile_skip", 0))
         self.memory_log = []          # per frame: (primary bytes, secondary bytes in use)
+        if getattr(self, "_sub", None) is not None:
+            self._sub.reset()
+
+    def _cell_edge(self, gbuffers) -> float:
+        """The secondary cells' edge (scene units): ``secondary_cm``, or with ``secondary_px`` > 0 at
+        least that many pixel footprints (median over the valid pixels of the first frame's
+        viewers; fixed from then on: a new edge would change every cell's key)."""
+        import numpy as np
+        unit = float(getattr(self.scene, "unit", 1.0) or 1.0)
+        h = self.secondary_cm / 100.0 * unit
+        if self.secondary_px > 0.0 and gbuffers:
+            fp = np.concatenate([np.asarray(gb.footprint)[np.asarray(gb.valid, dtype=bool)] for gb in gbuffers])
+            fp = fp[np.isfinite(fp) & (fp > 0.0)]
+            if fp.size:
+                h = max(h, float(self.secondary_px * np.median(fp)))
+        return h
 
     def _make_cache(self):
         cache = self._cache_arg
@@ -202,12 +261,12 @@ class OSCGI(PayloadMethod):
             cache = OnSurfaceCache(self.scene, block_size=self.block, bias=self.bias, evict_after=self.evict_after,
                                    max_blocks=max(1, INITIAL_ENTRIES // (self.block * self.block)))
         self.cache = cache
-        unit = float(getattr(self.scene, "unit", 1.0) or 1.0)
-        self.secondary = SecondaryCache(self.scene.mi_scene, self.secondary_cm / 100.0 * unit, self.bounces,
+        self.secondary = SecondaryCache(self.scene.mi_scene, self._cell_edge(getattr(self, "_gbuffers", None)), self.bounces,
                                         self.n_max, self.secondary_rays, self.light_samples,
                                         1 << self.secondary_slots, shape_key=self.shape_key, seed=self.seed,
                                         budget=self.secondary_budget, evict_after=self.secondary_evict,
-                                        freeze=bool(self.freeze), glossy_hits=bool(self.glossy_hits))
+                                        freeze=bool(self.freeze), glossy_hits=bool(self.glossy_hits),
+                                        lod=self.secondary_lod)
         self.secondary.laps = self.laps
 
     # ----------------------------------------------------------------- update
@@ -305,7 +364,7 @@ class OSCGI(PayloadMethod):
         dr.eval(*sample, empty, inv_t, n_t)
 
         # ----------------- direct light (output=full): light samples binned into texels -----------------
-        if self.output == "full":
+        if self._cache_direct:
             scratch = dr.zeros(mi.Float, N * D * 3)
             direct_k = self._k_direct if N > 1 else _primary_direct_kernel
             scratch = direct_k(sc, light_inputs(sc), fr.si, fr.keys, scratch,
@@ -416,7 +475,23 @@ class OSCGI(PayloadMethod):
 
     # ------------------------------------------------------------------ frame
     def render(self, ctx, gbuffers, timer):
+        self._gbuffers = gbuffers            # for the cell edge of secondary_px (read when the cache is made)
         out = super().render(ctx, gbuffers, timer)
+        self._gbuffers = None
+        # ------- direct light per pixel (output=full, direct != cache): added to the cached indirect -------
+        if self.output == "full" and self.direct == "rt":
+            with timer.stage("direct") as st:
+                sc = self.scene.mi_scene
+                mix = stream_key(self.seed, ctx.frame, STREAM_PIXEL_DIRECT)
+                n = dr.opaque(mi.UInt32, self.direct_n)
+                for v, gb in enumerate(gbuffers):
+                    idx = dr.arange(mi.UInt32, gb.size) + dr.opaque(mi.UInt32, v * 0x01000193)
+                    k = self._k_pixel if gb.size > 1 else _pixel_direct_kernel
+                    out[v] = out[v] + k(sc, light_inputs(sc), _diffuse_table(sc)[0], gb.si, mi.Bool(gb.valid), idx, mix, n)
+                st.outputs(*out)
+        elif self._sub is not None:
+            sub = self._sub.render(ctx, gbuffers, timer)
+            out = [a + b for a, b in zip(out, sub)]
         if self.cache is not None:
             self._cells = self.secondary.used_cells()
             self.memory_log.append((int(self.cache.memory_bytes())
@@ -427,7 +502,8 @@ class OSCGI(PayloadMethod):
     # ------------------------------------------------------------------ reports
     def memory_bytes(self) -> int:
         """Primary caches (the on-surface cache and its payloads) + the secondary hash table."""
-        return super().memory_bytes() + (self.secondary.memory_bytes() if self.secondary is not None else 0)
+        return (super().memory_bytes() + (self.secondary.memory_bytes() if self.secondary is not None else 0)
+                + (self._sub.memory_bytes() if self._sub is not None else 0))
 
     def stats(self) -> dict:
         out = super().stats()
@@ -436,7 +512,7 @@ class OSCGI(PayloadMethod):
             r = sec.reuse
             out.update({"secondary_cells": float(getattr(self, "_cells", 0)), "secondary_updated": float(sec.updated),
                         "secondary_overflow": float(sec.overflow), "secondary_requested": float(sec.requested),
-                        "secondary_evicted": float(sec.evicted),
+                        "secondary_evicted": float(sec.evicted), "secondary_cell_m": float(sec.h),
                         "secondary_reuse_mean": float(dr.mean(mi.Float(r))[0]) if dr.width(r) else 0.0})
             if self.memory_log:
                 out["primary_mb"] = self.memory_log[-1][0] / 2 ** 20
