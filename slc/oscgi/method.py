@@ -76,7 +76,7 @@ def _primary_direct_kernel(sc, lights, sie, keys, scratch, mix, nd, scale: float
 
 
 def _pixel_direct_kernel(sc, lights, table, si, active, idx, mix, n):
-    """RT-N direct light of the pixels ``si``: ``n`` (opaque) light samples with shadow rays,
+    r"""RT-N direct light of the pixels ``si``: ``n`` (opaque) light samples with shadow rays,
     :math:`\frac1n\sum_j f\,L_e G V / p` (:func:`slc.lights.direct_sample`); ``idx`` the pixels'
     stream keys (their width is the launch width), ``lights`` and ``table`` (the diffuse-BSDF table of
     :class:`slc.lights.SurfaceBSDF`) declare what the kernel reads as inputs."""
@@ -167,12 +167,14 @@ class OSCGI(PayloadMethod):
               choices=("full", "indirect")),
         Param("bounces", 2, "indirect bounces (layers of the secondary caches)", lo=1, hi=8),
         Param("hemi", 8, "hemisphere texels per side of a primary cache entry", lo=2, hi=16),
-        Param("texel_rays", 32, "texels traced per settled entry and update (new entries: all; divides hemi^2)",
+        Param("texel_rays", 64, "texels traced per settled entry and update (new entries: all; divides hemi^2)",
               lo=1, hi=256),
-        Param("n_max", 8, "EMA cap: blend factor 1/min(n, n_max)", lo=1, hi=256),
+        Param("n_max", 4, "EMA cap: blend factor 1/min(n, n_max)", lo=1, hi=256),
         Param("secondary_cm", 30.0, "secondary cell edge [cm]", lo=1.0, hi=1000.0),
         Param("secondary_px", 2.0, "secondary cell edge at least this many pixel footprints (median over the first "
-              "frame's pixels; 0: secondary_cm alone)", lo=0.0, hi=1e4),
+              "frame's pixels; 0: secondary_cm alone), at most secondary_max of the scene's diagonal", lo=0.0, hi=1e4),
+        Param("secondary_max", 0.05, "secondary_px: largest footprint-based cell edge, fraction of the scene's "
+              "bounding-box diagonal", lo=0.0, hi=1.0),
         Param("secondary_lod", 0.0, "secondary cells grow with the hit distance t: edge about "
               "max(secondary_cm, secondary_lod t), in powers of 2 (0: fixed cells)", lo=0.0, hi=4.0),
         Param("secondary_rays", 32, "cosine rays per secondary cell update", lo=1, hi=1024),
@@ -242,9 +244,10 @@ class OSCGI(PayloadMethod):
             self._sub.reset()
 
     def _cell_edge(self, gbuffers) -> float:
-        """The secondary cells' edge (scene units): ``secondary_cm``, or with ``secondary_px`` > 0 at
-        least that many pixel footprints (median over the valid pixels of the first frame's
-        viewers; fixed from then on: a new edge would change every cell's key)."""
+        """The secondary cells' edge (scene units): ``secondary_cm``, or with ``secondary_px`` > 0
+        max(``secondary_cm``, min(``secondary_px`` x the median pixel footprint of the first frame's
+        viewers, ``secondary_max`` x the scene's bounding-box diagonal)); fixed from then on (a new
+        edge would change every cell's key)."""
         import numpy as np
         unit = float(getattr(self.scene, "unit", 1.0) or 1.0)
         h = self.secondary_cm / 100.0 * unit
@@ -252,7 +255,9 @@ class OSCGI(PayloadMethod):
             fp = np.concatenate([np.asarray(gb.footprint)[np.asarray(gb.valid, dtype=bool)] for gb in gbuffers])
             fp = fp[np.isfinite(fp) & (fp > 0.0)]
             if fp.size:
-                h = max(h, float(self.secondary_px * np.median(fp)))
+                bb = self.scene.mi_scene.bbox()
+                diag = float(np.linalg.norm(np.array(bb.max) - np.array(bb.min)))
+                h = max(h, min(float(self.secondary_px * np.median(fp)), self.secondary_max * diag))
         return h
 
     def _make_cache(self):
@@ -485,7 +490,7 @@ class OSCGI(PayloadMethod):
                 mix = stream_key(self.seed, ctx.frame, STREAM_PIXEL_DIRECT)
                 n = dr.opaque(mi.UInt32, self.direct_n)
                 for v, gb in enumerate(gbuffers):
-                    idx = dr.arange(mi.UInt32, gb.size) + dr.opaque(mi.UInt32, v * 0x01000193)
+                    idx = dr.arange(mi.UInt32, gb.size)     # per pixel (identical viewers: identical images)
                     k = self._k_pixel if gb.size > 1 else _pixel_direct_kernel
                     out[v] = out[v] + k(sc, light_inputs(sc), _diffuse_table(sc)[0], gb.si, mi.Bool(gb.valid), idx, mix, n)
                 st.outputs(*out)
