@@ -153,6 +153,17 @@ class OSCGI(PayloadMethod):
     ``output``: ``indirect`` (light after at least one reflection) or ``full`` (direct + indirect;
     the emission seen directly is added by the pipeline).
 
+    *Direct light* (``output=full``), ``direct``: ``rt`` (default) ``direct_n`` (16) light samples
+    per pixel with shadow rays, :math:`\frac1n\sum_j f L_e G V/p` (RT-N, frozen), added to the
+    cached indirect light; ``cones`` / ``restir``: the registered ``slc`` / ``restir`` method run
+    beside on the same G-buffers; ``cache``: light samples binned into the entries' texels (above;
+    the default before session gi6). Except for ``cache`` the entries hold indirect light only,
+    exactly as with ``output=indirect``.
+
+    *Secondary cell edge*: max(``secondary_cm``, min(``secondary_px`` x the first frame's median
+    pixel footprint, ``secondary_max`` x the scene diagonal)); ``secondary_lod`` > 0 adds levels
+    growing with the hit distance (off).
+
     Storage per entry: 3 R^2 radiance words, the irradiance (3 words) and the update count.
     Ray budget (the ray policy): an entry's first update traces all R^2 texels, later updates
     ``texel_rays`` of them in rotation (texel k when k = c mod R^2/``texel_rays``, c the update
