@@ -8,6 +8,7 @@ import mitsuba as mi
 
 from ..cones.update import light_inputs
 from ..freeze import FrozenFunction
+from ..gbuffer import layered
 from ..keys import INVALID, keyed_rng, mixed_rng, stream_key
 from ..lights import SurfaceBSDF, _diffuse_table, direct_sample, sample_light, visible
 from ..methods import MethodError, Param, register
@@ -500,10 +501,18 @@ class OSCGI(PayloadMethod):
                 sc = self.scene.mi_scene
                 mix = stream_key(self.seed, ctx.frame, STREAM_PIXEL_DIRECT)
                 n = dr.opaque(mi.UInt32, self.direct_n)
-                for v, gb in enumerate(gbuffers):
-                    idx = dr.arange(mi.UInt32, gb.size)     # per pixel (identical viewers: identical images)
-                    k = self._k_pixel if gb.size > 1 else _pixel_direct_kernel
-                    out[v] = out[v] + k(sc, light_inputs(sc), _diffuse_table(sc)[0], gb.si, mi.Bool(gb.valid), idx, mix, n)
+                # every viewer's pixels in one launch (the frame's layers); streams keyed by the pixel
+                # index within its viewer (identical viewers: identical images)
+                lay = layered(gbuffers)
+                idx = lay.pixel if lay.pixel is not None else dr.arange(mi.UInt32, lay.size)
+                k = self._k_pixel if lay.size > 1 else _pixel_direct_kernel
+                L = k(sc, light_inputs(sc), _diffuse_table(sc)[0], lay.si, mi.Bool(lay.valid), idx, mix, n)
+                if len(gbuffers) == 1:
+                    out[0] = out[0] + L
+                else:
+                    for v, (nv, off) in enumerate(zip(lay.sizes, lay.offsets)):
+                        at = dr.arange(mi.UInt32, nv) + dr.opaque(mi.UInt32, off)
+                        out[v] = out[v] + dr.gather(mi.Color3f, L, at)
                 st.outputs(*out)
         elif self._sub is not None:
             sub = self._sub.render(ctx, gbuffers, timer)
