@@ -316,6 +316,7 @@ class OSCGI(PayloadMethod):
                 acc += dr.gather(mi.Float, self.storage, ks * W + k * 3 + ch, fine & (ks != INVALID))
             fine_old.append(acc * dr.rcp(dr.maximum(n_kids, 1.0)))
         dr.eval(*fine_old, fine)
+        laps.lap("primary_seeds")
         acc = None                    # an unevaluated reader of the storage (see the scatters below)
         c_old = dr.select(is_new, dr.select(seeded | fine, 1.0, 0.0),
                           dr.gather(mi.Float, self.storage, slot * W + 3 * D + 3))
@@ -328,11 +329,13 @@ class OSCGI(PayloadMethod):
         et, kt = tl // D, tl % D
         ray_k = self._k_ray if dr.width(tl) > 1 else _primary_ray_kernel
         ray, ok = ray_k(fr.si, fr.keys, tl, stream_key(self.seed, ctx.frame, STREAM_PRIMARY), D, self.hemi)
+        laps.lap("primary_raygen", ray, ok)
         hits = sec.trace(ray, ok)   # (p, n, t, shape index, preliminary intersection, valid, key, home, front n)
         laps.lap("primary_rays", *hits)
 
         # ------------- secondary caches: cells of the hits, requests, update (all shared) -------------
         req = sec.begin_frame(ctx.frame)              # eviction first: slots move in a rebuild
+        laps.lap("secondary_evict", req)
         slots, hok = sec.touch(hits, ray, ok)
         sec.request(req, slots, hok, 1)
         sec.record_reuse(slots, hok)
