@@ -47,9 +47,9 @@ FILTER_ABLATIONS = ["osc-gi:filter_radius=3", "osc-gi:filter_radius=3,parallax=0
                     "osc-gi:output=indirect,filter_radius=3", "osc-gi:output=indirect,filter_radius=3,parallax=0"]
 # this session's changes, switched off one at a time (before/after in one run): the frozen kernels of
 # osc-gi and pt, the NEE + BSDF ray at glossy hits; and the finer mip bias
-# session gi6: the defaults before it (cached direct light, 32 texel rays, EMA over 8, 30 cm cells at any
-# resolution) and the other direct-light options, run with the main rows (also under --no-ablations)
-BEFORE_GI6 = "texel_rays=32,n_max=8,secondary_px=0"
+# session gi6: the defaults before it (cached direct light, 32 texel rays, EMA over 8, 30 cm cells in any
+# scene) and the other direct-light options, run with the main rows (also under --no-ablations)
+BEFORE_GI6 = "texel_rays=32,n_max=8,secondary_scene=0"
 DIRECT_VARIANTS = [f"osc-gi:direct=cache,{BEFORE_GI6}", "osc-gi:direct=cache", "osc-gi:direct=cones",
                    "osc-gi:direct=restir", "osc-gi:direct=rt,direct_n=4"]
 INDIRECT_VARIANTS = [f"osc-gi:output=indirect,{BEFORE_GI6}"]

@@ -51,8 +51,9 @@ def test_other_direct_options_approach_the_full_reference(cornell, direct):
     assert (m._sub is not None) == (direct != "cache")
 
 
-def test_cell_edge_follows_the_pixel_footprint_within_bounds(cornell):
-    """max(secondary_cm, min(secondary_px x median footprint, secondary_max x scene diagonal))."""
+def test_cell_edge_follows_the_scene_size_and_the_pixel_footprint(cornell):
+    """max(secondary_cm, secondary_scene x diagonal, min(secondary_px x median footprint,
+    secondary_max x diagonal)); the default: 30 cm or 4% of the diagonal, whichever is larger."""
     diag = float(np.linalg.norm(np.array(cornell.mi_scene.bbox().max) - np.array(cornell.mi_scene.bbox().min)))
 
     def edge(spec, fp, valid=None):
@@ -60,10 +61,13 @@ def test_cell_edge_follows_the_pixel_footprint_within_bounds(cornell):
         valid = [True] * len(fp) if valid is None else valid
         return m._cell_edge([SimpleNamespace(footprint=mi.Float(fp), valid=mi.Bool(valid))])
 
-    assert edge("osc-gi:secondary_cm=1", [0.01, 0.02, 0.03, 5.0], [True, True, True, False]) == pytest.approx(0.04)
-    assert edge("osc-gi:secondary_cm=1", [1.0, 1.0]) == pytest.approx(0.05 * diag)        # capped
-    assert edge("osc-gi:secondary_cm=30", [0.01, 0.02]) == pytest.approx(0.30)            # never below
-    assert edge("osc-gi:secondary_cm=1,secondary_px=0", [1.0]) == pytest.approx(0.01)     # off
+    assert edge("osc-gi", [1.0]) == pytest.approx(max(0.30, 0.04 * diag))                 # the default
+    assert edge("osc-gi:secondary_cm=1", [1.0]) == pytest.approx(0.04 * diag)             # scene fraction
+    px = "osc-gi:secondary_cm=1,secondary_scene=0,secondary_px=2"
+    assert edge(px, [0.01, 0.02, 0.03, 5.0], [True, True, True, False]) == pytest.approx(0.04)
+    assert edge(px, [1.0, 1.0]) == pytest.approx(0.05 * diag)                             # capped
+    assert edge(px.replace("cm=1", "cm=30"), [0.01, 0.02]) == pytest.approx(0.30)         # never below
+    assert edge("osc-gi:secondary_cm=1,secondary_scene=0", [1.0]) == pytest.approx(0.01)  # both off
 
 
 def test_cell_levels_grow_with_the_hit_distance():

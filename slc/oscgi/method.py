@@ -161,9 +161,10 @@ class OSCGI(PayloadMethod):
     the default before session gi6). Except for ``cache`` the entries hold indirect light only,
     exactly as with ``output=indirect``.
 
-    *Secondary cell edge*: max(``secondary_cm``, min(``secondary_px`` x the first frame's median
-    pixel footprint, ``secondary_max`` x the scene diagonal)); ``secondary_lod`` > 0 adds levels
-    growing with the hit distance (off).
+    *Secondary cell edge*: max(``secondary_cm``, ``secondary_scene`` x the scene diagonal d), or
+    with ``secondary_px`` > 0 also at least min(``secondary_px`` x the first frame's median pixel
+    footprint, ``secondary_max`` x d); ``secondary_lod`` > 0 adds levels growing with the hit
+    distance (off).
 
     Storage per entry: 3 R^2 radiance words, the irradiance (3 words) and the update count.
     Ray budget (the ray policy): an entry's first update traces all R^2 texels, later updates
@@ -183,8 +184,10 @@ class OSCGI(PayloadMethod):
               lo=1, hi=256),
         Param("n_max", 4, "EMA cap: blend factor 1/min(n, n_max)", lo=1, hi=256),
         Param("secondary_cm", 30.0, "secondary cell edge [cm]", lo=1.0, hi=1000.0),
-        Param("secondary_px", 2.0, "secondary cell edge at least this many pixel footprints (median over the first "
-              "frame's pixels; 0: secondary_cm alone), at most secondary_max of the scene's diagonal", lo=0.0, hi=1e4),
+        Param("secondary_scene", 0.04, "secondary cell edge at least this fraction of the scene's bounding-box "
+              "diagonal (0: off)", lo=0.0, hi=1.0),
+        Param("secondary_px", 0.0, "secondary cell edge at least this many pixel footprints (median over the first "
+              "frame's pixels; 0: off), at most secondary_max of the scene's diagonal", lo=0.0, hi=1e4),
         Param("secondary_max", 0.05, "secondary_px: largest footprint-based cell edge, fraction of the scene's "
               "bounding-box diagonal", lo=0.0, hi=1.0),
         Param("secondary_lod", 0.0, "secondary cells grow with the hit distance t: edge about "
@@ -256,19 +259,20 @@ class OSCGI(PayloadMethod):
             self._sub.reset()
 
     def _cell_edge(self, gbuffers) -> float:
-        """The secondary cells' edge (scene units): ``secondary_cm``, or with ``secondary_px`` > 0
-        max(``secondary_cm``, min(``secondary_px`` x the median pixel footprint of the first frame's
-        viewers, ``secondary_max`` x the scene's bounding-box diagonal)); fixed from then on (a new
-        edge would change every cell's key)."""
+        """The secondary cells' edge (scene units): max(``secondary_cm``, ``secondary_scene`` x the
+        scene's bounding-box diagonal d, and with ``secondary_px`` > 0 min(``secondary_px`` x the
+        median pixel footprint of the first frame's viewers, ``secondary_max`` x d)); fixed from
+        then on (a new edge would change every cell's key)."""
         import numpy as np
         unit = float(getattr(self.scene, "unit", 1.0) or 1.0)
-        h = self.secondary_cm / 100.0 * unit
+        bb = self.scene.mi_scene.bbox()
+        diag = float(np.linalg.norm(np.array(bb.max) - np.array(bb.min)))
+        diag = diag if np.isfinite(diag) else 0.0
+        h = max(self.secondary_cm / 100.0 * unit, self.secondary_scene * diag)
         if self.secondary_px > 0.0 and gbuffers:
             fp = np.concatenate([np.asarray(gb.footprint)[np.asarray(gb.valid, dtype=bool)] for gb in gbuffers])
             fp = fp[np.isfinite(fp) & (fp > 0.0)]
             if fp.size:
-                bb = self.scene.mi_scene.bbox()
-                diag = float(np.linalg.norm(np.array(bb.max) - np.array(bb.min)))
                 h = max(h, min(float(self.secondary_px * np.median(fp)), self.secondary_max * diag))
         return h
 
