@@ -8,8 +8,9 @@ import mitsuba as mi
 
 from ..cones.update import light_inputs
 from ..freeze import FrozenFunction
+from ..gbuffer import layered
 from ..keys import INVALID, keyed_rng, mixed_rng, stream_key
-from ..lights import sample_light, visible
+from ..lights import SurfaceBSDF, _diffuse_table, direct_sample, sample_light, visible
 from ..methods import MethodError, Param, register
 from ..osc.cache import OnSurfaceCache
 from ..osc.payload import PayloadMethod, RayPolicy
@@ -23,6 +24,8 @@ STREAM_PRIMARY = 0x05C61001
 STREAM_PRIMARY_DIRECT = 0x05C61002
 STREAM_SHADE = 0x05C61003
 STREAM_GLOSSY = 0x05C61004
+STREAM_PIXEL_DIRECT = 0x05C61005
+DIRECT_METHODS = {"cones": "slc", "restir": "restir"}   # direct=... -> the registered method run beside
 INITIAL_ENTRIES = 1 << 14     # the pool starts small and doubles on demand (entries are ~0.8 KB)
 
 
@@ -71,6 +74,30 @@ def _primary_direct_kernel(sc, lights, sie, keys, scratch, mix, nd, scale: float
     dr.while_loop(state=(mi.UInt32(0), sd), cond=cond, body=body, labels=("i", "sd"))
     dr.eval(scratch)
     return scratch
+
+
+def _pixel_direct_kernel(sc, lights, table, si, active, idx, mix, n):
+    r"""RT-N direct light of the pixels ``si``: ``n`` (opaque) light samples with shadow rays,
+    :math:`\frac1n\sum_j f\,L_e G V / p` (:func:`slc.lights.direct_sample`); ``idx`` the pixels'
+    stream keys (their width is the launch width), ``lights`` and ``table`` (the diffuse-BSDF table of
+    :class:`slc.lights.SurfaceBSDF`) declare what the kernel reads as inputs."""
+    sampler = mixed_rng(idx, mix)
+    ctx = mi.BSDFContext()
+    bsdf = SurfaceBSDF(sc, si, active, ctx)
+
+    def cond(i, L, sampler):
+        return i < n
+
+    def body(i, L, sampler):
+        u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
+        return i + 1, L + direct_sample(sc, si, bsdf, u, active, ctx), sampler
+
+    with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
+        _, L, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
+                                labels=("i", "L", "sampler"))
+    L = L * dr.rcp(mi.Float(dr.maximum(n, 1)))
+    dr.eval(L)
+    return L
 
 
 def _cache_params():
@@ -127,6 +154,18 @@ class OSCGI(PayloadMethod):
     ``output``: ``indirect`` (light after at least one reflection) or ``full`` (direct + indirect;
     the emission seen directly is added by the pipeline).
 
+    *Direct light* (``output=full``), ``direct``: ``rt`` (default) ``direct_n`` (16) light samples
+    per pixel with shadow rays, :math:`\frac1n\sum_j f L_e G V/p` (RT-N, frozen), added to the
+    cached indirect light; ``cones`` / ``restir``: the registered ``slc`` / ``restir`` method run
+    beside on the same G-buffers; ``cache``: light samples binned into the entries' texels (above;
+    the default before session gi6). Except for ``cache`` the entries hold indirect light only,
+    exactly as with ``output=indirect``.
+
+    *Secondary cell edge*: max(``secondary_cm``, ``secondary_scene`` x the scene diagonal d), or
+    with ``secondary_px`` > 0 also at least min(``secondary_px`` x the first frame's median pixel
+    footprint, ``secondary_max`` x d); ``secondary_lod`` > 0 adds levels growing with the hit
+    distance (off).
+
     Storage per entry: 3 R^2 radiance words, the irradiance (3 words) and the update count.
     Ray budget (the ray policy): an entry's first update traces all R^2 texels, later updates
     ``texel_rays`` of them in rotation (texel k when k = c mod R^2/``texel_rays``, c the update
@@ -141,10 +180,18 @@ class OSCGI(PayloadMethod):
               choices=("full", "indirect")),
         Param("bounces", 2, "indirect bounces (layers of the secondary caches)", lo=1, hi=8),
         Param("hemi", 8, "hemisphere texels per side of a primary cache entry", lo=2, hi=16),
-        Param("texel_rays", 32, "texels traced per settled entry and update (new entries: all; divides hemi^2)",
+        Param("texel_rays", 64, "texels traced per settled entry and update (new entries: all; divides hemi^2)",
               lo=1, hi=256),
-        Param("n_max", 8, "EMA cap: blend factor 1/min(n, n_max)", lo=1, hi=256),
+        Param("n_max", 4, "EMA cap: blend factor 1/min(n, n_max)", lo=1, hi=256),
         Param("secondary_cm", 30.0, "secondary cell edge [cm]", lo=1.0, hi=1000.0),
+        Param("secondary_scene", 0.04, "secondary cell edge at least this fraction of the scene's bounding-box "
+              "diagonal (0: off)", lo=0.0, hi=1.0),
+        Param("secondary_px", 0.0, "secondary cell edge at least this many pixel footprints (median over the first "
+              "frame's pixels; 0: off), at most secondary_max of the scene's diagonal", lo=0.0, hi=1e4),
+        Param("secondary_max", 0.05, "secondary_px: largest footprint-based cell edge, fraction of the scene's "
+              "bounding-box diagonal", lo=0.0, hi=1.0),
+        Param("secondary_lod", 0.0, "secondary cells grow with the hit distance t: edge about "
+              "max(secondary_cm, secondary_lod t), in powers of 2 (0: fixed cells)", lo=0.0, hi=4.0),
         Param("secondary_rays", 32, "cosine rays per secondary cell update", lo=1, hi=1024),
         Param("light_samples", 4, "light samples per secondary cell update", lo=1, hi=1024),
         Param("direct_rays", 8, "light samples per primary entry update (output=full)", lo=1, hi=1024),
@@ -163,6 +210,10 @@ class OSCGI(PayloadMethod):
         Param("glossy_hits", True, "primary rays hitting glossy/metal surfaces: NEE + one BSDF ray into a cell "
               "(else the cell's diffuse radiance: 0 for a metal)"),
         Param("freeze", True, "kernels with shape/BSDF/emitter calls traced once and replayed (dr.freeze)"),
+        Param("direct", "rt", "direct light of output=full: cached in the entries (cache), or per pixel by "
+              "direct_n light samples (rt), the cones (slc) or ReSTIR run beside (cones, restir)",
+              choices=("cache", "rt", "cones", "restir")),
+        Param("direct_n", 16, "light samples per pixel with direct=rt", lo=1, hi=1024),
     ) + _cache_params()
     storage_type = mi.Float
 
@@ -176,10 +227,19 @@ class OSCGI(PayloadMethod):
         self._k_ray = FrozenFunction(_primary_ray_kernel, bool(self.freeze), max_recordings=6)
         self._k_direct = FrozenFunction(_primary_direct_kernel, bool(self.freeze), max_recordings=6)
         self._k_glossy = FrozenFunction(_glossy_kernel, bool(self.freeze), max_recordings=6)
+        self._k_pixel = FrozenFunction(_pixel_direct_kernel, bool(self.freeze), max_recordings=6)
+        # direct light in the entries only with output=full, direct=cache; else per pixel (render)
+        self._cache_direct = self.output == "full" and self.direct == "cache"
+        self._sub = None
+        if self.output == "full" and self.direct in DIRECT_METHODS:
+            from .. import methods
+            self._sub = methods.create(DIRECT_METHODS[self.direct], scene, seed=self.seed)
 
     def validate(self):
         if self.output not in ("full", "indirect"):
             raise MethodError(f"{self.name}: output must be full or indirect")
+        if self.direct not in ("cache", "rt") + tuple(DIRECT_METHODS):
+            raise MethodError(f"{self.name}: direct must be cache, rt, cones or restir")
         D = self.hemi * self.hemi
         if self.texel_rays > D or D % self.texel_rays:
             raise MethodError(f"{self.name}: texel_rays must divide hemi^2 = {D} (got {self.texel_rays})")
@@ -195,6 +255,26 @@ class OSCGI(PayloadMethod):
         # sub-stage clock of update (off unless an experiment sets _profile: no host syncs)
         self.laps = Laps(getattr(self, "_profile", False), getattr(self, "_profile_skip", 0))
         self.memory_log = []          # per frame: (primary bytes, secondary bytes in use)
+        if getattr(self, "_sub", None) is not None:
+            self._sub.reset()
+
+    def _cell_edge(self, gbuffers) -> float:
+        """The secondary cells' edge (scene units): max(``secondary_cm``, ``secondary_scene`` x the
+        scene's bounding-box diagonal d, and with ``secondary_px`` > 0 min(``secondary_px`` x the
+        median pixel footprint of the first frame's viewers, ``secondary_max`` x d)); fixed from
+        then on (a new edge would change every cell's key)."""
+        import numpy as np
+        unit = float(getattr(self.scene, "unit", 1.0) or 1.0)
+        bb = self.scene.mi_scene.bbox()
+        diag = float(np.linalg.norm(np.array(bb.max) - np.array(bb.min)))
+        diag = diag if np.isfinite(diag) else 0.0
+        h = max(self.secondary_cm / 100.0 * unit, self.secondary_scene * diag)
+        if self.secondary_px > 0.0 and gbuffers:
+            fp = np.concatenate([np.asarray(gb.footprint)[np.asarray(gb.valid, dtype=bool)] for gb in gbuffers])
+            fp = fp[np.isfinite(fp) & (fp > 0.0)]
+            if fp.size:
+                h = max(h, min(float(self.secondary_px * np.median(fp)), self.secondary_max * diag))
+        return h
 
     def _make_cache(self):
         cache = self._cache_arg
@@ -202,12 +282,12 @@ class OSCGI(PayloadMethod):
             cache = OnSurfaceCache(self.scene, block_size=self.block, bias=self.bias, evict_after=self.evict_after,
                                    max_blocks=max(1, INITIAL_ENTRIES // (self.block * self.block)))
         self.cache = cache
-        unit = float(getattr(self.scene, "unit", 1.0) or 1.0)
-        self.secondary = SecondaryCache(self.scene.mi_scene, self.secondary_cm / 100.0 * unit, self.bounces,
+        self.secondary = SecondaryCache(self.scene.mi_scene, self._cell_edge(getattr(self, "_gbuffers", None)), self.bounces,
                                         self.n_max, self.secondary_rays, self.light_samples,
                                         1 << self.secondary_slots, shape_key=self.shape_key, seed=self.seed,
                                         budget=self.secondary_budget, evict_after=self.secondary_evict,
-                                        freeze=bool(self.freeze), glossy_hits=bool(self.glossy_hits))
+                                        freeze=bool(self.freeze), glossy_hits=bool(self.glossy_hits),
+                                        lod=self.secondary_lod)
         self.secondary.laps = self.laps
 
     # ----------------------------------------------------------------- update
@@ -240,6 +320,7 @@ class OSCGI(PayloadMethod):
                 acc += dr.gather(mi.Float, self.storage, ks * W + k * 3 + ch, fine & (ks != INVALID))
             fine_old.append(acc * dr.rcp(dr.maximum(n_kids, 1.0)))
         dr.eval(*fine_old, fine)
+        laps.lap("primary_seeds")
         acc = None                    # an unevaluated reader of the storage (see the scatters below)
         c_old = dr.select(is_new, dr.select(seeded | fine, 1.0, 0.0),
                           dr.gather(mi.Float, self.storage, slot * W + 3 * D + 3))
@@ -252,11 +333,13 @@ class OSCGI(PayloadMethod):
         et, kt = tl // D, tl % D
         ray_k = self._k_ray if dr.width(tl) > 1 else _primary_ray_kernel
         ray, ok = ray_k(fr.si, fr.keys, tl, stream_key(self.seed, ctx.frame, STREAM_PRIMARY), D, self.hemi)
+        laps.lap("primary_raygen", ray, ok)
         hits = sec.trace(ray, ok)   # (p, n, t, shape index, preliminary intersection, valid, key, home, front n)
         laps.lap("primary_rays", *hits)
 
         # ------------- secondary caches: cells of the hits, requests, update (all shared) -------------
         req = sec.begin_frame(ctx.frame)              # eviction first: slots move in a rebuild
+        laps.lap("secondary_evict", req)
         slots, hok = sec.touch(hits, ray, ok)
         sec.request(req, slots, hok, 1)
         sec.record_reuse(slots, hok)
@@ -305,7 +388,7 @@ class OSCGI(PayloadMethod):
         dr.eval(*sample, empty, inv_t, n_t)
 
         # ----------------- direct light (output=full): light samples binned into texels -----------------
-        if self.output == "full":
+        if self._cache_direct:
             scratch = dr.zeros(mi.Float, N * D * 3)
             direct_k = self._k_direct if N > 1 else _primary_direct_kernel
             scratch = direct_k(sc, light_inputs(sc), fr.si, fr.keys, scratch,
@@ -416,7 +499,31 @@ class OSCGI(PayloadMethod):
 
     # ------------------------------------------------------------------ frame
     def render(self, ctx, gbuffers, timer):
+        self._gbuffers = gbuffers            # for the cell edge of secondary_px (read when the cache is made)
         out = super().render(ctx, gbuffers, timer)
+        self._gbuffers = None
+        # ------- direct light per pixel (output=full, direct != cache): added to the cached indirect -------
+        if self.output == "full" and self.direct == "rt":
+            with timer.stage("direct") as st:
+                sc = self.scene.mi_scene
+                mix = stream_key(self.seed, ctx.frame, STREAM_PIXEL_DIRECT)
+                n = dr.opaque(mi.UInt32, self.direct_n)
+                # every viewer's pixels in one launch (the frame's layers); streams keyed by the pixel
+                # index within its viewer (identical viewers: identical images)
+                lay = layered(gbuffers)
+                idx = lay.pixel if lay.pixel is not None else dr.arange(mi.UInt32, lay.size)
+                k = self._k_pixel if lay.size > 1 else _pixel_direct_kernel
+                L = k(sc, light_inputs(sc), _diffuse_table(sc)[0], lay.si, mi.Bool(lay.valid), idx, mix, n)
+                if len(gbuffers) == 1:
+                    out[0] = out[0] + L
+                else:
+                    for v, (nv, off) in enumerate(zip(lay.sizes, lay.offsets)):
+                        at = dr.arange(mi.UInt32, nv) + dr.opaque(mi.UInt32, off)
+                        out[v] = out[v] + dr.gather(mi.Color3f, L, at)
+                st.outputs(*out)
+        elif self._sub is not None:
+            sub = self._sub.render(ctx, gbuffers, timer)
+            out = [a + b for a, b in zip(out, sub)]
         if self.cache is not None:
             self._cells = self.secondary.used_cells()
             self.memory_log.append((int(self.cache.memory_bytes())
@@ -427,7 +534,8 @@ class OSCGI(PayloadMethod):
     # ------------------------------------------------------------------ reports
     def memory_bytes(self) -> int:
         """Primary caches (the on-surface cache and its payloads) + the secondary hash table."""
-        return super().memory_bytes() + (self.secondary.memory_bytes() if self.secondary is not None else 0)
+        return (super().memory_bytes() + (self.secondary.memory_bytes() if self.secondary is not None else 0)
+                + (self._sub.memory_bytes() if self._sub is not None else 0))
 
     def stats(self) -> dict:
         out = super().stats()
@@ -436,7 +544,7 @@ class OSCGI(PayloadMethod):
             r = sec.reuse
             out.update({"secondary_cells": float(getattr(self, "_cells", 0)), "secondary_updated": float(sec.updated),
                         "secondary_overflow": float(sec.overflow), "secondary_requested": float(sec.requested),
-                        "secondary_evicted": float(sec.evicted),
+                        "secondary_evicted": float(sec.evicted), "secondary_cell_m": float(sec.h),
                         "secondary_reuse_mean": float(dr.mean(mi.Float(r))[0]) if dr.width(r) else 0.0})
             if self.memory_log:
                 out["primary_mb"] = self.memory_log[-1][0] / 2 ** 20

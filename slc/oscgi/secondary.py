@@ -82,7 +82,7 @@ def _take(v, idx):
     return type(v)(*[dr.gather(mi.Float, v[c], idx) for c in range(3)])
 
 
-def _trace_kernel(sc, ray, active, h: float, slots: int, shape_key: bool):
+def _trace_kernel(sc, ray, active, h: float, slots: int, shape_key: bool, lod: float = 0.0):
     """Cache rays to their hits (``RayFlags.Minimal``) and the hits' cell keys: returns
     (p, geometric normal, t, shape index, preliminary intersection, valid, key, home, front
     normal, non-diffuse BSDF), evaluated. Frozen by :class:`SecondaryCache` (the rays of primary and secondary
@@ -91,7 +91,7 @@ def _trace_kernel(sc, ray, active, h: float, slots: int, shape_key: bool):
     si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
     sidx = mi.UInt32(pi.shape_index)
     ok = mi.Bool(active) & si.is_valid()
-    key, home, nf = cell_key(si, ray.d, sidx, h, slots, shape_key)
+    key, home, nf = cell_key(si, ray.d, sidx, h, slots, shape_key, lod)
     flags = pi.shape.bsdf().flags()
     glossy = ok & (mi.has_flag(flags, mi.BSDFFlags.Glossy) | mi.has_flag(flags, mi.BSDFFlags.Delta))
     out = (mi.Point3f(si.p), mi.Vector3f(si.n), mi.Float(si.t), sidx, pi, ok, key, home, nf, glossy)
@@ -99,11 +99,28 @@ def _trace_kernel(sc, ray, active, h: float, slots: int, shape_key: bool):
     return out
 
 
-def cell_key(si, d, shape_index, h: float, slots: int, shape_key: bool):
+MAX_LOD = 7
+
+
+def cell_level(t, h: float, lod: float):
+    """The cell level of a hit at distance ``t`` along its ray: the largest l <= ``MAX_LOD`` with
+    h 2^l <= max(h, lod t), i.e. the cell's edge h 2^l is about the ray's footprint lod t (a
+    texel's or a secondary ray's angular width times the distance), never below h; 0 with lod 0."""
+    if lod <= 0.0:
+        return mi.UInt32(0)
+    x = dr.maximum(mi.Float(t) * (lod / h), 1.0)
+    x = dr.select(dr.isfinite(x), x, 1.0)
+    return mi.UInt32(dr.minimum(dr.floor(dr.log2(x)), float(MAX_LOD)))
+
+
+def cell_key(si, d, shape_index, h: float, slots: int, shape_key: bool, lod: float = 0.0):
     """(key, home slot, front normal) of hits ``si`` reached along ``d`` (see
-    :meth:`SecondaryCache.key_of`)."""
+    :meth:`SecondaryCache.key_of`); with ``lod`` > 0 the cell's edge grows with the hit
+    distance ``si.t`` (:func:`cell_level`) and the level enters the key."""
     nf = front_normal(si, d)
-    c = mi.Vector3i(dr.floor(si.p / h))
+    level = cell_level(si.t, h, lod)
+    hl = h * mi.Float(mi.UInt32(1) << level)
+    c = mi.Vector3i(dr.floor(si.p / hl))
     a = dr.abs(nf)
     axis = dr.select((a.x >= a.y) & (a.x >= a.z), 0, dr.select(a.y >= a.z, 1, 2))
     neg = dr.select(axis == 0, nf.x < 0.0, dr.select(axis == 1, nf.y < 0.0, nf.z < 0.0))
@@ -111,7 +128,7 @@ def cell_key(si, d, shape_index, h: float, slots: int, shape_key: bool):
     shape = mi.UInt32(shape_index) if shape_key else mi.UInt32(0)
     ux, uy, uz = (dr.reinterpret_array(mi.UInt32, v) for v in (c.x, c.y, c.z))
     k0, _ = mi.sample_tea_32(ux, uy, 4)
-    key, home = mi.sample_tea_32(k0 ^ (uz * 0x9E3779B9), bin_ | (shape << 3), 4)
+    key, home = mi.sample_tea_32(k0 ^ (uz * 0x9E3779B9), bin_ | (shape << 3) | (level << 28), 4)
     key = dr.minimum(key, EMPTY - 1)
     return key, home & (slots - 1), nf
 
@@ -220,13 +237,14 @@ class SecondaryCache:
     def __init__(self, mi_scene: mi.Scene, cell: float, bounces: int = 2, n_max: int = 8, rays: int = 32,
                  light_samples: int = 4, slots: int = 1 << 16, probes: int = 32, shape_key: bool = True,
                  seed: int = 0, budget: int = 0, evict_after: int = 0, max_load: float = 0.25,
-                 freeze: bool = True, glossy_hits: bool = True):
+                 freeze: bool = True, glossy_hits: bool = True, lod: float = 0.0):
         if slots & (slots - 1):
             raise ValueError("slots must be a power of two")
         self.sc, self.h, self.B = mi_scene, float(cell), int(bounces)
         self.n_max, self.rays, self.light_samples = int(n_max), int(rays), int(light_samples)
         self.slots, self.probes, self.shape_key, self.seed = int(slots), int(probes), bool(shape_key), int(seed)
         self.budget, self.evict_after, self.max_load = int(budget), int(evict_after), float(max_load)
+        self.lod = float(lod)
         self.laps = Laps(False)
         # the kernels with BSDF, shape and emitter calls, traced once and replayed (dr.freeze)
         self.freeze, self.glossy_hits = bool(freeze), bool(glossy_hits)
@@ -278,7 +296,7 @@ class SecondaryCache:
         """(key, home slot, front normal) of hits ``si`` reached along ``d`` on the shapes
         ``shape_index`` (indices into ``scene.shapes()``: the same in every process, unlike the
         shape pointers)."""
-        return cell_key(si, d, shape_index, self.h, self.slots, self.shape_key)
+        return cell_key(si, d, shape_index, self.h, self.slots, self.shape_key, self.lod)
 
     def find_or_insert(self, key: mi.UInt32, home: mi.UInt32, active: mi.Bool) -> mi.UInt32:
         """Slot of each key (inserted when absent); INVALID where inactive or the table is full."""
@@ -315,7 +333,7 @@ class SecondaryCache:
         per cell. Returns (p, n, t, shape index, preliminary intersection, valid, key, home,
         front normal, non-diffuse BSDF)."""
         active = dr.zeros(mi.Bool, dr.width(ray.d)) | mi.Bool(active)      # an array of the rays' width
-        return self._k_trace(self.sc, ray, active, self.h, self.slots, self.shape_key)
+        return self._k_trace(self.sc, ray, active, self.h, self.slots, self.shape_key, self.lod)
 
     def _set_rep(self, slots: mi.UInt32, ok: mi.Bool, hits, ray: mi.Ray3f) -> None:
         """Each touched cell's representative point: the lowest lane that touched it. The albedo

@@ -1,0 +1,77 @@
+"""osc-gi's direct light per pixel (``direct``), the footprint-sized secondary cells
+(``secondary_px``, ``secondary_max``) and the distance levels of cells (``secondary_lod``)."""
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from slc import methods, references, scenes, views
+from slc.oscgi.secondary import MAX_LOD, cell_level
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_oscgi import _run  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def cornell():
+    return scenes.load("cornell")
+
+
+def test_per_pixel_direct_light_is_unbiased_and_leaves_the_cache_alone(cornell):
+    """``direct=rt`` (default): the cache runs as for ``output=indirect`` (same random numbers, same
+    cells), so full minus indirect is the per-pixel RT-16 estimate alone: its mean is within 3% of
+    the 2048-sample direct ground truth (the cached direct light of ``direct=cache`` is checked by
+    the full-output test of test_oscgi.py)."""
+    vs = views.single(cornell)
+    mf, gbs, (full,) = _run(cornell, "osc-gi", vs, 4)
+    mi_, _, (ind,) = _run(cornell, "osc-gi:output=indirect", vs, 4)
+    assert mf.direct == "rt" and not mf._cache_direct
+    assert mf.secondary.used_cells() == mi_.secondary.used_cells()
+    assert np.array_equal(np.array(mf.storage), np.array(mi_.storage))       # the same cache
+    gt = references.reference_for("direct", cornell, gbs[0], 0, "test")
+    d = full - ind
+    valid = np.array(gbs[0].valid).reshape(gt.shape[:2])
+    assert np.isfinite(d).all()
+    assert abs(d[valid].mean() / gt[valid].mean() - 1.0) < 0.03, (d[valid].mean(), gt[valid].mean())
+
+
+@pytest.mark.parametrize("direct", ["cache", "cones", "restir"])
+def test_other_direct_options_approach_the_full_reference(cornell, direct):
+    """The cached direct light and the cones / ReSTIR run beside the cache: finite, and the full image
+    within 15% of the reference's mean after 8 still frames at 32x18."""
+    m, gbs, (img,) = _run(cornell, f"osc-gi:direct={direct}", views.single(cornell), 8, 32, 18)
+    ref = references.reference_for("full", cornell, gbs[0], 0, "test", spp=128, bounces=2)
+    valid = np.array(gbs[0].valid).reshape(ref.shape[:2])
+    assert np.isfinite(img).all()
+    assert abs(img[valid].mean() / ref[valid].mean() - 1.0) < 0.15, (img[valid].mean(), ref[valid].mean())
+    assert (m._sub is not None) == (direct != "cache")
+
+
+def test_cell_edge_follows_the_scene_size_and_the_pixel_footprint(cornell):
+    """max(secondary_cm, secondary_scene x diagonal, min(secondary_px x median footprint,
+    secondary_max x diagonal)); the default: 30 cm or 4% of the diagonal, whichever is larger."""
+    diag = float(np.linalg.norm(np.array(cornell.mi_scene.bbox().max) - np.array(cornell.mi_scene.bbox().min)))
+
+    def edge(spec, fp, valid=None):
+        m = methods.create(spec, cornell)
+        valid = [True] * len(fp) if valid is None else valid
+        return m._cell_edge([SimpleNamespace(footprint=mi.Float(fp), valid=mi.Bool(valid))])
+
+    assert edge("osc-gi", [1.0]) == pytest.approx(max(0.30, 0.04 * diag))                 # the default
+    assert edge("osc-gi:secondary_cm=1", [1.0]) == pytest.approx(0.04 * diag)             # scene fraction
+    px = "osc-gi:secondary_cm=1,secondary_scene=0,secondary_px=2"
+    assert edge(px, [0.01, 0.02, 0.03, 5.0], [True, True, True, False]) == pytest.approx(0.04)
+    assert edge(px, [1.0, 1.0]) == pytest.approx(0.05 * diag)                             # capped
+    assert edge(px.replace("cm=1", "cm=30"), [0.01, 0.02]) == pytest.approx(0.30)         # never below
+    assert edge("osc-gi:secondary_cm=1,secondary_scene=0", [1.0]) == pytest.approx(0.01)  # both off
+
+
+def test_cell_levels_grow_with_the_hit_distance():
+    h, lod = 0.3, 0.2
+    t = mi.Float([0.0, 1.0, h / lod * 2.0 ** 3.5, 1e9, dr.inf])
+    assert list(np.array(cell_level(t, h, lod))) == [0, 0, 3, MAX_LOD, 0]
+    assert list(np.array(cell_level(t, h, 0.0) + mi.UInt32(0, 0, 0, 0, 0))) == [0] * 5
