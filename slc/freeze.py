@@ -1,14 +1,27 @@
 r"""A function traced once and replayed (``dr.freeze``) under one recording
-policy, shared by the cone update (:class:`slc.cones.update.ConeUpdate`), the
-cone shading (:class:`slc.cones.shading.ConeShading`) and the adaptive cache's
-SH shading (:class:`slc.adaptive.sh_rep.SHShading`).
+policy, shared by every frozen kernel of the project (the cone update and
+shading, the cache's entry interactions, the adaptive cache's updates and
+shadings, osc-gi's kernels, the path tracer).
 
 Freezing pays only while its recordings are replayed. Each instance owns its
 frozen function, so recordings are freed with the method and never shared
-between scenes. A frozen function traverses every object of Mitsuba's registry
-(shapes, BSDFs, emitters, the scene) on each call; when meshes move, that state
-changes from frame to frame and the function is recorded again on the frame's
-first call. So:
+between scenes. What makes a call miss its recordings (``dr.set_log_level(
+dr.LogLevel.Info)`` and ``warn_after=1`` print the difference to the previous
+call):
+
+- Dr.Jit traverses, with the call's inputs, every object of Mitsuba's registry
+  in the domains the inputs reach (all shapes, emitters, BSDFs alive in the
+  process, of any scene), and the key holds an equivalence class of sizes over
+  all those arrays. Objects of a released scene must therefore be freed (the
+  per-scene tables of :mod:`slc.emitter_sampling` and :mod:`slc.lights` are
+  dropped with their :class:`slc.scenes.Scene`); and a call whose number of
+  lanes equals the size of some registry array (a mesh's 486 vertex
+  coordinates) has a key of its own: one more recording, replayed whenever
+  that width comes back (sponza, 240 frames: 3 recordings of the cone update).
+- When meshes move, the traversed state changes from frame to frame and the
+  function is recorded again on the frame's first call.
+
+So:
 
 - in a static scene, a function recorded more than ``max_recordings`` times is
   dropped (traced on every call from then on);

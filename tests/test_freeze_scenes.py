@@ -131,3 +131,44 @@ def test_replayed_literal_outputs_take_the_call_width():
     assert f.frozen and f.n_recordings <= 2, f.n_recordings
     # the Dr.Jit behaviour this works around (if this fails, Dr.Jit fixed it)
     assert dr.width(stale.y) == 5
+
+
+_ALIVE = """
+import json, sys
+sys.path.insert(0, "tests")
+import drjit as dr
+import mitsuba as mi
+import slc.backend  # noqa: F401
+import test_cones_update_freeze as F
+from slc import scenes
+keep = scenes.load("atrium") if sys.argv[1] else None      # alive during the run
+sizes = set()
+for sh in (keep.mi_scene.shapes() if keep else []):
+    params = mi.traverse(sh)
+    for k in params.keys():
+        try:
+            sizes.add(dr.width(params[k]))
+        except Exception:       # parameters that cannot be read alone
+            pass
+sizes = sorted(sizes)
+sc = F._growing_scene()
+m, _, _, active = F._run(sc, F.single(sc), 24, freeze=True, grow=True)
+print("RESULT " + json.dumps(dict(recs=m.recordings_per_frame, active=active, sizes=sizes,
+                                  frozen=m._cone_update.frozen)))
+"""
+
+
+def test_update_with_another_scene_alive_records_once_per_size_coincidence():
+    """What is left (see slc/freeze.py): with the atrium alive during the run, the
+    frozen update's key also holds the size classes of the atrium's arrays, so a
+    frame whose entry count equals one of their sizes (486: a lamp sphere's vertex
+    coordinates) records once more; later frames with the same count replay it.
+    Recordings: those of a fresh process plus one per distinct coinciding count,
+    still frozen."""
+    alive = run_case(_ALIVE, "atrium")
+    fresh = run_case(_ALIVE, "")
+    assert alive["active"] == fresh["active"]
+    hits = {n for n in alive["active"] if n in set(alive["sizes"])}
+    assert len(hits) >= 1, (alive["active"], alive["sizes"])     # the case this test is about
+    assert alive["frozen"] and fresh["frozen"]
+    assert alive["recs"][-1] == fresh["recs"][-1] + len(hits), (alive["recs"], fresh["recs"], hits)
