@@ -80,9 +80,11 @@ class FrozenFunction:
             if gc_on:
                 gc.enable()
         if self.frozen:
-            out = fit_literals(out)
             self.calls += 1
-            self.recordings = int(self.kernel.n_recordings)
+            n = int(self.kernel.n_recordings)
+            if n == self.recordings:        # a replay (a recording returns the traced outputs)
+                out = fit_literals(out)
+            self.recordings = n
             if self.animated:
                 drop = self.calls >= 8 and self.recordings > 0.9 * self.calls
             else:
@@ -105,58 +107,64 @@ class FrozenFunction:
 
 # ----------------------------------------------------------------------------- literal outputs
 
-def _leaves(x):
-    """The 1-D Dr.Jit arrays of a (nested) array or Dr.Jit struct."""
+def _slots(x, out: list) -> None:
+    """Append (container, key, leaf) for every 1-D Dr.Jit array of a (nested)
+    array or Dr.Jit struct ``x``; ``key`` a field name or an index."""
     if dr.is_struct_v(x) and not dr.is_array_v(x):
         for k in type(x).DRJIT_STRUCT:
-            yield from _leaves(getattr(x, k))
+            v = getattr(x, k)
+            if dr.is_jit_v(v) and dr.depth_v(v) == 1:
+                out.append((x, k, v))
+            else:
+                _slots(v, out)
     elif dr.is_array_v(x) and dr.depth_v(x) > 1:
         for i in range(len(x)):
-            yield from _leaves(x[i])
-    elif dr.is_jit_v(x):
-        yield x
+            v = x[i]
+            if dr.depth_v(v) == 1:
+                out.append((x, i, v))
+            else:
+                _slots(v, out)
 
 
-def _refit(x, width: int):
-    """``x`` with every literal leaf whose width is neither 0, 1 nor ``width``
-    replaced by the same literal value at ``width`` lanes (in place for structs
-    and nested arrays)."""
-    if dr.is_struct_v(x) and not dr.is_array_v(x):
-        for k in type(x).DRJIT_STRUCT:
-            setattr(x, k, _refit(getattr(x, k), width))
-        return x
-    if dr.is_array_v(x) and dr.depth_v(x) > 1:
-        for i in range(len(x)):
-            x[i] = _refit(x[i], width)
-        return x
-    if dr.is_jit_v(x) and x.state == dr.VarState.Literal and dr.width(x) not in (0, 1, width):
-        v = x[0]
-        if v is None:                       # a null pointer array (e.g. ``si.instance``)
-            return dr.zeros(type(x), width)
-        try:
-            return dr.full(type(x), v, width)
-        except TypeError:                   # a non-null literal pointer: left as it is
-            return x
-    return x
+def _fit_one(out):
+    if dr.is_array_v(out):
+        if not dr.is_jit_v(out) or dr.depth_v(out) == 1:
+            return out                              # a 1-D array: nothing to compare with
+    elif not dr.is_struct_v(out):
+        return out
+    slots = []
+    _slots(out, slots)
+    lit = dr.VarState.Literal
+    widths = {dr.width(v) for _, _, v in slots if v.state != lit}
+    if len(widths) != 1:
+        return out
+    (w,) = widths
+    for c, k, v in slots:
+        if v.state == lit and dr.width(v) not in (0, 1, w):
+            val = v[0]
+            if val is None:                         # a null pointer array (e.g. ``si.instance``)
+                new = dr.zeros(type(v), w)
+            else:
+                try:
+                    new = dr.full(type(v), val, w)
+                except TypeError:                   # a non-null literal pointer: left as it is
+                    continue
+            if isinstance(k, str):
+                setattr(c, k, new)
+            else:
+                c[k] = new
+    return out
 
 
 def fit_literals(out):
     """``out`` (a frozen function's output: an array, a Dr.Jit struct, or a
     tuple / list / dict of them, each handled on its own) whose literal leaves
     have the width of the evaluated leaves of the same element, where those all
-    have one width (> 1); anything else is returned as it is."""
+    have one width; anything else is returned as it is (modified in place)."""
     if isinstance(out, tuple):
         return tuple(fit_literals(o) for o in out)
     if isinstance(out, list):
         return [fit_literals(o) for o in out]
     if isinstance(out, dict):
         return {k: fit_literals(v) for k, v in out.items()}
-    if not (dr.is_array_v(out) or dr.is_struct_v(out)):
-        return out
-    leaves = list(_leaves(out))
-    widths = {dr.width(v) for v in leaves if v.state != dr.VarState.Literal}
-    stale = any(v.state == dr.VarState.Literal and dr.width(v) > 1 for v in leaves)
-    if len(widths) != 1 or not stale:
-        return out
-    (w,) = widths
-    return _refit(out, w) if w > 1 else out
+    return _fit_one(out)
