@@ -626,3 +626,12 @@ def _outside_symbolic(what: str) -> None:
 
 def clear_cache() -> None:
     _CACHE.clear()
+
+
+def forget(scene_id: int) -> None:
+    """Drop the tables of the scene at address ``scene_id`` (called when its
+    :class:`slc.scenes.Scene` is freed): an entry holds the scene's emitters and
+    emissive shapes, which would otherwise stay alive, and stay in Mitsuba's
+    object registry, which every frozen function traverses."""
+    for k in [k for k in _CACHE if k[0] == scene_id]:
+        del _CACHE[k]

@@ -178,6 +178,13 @@ _DIFFUSE: dict[int, tuple] = {}
 _DIFFUSE_CLASS = "SmoothDiffuse"
 
 
+def forget(scene_id: int) -> None:
+    """Drop the per-scene tables of the scene at address ``scene_id`` (its
+    :class:`slc.scenes.Scene` was freed; see :func:`slc.emitter_sampling.forget`)."""
+    _DIFFUSE.pop(scene_id, None)
+    emitter_sampling.forget(scene_id)
+
+
 def _diffuse_table(scene: mi.Scene):
     """(Bool per BSDF registry id: smooth diffuse; True if every shape's BSDF is),
     cached per scene; (None, False) for scenes with instances (whose BSDFs are not

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -245,6 +246,19 @@ class Animated:
     rest_normals: np.ndarray | None = None
 
 
+_WRAPPERS: dict[int, int] = {}   # live Scene objects per mi.Scene address
+
+
+def _release_tables(scene_id: int) -> None:
+    n = _WRAPPERS.get(scene_id, 1) - 1
+    if n > 0:
+        _WRAPPERS[scene_id] = n
+        return
+    _WRAPPERS.pop(scene_id, None)
+    from .lights import forget
+    forget(scene_id)
+
+
 class Scene:
     """A Mitsuba scene plus animation, camera paths and display settings.
 
@@ -284,6 +298,11 @@ class Scene:
         check_emitters(mi_scene, name)
         from .emitter_sampling import for_scene
         for_scene(mi_scene)   # the emitter table, built here: never inside a symbolic loop
+        # per-scene tables (emitter table, BSDF flags) hold the scene's emitters and
+        # shapes: dropped with the last Scene of this mi.Scene, so that a freed scene
+        # leaves Mitsuba's registry (which every frozen function traverses)
+        _WRAPPERS[id(mi_scene)] = _WRAPPERS.get(id(mi_scene), 0) + 1
+        weakref.finalize(self, _release_tables, id(mi_scene))
 
     def _update_bbox(self) -> None:
         """Bounding box of the non-emissive geometry (far lights such as a
