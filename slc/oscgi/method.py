@@ -375,16 +375,24 @@ class OSCGI(PayloadMethod):
             for ch in range(3):
                 dr.scatter(Lc[ch], Lg[ch], gi)
             dr.scatter(em, h2ok & ~sec.updated_once(s2, h2ok) if s2 is not None else mi.Bool(False), gi)
-        sample = [dr.zeros(mi.Float, N * D) for _ in range(3)]
-        empty = dr.zeros(mi.Bool, N * D)
-        for ch in range(3):
-            dr.scatter(sample[ch], Lc[ch], tl)
-        dr.scatter(empty, em, tl)
         # mean inverse hit distance of the entry's rays this update (a miss: 0), for the filter
-        inv_t, n_t = dr.zeros(mi.Float, N * D), dr.zeros(mi.Float, N * D)
         t_hit = hits[2]
-        dr.scatter(inv_t, dr.select(t_hit != dr.inf, dr.rcp(dr.maximum(t_hit, 1e-6)), 0.0), tl, ok)
-        dr.scatter(n_t, 1.0, tl, ok)
+        it_hit = dr.select(t_hit != dr.inf, dr.rcp(dr.maximum(t_hit, 1e-6)), 0.0)
+        if dr.width(tl) == N * D:
+            # every texel traced (texel_rays = hemi^2, the default, or all entries updated in full):
+            # tl is the identity, the per-lane values are used as they are (no scatters)
+            sample = [mi.Float(Lc[ch]) for ch in range(3)]
+            empty = mi.Bool(em)
+            inv_t, n_t = dr.select(ok, it_hit, 0.0), dr.select(ok, 1.0, 0.0)
+        else:
+            sample = [dr.zeros(mi.Float, N * D) for _ in range(3)]
+            empty = dr.zeros(mi.Bool, N * D)
+            for ch in range(3):
+                dr.scatter(sample[ch], Lc[ch], tl)
+            dr.scatter(empty, em, tl)
+            inv_t, n_t = dr.zeros(mi.Float, N * D), dr.zeros(mi.Float, N * D)
+            dr.scatter(inv_t, it_hit, tl, ok)
+            dr.scatter(n_t, 1.0, tl, ok)
         dr.eval(*sample, empty, inv_t, n_t)
 
         # ----------------- direct light (output=full): light samples binned into texels -----------------
