@@ -309,9 +309,12 @@ class OSCGI(PayloadMethod):
         slot = dr.gather(mi.UInt32, fr.active, e)
         # ------- new entries without a coarser seed: the mean of their finer entries, if any -------
         kids = self._finer_seeds(fr)
-        n_kids = sum(dr.select(dr.gather(mi.UInt32, kd, e) != INVALID, 1.0, 0.0) for kd in kids)
-        fine = is_new & ~seeded & (n_kids > 0.0)
-        self._finer_seeded = dr.gather(mi.Bool, fine, dr.arange(mi.UInt32, N) * D)   # per entry (tests)
+        # per entry (N lanes), then spread to the entry's texels
+        n_kids_e = sum(dr.select(kd != INVALID, 1.0, 0.0) for kd in kids)
+        fine_e = fr.is_new & (fr.seed_slot == INVALID) & (n_kids_e > 0.0)
+        self._finer_seeded = fine_e                                     # per entry (tests)
+        n_kids = dr.gather(mi.Float, n_kids_e, e) if kids else 0.0
+        fine = dr.gather(mi.Bool, fine_e, e)
         fine_old = []
         for ch in range(3):
             acc = mi.Float(0.0)
@@ -319,7 +322,8 @@ class OSCGI(PayloadMethod):
                 ks = dr.gather(mi.UInt32, kd, e)
                 acc += dr.gather(mi.Float, self.storage, ks * W + k * 3 + ch, fine & (ks != INVALID))
             fine_old.append(acc * dr.rcp(dr.maximum(n_kids, 1.0)))
-        dr.eval(*fine_old, fine)
+        # fine_old is read (masked) in the EMA's kernel below: not evaluated here over every texel
+        dr.eval(fine_e)
         laps.lap("primary_seeds")
         acc = None                    # an unevaluated reader of the storage (see the scatters below)
         c_old = dr.select(is_new, dr.select(seeded | fine, 1.0, 0.0),
@@ -394,6 +398,7 @@ class OSCGI(PayloadMethod):
             dr.scatter(inv_t, it_hit, tl, ok)
             dr.scatter(n_t, 1.0, tl, ok)
         dr.eval(*sample, empty, inv_t, n_t)
+        laps.lap("primary_samples")
 
         # ----------------- direct light (output=full): light samples binned into texels -----------------
         if self._cache_direct:
@@ -427,9 +432,10 @@ class OSCGI(PayloadMethod):
         a_e = dr.select(n_e > 0.0, dr.select(keep_e, dr.rcp(dr.minimum(c_e, float(self.n_max))), 1.0), 0.0)
         d_new = dr.fma(a_e, s_e * dr.rcp(dr.maximum(n_e, 1.0)) - d_old, d_old)
         dr.eval(*new, *E, cnt, d_new)
+        laps.lap("primary_blend")
         # no live reader of the storage (unevaluated gathers) may survive the scatters below: Dr.Jit
         # would copy the whole storage (12.9 MB at 16k entries) before writing into it
-        del old, d_old
+        del old, d_old, fine_old
         for ch in range(3):
             dr.scatter(self.storage, new[ch], slot * W + k * 3 + ch)
             dr.scatter(self.storage, E[ch], fr.active * W + 3 * D + ch)
