@@ -487,7 +487,17 @@ class OSCGI(PayloadMethod):
 
     def shade(self, ctx, fr, v, gb):
         G, W, D = self.grid, self.words, self.grid.n
-        slot, idx = mi.UInt32(fr.pixel_slot[v]), mi.UInt32(fr.pixel_index[v])
+        if len(fr.pixel_slot) > 1 and fr.layer_slot is not None:
+            # several viewers: the viewer's part of the layered values, gathered here rather than
+            # through the cache's per-viewer views, whose unevaluated gathers (made in another
+            # order) gave the fused shading kernel of all viewers another IR in some frames (a kernel
+            # built in a timed frame of the 16-viewer row)
+            off = sum(dr.width(fr.pixel_slot[u]) for u in range(v))
+            at = dr.arange(mi.UInt32, gb.size) + dr.opaque(mi.UInt32, off)
+            slot = dr.gather(mi.UInt32, fr.layer_slot, at)
+            idx = dr.gather(mi.UInt32, fr.layer_index, at)
+        else:
+            slot, idx = mi.UInt32(fr.pixel_slot[v]), mi.UInt32(fr.pixel_index[v])
         si = gb.si
         ok = mi.Bool(gb.valid) & (slot != INVALID) & (si.wi.z > 0.0)
         bsdf = si.bsdf()
