@@ -296,6 +296,9 @@ class OSCGI(PayloadMethod):
         D, N = G.n, fr.n_active
         laps = self.laps
         laps.start()
+        # in a frame without new entries the cache's seed slots are a literal (all INVALID), which
+        # would give the kernels reading them another IR (built in a timed frame): an array in memory
+        dr.make_opaque(fr.seed_slot)
 
         # ------- primary rays: one jittered cosine ray per texel of this update's share -------
         # texel k of an entry is traced in its first update and, afterwards, in update c when
