@@ -296,6 +296,9 @@ class OSCGI(PayloadMethod):
         D, N = G.n, fr.n_active
         laps = self.laps
         laps.start()
+        # in a frame without new entries the cache's seed slots are a literal (all INVALID), which
+        # would give the kernels reading them another IR (built in a timed frame): an array in memory
+        dr.make_opaque(fr.seed_slot)
 
         # ------- primary rays: one jittered cosine ray per texel of this update's share -------
         # texel k of an entry is traced in its first update and, afterwards, in update c when
@@ -309,9 +312,12 @@ class OSCGI(PayloadMethod):
         slot = dr.gather(mi.UInt32, fr.active, e)
         # ------- new entries without a coarser seed: the mean of their finer entries, if any -------
         kids = self._finer_seeds(fr)
-        n_kids = sum(dr.select(dr.gather(mi.UInt32, kd, e) != INVALID, 1.0, 0.0) for kd in kids)
-        fine = is_new & ~seeded & (n_kids > 0.0)
-        self._finer_seeded = dr.gather(mi.Bool, fine, dr.arange(mi.UInt32, N) * D)   # per entry (tests)
+        # per entry (N lanes), then spread to the entry's texels
+        n_kids_e = sum(dr.select(kd != INVALID, 1.0, 0.0) for kd in kids)
+        fine_e = fr.is_new & (fr.seed_slot == INVALID) & (n_kids_e > 0.0)
+        self._finer_seeded = fine_e                                     # per entry (tests)
+        n_kids = dr.gather(mi.Float, n_kids_e, e) if kids else 0.0
+        fine = dr.gather(mi.Bool, fine_e, e)
         fine_old = []
         for ch in range(3):
             acc = mi.Float(0.0)
@@ -319,7 +325,8 @@ class OSCGI(PayloadMethod):
                 ks = dr.gather(mi.UInt32, kd, e)
                 acc += dr.gather(mi.Float, self.storage, ks * W + k * 3 + ch, fine & (ks != INVALID))
             fine_old.append(acc * dr.rcp(dr.maximum(n_kids, 1.0)))
-        dr.eval(*fine_old, fine)
+        # fine_old is read (masked) in the EMA's kernel below: not evaluated here over every texel
+        dr.eval(fine_e)
         laps.lap("primary_seeds")
         acc = None                    # an unevaluated reader of the storage (see the scatters below)
         c_old = dr.select(is_new, dr.select(seeded | fine, 1.0, 0.0),
@@ -375,17 +382,26 @@ class OSCGI(PayloadMethod):
             for ch in range(3):
                 dr.scatter(Lc[ch], Lg[ch], gi)
             dr.scatter(em, h2ok & ~sec.updated_once(s2, h2ok) if s2 is not None else mi.Bool(False), gi)
-        sample = [dr.zeros(mi.Float, N * D) for _ in range(3)]
-        empty = dr.zeros(mi.Bool, N * D)
-        for ch in range(3):
-            dr.scatter(sample[ch], Lc[ch], tl)
-        dr.scatter(empty, em, tl)
         # mean inverse hit distance of the entry's rays this update (a miss: 0), for the filter
-        inv_t, n_t = dr.zeros(mi.Float, N * D), dr.zeros(mi.Float, N * D)
         t_hit = hits[2]
-        dr.scatter(inv_t, dr.select(t_hit != dr.inf, dr.rcp(dr.maximum(t_hit, 1e-6)), 0.0), tl, ok)
-        dr.scatter(n_t, 1.0, tl, ok)
+        it_hit = dr.select(t_hit != dr.inf, dr.rcp(dr.maximum(t_hit, 1e-6)), 0.0)
+        if dr.width(tl) == N * D:
+            # every texel traced (texel_rays = hemi^2, the default, or all entries updated in full):
+            # tl is the identity, the per-lane values are used as they are (no scatters)
+            sample = [mi.Float(Lc[ch]) for ch in range(3)]
+            empty = mi.Bool(em)
+            inv_t, n_t = dr.select(ok, it_hit, 0.0), dr.select(ok, 1.0, 0.0)
+        else:
+            sample = [dr.zeros(mi.Float, N * D) for _ in range(3)]
+            empty = dr.zeros(mi.Bool, N * D)
+            for ch in range(3):
+                dr.scatter(sample[ch], Lc[ch], tl)
+            dr.scatter(empty, em, tl)
+            inv_t, n_t = dr.zeros(mi.Float, N * D), dr.zeros(mi.Float, N * D)
+            dr.scatter(inv_t, it_hit, tl, ok)
+            dr.scatter(n_t, 1.0, tl, ok)
         dr.eval(*sample, empty, inv_t, n_t)
+        laps.lap("primary_samples")
 
         # ----------------- direct light (output=full): light samples binned into texels -----------------
         if self._cache_direct:
@@ -419,9 +435,10 @@ class OSCGI(PayloadMethod):
         a_e = dr.select(n_e > 0.0, dr.select(keep_e, dr.rcp(dr.minimum(c_e, float(self.n_max))), 1.0), 0.0)
         d_new = dr.fma(a_e, s_e * dr.rcp(dr.maximum(n_e, 1.0)) - d_old, d_old)
         dr.eval(*new, *E, cnt, d_new)
+        laps.lap("primary_blend")
         # no live reader of the storage (unevaluated gathers) may survive the scatters below: Dr.Jit
         # would copy the whole storage (12.9 MB at 16k entries) before writing into it
-        del old, d_old
+        del old, d_old, fine_old
         for ch in range(3):
             dr.scatter(self.storage, new[ch], slot * W + k * 3 + ch)
             dr.scatter(self.storage, E[ch], fr.active * W + 3 * D + ch)
@@ -473,7 +490,17 @@ class OSCGI(PayloadMethod):
 
     def shade(self, ctx, fr, v, gb):
         G, W, D = self.grid, self.words, self.grid.n
-        slot, idx = mi.UInt32(fr.pixel_slot[v]), mi.UInt32(fr.pixel_index[v])
+        if len(fr.pixel_slot) > 1 and fr.layer_slot is not None:
+            # several viewers: the viewer's part of the layered values, gathered here rather than
+            # through the cache's per-viewer views, whose unevaluated gathers (made in another
+            # order) gave the fused shading kernel of all viewers another IR in some frames (a kernel
+            # built in a timed frame of the 16-viewer row)
+            off = sum(dr.width(fr.pixel_slot[u]) for u in range(v))
+            at = dr.arange(mi.UInt32, gb.size) + dr.opaque(mi.UInt32, off)
+            slot = dr.gather(mi.UInt32, fr.layer_slot, at)
+            idx = dr.gather(mi.UInt32, fr.layer_index, at)
+        else:
+            slot, idx = mi.UInt32(fr.pixel_slot[v]), mi.UInt32(fr.pixel_index[v])
         si = gb.si
         ok = mi.Bool(gb.valid) & (slot != INVALID) & (si.wi.z > 0.0)
         bsdf = si.bsdf()
