@@ -60,7 +60,7 @@ def _by_fn(runs, scene):
 
 # osc-gi fails on the growing scene (an empty secondary-cell list in
 # slc/oscgi/secondary.py, also on main): it runs on the cornell box instead
-@pytest.mark.parametrize("second,methods,n_fns", [("growing", "slc,adaptive,sh,pt", 12), ("cornell", "osc-gi", 9)],
+@pytest.mark.parametrize("second,methods,n_fns", [("growing", "slc,adaptive,sh,pt", 12), ("cornell", "osc-gi", 10)],
                          ids=["growing-cache", "osc-gi"])
 def test_two_scenes_in_turn_record_as_in_fresh_processes(second, methods, n_fns):
     """atrium, then a second scene (one whose cache grows, from
@@ -74,8 +74,10 @@ def test_two_scenes_in_turn_record_as_in_fresh_processes(second, methods, n_fns)
     fresh = run_case(_RUN, second, methods, 16)["runs"]
     after, alone = _by_fn(both, second), _by_fn(fresh, second)
     assert set(after) == set(alone) and len(alone) == n_fns, sorted(alone)
+    # osc-gi's cached direct light kernel is made but not called with direct=rt (its default)
+    assert sum(r["calls"] > 0 for r in after.values()) >= n_fns - 1
     for k, r in after.items():
-        assert r["calls"] > 0 and r["frozen"] and r["recs"] <= r["max"], r
+        assert r["calls"] == alone[k]["calls"] and r["frozen"] and r["recs"] <= r["max"], r
         assert r["recs"] == alone[k]["recs"], (r, alone[k])
     first = _by_fn(both, "atrium")
     assert set(first) == set(alone), sorted(first)
