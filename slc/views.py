@@ -232,10 +232,13 @@ def vertical_fov(hfov_deg: float, aspect: float) -> float:
     return math.degrees(2 * math.atan(math.tan(math.radians(hfov_deg) / 2) / aspect))
 
 
-def _fan(p, n: int, step: float, aspect: float):
+def _fan(p, n: int, step: float, aspect: float, pivot: str = "eye"):
     """Viewers of a fan turned by ``step`` screen widths each (viewer 0 on
     the path's heading, then alternately right and left); fields of view
-    narrowed when the fan would span more than 360 degrees."""
+    narrowed when the fan would span more than 360 degrees. ``pivot="eye"``
+    turns each view about its own position; ``"target"`` moves the eye on a
+    circle about the up axis through the path's look-at point, every viewer
+    looking at it (a camera outside an open box keeps the box in view)."""
     hfov = horizontal_fov(p.fov, aspect)
     span = 1.0 + (n - 1) * step
     fov = p.fov
@@ -246,16 +249,36 @@ def _fan(p, n: int, step: float, aspect: float):
     out = []
     for i in range(n):
         k = (i + 1) // 2 * (1 if i % 2 else -1)  # 0, +1, -1, +2, -2, ...
-        out.append(Viewer(f"o{i:02d}", (lambda f, k=k: _with_fov(p.at(f).yawed(k * yaw), fov)), "overlap"))
+        turn = _orbited if pivot == "target" else (lambda c, a: c.yawed(a))
+        out.append(Viewer(f"o{i:02d}", (lambda f, k=k, turn=turn: _with_fov(turn(p.at(f), k * yaw), fov)),
+                          "overlap"))
     return out
 
 
-def _fan_overlap(scene: Scene, p, n: int, step: float, aspect: float) -> float:
+def _orbited(c: Camera, degrees: float) -> Camera:
+    """``c`` moved on a circle about the up axis through its target."""
+    a = math.radians(degrees)
+    t = np.asarray(c.target, float)
+    ca, sa = math.cos(a), math.sin(a)
+    rot = np.array([[ca, 0, sa], [0, 1, 0], [-sa, 0, ca]])
+    return Camera(t + rot @ (np.asarray(c.origin, float) - t), t.copy(), np.array(c.up, float), c.fov)
+
+
+def fan_pivot(scene: Scene, path: int = 0) -> str:
+    """``"target"`` when the path's first camera is outside the scene's
+    bounding box (it looks at the scene from outside: turning it about its eye
+    would look away from everything), else ``"eye"``."""
+    o = np.asarray(scene.path(path).at(0).origin, float)
+    inside = bool(np.all(o >= scene.bbox_min) and np.all(o <= scene.bbox_max))
+    return "eye" if inside else "target"
+
+
+def _fan_overlap(scene: Scene, p, n: int, step: float, aspect: float, pivot: str = "eye") -> float:
     """Mean measured overlap of a fan over ``CALIBRATION_FRAMES``."""
     from .gbuffer import render_gbuffer
     w, h = CALIBRATION_RES
     w = max(int(round(h * aspect)), 1)
-    vs = _fan(p, n, step, aspect)
+    vs = _fan(p, n, step, aspect, pivot)
     m = []
     for f in CALIBRATION_FRAMES:
         scene.set_frame(f)
@@ -264,7 +287,7 @@ def _fan_overlap(scene: Scene, p, n: int, step: float, aspect: float) -> float:
 
 
 def calibrated_step(scene: Scene, n: int, overlap: float, aspect: float = 16 / 9, path: int = 0,
-                    iterations: int = 8) -> tuple[float, float]:
+                    iterations: int = 8, pivot: str = "eye") -> tuple[float, float]:
     """(step, measured overlap %) of a fan of ``n`` views whose measured
     overlap is closest to ``overlap`` (0..1): bisection over the step in
     screen widths (0: identical views, 1: adjacent screens), measured with
@@ -272,17 +295,17 @@ def calibrated_step(scene: Scene, n: int, overlap: float, aspect: float = 16 / 9
     Cached per (scene, path, n, overlap, aspect)."""
     if n < 2 or overlap >= 1.0:
         return 0.0, 100.0 if n >= 2 else 0.0
-    key = (scene.name, path, n, round(float(overlap), 4), round(float(aspect), 4))
+    key = (scene.name, path, n, round(float(overlap), 4), round(float(aspect), 4), pivot)
     if key in _CALIBRATED:
         return _CALIBRATED[key]
     p = scene.path(path)
     target = 100.0 * max(float(overlap), 0.0)
-    best = (1.0, _fan_overlap(scene, p, n, 1.0, aspect))
+    best = (1.0, _fan_overlap(scene, p, n, 1.0, aspect, pivot))
     if target > best[1]:
         a, b = 0.0, 1.0      # measured overlap falls as the step grows
         for _ in range(iterations):
             m = 0.5 * (a + b)
-            got = _fan_overlap(scene, p, n, m, aspect)
+            got = _fan_overlap(scene, p, n, m, aspect, pivot)
             if abs(got - target) < abs(best[1] - target):
                 best = (m, got)
             if got > target:
@@ -294,7 +317,7 @@ def calibrated_step(scene: Scene, n: int, overlap: float, aspect: float = 16 / 9
 
 
 def overlap_rig(scene: Scene, n: int, overlap: float, aspect: float = 16 / 9,
-                path: int = 0) -> list[Viewer]:
+                path: int = 0, pivot: str = "eye") -> list[Viewer]:
     """N viewers at one position on path ``path``, fanned out about the up
     axis so that the share of the visible surface seen by more than one of
     them (:func:`measure_overlap`) is ``overlap`` (0..1).
@@ -311,9 +334,15 @@ def overlap_rig(scene: Scene, n: int, overlap: float, aspect: float = 16 / 9,
     four times and measure 75% at target 0%), so when ``hfov * (1 + (n - 1)
     step)`` exceeds 360 degrees every view's field of view is narrowed to
     fit (16 viewers at 0%: 22.5 degrees wide). The resolution, and with it
-    the pixels and cache requests per viewer, is unchanged."""
-    step, _ = calibrated_step(scene, n, overlap, aspect, path)
-    return _fan(scene.path(path), n, step, aspect)
+    the pixels and cache requests per viewer, is unchanged.
+
+    ``pivot`` (see :func:`_fan`): ``"eye"`` (default) or ``"target"``;
+    ``"auto"`` picks by :func:`fan_pivot` (the cornell box's camera is
+    outside the box: a fan about its eye left 11 of 16 views empty)."""
+    if pivot == "auto":
+        pivot = fan_pivot(scene, path)
+    step, _ = calibrated_step(scene, n, overlap, aspect, path, pivot=pivot)
+    return _fan(scene.path(path), n, step, aspect, pivot)
 
 
 def _with_fov(c: Camera, fov: float) -> Camera:
