@@ -370,17 +370,40 @@ def stereo(scene: Scene, pairs: int, first_path: int = 0, ipd_m: float = INTEROC
 def meeting(scene: Scene, n: int, radius: float | None = None, height: float | None = None,
             fov: float = 50.0) -> list[Viewer]:
     """N viewers evenly on a horizontal circle around ``scene.meeting_center``,
-    all looking at it (the abstract's shared-cloud case)."""
+    all looking at it (the abstract's shared-cloud case). A position inside
+    geometry (:func:`inside_geometry`: the atrium's columns held 2 of 16) is
+    moved along the circle, by up to half the spacing, to the nearest free one."""
     c = np.asarray(scene.meeting_center, float)
     ext = scene.bbox_max - scene.bbox_min
     r = radius if radius is not None else 0.2 * float(min(ext[0], ext[2]))
     h = height if height is not None else 0.1 * float(ext[1])
+    spacing = 2 * math.pi / max(n, 1)
+
+    def at(a):
+        return c + np.array([r * math.cos(a), h, r * math.sin(a)])
+
     out = []
     for i in range(n):
-        a = 2 * math.pi * i / n
-        o = c + np.array([r * math.cos(a), h, r * math.sin(a)])
+        a0 = spacing * i
+        shifts = [0.0] + [s * k * spacing / 16 for k in range(1, 9) for s in (1, -1)]
+        o = next((at(a0 + d) for d in shifts if not inside_geometry(scene, at(a0 + d))), at(a0))
         out.append(Viewer(f"m{i:02d}", (lambda f, o=o: Camera(o.copy(), c.copy(), fov=fov)), "meeting"))
     return out
+
+
+def inside_geometry(scene: Scene, p, n_dirs: int = 64) -> bool:
+    """Whether point ``p`` is enclosed by geometry: more than half of
+    ``n_dirs`` fixed directions hit a surface from its back side."""
+    import drjit as dr
+    import mitsuba as mi
+    d = np.random.default_rng(7).normal(size=(n_dirs, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.broadcast_to(np.asarray(p, float), d.shape)
+    ray = mi.Ray3f(mi.Point3f(*[np.ascontiguousarray(o[:, k]) for k in range(3)]),
+                   mi.Vector3f(*[np.ascontiguousarray(d[:, k]) for k in range(3)]))
+    si = scene.mi_scene.ray_intersect(ray)
+    back = si.is_valid() & (dr.dot(si.n, ray.d) > 0)
+    return int(np.count_nonzero(np.array(back))) > n_dirs // 2
 
 
 def make_rig(scene: Scene, rig: str, viewers: int, overlap: float = 1.0) -> list[Viewer]:

@@ -1,4 +1,4 @@
-"""An overlap rig keeps every viewer on the scene: a camera outside the scene's
+"""Rigs keep every viewer on the scene: a camera outside the scene's
 bounding box (the cornell box, seen through its open side) is fanned about its
 look-at point (``pivot="auto"``), one inside (the atrium) about its eye."""
 import numpy as np
@@ -27,3 +27,22 @@ def test_cornell_fan_about_the_target_sees_the_box_in_every_view():
     # the calibrated overlap is still reached (within the calibration's tolerance)
     _, got = views.calibrated_step(sc, 16, 0.75, pivot="target")
     assert abs(got - 75.0) < 10.0, got
+
+
+def test_meeting_viewers_stand_outside_geometry():
+    """The atrium's meeting ring crossed two columns: viewers 4 and 12 stood inside
+    the marble and saw only back faces. Positions inside geometry move along the ring."""
+    import math
+    sc = load("atrium")
+    c = np.asarray(sc.meeting_center, float)
+    ext = sc.bbox_max - sc.bbox_min
+    r, h = 0.2 * float(min(ext[0], ext[2])), 0.1 * float(ext[1])
+    ring = [c + np.array([r * math.cos(2 * math.pi * i / 16), h, r * math.sin(2 * math.pi * i / 16)])
+            for i in range(16)]
+    assert sum(views.inside_geometry(sc, p) for p in ring) == 2       # the even ring: 2 inside
+    vs = views.meeting(sc, 16)
+    origins = [np.asarray(v.camera(0).origin, float) for v in vs]
+    assert not any(views.inside_geometry(sc, o) for o in origins)
+    assert all(abs(np.linalg.norm((o - c)[[0, 2]]) - r) < 1e-6 for o in origins)   # still on the ring
+    valid = _valid_per_viewer(sc, vs)
+    assert min(valid) > 0.5 * max(valid), valid
