@@ -1,6 +1,7 @@
 """Rigs keep every viewer on the scene: a camera outside the scene's
 bounding box (the cornell box, seen through its open side) is fanned about its
-look-at point (``pivot="auto"``), one inside (the atrium) about its eye."""
+look-at point (``pivot="auto"``), one inside (the atrium) about its eye; meeting
+viewers never stand inside geometry."""
 import numpy as np
 
 import slc.backend  # noqa: F401
