@@ -528,6 +528,7 @@ class SecondaryCache:
 
         # ------------- cosine rays to other cells: layers b-1 of their previous update -------------
         mean = [mi.Color3f(0.0) for _ in range(B - 1)]
+        tl = mi.UInt32()
         if B > 1:
             R = self.rays
             lane = dr.arange(mi.UInt32, n * R)
@@ -536,6 +537,7 @@ class SecondaryCache:
             tracing &= dr.gather(mi.Bool, lit, c_of)
             # ---- only the tracing lanes (cells of ring < B with albedo) from here on ----
             tl = dr.compress(tracing)
+        if dr.width(tl) > 0:      # (none: no cell of ring < B has albedo and light, e.g. a black scene)
             c_of = tl // R
             ray_k = self._k_ray if n > 1 and dr.width(tl) > 1 else _ray_kernel
             ray = ray_k(p, nrm, keys, tl, stream_key(self.seed, frame, STREAM_SECONDARY + 1), R)
