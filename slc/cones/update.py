@@ -178,6 +178,38 @@ def insert_sample(D, A, L, S, n, beta, s, w, ok, p: ConeParams):
     caseB = ok & ~caseA & (n < K)
     full = ok & ~caseA & ~caseB
 
+    # (A) and (B): add to the cone / start a new one
+    for i in range(K):
+        a_i = caseA & (idx_in == i)
+        b_i = caseB & (n == i)
+        S[i] = dr.select(a_i, S[i] + w, S[i])
+        D[i] = dr.select(b_i, s, D[i])
+        A[i] = dr.select(b_i, 0.0, A[i])
+        L[i] = dr.select(b_i, mi.Color3f(0.0), L[i])
+        S[i] = dr.select(b_i, w, S[i])
+    n = dr.select(caseB, n + 1, n)
+
+    # (C) and (D), for a full record only: in a symbolic branch, which a SIMD packet
+    # without such a lane skips (most samples fall inside a cone: case A)
+    def full_fn(full, D, A, L, S, beta):
+        return _insert_full(D, A, L, S, n, beta, s, w, th, live, full, p)
+
+    def keep_fn(full, D, A, L, S, beta):
+        return D, A, L, S, beta, mi.Bool(False)
+
+    D, A, L, S, beta, caseC = dr.if_stmt(args=(full, D, A, L, S, beta), cond=full, true_fn=full_fn,
+                                         false_fn=keep_fn, label="insert_full")
+    caseD = full & ~caseC
+    case = dr.select(caseA, 1, dr.select(caseB, 2, dr.select(caseC, 3, dr.select(caseD, 4, 0))))
+    return D, A, L, S, n, beta, mi.UInt32(case)
+
+
+def _insert_full(D, A, L, S, n, beta, s, w, th, live, full, p: ConeParams):
+    """Cases (C) and (D) of :func:`insert_sample` for the lanes ``full`` (no room,
+    the sample inside no cone): widen the nearest cone, or merge the closest pair
+    and start a new cone. Returns (D, A, L, S, beta, caseC)."""
+    K = p.max_cones
+    D, A, L, S = list(D), list(A), list(L), list(S)
     # nearest cone axis and closest pair of axes
     jn, thj = mi.UInt32(0), mi.Float(INF)
     for i in range(K):
@@ -205,28 +237,23 @@ def insert_sample(D, A, L, S, n, beta, s, w, ok, p: ConeParams):
     turn_d = dr.minimum(ta, tb)
 
     for i in range(K):
-        a_i = caseA & (idx_in == i)
-        b_i = caseB & (n == i)
         c_i = caseC & (jn == i)
         m_i = caseD & (pa == i)
         d_i = caseD & (pb == i)
-        new_i = b_i | d_i
-        S[i] = dr.select(a_i | c_i, S[i] + w, S[i])
+        S[i] = dr.select(c_i, S[i] + w, S[i])
         D[i] = dr.select(c_i, Dw, D[i])
         A[i] = dr.select(c_i, Aw, A[i])
         D[i] = dr.select(m_i, Dm, D[i])
         A[i] = dr.select(m_i, Am, A[i])
         L[i] = dr.select(m_i, Lm, L[i])
         S[i] = dr.select(m_i, Sm, S[i])
-        D[i] = dr.select(new_i, s, D[i])
-        A[i] = dr.select(new_i, 0.0, A[i])
-        L[i] = dr.select(new_i, mi.Color3f(0.0), L[i])
-        S[i] = dr.select(new_i, w, S[i])
-    n = dr.select(caseB, n + 1, n)
+        D[i] = dr.select(d_i, s, D[i])
+        A[i] = dr.select(d_i, 0.0, A[i])
+        L[i] = dr.select(d_i, mi.Color3f(0.0), L[i])
+        S[i] = dr.select(d_i, w, S[i])
     beta = dr.select(caseC, dr.maximum(beta, turn_c), beta)
     beta = dr.select(caseD, dr.maximum(beta, turn_d), beta)
-    case = dr.select(caseA, 1, dr.select(caseB, 2, dr.select(caseC, 3, dr.select(caseD, 4, 0))))
-    return D, A, L, S, n, beta, mi.UInt32(case)
+    return D, A, L, S, beta, caseC
 
 
 def end_cycle(L, S, C, n, beta, n_samples, moving, p: ConeParams):
@@ -335,12 +362,52 @@ def shrink_test(scene: mi.Scene, si: mi.SurfaceInteraction3f, D, A, n, key: mi.U
     us = [sampler.next_float32() for _ in range(p.max_cones)]
     dirs, tested = shrink_test_dirs(D, A, n, us, p)
     hits = []
+    area_only = constant_area_emitters(scene)
     for i in range(p.max_cones):
         tested[i] = tested[i] & do_shrink
         si2 = scene.ray_intersect(si.spawn_ray(si.sh_frame.to_world(dirs[i])), tested[i])
-        Le = mi.Color3f(si2.emitter(scene, tested[i]).eval(si2, tested[i]))
-        hits.append(tested[i] & (dr.max(Le) > 0.0))
+        if area_only:
+            # Mitsuba's area emitter: L_e = radiance where cos(theta) > 0 (its front side), else 0;
+            # with constant radiance > 0 that is the hit test, without the virtual call
+            hit = (si2.emitter(scene, tested[i]) != None) & (mi.Frame3f.cos_theta(si2.wi) > 0.0)  # noqa: E711
+        else:
+            Le = mi.Color3f(si2.emitter(scene, tested[i]).eval(si2, tested[i]))
+            hit = dr.max(Le) > 0.0
+        hits.append(tested[i] & hit)
     return dirs, tested, hits
+
+
+def constant_area_emitters(scene) -> bool:
+    """Whether every emitter of ``scene`` is Mitsuba's ``area`` emitter with a constant,
+    positive radiance (and there is no environment): then a ray's hit point
+    emits (``L_e > 0``) exactly where its shape has an emitter and the ray arrives
+    on the front side, which :func:`shrink_test` checks without the emitter's
+    virtual call. Read on the host once per scene."""
+    ms = getattr(scene, "mi_scene", scene)
+    key = id(ms)
+    hit = _AREA_ONLY.get(key)
+    if hit is not None and hit[0] is ms:
+        return hit[1]
+    ok = ms.environment() is None and len(ms.emitters()) > 0
+    for e in ms.emitters():
+        if not ok:
+            break
+        keys = list(mi.traverse(e).keys())
+        own = [k for k in keys if k == "radiance" or k.startswith("radiance.")]
+        ok = e.class_name() == "AreaLight" and own == ["radiance.value"]
+        ok = ok and _positive(mi.traverse(e)["radiance.value"])
+    _AREA_ONLY.clear()
+    _AREA_ONLY[key] = (ms, ok)
+    return ok
+
+
+def _positive(v) -> bool:
+    import numpy as np
+    a = np.array(v, dtype=np.float64).ravel()
+    return a.size > 0 and bool(np.isfinite(a).all()) and bool(a.max() > 0.0)
+
+
+_AREA_ONLY: dict = {}
 
 
 # ----------------------------------------------------------------------------- the update kernel
