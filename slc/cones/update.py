@@ -351,18 +351,19 @@ def shrink_test_dirs(D, A, n, u, p: ConeParams):
 
 
 def shrink_test(scene: mi.Scene, si: mi.SurfaceInteraction3f, D, A, n, key: mi.UInt32, valid: mi.Bool,
-                unsettled: mi.Bool, sampler, frame: int, p: ConeParams):
+                unsettled: mi.Bool, sampler, frame: int, p: ConeParams, area_only: bool = False):
     """Trace one shrink-test ray per cone (paper Sec. 3.3) of the ``valid``
     entries: at every update of an ``unsettled`` entry, else every
-    ``shrink_period``-th frame (staggered by ``key``). Returns (directions,
-    tested masks, hit-a-light masks) per cone."""
+    ``shrink_period``-th frame (staggered by ``key``). ``area_only``
+    (:func:`constant_area_emitters`, read by the caller outside any frozen
+    function) tests a hit without the emitter's virtual call. Returns
+    (directions, tested masks, hit-a-light masks) per cone."""
     period = max(int(p.shrink_period), 1)
     phase = frame_u32(frame) % period  # opaque: no recompilation per frame
     do_shrink = valid & (unsettled | (((key + phase) % period) == 0))
     us = [sampler.next_float32() for _ in range(p.max_cones)]
     dirs, tested = shrink_test_dirs(D, A, n, us, p)
     hits = []
-    area_only = constant_area_emitters(scene)
     for i in range(p.max_cones):
         tested[i] = tested[i] & do_shrink
         si2 = scene.ray_intersect(si.spawn_ray(si.sh_frame.to_world(dirs[i])), tested[i])
@@ -444,7 +445,8 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     kernel = updater if updater is not None else _update_kernel
     storage, motion_o, shrunk_o, dropped_o = kernel(
         scene, light_inputs(scene), storage, order, mi.UInt32(active), mi.UInt32(keys), si, mi.UInt32(rays), mi.Bool(unsettled), moving,
-        mi.Bool(is_new), mi.UInt32(seed_slot), first_sample, strata, frame_u32(frame), int(seed), p)
+        mi.Bool(is_new), mi.UInt32(seed_slot), first_sample, strata, frame_u32(frame), int(seed), p,
+        constant_area_emitters(scene))
     motion = dr.zeros(mi.Bool, N)
     dr.scatter(motion, motion_o, order)
     if stats is not None:
@@ -454,7 +456,7 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
 
 
 def _update_kernel(scene, lights, storage, order, active, keys, si, rays, unsettled, moving, is_new, seed_slot,
-                   first_sample, strata, frame, seed, p: ConeParams):
+                   first_sample, strata, frame, seed, p: ConeParams, area_only: bool = False):
     """The update proper, in the lane order ``order``: gather the inputs,
     :func:`_updated_words`, write the words back into ``storage``. Every
     argument that changes from frame to frame is a Dr.Jit array (``frame``
@@ -462,14 +464,15 @@ def _update_kernel(scene, lights, storage, order, active, keys, si, rays, unsett
     that :class:`ConeUpdate` can trace it once and replay it for any number
     of entries. ``lights`` (:func:`light_inputs`) is not read here: it declares
     the emitter table's arrays, which :func:`slc.lights.sample_light` reads, as
-    inputs of the frozen function. Returns (storage, motion, shrunk, dropped), the masks in lane order."""
+    inputs of the frozen function. ``area_only`` (a Python bool, part of the recording's
+    key) see :func:`shrink_test`. Returns (storage, motion, shrunk, dropped), the masks in lane order."""
     from .packing import scatter_words
     act = dr.gather(mi.UInt32, active, order)
     words, motion_o, shrunk_o, dropped_o = _updated_words(
         scene, storage, act, dr.gather(mi.UInt32, keys, order), dr.gather(type(si), si, order),
         dr.gather(mi.UInt32, rays, order), dr.gather(mi.Bool, unsettled, order), dr.gather(mi.Bool, moving, order),
         dr.gather(mi.Bool, is_new, order), dr.gather(mi.UInt32, seed_slot, order),
-        dr.gather(mi.UInt32, first_sample, order), dr.gather(mi.Bool, strata, order), frame, seed, p)
+        dr.gather(mi.UInt32, first_sample, order), dr.gather(mi.Bool, strata, order), frame, seed, p, area_only)
     # Every intermediate that read ``storage`` died with _updated_words' locals, so
     # the scatter below writes in place (a live reader would force a full copy).
     scatter_words(storage, words, act, p.max_cones)
@@ -477,7 +480,7 @@ def _update_kernel(scene, lights, storage, order, active, keys, si, rays, unsett
 
 
 def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_new, seed_slot, first_sample,
-                   strata, frame, seed, p: ConeParams):
+                   strata, frame, seed, p: ConeParams, area_only: bool = False):
     """The update kernel proper on the packed ``storage``: unpack the active
     entries (and the LOD seeds of new ones), :func:`update_cycle`, pack.
     Returns the evaluated (words, motion, shrunk, dropped)."""
@@ -489,7 +492,7 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_
     seeds = unpack(gather_words(storage, dr.select(has_seed, seed_slot, 0), K, has_seed), K)
     words, motion, shrunk, dropped, _ = update_cycle(
         scene, state, key, si, rays, unsettled, moving, is_new, first_sample, strata, frame, seed, p,
-        seeds=seeds, has_seed=has_seed)
+        seeds=seeds, has_seed=has_seed, area_only=area_only)
     dr.eval(*words, motion, shrunk, dropped)
     return words, motion, shrunk, dropped
 
@@ -566,14 +569,16 @@ class SampleObserver:
 
 
 def update_cycle(scene, state, key, si, rays, unsettled, moving, is_new, first_sample, strata, frame, seed,
-                 p: ConeParams, seeds=None, has_seed=None, valid=None, observer: SampleObserver | None = None):
+                 p: ConeParams, seeds=None, has_seed=None, valid=None, observer: SampleObserver | None = None,
+                 area_only: bool = False):
     """One update cycle of unpacked cone records ``state = (D, A, L, C, n)``
     (one lane per entry, as :func:`slc.cones.packing.unpack` returns it):
     new entries (``is_new``) restart empty, or from their LOD seed's unpacked
     record ``seeds`` where ``has_seed``; ``rays`` light samples per entry from
     the stratified sequence (see below), insertion (cases A-D), the shrink test,
     the end of the cycle. ``valid`` (default: the interaction's) masks the lanes
-    that sample; ``observer`` (a :class:`SampleObserver`) sees every sample.
+    that sample; ``observer`` (a :class:`SampleObserver`) sees every sample;
+    ``area_only`` see :func:`shrink_test`.
     Shared by ``slc`` (through :func:`update_entries`) and the adaptive cache's
     cone pool. Returns (packed words, motion, shrunk, dropped, observer state);
     nothing evaluated."""
@@ -654,7 +659,8 @@ def update_cycle(scene, state, key, si, rays, unsettled, moving, is_new, first_s
         labels=("k", "D", "A", "L", "S", "n", "beta", "sampler", "q0", "q1", "extra"))
 
     # ----------------------------------------------- shrink test: one ray per cone
-    dirs, tested, hits = shrink_test(scene, si, D, A, n, key, valid, mi.Bool(unsettled), sampler, frame, p)
+    dirs, tested, hits = shrink_test(scene, si, D, A, n, key, valid, mi.Bool(unsettled), sampler, frame, p,
+                                     area_only)
     # A light that left (switched off, moved away) leaves a cone whose rim tests
     # miss but which only shrinks by epsilon alpha per test, with its L_c and C
     # kept: it would fade as (1 - n/C) per cycle, 255 cycles for a settled entry.
