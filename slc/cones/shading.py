@@ -283,7 +283,7 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
                  bsdf: mi.BSDFPtr, texel_frame: mi.Frame3f, max_cones: int, n_total: mi.UInt32,
                  key: mi.UInt32, adaptive: bool = True, rotate: bool = True,
                  pid: mi.UInt32 | None = None, horizon: bool = True, principled: bool = True,
-                 conductor: bool = False, table=None, entry_frames=None) -> mi.Color3f:
+                 conductor: bool = False, table=None, entry_frames=None, glossy_half: bool = False) -> mi.Color3f:
     """Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
     ``slot``; ``texel_frame`` is the local frame of each pixel's entry (the frame its
     cone directions are stored in). ``n_total`` directions per live cone and ``key``
@@ -406,8 +406,18 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
         ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & ~mi.has_flag(flags, mi.BSDFFlags.Null)
     sampled = active & ~lambert & ~pfast & (n > 0) & ~backside
 
+    # ------------------- purely glossy BSDFs (rough conductors): half the directions -------------------
+    # (``glossy_half``; their lobe has no diffuse base, and the split below gives a lobe
+    # wider than the cones few BSDF directions: the cone directions carry it)
+    n_px = mi.UInt32(n_total)
+    if glossy_half:
+        glossy_only = mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) & \
+            ~mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & \
+            ~mi.has_flag(flags, mi.BSDFFlags.Transmission)
+        n_px = dr.select(glossy_only, dr.maximum(n_px >> 1, 1), n_px)
+
     def sampled_fn(sampled):
-        return _quadrature(bsdf, si, ctx, sampled, K, n_total, key, pid, adaptive, rotate, live, delta, area, h,
+        return _quadrature(bsdf, si, ctx, sampled, K, n_px, key, pid, adaptive, rotate, live, delta, area, h,
                            inv_om, L, A, Dw, zero)
 
     acc = dr.if_stmt(args=(sampled,), cond=sampled, true_fn=sampled_fn,
@@ -557,7 +567,9 @@ class ConeShading(FrozenFunction):
     ``"sample"``: the MIS quadrature, as before), ``conductor="sample"`` (pixels with an
     isotropic GGX ``roughconductor``: the MIS quadrature; ``"sg"``: the lobe as a spherical
     Gaussian over each cone, see :func:`_conductor_cones`; only for scenes whose
-    roughconductors all use GGX, :func:`shader_for` checks).
+    roughconductors all use GGX, :func:`shader_for` checks), ``glossy="full"`` (``"half"``:
+    pixels whose BSDF is purely glossy, e.g. rough conductors, take half of ``n_samples``
+    on the quadrature; the ``slc`` method's default, see docs/cones.md).
 
     Freezing pays only while its recordings are replayed. Each instance owns its frozen
     function, so recordings are freed with the method and never shared between scenes.
@@ -573,8 +585,11 @@ class ConeShading(FrozenFunction):
 
     def __init__(self, max_cones: int, adaptive: bool = True, rotate: bool = True, freeze: bool = True,
                  animated: bool = False, max_recordings: int = 4, horizon: bool = True,
-                 principled: str = "sg", conductor: str = "sample", table=None):
+                 principled: str = "sg", conductor: str = "sample", table=None, glossy: str = "full"):
         self.table = table
+        if glossy not in ("half", "full"):
+            raise ValueError(f"glossy must be 'half' or 'full', not {glossy!r}")
+        self.glossy = glossy
         if principled not in ("sg", "sample"):
             raise ValueError(f"principled must be 'sg' or 'sample', not {principled!r}")
         if conductor not in ("sg", "sample"):
@@ -594,7 +609,8 @@ class ConeShading(FrozenFunction):
         return super().__call__(storage, mi.UInt32(slot), mi.Bool(active), si, si.bsdf(), texel_frame,
                                 self.max_cones, dr.opaque(mi.UInt32, max(int(n_samples), 1)),
                                 dr.opaque(mi.UInt32, int(key)), self.adaptive, self.rotate, pid, self.horizon,
-                                self.principled == "sg", self.conductor == "sg", self.table, entry_frames)
+                                self.principled == "sg", self.conductor == "sg", self.table, entry_frames,
+                                self.glossy == "half")
 
 
 def shader_for(owner, max_cones: int) -> ConeShading:
@@ -611,6 +627,7 @@ def shader_for(owner, max_cones: int) -> ConeShading:
         sh = ConeShading(max_cones, animated=bool(getattr(scene, "dynamic", False)),
                          horizon=getattr(owner, "horizon", "clip") == "clip",
                          principled=getattr(owner, "principled", "sg"), conductor=conductor,
+                         glossy=getattr(owner, "glossy", "half"),
                          table=bsdf_table(scene) if scene is not None else None)
         owner._cone_shading = sh
     return sh
