@@ -34,7 +34,10 @@ each cap holds a fraction; an approximation, measured in docs/cones.md.
 With ``conductor="sg"`` (an option, off by default) isotropic GGX ``roughconductor`` pixels
 get the same Gaussian lobe plus GGX's tail at far cones' axes (:func:`_conductor_cones`).
 Each kind of pixel runs in a symbolic branch of its own, and BSDFs without textures are read
-from a per-scene table (:func:`bsdf_table`) instead of virtual calls (same images).
+from a per-scene table (:func:`bsdf_table`) instead of virtual calls (same images). Pixels
+seen from behind whose BSDF only reflects and whose cones all lie in front give 0 without
+the quadrature (it would sum zeros); with ``glossy="half"`` (an option) purely glossy BSDFs
+(rough conductors) take half the directions.
 
 Sample counts: ``n_samples`` (n_S) directions, fewer for rough lobes (``n_S' =
 ceil(n_S clip(q, 1/4, 1))``), split per pixel into ``n_C`` cone directions per live cone
@@ -569,7 +572,7 @@ class ConeShading(FrozenFunction):
     Gaussian over each cone, see :func:`_conductor_cones`; only for scenes whose
     roughconductors all use GGX, :func:`shader_for` checks), ``glossy="full"`` (``"half"``:
     pixels whose BSDF is purely glossy, e.g. rough conductors, take half of ``n_samples``
-    on the quadrature; the ``slc`` method's default, see docs/cones.md).
+    on the quadrature: faster, noisier, see docs/cones.md).
 
     Freezing pays only while its recordings are replayed. Each instance owns its frozen
     function, so recordings are freed with the method and never shared between scenes.
@@ -627,7 +630,7 @@ def shader_for(owner, max_cones: int) -> ConeShading:
         sh = ConeShading(max_cones, animated=bool(getattr(scene, "dynamic", False)),
                          horizon=getattr(owner, "horizon", "clip") == "clip",
                          principled=getattr(owner, "principled", "sg"), conductor=conductor,
-                         glossy=getattr(owner, "glossy", "half"),
+                         glossy=getattr(owner, "glossy", "full"),
                          table=bsdf_table(scene) if scene is not None else None)
         owner._cone_shading = sh
     return sh
