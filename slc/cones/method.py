@@ -88,6 +88,9 @@ class SurfaceLightCones(PayloadMethod):
         Param("conductor", "sample", "pixels with an isotropic GGX roughconductor: the MIS quadrature (sample) or the "
               "lobe as a spherical Gaussian over each cone (sg; scenes whose roughconductors are all GGX)",
               choices=("sg", "sample")),
+        Param("glossy", "full", "pixels whose BSDF is purely glossy (rough conductors) on the MIS quadrature: all "
+              "the shading directions (full) or half of them (half; faster, noisier: docs/cones.md)",
+              choices=("full", "half")),
         Param("batch", "viewers", "viewers: shade all viewers' pixels in one launch (nearest fetch; the same images "
               "as per viewer); off: one launch per viewer", choices=("off", "viewers")),
     ) + PayloadMethod.cache_params

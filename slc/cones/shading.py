@@ -34,7 +34,10 @@ each cap holds a fraction; an approximation, measured in docs/cones.md.
 With ``conductor="sg"`` (an option, off by default) isotropic GGX ``roughconductor`` pixels
 get the same Gaussian lobe plus GGX's tail at far cones' axes (:func:`_conductor_cones`).
 Each kind of pixel runs in a symbolic branch of its own, and BSDFs without textures are read
-from a per-scene table (:func:`bsdf_table`) instead of virtual calls (same images).
+from a per-scene table (:func:`bsdf_table`) instead of virtual calls (same images). Pixels
+seen from behind whose BSDF only reflects and whose cones all lie in front give 0 without
+the quadrature (it would sum zeros); with ``glossy="half"`` (an option) purely glossy BSDFs
+(rough conductors) take half the directions.
 
 Sample counts: ``n_samples`` (n_S) directions, fewer for rough lobes (``n_S' =
 ceil(n_S clip(q, 1/4, 1))``), split per pixel into ``n_C`` cone directions per live cone
@@ -62,6 +65,8 @@ R3 = 1.2207440846057596               # plastic constant of the 3-D Roberts (R3)
 B_MAX = 0.75                          # at most this share of the directions are BSDF samples
 ROUGH_MIN = 0.25                      # rough lobes keep at least this share of the n_S directions per cone
 ALPHA_DELTA = 1e-3                    # rad; narrower cones are Dirac cones (as in ConeParams.alpha_delta)
+BACK_MARGIN = 1e-3                    # cos; a cap this far above the horizon holds no direction below it,
+                                      # even with the quadrature's cap-membership tolerance
 
 
 def cone_samples(Dw, A, s_idx: mi.UInt32, nS: int):
@@ -281,7 +286,7 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
                  bsdf: mi.BSDFPtr, texel_frame: mi.Frame3f, max_cones: int, n_total: mi.UInt32,
                  key: mi.UInt32, adaptive: bool = True, rotate: bool = True,
                  pid: mi.UInt32 | None = None, horizon: bool = True, principled: bool = True,
-                 conductor: bool = False, table=None, entry_frames=None) -> mi.Color3f:
+                 conductor: bool = False, table=None, entry_frames=None, glossy_half: bool = False) -> mi.Color3f:
     """Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
     ``slot``; ``texel_frame`` is the local frame of each pixel's entry (the frame its
     cone directions are stored in). ``n_total`` directions per live cone and ``key``
@@ -331,12 +336,14 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     nrm = si.sh_frame.n
     closed = mi.Color3f(zero)
     cones_ok = mi.Bool(active)                 # every live cone has a closed form
+    clear = mi.Bool(active)                    # every live cone wholly above the horizon (with a margin)
     term, below_c = [], []                     # per cone: L_c (1/Omega_c) int_c cos (0 if not live); cap below
     for i in range(K):
         cos_d = dr.dot(nrm, Dw[i])
         sin_d = dr.safe_sqrt(1.0 - dr.square(cos_d))
         # above the horizon: angle(n, d) + alpha < pi/2  <=>  cos(angle + alpha) > 0
         above = (cos_d * dr.cos(A[i]) - sin_d * dr.sin(A[i])) > 0.0
+        clear &= ~live[i] | ((cos_d * dr.cos(A[i]) - sin_d * dr.sin(A[i])) > BACK_MARGIN)
         full = L[i] * (cos_d * 0.5 * (1.0 + dr.cos(A[i])))
         if horizon:
             sa, ca = dr.sin(A[i]), dr.cos(A[i])
@@ -392,10 +399,28 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
             false_fn=lambda cm: (mi.Color3f(0.0), mi.Bool(False)), label="conductor")
         prin = dr.select(pfast, prin, cond_v)
         pfast = pfast | cfast
-    sampled = active & ~lambert & ~pfast & (n > 0)
+    # ------------------- pixels seen from behind whose cones are all in front: 0, no quadrature -------------------
+    # A BSDF without transmission (or null) lobes reflects only into the side of w_i: with
+    # cos(theta_i) <= 0 and every cone wholly above the horizon, f_r = 0 for every direction
+    # in the cones, and a BSDF sample (on w_i's side) lies in no cone (L~ = 0): the quadrature
+    # sums zeros. (The meeting rig's viewers 4 and 12 see only such pixels: 12 % of its pixels.)
+    flags = mi.UInt32(bsdf.flags())
+    backside = active & clear & (mi.Frame3f.cos_theta(si.wi) <= 0.0) & \
+        ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & ~mi.has_flag(flags, mi.BSDFFlags.Null)
+    sampled = active & ~lambert & ~pfast & (n > 0) & ~backside
+
+    # ------------------- purely glossy BSDFs (rough conductors): half the directions -------------------
+    # (``glossy_half``; their lobe has no diffuse base, and the split below gives a lobe
+    # wider than the cones few BSDF directions: the cone directions carry it)
+    n_px = mi.UInt32(n_total)
+    if glossy_half:
+        glossy_only = mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) & \
+            ~mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & \
+            ~mi.has_flag(flags, mi.BSDFFlags.Transmission)
+        n_px = dr.select(glossy_only, dr.maximum(n_px >> 1, 1), n_px)
 
     def sampled_fn(sampled):
-        return _quadrature(bsdf, si, ctx, sampled, K, n_total, key, pid, adaptive, rotate, live, delta, area, h,
+        return _quadrature(bsdf, si, ctx, sampled, K, n_px, key, pid, adaptive, rotate, live, delta, area, h,
                            inv_om, L, A, Dw, zero)
 
     acc = dr.if_stmt(args=(sampled,), cond=sampled, true_fn=sampled_fn,
@@ -545,7 +570,9 @@ class ConeShading(FrozenFunction):
     ``"sample"``: the MIS quadrature, as before), ``conductor="sample"`` (pixels with an
     isotropic GGX ``roughconductor``: the MIS quadrature; ``"sg"``: the lobe as a spherical
     Gaussian over each cone, see :func:`_conductor_cones`; only for scenes whose
-    roughconductors all use GGX, :func:`shader_for` checks).
+    roughconductors all use GGX, :func:`shader_for` checks), ``glossy="full"`` (``"half"``:
+    pixels whose BSDF is purely glossy, e.g. rough conductors, take half of ``n_samples``
+    on the quadrature: faster, noisier, see docs/cones.md).
 
     Freezing pays only while its recordings are replayed. Each instance owns its frozen
     function, so recordings are freed with the method and never shared between scenes.
@@ -561,8 +588,11 @@ class ConeShading(FrozenFunction):
 
     def __init__(self, max_cones: int, adaptive: bool = True, rotate: bool = True, freeze: bool = True,
                  animated: bool = False, max_recordings: int = 4, horizon: bool = True,
-                 principled: str = "sg", conductor: str = "sample", table=None):
+                 principled: str = "sg", conductor: str = "sample", table=None, glossy: str = "full"):
         self.table = table
+        if glossy not in ("half", "full"):
+            raise ValueError(f"glossy must be 'half' or 'full', not {glossy!r}")
+        self.glossy = glossy
         if principled not in ("sg", "sample"):
             raise ValueError(f"principled must be 'sg' or 'sample', not {principled!r}")
         if conductor not in ("sg", "sample"):
@@ -582,7 +612,8 @@ class ConeShading(FrozenFunction):
         return super().__call__(storage, mi.UInt32(slot), mi.Bool(active), si, si.bsdf(), texel_frame,
                                 self.max_cones, dr.opaque(mi.UInt32, max(int(n_samples), 1)),
                                 dr.opaque(mi.UInt32, int(key)), self.adaptive, self.rotate, pid, self.horizon,
-                                self.principled == "sg", self.conductor == "sg", self.table, entry_frames)
+                                self.principled == "sg", self.conductor == "sg", self.table, entry_frames,
+                                self.glossy == "half")
 
 
 def shader_for(owner, max_cones: int) -> ConeShading:
@@ -599,6 +630,7 @@ def shader_for(owner, max_cones: int) -> ConeShading:
         sh = ConeShading(max_cones, animated=bool(getattr(scene, "dynamic", False)),
                          horizon=getattr(owner, "horizon", "clip") == "clip",
                          principled=getattr(owner, "principled", "sg"), conductor=conductor,
+                         glossy=getattr(owner, "glossy", "full"),
                          table=bsdf_table(scene) if scene is not None else None)
         owner._cone_shading = sh
     return sh

@@ -178,6 +178,38 @@ def insert_sample(D, A, L, S, n, beta, s, w, ok, p: ConeParams):
     caseB = ok & ~caseA & (n < K)
     full = ok & ~caseA & ~caseB
 
+    # (A) and (B): add to the cone / start a new one
+    for i in range(K):
+        a_i = caseA & (idx_in == i)
+        b_i = caseB & (n == i)
+        S[i] = dr.select(a_i, S[i] + w, S[i])
+        D[i] = dr.select(b_i, s, D[i])
+        A[i] = dr.select(b_i, 0.0, A[i])
+        L[i] = dr.select(b_i, mi.Color3f(0.0), L[i])
+        S[i] = dr.select(b_i, w, S[i])
+    n = dr.select(caseB, n + 1, n)
+
+    # (C) and (D), for a full record only: in a symbolic branch, which a SIMD packet
+    # without such a lane skips (most samples fall inside a cone: case A)
+    def full_fn(full, D, A, L, S, beta):
+        return _insert_full(D, A, L, S, n, beta, s, w, th, live, full, p)
+
+    def keep_fn(full, D, A, L, S, beta):
+        return D, A, L, S, beta, mi.Bool(False)
+
+    D, A, L, S, beta, caseC = dr.if_stmt(args=(full, D, A, L, S, beta), cond=full, true_fn=full_fn,
+                                         false_fn=keep_fn, label="insert_full")
+    caseD = full & ~caseC
+    case = dr.select(caseA, 1, dr.select(caseB, 2, dr.select(caseC, 3, dr.select(caseD, 4, 0))))
+    return D, A, L, S, n, beta, mi.UInt32(case)
+
+
+def _insert_full(D, A, L, S, n, beta, s, w, th, live, full, p: ConeParams):
+    """Cases (C) and (D) of :func:`insert_sample` for the lanes ``full`` (no room,
+    the sample inside no cone): widen the nearest cone, or merge the closest pair
+    and start a new cone. Returns (D, A, L, S, beta, caseC)."""
+    K = p.max_cones
+    D, A, L, S = list(D), list(A), list(L), list(S)
     # nearest cone axis and closest pair of axes
     jn, thj = mi.UInt32(0), mi.Float(INF)
     for i in range(K):
@@ -205,28 +237,23 @@ def insert_sample(D, A, L, S, n, beta, s, w, ok, p: ConeParams):
     turn_d = dr.minimum(ta, tb)
 
     for i in range(K):
-        a_i = caseA & (idx_in == i)
-        b_i = caseB & (n == i)
         c_i = caseC & (jn == i)
         m_i = caseD & (pa == i)
         d_i = caseD & (pb == i)
-        new_i = b_i | d_i
-        S[i] = dr.select(a_i | c_i, S[i] + w, S[i])
+        S[i] = dr.select(c_i, S[i] + w, S[i])
         D[i] = dr.select(c_i, Dw, D[i])
         A[i] = dr.select(c_i, Aw, A[i])
         D[i] = dr.select(m_i, Dm, D[i])
         A[i] = dr.select(m_i, Am, A[i])
         L[i] = dr.select(m_i, Lm, L[i])
         S[i] = dr.select(m_i, Sm, S[i])
-        D[i] = dr.select(new_i, s, D[i])
-        A[i] = dr.select(new_i, 0.0, A[i])
-        L[i] = dr.select(new_i, mi.Color3f(0.0), L[i])
-        S[i] = dr.select(new_i, w, S[i])
-    n = dr.select(caseB, n + 1, n)
+        D[i] = dr.select(d_i, s, D[i])
+        A[i] = dr.select(d_i, 0.0, A[i])
+        L[i] = dr.select(d_i, mi.Color3f(0.0), L[i])
+        S[i] = dr.select(d_i, w, S[i])
     beta = dr.select(caseC, dr.maximum(beta, turn_c), beta)
     beta = dr.select(caseD, dr.maximum(beta, turn_d), beta)
-    case = dr.select(caseA, 1, dr.select(caseB, 2, dr.select(caseC, 3, dr.select(caseD, 4, 0))))
-    return D, A, L, S, n, beta, mi.UInt32(case)
+    return D, A, L, S, beta, caseC
 
 
 def end_cycle(L, S, C, n, beta, n_samples, moving, p: ConeParams):
@@ -324,11 +351,13 @@ def shrink_test_dirs(D, A, n, u, p: ConeParams):
 
 
 def shrink_test(scene: mi.Scene, si: mi.SurfaceInteraction3f, D, A, n, key: mi.UInt32, valid: mi.Bool,
-                unsettled: mi.Bool, sampler, frame: int, p: ConeParams):
+                unsettled: mi.Bool, sampler, frame: int, p: ConeParams, area_only: bool = False):
     """Trace one shrink-test ray per cone (paper Sec. 3.3) of the ``valid``
     entries: at every update of an ``unsettled`` entry, else every
-    ``shrink_period``-th frame (staggered by ``key``). Returns (directions,
-    tested masks, hit-a-light masks) per cone."""
+    ``shrink_period``-th frame (staggered by ``key``). ``area_only``
+    (:func:`constant_area_emitters`, read by the caller outside any frozen
+    function) tests a hit without the emitter's virtual call. Returns
+    (directions, tested masks, hit-a-light masks) per cone."""
     period = max(int(p.shrink_period), 1)
     phase = frame_u32(frame) % period  # opaque: no recompilation per frame
     do_shrink = valid & (unsettled | (((key + phase) % period) == 0))
@@ -338,9 +367,48 @@ def shrink_test(scene: mi.Scene, si: mi.SurfaceInteraction3f, D, A, n, key: mi.U
     for i in range(p.max_cones):
         tested[i] = tested[i] & do_shrink
         si2 = scene.ray_intersect(si.spawn_ray(si.sh_frame.to_world(dirs[i])), tested[i])
-        Le = mi.Color3f(si2.emitter(scene, tested[i]).eval(si2, tested[i]))
-        hits.append(tested[i] & (dr.max(Le) > 0.0))
+        if area_only:
+            # Mitsuba's area emitter: L_e = radiance where cos(theta) > 0 (its front side), else 0;
+            # with constant radiance > 0 that is the hit test, without the virtual call
+            hit = (si2.emitter(scene, tested[i]) != None) & (mi.Frame3f.cos_theta(si2.wi) > 0.0)  # noqa: E711
+        else:
+            Le = mi.Color3f(si2.emitter(scene, tested[i]).eval(si2, tested[i]))
+            hit = dr.max(Le) > 0.0
+        hits.append(tested[i] & hit)
     return dirs, tested, hits
+
+
+def constant_area_emitters(scene) -> bool:
+    """Whether every emitter of ``scene`` is Mitsuba's ``area`` emitter with a constant,
+    positive radiance (and there is no environment): then a ray's hit point
+    emits (``L_e > 0``) exactly where its shape has an emitter and the ray arrives
+    on the front side, which :func:`shrink_test` checks without the emitter's
+    virtual call. Read on the host once per scene."""
+    ms = getattr(scene, "mi_scene", scene)
+    key = id(ms)
+    hit = _AREA_ONLY.get(key)
+    if hit is not None and hit[0] is ms:
+        return hit[1]
+    ok = ms.environment() is None and len(ms.emitters()) > 0
+    for e in ms.emitters():
+        if not ok:
+            break
+        keys = list(mi.traverse(e).keys())
+        own = [k for k in keys if k == "radiance" or k.startswith("radiance.")]
+        ok = e.class_name() == "AreaLight" and own == ["radiance.value"]
+        ok = ok and _positive(mi.traverse(e)["radiance.value"])
+    _AREA_ONLY.clear()
+    _AREA_ONLY[key] = (ms, ok)
+    return ok
+
+
+def _positive(v) -> bool:
+    import numpy as np
+    a = np.array(v, dtype=np.float64).ravel()
+    return a.size > 0 and bool(np.isfinite(a).all()) and bool(a.max() > 0.0)
+
+
+_AREA_ONLY: dict = {}
 
 
 # ----------------------------------------------------------------------------- the update kernel
@@ -377,7 +445,8 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     kernel = updater if updater is not None else _update_kernel
     storage, motion_o, shrunk_o, dropped_o = kernel(
         scene, light_inputs(scene), storage, order, mi.UInt32(active), mi.UInt32(keys), si, mi.UInt32(rays), mi.Bool(unsettled), moving,
-        mi.Bool(is_new), mi.UInt32(seed_slot), first_sample, strata, frame_u32(frame), int(seed), p)
+        mi.Bool(is_new), mi.UInt32(seed_slot), first_sample, strata, frame_u32(frame), int(seed), p,
+        constant_area_emitters(scene))
     motion = dr.zeros(mi.Bool, N)
     dr.scatter(motion, motion_o, order)
     if stats is not None:
@@ -387,7 +456,7 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
 
 
 def _update_kernel(scene, lights, storage, order, active, keys, si, rays, unsettled, moving, is_new, seed_slot,
-                   first_sample, strata, frame, seed, p: ConeParams):
+                   first_sample, strata, frame, seed, p: ConeParams, area_only: bool = False):
     """The update proper, in the lane order ``order``: gather the inputs,
     :func:`_updated_words`, write the words back into ``storage``. Every
     argument that changes from frame to frame is a Dr.Jit array (``frame``
@@ -395,14 +464,15 @@ def _update_kernel(scene, lights, storage, order, active, keys, si, rays, unsett
     that :class:`ConeUpdate` can trace it once and replay it for any number
     of entries. ``lights`` (:func:`light_inputs`) is not read here: it declares
     the emitter table's arrays, which :func:`slc.lights.sample_light` reads, as
-    inputs of the frozen function. Returns (storage, motion, shrunk, dropped), the masks in lane order."""
+    inputs of the frozen function. ``area_only`` (a Python bool, part of the recording's
+    key) see :func:`shrink_test`. Returns (storage, motion, shrunk, dropped), the masks in lane order."""
     from .packing import scatter_words
     act = dr.gather(mi.UInt32, active, order)
     words, motion_o, shrunk_o, dropped_o = _updated_words(
         scene, storage, act, dr.gather(mi.UInt32, keys, order), dr.gather(type(si), si, order),
         dr.gather(mi.UInt32, rays, order), dr.gather(mi.Bool, unsettled, order), dr.gather(mi.Bool, moving, order),
         dr.gather(mi.Bool, is_new, order), dr.gather(mi.UInt32, seed_slot, order),
-        dr.gather(mi.UInt32, first_sample, order), dr.gather(mi.Bool, strata, order), frame, seed, p)
+        dr.gather(mi.UInt32, first_sample, order), dr.gather(mi.Bool, strata, order), frame, seed, p, area_only)
     # Every intermediate that read ``storage`` died with _updated_words' locals, so
     # the scatter below writes in place (a live reader would force a full copy).
     scatter_words(storage, words, act, p.max_cones)
@@ -410,7 +480,7 @@ def _update_kernel(scene, lights, storage, order, active, keys, si, rays, unsett
 
 
 def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_new, seed_slot, first_sample,
-                   strata, frame, seed, p: ConeParams):
+                   strata, frame, seed, p: ConeParams, area_only: bool = False):
     """The update kernel proper on the packed ``storage``: unpack the active
     entries (and the LOD seeds of new ones), :func:`update_cycle`, pack.
     Returns the evaluated (words, motion, shrunk, dropped)."""
@@ -422,7 +492,7 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_
     seeds = unpack(gather_words(storage, dr.select(has_seed, seed_slot, 0), K, has_seed), K)
     words, motion, shrunk, dropped, _ = update_cycle(
         scene, state, key, si, rays, unsettled, moving, is_new, first_sample, strata, frame, seed, p,
-        seeds=seeds, has_seed=has_seed)
+        seeds=seeds, has_seed=has_seed, area_only=area_only)
     dr.eval(*words, motion, shrunk, dropped)
     return words, motion, shrunk, dropped
 
@@ -503,14 +573,16 @@ class SampleObserver:
 
 
 def update_cycle(scene, state, key, si, rays, unsettled, moving, is_new, first_sample, strata, frame, seed,
-                 p: ConeParams, seeds=None, has_seed=None, valid=None, observer: SampleObserver | None = None):
+                 p: ConeParams, seeds=None, has_seed=None, valid=None, observer: SampleObserver | None = None,
+                 area_only: bool = False):
     """One update cycle of unpacked cone records ``state = (D, A, L, C, n)``
     (one lane per entry, as :func:`slc.cones.packing.unpack` returns it):
     new entries (``is_new``) restart empty, or from their LOD seed's unpacked
     record ``seeds`` where ``has_seed``; ``rays`` light samples per entry from
     the stratified sequence (see below), insertion (cases A-D), the shrink test,
     the end of the cycle. ``valid`` (default: the interaction's) masks the lanes
-    that sample; ``observer`` (a :class:`SampleObserver`) sees every sample.
+    that sample; ``observer`` (a :class:`SampleObserver`) sees every sample;
+    ``area_only`` see :func:`shrink_test`.
     Shared by ``slc`` (through :func:`update_entries`) and the adaptive cache's
     cone pool. Returns (packed words, motion, shrunk, dropped, observer state);
     nothing evaluated."""
@@ -591,7 +663,8 @@ def update_cycle(scene, state, key, si, rays, unsettled, moving, is_new, first_s
         labels=("k", "D", "A", "L", "S", "n", "beta", "sampler", "q0", "q1", "extra"))
 
     # ----------------------------------------------- shrink test: one ray per cone
-    dirs, tested, hits = shrink_test(scene, si, D, A, n, key, valid, mi.Bool(unsettled), sampler, frame, p)
+    dirs, tested, hits = shrink_test(scene, si, D, A, n, key, valid, mi.Bool(unsettled), sampler, frame, p,
+                                     area_only)
     # A light that left (switched off, moved away) leaves a cone whose rim tests
     # miss but which only shrinks by epsilon alpha per test, with its L_c and C
     # kept: it would fade as (1 - n/C) per cycle, 255 cycles for a settled entry.
