@@ -134,3 +134,20 @@ def env_info() -> dict:
         "cores": os.cpu_count(),
         "libllvm": os.environ.get("DRJIT_LIBLLVM_PATH"),
     }
+
+
+def aligned(a, dtype):
+    """A contiguous copy of ``a`` in a 64-byte aligned numpy buffer.
+
+    Dr.Jit maps a numpy array without copying and marks it unaligned when its
+    address is not a multiple of the vector width; every kernel reading it then
+    differs (``align 1`` loads) from the one for an aligned array, so a kernel
+    fed per-frame numpy data would be built again in whichever frame numpy's
+    allocator returned the other kind of address."""
+    import numpy as np
+    a = np.ascontiguousarray(a, dtype)
+    buf = np.empty(a.nbytes + 64, np.uint8)
+    off = (-buf.ctypes.data) % 64
+    out = buf[off:off + a.nbytes].view(a.dtype).reshape(a.shape)
+    out[...] = a
+    return out

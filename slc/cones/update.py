@@ -383,12 +383,10 @@ def constant_area_emitters(scene) -> bool:
     positive radiance (and there is no environment): then a ray's hit point
     emits (``L_e > 0``) exactly where its shape has an emitter and the ray arrives
     on the front side, which :func:`shrink_test` checks without the emitter's
-    virtual call. Read on the host once per scene."""
+    virtual call. Read on the host (:meth:`ConeUpdate.area_only` keeps it per
+    instance: a module-level cache holding the scene kept a released scene's
+    objects in Mitsuba's registry, which every frozen function traverses)."""
     ms = getattr(scene, "mi_scene", scene)
-    key = id(ms)
-    hit = _AREA_ONLY.get(key)
-    if hit is not None and hit[0] is ms:
-        return hit[1]
     ok = ms.environment() is None and len(ms.emitters()) > 0
     for e in ms.emitters():
         if not ok:
@@ -397,8 +395,6 @@ def constant_area_emitters(scene) -> bool:
         own = [k for k in keys if k == "radiance" or k.startswith("radiance.")]
         ok = e.class_name() == "AreaLight" and own == ["radiance.value"]
         ok = ok and _positive(mi.traverse(e)["radiance.value"])
-    _AREA_ONLY.clear()
-    _AREA_ONLY[key] = (ms, ok)
     return ok
 
 
@@ -407,8 +403,6 @@ def _positive(v) -> bool:
     a = np.array(v, dtype=np.float64).ravel()
     return a.size > 0 and bool(np.isfinite(a).all()) and bool(a.max() > 0.0)
 
-
-_AREA_ONLY: dict = {}
 
 
 # ----------------------------------------------------------------------------- the update kernel
@@ -446,7 +440,7 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     storage, motion_o, shrunk_o, dropped_o = kernel(
         scene, light_inputs(scene), storage, order, mi.UInt32(active), mi.UInt32(keys), si, mi.UInt32(rays), mi.Bool(unsettled), moving,
         mi.Bool(is_new), mi.UInt32(seed_slot), first_sample, strata, frame_u32(frame), int(seed), p,
-        constant_area_emitters(scene))
+        updater.area_only(scene) if updater is not None else constant_area_emitters(scene))
     motion = dr.zeros(mi.Bool, N)
     dr.scatter(motion, motion_o, order)
     if stats is not None:
@@ -542,6 +536,14 @@ class ConeUpdate(FrozenFunction):
         # per-lane: order .. strata (a lane count equal to a scene array's width runs
         # on a free width; the extra lanes repeat the last one: same words, same slot)
         super().__init__(_update_kernel, freeze, animated, max_recordings, lanes=tuple(range(3, 14)))
+        self._area_only = None      # (id of the scene, constant_area_emitters): one scene per instance
+
+    def area_only(self, scene) -> bool:
+        """:func:`constant_area_emitters` of ``scene``, read once (no reference to the scene kept)."""
+        key = id(getattr(scene, "mi_scene", scene))
+        if self._area_only is None or self._area_only[0] != key:
+            self._area_only = (key, constant_area_emitters(scene))
+        return self._area_only[1]
 
 
 def updater_for(owner) -> ConeUpdate:

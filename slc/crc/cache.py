@@ -10,6 +10,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..backend import aligned
 from ..keys import STREAM_CRC, keyed_rng
 from ..methods import Method, Param
 from ..sh.project import irradiance, project
@@ -348,7 +349,10 @@ class CRCCache(Method):
         e, tex = t // (R * R), t % (R * R)
         u3 = (mi.Point2f(mi.Float(tex % R), mi.Float(tex // R)) + 0.5) * (1.0 / R)
         ep = dr.gather(mi.EmitterPtr, emitters, e)
-        ray, w = ep.sample_ray(0.0, 0.5, mi.Point2f(u2[:, 0], u2[:, 1]), u3, True)
+        # aligned copies: a numpy column is mapped with whatever alignment numpy's allocator gave it,
+        # and an unaligned input is another kernel (built in a timed frame in about 1 run of 4)
+        ray, w = ep.sample_ray(0.0, 0.5, mi.Point2f(mi.Float(aligned(u2[:, 0], np.float32)),
+                                                    mi.Float(aligned(u2[:, 1], np.float32))), u3, True)
         return (*self._vpl(sc.ray_intersect(ray), w), n_e)
 
     def _lanes(self, cells: mi.UInt32, count: int):

@@ -23,27 +23,12 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..backend import aligned
 from . import octree as oct
 
 SCENE_DEPTH = 7       # CPU default (the paper uses 11 levels on a GPU)
 VIEW_DEPTH = 7
 EMPTY_COUNT = 0
-
-
-def aligned(a, dtype) -> np.ndarray:
-    """A contiguous copy of ``a`` in a 64-byte aligned numpy buffer.
-
-    Dr.Jit maps a numpy array without copying and marks it unaligned when its
-    address is not a multiple of the vector width; every kernel reading it then
-    differs (``align 1`` loads) from the one for an aligned array, so a kernel
-    fed per-frame numpy data would be built again in whichever frame numpy's
-    allocator returned the other kind of address."""
-    a = np.ascontiguousarray(a, dtype)
-    buf = np.empty(a.nbytes + 64, np.uint8)
-    off = (-buf.ctypes.data) % 64
-    out = buf[off:off + a.nbytes].view(a.dtype).reshape(a.shape)
-    out[...] = a
-    return out
 
 
 def _f(a):
