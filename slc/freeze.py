@@ -59,6 +59,7 @@ from __future__ import annotations
 import gc
 
 import drjit as dr
+import mitsuba as mi
 
 
 class FrozenFunction:
@@ -181,11 +182,6 @@ class FrozenFunction:
 
 # ----------------------------------------------------------------------------- widths
 
-def _index_type():
-    import mitsuba as mi
-    return mi.UInt32
-
-
 def _leaves(x):
     """The 1-D Dr.Jit arrays of a (nested) array, Dr.Jit struct, or a list /
     tuple of them."""
@@ -252,16 +248,11 @@ def _cut(out, w: int, n: int):
 def _lane_index(n: int, w: int):
     """Lanes 0 .. w-1 reading lane min(i, n - 1): the padding's and the cut's
     index (``n`` opaque: the same kernel for every width)."""
-    U = _index_type()
-    return dr.minimum(dr.arange(U, w), dr.opaque(U, n - 1))
+    return dr.minimum(dr.arange(mi.UInt32, w), dr.opaque(mi.UInt32, n - 1))
 
 
 def _is_scene(a) -> bool:
-    try:
-        import mitsuba as mi
-        return isinstance(a, mi.Scene)
-    except ImportError:      # pragma: no cover
-        return False
+    return isinstance(a, mi.Scene)
 
 
 def _input_widths(a) -> set:
@@ -273,7 +264,6 @@ def _input_widths(a) -> set:
 
 
 def _scene_widths(scene) -> set:
-    import mitsuba as mi
     ws = set()
     params = mi.traverse(scene)
     for k in params.keys():
@@ -296,60 +286,38 @@ def _scene_widths(scene) -> set:
 
 # ----------------------------------------------------------------------------- literal outputs
 
-def _slots(x, out: list) -> None:
-    """Append (container, key, leaf) for every 1-D Dr.Jit array of a (nested)
-    array or Dr.Jit struct ``x``; ``key`` a field name or an index."""
-    if dr.is_struct_v(x) and not dr.is_array_v(x):
-        for k in type(x).DRJIT_STRUCT:
-            v = getattr(x, k)
-            if dr.is_jit_v(v) and dr.depth_v(v) == 1:
-                out.append((x, k, v))
-            else:
-                _slots(v, out)
-    elif dr.is_array_v(x) and dr.depth_v(x) > 1:
-        for i in range(len(x)):
-            v = x[i]
-            if dr.depth_v(v) == 1:
-                out.append((x, i, v))
-            else:
-                _slots(v, out)
-
-
 def _fit_one(out):
-    if dr.is_array_v(out):
-        if not dr.is_jit_v(out) or dr.depth_v(out) == 1:
-            return out                              # a 1-D array: nothing to compare with
-    elif not dr.is_struct_v(out):
-        return out
-    slots = []
-    _slots(out, slots)
+    """``out`` with its literal leaves of a stale width (neither 0, 1 nor the one
+    width of its evaluated leaves) rebuilt at that width; ``out`` itself when
+    there is none (the usual case: nothing rebuilt)."""
     lit = dr.VarState.Literal
-    widths = {dr.width(v) for _, _, v in slots if v.state != lit}
+    leaves = list(_leaves(out))
+    widths = {dr.width(v) for v in leaves if v.state != lit}
     if len(widths) != 1:
         return out
     (w,) = widths
-    for c, k, v in slots:
-        if v.state == lit and dr.width(v) not in (0, 1, w):
-            val = v[0]
-            if val is None:                         # a null pointer array (e.g. ``si.instance``)
-                new = dr.zeros(type(v), w)
-            else:
-                try:
-                    new = dr.full(type(v), val, w)
-                except TypeError:                   # a non-null literal pointer: left as it is
-                    continue
-            if isinstance(k, str):
-                setattr(c, k, new)
-            else:
-                c[k] = new
-    return out
+
+    def stale(v):
+        return v.state == lit and dr.width(v) not in (0, 1, w)
+
+    def refit(v):
+        if not stale(v):
+            return v
+        val = v[0]
+        if val is None:                             # a null pointer array (e.g. ``si.instance``)
+            return dr.zeros(type(v), w)
+        try:
+            return dr.full(type(v), val, w)
+        except TypeError:                           # a non-null literal pointer: left as it is
+            return v
+    return _map_leaves(out, refit) if any(stale(v) for v in leaves) else out
 
 
 def fit_literals(out):
     """``out`` (a frozen function's output: an array, a Dr.Jit struct, or a
     tuple / list / dict of them, each handled on its own) whose literal leaves
     have the width of the evaluated leaves of the same element, where those all
-    have one width; anything else is returned as it is (modified in place)."""
+    have one width; anything else is returned as it is."""
     if isinstance(out, tuple):
         return tuple(fit_literals(o) for o in out)
     if isinstance(out, list):

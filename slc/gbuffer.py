@@ -87,6 +87,17 @@ class Layers:
         return sum(self.sizes)
 
 
+def viewer_lanes(n: int, off: int) -> mi.UInt32:
+    """The lanes ``off .. off + n - 1`` of a layered array (one viewer's part;
+    ``off`` opaque: one kernel whichever viewer)."""
+    return dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, off)
+
+
+def per_viewer(values, sizes, offsets) -> list:
+    """Each viewer's part of ``values`` laid out as the layers (unevaluated gathers)."""
+    return [dr.gather(type(values), values, viewer_lanes(n, off)) for n, off in zip(sizes, offsets)]
+
+
 def _lay_out(gbuffers: list) -> Layers:
     sizes = tuple(gb.size for gb in gbuffers)
     offsets = tuple(sum(sizes[:v]) for v in range(len(sizes)))
@@ -95,7 +106,7 @@ def _lay_out(gbuffers: list) -> Layers:
                  sizes, offsets, dr.empty(mi.UInt32, total), dr.empty(mi.UInt32, total),
                  dr.empty(mi.Point2f, total), dr.empty(mi.Float, total), dr.empty(mi.UInt32, total))
     for v, (gb, n, off) in enumerate(zip(gbuffers, sizes, offsets)):
-        at = dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, off)
+        at = viewer_lanes(n, off)
         dr.scatter(lay.si, gb.si, at)
         dr.scatter(lay.valid, mi.Bool(gb.valid), at)
         dr.scatter(lay.pixel, dr.arange(mi.UInt32, n), at)

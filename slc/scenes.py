@@ -83,12 +83,23 @@ class Camera:
 
     def yawed(self, degrees: float) -> "Camera":
         """The same camera turned about the world up axis by ``degrees``."""
-        a = math.radians(degrees)
         d = np.asarray(self.target, float) - np.asarray(self.origin, float)
-        c, s = math.cos(a), math.sin(a)
-        rot = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-        return Camera(np.array(self.origin, float), np.asarray(self.origin, float) + rot @ d,
+        return Camera(np.array(self.origin, float), np.asarray(self.origin, float) + _yaw(degrees) @ d,
                       np.array(self.up, float), self.fov)
+
+    def orbited(self, degrees: float) -> "Camera":
+        """The camera moved by ``degrees`` on a circle about the world up axis
+        through its target, still looking at it."""
+        t = np.asarray(self.target, float)
+        return Camera(t + _yaw(degrees) @ (np.asarray(self.origin, float) - t), t.copy(),
+                      np.array(self.up, float), self.fov)
+
+
+def _yaw(degrees: float) -> np.ndarray:
+    """Rotation about the world up axis (+y) by ``degrees``."""
+    a = math.radians(degrees)
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
 def _fmt(v) -> str:

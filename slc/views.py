@@ -246,22 +246,13 @@ def _fan(p, n: int, step: float, aspect: float, pivot: str = "eye"):
         hfov = 360.0 / span
         fov = vertical_fov(hfov, aspect)
     yaw = step * hfov
+    turn = Camera.orbited if pivot == "target" else Camera.yawed
     out = []
     for i in range(n):
         k = (i + 1) // 2 * (1 if i % 2 else -1)  # 0, +1, -1, +2, -2, ...
-        turn = _orbited if pivot == "target" else (lambda c, a: c.yawed(a))
         out.append(Viewer(f"o{i:02d}", (lambda f, k=k, turn=turn: _with_fov(turn(p.at(f), k * yaw), fov)),
                           "overlap"))
     return out
-
-
-def _orbited(c: Camera, degrees: float) -> Camera:
-    """``c`` moved on a circle about the up axis through its target."""
-    a = math.radians(degrees)
-    t = np.asarray(c.target, float)
-    ca, sa = math.cos(a), math.sin(a)
-    rot = np.array([[ca, 0, sa], [0, 1, 0], [-sa, 0, ca]])
-    return Camera(t + rot @ (np.asarray(c.origin, float) - t), t.copy(), np.array(c.up, float), c.fov)
 
 
 def fan_pivot(scene: Scene, path: int = 0) -> str:
@@ -382,11 +373,11 @@ def meeting(scene: Scene, n: int, radius: float | None = None, height: float | N
     def at(a):
         return c + np.array([r * math.cos(a), h, r * math.sin(a)])
 
+    shifts = [0.0] + [s * k * spacing / 16 for k in range(1, 9) for s in (1, -1)]
     out = []
     for i in range(n):
-        a0 = spacing * i
-        shifts = [0.0] + [s * k * spacing / 16 for k in range(1, 9) for s in (1, -1)]
-        o = next((at(a0 + d) for d in shifts if not inside_geometry(scene, at(a0 + d))), at(a0))
+        ring = [at(spacing * i + d) for d in shifts]
+        o = next((p for p in ring if not inside_geometry(scene, p)), ring[0])
         out.append(Viewer(f"m{i:02d}", (lambda f, o=o: Camera(o.copy(), c.copy(), fov=fov)), "meeting"))
     return out
 

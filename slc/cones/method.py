@@ -4,6 +4,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from ..gbuffer import per_viewer, viewer_lanes
 from ..keys import INVALID
 from ..methods import Param, register
 from ..osc.payload import PayloadMethod, RayPolicy
@@ -167,7 +168,7 @@ class SurfaceLightCones(PayloadMethod):
         for v, gb in enumerate(gbuffers):
             if own and lay is not None:
                 break
-            at = dr.arange(mi.UInt32, sizes[v]) + dr.opaque(mi.UInt32, offsets[v])
+            at = viewer_lanes(sizes[v], offsets[v])
             if not own:
                 dr.scatter(slot, mi.UInt32(fr.pixel_slot[v]), at)
                 dr.scatter(index, mi.UInt32(fr.pixel_index[v]), at)
@@ -180,8 +181,7 @@ class SurfaceLightCones(PayloadMethod):
         # (each pixel's entry frame is gathered inside the launch: ``index`` into the frames)
         out = shader_for(self, self.max_cones)(self.storage, slot, ok, si, index, self.shade_samples,
                                                shade_key(ctx.frame, self.seed), pid, fr.si.sh_frame)
-        return [dr.gather(mi.Color3f, out, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, off))
-                for n, off in zip(sizes, offsets)]
+        return per_viewer(out, sizes, offsets)
 
     def _batch_pid(self, sizes):
         """Each batched pixel's index within its own viewer (kept while the sizes hold)."""
@@ -191,7 +191,7 @@ class SurfaceLightCones(PayloadMethod):
             pid = dr.empty(mi.UInt32, sum(sizes))
             off = 0
             for n in sizes:
-                dr.scatter(pid, dr.arange(mi.UInt32, n), dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, off))
+                dr.scatter(pid, dr.arange(mi.UInt32, n), viewer_lanes(n, off))
                 off += n
             dr.eval(pid)
             self._pid_cache = cached = (key, pid)

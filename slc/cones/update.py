@@ -391,10 +391,9 @@ def constant_area_emitters(scene) -> bool:
     for e in ms.emitters():
         if not ok:
             break
-        keys = list(mi.traverse(e).keys())
-        own = [k for k in keys if k == "radiance" or k.startswith("radiance.")]
-        ok = e.class_name() == "AreaLight" and own == ["radiance.value"]
-        ok = ok and _positive(mi.traverse(e)["radiance.value"])
+        params = mi.traverse(e)
+        own = [k for k in params.keys() if k == "radiance" or k.startswith("radiance.")]
+        ok = e.class_name() == "AreaLight" and own == ["radiance.value"] and _positive(params["radiance.value"])
     return ok
 
 
@@ -402,7 +401,6 @@ def _positive(v) -> bool:
     import numpy as np
     a = np.array(v, dtype=np.float64).ravel()
     return a.size > 0 and bool(np.isfinite(a).all()) and bool(a.max() > 0.0)
-
 
 
 # ----------------------------------------------------------------------------- the update kernel

@@ -193,8 +193,7 @@ class OnSurfaceCache:
         gathers; the value itself for one viewer)."""
         if len(src.sizes) == 1:
             return [values]
-        return [dr.gather(mi.UInt32, values, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, off))
-                for n, off in zip(src.sizes, src.offsets)]
+        return gbuf.per_viewer(mi.UInt32(values), src.sizes, src.offsets)
 
     def _frame_stats(self, **kw):
         self._pending = None

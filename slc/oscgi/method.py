@@ -8,7 +8,7 @@ import mitsuba as mi
 
 from ..cones.update import light_inputs
 from ..freeze import FrozenFunction
-from ..gbuffer import layered
+from ..gbuffer import layered, per_viewer, viewer_lanes
 from ..keys import INVALID, keyed_rng, mixed_rng, stream_key
 from ..lights import SurfaceBSDF, _diffuse_table, direct_sample, sample_light, visible
 from ..methods import MethodError, Param, register
@@ -495,8 +495,7 @@ class OSCGI(PayloadMethod):
             # through the cache's per-viewer views, whose unevaluated gathers (made in another
             # order) gave the fused shading kernel of all viewers another IR in some frames (a kernel
             # built in a timed frame of the 16-viewer row)
-            off = sum(dr.width(fr.pixel_slot[u]) for u in range(v))
-            at = dr.arange(mi.UInt32, gb.size) + dr.opaque(mi.UInt32, off)
+            at = viewer_lanes(gb.size, sum(dr.width(fr.pixel_slot[u]) for u in range(v)))
             slot = dr.gather(mi.UInt32, fr.layer_slot, at)
             idx = dr.gather(mi.UInt32, fr.layer_index, at)
         else:
@@ -544,9 +543,7 @@ class OSCGI(PayloadMethod):
                 if len(gbuffers) == 1:
                     out[0] = out[0] + L
                 else:
-                    for v, (nv, off) in enumerate(zip(lay.sizes, lay.offsets)):
-                        at = dr.arange(mi.UInt32, nv) + dr.opaque(mi.UInt32, off)
-                        out[v] = out[v] + dr.gather(mi.Color3f, L, at)
+                    out = [o + Lv for o, Lv in zip(out, per_viewer(L, lay.sizes, lay.offsets))]
                 st.outputs(*out)
         elif self._sub is not None:
             sub = self._sub.render(ctx, gbuffers, timer)
