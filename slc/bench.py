@@ -173,3 +173,127 @@ def report_lines(r: dict) -> list[str]:
     if r.get("load"):
         lines.append(" load average (1, 5, 15 min) after the run: " + ", ".join(f"{x:.2f}" for x in r["load"]))
     return lines
+
+
+# ---------------------------------------------------------------------------
+# slc's frame next to the rays of its own update
+# ---------------------------------------------------------------------------
+
+def _update_rays(sc, cap: dict, p, seed: int):
+    """The rays one slc update traces, precomputed (nothing else left to do):
+    ``rays[i]`` shadow rays per active entry toward light samples drawn with
+    the update's own sampler (:func:`slc.lights.sample_light`, the scene's emitter
+    table; independent random numbers instead of the entry's R2 sequence: the same
+    distribution of rays), and the shrink test's closest-hit rays, made by the
+    update's own :func:`slc.cones.update.shrink_test_dirs` on the entries'
+    cone records before the update, with the update's schedule (every
+    unsettled entry, settled ones every ``shrink_period``-th frame by key).
+    Returns (shadow rays, their mask, shrink rays, their mask)."""
+    import numpy as np
+    from .cones.packing import unpack
+    from .cones.update import frame_rng, frame_u32, shrink_test_dirs
+    from .keys import STREAM_CONE_UPDATE
+    si, rays, words = cap["si"], cap["rays"], cap["words"]
+    N = dr.width(rays)
+    # --------------- shadow rays: entry i repeated rays[i] times ---------------
+    idx = mi.UInt32(np.repeat(np.arange(N, dtype=np.uint32), rays.numpy().astype(np.int64)))
+    si_r = dr.gather(mi.SurfaceInteraction3f, si, idx)
+    smp = rng(dr.width(idx), seed, stream=7)
+    ds, _, ok = sample_light(sc, si_r, mi.Point2f(smp.next_float32(), smp.next_float32()), si_r.is_valid())
+    shadow = si_r.spawn_ray_to(ds.p)
+    # --------------- shrink-test rays: one per tested cone ---------------
+    D, A, _, _, n = unpack(words, p.max_cones)
+    period = max(int(p.shrink_period), 1)
+    phase = int(cap["frame"]) % period
+    do_shrink = si.is_valid() & (cap["unsettled"] | (((cap["keys"] + phase) % period) == 0))
+    sampler = frame_rng(cap["keys"], seed, frame_u32(cap["frame"]), STREAM_CONE_UPDATE)
+    dirs, tested = shrink_test_dirs(D, A, n, [sampler.next_float32() for _ in range(p.max_cones)], p)
+    o, d, m = [], [], []
+    for i in range(p.max_cones):
+        r = si.spawn_ray(si.sh_frame.to_world(dirs[i]))
+        o.append(r.o.numpy()), d.append(r.d.numpy()), m.append((tested[i] & do_shrink).numpy())
+    shrink = mi.Ray3f(mi.Point3f(np.concatenate(o, axis=1)),
+                      mi.Vector3f(np.concatenate(d, axis=1)))
+    shrink_ok = mi.Bool(np.concatenate(m))
+    dr.eval(shadow, ok, shrink, shrink_ok)
+    return shadow, ok, shrink, shrink_ok
+
+
+def bench_update(scene_name: str = "atrium", width: int = 320, height: int = 180, frames: int = 24,
+                 warmup: int = 10, repeats: int = 5, method: str = "slc") -> dict:
+    """slc's frame time next to the time of the rays its update traces, alone.
+
+    One viewer on the scene's first camera path (the single-viewer experiment's rig)
+    renders ``frames`` frames; the update's inputs of the last frame are kept (the
+    active entries' surface points, their ray counts, shrink-test schedule and cone
+    records before the update). Its rays are then traced alone, ``repeats`` times:
+    ``scene.ray_test`` on the shadow rays and ``scene.ray_intersect_preliminary``
+    on the shrink test's rays (Mitsuba's raw traversal, no surface interaction).
+    The ratios frame / rays and update / rays say how much the method adds on top
+    of the rays it must cast (issue 13's target: frame <= 1.5x its update's rays)."""
+    from . import methods
+    from .pipeline import RunConfig, run_sequence
+    s = scenes.load(scene_name)
+    m = methods.create(method, s, seed=0)
+    if not hasattr(m, "cone_params"):
+        raise ValueError(f"bench update: method {method!r} has no cone update (use slc or slc:...)")
+    cap: dict = {}
+    own_update = m.update
+    last = frames - 1
+
+    def update(ctx, fr, rays, unsettled):
+        if ctx.frame == last:     # no kernel in a timed frame: references, and a host copy of the
+            # records before the update (the update writes them in place)
+            import numpy as np
+            cap.update(storage=np.array(m.storage.numpy()), active=fr.active, si=fr.si, rays=mi.UInt32(rays),
+                       unsettled=mi.Bool(unsettled), keys=mi.UInt32(fr.keys), frame=ctx.frame)
+        return own_update(ctx, fr, rays, unsettled)
+
+    m.update = update
+    res = run_sequence(s, m, views.single(s), RunConfig(width=width, height=height, frames=frames, warmup=warmup,
+                                                        eval_frames=[], keep_images=False,
+                                                        measure_overlap=False))
+    sc = s.mi_scene
+    from .cones.packing import gather_words
+    cap["words"] = gather_words(mi.UInt32(cap.pop("storage")), cap.pop("active"), m.max_cones)
+    cap["si"] = dr.gather(mi.SurfaceInteraction3f, cap["si"], dr.arange(mi.UInt32, dr.width(cap["rays"])))
+    shadow, ok, shrink, shrink_ok = _update_rays(sc, cap, m.cone_params, 0)
+
+    # --------------- the rays alone, interleaved rounds ---------------
+    calls = {"shadow": lambda: sc.ray_test(shadow, ok),
+             "shrink": lambda: sc.ray_intersect_preliminary(shrink, shrink_ok).t}
+    times = {k: [] for k in calls}
+    for r in range(repeats + 1):
+        for k, fn in calls.items():
+            t, _ = _timed(fn)
+            if r > 0:
+                times[k].append(t)
+    med = {k: statistics.median(v) for k, v in times.items()}
+    rays_ms = med["shadow"] + med["shrink"]
+    st = res.stages
+    frame_ms = res.time_ms
+    return {"scene": s.name, "method": m.label or m.name, "width": width, "height": height, "frames": frames,
+            "warmup": warmup, "entries": dr.width(cap["rays"]),
+            "shadow_rays": int(dr.count(ok)[0]), "shrink_rays": int(dr.count(shrink_ok)[0]),
+            "shadow_ms": med["shadow"], "shrink_ms": med["shrink"], "rays_ms": rays_ms,
+            "frame_ms": frame_ms, "update_ms": st.get("update", 0.0), "stages_ms": dict(st),
+            "stages_kernel_ms": dict(res.stages_kernel),
+            "frame_vs_rays": frame_ms / max(rays_ms, 1e-9), "update_vs_rays": st.get("update", 0.0) / max(rays_ms, 1e-9),
+            "compiled_after_warmup": res.compiled_after_warmup, "load": _loadavg()}
+
+
+def update_report_lines(r: dict) -> list[str]:
+    """The lines ``slc bench update`` prints."""
+    st = ", ".join(f"{k} {v:.1f}" for k, v in r["stages_ms"].items())
+    lines = [f"scene {r['scene']} {r['width']}x{r['height']}, {r['method']}, one viewer, {r['frames']} frames "
+             f"({r['warmup']} warm-up; frame = median ms per frame after warm-up):",
+             f"  frame                     : {r['frame_ms']:8.2f} ms  ({st})",
+             f"  its update's rays alone   : {r['rays_ms']:8.2f} ms  ({r['shadow_rays']} shadow rays "
+             f"{r['shadow_ms']:.2f} ms + {r['shrink_rays']} shrink-test rays {r['shrink_ms']:.2f} ms, "
+             f"{r['entries']} entries; last frame's update)",
+             f"  ratio frame / rays        : {r['frame_vs_rays']:.2f}x (target <= 1.5x)",
+             f"  ratio update / rays       : {r['update_vs_rays']:.2f}x",
+             f"  kernels after warm-up     : {r['compiled_after_warmup']}"]
+    if r.get("load"):
+        lines.append(" load average (1, 5, 15 min) after the run: " + ", ".join(f"{x:.2f}" for x in r["load"]))
+    return lines

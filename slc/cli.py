@@ -5,6 +5,7 @@
     slc render --scene S --method M --viewers N --res WxH --frames F --out DIR
     slc run EXPERIMENT [--quick] [--out DIR] [--scene NAME]... [experiment options]
     slc bench rays                  RT-N shadow-ray throughput vs raw ray_test
+    slc bench update                slc's frame vs the rays of its own update, alone
 
 Every command takes ``--variant`` (or ``SLC_VARIANT``) and ``--check`` (or
 ``SLC_CHECK=1``: stop at the first NaN/Inf or negative value, see
@@ -171,6 +172,23 @@ def bench_rays(scene_name, res, n, repeats):
     from .bench import bench_rays as run, report_lines
     w, h = _parse_res(res)
     for line in report_lines(run(scene_name, w, h, n, repeats)):
+        click.echo(line)
+
+
+@bench_grp.command("update")
+@click.option("--scene", "scene_name", default="atrium", show_default=True)
+@click.option("--res", default="320x180", show_default=True)
+@click.option("--frames", default=24, show_default=True, type=int)
+@click.option("--warmup", default=10, show_default=True, type=int)
+@click.option("--repeats", default=5, show_default=True, type=int)
+@click.option("--method", default="slc", show_default=True, help="slc, with settings (slc:max_cones=2)")
+def bench_update(scene_name, res, frames, warmup, repeats, method):
+    """slc's frame time next to the rays its update traces, traced alone."""
+    from .bench import bench_update as run, update_report_lines
+    w, h = _parse_res(res)
+    if frames <= warmup:
+        raise click.BadParameter(f"--frames ({frames}) must exceed --warmup ({warmup})")
+    for line in update_report_lines(run(scene_name, w, h, frames, warmup, repeats, method)):
         click.echo(line)
 
 

@@ -13,3 +13,21 @@ def test_bench_rays_reports_where_the_time_goes():
     where = [ln for ln in lines if ln.startswith(" where rt2's time goes")]
     assert len(where) == 1 and "shadow rays" in where[0] and "host (tracing)" in where[0]
     assert r["load"] is None or len(r["load"]) == 3
+
+
+def test_bench_update_traces_the_records_before_the_update():
+    """In the first frame every entry is new: its records before the update hold no
+    cone, so the shrink test has nothing to test. Reading the records after the
+    update (it writes them in place) would count the new entries' cones."""
+    r = bench.bench_update("cornell", 24, 14, frames=1, warmup=0, repeats=1)
+    assert r["entries"] > 0 and r["shadow_rays"] > 0
+    assert r["shrink_rays"] == 0
+
+
+def test_bench_update_reports_frame_and_rays():
+    r = bench.bench_update("cornell", 24, 14, frames=6, warmup=3, repeats=1)
+    assert 0 < r["shrink_rays"] <= 3 * r["entries"]
+    assert r["rays_ms"] > 0 and r["frame_ms"] > 0
+    assert abs(r["frame_vs_rays"] - r["frame_ms"] / r["rays_ms"]) < 1e-9
+    lines = bench.update_report_lines(r)
+    assert any(ln.strip().startswith("ratio frame / rays") and "target <= 1.5x" in ln for ln in lines)
