@@ -76,26 +76,41 @@ def _primary_direct_kernel(sc, lights, sie, keys, scratch, mix, nd, scale: float
     return scratch
 
 
-def _pixel_direct_kernel(sc, lights, table, si, active, idx, mix, n):
+def _pixel_direct_kernel(sc, lights, table, si, active, idx, mix, n, lds):
     r"""RT-N direct light of the pixels ``si``: ``n`` (opaque) light samples with shadow rays,
     :math:`\frac1n\sum_j f\,L_e G V / p` (:func:`slc.lights.direct_sample`); ``idx`` the pixels'
     stream keys (their width is the launch width), ``lights`` and ``table`` (the diffuse-BSDF table of
-    :class:`slc.lights.SurfaceBSDF`) declare what the kernel reads as inputs."""
+    :class:`slc.lights.SurfaceBSDF`) declare what the kernel reads as inputs.
+
+    ``lds`` (a Python bool, part of the recording's key): the n sample points of a pixel are the Hammersley set
+    :math:`((j + \tfrac12)/n,\ \Phi_2(j))` shifted by one random offset r per pixel (Cranley-Patterson
+    rotation, :math:`u_j = (h_j + r) \bmod 1`): each :math:`u_j` alone is uniform (unbiased), and
+    together they cover the unit square (the light's area, and the emitter choice by
+    :math:`u_x`) evenly; else n independent uniform points."""
     sampler = mixed_rng(idx, mix)
     ctx = mi.BSDFContext()
     bsdf = SurfaceBSDF(sc, si, active, ctx)
+    inv_n = dr.rcp(mi.Float(dr.maximum(n, 1)))
+    if lds:   # the pixel's offset, from its own stream (the independent samples keep theirs)
+        rs = mixed_rng(idx, mix ^ STREAM_PIXEL_DIRECT)
+        r = mi.Point2f(rs.next_float32(), rs.next_float32())
 
     def cond(i, L, sampler):
         return i < n
 
     def body(i, L, sampler):
-        u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
+        if lds:
+            # ---- Hammersley point i, rotated by the pixel's offset (radical inverse: bit reversal) ----
+            u = mi.Point2f(dr.fma(mi.Float(i), inv_n, 0.5 * inv_n), mi.Float(dr.brev(i)) * 2.3283064365386963e-10) + r
+            u = dr.minimum(u - dr.floor(u), 0.99999994)
+        else:
+            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
         return i + 1, L + direct_sample(sc, si, bsdf, u, active, ctx), sampler
 
     with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
         _, L, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
                                 labels=("i", "L", "sampler"))
-    L = L * dr.rcp(mi.Float(dr.maximum(n, 1)))
+    L = L * inv_n
     dr.eval(L)
     return L
 
@@ -214,6 +229,8 @@ class OSCGI(PayloadMethod):
               "direct_n light samples (rt), the cones (slc) or ReSTIR run beside (cones, restir)",
               choices=("cache", "rt", "cones", "restir")),
         Param("direct_n", 16, "light samples per pixel with direct=rt", lo=1, hi=1024),
+        Param("direct_lds", True, "direct=rt: a pixel's light samples are a randomly shifted Hammersley set "
+              "(stratified over the light; else independent)"),
     ) + _cache_params()
     storage_type = mi.Float
 
@@ -539,7 +556,8 @@ class OSCGI(PayloadMethod):
                 lay = layered(gbuffers)
                 idx = lay.pixel if lay.pixel is not None else dr.arange(mi.UInt32, lay.size)
                 k = self._k_pixel if lay.size > 1 else _pixel_direct_kernel
-                L = k(sc, light_inputs(sc), _diffuse_table(sc)[0], lay.si, mi.Bool(lay.valid), idx, mix, n)
+                L = k(sc, light_inputs(sc), _diffuse_table(sc)[0], lay.si, mi.Bool(lay.valid), idx, mix, n,
+                      bool(self.direct_lds))
                 if len(gbuffers) == 1:
                     out[0] = out[0] + L
                 else:
