@@ -53,7 +53,7 @@ def test_other_direct_options_approach_the_full_reference(cornell, direct):
 
 def test_cell_edge_follows_the_scene_size_and_the_pixel_footprint(cornell):
     """max(secondary_cm, secondary_scene x diagonal, min(secondary_px x median footprint,
-    secondary_max x diagonal)); the default: 30 cm or 4% of the diagonal, whichever is larger."""
+    secondary_max x diagonal)); the default: 15 cm (30 cm before session gi8) or 4% of the diagonal, whichever is larger."""
     diag = float(np.linalg.norm(np.array(cornell.mi_scene.bbox().max) - np.array(cornell.mi_scene.bbox().min)))
 
     def edge(spec, fp, valid=None):
@@ -61,7 +61,7 @@ def test_cell_edge_follows_the_scene_size_and_the_pixel_footprint(cornell):
         valid = [True] * len(fp) if valid is None else valid
         return m._cell_edge([SimpleNamespace(footprint=mi.Float(fp), valid=mi.Bool(valid))])
 
-    assert edge("osc-gi", [1.0]) == pytest.approx(max(0.30, 0.04 * diag))                 # the default
+    assert edge("osc-gi", [1.0]) == pytest.approx(max(0.15, 0.04 * diag))                 # the default
     assert edge("osc-gi:secondary_cm=1", [1.0]) == pytest.approx(0.04 * diag)             # scene fraction
     px = "osc-gi:secondary_cm=1,secondary_scene=0,secondary_px=2"
     assert edge(px, [0.01, 0.02, 0.03, 5.0], [True, True, True, False]) == pytest.approx(0.04)

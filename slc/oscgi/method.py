@@ -147,7 +147,7 @@ class OSCGI(PayloadMethod):
     *Secondary caches*: :class:`~slc.oscgi.secondary.SecondaryCache`, cells of
     ``secondary_cm`` cm keyed by position, normal bin and shape, storing outgoing diffuse radiance
     in ``bounces`` layers (direct light by ``light_samples`` light samples, indirect by
-    ``secondary_rays`` cosine rays into other cells), so the primary point receives light after
+    ``secondary_rays`` cosine rays into other cells; EMA capped at ``secondary_n_max``), so the primary point receives light after
     1..``bounces`` reflections, the paths of the indirect reference. At most ``secondary_budget``
     cells are updated per frame (ring 1 first, then least-sampled, then oldest; the others keep
     their value, and a texel does not blend a sample from a cell never updated unless it has no
@@ -170,7 +170,8 @@ class OSCGI(PayloadMethod):
     the emission seen directly is added by the pipeline).
 
     *Direct light* (``output=full``), ``direct``: ``rt`` (default) ``direct_n`` (16) light samples
-    per pixel with shadow rays, :math:`\frac1n\sum_j f L_e G V/p` (RT-N, frozen), added to the
+    per pixel with shadow rays, :math:`\frac1n\sum_j f L_e G V/p` (RT-N, frozen; with ``direct_lds``,
+    on, the n points a Hammersley set shifted by a random offset per pixel), added to the
     cached indirect light; ``cones`` / ``restir``: the registered ``slc`` / ``restir`` method run
     beside on the same G-buffers; ``cache``: light samples binned into the entries' texels (above;
     the default before session gi6). Except for ``cache`` the entries hold indirect light only,
@@ -198,7 +199,8 @@ class OSCGI(PayloadMethod):
         Param("texel_rays", 64, "texels traced per settled entry and update (new entries: all; divides hemi^2)",
               lo=1, hi=256),
         Param("n_max", 4, "EMA cap: blend factor 1/min(n, n_max)", lo=1, hi=256),
-        Param("secondary_cm", 30.0, "secondary cell edge [cm]", lo=1.0, hi=1000.0),
+        Param("secondary_n_max", 2, "EMA cap of the secondary cells (0: n_max, as before session gi8)", lo=0, hi=256),
+        Param("secondary_cm", 15.0, "secondary cell edge [cm] (30 before session gi8)", lo=1.0, hi=1000.0),
         Param("secondary_scene", 0.04, "secondary cell edge at least this fraction of the scene's bounding-box "
               "diagonal (0: off)", lo=0.0, hi=1.0),
         Param("secondary_px", 0.0, "secondary cell edge at least this many pixel footprints (median over the first "
@@ -207,10 +209,10 @@ class OSCGI(PayloadMethod):
               "bounding-box diagonal", lo=0.0, hi=1.0),
         Param("secondary_lod", 0.0, "secondary cells grow with the hit distance t: edge about "
               "max(secondary_cm, secondary_lod t), in powers of 2 (0: fixed cells)", lo=0.0, hi=4.0),
-        Param("secondary_rays", 32, "cosine rays per secondary cell update", lo=1, hi=1024),
+        Param("secondary_rays", 16, "cosine rays per secondary cell update (32 before session gi8)", lo=1, hi=1024),
         Param("light_samples", 4, "light samples per secondary cell update", lo=1, hi=1024),
         Param("direct_rays", 8, "light samples per primary entry update (output=full)", lo=1, hi=1024),
-        Param("glossy_samples", 8, "BSDF samples of the hemisphere per glossy pixel", lo=1, hi=1024),
+        Param("glossy_samples", 16, "BSDF samples of the hemisphere per glossy pixel (8 before session gi8)", lo=1, hi=1024),
         Param("secondary_slots", 17, "log2 of the secondary hash-table size", lo=8, hi=24),
         Param("secondary_budget", 8192, "secondary cell updates per frame, least-sampled first (0: all)",
               lo=0, hi=1 << 24),
@@ -300,7 +302,7 @@ class OSCGI(PayloadMethod):
                                    max_blocks=max(1, INITIAL_ENTRIES // (self.block * self.block)))
         self.cache = cache
         self.secondary = SecondaryCache(self.scene.mi_scene, self._cell_edge(getattr(self, "_gbuffers", None)), self.bounces,
-                                        self.n_max, self.secondary_rays, self.light_samples,
+                                        self.secondary_n_max or self.n_max, self.secondary_rays, self.light_samples,
                                         1 << self.secondary_slots, shape_key=self.shape_key, seed=self.seed,
                                         budget=self.secondary_budget, evict_after=self.secondary_evict,
                                         freeze=bool(self.freeze), glossy_hits=bool(self.glossy_hits),
