@@ -3,8 +3,9 @@
 Per scene (one viewer on the scene's first camera path, moving):
 
 - ``osc-gi`` (full light: direct + indirect) through the common pipeline against the reference of
-  its kind (:func:`slc.references.reference_for`: 2048-sample direct + the indirect reference with
-  the method's bounces), with the slides' timing split: *cache* (the on-surface cache's requests,
+  its kind (:func:`slc.references.reference_for` with ``ref_spp``: ``ref_spp``-sample direct light +
+  the ``ref_spp``-path indirect reference with the method's bounces; the pipeline passes ``ref_spp``
+  for every part of a full reference), with the slides' timing split: *cache* (the on-surface cache's requests,
   allocation, queue), *effect* (primary and secondary cache updates: all rays), *display* (shading
   the pixels from the primary caches); memory of the primary caches (on-surface cache + payloads)
   and of the secondary cells in use, min and max over the path; the secondary-cache reuse
@@ -383,8 +384,8 @@ def run(opts) -> dict:
     # ------------------------------------------- report -------------------------------------------
     config = {"quick": bool(opts.quick), "scenes": names, **{k: v for k, v in preset.items() if k != "scenes"},
               "seed": opts.seed,
-              "reference": "full: 2048-sample direct ground truth + indirect reference (ref_spp paths, the "
-                           "method's bounces); indirect rows: the indirect reference alone",
+              "reference": "full: direct ground truth with ref_spp samples + indirect reference (ref_spp paths, "
+                           "the method's bounces); indirect rows: the indirect reference alone",
               "timing": "cache = on-surface cache requests/allocate/queue, effect = primary + secondary cache "
                         "updates, display = shading; medians after warm-up on a shared 2-core CPU: ratios only"}
     all_rows = rows + [dict(r, group="multi") for r in multi]
@@ -400,7 +401,7 @@ def run(opts) -> dict:
             ("primary_mb_max", "primary MB max"), ("secondary_mb_min", "secondary MB min"),
             ("secondary_mb_max", "secondary MB max"), ("memory_mb", "memory [MB]")]
     md = (f"# {NAME}\n\n{W}x{H}, {cfg.frames} frames ({cfg.warmup} warm-up), one moving viewer; quality on frames "
-          f"{cfg.evaluated()} against the reference of each method's output (full: 2048-spp direct + "
+          f"{cfg.evaluated()} against the reference of each method's output (full: {cfg.ref_spp}-sample direct + "
           f"{cfg.ref_spp}-path indirect; indirect: the indirect reference); times are medians on a shared CPU "
           f"(compare within this table only). Memory: primary = on-surface cache + payloads, secondary = cells "
           f"in use (the table is allocated up front: secondary_table_mb in results.json).\n\n"
@@ -456,7 +457,8 @@ def run(opts) -> dict:
         for x in rows:
             if x["scene"] == name and x.get("retimed_ms"):
                 q = x.get("flip_vs_pt_retimed") or []
-                md += (f"- {name}, {x['setting']}, timed again in turn with PT ({len(q)} passes): "
+                md += (f"- {name}, {x['setting']}, timed again in turn"
+                       + (f" with PT ({len(q)} passes): " if x["family"] != "pt" else ": ")
                        + (f"{x['time_ms']:.0f} -> " if x["family"] != "pt" else "")
                        + ", ".join(f"{t:.0f}" for t in x["retimed_ms"]) + " ms"
                        + (f"; osc-gi / PT = " + ", ".join("-" if y is None else f"{y:.2f}" for y in q)
