@@ -21,7 +21,7 @@ Per scene (one viewer on the scene's first camera path, moving):
   indirect reference;
 - multi-viewer (unless ``--no-multi``): 1, 4, 16 viewers at about 70% overlap
   (:func:`slc.views.overlap_rig`), time against viewer count;
-- ablations (unless ``--no-ablations``): secondary cells of 15/60 cm, 1 and 3 bounces (each against
+- ablations (unless ``--no-ablations``): secondary cells of 30/60 cm (15 cm the default since session gi8), 1 and 3 bounces (each against
   its own reference), cells not keyed by shape (``--quick``: 60 cm and 1 bounce only).
 
 - with ``--laps``: one more osc-gi run per scene with the update's sub-stage clock
@@ -33,7 +33,9 @@ The full preset runs cornell and atrium at 160x90 (24 frames, 8 warm-up); ``--qu
 PT at equal time: PT's time per frame fitted as a + b spp over its rows, the sample count it
 affords at the method's time, FLIP interpolated log-log between the spp rows around it
 (``flip_vs_pt_equal_time``; the former interpolation in the PT rows' own times is kept as
-``flip_vs_pt_equal_time_direct``). Both also run this session's switches one at a time (``SESSION_ABLATIONS``:
+``flip_vs_pt_equal_time_direct``). ``--retime N`` (3): afterwards osc-gi (now and before session
+gi8) and the PT rows are timed again in turn, N passes, each with its own ratio (the median is
+reported): the shared cores' load changes within a run. Both also run this session's switches one at a time (``SESSION_ABLATIONS``:
 osc-gi and pt not frozen, osc-gi without the glossy-hit rays, osc-gi at mip bias 1).
 
     python experiments/osc_gi.py --quick
@@ -71,7 +73,7 @@ SESSION_ABLATIONS = ["osc-gi:freeze=0", "osc-gi:glossy_hits=0", "osc-gi:bias=1",
 FULL = dict(scenes=["cornell", "atrium"], width=160, height=90, frames=24, warmup=8, eval_frames=[23],
             ref_spp=256, pt_spp=[1, 2, 4, 8, 16, 32, 64], ind_pt=5, viewers=[1, 4, 16], overlap=0.75,
             multi_res=(64, 36), multi_frames=10,
-            ablations=SESSION_ABLATIONS + FILTER_ABLATIONS + ["osc-gi:secondary_cm=15", "osc-gi:secondary_cm=60",
+            ablations=SESSION_ABLATIONS + FILTER_ABLATIONS + ["osc-gi:secondary_cm=30", "osc-gi:secondary_cm=60",
                                                            "osc-gi:bounces=1", "osc-gi:bounces=3", "osc-gi:shape_key=0"],
             memory_res=[(64, 36), (128, 72), (256, 144), (480, 270)])
 QUICK = dict(scenes=["cornell"], width=64, height=36, frames=8, warmup=3, eval_frames=[7],
