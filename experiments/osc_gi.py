@@ -3,15 +3,17 @@
 Per scene (one viewer on the scene's first camera path, moving):
 
 - ``osc-gi`` (full light: direct + indirect) through the common pipeline against the reference of
-  its kind (:func:`slc.references.reference_for`: 2048-sample direct + the indirect reference with
-  the method's bounces), with the slides' timing split: *cache* (the on-surface cache's requests,
+  its kind (:func:`slc.references.reference_for` with ``ref_spp``: ``ref_spp``-sample direct light +
+  the ``ref_spp``-path indirect reference with the method's bounces; the pipeline passes ``ref_spp``
+  for every part of a full reference), with the slides' timing split: *cache* (the on-surface cache's requests,
   allocation, queue), *effect* (primary and secondary cache updates: all rays), *display* (shading
   the pixels from the primary caches); memory of the primary caches (on-surface cache + payloads)
   and of the secondary cells in use, min and max over the path; the secondary-cache reuse
   histogram (primary-cache rays per touched cell, last frame);
 - beside ``osc-gi`` (whose direct light is per pixel, ``direct=rt``), the same with the defaults
-  before session gi6 (direct light cached in the entries, 32 texel rays, EMA over 8, 30 cm cells)
-  and with the other direct-light options (``DIRECT_VARIANTS``: cached, cones, ReSTIR, RT-4), also
+  before session gi8 (independent light samples, 8 glossy samples, 30 cm cells, 32 rays per cell
+  update, cells' EMA over 4 updates; also for the indirect light), before session gi6 (direct light cached in the entries,
+  32 texel rays, EMA over 8, 30 cm cells in any scene) and with the other direct-light options (``DIRECT_VARIANTS``: cached, cones, ReSTIR, RT-4), also
   under ``--no-ablations``; each row gets its own FLIP / PT at equal time;
 - path tracing (``pt``, full light, its estimator frozen) at several sample counts, for the speed-against-error plot and
   the FLIP of PT at osc-gi's time (log-log interpolation between the two PT points around it);
@@ -19,14 +21,21 @@ Per scene (one viewer on the scene's first camera path, moving):
   indirect reference;
 - multi-viewer (unless ``--no-multi``): 1, 4, 16 viewers at about 70% overlap
   (:func:`slc.views.overlap_rig`), time against viewer count;
-- ablations (unless ``--no-ablations``): secondary cells of 15/60 cm, 1 and 3 bounces (each against
+- ablations (unless ``--no-ablations``): secondary cells of 30/60 cm (15 cm the default since session gi8), 1 and 3 bounces (each against
   its own reference), cells not keyed by shape (``--quick``: 60 cm and 1 bounce only).
 
 - with ``--laps``: one more osc-gi run per scene with the update's sub-stage clock
   (:class:`slc.oscgi.laps.Laps`; host syncs between stages), written as ``update_laps_ms``.
 
-The full preset runs cornell and atrium at 160x90 (24 frames); ``--quick`` cornell at 64x36
-(8 frames, PT at 1-64 spp). Both also run this session's switches one at a time (``SESSION_ABLATIONS``:
+The full preset runs cornell and atrium at 160x90 (24 frames, 8 warm-up); ``--quick`` cornell at 64x36
+(8 frames, 3 warm-up, PT at 1-64 spp); ``--frames F`` keeps at most max(3, F // 3) warm-up frames
+(``--warmup`` sets it): ``--res 256x144 --frames 10`` times 7 frames (2 before session gi8).
+PT at equal time: PT's time per frame fitted as a + b spp over its rows, the sample count it
+affords at the method's time, FLIP interpolated log-log between the spp rows around it
+(``flip_vs_pt_equal_time``; the former interpolation in the PT rows' own times is kept as
+``flip_vs_pt_equal_time_direct``). ``--retime N`` (3): afterwards osc-gi (now and before session
+gi8) and the PT rows are timed again in turn, N passes, each with its own ratio (the median is
+reported): the shared cores' load changes within a run. Both also run this session's switches one at a time (``SESSION_ABLATIONS``:
 osc-gi and pt not frozen, osc-gi without the glossy-hit rays, osc-gi at mip bias 1).
 
     python experiments/osc_gi.py --quick
@@ -49,10 +58,14 @@ FILTER_ABLATIONS = ["osc-gi:filter_radius=3", "osc-gi:filter_radius=3,parallax=0
 # osc-gi and pt, the NEE + BSDF ray at glossy hits; and the finer mip bias
 # session gi6: the defaults before it (cached direct light, 32 texel rays, EMA over 8, 30 cm cells in any
 # scene) and the other direct-light options, run with the main rows (also under --no-ablations)
-BEFORE_GI6 = "texel_rays=32,n_max=8,secondary_scene=0"
-DIRECT_VARIANTS = [f"osc-gi:direct=cache,{BEFORE_GI6}", "osc-gi:direct=cache", "osc-gi:direct=cones",
-                   "osc-gi:direct=restir", "osc-gi:direct=rt,direct_n=4"]
-INDIRECT_VARIANTS = [f"osc-gi:output=indirect,{BEFORE_GI6}"]
+# session gi8: the defaults before it (independent light samples per pixel, 8 glossy samples, 30 cm cells,
+# 32 rays per cell update, the cells' EMA over n_max = 4 updates): the row "before" of its table, in the same run
+BEFORE_GI8_CELLS = "glossy_samples=8,secondary_cm=30,secondary_rays=32,secondary_n_max=0"
+BEFORE_GI8 = f"direct_lds=0,{BEFORE_GI8_CELLS}"
+BEFORE_GI6 = f"texel_rays=32,n_max=8,secondary_scene=0,{BEFORE_GI8_CELLS}"
+DIRECT_VARIANTS = [f"osc-gi:{BEFORE_GI8}", f"osc-gi:direct=cache,{BEFORE_GI6}", "osc-gi:direct=cache",
+                   "osc-gi:direct=cones", "osc-gi:direct=restir", "osc-gi:direct=rt,direct_n=4"]
+INDIRECT_VARIANTS = [f"osc-gi:output=indirect,{BEFORE_GI8_CELLS}", f"osc-gi:output=indirect,{BEFORE_GI6}"]
 SESSION_ABLATIONS = ["osc-gi:freeze=0", "osc-gi:glossy_hits=0", "osc-gi:bias=1", "pt:spp=2,freeze=0",
                      "pt:spp=16,freeze=0"]
 # overlap: the rig's target (calibrated on another cache): 0.75 measured 76% with osc-gi's cache at
@@ -60,7 +73,7 @@ SESSION_ABLATIONS = ["osc-gi:freeze=0", "osc-gi:glossy_hits=0", "osc-gi:bias=1",
 FULL = dict(scenes=["cornell", "atrium"], width=160, height=90, frames=24, warmup=8, eval_frames=[23],
             ref_spp=256, pt_spp=[1, 2, 4, 8, 16, 32, 64], ind_pt=5, viewers=[1, 4, 16], overlap=0.75,
             multi_res=(64, 36), multi_frames=10,
-            ablations=SESSION_ABLATIONS + FILTER_ABLATIONS + ["osc-gi:secondary_cm=15", "osc-gi:secondary_cm=60",
+            ablations=SESSION_ABLATIONS + FILTER_ABLATIONS + ["osc-gi:secondary_cm=30", "osc-gi:secondary_cm=60",
                                                            "osc-gi:bounces=1", "osc-gi:bounces=3", "osc-gi:shape_key=0"],
             memory_res=[(64, 36), (128, 72), (256, 144), (480, 270)])
 QUICK = dict(scenes=["cornell"], width=64, height=36, frames=8, warmup=3, eval_frames=[7],
@@ -78,10 +91,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="out", help="output folder (results go to OUT/osc-gi)")
     p.add_argument("--res", help="WxH (default 160x90, quick 64x36)")
     p.add_argument("--frames", type=int, help="frames per sequence")
+    p.add_argument("--warmup", type=int, help="frames not timed (default: the preset's; with --frames at most "
+                   "max(3, frames // 3), so that --frames 10 times 7 frames rather than 2)")
     p.add_argument("--no-multi", action="store_true", help="skip the multi-viewer runs")
     p.add_argument("--no-ablations", action="store_true", help="skip the ablations")
     p.add_argument("--only-multi", action="store_true", help="run the multi-viewer part only")
     p.add_argument("--no-memory", action="store_true", help="skip the memory-against-resolution runs")
+    p.add_argument("--retime", type=int, default=3,
+                   help="after the rows: time osc-gi (now and before session gi8) and the PT rows again, in turn, "
+                        "this many times; the equal-time ratio of each pass from its own times (0: off)")
     p.add_argument("--laps", action="store_true",
                    help="one more osc-gi run with the update's sub-stage clock (host syncs between stages)")
     p.add_argument("--seed", type=int, default=0)
@@ -92,8 +110,9 @@ def _split(stages: dict) -> dict:
             "display_ms": stages.get("shade", 0.0) + stages.get("direct", 0.0)}
 
 
-def _equal_time(pt_rows, t):
-    """FLIP of PT at time t, log-log interpolation between the PT points around t (None outside)."""
+def _equal_time_direct(pt_rows, t):
+    """FLIP of PT at time t, log-log interpolation between the PT points around t in measured time
+    (None outside); a PT row timed slow or fast by the load moves it (see :func:`_equal_time`)."""
     import math
     pts = sorted((r["time_ms"], r["flip"]) for r in pt_rows if r["time_ms"] > 0 and r["flip"] > 0)
     for (t0, f0), (t1, f1) in zip(pts, pts[1:]):
@@ -101,6 +120,77 @@ def _equal_time(pt_rows, t):
             a = (math.log(t) - math.log(t0)) / (math.log(t1) - math.log(t0))
             return math.exp(math.log(f0) + a * (math.log(f1) - math.log(f0)))
     return None
+
+
+def _pt_cost(pt_rows):
+    """PT's time per frame as a + b spp, least squares over all PT rows on relative errors (weights
+    1/t^2): PT's work is a fixed part plus one path per pixel and sample, so one row timed slow or
+    fast by the machine's load no longer decides the equal-time point alone. Returns (a, b) or None."""
+    import numpy as np
+    pts = [(float(r["spp"]), r["time_ms"]) for r in pt_rows if r.get("spp") and r["time_ms"] > 0]
+    if len(pts) < 2:
+        return None
+    n, t = np.array(pts).T
+    w = 1.0 / t
+    a, b = np.linalg.lstsq(np.stack([w, n * w], 1), t * w, rcond=None)[0]
+    return (float(a), float(b)) if b > 0 else None
+
+
+def _equal_time(pt_rows, t):
+    """FLIP of PT at time t: the sample count PT affords in t by its fitted cost (:func:`_pt_cost`),
+    then log-log interpolation of FLIP between the PT rows around that count (FLIP against spp is
+    exact: the same random numbers in every run). None outside the measured spp range."""
+    import math
+    cost = _pt_cost(pt_rows)
+    if cost is None:
+        return None
+    spp = (t - cost[0]) / cost[1]
+    pts = sorted((float(r["spp"]), r["flip"]) for r in pt_rows if r.get("spp") and r["flip"] > 0)
+    for (n0, f0), (n1, f1) in zip(pts, pts[1:]):
+        if n0 <= spp <= n1 and n1 > n0:
+            a = (math.log(spp) - math.log(n0)) / (math.log(n1) - math.log(n0))
+            return math.exp(math.log(f0) + a * (math.log(f1) - math.log(f0)))
+    return None
+
+
+RETIMED = ("osc-gi", f"osc-gi:{BEFORE_GI8}")     # rows timed again beside PT (--retime)
+
+
+def _retime(s, v, cfg, srows, opts, bar=None) -> None:
+    """Time the rows ``RETIMED`` and the full-light PT rows again, one after the other, ``opts.retime``
+    passes (no evaluation; the same frames and warm-up): each pass gives osc-gi / PT at equal time from
+    its own times (:func:`_equal_time`, FLIP from the rows), so a load that changes during the run
+    (2 shared cores) no longer compares a quiet osc-gi row with loaded PT rows or the reverse.
+    Written into the rows: ``retimed_ms``, ``flip_vs_pt_retimed`` (per pass) and its median."""
+    import dataclasses
+    import statistics
+
+    from slc import methods
+    from slc.pipeline import run_sequence
+    pts = [r for r in srows if r["group"] == "full" and r["family"] == "pt"]
+    rows = [r for r in srows if r["group"] == "full" and r["setting"] in RETIMED]
+    if not pts or not rows:
+        return
+    tcfg = dataclasses.replace(cfg, eval_frames=[], keep_images=False)      # no frame evaluated
+    times = {r["setting"]: [] for r in rows + pts}
+    for _ in range(opts.retime):
+        for r in rows + pts:
+            if bar is not None:
+                bar.set_postfix_str(f"{s.name}/{r['setting']} (retime)")
+            res = run_sequence(s, methods.create(r["setting"], s, seed=opts.seed), v, tcfg)
+            times[r["setting"]].append(res.time_ms)
+            r["retime_compiled_after_warmup"] = r.get("retime_compiled_after_warmup", 0) + res.compiled_after_warmup
+    for r in rows:
+        ratios = []
+        for i in range(opts.retime):
+            f = _equal_time([dict(p, time_ms=times[p["setting"]][i]) for p in pts], times[r["setting"]][i])
+            ratios.append(r["flip"] / f if f else None)
+        r["retimed_ms"] = times[r["setting"]]
+        r["flip_vs_pt_retimed"] = ratios
+        ok = [x for x in ratios if x is not None]
+        r["flip_vs_pt_retimed_median"] = statistics.median(ok) if ok else None
+    for p in pts:
+        p["retimed_ms"] = times[p["setting"]]
 
 
 def _reuse_plot(path, hist, title):
@@ -167,6 +257,13 @@ def run(opts) -> dict:
     from slc.pipeline import RunConfig, run_sequence
 
     preset = experiment.apply_common(opts, QUICK if opts.quick else FULL)
+    if getattr(opts, "warmup", None) is not None:
+        if not 0 <= opts.warmup < preset["frames"]:
+            raise experiment.ExperimentError("--warmup must be at least 0 and below the frame count")
+        preset["warmup"] = opts.warmup
+    elif getattr(opts, "frames", None):
+        # a short sequence keeps 3 warm-up frames (the kernels are built in frames 0-2) and times the rest
+        preset["warmup"] = min(preset["warmup"], max(3, preset["frames"] // 3))
     W, H = preset["width"], preset["height"]
     out = Path(opts.out) / NAME
     names = experiment.load_and_validate(opts.scene or preset["scenes"], [], bool(opts.scene))
@@ -193,7 +290,8 @@ def run(opts) -> dict:
                 res = run_sequence(s, m, viewers, cfg, progress=bar)
                 row = {"scene": s.name, **res.row(), "setting": spec, "label": m.label or m.name,
                        "group": group, "output": m.output, "bounces": getattr(m, "bounces", None),
-                       "family": spec.split(":")[0], "resolution": f"{cfg.width}x{cfg.height}"}
+                       "family": spec.split(":")[0], "resolution": f"{cfg.width}x{cfg.height}",
+                       "spp": getattr(m, "spp", None) if spec.startswith("pt") else None}
                 row.pop("frames_ms", None)
                 row.update(_split(res.stages))
                 if spec.startswith("osc-gi"):
@@ -228,16 +326,24 @@ def run(opts) -> dict:
             srows = [r for r in rows if r["scene"] == s.name]
             for grp in ("full", "indirect"):
                 pts = [r for r in srows if r["group"] == grp and r["family"] == "pt"]
+                cost = _pt_cost(pts)
                 for r in srows:
                     if r["group"] == grp and r["family"] != "pt":
                         f_pt = _equal_time(pts, r["time_ms"])
                         r["pt_flip_equal_time"] = f_pt
                         r["flip_vs_pt_equal_time"] = (r["flip"] / f_pt) if f_pt else None
+                        # the former estimate (interpolation in the PT rows' own measured times)
+                        f_d = _equal_time_direct(pts, r["time_ms"])
+                        r["flip_vs_pt_equal_time_direct"] = (r["flip"] / f_d) if f_d else None
+                        r["pt_cost_ms"] = cost          # PT time = a + b spp (fit over the PT rows)
                         # slower than PT's most expensive point: PT at equal time is at least that good,
                         # so its FLIP bounds the ratio from below
                         slow = max(pts, key=lambda x: x["time_ms"]) if pts else None
                         if f_pt is None and slow is not None and r["time_ms"] > slow["time_ms"]:
                             r["flip_vs_pt_at_least"] = r["flip"] / slow["flip"]
+            # ---- the same rows timed again in turn (a load that changes during the run moves all alike) ----
+            if opts.retime > 0 and srows:
+                _retime(s, v, cfg, srows, opts, bar)
             if srows:
                 experiment.speed_error_plot(out / f"speed_error_{s.name}.png",
                                             [r for r in srows if r["group"] == "full"],
@@ -280,8 +386,8 @@ def run(opts) -> dict:
     # ------------------------------------------- report -------------------------------------------
     config = {"quick": bool(opts.quick), "scenes": names, **{k: v for k, v in preset.items() if k != "scenes"},
               "seed": opts.seed,
-              "reference": "full: 2048-sample direct ground truth + indirect reference (ref_spp paths, the "
-                           "method's bounces); indirect rows: the indirect reference alone",
+              "reference": "full: direct ground truth with ref_spp samples + indirect reference (ref_spp paths, "
+                           "the method's bounces); indirect rows: the indirect reference alone",
               "timing": "cache = on-surface cache requests/allocate/queue, effect = primary + secondary cache "
                         "updates, display = shading; medians after warm-up on a shared 2-core CPU: ratios only"}
     all_rows = rows + [dict(r, group="multi") for r in multi]
@@ -297,7 +403,7 @@ def run(opts) -> dict:
             ("primary_mb_max", "primary MB max"), ("secondary_mb_min", "secondary MB min"),
             ("secondary_mb_max", "secondary MB max"), ("memory_mb", "memory [MB]")]
     md = (f"# {NAME}\n\n{W}x{H}, {cfg.frames} frames ({cfg.warmup} warm-up), one moving viewer; quality on frames "
-          f"{cfg.evaluated()} against the reference of each method's output (full: 2048-spp direct + "
+          f"{cfg.evaluated()} against the reference of each method's output (full: {cfg.ref_spp}-sample direct + "
           f"{cfg.ref_spp}-path indirect; indirect: the indirect reference); times are medians on a shared CPU "
           f"(compare within this table only). Memory: primary = on-surface cache + payloads, secondary = cells "
           f"in use (the table is allocated up front: secondary_table_mb in results.json).\n\n"
@@ -350,6 +456,16 @@ def run(opts) -> dict:
                 md += (f"- {name}, {x['setting']}: FLIP {x['flip']:.4f} at {x['time_ms']:.0f} ms; osc-gi / PT = "
                        + (f"{q:.2f}" if q else (f">= {lb:.2f} (slower than PT's slowest point)" if lb else
                                                 "outside the PT range")) + "\n")
+        for x in rows:
+            if x["scene"] == name and x.get("retimed_ms"):
+                q = x.get("flip_vs_pt_retimed") or []
+                md += (f"- {name}, {x['setting']}, timed again in turn"
+                       + (f" with PT ({len(q)} passes): " if x["family"] != "pt" else ": ")
+                       + (f"{x['time_ms']:.0f} -> " if x["family"] != "pt" else "")
+                       + ", ".join(f"{t:.0f}" for t in x["retimed_ms"]) + " ms"
+                       + (f"; osc-gi / PT = " + ", ".join("-" if y is None else f"{y:.2f}" for y in q)
+                          + (f", median {x['flip_vs_pt_retimed_median']:.2f}" if x.get("flip_vs_pt_retimed_median")
+                             else "") if x["family"] != "pt" else "") + "\n")
         ratio, lb = r.get("flip_vs_pt_equal_time"), r.get("flip_vs_pt_at_least")
         md += (f"- {name}: FLIP {r['flip']:.4f} at {r['time_ms']:.0f} ms; PT at equal time "
                + (f"{r['pt_flip_equal_time']:.4f} -> osc-gi / PT = {ratio:.2f} (target <= 0.70)" if ratio else

@@ -53,7 +53,7 @@ def test_other_direct_options_approach_the_full_reference(cornell, direct):
 
 def test_cell_edge_follows_the_scene_size_and_the_pixel_footprint(cornell):
     """max(secondary_cm, secondary_scene x diagonal, min(secondary_px x median footprint,
-    secondary_max x diagonal)); the default: 30 cm or 4% of the diagonal, whichever is larger."""
+    secondary_max x diagonal)); the default: 15 cm (30 cm before session gi8) or 4% of the diagonal, whichever is larger."""
     diag = float(np.linalg.norm(np.array(cornell.mi_scene.bbox().max) - np.array(cornell.mi_scene.bbox().min)))
 
     def edge(spec, fp, valid=None):
@@ -61,7 +61,7 @@ def test_cell_edge_follows_the_scene_size_and_the_pixel_footprint(cornell):
         valid = [True] * len(fp) if valid is None else valid
         return m._cell_edge([SimpleNamespace(footprint=mi.Float(fp), valid=mi.Bool(valid))])
 
-    assert edge("osc-gi", [1.0]) == pytest.approx(max(0.30, 0.04 * diag))                 # the default
+    assert edge("osc-gi", [1.0]) == pytest.approx(max(0.15, 0.04 * diag))                 # the default
     assert edge("osc-gi:secondary_cm=1", [1.0]) == pytest.approx(0.04 * diag)             # scene fraction
     px = "osc-gi:secondary_cm=1,secondary_scene=0,secondary_px=2"
     assert edge(px, [0.01, 0.02, 0.03, 5.0], [True, True, True, False]) == pytest.approx(0.04)
@@ -75,3 +75,35 @@ def test_cell_levels_grow_with_the_hit_distance():
     t = mi.Float([0.0, 1.0, h / lod * 2.0 ** 3.5, 1e9, dr.inf])
     assert list(np.array(cell_level(t, h, lod))) == [0, 0, 3, MAX_LOD, 0]
     assert list(np.array(cell_level(t, h, 0.0) + mi.UInt32(0, 0, 0, 0, 0))) == [0] * 5
+
+
+def test_stratified_light_samples_are_unbiased_and_less_noisy(cornell):
+    """``direct_lds`` (default): a pixel's n light samples are a Hammersley set shifted by a random
+    offset per pixel and frame. Averaged over 64 frames (new offsets), RT-4's image converges to the
+    2048-sample direct ground truth as the independent samples do (image mean within 1%, per-pixel
+    error no larger), and a single frame's error is smaller than with independent samples. Measured
+    on Cornell at 32x18: mean 0.9999 (independent 0.9994), RMSE of one frame 0.73x, of the 64-frame
+    average 0.66x that of independent samples."""
+    from slc.cones.update import light_inputs
+    from slc.keys import stream_key
+    from slc.lights import _diffuse_table
+    from slc.oscgi.method import STREAM_PIXEL_DIRECT, _pixel_direct_kernel
+    from slc.pipeline import gbuffers_for
+    gb = gbuffers_for(cornell, views.single(cornell), 0, 32, 18)[0]
+    sc = cornell.mi_scene
+    gt = references.reference_for("direct", cornell, gb, 0, "test")
+    valid = np.array(gb.valid).reshape(gt.shape[:2])
+    idx = dr.arange(mi.UInt32, dr.width(gb.valid))
+    err1, err64, means = {}, {}, {}
+    for lds in (True, False):
+        imgs = np.stack([references.image_of("full", gb, _pixel_direct_kernel(
+            sc, light_inputs(sc), _diffuse_table(sc)[0], gb.si, mi.Bool(gb.valid), idx,
+            stream_key(0, f, STREAM_PIXEL_DIRECT), dr.opaque(mi.UInt32, 4), lds)) for f in range(64)])
+        assert np.isfinite(imgs).all()
+        avg = imgs.mean(0)
+        means[lds] = avg[valid].mean() / gt[valid].mean()
+        err1[lds] = np.sqrt(np.mean((imgs[:, valid] - gt[valid]) ** 2))
+        err64[lds] = np.sqrt(np.mean((avg[valid] - gt[valid]) ** 2))
+    assert abs(means[True] - 1.0) < 0.01, means
+    assert err64[True] <= 1.05 * err64[False], err64
+    assert err1[True] < 0.85 * err1[False], err1

@@ -76,26 +76,41 @@ def _primary_direct_kernel(sc, lights, sie, keys, scratch, mix, nd, scale: float
     return scratch
 
 
-def _pixel_direct_kernel(sc, lights, table, si, active, idx, mix, n):
+def _pixel_direct_kernel(sc, lights, table, si, active, idx, mix, n, lds):
     r"""RT-N direct light of the pixels ``si``: ``n`` (opaque) light samples with shadow rays,
     :math:`\frac1n\sum_j f\,L_e G V / p` (:func:`slc.lights.direct_sample`); ``idx`` the pixels'
     stream keys (their width is the launch width), ``lights`` and ``table`` (the diffuse-BSDF table of
-    :class:`slc.lights.SurfaceBSDF`) declare what the kernel reads as inputs."""
+    :class:`slc.lights.SurfaceBSDF`) declare what the kernel reads as inputs.
+
+    ``lds`` (a Python bool, part of the recording's key): the n sample points of a pixel are the Hammersley set
+    :math:`((j + \tfrac12)/n,\ \Phi_2(j))` shifted by one random offset r per pixel (Cranley-Patterson
+    rotation, :math:`u_j = (h_j + r) \bmod 1`): each :math:`u_j` alone is uniform (unbiased), and
+    together they cover the unit square (the light's area, and the emitter choice by
+    :math:`u_x`) evenly; else n independent uniform points."""
     sampler = mixed_rng(idx, mix)
     ctx = mi.BSDFContext()
     bsdf = SurfaceBSDF(sc, si, active, ctx)
+    inv_n = dr.rcp(mi.Float(dr.maximum(n, 1)))
+    if lds:   # the pixel's offset, from its own stream (the independent samples keep theirs)
+        rs = mixed_rng(idx, mix ^ STREAM_PIXEL_DIRECT)
+        r = mi.Point2f(rs.next_float32(), rs.next_float32())
 
     def cond(i, L, sampler):
         return i < n
 
     def body(i, L, sampler):
-        u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
+        if lds:
+            # ---- Hammersley point i, rotated by the pixel's offset (radical inverse: bit reversal) ----
+            u = mi.Point2f(dr.fma(mi.Float(i), inv_n, 0.5 * inv_n), mi.Float(dr.brev(i)) * 2.3283064365386963e-10) + r
+            u = dr.minimum(u - dr.floor(u), 0.99999994)
+        else:
+            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
         return i + 1, L + direct_sample(sc, si, bsdf, u, active, ctx), sampler
 
     with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
         _, L, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
                                 labels=("i", "L", "sampler"))
-    L = L * dr.rcp(mi.Float(dr.maximum(n, 1)))
+    L = L * inv_n
     dr.eval(L)
     return L
 
@@ -132,7 +147,7 @@ class OSCGI(PayloadMethod):
     *Secondary caches*: :class:`~slc.oscgi.secondary.SecondaryCache`, cells of
     ``secondary_cm`` cm keyed by position, normal bin and shape, storing outgoing diffuse radiance
     in ``bounces`` layers (direct light by ``light_samples`` light samples, indirect by
-    ``secondary_rays`` cosine rays into other cells), so the primary point receives light after
+    ``secondary_rays`` cosine rays into other cells; EMA capped at ``secondary_n_max``), so the primary point receives light after
     1..``bounces`` reflections, the paths of the indirect reference. At most ``secondary_budget``
     cells are updated per frame (ring 1 first, then least-sampled, then oldest; the others keep
     their value, and a texel does not blend a sample from a cell never updated unless it has no
@@ -155,7 +170,8 @@ class OSCGI(PayloadMethod):
     the emission seen directly is added by the pipeline).
 
     *Direct light* (``output=full``), ``direct``: ``rt`` (default) ``direct_n`` (16) light samples
-    per pixel with shadow rays, :math:`\frac1n\sum_j f L_e G V/p` (RT-N, frozen), added to the
+    per pixel with shadow rays, :math:`\frac1n\sum_j f L_e G V/p` (RT-N, frozen; with ``direct_lds``,
+    on, the n points a Hammersley set shifted by a random offset per pixel), added to the
     cached indirect light; ``cones`` / ``restir``: the registered ``slc`` / ``restir`` method run
     beside on the same G-buffers; ``cache``: light samples binned into the entries' texels (above;
     the default before session gi6). Except for ``cache`` the entries hold indirect light only,
@@ -183,7 +199,8 @@ class OSCGI(PayloadMethod):
         Param("texel_rays", 64, "texels traced per settled entry and update (new entries: all; divides hemi^2)",
               lo=1, hi=256),
         Param("n_max", 4, "EMA cap: blend factor 1/min(n, n_max)", lo=1, hi=256),
-        Param("secondary_cm", 30.0, "secondary cell edge [cm]", lo=1.0, hi=1000.0),
+        Param("secondary_n_max", 2, "EMA cap of the secondary cells (0: n_max, as before session gi8)", lo=0, hi=256),
+        Param("secondary_cm", 15.0, "secondary cell edge [cm] (30 before session gi8)", lo=1.0, hi=1000.0),
         Param("secondary_scene", 0.04, "secondary cell edge at least this fraction of the scene's bounding-box "
               "diagonal (0: off)", lo=0.0, hi=1.0),
         Param("secondary_px", 0.0, "secondary cell edge at least this many pixel footprints (median over the first "
@@ -192,10 +209,10 @@ class OSCGI(PayloadMethod):
               "bounding-box diagonal", lo=0.0, hi=1.0),
         Param("secondary_lod", 0.0, "secondary cells grow with the hit distance t: edge about "
               "max(secondary_cm, secondary_lod t), in powers of 2 (0: fixed cells)", lo=0.0, hi=4.0),
-        Param("secondary_rays", 32, "cosine rays per secondary cell update", lo=1, hi=1024),
+        Param("secondary_rays", 16, "cosine rays per secondary cell update (32 before session gi8)", lo=1, hi=1024),
         Param("light_samples", 4, "light samples per secondary cell update", lo=1, hi=1024),
         Param("direct_rays", 8, "light samples per primary entry update (output=full)", lo=1, hi=1024),
-        Param("glossy_samples", 8, "BSDF samples of the hemisphere per glossy pixel", lo=1, hi=1024),
+        Param("glossy_samples", 16, "BSDF samples of the hemisphere per glossy pixel (8 before session gi8)", lo=1, hi=1024),
         Param("secondary_slots", 17, "log2 of the secondary hash-table size", lo=8, hi=24),
         Param("secondary_budget", 8192, "secondary cell updates per frame, least-sampled first (0: all)",
               lo=0, hi=1 << 24),
@@ -214,6 +231,8 @@ class OSCGI(PayloadMethod):
               "direct_n light samples (rt), the cones (slc) or ReSTIR run beside (cones, restir)",
               choices=("cache", "rt", "cones", "restir")),
         Param("direct_n", 16, "light samples per pixel with direct=rt", lo=1, hi=1024),
+        Param("direct_lds", True, "direct=rt: a pixel's light samples are a randomly shifted Hammersley set "
+              "(stratified over the light; else independent)"),
     ) + _cache_params()
     storage_type = mi.Float
 
@@ -283,7 +302,7 @@ class OSCGI(PayloadMethod):
                                    max_blocks=max(1, INITIAL_ENTRIES // (self.block * self.block)))
         self.cache = cache
         self.secondary = SecondaryCache(self.scene.mi_scene, self._cell_edge(getattr(self, "_gbuffers", None)), self.bounces,
-                                        self.n_max, self.secondary_rays, self.light_samples,
+                                        self.secondary_n_max or self.n_max, self.secondary_rays, self.light_samples,
                                         1 << self.secondary_slots, shape_key=self.shape_key, seed=self.seed,
                                         budget=self.secondary_budget, evict_after=self.secondary_evict,
                                         freeze=bool(self.freeze), glossy_hits=bool(self.glossy_hits),
@@ -539,7 +558,8 @@ class OSCGI(PayloadMethod):
                 lay = layered(gbuffers)
                 idx = lay.pixel if lay.pixel is not None else dr.arange(mi.UInt32, lay.size)
                 k = self._k_pixel if lay.size > 1 else _pixel_direct_kernel
-                L = k(sc, light_inputs(sc), _diffuse_table(sc)[0], lay.si, mi.Bool(lay.valid), idx, mix, n)
+                L = k(sc, light_inputs(sc), _diffuse_table(sc)[0], lay.si, mi.Bool(lay.valid), idx, mix, n,
+                      bool(self.direct_lds))
                 if len(gbuffers) == 1:
                     out[0] = out[0] + L
                 else:
