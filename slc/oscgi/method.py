@@ -476,20 +476,31 @@ class OSCGI(PayloadMethod):
 
     # ------------------------------------------------------------------ shade
     def shade_all(self, ctx, fr, gbuffers):
-        """Every viewer's pixels; with the spatial filter on (``filter_radius`` > 0), from a
-        filtered copy of the active entries (:class:`~slc.oscgi.spatial.SpatialFilter`, timed with
-        the display), the temporal state left unfiltered."""
-        if self.filter.r <= 0:
-            return super().shade_all(ctx, fr, gbuffers)
+        """Every viewer's pixels. Several viewers are shaded in one launch over the frame's
+        layered G-buffer (:func:`slc.gbuffer.layered`; the cache's slots laid out the same way,
+        ``fr.layer_slot`` / ``fr.layer_index``), then split per viewer: each pixel keeps the
+        random-number key it has per viewer (its index within its own viewer), so the images are
+        those of :meth:`shade` bit for bit, and the shading (BSDF calls) is traced in Python once
+        a frame instead of once per viewer (session gi9: 16 viewers at 32x18 spent 17 of 31 ms a
+        frame tracing 16 shading kernels, 0.2 ms of it executing them). With the spatial filter
+        on (``filter_radius`` > 0), from a filtered copy of the active entries
+        (:class:`~slc.oscgi.spatial.SpatialFilter`, timed with the display), the temporal state
+        left unfiltered."""
         raw = self.storage
-        self.storage = self.filter.apply(self.cache, raw, fr, self.grid, self.words)
+        if self.filter.r > 0:
+            self.storage = self.filter.apply(self.cache, raw, fr, self.grid, self.words)
         try:
-            return super().shade_all(ctx, fr, gbuffers)
+            if len(gbuffers) < 2 or fr.layer_slot is None or fr.layer_index is None:
+                return [self.shade(ctx, fr, v, gb) for v, gb in enumerate(gbuffers)]
+            lay = layered(gbuffers)
+            L = self._shade_pixels(ctx, fr, lay.si, lay.valid, mi.UInt32(fr.layer_slot),
+                                   mi.UInt32(fr.layer_index), lay.pixel)
+            return per_viewer(L, lay.sizes, lay.offsets)
         finally:
             self.storage = raw
 
     def shade(self, ctx, fr, v, gb):
-        G, W, D = self.grid, self.words, self.grid.n
+        """One viewer's pixels (see :meth:`_shade_pixels`)."""
         if len(fr.pixel_slot) > 1 and fr.layer_slot is not None:
             # several viewers: the viewer's part of the layered values, gathered here rather than
             # through the cache's per-viewer views, whose unevaluated gathers (made in another
@@ -500,8 +511,15 @@ class OSCGI(PayloadMethod):
             idx = dr.gather(mi.UInt32, fr.layer_index, at)
         else:
             slot, idx = mi.UInt32(fr.pixel_slot[v]), mi.UInt32(fr.pixel_index[v])
-        si = gb.si
-        ok = mi.Bool(gb.valid) & (slot != INVALID) & (si.wi.z > 0.0)
+        return self._shade_pixels(ctx, fr, gb.si, mi.Bool(gb.valid), slot, idx, dr.arange(mi.UInt32, gb.size))
+
+    def _shade_pixels(self, ctx, fr, si, valid, slot, idx, pid):
+        """Pixels ``si`` (G-buffer mask ``valid``) from their entries (``slot`` into the storage,
+        ``idx`` into ``fr.si``); ``pid`` each pixel's index within its own viewer (the key of
+        its random numbers). Diffuse BSDFs from the irradiance words, others by BSDF samples of
+        the hemisphere texels (:func:`slc.sh.shading.shade_radiance`)."""
+        G, W, D = self.grid, self.words, self.grid.n
+        ok = valid & (slot != INVALID) & (si.wi.z > 0.0)
         bsdf = si.bsdf()
         d_only = diffuse_only(bsdf)
         g = ok & ~d_only
@@ -520,7 +538,7 @@ class OSCGI(PayloadMethod):
             t = slot * W + G.texel(loc) * 3
             return mi.Color3f(*[dr.gather(mi.Float, self.storage, t + c, m) for c in range(3)]), m
 
-        sampler = keyed_rng(dr.arange(mi.UInt32, gb.size), self.seed, ctx.frame, STREAM_SHADE)
+        sampler = keyed_rng(pid, self.seed, ctx.frame, STREAM_SHADE)
         return shade_radiance(si, bsdf, ok, irradiance, radiance, sampler, self.glossy_samples)
 
     # ------------------------------------------------------------------ frame
