@@ -60,6 +60,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..backend import aligned
 from ..cones.update import light_inputs
 from ..freeze import FrozenFunction
 from ..keys import INVALID, mixed_rng, stream_key
@@ -420,9 +421,9 @@ class SecondaryCache:
         """Over the load cap: mark (in ``old``) the ``n`` least recently touched live cells that
         are not old yet (then lowest slot); returns how many were marked."""
         idx = np.asarray(dr.compress(live & ~old), dtype=np.int64)
-        u = np.asarray(dr.gather(mi.UInt32, self.used, mi.UInt32(idx.astype(np.uint32))), dtype=np.int64)
+        u = np.asarray(dr.gather(mi.UInt32, self.used, mi.UInt32(aligned(idx, np.uint32))), dtype=np.int64)
         drop = idx[np.lexsort((idx, u))[:n]]
-        dr.scatter(old, True, mi.UInt32(np.sort(drop).astype(np.uint32)))
+        dr.scatter(old, True, mi.UInt32(aligned(np.sort(drop), np.uint32)))
         return int(drop.size)
 
     def _rebuild(self, keep: mi.UInt32) -> None:
@@ -511,7 +512,7 @@ class SecondaryCache:
             cnt = np.asarray(dr.gather(mi.UInt32, self.count, cells), dtype=np.int64)
             age = self.frame - np.asarray(dr.gather(mi.UInt32, self.stamp, cells), dtype=np.int64)
             order = np.lexsort((c_np, -age, cnt, rg))[: self.budget]
-            cells = mi.UInt32(np.sort(c_np[order]).astype(np.uint32))
+            cells = mi.UInt32(aligned(np.sort(c_np[order]), np.uint32))   # aligned: else another kernel
         n = dr.width(cells)
         self.updated = n
         if n == 0:
