@@ -2,10 +2,13 @@
 on-surface cache and secondary radiance caches in a hashed world grid (``docs/osc-gi.md``)."""
 from __future__ import annotations
 
+import dataclasses
+import math
 
 import drjit as dr
 import mitsuba as mi
 
+from ..backend import aligned
 from ..cones.update import light_inputs
 from ..freeze import FrozenFunction
 from ..gbuffer import layered, per_viewer, viewer_lanes
@@ -214,6 +217,10 @@ class OSCGI(PayloadMethod):
               "direct_n light samples (rt), the cones (slc) or ReSTIR run beside (cones, restir)",
               choices=("cache", "rt", "cones", "restir")),
         Param("direct_n", 16, "light samples per pixel with direct=rt", lo=1, hi=1024),
+        Param("update_budget", 2.0, "primary entries updated per frame at most, in units of one viewer's share: "
+              "update_budget x (pixels of the largest viewer) / bias^2; new entries always, then the most due "
+              "(fewest samples, oldest update); 0: every requested entry", lo=0.0, hi=1e6),
+        Param("front_only", True, "only pixels facing the viewer request entries (back faces are shaded black)"),
     ) + _cache_params()
     storage_type = mi.Float
 
@@ -255,6 +262,8 @@ class OSCGI(PayloadMethod):
         # sub-stage clock of update (off unless an experiment sets _profile: no host syncs)
         self.laps = Laps(getattr(self, "_profile", False), getattr(self, "_profile_skip", 0))
         self.memory_log = []          # per frame: (primary bytes, secondary bytes in use)
+        self._upd_frame = None        # per slot: frame of the entry's last update (update_budget)
+        self.entries_updated = 0      # entries the last update took
         if getattr(self, "_sub", None) is not None:
             self._sub.reset()
 
@@ -280,7 +289,8 @@ class OSCGI(PayloadMethod):
         cache = self._cache_arg
         if cache is None:
             cache = OnSurfaceCache(self.scene, block_size=self.block, bias=self.bias, evict_after=self.evict_after,
-                                   max_blocks=max(1, INITIAL_ENTRIES // (self.block * self.block)))
+                                   max_blocks=max(1, INITIAL_ENTRIES // (self.block * self.block)),
+                                   front_only=bool(self.front_only))
         self.cache = cache
         self.secondary = SecondaryCache(self.scene.mi_scene, self._cell_edge(getattr(self, "_gbuffers", None)), self.bounces,
                                         self.n_max, self.secondary_rays, self.light_samples,
@@ -292,6 +302,9 @@ class OSCGI(PayloadMethod):
 
     # ----------------------------------------------------------------- update
     def update(self, ctx, fr, rays, unsettled):
+        n_requested = fr.n_active
+        # ------- the per-frame budget (update_budget): which requested entries are updated -------
+        fr, rays, unsettled = self._budgeted(ctx, fr, rays, unsettled)
         sc, G, W, sec = self.scene.mi_scene, self.grid, self.words, self.secondary
         D, N = G.n, fr.n_active
         laps = self.laps
@@ -445,7 +458,73 @@ class OSCGI(PayloadMethod):
         dr.scatter(self.storage, cnt, slot * W + 3 * D + 3, k == 0)
         dr.scatter(self.storage, d_new, fr.active * W + 3 * D + 4)
         laps.lap("primary_ema", self.storage)
-        return dr.zeros(mi.Bool, N)
+        return dr.zeros(mi.Bool, n_requested)
+
+    def update_limit(self, fr) -> int:
+        """The most entries one frame's update may take (``update_budget`` x the largest
+        viewer's pixels / bias^2; 0 when off): about ``update_budget`` times the entries one
+        viewer requests (one entry per bias x bias pixels at the footprint's level)."""
+        if self.update_budget <= 0.0 or not fr.pixel_slot:
+            return 0
+        px = max(dr.width(ps) for ps in fr.pixel_slot)
+        return max(1, int(math.ceil(self.update_budget * px / max(float(self.bias), 1e-3) ** 2)))
+
+    def _budgeted(self, ctx, fr, rays, unsettled):
+        """(fr, rays, unsettled) of the entries this frame's update takes. Under the limit
+        (:meth:`update_limit`; always for one viewer at the default) every requested entry.
+        Over it, the slides' fixed per-frame budget: every new entry (it has no value yet), then
+        the settled ones most due, due = frame of the last update + min(updates, ``n_max``)
+        (fewest samples first, then oldest; ties by slot), up to the limit. An entry not taken
+        keeps its value (it holds one: every entry is updated in its first frame); once every
+        entry has ``n_max`` updates the order is a round robin, so each of N entries is updated
+        at least once every ceil(N / limit) frames while no new ones arrive (tested). The last
+        update's frame per slot is kept beside the storage (``_upd_frame``). With several
+        viewers the update always reads the entries through the selection (all of them when
+        under the limit), so that its kernels are the same whether or not the budget bites in
+        a frame (a first frame under the limit after the warm-up would build kernels); one viewer
+        under the limit reads the cache's arrays as before (the same kernels and images)."""
+        import numpy as np
+        N, B = fr.n_active, self.update_limit(fr)
+        cap = dr.width(self.storage) // self.words
+        if B > 0 and (self._upd_frame is None or dr.width(self._upd_frame) < cap):
+            grown = dr.zeros(mi.UInt32, cap)
+            if self._upd_frame is not None:
+                dr.scatter(grown, self._upd_frame, dr.arange(mi.UInt32, dr.width(self._upd_frame)))
+            self._upd_frame = grown
+        self.entries_updated = N
+        if B <= 0:
+            return fr, rays, unsettled
+        now = dr.opaque(mi.UInt32, ctx.frame)
+        if N <= B and len(fr.pixel_slot) < 2:
+            dr.scatter(self._upd_frame, now, fr.active)
+            dr.eval(self._upd_frame)
+            return fr, rays, unsettled
+        take = N
+        if N > B:
+            D, W = self.grid.n, self.words
+            slot = np.array(fr.active, dtype=np.int64)
+            cnt = np.array(dr.gather(mi.Float, self.storage, fr.active * W + 3 * D + 3))
+            last = np.array(dr.gather(mi.UInt32, self._upd_frame, fr.active), dtype=np.int64)
+            due = last + np.minimum(cnt, float(self.n_max)).astype(np.int64)
+            due[np.array(fr.is_new, dtype=bool)] = -1                  # new entries: always
+            order = np.lexsort((slot, due))
+            take = min(max(B, int(np.count_nonzero(due < 0))), N)
+        # an aligned copy: a numpy buffer at an unaligned address is another kernel (slc.backend.aligned)
+        sel = (mi.UInt32(aligned(np.sort(order[:take]), np.uint32)) if take < N
+               else dr.arange(mi.UInt32, N))
+        sub = dataclasses.replace(fr, active=dr.gather(mi.UInt32, fr.active, sel),
+                                  si=dr.gather(mi.SurfaceInteraction3f, fr.si, sel),
+                                  is_new=dr.gather(mi.Bool, fr.is_new, sel),
+                                  seed_slot=dr.gather(mi.UInt32, fr.seed_slot, sel),
+                                  keys=dr.gather(mi.UInt32, fr.keys, sel))
+        rays, unsettled = dr.gather(mi.UInt32, rays, sel), dr.gather(mi.Bool, unsettled, sel)
+        # arrays in memory: a gather from a literal (the cache's is_new / seed_slot in a frame without
+        # new entries) stays a literal, and the update's kernels would get another IR (a kernel build)
+        dr.make_opaque(sub.active, sub.si, sub.is_new, sub.seed_slot, sub.keys, rays, unsettled)
+        dr.scatter(self._upd_frame, now, sub.active)
+        dr.eval(self._upd_frame)      # now: a pending scatter would fuse into whichever kernel comes next
+        self.entries_updated = take
+        return sub, rays, unsettled
 
     def _finer_seeds(self, fr) -> list:
         """Per active entry, the slots of the 4 entries of the next finer level covering it
@@ -585,6 +664,7 @@ class OSCGI(PayloadMethod):
             sec = self.secondary
             r = sec.reuse
             out.update({"secondary_cells": float(getattr(self, "_cells", 0)), "secondary_updated": float(sec.updated),
+                        "entries_updated": float(self.entries_updated),
                         "secondary_overflow": float(sec.overflow), "secondary_requested": float(sec.requested),
                         "secondary_evicted": float(sec.evicted), "secondary_cell_m": float(sec.h),
                         "secondary_reuse_mean": float(dr.mean(mi.Float(r))[0]) if dr.width(r) else 0.0})
