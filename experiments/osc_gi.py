@@ -333,7 +333,8 @@ def run(opts) -> dict:
         md += ("\n## Multi-viewer\n\n" + experiment.markdown_table(
             multi, [("scene", "scene"), ("setting", "method"), ("viewers", "viewers"),
                     ("measured_overlap", "measured overlap %"), ("time_ms", "t [ms]"), ("time_vs_one", "t / 1 viewer"),
-                    ("time_vs_one_range", "range"), ("compiled_after_warmup", "kernels after warm-up"), ("entries", "entries"),
+                    ("time_vs_one_range", "range"), ("compiled_after_warmup", "kernels after warm-up"),
+                    ("entries", "entries"),
                     ("entries_updated", "entries updated"), ("flip_viewer0", "FLIP viewer 0"),
                     ("secondary_cells", "secondary cells"), ("memory_mb", "memory [MB]"),
                     ("memory_per_viewer_mb", "memory / viewer [MB]")]) + "\n")

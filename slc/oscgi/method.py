@@ -169,6 +169,13 @@ class OSCGI(PayloadMethod):
     footprint, ``secondary_max`` x d); ``secondary_lod`` > 0 adds levels growing with the hit
     distance (off).
 
+    *Many viewers* (session gi9): ``update_budget`` (2) caps the entries updated per frame at
+    ``update_budget`` x (pixels of the largest viewer) / bias^2, about twice one viewer's entries
+    (never reached by one viewer): every new entry, then the most due (fewest samples, oldest
+    update); the others keep their value (:meth:`_budgeted`). ``front_only`` (on): only pixels
+    facing the viewer request entries (back faces are shaded black). Several viewers are shaded
+    in one launch (:meth:`shade_all`).
+
     Storage per entry: 3 R^2 radiance words, the irradiance (3 words) and the update count.
     Ray budget (the ray policy): an entry's first update traces all R^2 texels, later updates
     ``texel_rays`` of them in rotation (texel k when k = c mod R^2/``texel_rays``, c the update
