@@ -32,15 +32,18 @@ DIRECT_METHODS = {"cones": "slc", "restir": "restir"}   # direct=... -> the regi
 INITIAL_ENTRIES = 1 << 14     # the pool starts small and doubles on demand (entries are ~0.8 KB)
 
 
-def _primary_ray_kernel(fr_si, keys, tl, mix, D: int, res: int):
+def _primary_ray_kernel(pts, keys, tl, mix, D: int, res: int):
     """The jittered cosine rays of the traced lanes ``tl`` (entry tl // D, texel tl % D) from the
-    entries' own points ``fr_si``; returns (rays, mask above the geometric surface)."""
+    entries' own points ``pts`` = (position, geometric normal, shading normal); returns (rays, mask
+    above the geometric surface). Only these three fields of the entries' interactions are inputs:
+    passing the whole interaction made the frozen function record again when the sharing of its
+    unused literal fields (``dn_du``, ``dn_dv``) with other fields changed between frames."""
     G = HemiGrid(res)
     et, kt = tl // D, tl % D
     si = dr.zeros(mi.SurfaceInteraction3f)   # only what spawn_ray needs; width 1 (a width would be baked)
-    si.p = mi.Point3f(*[dr.gather(mi.Float, fr_si.p[c], et) for c in range(3)])
-    si.n = mi.Vector3f(*[dr.gather(mi.Float, fr_si.n[c], et) for c in range(3)])
-    n_sh = mi.Vector3f(*[dr.gather(mi.Float, fr_si.sh_frame.n[c], et) for c in range(3)])
+    si.p = mi.Point3f(*[dr.gather(mi.Float, pts[0][c], et) for c in range(3)])
+    si.n = mi.Vector3f(*[dr.gather(mi.Float, pts[1][c], et) for c in range(3)])
+    n_sh = mi.Vector3f(*[dr.gather(mi.Float, pts[2][c], et) for c in range(3)])
     s = mixed_rng(dr.gather(mi.UInt32, keys, et) * D + kt, mix)
     d = mi.Frame3f(n_sh).to_world(G.direction(kt, mi.Point2f(s.next_float32(), s.next_float32())))
     ok = dr.dot(d, si.n) > 0.0                      # above the geometric surface
@@ -359,7 +362,8 @@ class OSCGI(PayloadMethod):
         tl = dr.compress(traced)
         et, kt = tl // D, tl % D
         ray_k = self._k_ray if dr.width(tl) > 1 else _primary_ray_kernel
-        ray, ok = ray_k(fr.si, fr.keys, tl, stream_key(self.seed, ctx.frame, STREAM_PRIMARY), D, self.hemi)
+        ray, ok = ray_k((fr.si.p, fr.si.n, fr.si.sh_frame.n), fr.keys, tl,
+                        stream_key(self.seed, ctx.frame, STREAM_PRIMARY), D, self.hemi)
         laps.lap("primary_raygen", ray, ok)
         hits = sec.trace(ray, ok)   # (p, n, t, shape index, preliminary intersection, valid, key, home, front n)
         laps.lap("primary_rays", *hits)
