@@ -20,7 +20,9 @@ Per scene (one viewer on the scene's first camera path, moving):
 - multi-viewer (unless ``--no-multi``): 1, 4, 16 viewers at about 75% overlap
   (:func:`slc.views.overlap_rig` about the look-at point where the camera is outside the scene),
   time against viewer count, per stage, the first viewer's FLIP at the last frame; the 16-viewer
-  row also without the update budget and front-only requests (``MULTI_ABLATIONS``, session gi9);
+  row also without the update budget and front-only requests (``MULTI_ABLATIONS``, session gi9),
+  and the 16-viewer fan's first view alone (the fan's views are narrowed when it would span more
+  than 360 degrees); 3 repetitions in alternating order, the ratio to one viewer per repetition;
 - ablations (unless ``--no-ablations``): secondary cells of 15/60 cm, 1 and 3 bounces (each against
   its own reference), cells not keyed by shape (``--quick``: 60 cm and 1 bounce only).
 
