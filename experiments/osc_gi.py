@@ -19,8 +19,12 @@ Per scene (one viewer on the scene's first camera path, moving):
   the FLIP of PT at osc-gi's time (log-log interpolation between the two PT points around it);
 - the indirect light alone: ``osc-gi:output=indirect``, ``pt`` (indirect) and ``crc`` against the
   indirect reference;
-- multi-viewer (unless ``--no-multi``): 1, 4, 16 viewers at about 70% overlap
-  (:func:`slc.views.overlap_rig`), time against viewer count;
+- multi-viewer (unless ``--no-multi``): 1, 4, 16 viewers at about 75% overlap
+  (:func:`slc.views.overlap_rig` about the look-at point where the camera is outside the scene),
+  time against viewer count, per stage, the first viewer's FLIP at the last frame; the 16-viewer
+  row also without the update budget and front-only requests (``MULTI_ABLATIONS``, session gi9),
+  and the 16-viewer fan's first view alone (the fan's views are narrowed when it would span more
+  than 360 degrees); 3 repetitions in alternating order, the ratio to one viewer per repetition;
 - ablations (unless ``--no-ablations``): secondary cells of 30/60 cm (15 cm the default since session gi8), 1 and 3 bounces (each against
   its own reference), cells not keyed by shape (``--quick``: 60 cm and 1 bounce only).
 
@@ -44,6 +48,7 @@ osc-gi and pt not frozen, osc-gi without the glossy-hit rays, osc-gi at mip bias
 from __future__ import annotations
 
 import argparse
+import statistics
 import sys
 from pathlib import Path
 
@@ -72,15 +77,17 @@ SESSION_ABLATIONS = ["osc-gi:freeze=0", "osc-gi:glossy_hits=0", "osc-gi:bias=1",
 # 16 viewers on cornell (0.7: 55%, 0.8: 80%), inside the target's 60-80%
 FULL = dict(scenes=["cornell", "atrium"], width=160, height=90, frames=24, warmup=8, eval_frames=[23],
             ref_spp=256, pt_spp=[1, 2, 4, 8, 16, 32, 64], ind_pt=5, viewers=[1, 4, 16], overlap=0.75,
-            multi_res=(64, 36), multi_frames=10,
+            multi_res=(64, 36), multi_frames=20, multi_warmup=5, multi_repeats=3,
             ablations=SESSION_ABLATIONS + FILTER_ABLATIONS + ["osc-gi:secondary_cm=30", "osc-gi:secondary_cm=60",
                                                            "osc-gi:bounces=1", "osc-gi:bounces=3", "osc-gi:shape_key=0"],
             memory_res=[(64, 36), (128, 72), (256, 144), (480, 270)])
 QUICK = dict(scenes=["cornell"], width=64, height=36, frames=8, warmup=3, eval_frames=[7],
              ref_spp=64, pt_spp=[1, 2, 4, 8, 16, 32, 64], ind_pt=5, viewers=[1, 4, 16], overlap=0.75,
-             multi_res=(32, 18), multi_frames=6,
+             multi_res=(32, 18), multi_frames=16, multi_warmup=4, multi_repeats=3,
              ablations=SESSION_ABLATIONS + FILTER_ABLATIONS + ["osc-gi:secondary_cm=60", "osc-gi:bounces=1"],
              memory_res=[(64, 36), (128, 72), (256, 144)])
+# multi-viewer: the 16-viewer row also without this session's (gi9) update budget and front-only requests
+MULTI_ABLATIONS = ["osc-gi:update_budget=0", "osc-gi:update_budget=0,front_only=0"]
 SLIDES_1080P_MB = (300, 700)        # the slides' single-viewer memory at 1080p (GPU)
 CACHE_STAGES = ("requests", "allocate", "queue")
 
@@ -354,28 +361,58 @@ def run(opts) -> dict:
             # ----------------------------------- multi-viewer -----------------------------------
             if not opts.no_multi:
                 mw, mh = preset["multi_res"]
-                mcfg = dataclasses.replace(cfg, width=mw, height=mh, frames=preset["multi_frames"],
-                                           warmup=preset["multi_frames"] // 2, eval_frames=[], measure_overlap=True)
+                # session gi9: more timed frames (quick: 12 of 16, was 3 of 6: at ~8 ms a frame three
+                # medians moved the 16-viewer ratio by +-0.4); the first viewer's FLIP at the last frame
+                mf, mw_up = preset["multi_frames"], preset.get("multi_warmup", preset["multi_frames"] // 2)
+                mcfg = dataclasses.replace(cfg, width=mw, height=mh, frames=mf, warmup=mw_up, eval_frames=[mf - 1],
+                                           eval_viewers=1, measure_overlap=True)
                 # a throwaway run first: its kernels (at this resolution) are then in the kernel cache
-                run_sequence(s, methods.create("osc-gi", s, seed=opts.seed), v, mcfg)
-                for n in preset["viewers"]:
-                    # about the look-at point where the camera is outside the scene (cornell: a fan
-                    # about the eye left 11 of 16 views empty)
-                    vs = views.overlap_rig(s, n, preset["overlap"], pivot="auto") if n > 1 else v
-                    m = methods.create("osc-gi", s, seed=opts.seed)
-                    res = run_sequence(s, m, vs, mcfg)
-                    r = {"scene": s.name, "viewers": n, "target_overlap": preset["overlap"], "time_ms": res.time_ms,
-                         "measured_overlap": res.stats.get("measured_overlap"), "memory_mb": res.memory_mb,
-                         "memory_per_viewer_mb": res.memory_mb / n, "entries": res.stats.get("active_entries"), "secondary_cells": res.stats.get("secondary_cells"),
-                         "method": "osc-gi", "resolution": f"{mw}x{mh}",
-                         "compiled_after_warmup": res.compiled_after_warmup, **_split(res.stages)}
+                run_sequence(s, methods.create("osc-gi", s, seed=opts.seed), v,
+                             dataclasses.replace(mcfg, eval_frames=[]))
+                # (setting, viewers, rig): the largest rig's first view alone too ("view0"): a fan wider than
+                # 360 degrees is narrowed (cornell, 16 views: 18.6 instead of 45 degrees), so its views
+                # request finer entries than the one-viewer row
+                nmax = max(preset["viewers"])
+                m_runs = [("osc-gi", n, "fan") for n in preset["viewers"]] + [("osc-gi", 1, "view0")]
+                m_runs += [(a, nmax, "fan") for a in MULTI_ABLATIONS]
+                # repetitions in alternating order (1, 4, 16, ... then back): the ratio to one viewer is
+                # taken within each repetition (rows minutes apart saw other loads on the shared cores) and
+                # its median reported with its range; quality from the first repetition
+                reps, runs = preset.get("multi_repeats", 1), {}
+                for rep in range(reps):
+                    for spec, n, rig in (m_runs if rep % 2 == 0 else m_runs[::-1]):
+                        # about the look-at point where the camera is outside the scene (cornell: a fan
+                        # about the eye left 11 of 16 views empty)
+                        vs = views.overlap_rig(s, n, preset["overlap"], pivot="auto") if n > 1 else v
+                        if rig == "view0":
+                            vs = views.overlap_rig(s, nmax, preset["overlap"], pivot="auto")[:1]
+                        m = methods.create(spec, s, seed=opts.seed)
+                        runs.setdefault((spec, n, rig), []).append(
+                            run_sequence(s, m, vs, mcfg if rep == 0 else dataclasses.replace(mcfg, eval_frames=[])))
+                one = runs[("osc-gi", 1, "fan")]
+                for spec, n, rig in m_runs:
+                    rs = runs[(spec, n, rig)]
+                    res, st = rs[0], rs[0].stats
+                    med = lambda xs: statistics.median(xs) if xs else 0.0     # noqa: E731
+                    stages = {k: med([x.stages.get(k, 0.0) for x in rs]) for k in rs[0].stages}
+                    kstages = {k: med([x.stages_kernel.get(k, 0.0) for x in rs]) for k in rs[0].stages_kernel}
+                    ratios = [x.time_ms / max(o.time_ms, 1e-9) for x, o in zip(rs, one)]
+                    r = {"scene": s.name, "viewers": n, "setting": spec if rig == "fan" else f"{spec} ({nmax}-fan's view 0)",
+                         "rig": rig, "target_overlap": preset["overlap"],
+                         "time_ms": med([x.time_ms for x in rs]), "time_ms_reps": [x.time_ms for x in rs],
+                         "time_vs_one": med(ratios), "time_vs_one_reps": ratios,
+                         "time_vs_one_range": f"{min(ratios):.2f}-{max(ratios):.2f}",
+                         "frames_timed": mf - mw_up, "repeats": reps,
+                         "measured_overlap": st.get("measured_overlap"), "memory_mb": res.memory_mb,
+                         "memory_per_viewer_mb": res.memory_mb / n, "entries": st.get("active_entries"),
+                         "entries_updated": st.get("entries_updated"), "secondary_cells": st.get("secondary_cells"),
+                         "flip_viewer0": res.metrics.get("flip"), "method": "osc-gi", "resolution": f"{mw}x{mh}",
+                         "compiled_after_warmup": max(x.compiled_after_warmup for x in rs), **_split(stages),
+                         "stages_ms": stages, "stages_kernel_ms": kstages}
                     multi.append(r)
-                one_v = next(r for r in multi if r["scene"] == s.name and r["viewers"] == 1)
-                for r in multi:
-                    if r["scene"] == s.name:
-                        r["time_vs_one"] = r["time_ms"] / max(one_v["time_ms"], 1e-9)
                 experiment.time_vs_viewers_plot(out / f"time_vs_viewers_{s.name}.png",
-                                                [r for r in multi if r["scene"] == s.name],
+                                                [r for r in multi if r["scene"] == s.name and r["setting"] == "osc-gi"
+                                                 and r["rig"] == "fan"],
                                                 f"{s.name}: osc-gi, {mw}x{mh} per viewer, overlap "
                                                 f"{preset['overlap']:.0%}")
 
@@ -410,10 +447,19 @@ def run(opts) -> dict:
           + (experiment.markdown_table(rows, cols) if rows else "(single-viewer runs skipped)") + "\n")
     if multi:
         md += ("\n## Multi-viewer\n\n" + experiment.markdown_table(
-            multi, [("scene", "scene"), ("viewers", "viewers"), ("measured_overlap", "measured overlap %"),
-                    ("time_ms", "t [ms]"), ("time_vs_one", "t / 1 viewer"), ("entries", "entries"),
+            multi, [("scene", "scene"), ("setting", "method"), ("viewers", "viewers"),
+                    ("measured_overlap", "measured overlap %"), ("time_ms", "t [ms]"), ("time_vs_one", "t / 1 viewer"),
+                    ("time_vs_one_range", "range"), ("compiled_after_warmup", "kernels after warm-up"),
+                    ("entries", "entries"),
+                    ("entries_updated", "entries updated"), ("flip_viewer0", "FLIP viewer 0"),
                     ("secondary_cells", "secondary cells"), ("memory_mb", "memory [MB]"),
                     ("memory_per_viewer_mb", "memory / viewer [MB]")]) + "\n")
+        md += "\nPer stage (wall ms / of which kernel execution):\n\n"
+        for r in multi:
+            st, kk = r.get("stages_ms", {}), r.get("stages_kernel_ms", {})
+            md += (f"- {r['scene']} {r['setting']}, {r['viewers']} viewers: " + ", ".join(
+                f"{k} {st.get(k, 0.0):.1f} / {kk.get(k, 0.0):.1f}" for k in ("requests", "allocate", "queue", "update",
+                                                                            "shade", "direct")) + "\n")
     st_rows = [r for r in rows if r["family"] == "osc-gi" and r["group"] in ("full", "indirect")]
     if st_rows:
         md += ("\n## Where the frame time goes (osc-gi; wall ms per stage / of which kernel execution; the rest "
@@ -441,11 +487,12 @@ def run(opts) -> dict:
         r = next((x for x in rows if x["scene"] == name and x["setting"] == "osc-gi"), None)
         ri = next((x for x in rows if x["scene"] == name and x["setting"] == "osc-gi:output=indirect"), None)
         crc = next((x for x in rows if x["scene"] == name and x["setting"] == "crc"), None)
-        m16 = next((x for x in multi if x["scene"] == name and x["viewers"] == 16), None)
+        m16 = next((x for x in multi if x["scene"] == name and x["viewers"] == 16 and x["setting"] == "osc-gi"), None)
         if m16:
             ov = m16['measured_overlap'] or 0
             md += (f"- {name}: 16 viewers at {ov:.0f}% measured overlap cost "
-                   f"{m16['time_vs_one']:.2f}x one viewer (target <= 4 at 60-80% overlap"
+                   f"{m16['time_vs_one']:.2f}x one viewer (median of {m16['repeats']} repetitions, "
+                   f"{m16['time_vs_one_range']}; {m16['frames_timed']} timed frames each; target <= 4 at 60-80% overlap"
                    + ("" if 60 <= ov <= 80 else ": overlap outside that range") + ")\n")
         if r is None:
             continue

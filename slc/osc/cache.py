@@ -61,6 +61,11 @@ class OnSurfaceCache:
         used blocks not requested this frame are evicted early, and what
         still does not fit is reported (``stats()['overflow_blocks']``, a
         warning) and its pixels get INVALID slots.
+    front_only: only pixels whose surface faces the viewer (``si.wi.z > 0``)
+        request entries; the others get INVALID slots (default off: every valid
+        pixel). For payloads that shade back faces black anyway (osc-gi): a
+        viewer looking at the back of one-sided walls (the overlap rig's views
+        of the cornell box from behind) then asks for no entries.
     """
 
     capabilities = frozenset({BILINEAR_TAPS, ENTRY_TEXELS})
@@ -68,8 +73,9 @@ class OnSurfaceCache:
     def __init__(self, scene, block_size: int = 8, bias: float = 1.0, evict_after: int = 60,
                  texel_size: float | None = None, max_blocks: int | None = None,
                  max_angle: float = DEFAULT_MAX_ANGLE, max_triangles: int = DEFAULT_MAX_TRIANGLES,
-                 grow: bool = True):
+                 grow: bool = True, front_only: bool = False):
         self.scene = scene
+        self.front_only = bool(front_only)
         self.mi_scene = scene.mi_scene if hasattr(scene, "mi_scene") else scene
         self.layout = CacheLayout(self.mi_scene, block_size, bias, texel_size, max_angle, max_triangles)
         self.evict_after = int(evict_after)
@@ -133,6 +139,8 @@ class OnSurfaceCache:
                 req = (mi.Bool(), mi.UInt32(), mi.UInt32(), mi.UInt32())
             else:
                 req = L.pixel_texels(src)
+                if self.front_only:
+                    req = (req[0] & (src.si.wi.z > 0.0),) + tuple(req[1:])
                 dr.eval(req[0], req[1], req[2])    # once: both passes of requested_blocks read them
             req_vb = requested_blocks([req], L.n_vblocks)
             st.outputs(req_vb)

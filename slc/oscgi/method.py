@@ -2,10 +2,13 @@
 on-surface cache and secondary radiance caches in a hashed world grid (``docs/osc-gi.md``)."""
 from __future__ import annotations
 
+import dataclasses
+import math
 
 import drjit as dr
 import mitsuba as mi
 
+from ..backend import aligned
 from ..cones.update import light_inputs
 from ..freeze import FrozenFunction
 from ..gbuffer import layered, per_viewer, viewer_lanes
@@ -29,15 +32,18 @@ DIRECT_METHODS = {"cones": "slc", "restir": "restir"}   # direct=... -> the regi
 INITIAL_ENTRIES = 1 << 14     # the pool starts small and doubles on demand (entries are ~0.8 KB)
 
 
-def _primary_ray_kernel(fr_si, keys, tl, mix, D: int, res: int):
+def _primary_ray_kernel(pts, keys, tl, mix, D: int, res: int):
     """The jittered cosine rays of the traced lanes ``tl`` (entry tl // D, texel tl % D) from the
-    entries' own points ``fr_si``; returns (rays, mask above the geometric surface)."""
+    entries' own points ``pts`` = (position, geometric normal, shading normal); returns (rays, mask
+    above the geometric surface). Only these three fields of the entries' interactions are inputs:
+    passing the whole interaction made the frozen function record again when the sharing of its
+    unused literal fields (``dn_du``, ``dn_dv``) with other fields changed between frames."""
     G = HemiGrid(res)
     et, kt = tl // D, tl % D
     si = dr.zeros(mi.SurfaceInteraction3f)   # only what spawn_ray needs; width 1 (a width would be baked)
-    si.p = mi.Point3f(*[dr.gather(mi.Float, fr_si.p[c], et) for c in range(3)])
-    si.n = mi.Vector3f(*[dr.gather(mi.Float, fr_si.n[c], et) for c in range(3)])
-    n_sh = mi.Vector3f(*[dr.gather(mi.Float, fr_si.sh_frame.n[c], et) for c in range(3)])
+    si.p = mi.Point3f(*[dr.gather(mi.Float, pts[0][c], et) for c in range(3)])
+    si.n = mi.Vector3f(*[dr.gather(mi.Float, pts[1][c], et) for c in range(3)])
+    n_sh = mi.Vector3f(*[dr.gather(mi.Float, pts[2][c], et) for c in range(3)])
     s = mixed_rng(dr.gather(mi.UInt32, keys, et) * D + kt, mix)
     d = mi.Frame3f(n_sh).to_world(G.direction(kt, mi.Point2f(s.next_float32(), s.next_float32())))
     ok = dr.dot(d, si.n) > 0.0                      # above the geometric surface
@@ -182,6 +188,13 @@ class OSCGI(PayloadMethod):
     footprint, ``secondary_max`` x d); ``secondary_lod`` > 0 adds levels growing with the hit
     distance (off).
 
+    *Many viewers* (session gi9): ``update_budget`` (2) caps the entries updated per frame at
+    ``update_budget`` x (pixels of the largest viewer) / bias^2, about twice one viewer's entries
+    (never reached by one viewer): every new entry, then the most due (fewest samples, oldest
+    update); the others keep their value (:meth:`_budgeted`). ``front_only`` (on): only pixels
+    facing the viewer request entries (back faces are shaded black). Several viewers are shaded
+    in one launch (:meth:`shade_all`).
+
     Storage per entry: 3 R^2 radiance words, the irradiance (3 words) and the update count.
     Ray budget (the ray policy): an entry's first update traces all R^2 texels, later updates
     ``texel_rays`` of them in rotation (texel k when k = c mod R^2/``texel_rays``, c the update
@@ -233,6 +246,10 @@ class OSCGI(PayloadMethod):
         Param("direct_n", 16, "light samples per pixel with direct=rt", lo=1, hi=1024),
         Param("direct_lds", True, "direct=rt: a pixel's light samples are a randomly shifted Hammersley set "
               "(stratified over the light; else independent)"),
+        Param("update_budget", 2.0, "primary entries updated per frame at most, in units of one viewer's share: "
+              "update_budget x (pixels of the largest viewer) / bias^2; new entries always, then the most due "
+              "(fewest samples, oldest update); 0: every requested entry", lo=0.0, hi=1e6),
+        Param("front_only", True, "only pixels facing the viewer request entries (back faces are shaded black)"),
     ) + _cache_params()
     storage_type = mi.Float
 
@@ -274,6 +291,8 @@ class OSCGI(PayloadMethod):
         # sub-stage clock of update (off unless an experiment sets _profile: no host syncs)
         self.laps = Laps(getattr(self, "_profile", False), getattr(self, "_profile_skip", 0))
         self.memory_log = []          # per frame: (primary bytes, secondary bytes in use)
+        self._upd_frame = None        # per slot: frame of the entry's last update (update_budget)
+        self.entries_updated = 0      # entries the last update took
         if getattr(self, "_sub", None) is not None:
             self._sub.reset()
 
@@ -299,7 +318,8 @@ class OSCGI(PayloadMethod):
         cache = self._cache_arg
         if cache is None:
             cache = OnSurfaceCache(self.scene, block_size=self.block, bias=self.bias, evict_after=self.evict_after,
-                                   max_blocks=max(1, INITIAL_ENTRIES // (self.block * self.block)))
+                                   max_blocks=max(1, INITIAL_ENTRIES // (self.block * self.block)),
+                                   front_only=bool(self.front_only))
         self.cache = cache
         self.secondary = SecondaryCache(self.scene.mi_scene, self._cell_edge(getattr(self, "_gbuffers", None)), self.bounces,
                                         self.secondary_n_max or self.n_max, self.secondary_rays, self.light_samples,
@@ -311,6 +331,9 @@ class OSCGI(PayloadMethod):
 
     # ----------------------------------------------------------------- update
     def update(self, ctx, fr, rays, unsettled):
+        n_requested = fr.n_active
+        # ------- the per-frame budget (update_budget): which requested entries are updated -------
+        fr, rays, unsettled = self._budgeted(ctx, fr, rays, unsettled)
         sc, G, W, sec = self.scene.mi_scene, self.grid, self.words, self.secondary
         D, N = G.n, fr.n_active
         laps = self.laps
@@ -358,7 +381,8 @@ class OSCGI(PayloadMethod):
         tl = dr.compress(traced)
         et, kt = tl // D, tl % D
         ray_k = self._k_ray if dr.width(tl) > 1 else _primary_ray_kernel
-        ray, ok = ray_k(fr.si, fr.keys, tl, stream_key(self.seed, ctx.frame, STREAM_PRIMARY), D, self.hemi)
+        ray, ok = ray_k((fr.si.p, fr.si.n, fr.si.sh_frame.n), fr.keys, tl,
+                        stream_key(self.seed, ctx.frame, STREAM_PRIMARY), D, self.hemi)
         laps.lap("primary_raygen", ray, ok)
         hits = sec.trace(ray, ok)   # (p, n, t, shape index, preliminary intersection, valid, key, home, front n)
         laps.lap("primary_rays", *hits)
@@ -464,7 +488,73 @@ class OSCGI(PayloadMethod):
         dr.scatter(self.storage, cnt, slot * W + 3 * D + 3, k == 0)
         dr.scatter(self.storage, d_new, fr.active * W + 3 * D + 4)
         laps.lap("primary_ema", self.storage)
-        return dr.zeros(mi.Bool, N)
+        return dr.zeros(mi.Bool, n_requested)
+
+    def update_limit(self, fr) -> int:
+        """The most entries one frame's update may take (``update_budget`` x the largest
+        viewer's pixels / bias^2; 0 when off): about ``update_budget`` times the entries one
+        viewer requests (one entry per bias x bias pixels at the footprint's level)."""
+        if self.update_budget <= 0.0 or not fr.pixel_slot:
+            return 0
+        px = max(dr.width(ps) for ps in fr.pixel_slot)
+        return max(1, int(math.ceil(self.update_budget * px / max(float(self.bias), 1e-3) ** 2)))
+
+    def _budgeted(self, ctx, fr, rays, unsettled):
+        """(fr, rays, unsettled) of the entries this frame's update takes. Under the limit
+        (:meth:`update_limit`; always for one viewer at the default) every requested entry.
+        Over it, the slides' fixed per-frame budget: every new entry (it has no value yet), then
+        the settled ones most due, due = frame of the last update + min(updates, ``n_max``)
+        (fewest samples first, then oldest; ties by slot), up to the limit. An entry not taken
+        keeps its value (it holds one: every entry is updated in its first frame); once every
+        entry has ``n_max`` updates the order is a round robin, so each of N entries is updated
+        at least once every ceil(N / limit) frames while no new ones arrive (tested). The last
+        update's frame per slot is kept beside the storage (``_upd_frame``). With several
+        viewers the update always reads the entries through the selection (all of them when
+        under the limit), so that its kernels are the same whether or not the budget bites in
+        a frame (a first frame under the limit after the warm-up would build kernels); one viewer
+        under the limit reads the cache's arrays as before (the same kernels and images)."""
+        import numpy as np
+        N, B = fr.n_active, self.update_limit(fr)
+        cap = dr.width(self.storage) // self.words
+        if B > 0 and (self._upd_frame is None or dr.width(self._upd_frame) < cap):
+            grown = dr.zeros(mi.UInt32, cap)
+            if self._upd_frame is not None:
+                dr.scatter(grown, self._upd_frame, dr.arange(mi.UInt32, dr.width(self._upd_frame)))
+            self._upd_frame = grown
+        self.entries_updated = N
+        if B <= 0:
+            return fr, rays, unsettled
+        now = dr.opaque(mi.UInt32, ctx.frame)
+        if N <= B and len(fr.pixel_slot) < 2:
+            dr.scatter(self._upd_frame, now, fr.active)
+            dr.eval(self._upd_frame)
+            return fr, rays, unsettled
+        take = N
+        if N > B:
+            D, W = self.grid.n, self.words
+            slot = np.array(fr.active, dtype=np.int64)
+            cnt = np.array(dr.gather(mi.Float, self.storage, fr.active * W + 3 * D + 3))
+            last = np.array(dr.gather(mi.UInt32, self._upd_frame, fr.active), dtype=np.int64)
+            due = last + np.minimum(cnt, float(self.n_max)).astype(np.int64)
+            due[np.array(fr.is_new, dtype=bool)] = -1                  # new entries: always
+            order = np.lexsort((slot, due))
+            take = min(max(B, int(np.count_nonzero(due < 0))), N)
+        # an aligned copy: a numpy buffer at an unaligned address is another kernel (slc.backend.aligned)
+        sel = (mi.UInt32(aligned(np.sort(order[:take]), np.uint32)) if take < N
+               else dr.arange(mi.UInt32, N))
+        sub = dataclasses.replace(fr, active=dr.gather(mi.UInt32, fr.active, sel),
+                                  si=dr.gather(mi.SurfaceInteraction3f, fr.si, sel),
+                                  is_new=dr.gather(mi.Bool, fr.is_new, sel),
+                                  seed_slot=dr.gather(mi.UInt32, fr.seed_slot, sel),
+                                  keys=dr.gather(mi.UInt32, fr.keys, sel))
+        rays, unsettled = dr.gather(mi.UInt32, rays, sel), dr.gather(mi.Bool, unsettled, sel)
+        # arrays in memory: a gather from a literal (the cache's is_new / seed_slot in a frame without
+        # new entries) stays a literal, and the update's kernels would get another IR (a kernel build)
+        dr.make_opaque(sub.active, sub.si, sub.is_new, sub.seed_slot, sub.keys, rays, unsettled)
+        dr.scatter(self._upd_frame, now, sub.active)
+        dr.eval(self._upd_frame)      # now: a pending scatter would fuse into whichever kernel comes next
+        self.entries_updated = take
+        return sub, rays, unsettled
 
     def _finer_seeds(self, fr) -> list:
         """Per active entry, the slots of the 4 entries of the next finer level covering it
@@ -495,20 +585,31 @@ class OSCGI(PayloadMethod):
 
     # ------------------------------------------------------------------ shade
     def shade_all(self, ctx, fr, gbuffers):
-        """Every viewer's pixels; with the spatial filter on (``filter_radius`` > 0), from a
-        filtered copy of the active entries (:class:`~slc.oscgi.spatial.SpatialFilter`, timed with
-        the display), the temporal state left unfiltered."""
-        if self.filter.r <= 0:
-            return super().shade_all(ctx, fr, gbuffers)
+        """Every viewer's pixels. Several viewers are shaded in one launch over the frame's
+        layered G-buffer (:func:`slc.gbuffer.layered`; the cache's slots laid out the same way,
+        ``fr.layer_slot`` / ``fr.layer_index``), then split per viewer: each pixel keeps the
+        random-number key it has per viewer (its index within its own viewer), so the images are
+        those of :meth:`shade` bit for bit, and the shading (BSDF calls) is traced in Python once
+        a frame instead of once per viewer (session gi9: 16 viewers at 32x18 spent 17 of 31 ms a
+        frame tracing 16 shading kernels, 0.2 ms of it executing them). With the spatial filter
+        on (``filter_radius`` > 0), from a filtered copy of the active entries
+        (:class:`~slc.oscgi.spatial.SpatialFilter`, timed with the display), the temporal state
+        left unfiltered."""
         raw = self.storage
-        self.storage = self.filter.apply(self.cache, raw, fr, self.grid, self.words)
+        if self.filter.r > 0:
+            self.storage = self.filter.apply(self.cache, raw, fr, self.grid, self.words)
         try:
-            return super().shade_all(ctx, fr, gbuffers)
+            if len(gbuffers) < 2 or fr.layer_slot is None or fr.layer_index is None:
+                return [self.shade(ctx, fr, v, gb) for v, gb in enumerate(gbuffers)]
+            lay = layered(gbuffers)
+            L = self._shade_pixels(ctx, fr, lay.si, lay.valid, mi.UInt32(fr.layer_slot),
+                                   mi.UInt32(fr.layer_index), lay.pixel)
+            return per_viewer(L, lay.sizes, lay.offsets)
         finally:
             self.storage = raw
 
     def shade(self, ctx, fr, v, gb):
-        G, W, D = self.grid, self.words, self.grid.n
+        """One viewer's pixels (see :meth:`_shade_pixels`)."""
         if len(fr.pixel_slot) > 1 and fr.layer_slot is not None:
             # several viewers: the viewer's part of the layered values, gathered here rather than
             # through the cache's per-viewer views, whose unevaluated gathers (made in another
@@ -519,8 +620,15 @@ class OSCGI(PayloadMethod):
             idx = dr.gather(mi.UInt32, fr.layer_index, at)
         else:
             slot, idx = mi.UInt32(fr.pixel_slot[v]), mi.UInt32(fr.pixel_index[v])
-        si = gb.si
-        ok = mi.Bool(gb.valid) & (slot != INVALID) & (si.wi.z > 0.0)
+        return self._shade_pixels(ctx, fr, gb.si, mi.Bool(gb.valid), slot, idx, dr.arange(mi.UInt32, gb.size))
+
+    def _shade_pixels(self, ctx, fr, si, valid, slot, idx, pid):
+        """Pixels ``si`` (G-buffer mask ``valid``) from their entries (``slot`` into the storage,
+        ``idx`` into ``fr.si``); ``pid`` each pixel's index within its own viewer (the key of
+        its random numbers). Diffuse BSDFs from the irradiance words, others by BSDF samples of
+        the hemisphere texels (:func:`slc.sh.shading.shade_radiance`)."""
+        G, W, D = self.grid, self.words, self.grid.n
+        ok = valid & (slot != INVALID) & (si.wi.z > 0.0)
         bsdf = si.bsdf()
         d_only = diffuse_only(bsdf)
         g = ok & ~d_only
@@ -539,7 +647,7 @@ class OSCGI(PayloadMethod):
             t = slot * W + G.texel(loc) * 3
             return mi.Color3f(*[dr.gather(mi.Float, self.storage, t + c, m) for c in range(3)]), m
 
-        sampler = keyed_rng(dr.arange(mi.UInt32, gb.size), self.seed, ctx.frame, STREAM_SHADE)
+        sampler = keyed_rng(pid, self.seed, ctx.frame, STREAM_SHADE)
         return shade_radiance(si, bsdf, ok, irradiance, radiance, sampler, self.glossy_samples)
 
     # ------------------------------------------------------------------ frame
@@ -587,6 +695,7 @@ class OSCGI(PayloadMethod):
             sec = self.secondary
             r = sec.reuse
             out.update({"secondary_cells": float(getattr(self, "_cells", 0)), "secondary_updated": float(sec.updated),
+                        "entries_updated": float(self.entries_updated),
                         "secondary_overflow": float(sec.overflow), "secondary_requested": float(sec.requested),
                         "secondary_evicted": float(sec.evicted), "secondary_cell_m": float(sec.h),
                         "secondary_reuse_mean": float(dr.mean(mi.Float(r))[0]) if dr.width(r) else 0.0})

@@ -60,6 +60,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..backend import aligned
 from ..cones.update import light_inputs
 from ..freeze import FrozenFunction
 from ..keys import INVALID, mixed_rng, stream_key
@@ -133,10 +134,12 @@ def cell_key(si, d, shape_index, h: float, slots: int, shape_key: bool, lod: flo
     return key, home & (slots - 1), nf
 
 
-def _rep_kernel(pi, ray, idx, slots, p, nf):
+def _rep_kernel(sc, pi, ray, idx, slots, p, nf):
     """The representative points of the winning lanes ``idx``: (slots, the 9 words: position,
     front normal and the diffuse albedo: the full interaction from the preliminary one, a BSDF
-    call), evaluated. The caller writes them (a frozen function copies an input it writes to)."""
+    call), evaluated. The caller writes them (a frozen function copies an input it writes to).
+    ``sc`` (the scene, unused) declares the scene's arrays as inputs (the free width of
+    ``lanes``, :mod:`slc.freeze`)."""
     pw = dr.gather(type(pi), pi, idx)
     rw = dr.gather(mi.Ray3f, ray, idx)
     sw = pw.compute_surface_interaction(rw, mi.RayFlags.All, True)
@@ -249,7 +252,9 @@ class SecondaryCache:
         # the kernels with BSDF, shape and emitter calls, traced once and replayed (dr.freeze)
         self.freeze, self.glossy_hits = bool(freeze), bool(glossy_hits)
         self._k_trace = FrozenFunction(_trace_kernel, self.freeze, max_recordings=6)
-        self._k_rep = FrozenFunction(_rep_kernel, self.freeze, max_recordings=6)
+        # lanes: the winning lanes idx (a pure kernel), run on a free width when their number equals the
+        # size of some scene array (the atrium: 2,880, recorded again in a timed frame; slc.freeze)
+        self._k_rep = FrozenFunction(_rep_kernel, self.freeze, max_recordings=6, lanes=(3,))
         self._k_direct = FrozenFunction(_direct_kernel, self.freeze, max_recordings=6)
         self._k_ray = FrozenFunction(_ray_kernel, self.freeze, max_recordings=6)
         self._k_glossy = FrozenFunction(_glossy_kernel, self.freeze, max_recordings=6)
@@ -349,7 +354,7 @@ class SecondaryCache:
             return
         # 2 or more lanes replayed (a width-1 input would need a recording of its own)
         rep_k = self._k_rep if dr.width(idx) > 1 else _rep_kernel
-        sl, words = rep_k(hits[4], ray, idx, slots, hits[0], hits[8])
+        sl, words = rep_k(self.sc, hits[4], ray, idx, slots, hits[0], hits[8])
         for j, v in enumerate(words):
             dr.scatter(self.rep, v, sl * _REP + j)
         dr.eval(self.rep)
@@ -420,9 +425,9 @@ class SecondaryCache:
         """Over the load cap: mark (in ``old``) the ``n`` least recently touched live cells that
         are not old yet (then lowest slot); returns how many were marked."""
         idx = np.asarray(dr.compress(live & ~old), dtype=np.int64)
-        u = np.asarray(dr.gather(mi.UInt32, self.used, mi.UInt32(idx.astype(np.uint32))), dtype=np.int64)
+        u = np.asarray(dr.gather(mi.UInt32, self.used, mi.UInt32(aligned(idx, np.uint32))), dtype=np.int64)
         drop = idx[np.lexsort((idx, u))[:n]]
-        dr.scatter(old, True, mi.UInt32(np.sort(drop).astype(np.uint32)))
+        dr.scatter(old, True, mi.UInt32(aligned(np.sort(drop), np.uint32)))
         return int(drop.size)
 
     def _rebuild(self, keep: mi.UInt32) -> None:
@@ -511,7 +516,7 @@ class SecondaryCache:
             cnt = np.asarray(dr.gather(mi.UInt32, self.count, cells), dtype=np.int64)
             age = self.frame - np.asarray(dr.gather(mi.UInt32, self.stamp, cells), dtype=np.int64)
             order = np.lexsort((c_np, -age, cnt, rg))[: self.budget]
-            cells = mi.UInt32(np.sort(c_np[order]).astype(np.uint32))
+            cells = mi.UInt32(aligned(np.sort(c_np[order]), np.uint32))   # aligned: else another kernel
         n = dr.width(cells)
         self.updated = n
         if n == 0:
