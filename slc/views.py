@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from .scenes import Camera, Scene
+from .scenes import Camera, Scene, SceneError
 
 INTEROCULAR_M = 0.064
 RIGS = ("single", "random", "overlap", "stereo", "meeting")
@@ -238,7 +238,8 @@ def _fan(p, n: int, step: float, aspect: float, pivot: str = "eye"):
     narrowed when the fan would span more than 360 degrees. ``pivot="eye"``
     turns each view about its own position; ``"target"`` moves the eye on a
     circle about the up axis through the path's look-at point, every viewer
-    looking at it (a camera outside an open box keeps the box in view)."""
+    looking at it (the views beyond 90 degrees see the box from behind);
+    ``"tile"``: see :func:`_tiles`."""
     hfov = horizontal_fov(p.fov, aspect)
     span = 1.0 + (n - 1) * step
     fov = p.fov
@@ -255,13 +256,64 @@ def _fan(p, n: int, step: float, aspect: float, pivot: str = "eye"):
     return out
 
 
+def _scene_window(scene: Scene, p) -> tuple[float, float, float, float]:
+    """(x0, x1, y0, y1): the part of the path's first view that shows the front of
+    a surface, in tangent units of the camera's basis (x right, y up), from a
+    G-buffer at ``CALIBRATION_RES``."""
+    import mitsuba as mi
+    from .gbuffer import render_gbuffer
+    cam = p.at(0)
+    w, h = CALIBRATION_RES
+    gb = render_gbuffer(scene, cam, w, h, None, "window")
+    front = np.array(gb.valid) & (np.array(mi.Frame3f.cos_theta(gb.si.wi)) > 0.0)
+    if not np.any(front):
+        raise SceneError(f"scene {scene.name!r}: its first camera sees no surface from the front")
+    f, r, u = cam.basis()
+    d = np.array(gb.si.p).T[front] - np.asarray(cam.origin, float)
+    z = d @ f
+    x, y = (d @ r) / z, (d @ u) / z
+    return float(x.min()), float(x.max()), float(y.min()), float(y.max())
+
+
+def _tiles(scene: Scene, p, n: int, step: float, aspect: float):
+    """Viewers at the path's position, each aimed at a tile of what its camera
+    sees of the scene (:func:`_scene_window`): a grid of ceil(sqrt(n)) columns,
+    tiles of the render's aspect as large as fit ``1 + (k - 1) step`` tiles
+    across the window on both axes, centres ``step`` tiles apart (step 0: n
+    identical views of the whole window; 1: adjacent tiles). For a camera
+    outside the scene (the cornell box seen through its open side) every view
+    looks into the box at the front of its walls. Viewer 0 holds the tile
+    nearest the window's centre."""
+    x0, x1, y0, y1 = _scene_window(scene, p)
+    cols = int(math.ceil(math.sqrt(n)))
+    rows = int(math.ceil(n / cols))
+    tw = min((x1 - x0) / (1.0 + (cols - 1) * step), (y1 - y0) * aspect / (1.0 + (rows - 1) * step))
+    th = tw / aspect
+    mx, my = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+    cells = [(mx + (c - 0.5 * (cols - 1)) * step * tw, my + (r - 0.5 * (rows - 1)) * step * th)
+             for r in range(rows) for c in range(cols)]
+    cells.sort(key=lambda q: (q[0] - mx) ** 2 + (q[1] - my) ** 2)
+    fov = math.degrees(2.0 * math.atan(0.5 * th))
+
+    def aimed(f, cx, cy):
+        cam = p.at(f)
+        fw, r, u = cam.basis()
+        o = np.asarray(cam.origin, float)
+        return Camera(o.copy(), o + fw + cx * r + cy * u, np.array(cam.up, float), fov)
+
+    return [Viewer(f"o{i:02d}", (lambda f, cx=cx, cy=cy: aimed(f, cx, cy)), "overlap")
+            for i, (cx, cy) in enumerate(cells[:n])]
+
+
 def fan_pivot(scene: Scene, path: int = 0) -> str:
-    """``"target"`` when the path's first camera is outside the scene's
+    """``"tile"`` when the path's first camera is outside the scene's
     bounding box (it looks at the scene from outside: turning it about its eye
-    would look away from everything), else ``"eye"``."""
+    would look away from everything, and orbiting it about the look-at point
+    (``"target"``) shows the box's walls from behind in more than half of 16
+    views), else ``"eye"``."""
     o = np.asarray(scene.path(path).at(0).origin, float)
     inside = bool(np.all(o >= scene.bbox_min) and np.all(o <= scene.bbox_max))
-    return "eye" if inside else "target"
+    return "eye" if inside else "tile"
 
 
 def _fan_overlap(scene: Scene, p, n: int, step: float, aspect: float, pivot: str = "eye") -> float:
@@ -269,7 +321,7 @@ def _fan_overlap(scene: Scene, p, n: int, step: float, aspect: float, pivot: str
     from .gbuffer import render_gbuffer
     w, h = CALIBRATION_RES
     w = max(int(round(h * aspect)), 1)
-    vs = _fan(p, n, step, aspect, pivot)
+    vs = _tiles(scene, p, n, step, aspect) if pivot == "tile" else _fan(p, n, step, aspect, pivot)
     m = []
     for f in CALIBRATION_FRAMES:
         scene.set_frame(f)
@@ -327,12 +379,15 @@ def overlap_rig(scene: Scene, n: int, overlap: float, aspect: float = 16 / 9,
     fit (16 viewers at 0%: 22.5 degrees wide). The resolution, and with it
     the pixels and cache requests per viewer, is unchanged.
 
-    ``pivot`` (see :func:`_fan`): ``"eye"`` (default) or ``"target"``;
-    ``"auto"`` picks by :func:`fan_pivot` (the cornell box's camera is
-    outside the box: a fan about its eye left 11 of 16 views empty)."""
+    ``pivot`` (see :func:`_fan`): ``"eye"`` (default), ``"target"`` or
+    ``"tile"``; ``"auto"`` picks by :func:`fan_pivot` (the cornell box's camera
+    is outside the box: a fan about its eye left 11 of 16 views empty, one
+    about the look-at point showed 9 of 16 views only the back of the walls)."""
     if pivot == "auto":
         pivot = fan_pivot(scene, path)
     step, _ = calibrated_step(scene, n, overlap, aspect, path, pivot=pivot)
+    if pivot == "tile":
+        return _tiles(scene, scene.path(path), n, step, aspect)
     return _fan(scene.path(path), n, step, aspect, pivot)
 
 

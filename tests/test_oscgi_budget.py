@@ -22,14 +22,19 @@ def cornell():
     return scenes.load("cornell")
 
 
-def _run(scene, spec, viewers, frames, still=True, w=W, h=H):
+def _run(scene, spec, viewers, frames, still=True, w=W, h=H, average=1):
     """Per frame: (requested entries, new entries, entries updated, the limit, the largest number of
-    frames since an active entry's last update, every active entry holds a value); the last images."""
+    frames since an active entry's last update, every active entry holds a value); the images of the
+    last frame (``average`` > 1: the mean of the last ``average`` frames' images)."""
     m = methods.create(spec, scene, seed=0)
     rows = []
+    acc = None
     for f in range(frames):
         gbs = gbuffers_for(scene, viewers, 0 if still else f, w, h)
         out = m.render(FrameContext(f), gbs, NullTimer())
+        if f >= frames - average:
+            imgs = [np.array(x) for x in out]
+            acc = imgs if acc is None else [a + b for a, b in zip(acc, imgs)]
         fr = m.requests
         D, Wd = m.grid.n, m.words
         cnt = np.array(dr.gather(mi.Float, m.storage, fr.active * Wd + 3 * D + 3))
@@ -38,7 +43,7 @@ def _run(scene, spec, viewers, frames, still=True, w=W, h=H):
             stale = int((f - np.array(dr.gather(mi.UInt32, m._upd_frame, fr.active), dtype=np.int64)).max())
         rows.append(dict(n=fr.n_active, new=int(dr.count(fr.is_new)[0]), updated=m.entries_updated,
                          limit=m.update_limit(fr), stale=stale, valued=bool(np.all(cnt > 0))))
-    return rows, [np.array(x) for x in out]
+    return rows, [a / average for a in acc]
 
 
 def test_budget_bounds_the_updated_entries_and_updates_every_entry_within_k_frames(cornell):
@@ -72,13 +77,15 @@ def test_budget_moving_viewers_take_every_new_entry(cornell):
 
 
 def test_budget_converges_to_the_full_update(cornell):
-    """Still viewers: after 24 frames the budgeted images (update_budget 0.5: each entry updated
-    about every 6th frame) agree with the full update's: each viewer's mean within 3%, the mean
-    absolute difference of viewer 0 under 5% of its mean (Monte Carlo noise of different sample
-    counts). Viewers that see only back faces (black) stay black."""
+    """Still viewers: the budgeted images (update_budget 0.5: each entry updated about every 6th
+    frame) converge to the full update's: after 64 frames each viewer's mean within 3%, the mean
+    absolute difference of viewer 0 under 5% of its mean (the mean of the last 8 frames' images).
+    The budgeted light lags: bounces accumulate through entries updated less often (with the
+    tiled rig, all 16 views facing the box: every viewer 2-3.4% darker after 24 frames, 1.1-2.4%
+    after 64). Viewers that see only back faces (black) stay black."""
     rig = views.overlap_rig(cornell, 16, 0.75, pivot="auto")
-    _, a = _run(cornell, "osc-gi:update_budget=0.5", rig, FRAMES)
-    _, b = _run(cornell, "osc-gi:update_budget=0", rig, FRAMES)
+    _, a = _run(cornell, "osc-gi:update_budget=0.5", rig, 64, average=8)
+    _, b = _run(cornell, "osc-gi:update_budget=0", rig, 64, average=8)
     for x, y in zip(a, b):
         if y.mean() == 0.0:
             assert x.mean() == 0.0

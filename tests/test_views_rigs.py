@@ -5,6 +5,7 @@ viewers never stand inside geometry."""
 import numpy as np
 
 import slc.backend  # noqa: F401
+import mitsuba as mi
 from slc import views
 from slc.gbuffer import render_gbuffer
 from slc.scenes import load
@@ -14,8 +15,18 @@ def _valid_per_viewer(sc, vs, w=48, h=27):
     return [int(np.count_nonzero(np.array(render_gbuffer(sc, v.camera(0), w, h, None, v.name).valid))) for v in vs]
 
 
+def _front_per_viewer(sc, vs, w=48, h=27):
+    """Pixels per view whose surface faces the viewer (its front side)."""
+    out = []
+    for v in vs:
+        gb = render_gbuffer(sc, v.camera(0), w, h, None, v.name)
+        front = np.array(gb.valid) & (np.array(mi.Frame3f.cos_theta(gb.si.wi)) > 0.0)
+        out.append(int(np.count_nonzero(front)))
+    return out
+
+
 def test_pivot_follows_where_the_camera_is():
-    assert views.fan_pivot(load("cornell")) == "target"
+    assert views.fan_pivot(load("cornell")) == "tile"
     assert views.fan_pivot(load("atrium")) == "eye"
 
 
@@ -25,8 +36,14 @@ def test_cornell_fan_about_the_target_sees_the_box_in_every_view():
     auto = _valid_per_viewer(sc, views.overlap_rig(sc, 16, 0.75, pivot="auto"))
     assert min(eye) == 0                      # the old fan: views looking out of the box
     assert min(auto) > 0.25 * max(auto), auto  # every view holds a good part of the box
+    # ... seen from the inside: the orbit about the look-at point shows walls from behind
+    n = 48 * 27
+    orbit = _front_per_viewer(sc, views.overlap_rig(sc, 16, 0.75, pivot="target"))
+    assert sum(f < 0.5 * n for f in orbit) >= 4, orbit
+    front = _front_per_viewer(sc, views.overlap_rig(sc, 16, 0.75, pivot="auto"))
+    assert min(front) > 0.9 * n, front
     # the calibrated overlap is still reached (within the calibration's tolerance)
-    _, got = views.calibrated_step(sc, 16, 0.75, pivot="target")
+    _, got = views.calibrated_step(sc, 16, 0.75, pivot="tile")
     assert abs(got - 75.0) < 10.0, got
 
 
