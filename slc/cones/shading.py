@@ -286,7 +286,8 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
                  bsdf: mi.BSDFPtr, texel_frame: mi.Frame3f, max_cones: int, n_total: mi.UInt32,
                  key: mi.UInt32, adaptive: bool = True, rotate: bool = True,
                  pid: mi.UInt32 | None = None, horizon: bool = True, principled: bool = True,
-                 conductor: bool = False, table=None, entry_frames=None, glossy_half: bool = False) -> mi.Color3f:
+                 conductor: bool = False, table=None, entry_frames=None, glossy_half: bool = False,
+                 compact: bool = False) -> mi.Color3f:
     """Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
     ``slot``; ``texel_frame`` is the local frame of each pixel's entry (the frame its
     cone directions are stored in). ``n_total`` directions per live cone and ``key``
@@ -299,32 +300,13 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     into them (the gather then runs inside this kernel, not as a kernel of its own).
     Entries without cones and inactive pixels give 0."""
     K = max_cones
-    if entry_frames is not None:
-        texel_frame = dr.gather(mi.Frame3f, entry_frames, texel_frame, active)
-    D, A, L, C, n = unpack(gather_words(storage, slot, K, active), K)
-    Dw = [dr.normalize(texel_frame.to_world(D[i])) for i in range(K)]
+    tf_in = texel_frame
+    A, L, n, Dw, zero, live, h, delta, area, inv_om = _cone_state(storage, slot, active, texel_frame, entry_frames, K)
     ctx = mi.BSDFContext()
-    zero = dr.select(active, mi.Float(0.0), mi.Float(0.0))     # a zero of the pixels' width
     if pid is None:
         pid = dr.arange(mi.UInt32, dr.width(slot))
     # each pixel's BSDF kind and constants from the table (KIND_OTHER: virtual calls)
-    if table is not None:
-        t_w, t_kind, t_col, t_rough, t_metal = table
-        rid = dr.reinterpret_array(mi.UInt32, bsdf)
-        t_ok = active & (bsdf != None) & (rid < t_w)  # noqa: E711 (BSDFPtr comparison)
-        kind = dr.gather(mi.UInt32, t_kind, rid, t_ok)
-        consts = (kind, lambda: dr.gather(mi.Color3f, t_col, rid, t_ok), lambda: dr.gather(mi.Float, t_rough, rid, t_ok),
-                  lambda: dr.gather(mi.Float, t_metal, rid, t_ok))
-    else:
-        kind = mi.UInt32(KIND_OTHER)
-        consts = None
-
-    # ------------------- the cones: live, Dirac, solid angle, density -------------------
-    live = [active & (n > i) for i in range(K)]
-    h = [2.0 * dr.square(dr.sin(0.5 * A[i])) for i in range(K)]           # 1 - cos(alpha_c)
-    delta = [live[i] & (A[i] < ALPHA_DELTA) for i in range(K)]
-    area = [live[i] & ~delta[i] for i in range(K)]                        # cones with a density
-    inv_om = [dr.select(area[i], dr.rcp(dr.maximum(2.0 * math.pi * h[i], 1e-30)), 0.0) for i in range(K)]
+    kind, consts = _table_consts(table, bsdf, active)
 
     # ------------------- Lambertian pixels: the cone integral in closed form -------------------
     # A cone clear of the horizon: (1/Omega_c) int_c cos = (n . d_c)(1 + cos alpha_c)/2. With
@@ -333,6 +315,116 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     # lights): int = (cos_d acos(y) - x sin_d sqrt(1 - y^2)) sin^2(alpha) + atan(sin_d sqrt(1 - y^2) / x),
     # x = cot(alpha), y = -x cos_d / sin_d; a cap wholly below (or a Dirac cone below) adds 0.
     # Cones wider than a hemisphere across the horizon still go to sampling.
+    closed, cones_ok, clear, term, below_c = _horizon_terms(si, active, K, A, L, Dw, live, delta, h, zero, horizon)
+    lambert = _lambertian(bsdf, si, active) & cones_ok
+
+    # Each kind of pixel runs in a symbolic branch of its own (Lambertian closed form,
+    # principled closed form, quadrature): on the LLVM backend a SIMD packet skips a branch
+    # none of its lanes takes, so a pixel pays only for its own kind (the images are the
+    # same bit for bit as with every kind computed for every pixel and selected).
+    def lambert_fn(closed):
+        if consts is None:
+            rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert))
+        else:
+            tab = kind == KIND_DIFFUSE
+            rho = dr.select(tab, consts[1](), mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert & ~tab)))
+        return rho * closed * (1.0 / math.pi)
+
+    closed = dr.if_stmt(args=(closed,), cond=lambert, true_fn=lambert_fn,
+                        false_fn=lambda closed: mi.Color3f(0.0), label="lambert")
+
+    # ------------------- principled (and GGX conductor) pixels: closed forms -------------------
+    prin, pfast = _glossy_closed(bsdf, si, ctx, active & cones_ok & ~lambert, K, live, delta, A, h, inv_om, L, Dw,
+                                 term, below_c, zero, consts, principled, conductor)
+    # ------------------- pixels seen from behind whose cones are all in front: 0, no quadrature -------------------
+    # A BSDF without transmission (or null) lobes reflects only into the side of w_i: with
+    # cos(theta_i) <= 0 and every cone wholly above the horizon, f_r = 0 for every direction
+    # in the cones, and a BSDF sample (on w_i's side) lies in no cone (L~ = 0): the quadrature
+    # sums zeros. (The meeting rig's viewers 4 and 12 see only such pixels: 12 % of its pixels.)
+    flags = mi.UInt32(bsdf.flags())
+    backside = active & clear & (mi.Frame3f.cos_theta(si.wi) <= 0.0) & \
+        ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & ~mi.has_flag(flags, mi.BSDFFlags.Null)
+    sampled = active & ~lambert & ~pfast & (n > 0) & ~backside
+
+    if not compact:
+        n_px = _samples_px(bsdf, n_total, glossy_half)
+
+        def sampled_fn(sampled):
+            return _quadrature(bsdf, si, ctx, sampled, K, n_px, key, pid, adaptive, rotate, live, delta, area, h,
+                               inv_om, L, A, Dw, zero)
+
+        acc = dr.if_stmt(args=(sampled,), cond=sampled, true_fn=sampled_fn,
+                         false_fn=lambda sampled: mi.Color3f(0.0), label="quadrature")
+
+        # raw values: a NaN or Inf made here reaches the image, where check mode names it
+        return dr.select(lambert, closed, dr.select(pfast, prin, acc))
+
+    # ------------------- the quadrature's pixels compacted into a launch of their own -------------------
+    # A SIMD packet (16 lanes with AVX-512 on the LLVM backend) holding one quadrature pixel
+    # runs the quadrature's loops for all its lanes; on the atrium 3 % of the pixels (rough
+    # conductors) take it, spread over 14 % of the packets. This launch evaluates the closed
+    # forms and which pixels are left; the next takes the indices of those (``dr.compress``;
+    # the last pixel always taken, masked off unless it is one: no launch of width 0), gathers
+    # their inputs, recomputes their cone state from them (the same operations: the same
+    # values), and its values are scattered back. Same images bit for bit
+    # (tests/test_cones_compact.py); measured in docs/cones.md, "Session ovl7".
+    out = dr.select(lambert, closed, dr.select(pfast, prin, 0.0))
+    dr.eval(out, sampled)
+    N = dr.width(slot)
+    idx = dr.compress(sampled | (dr.arange(mi.UInt32, N) == (N - 1)))
+    on = dr.gather(mi.Bool, sampled, idx)
+    si_c, bsdf_c = dr.gather(type(si), si, idx), dr.gather(mi.BSDFPtr, bsdf, idx)
+    A_c, L_c, _, Dw_c, zero_c, live_c, h_c, delta_c, area_c, inv_om_c = _cone_state(
+        storage, dr.gather(mi.UInt32, slot, idx), on, dr.gather(type(tf_in), tf_in, idx), entry_frames, K)
+    acc = _quadrature(bsdf_c, si_c, ctx, on, K, _samples_px(bsdf_c, n_total, glossy_half), key,
+                      dr.gather(mi.UInt32, pid, idx), adaptive, rotate, live_c, delta_c, area_c, h_c, inv_om_c, L_c,
+                      A_c, Dw_c, zero_c)
+    dr.scatter(out, acc, idx, on)
+    # raw values: a NaN or Inf made here reaches the image, where check mode names it
+    return out
+
+def _glossy_closed(bsdf, si, ctx, pm, K, live, delta, A, h, inv_om, L, Dw, term, below_c, zero, consts,
+                   principled, conductor):
+    """The closed forms of the candidate pixels ``pm`` (Lambertian closed form for every
+    cone, not Lambertian): principled (``principled``), GGX conductor (``conductor``), each
+    in a symbolic branch. Returns (value, mask of the pixels that have one)."""
+    if principled:
+        prin, pfast = dr.if_stmt(
+            args=(pm,), cond=pm,
+            true_fn=lambda pm: _principled_cones(bsdf, si, ctx, pm, K, live, delta, A, h, inv_om, L, Dw,
+                                                 term, below_c, zero, consts),
+            false_fn=lambda pm: (mi.Color3f(0.0), mi.Bool(False)), label="principled")
+    else:
+        prin, pfast = mi.Color3f(zero), pm & False
+    # ------------------- GGX conductor pixels: the lobe as an SG (an option) -------------------
+    if conductor:
+        cm = pm & ~pfast
+        cond_v, cfast = dr.if_stmt(
+            args=(cm,), cond=cm,
+            true_fn=lambda cm: _conductor_cones(bsdf, si, ctx, cm, K, live, delta, A, inv_om, L, Dw, below_c, zero),
+            false_fn=lambda cm: (mi.Color3f(0.0), mi.Bool(False)), label="conductor")
+        prin = dr.select(pfast, prin, cond_v)
+        pfast = pfast | cfast
+    return prin, pfast
+
+
+def _table_consts(table, bsdf, active):
+    """Each pixel's BSDF kind and constants from the table (:func:`bsdf_table`; ``KIND_OTHER``:
+    virtual calls): (kind, consts or None), the constants read lazily."""
+    if table is None:
+        return mi.UInt32(KIND_OTHER), None
+    t_w, t_kind, t_col, t_rough, t_metal = table
+    rid = dr.reinterpret_array(mi.UInt32, bsdf)
+    t_ok = active & (bsdf != None) & (rid < t_w)  # noqa: E711 (BSDFPtr comparison)
+    kind = dr.gather(mi.UInt32, t_kind, rid, t_ok)
+    return kind, (kind, lambda: dr.gather(mi.Color3f, t_col, rid, t_ok), lambda: dr.gather(mi.Float, t_rough, rid, t_ok),
+                  lambda: dr.gather(mi.Float, t_metal, rid, t_ok))
+
+def _horizon_terms(si, active, K, A, L, Dw, live, delta, h, zero, horizon):
+    """Per cone the Lambertian closed form ``L_c (1/Omega_c) int_c cos`` (horizon-clipped
+    with ``horizon``; 0 if not live) and whether its cap lies wholly below the horizon;
+    their sum, and per pixel whether every live cone has the closed form (``cones_ok``)
+    and lies wholly above the horizon with a margin (``clear``). See :func:`shade_kernel`."""
     nrm = si.sh_frame.n
     closed = mi.Color3f(zero)
     cones_ok = mi.Bool(active)                 # every live cone has a closed form
@@ -363,71 +455,37 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
         closed += t
         term.append(t)
         below_c.append(below | (delta[i] & (cos_d <= 0.0)))
-    lambert = _lambertian(bsdf, si, active) & cones_ok
+    return closed, cones_ok, clear, term, below_c
 
-    # Each kind of pixel runs in a symbolic branch of its own (Lambertian closed form,
-    # principled closed form, quadrature): on the LLVM backend a SIMD packet skips a branch
-    # none of its lanes takes, so a pixel pays only for its own kind (the images are the
-    # same bit for bit as with every kind computed for every pixel and selected).
-    def lambert_fn(closed):
-        if consts is None:
-            rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert))
-        else:
-            tab = kind == KIND_DIFFUSE
-            rho = dr.select(tab, consts[1](), mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert & ~tab)))
-        return rho * closed * (1.0 / math.pi)
+def _cone_state(storage, slot, active, texel_frame, entry_frames, K):
+    """The cones of each pixel's entry, read from ``storage``: (A, L, n, world axes Dw, a
+    zero of the pixels' width, and per cone: live, 1 - cos(alpha_c), Dirac, with a density,
+    1 / Omega_c)."""
+    if entry_frames is not None:
+        texel_frame = dr.gather(mi.Frame3f, entry_frames, texel_frame, active)
+    D, A, L, C, n = unpack(gather_words(storage, slot, K, active), K)
+    Dw = [dr.normalize(texel_frame.to_world(D[i])) for i in range(K)]
+    zero = dr.select(active, mi.Float(0.0), mi.Float(0.0))     # a zero of the pixels' width
 
-    closed = dr.if_stmt(args=(closed,), cond=lambert, true_fn=lambert_fn,
-                        false_fn=lambda closed: mi.Color3f(0.0), label="lambert")
+    # ------------------- the cones: live, Dirac, solid angle, density -------------------
+    live = [active & (n > i) for i in range(K)]
+    h = [2.0 * dr.square(dr.sin(0.5 * A[i])) for i in range(K)]           # 1 - cos(alpha_c)
+    delta = [live[i] & (A[i] < ALPHA_DELTA) for i in range(K)]
+    area = [live[i] & ~delta[i] for i in range(K)]                        # cones with a density
+    inv_om = [dr.select(area[i], dr.rcp(dr.maximum(2.0 * math.pi * h[i], 1e-30)), 0.0) for i in range(K)]
+    return A, L, n, Dw, zero, live, h, delta, area, inv_om
 
-    # ------------------- principled pixels: diffuse in closed form, specular lobe as an SG -------------------
-    if principled:
-        pm = active & cones_ok & ~lambert
-        prin, pfast = dr.if_stmt(
-            args=(pm,), cond=pm,
-            true_fn=lambda pm: _principled_cones(bsdf, si, ctx, pm, K, live, delta, A, h, inv_om, L, Dw,
-                                                 term, below_c, zero, consts),
-            false_fn=lambda pm: (mi.Color3f(0.0), mi.Bool(False)), label="principled")
-    else:
-        prin, pfast = mi.Color3f(zero), active & False
-    # ------------------- GGX conductor pixels: the lobe as an SG (an option) -------------------
-    if conductor:
-        cm = active & cones_ok & ~lambert & ~pfast
-        cond_v, cfast = dr.if_stmt(
-            args=(cm,), cond=cm,
-            true_fn=lambda cm: _conductor_cones(bsdf, si, ctx, cm, K, live, delta, A, inv_om, L, Dw, below_c, zero),
-            false_fn=lambda cm: (mi.Color3f(0.0), mi.Bool(False)), label="conductor")
-        prin = dr.select(pfast, prin, cond_v)
-        pfast = pfast | cfast
-    # ------------------- pixels seen from behind whose cones are all in front: 0, no quadrature -------------------
-    # A BSDF without transmission (or null) lobes reflects only into the side of w_i: with
-    # cos(theta_i) <= 0 and every cone wholly above the horizon, f_r = 0 for every direction
-    # in the cones, and a BSDF sample (on w_i's side) lies in no cone (L~ = 0): the quadrature
-    # sums zeros. (The meeting rig's viewers 4 and 12 see only such pixels: 12 % of its pixels.)
-    flags = mi.UInt32(bsdf.flags())
-    backside = active & clear & (mi.Frame3f.cos_theta(si.wi) <= 0.0) & \
-        ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & ~mi.has_flag(flags, mi.BSDFFlags.Null)
-    sampled = active & ~lambert & ~pfast & (n > 0) & ~backside
 
-    # ------------------- purely glossy BSDFs (rough conductors): half the directions -------------------
-    # (``glossy_half``; their lobe has no diffuse base, and the split below gives a lobe
-    # wider than the cones few BSDF directions: the cone directions carry it)
+def _samples_px(bsdf, n_total, glossy_half):
+    """n_S per pixel: ``n_total``, halved for purely glossy BSDFs with ``glossy_half``."""
     n_px = mi.UInt32(n_total)
     if glossy_half:
+        flags = mi.UInt32(bsdf.flags())
         glossy_only = mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) & \
             ~mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & \
             ~mi.has_flag(flags, mi.BSDFFlags.Transmission)
         n_px = dr.select(glossy_only, dr.maximum(n_px >> 1, 1), n_px)
-
-    def sampled_fn(sampled):
-        return _quadrature(bsdf, si, ctx, sampled, K, n_px, key, pid, adaptive, rotate, live, delta, area, h,
-                           inv_om, L, A, Dw, zero)
-
-    acc = dr.if_stmt(args=(sampled,), cond=sampled, true_fn=sampled_fn,
-                     false_fn=lambda sampled: mi.Color3f(0.0), label="quadrature")
-
-    # raw values: a NaN or Inf made here reaches the image, where check mode names it
-    return dr.select(lambert, closed, dr.select(pfast, prin, acc))
+    return n_px
 
 
 def _across_cap(cos_d, sin_d, sa, ca, A, L, delta, h):
@@ -588,8 +646,10 @@ class ConeShading(FrozenFunction):
 
     def __init__(self, max_cones: int, adaptive: bool = True, rotate: bool = True, freeze: bool = True,
                  animated: bool = False, max_recordings: int = 4, horizon: bool = True,
-                 principled: str = "sg", conductor: str = "sample", table=None, glossy: str = "full"):
+                 principled: str = "sg", conductor: str = "sample", table=None, glossy: str = "full",
+                 compact: bool = True):
         self.table = table
+        self.compact = bool(compact)
         if glossy not in ("half", "full"):
             raise ValueError(f"glossy must be 'half' or 'full', not {glossy!r}")
         self.glossy = glossy
@@ -613,7 +673,7 @@ class ConeShading(FrozenFunction):
                                 self.max_cones, dr.opaque(mi.UInt32, max(int(n_samples), 1)),
                                 dr.opaque(mi.UInt32, int(key)), self.adaptive, self.rotate, pid, self.horizon,
                                 self.principled == "sg", self.conductor == "sg", self.table, entry_frames,
-                                self.glossy == "half")
+                                self.glossy == "half", self.compact)
 
 
 def shader_for(owner, max_cones: int) -> ConeShading:
