@@ -92,6 +92,8 @@ class SurfaceLightCones(PayloadMethod):
         Param("glossy", "full", "pixels whose BSDF is purely glossy (rough conductors) on the MIS quadrature: all "
               "the shading directions (full) or half of them (half; faster, noisier: docs/cones.md)",
               choices=("full", "half")),
+        Param("compact", "on", "on: the pixels that take the MIS quadrature shaded in a launch of their own, packed "
+              "(the same images; off: in the launch of all pixels, in a branch)", choices=("on", "off")),
         Param("batch", "viewers", "viewers: shade all viewers' pixels in one launch (nearest fetch; the same images "
               "as per viewer); off: one launch per viewer", choices=("off", "viewers")),
     ) + PayloadMethod.cache_params

@@ -630,7 +630,10 @@ class ConeShading(FrozenFunction):
     Gaussian over each cone, see :func:`_conductor_cones`; only for scenes whose
     roughconductors all use GGX, :func:`shader_for` checks), ``glossy="full"`` (``"half"``:
     pixels whose BSDF is purely glossy, e.g. rough conductors, take half of ``n_samples``
-    on the quadrature: faster, noisier, see docs/cones.md).
+    on the quadrature: faster, noisier, see docs/cones.md), ``compact=True`` (the pixels that
+    take the MIS quadrature packed into a launch of their own, so that SIMD packets of
+    closed-form pixels do not run its loops; False: in a branch of the launch of all pixels;
+    the same images bit for bit).
 
     Freezing pays only while its recordings are replayed. Each instance owns its frozen
     function, so recordings are freed with the method and never shared between scenes.
@@ -690,7 +693,7 @@ def shader_for(owner, max_cones: int) -> ConeShading:
         sh = ConeShading(max_cones, animated=bool(getattr(scene, "dynamic", False)),
                          horizon=getattr(owner, "horizon", "clip") == "clip",
                          principled=getattr(owner, "principled", "sg"), conductor=conductor,
-                         glossy=getattr(owner, "glossy", "full"),
+                         glossy=getattr(owner, "glossy", "full"), compact=getattr(owner, "compact", "on") == "on",
                          table=bsdf_table(scene) if scene is not None else None)
         owner._cone_shading = sh
     return sh
