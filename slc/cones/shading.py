@@ -139,7 +139,8 @@ def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw
       the lobe's part under the horizon is not clipped.
     """
     # ------------------- which pixels, and their parameters (one read per pixel) -------------------
-    # (BSDFs without textures: from the table ``consts``, see :func:`bsdf_table`)
+    # (BSDFs without textures: from the table ``consts``, see :func:`bsdf_table`; BSDFs of
+    # kind KIND_NOT_PRINCIPLED are not read: they lack the attributes ``read`` asks for)
     if consts is not None:
         tab = active & (consts[0] == KIND_PRINCIPLED) & (mi.Frame3f.cos_theta(si.wi) > 0.0)
         active = active & (consts[0] == KIND_OTHER)
@@ -699,7 +700,7 @@ def shader_for(owner, max_cones: int) -> ConeShading:
     return sh
 
 
-KIND_OTHER, KIND_DIFFUSE, KIND_PRINCIPLED = 0, 1, 2
+KIND_OTHER, KIND_DIFFUSE, KIND_PRINCIPLED, KIND_NOT_PRINCIPLED = 0, 1, 2, 3
 _ZERO_ATTRS = ("clearcoat", "sheen", "flatness", "anisotropic", "spec_trans")
 
 
@@ -712,8 +713,10 @@ def bsdf_table(scene):
     ``KIND_DIFFUSE`` (Mitsuba's ``diffuse`` with a constant reflectance: that reflectance),
     ``KIND_PRINCIPLED`` (``principled`` whose clearcoat, sheen, flatness, anisotropy and
     specular transmission are constant 0 and whose base colour, roughness and metallic
-    are constant: those three), else ``KIND_OTHER`` (textured parameters, other BSDFs:
-    the kernel's virtual calls, per pixel as before). The constants are the BSDF's own
+    are constant: those three), ``KIND_NOT_PRINCIPLED`` (other BSDFs without the
+    ``clearcoat`` or ``base_color`` attribute, which the principled closed form never
+    takes: its test of them, a few virtual calls per pixel, is skipped), else
+    ``KIND_OTHER`` (textured parameters: the kernel's virtual calls, per pixel as before). The constants are the BSDF's own
     ``eval_attribute`` / ``eval_diffuse_reflectance`` values (a constant texture ignores
     the point), so the images are the same bit for bit. Returns (width as an opaque
     UInt32, kind UInt32, colour Color3f, roughness Float, metallic Float), or None for
@@ -754,6 +757,8 @@ def bsdf_table(scene):
             col[:, rid] = np.array(b.eval_attribute_3("base_color", si)).reshape(3)
             rough[rid] = float(b.eval_attribute_1("roughness", si)[0])
             metal[rid] = float(b.eval_attribute_1("metallic", si)[0])
+        elif not (b.has_attribute("clearcoat") and b.has_attribute("base_color")):
+            kind[rid] = KIND_NOT_PRINCIPLED
     return (dr.opaque(mi.UInt32, W), mi.UInt32(kind), mi.Color3f(col), mi.Float(rough), mi.Float(metal))
 
 
