@@ -390,6 +390,7 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     # raw values: a NaN or Inf made here reaches the image, where check mode names it
     return out
 
+
 def _glossy_closed(bsdf, si, ctx, pm, K, live, delta, A, h, inv_om, L, Dw, term, below_c, zero, consts,
                    principled, conductor):
     """The closed forms of the candidate pixels ``pm`` (Lambertian closed form for every
