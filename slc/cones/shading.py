@@ -428,6 +428,7 @@ def _table_consts(table, bsdf, active):
     return kind, (kind, lambda: dr.gather(mi.Color3f, t_col, rid, t_ok), lambda: dr.gather(mi.Float, t_rough, rid, t_ok),
                   lambda: dr.gather(mi.Float, t_metal, rid, t_ok))
 
+
 def _horizon_terms(si, active, K, A, L, Dw, live, delta, h, zero, horizon, sin_a, cos_a):
     """Per cone the Lambertian closed form ``L_c (1/Omega_c) int_c cos`` (horizon-clipped
     with ``horizon``; 0 if not live) and whether its cap lies wholly below the horizon;
