@@ -3,12 +3,13 @@ same inputs, in one process (docs/cones.md, "Session ovl7").
 
 The inputs are those of the last shading call of a run of ``slc`` on the atrium's overlap rig
 (96x54, ``N`` viewers at 100 % overlap, 12 frames). Both versions are frozen, called
-alternately (12 times each after 3), with one Dr.Jit thread; per version the CPU time of a
-call (``time.process_time``, after ``dr.sync_thread``), the summed kernel-history time, each
+alternately (12 times each after 3), with one Dr.Jit thread (or ``threads``); per version the
+CPU time of a call (``time.process_time``, after ``dr.sync_thread``; with 2 threads the wall
+time, ``time.perf_counter``), the summed kernel-history time, each
 launch's operations, lanes and minimum time, and whether the values are equal bit for bit.
 Under load the kernel times include time the process was descheduled: compare minima.
 
-    PYTHONPATH=. python tools/cone_shading_ab.py /work/main/slc/cones/shading.py 16
+    PYTHONPATH=. python tools/cone_shading_ab.py /work/main/slc/cones/shading.py 16 [threads]
 """
 from __future__ import annotations
 
@@ -46,8 +47,8 @@ def captured_call(n: int):
     return (s, *cap["args"])
 
 
-def main(other: str, n: int = 16, reps: int = 12):
-    dr.set_thread_count(1)
+def main(other: str, n: int = 16, threads: int = 1, reps: int = 12):
+    dr.set_thread_count(threads)
     s, sh, a = captured_call(n)
     spec = importlib.util.spec_from_file_location("slc.cones.shading_other", other)
     O = importlib.util.module_from_spec(spec)
@@ -72,11 +73,12 @@ def main(other: str, n: int = 16, reps: int = 12):
         for name, c in calls.items():
             dr.sync_thread()
             dr.kernel_history()
-            t0 = time.process_time()
+            clock = time.process_time if threads == 1 else time.perf_counter
+            t0 = clock()
             o = c()
             dr.eval(o)
             dr.sync_thread()
-            cpu[name].append((time.process_time() - t0) * 1e3)
+            cpu[name].append((clock() - t0) * 1e3)
             hs = [h for h in dr.kernel_history() if h.get("type") == dr.KernelType.JIT]
             ker[name].append(sum(h.get("execution_time", 0.0) for h in hs))
             launches[name].append([(h.get("operation_count"), h.get("size"), h.get("execution_time"))
@@ -85,10 +87,10 @@ def main(other: str, n: int = 16, reps: int = 12):
     for name in calls:
         ls = launches[name]
         each = [(k[0], k[1], round(min(r[j][2] for r in ls if len(r) > j), 3)) for j, k in enumerate(ls[0])]
-        print(f"{name}: CPU per call min {min(cpu[name]):.2f} median {statistics.median(cpu[name]):.2f} ms; "
+        print(f"{name}: {'CPU' if threads == 1 else 'wall'} per call min {min(cpu[name]):.2f} median {statistics.median(cpu[name]):.2f} ms; "
               f"kernels min {min(ker[name]):.2f} median {statistics.median(ker[name]):.2f} ms; "
               f"launches (operations, lanes, min ms): {each}")
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], int(sys.argv[2]) if len(sys.argv) > 2 else 16)
+    main(sys.argv[1], *[int(x) for x in sys.argv[2:4]])
