@@ -120,3 +120,42 @@ def test_method_images_unchanged():
         out.append(imgs)
     for a, b in zip(*out):
         assert a.max() > 0 and np.array_equal(a, b)
+
+
+def test_erf_saturates():
+    """The far-cap shortcut of the SG lobe (``shading._sg_cone``) rests on Dr.Jit's erf
+    being -1 exactly for arguments <= -4 (down to -inf)."""
+    x = mi.Float(np.concatenate([-np.geomspace(4.0, 3e38, 4000), [-np.inf, -4.0]]).astype(np.float32))
+    assert np.all(np.array(dr.erf(x)) == -1.0)
+    assert float(dr.erf(mi.Float(-3.5))[0]) > -1.0          # (not saturated above: the test can fail)
+
+
+@pytest.mark.parametrize("opts", [{}, {"conductor": "sg"}])
+def test_far_cap_shortcut_same_values(captured, opts, monkeypatch):
+    """Principled (and GGX conductor) pixels: the SG lobe's share of caps far from the peak
+    skipped (+0) or computed: the same values bit for bit. Some caps are far (counted on
+    the principled pixels) and some near (all skipped changes the values)."""
+    _, call = captured
+    a = np.array(_shade(call, **opts)[1])
+    orig_if = dr.if_stmt
+    seen = {"far": 0}
+
+    def hook(mode):
+        def if_stmt(*args, **kw):
+            if kw.get("label") != "sg_share":
+                return orig_if(*args, **kw)
+            try:        # (countable where the branch is not itself inside a symbolic branch)
+                seen["far"] += int(dr.count(~kw["cond"])[0])
+            except RuntimeError:
+                pass
+            return kw["true_fn"](*kw["args"]) if mode == "near" else kw["false_fn"](*kw["args"])
+        return if_stmt
+    monkeypatch.setattr(shmod.dr, "if_stmt", hook("near"))
+    b = np.array(_shade(call, **opts)[1])
+    monkeypatch.setattr(shmod.dr, "if_stmt", hook("far"))
+    c = np.array(_shade(call, **opts)[1])
+    assert np.all(np.isfinite(a)) and a.max() > 0
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, c)
+    if not opts:
+        assert seen["far"] > 0

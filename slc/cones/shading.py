@@ -241,10 +241,19 @@ def _sg_cone(lobe, Dw, A, inv_om, delta):
     def t2(u):
         return dr.erf(u * math.sqrt(0.5))                              # 2 Phi(u) - 1
 
-    edge = 0.5 * (t2((A - th) * isg) - t2((-A - th) * isg))
-    x = dr.square(A) * (0.5 / (s_par * s_perp))
-    psi = edge * (x * dr.rcp(1.0 + x)) * dr.rcp(dr.maximum(t2(A * isg), 1e-30))
-    sg = E_s * psi * inv_om
+    def share(A, th, isg, E_s, inv_om):
+        edge = 0.5 * (t2((A - th) * isg) - t2((-A - th) * isg))
+        x = dr.square(A) * (0.5 / (s_par * s_perp))
+        psi = edge * (x * dr.rcp(1.0 + x)) * dr.rcp(dr.maximum(t2(A * isg), 1e-30))
+        return E_s * psi * inv_om
+
+    # A cap whose near rim lies 4 sqrt(2) widths or more beyond the peak holds none of the
+    # lobe: there Dr.Jit's erf is -1 exactly for both rims (it is for arguments <= -3.92),
+    # so edge = 0 and the share is +0 exactly; such lanes skip the erf's (a symbolic branch:
+    # the same values bit for bit, tests/test_cones_compact.py)
+    far = ((A - th) * isg) * math.sqrt(0.5) <= -4.0
+    sg = dr.if_stmt(args=(A, th, isg, E_s, inv_om), cond=~far, true_fn=share,
+                    false_fn=lambda *a: mi.Float(0.0), label="sg_share")
     return dr.select(delta, dr.exp(-0.5 * m2), sg), m2, th
 
 
