@@ -1,7 +1,6 @@
 """The quadrature's pixels packed into a launch of their own (``ConeShading(compact=True)``,
-the default; docs/cones.md, "Session ovl7"), and the entries' cones decoded once per entry
-(``entry_slots``): the same values bit for bit as the quadrature in a branch of the launch
-of all pixels and the cones decoded per pixel, whatever share of the pixels takes it (none, some,
+the default; docs/cones.md, "Session ovl7"): the same values bit for bit as the quadrature
+in a branch of the launch of all pixels, whatever share of the pixels takes it (none, some,
 all), frozen and not, with the shading options that send other pixels to the quadrature;
 one recording for calls whose packed widths differ; the method's images unchanged."""
 import drjit as dr
@@ -36,12 +35,12 @@ def captured():
     return sc, cap["call"]
 
 
-def _shade(call, active=None, freeze=False, entries=False, **opts):
-    """One shading of the captured inputs; ``entries``: the cones decoded per entry."""
+def _shade(call, active=None, freeze=False, **opts):
+    """One shading of the captured inputs."""
     self, a, k = call
     sh = ConeShading(self.max_cones, table=self.table, freeze=freeze, **opts)
-    storage, slot, ok, si, tf, ns, key, pid, ef, es = a
-    return sh, sh(storage, slot, ok if active is None else active, si, tf, ns, key, pid, ef, es if entries else None)
+    storage, slot, ok, si, tf, ns, key, pid, ef = a
+    return sh, sh(storage, slot, ok if active is None else active, si, tf, ns, key, pid, ef)
 
 
 def _sampled(call, **opts):
@@ -59,15 +58,11 @@ def _sampled(call, **opts):
 @pytest.mark.parametrize("opts", [{}, {"principled": "sample"}, {"conductor": "sg", "principled": "sample"}, {"glossy": "half"},
                                   {"horizon": False}])
 def test_compact_equals_branch(captured, opts):
-    """Packed and in-branch quadrature, cones decoded per pixel or per entry: the same
-    values bit for bit; the quadrature ran on some pixels and not on others (else the
-    test would say nothing)."""
+    """Packed and in-branch quadrature: the same values bit for bit; the quadrature ran on
+    some pixels and not on others (else the test would say nothing)."""
     _, call = captured
     a = np.array(_shade(call, compact=False, **opts)[1])
     b = np.array(_shade(call, compact=True, **opts)[1])
-    c = np.array(_shade(call, compact=True, entries=True, **opts)[1])
-    d = np.array(_shade(call, compact=False, entries=True, **opts)[1])
-    assert np.array_equal(a, c) and np.array_equal(a, d)
     q = _sampled(call, **opts)
     n = q.size
     assert 0 < q.sum() < n, f"{q.sum()} of {n} pixels on the quadrature"
@@ -85,7 +80,7 @@ def test_compact_no_and_all_quadrature_pixels(captured):
     for mask in (ok & ~q, ok & q, np.zeros_like(ok)):
         act = mi.Bool(mask)
         x = np.array(_shade(call, active=act, compact=False)[1])
-        y = np.array(_shade(call, active=act, compact=True, entries=True)[1])
+        y = np.array(_shade(call, active=act, compact=True)[1])
         assert np.array_equal(x, y)
         assert np.all(x[:, ~mask] == 0)
 
@@ -98,11 +93,11 @@ def test_compact_frozen_one_recording(captured):
     ok = np.array(mi.Bool(a[2]))
     rng = np.random.default_rng(1)
     sh = ConeShading(self.max_cones, table=self.table, freeze=True, compact=True)
-    storage, slot, _, si, tf, ns, key, pid, ef, es = a
+    storage, slot, _, si, tf, ns, key, pid, ef = a
     widths = set()
     for keep in (1.0, 0.7, 0.4, 0.9):
         act = mi.Bool(ok & (rng.random(ok.size) < keep))
-        got = np.array(sh(storage, slot, act, si, tf, ns, key, pid, ef, es))
+        got = np.array(sh(storage, slot, act, si, tf, ns, key, pid, ef))
         ref = np.array(_shade(call, active=act, compact=False)[1])
         assert np.array_equal(got, ref)
         widths.add(int((np.array(act) & _sampled(call)).sum()))

@@ -56,9 +56,7 @@ def main(other: str, n: int = 16, threads: int = 1, reps: int = 12):
     spec.loader.exec_module(O)
     old = O.ConeShading(sh.max_cones, table=O.bsdf_table(s))
     new = S.ConeShading(sh.max_cones, table=S.bsdf_table(s))
-    # the other version may not take the entries' slots (the last argument of a batched call)
-    nargs = len(a) - (1 if len(a) == 10 and "entry_slots" not in O.ConeShading.__call__.__code__.co_varnames else 0)
-    calls = {"other": lambda: old(*a[:nargs]), "this": lambda: new(*a)}
+    calls = {"other": lambda: old(*a), "this": lambda: new(*a)}
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     outs = {}
     for name, c in calls.items():

@@ -182,7 +182,7 @@ class SurfaceLightCones(PayloadMethod):
         # ------------------- one launch, split per viewer -------------------
         # (each pixel's entry frame is gathered inside the launch: ``index`` into the frames)
         out = shader_for(self, self.max_cones)(self.storage, slot, ok, si, index, self.shade_samples,
-                                               shade_key(ctx.frame, self.seed), pid, fr.si.sh_frame, fr.active)
+                                               shade_key(ctx.frame, self.seed), pid, fr.si.sh_frame)
         return [dr.gather(mi.Color3f, out, at) for at in self._split_lanes(sizes, offsets)]
 
     def _split_lanes(self, sizes, offsets):

@@ -297,7 +297,7 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
                  key: mi.UInt32, adaptive: bool = True, rotate: bool = True,
                  pid: mi.UInt32 | None = None, horizon: bool = True, principled: bool = True,
                  conductor: bool = False, table=None, entry_frames=None, glossy_half: bool = False,
-                 compact: bool = False, entry_slots=None) -> mi.Color3f:
+                 compact: bool = False) -> mi.Color3f:
     """Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
     ``slot``; ``texel_frame`` is the local frame of each pixel's entry (the frame its
     cone directions are stored in). ``n_total`` directions per live cone and ``key``
@@ -307,16 +307,13 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     shaded in one launch pass each pixel's index within its own viewer). ``table``
     (:func:`bsdf_table`, optional) gives the constants of BSDFs without textures. With
     ``entry_frames`` (the entries' frames), ``texel_frame`` is instead each pixel's index
-    into them (the gather then runs inside this kernel, not as a kernel of its own); with
-    ``entry_slots`` too (the entries' slots, as ``entry_frames``), each entry's cones are
-    decoded once and gathered per pixel (the same values). ``compact``: see :class:`ConeShading`.
+    into them (the gather then runs inside this kernel, not as a kernel of its own).
+    ``compact``: see :class:`ConeShading`.
     Entries without cones and inactive pixels give 0."""
     K = max_cones
     tf_in = texel_frame
-    # (with the entries' slots: their cones decoded once per entry, not once per pixel)
-    ent = None if entry_slots is None or entry_frames is None else _entry_cones(storage, entry_slots, entry_frames, K)
     A, L, n, Dw, zero, live, h, delta, area, inv_om, sin_a, cos_a = _cone_state(storage, slot, active, texel_frame,
-                                                                             entry_frames, K, ent)
+                                                                             entry_frames, K)
     ctx = mi.BSDFContext()
     if pid is None:
         pid = dr.arange(mi.UInt32, dr.width(slot))
@@ -391,7 +388,7 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     on = dr.gather(mi.Bool, sampled, idx)
     si_c, bsdf_c = dr.gather(type(si), si, idx), dr.gather(mi.BSDFPtr, bsdf, idx)
     A_c, L_c, _, Dw_c, zero_c, live_c, h_c, delta_c, area_c, inv_om_c, _, _ = _cone_state(
-        storage, dr.gather(mi.UInt32, slot, idx), on, dr.gather(type(tf_in), tf_in, idx), entry_frames, K, ent)
+        storage, dr.gather(mi.UInt32, slot, idx), on, dr.gather(type(tf_in), tf_in, idx), entry_frames, K)
     acc = _quadrature(bsdf_c, si_c, ctx, on, K, _samples_px(bsdf_c, n_total, glossy_half), key,
                       dr.gather(mi.UInt32, pid, idx), adaptive, rotate, live_c, delta_c, area_c, h_c, inv_om_c, L_c,
                       A_c, Dw_c, zero_c)
@@ -475,46 +472,23 @@ def _horizon_terms(si, active, K, A, L, Dw, live, delta, h, zero, horizon, sin_a
         below_c.append(below | (delta[i] & (cos_d <= 0.0)))
     return closed, cones_ok, clear, term, below_c
 
-def _cone_state(storage, slot, active, texel_frame, entry_frames, K, ent=None):
+def _cone_state(storage, slot, active, texel_frame, entry_frames, K):
     """The cones of each pixel's entry, read from ``storage``: (A, L, n, world axes Dw, a
     zero of the pixels' width, and per cone: live, 1 - cos(alpha_c), Dirac, with a density,
-    1 / Omega_c, sin(alpha_c), cos(alpha_c)). With ``ent`` (:func:`_entry_cones`, the
-    entries' cones decoded once) they are gathered by each pixel's entry index
-    (``texel_frame``), the same values."""
-    if ent is not None:
-        def g(x):
-            return dr.gather(type(x), x, texel_frame, active)
-        n = g(ent[0])
-        A, L, Dw, h, rc, sa, ca = [[g(x) for x in ent[1 + k * K:1 + (k + 1) * K]] for k in range(7)]
-    else:
-        if entry_frames is not None:
-            texel_frame = dr.gather(mi.Frame3f, entry_frames, texel_frame, active)
-        D, A, L, C, n = unpack(gather_words(storage, slot, K, active), K)
-        Dw = [dr.normalize(texel_frame.to_world(D[i])) for i in range(K)]
-        h = [2.0 * dr.square(dr.sin(0.5 * A[i])) for i in range(K)]       # 1 - cos(alpha_c)
-        rc = [dr.rcp(dr.maximum(2.0 * math.pi * h[i], 1e-30)) for i in range(K)]
-        sa, ca = [dr.sin(A[i]) for i in range(K)], [dr.cos(A[i]) for i in range(K)]
+    1 / Omega_c, sin(alpha_c), cos(alpha_c))."""
+    if entry_frames is not None:
+        texel_frame = dr.gather(mi.Frame3f, entry_frames, texel_frame, active)
+    D, A, L, C, n = unpack(gather_words(storage, slot, K, active), K)
+    Dw = [dr.normalize(texel_frame.to_world(D[i])) for i in range(K)]
     zero = dr.select(active, mi.Float(0.0), mi.Float(0.0))     # a zero of the pixels' width
 
     # ------------------- the cones: live, Dirac, solid angle, density -------------------
     live = [active & (n > i) for i in range(K)]
+    h = [2.0 * dr.square(dr.sin(0.5 * A[i])) for i in range(K)]           # 1 - cos(alpha_c)
     delta = [live[i] & (A[i] < ALPHA_DELTA) for i in range(K)]
     area = [live[i] & ~delta[i] for i in range(K)]                        # cones with a density
-    inv_om = [dr.select(area[i], rc[i], 0.0) for i in range(K)]
-    return A, L, n, Dw, zero, live, h, delta, area, inv_om, sa, ca
-
-
-def _entry_cones(storage, entry_slots, entry_frames, K):
-    """The cones of the entries ``entry_slots`` (frames ``entry_frames``) decoded once, as
-    :func:`_cone_state` would per pixel (evaluated): (n, then per cone A, L, world axis,
-    1 - cos(alpha_c), 1 / (2 pi (1 - cos(alpha_c))), sin(alpha_c), cos(alpha_c))."""
-    D, A, L, C, n = unpack(gather_words(storage, entry_slots, K, True), K)
-    Dw = [dr.normalize(entry_frames.to_world(D[i])) for i in range(K)]
-    h = [2.0 * dr.square(dr.sin(0.5 * A[i])) for i in range(K)]
-    rc = [dr.rcp(dr.maximum(2.0 * math.pi * h[i], 1e-30)) for i in range(K)]
-    out = [n] + A + L + Dw + h + rc + [dr.sin(A[i]) for i in range(K)] + [dr.cos(A[i]) for i in range(K)]
-    dr.eval(out)
-    return out
+    inv_om = [dr.select(area[i], dr.rcp(dr.maximum(2.0 * math.pi * h[i], 1e-30)), 0.0) for i in range(K)]
+    return A, L, n, Dw, zero, live, h, delta, area, inv_om, [dr.sin(a) for a in A], [dr.cos(a) for a in A]
 
 
 def _samples_px(bsdf, n_total, glossy_half):
@@ -708,17 +682,16 @@ class ConeShading(FrozenFunction):
         super().__init__(shade_kernel, freeze, animated, max_recordings)
 
     def __call__(self, storage, slot, active, si, texel_frame, n_samples: int = 16, key: int = 0,
-                 pid: mi.UInt32 | None = None, entry_frames=None, entry_slots=None) -> mi.Color3f:
+                 pid: mi.UInt32 | None = None, entry_frames=None) -> mi.Color3f:
         """Shade the pixels ``si``; ``pid``: the random-number key per pixel (default:
         the index in the arrays); ``entry_frames``: ``texel_frame`` is an index into
-        them; ``entry_slots``: the entries' slots (their cones decoded once per entry;
-        see :func:`shade_kernel`)."""
+        them (see :func:`shade_kernel`)."""
         # (no garbage collection inside the call: slc.freeze.FrozenFunction)
         return super().__call__(storage, mi.UInt32(slot), mi.Bool(active), si, si.bsdf(), texel_frame,
                                 self.max_cones, dr.opaque(mi.UInt32, max(int(n_samples), 1)),
                                 dr.opaque(mi.UInt32, int(key)), self.adaptive, self.rotate, pid, self.horizon,
                                 self.principled == "sg", self.conductor == "sg", self.table, entry_frames,
-                                self.glossy == "half", self.compact, entry_slots)
+                                self.glossy == "half", self.compact)
 
 
 def shader_for(owner, max_cones: int) -> ConeShading:
