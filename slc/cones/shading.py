@@ -37,7 +37,9 @@ Each kind of pixel runs in a symbolic branch of its own, and BSDFs without textu
 from a per-scene table (:func:`bsdf_table`) instead of virtual calls (same images). Pixels
 seen from behind whose BSDF only reflects and whose cones all lie in front give 0 without
 the quadrature (it would sum zeros); with ``glossy="half"`` (an option) purely glossy BSDFs
-(rough conductors) take half the directions.
+(rough conductors) take half the directions. The pixels left to the quadrature are packed
+into a launch of their own (``compact``, the default), and the Gaussian lobe's share of a cap
+far from its peak (exactly 0) is not computed; both give the same values bit for bit.
 
 Sample counts: ``n_samples`` (n_S) directions, fewer for rough lobes (``n_S' =
 ceil(n_S clip(q, 1/4, 1))``), split per pixel into ``n_C`` cone directions per live cone
