@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from helpers import plane_under_rect_light
-from slc.cones.shading import KIND_DIFFUSE, KIND_OTHER, KIND_PRINCIPLED, ConeShading, bsdf_table
+from slc.cones.shading import KIND_DIFFUSE, KIND_NOT_PRINCIPLED, KIND_OTHER, KIND_PRINCIPLED, ConeShading, bsdf_table
 from slc.scenes import diffuse, principled, rough_conductor
 
 
@@ -31,7 +31,7 @@ def _bitmap():
     return {"type": "bitmap", "bitmap": mi.Bitmap(rgb), "raw": True}
 
 
-@pytest.mark.parametrize("kind", ["diffuse", "principled", "principled_textured", "diffuse_textured"])
+@pytest.mark.parametrize("kind", ["diffuse", "principled", "principled_textured", "diffuse_textured", "conductor"])
 def test_bsdf_table_same_images(kind):
     """Shading with the table gives the images of the virtual calls bit for bit, for
     constant BSDFs (read from the table) and textured ones (kept on the virtual calls),
@@ -39,11 +39,15 @@ def test_bsdf_table_same_images(kind):
     b = {"diffuse": diffuse([0.5, 0.4, 0.3]),
          "principled": principled([0.45, 0.36, 0.28], roughness=0.22),
          "principled_textured": dict(principled([0.45, 0.36, 0.28], roughness=0.22), base_color=_bitmap()),
-         "diffuse_textured": {"type": "diffuse", "reflectance": _bitmap()}}[kind]
+         "diffuse_textured": {"type": "diffuse", "reflectance": _bitmap()},
+         "conductor": rough_conductor(0.12, "Cu")}[kind]
     sc = plane_under_rect_light(half=0.3, radiance=5.0, bsdf=b, name=f"table_{kind}")
     m, gb, slot, ok, tf = _inputs(sc)
     k, table = _kind(sc, m)
-    assert k == {"diffuse": KIND_DIFFUSE, "principled": KIND_PRINCIPLED}.get(kind, KIND_OTHER)
+    # (a textured diffuse BSDF lacks the principled attributes: KIND_NOT_PRINCIPLED, its
+    # reflectance still read through the virtual call)
+    assert k == {"diffuse": KIND_DIFFUSE, "principled": KIND_PRINCIPLED,
+                 "diffuse_textured": KIND_NOT_PRINCIPLED, "conductor": KIND_NOT_PRINCIPLED}.get(kind, KIND_OTHER)
     plain = np.array(ConeShading(3, freeze=False)(m.storage, slot, ok, gb.si, tf, 16, 5))
     tab = np.array(ConeShading(3, freeze=False, table=table)(m.storage, slot, ok, gb.si, tf, 16, 5))
     frozen = np.array(ConeShading(3, table=table)(m.storage, slot, ok, gb.si, tf, 16, 5))

@@ -4,7 +4,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ..gbuffer import per_viewer, viewer_lanes
+from ..gbuffer import viewer_lanes
 from ..keys import INVALID
 from ..methods import Param, register
 from ..osc.payload import PayloadMethod, RayPolicy
@@ -92,6 +92,8 @@ class SurfaceLightCones(PayloadMethod):
         Param("glossy", "full", "pixels whose BSDF is purely glossy (rough conductors) on the MIS quadrature: all "
               "the shading directions (full) or half of them (half; faster, noisier: docs/cones.md)",
               choices=("full", "half")),
+        Param("compact", "on", "on: the pixels that take the MIS quadrature shaded in a launch of their own, packed "
+              "(the same images; off: in the launch of all pixels, in a branch)", choices=("on", "off")),
         Param("batch", "viewers", "viewers: shade all viewers' pixels in one launch (nearest fetch; the same images "
               "as per viewer); off: one launch per viewer", choices=("off", "viewers")),
     ) + PayloadMethod.cache_params
@@ -181,7 +183,18 @@ class SurfaceLightCones(PayloadMethod):
         # (each pixel's entry frame is gathered inside the launch: ``index`` into the frames)
         out = shader_for(self, self.max_cones)(self.storage, slot, ok, si, index, self.shade_samples,
                                                shade_key(ctx.frame, self.seed), pid, fr.si.sh_frame)
-        return per_viewer(out, sizes, offsets)
+        return [dr.gather(mi.Color3f, out, at) for at in self._split_lanes(sizes, offsets)]
+
+    def _split_lanes(self, sizes, offsets):
+        """Each viewer's lanes of the batched launch (``viewer_lanes``, evaluated and kept
+        while the sizes hold: no opaque offset made per viewer and frame)."""
+        key = (tuple(sizes), tuple(offsets))
+        cached = getattr(self, "_lanes_cache", None)
+        if cached is None or cached[0] != key:
+            lanes = [viewer_lanes(n, off) for n, off in zip(sizes, offsets)]
+            dr.eval(lanes)
+            self._lanes_cache = cached = (key, lanes)
+        return cached[1]
 
     def _batch_pid(self, sizes):
         """Each batched pixel's index within its own viewer (kept while the sizes hold)."""

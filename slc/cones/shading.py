@@ -37,7 +37,9 @@ Each kind of pixel runs in a symbolic branch of its own, and BSDFs without textu
 from a per-scene table (:func:`bsdf_table`) instead of virtual calls (same images). Pixels
 seen from behind whose BSDF only reflects and whose cones all lie in front give 0 without
 the quadrature (it would sum zeros); with ``glossy="half"`` (an option) purely glossy BSDFs
-(rough conductors) take half the directions.
+(rough conductors) take half the directions. The pixels left to the quadrature are packed
+into a launch of their own (``compact``, the default), and the Gaussian lobe's share of a cap
+far from its peak (exactly 0) is not computed; both give the same values bit for bit.
 
 Sample counts: ``n_samples`` (n_S) directions, fewer for rough lobes (``n_S' =
 ceil(n_S clip(q, 1/4, 1))``), split per pixel into ``n_C`` cone directions per live cone
@@ -139,7 +141,8 @@ def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw
       the lobe's part under the horizon is not clipped.
     """
     # ------------------- which pixels, and their parameters (one read per pixel) -------------------
-    # (BSDFs without textures: from the table ``consts``, see :func:`bsdf_table`)
+    # (BSDFs without textures: from the table ``consts``, see :func:`bsdf_table`; BSDFs of
+    # kind KIND_NOT_PRINCIPLED are not read: they lack the attributes ``read`` asks for)
     if consts is not None:
         tab = active & (consts[0] == KIND_PRINCIPLED) & (mi.Frame3f.cos_theta(si.wi) > 0.0)
         active = active & (consts[0] == KIND_OTHER)
@@ -240,10 +243,19 @@ def _sg_cone(lobe, Dw, A, inv_om, delta):
     def t2(u):
         return dr.erf(u * math.sqrt(0.5))                              # 2 Phi(u) - 1
 
-    edge = 0.5 * (t2((A - th) * isg) - t2((-A - th) * isg))
-    x = dr.square(A) * (0.5 / (s_par * s_perp))
-    psi = edge * (x * dr.rcp(1.0 + x)) * dr.rcp(dr.maximum(t2(A * isg), 1e-30))
-    sg = E_s * psi * inv_om
+    def share(A, th, isg, E_s, inv_om):
+        edge = 0.5 * (t2((A - th) * isg) - t2((-A - th) * isg))
+        x = dr.square(A) * (0.5 / (s_par * s_perp))
+        psi = edge * (x * dr.rcp(1.0 + x)) * dr.rcp(dr.maximum(t2(A * isg), 1e-30))
+        return E_s * psi * inv_om
+
+    # A cap whose near rim lies 4 sqrt(2) widths or more beyond the peak holds none of the
+    # lobe: there Dr.Jit's erf is -1 exactly for both rims (it is for arguments <= -3.92),
+    # so edge = 0 and the share is +0 exactly; such lanes skip the erf's (a symbolic branch:
+    # the same values bit for bit, tests/test_cones_compact.py)
+    far = ((A - th) * isg) * math.sqrt(0.5) <= -4.0
+    sg = dr.if_stmt(args=(A, th, isg, E_s, inv_om), cond=~far, true_fn=share,
+                    false_fn=lambda *a: mi.Float(0.0), label="sg_share")
     return dr.select(delta, dr.exp(-0.5 * m2), sg), m2, th
 
 
@@ -286,7 +298,8 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
                  bsdf: mi.BSDFPtr, texel_frame: mi.Frame3f, max_cones: int, n_total: mi.UInt32,
                  key: mi.UInt32, adaptive: bool = True, rotate: bool = True,
                  pid: mi.UInt32 | None = None, horizon: bool = True, principled: bool = True,
-                 conductor: bool = False, table=None, entry_frames=None, glossy_half: bool = False) -> mi.Color3f:
+                 conductor: bool = False, table=None, entry_frames=None, glossy_half: bool = False,
+                 compact: bool = False) -> mi.Color3f:
     """Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
     ``slot``; ``texel_frame`` is the local frame of each pixel's entry (the frame its
     cone directions are stored in). ``n_total`` directions per live cone and ``key``
@@ -297,34 +310,17 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     (:func:`bsdf_table`, optional) gives the constants of BSDFs without textures. With
     ``entry_frames`` (the entries' frames), ``texel_frame`` is instead each pixel's index
     into them (the gather then runs inside this kernel, not as a kernel of its own).
+    ``compact``: see :class:`ConeShading`.
     Entries without cones and inactive pixels give 0."""
     K = max_cones
-    if entry_frames is not None:
-        texel_frame = dr.gather(mi.Frame3f, entry_frames, texel_frame, active)
-    D, A, L, C, n = unpack(gather_words(storage, slot, K, active), K)
-    Dw = [dr.normalize(texel_frame.to_world(D[i])) for i in range(K)]
+    tf_in = texel_frame
+    A, L, n, Dw, zero, live, h, delta, area, inv_om, sin_a, cos_a = _cone_state(storage, slot, active, texel_frame,
+                                                                             entry_frames, K)
     ctx = mi.BSDFContext()
-    zero = dr.select(active, mi.Float(0.0), mi.Float(0.0))     # a zero of the pixels' width
     if pid is None:
         pid = dr.arange(mi.UInt32, dr.width(slot))
     # each pixel's BSDF kind and constants from the table (KIND_OTHER: virtual calls)
-    if table is not None:
-        t_w, t_kind, t_col, t_rough, t_metal = table
-        rid = dr.reinterpret_array(mi.UInt32, bsdf)
-        t_ok = active & (bsdf != None) & (rid < t_w)  # noqa: E711 (BSDFPtr comparison)
-        kind = dr.gather(mi.UInt32, t_kind, rid, t_ok)
-        consts = (kind, lambda: dr.gather(mi.Color3f, t_col, rid, t_ok), lambda: dr.gather(mi.Float, t_rough, rid, t_ok),
-                  lambda: dr.gather(mi.Float, t_metal, rid, t_ok))
-    else:
-        kind = mi.UInt32(KIND_OTHER)
-        consts = None
-
-    # ------------------- the cones: live, Dirac, solid angle, density -------------------
-    live = [active & (n > i) for i in range(K)]
-    h = [2.0 * dr.square(dr.sin(0.5 * A[i])) for i in range(K)]           # 1 - cos(alpha_c)
-    delta = [live[i] & (A[i] < ALPHA_DELTA) for i in range(K)]
-    area = [live[i] & ~delta[i] for i in range(K)]                        # cones with a density
-    inv_om = [dr.select(area[i], dr.rcp(dr.maximum(2.0 * math.pi * h[i], 1e-30)), 0.0) for i in range(K)]
+    kind, consts = _table_consts(table, bsdf, active)
 
     # ------------------- Lambertian pixels: the cone integral in closed form -------------------
     # A cone clear of the horizon: (1/Omega_c) int_c cos = (n . d_c)(1 + cos alpha_c)/2. With
@@ -333,36 +329,8 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     # lights): int = (cos_d acos(y) - x sin_d sqrt(1 - y^2)) sin^2(alpha) + atan(sin_d sqrt(1 - y^2) / x),
     # x = cot(alpha), y = -x cos_d / sin_d; a cap wholly below (or a Dirac cone below) adds 0.
     # Cones wider than a hemisphere across the horizon still go to sampling.
-    nrm = si.sh_frame.n
-    closed = mi.Color3f(zero)
-    cones_ok = mi.Bool(active)                 # every live cone has a closed form
-    clear = mi.Bool(active)                    # every live cone wholly above the horizon (with a margin)
-    term, below_c = [], []                     # per cone: L_c (1/Omega_c) int_c cos (0 if not live); cap below
-    for i in range(K):
-        cos_d = dr.dot(nrm, Dw[i])
-        sin_d = dr.safe_sqrt(1.0 - dr.square(cos_d))
-        # above the horizon: angle(n, d) + alpha < pi/2  <=>  cos(angle + alpha) > 0
-        above = (cos_d * dr.cos(A[i]) - sin_d * dr.sin(A[i])) > 0.0
-        clear &= ~live[i] | ((cos_d * dr.cos(A[i]) - sin_d * dr.sin(A[i])) > BACK_MARGIN)
-        full = L[i] * (cos_d * 0.5 * (1.0 + dr.cos(A[i])))
-        if horizon:
-            sa, ca = dr.sin(A[i]), dr.cos(A[i])
-            below = (cos_d * ca + sin_d * sa) <= 0.0                      # the whole cap under the horizon
-            # the clipped-cap integral only where a live cone crosses the horizon (a symbolic
-            # branch: SIMD packets without such a lane skip it)
-            across = dr.if_stmt(
-                args=(cos_d, sin_d, sa, ca, A[i], L[i], delta[i], h[i]),
-                cond=live[i] & ~above & ~below,
-                true_fn=_across_cap, false_fn=lambda *a: mi.Color3f(0.0), label="across")
-            cones_ok &= ~live[i] | above | (A[i] < 0.5 * math.pi)
-            t = dr.select(live[i], dr.select(above, full, dr.select(below, 0.0, across)), 0.0)
-        else:
-            below = (cos_d * dr.cos(A[i]) + sin_d * dr.sin(A[i])) <= 0.0
-            cones_ok &= ~live[i] | above
-            t = dr.select(live[i], full, 0.0)
-        closed += t
-        term.append(t)
-        below_c.append(below | (delta[i] & (cos_d <= 0.0)))
+    closed, cones_ok, clear, term, below_c = _horizon_terms(si, active, K, A, L, Dw, live, delta, h, zero, horizon,
+                                                            sin_a, cos_a)
     lambert = _lambertian(bsdf, si, active) & cones_ok
 
     # Each kind of pixel runs in a symbolic branch of its own (Lambertian closed form,
@@ -380,25 +348,9 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     closed = dr.if_stmt(args=(closed,), cond=lambert, true_fn=lambert_fn,
                         false_fn=lambda closed: mi.Color3f(0.0), label="lambert")
 
-    # ------------------- principled pixels: diffuse in closed form, specular lobe as an SG -------------------
-    if principled:
-        pm = active & cones_ok & ~lambert
-        prin, pfast = dr.if_stmt(
-            args=(pm,), cond=pm,
-            true_fn=lambda pm: _principled_cones(bsdf, si, ctx, pm, K, live, delta, A, h, inv_om, L, Dw,
-                                                 term, below_c, zero, consts),
-            false_fn=lambda pm: (mi.Color3f(0.0), mi.Bool(False)), label="principled")
-    else:
-        prin, pfast = mi.Color3f(zero), active & False
-    # ------------------- GGX conductor pixels: the lobe as an SG (an option) -------------------
-    if conductor:
-        cm = active & cones_ok & ~lambert & ~pfast
-        cond_v, cfast = dr.if_stmt(
-            args=(cm,), cond=cm,
-            true_fn=lambda cm: _conductor_cones(bsdf, si, ctx, cm, K, live, delta, A, inv_om, L, Dw, below_c, zero),
-            false_fn=lambda cm: (mi.Color3f(0.0), mi.Bool(False)), label="conductor")
-        prin = dr.select(pfast, prin, cond_v)
-        pfast = pfast | cfast
+    # ------------------- principled (and GGX conductor) pixels: closed forms -------------------
+    prin, pfast = _glossy_closed(bsdf, si, ctx, active & cones_ok & ~lambert, K, live, delta, A, h, inv_om, L, Dw,
+                                 term, below_c, zero, consts, principled, conductor)
     # ------------------- pixels seen from behind whose cones are all in front: 0, no quadrature -------------------
     # A BSDF without transmission (or null) lobes reflects only into the side of w_i: with
     # cos(theta_i) <= 0 and every cone wholly above the horizon, f_r = 0 for every direction
@@ -409,25 +361,148 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
         ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & ~mi.has_flag(flags, mi.BSDFFlags.Null)
     sampled = active & ~lambert & ~pfast & (n > 0) & ~backside
 
-    # ------------------- purely glossy BSDFs (rough conductors): half the directions -------------------
-    # (``glossy_half``; their lobe has no diffuse base, and the split below gives a lobe
-    # wider than the cones few BSDF directions: the cone directions carry it)
+    if not compact:
+        n_px = _samples_px(bsdf, n_total, glossy_half)
+
+        def sampled_fn(sampled):
+            return _quadrature(bsdf, si, ctx, sampled, K, n_px, key, pid, adaptive, rotate, live, delta, area, h,
+                               inv_om, L, A, Dw, zero)
+
+        acc = dr.if_stmt(args=(sampled,), cond=sampled, true_fn=sampled_fn,
+                         false_fn=lambda sampled: mi.Color3f(0.0), label="quadrature")
+
+        # raw values: a NaN or Inf made here reaches the image, where check mode names it
+        return dr.select(lambert, closed, dr.select(pfast, prin, acc))
+
+    # ------------------- the quadrature's pixels compacted into a launch of their own -------------------
+    # A SIMD packet (16 lanes with AVX-512 on the LLVM backend) holding one quadrature pixel
+    # runs the quadrature's loops for all its lanes; on the atrium 3 % of the pixels (rough
+    # conductors) take it, spread over 14 % of the packets. This launch evaluates the closed
+    # forms and which pixels are left; the next takes the indices of those (``dr.compress``;
+    # the last pixel always taken, masked off unless it is one: no launch of width 0), gathers
+    # their inputs, recomputes their cone state from them (the same operations: the same
+    # values), and its values are scattered back. Same images bit for bit
+    # (tests/test_cones_compact.py); measured in docs/cones.md, "Session ovl7".
+    out = dr.select(lambert, closed, dr.select(pfast, prin, 0.0))
+    dr.eval(out, sampled)
+    N = dr.width(slot)
+    idx = dr.compress(sampled | (dr.arange(mi.UInt32, N) == (N - 1)))
+    on = dr.gather(mi.Bool, sampled, idx)
+    si_c, bsdf_c = dr.gather(type(si), si, idx), dr.gather(mi.BSDFPtr, bsdf, idx)
+    A_c, L_c, _, Dw_c, zero_c, live_c, h_c, delta_c, area_c, inv_om_c, _, _ = _cone_state(
+        storage, dr.gather(mi.UInt32, slot, idx), on, dr.gather(type(tf_in), tf_in, idx), entry_frames, K)
+    acc = _quadrature(bsdf_c, si_c, ctx, on, K, _samples_px(bsdf_c, n_total, glossy_half), key,
+                      dr.gather(mi.UInt32, pid, idx), adaptive, rotate, live_c, delta_c, area_c, h_c, inv_om_c, L_c,
+                      A_c, Dw_c, zero_c)
+    dr.scatter(out, acc, idx, on)
+    # raw values: a NaN or Inf made here reaches the image, where check mode names it
+    return out
+
+
+def _glossy_closed(bsdf, si, ctx, pm, K, live, delta, A, h, inv_om, L, Dw, term, below_c, zero, consts,
+                   principled, conductor):
+    """The closed forms of the candidate pixels ``pm`` (Lambertian closed form for every
+    cone, not Lambertian): principled (``principled``), GGX conductor (``conductor``), each
+    in a symbolic branch. Returns (value, mask of the pixels that have one)."""
+    if principled:
+        prin, pfast = dr.if_stmt(
+            args=(pm,), cond=pm,
+            true_fn=lambda pm: _principled_cones(bsdf, si, ctx, pm, K, live, delta, A, h, inv_om, L, Dw,
+                                                 term, below_c, zero, consts),
+            false_fn=lambda pm: (mi.Color3f(0.0), mi.Bool(False)), label="principled")
+    else:
+        prin, pfast = mi.Color3f(zero), pm & False
+    # ------------------- GGX conductor pixels: the lobe as an SG (an option) -------------------
+    if conductor:
+        cm = pm & ~pfast
+        cond_v, cfast = dr.if_stmt(
+            args=(cm,), cond=cm,
+            true_fn=lambda cm: _conductor_cones(bsdf, si, ctx, cm, K, live, delta, A, inv_om, L, Dw, below_c, zero),
+            false_fn=lambda cm: (mi.Color3f(0.0), mi.Bool(False)), label="conductor")
+        prin = dr.select(pfast, prin, cond_v)
+        pfast = pfast | cfast
+    return prin, pfast
+
+
+def _table_consts(table, bsdf, active):
+    """Each pixel's BSDF kind and constants from the table (:func:`bsdf_table`; ``KIND_OTHER``:
+    virtual calls): (kind, consts or None), the constants read lazily."""
+    if table is None:
+        return mi.UInt32(KIND_OTHER), None
+    t_w, t_kind, t_col, t_rough, t_metal = table
+    rid = dr.reinterpret_array(mi.UInt32, bsdf)
+    t_ok = active & (bsdf != None) & (rid < t_w)  # noqa: E711 (BSDFPtr comparison)
+    kind = dr.gather(mi.UInt32, t_kind, rid, t_ok)
+    return kind, (kind, lambda: dr.gather(mi.Color3f, t_col, rid, t_ok), lambda: dr.gather(mi.Float, t_rough, rid, t_ok),
+                  lambda: dr.gather(mi.Float, t_metal, rid, t_ok))
+
+
+def _horizon_terms(si, active, K, A, L, Dw, live, delta, h, zero, horizon, sin_a, cos_a):
+    """Per cone the Lambertian closed form ``L_c (1/Omega_c) int_c cos`` (horizon-clipped
+    with ``horizon``; 0 if not live) and whether its cap lies wholly below the horizon;
+    their sum, and per pixel whether every live cone has the closed form (``cones_ok``)
+    and lies wholly above the horizon with a margin (``clear``). See :func:`shade_kernel`."""
+    nrm = si.sh_frame.n
+    closed = mi.Color3f(zero)
+    cones_ok = mi.Bool(active)                 # every live cone has a closed form
+    clear = mi.Bool(active)                    # every live cone wholly above the horizon (with a margin)
+    term, below_c = [], []                     # per cone: L_c (1/Omega_c) int_c cos (0 if not live); cap below
+    for i in range(K):
+        cos_d = dr.dot(nrm, Dw[i])
+        sin_d = dr.safe_sqrt(1.0 - dr.square(cos_d))
+        # above the horizon: angle(n, d) + alpha < pi/2  <=>  cos(angle + alpha) > 0
+        sa, ca = sin_a[i], cos_a[i]
+        above = (cos_d * ca - sin_d * sa) > 0.0
+        clear &= ~live[i] | ((cos_d * ca - sin_d * sa) > BACK_MARGIN)
+        full = L[i] * (cos_d * 0.5 * (1.0 + ca))
+        if horizon:
+            below = (cos_d * ca + sin_d * sa) <= 0.0                      # the whole cap under the horizon
+            # the clipped-cap integral only where a live cone crosses the horizon (a symbolic
+            # branch: SIMD packets without such a lane skip it)
+            across = dr.if_stmt(
+                args=(cos_d, sin_d, sa, ca, A[i], L[i], delta[i], h[i]),
+                cond=live[i] & ~above & ~below,
+                true_fn=_across_cap, false_fn=lambda *a: mi.Color3f(0.0), label="across")
+            cones_ok &= ~live[i] | above | (A[i] < 0.5 * math.pi)
+            t = dr.select(live[i], dr.select(above, full, dr.select(below, 0.0, across)), 0.0)
+        else:
+            below = (cos_d * ca + sin_d * sa) <= 0.0
+            cones_ok &= ~live[i] | above
+            t = dr.select(live[i], full, 0.0)
+        closed += t
+        term.append(t)
+        below_c.append(below | (delta[i] & (cos_d <= 0.0)))
+    return closed, cones_ok, clear, term, below_c
+
+def _cone_state(storage, slot, active, texel_frame, entry_frames, K):
+    """The cones of each pixel's entry, read from ``storage``: (A, L, n, world axes Dw, a
+    zero of the pixels' width, and per cone: live, 1 - cos(alpha_c), Dirac, with a density,
+    1 / Omega_c, sin(alpha_c), cos(alpha_c))."""
+    if entry_frames is not None:
+        texel_frame = dr.gather(mi.Frame3f, entry_frames, texel_frame, active)
+    D, A, L, C, n = unpack(gather_words(storage, slot, K, active), K)
+    Dw = [dr.normalize(texel_frame.to_world(D[i])) for i in range(K)]
+    zero = dr.select(active, mi.Float(0.0), mi.Float(0.0))     # a zero of the pixels' width
+
+    # ------------------- the cones: live, Dirac, solid angle, density -------------------
+    live = [active & (n > i) for i in range(K)]
+    h = [2.0 * dr.square(dr.sin(0.5 * A[i])) for i in range(K)]           # 1 - cos(alpha_c)
+    delta = [live[i] & (A[i] < ALPHA_DELTA) for i in range(K)]
+    area = [live[i] & ~delta[i] for i in range(K)]                        # cones with a density
+    inv_om = [dr.select(area[i], dr.rcp(dr.maximum(2.0 * math.pi * h[i], 1e-30)), 0.0) for i in range(K)]
+    return A, L, n, Dw, zero, live, h, delta, area, inv_om, [dr.sin(a) for a in A], [dr.cos(a) for a in A]
+
+
+def _samples_px(bsdf, n_total, glossy_half):
+    """n_S per pixel: ``n_total``, halved for purely glossy BSDFs with ``glossy_half``."""
     n_px = mi.UInt32(n_total)
     if glossy_half:
+        flags = mi.UInt32(bsdf.flags())
         glossy_only = mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) & \
             ~mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & \
             ~mi.has_flag(flags, mi.BSDFFlags.Transmission)
         n_px = dr.select(glossy_only, dr.maximum(n_px >> 1, 1), n_px)
-
-    def sampled_fn(sampled):
-        return _quadrature(bsdf, si, ctx, sampled, K, n_px, key, pid, adaptive, rotate, live, delta, area, h,
-                           inv_om, L, A, Dw, zero)
-
-    acc = dr.if_stmt(args=(sampled,), cond=sampled, true_fn=sampled_fn,
-                     false_fn=lambda sampled: mi.Color3f(0.0), label="quadrature")
-
-    # raw values: a NaN or Inf made here reaches the image, where check mode names it
-    return dr.select(lambert, closed, dr.select(pfast, prin, acc))
+    return n_px
 
 
 def _across_cap(cos_d, sin_d, sa, ca, A, L, delta, h):
@@ -572,7 +647,10 @@ class ConeShading(FrozenFunction):
     Gaussian over each cone, see :func:`_conductor_cones`; only for scenes whose
     roughconductors all use GGX, :func:`shader_for` checks), ``glossy="full"`` (``"half"``:
     pixels whose BSDF is purely glossy, e.g. rough conductors, take half of ``n_samples``
-    on the quadrature: faster, noisier, see docs/cones.md).
+    on the quadrature: faster, noisier, see docs/cones.md), ``compact=True`` (the pixels that
+    take the MIS quadrature packed into a launch of their own, so that SIMD packets of
+    closed-form pixels do not run its loops; False: in a branch of the launch of all pixels;
+    the same images bit for bit).
 
     Freezing pays only while its recordings are replayed. Each instance owns its frozen
     function, so recordings are freed with the method and never shared between scenes.
@@ -588,8 +666,10 @@ class ConeShading(FrozenFunction):
 
     def __init__(self, max_cones: int, adaptive: bool = True, rotate: bool = True, freeze: bool = True,
                  animated: bool = False, max_recordings: int = 4, horizon: bool = True,
-                 principled: str = "sg", conductor: str = "sample", table=None, glossy: str = "full"):
+                 principled: str = "sg", conductor: str = "sample", table=None, glossy: str = "full",
+                 compact: bool = True):
         self.table = table
+        self.compact = bool(compact)
         if glossy not in ("half", "full"):
             raise ValueError(f"glossy must be 'half' or 'full', not {glossy!r}")
         self.glossy = glossy
@@ -613,7 +693,7 @@ class ConeShading(FrozenFunction):
                                 self.max_cones, dr.opaque(mi.UInt32, max(int(n_samples), 1)),
                                 dr.opaque(mi.UInt32, int(key)), self.adaptive, self.rotate, pid, self.horizon,
                                 self.principled == "sg", self.conductor == "sg", self.table, entry_frames,
-                                self.glossy == "half")
+                                self.glossy == "half", self.compact)
 
 
 def shader_for(owner, max_cones: int) -> ConeShading:
@@ -630,13 +710,13 @@ def shader_for(owner, max_cones: int) -> ConeShading:
         sh = ConeShading(max_cones, animated=bool(getattr(scene, "dynamic", False)),
                          horizon=getattr(owner, "horizon", "clip") == "clip",
                          principled=getattr(owner, "principled", "sg"), conductor=conductor,
-                         glossy=getattr(owner, "glossy", "full"),
+                         glossy=getattr(owner, "glossy", "full"), compact=getattr(owner, "compact", "on") == "on",
                          table=bsdf_table(scene) if scene is not None else None)
         owner._cone_shading = sh
     return sh
 
 
-KIND_OTHER, KIND_DIFFUSE, KIND_PRINCIPLED = 0, 1, 2
+KIND_OTHER, KIND_DIFFUSE, KIND_PRINCIPLED, KIND_NOT_PRINCIPLED = 0, 1, 2, 3
 _ZERO_ATTRS = ("clearcoat", "sheen", "flatness", "anisotropic", "spec_trans")
 
 
@@ -649,8 +729,10 @@ def bsdf_table(scene):
     ``KIND_DIFFUSE`` (Mitsuba's ``diffuse`` with a constant reflectance: that reflectance),
     ``KIND_PRINCIPLED`` (``principled`` whose clearcoat, sheen, flatness, anisotropy and
     specular transmission are constant 0 and whose base colour, roughness and metallic
-    are constant: those three), else ``KIND_OTHER`` (textured parameters, other BSDFs:
-    the kernel's virtual calls, per pixel as before). The constants are the BSDF's own
+    are constant: those three), ``KIND_NOT_PRINCIPLED`` (other BSDFs without the
+    ``clearcoat`` or ``base_color`` attribute, which the principled closed form never
+    takes: its test of them, a few virtual calls per pixel, is skipped), else
+    ``KIND_OTHER`` (textured parameters: the kernel's virtual calls, per pixel as before). The constants are the BSDF's own
     ``eval_attribute`` / ``eval_diffuse_reflectance`` values (a constant texture ignores
     the point), so the images are the same bit for bit. Returns (width as an opaque
     UInt32, kind UInt32, colour Color3f, roughness Float, metallic Float), or None for
@@ -691,6 +773,8 @@ def bsdf_table(scene):
             col[:, rid] = np.array(b.eval_attribute_3("base_color", si)).reshape(3)
             rough[rid] = float(b.eval_attribute_1("roughness", si)[0])
             metal[rid] = float(b.eval_attribute_1("metallic", si)[0])
+        elif not (b.has_attribute("clearcoat") and b.has_attribute("base_color")):
+            kind[rid] = KIND_NOT_PRINCIPLED
     return (dr.opaque(mi.UInt32, W), mi.UInt32(kind), mi.Color3f(col), mi.Float(rough), mi.Float(metal))
 
 
