@@ -318,6 +318,32 @@ def ratio(a, b):
         return None
 
 
+def ratio_in_turn(scene, spec: str, base, top, cfg, repeats: int = 3, seed: int = 0) -> dict:
+    """Time one method on two rigs again, in turn: ``repeats`` repetitions in
+    alternating order (base, top; top, base; ...), each a whole
+    :func:`slc.pipeline.run_sequence` of ``cfg`` (no evaluation), and the ratio
+    top / base taken within each repetition. Rows of an experiment run minutes
+    apart, under whatever load the shared cores had then; a ratio of two runs
+    side by side moves less. Returns the median ratio, every repetition's ratio
+    and times, and the most kernels any run built after its warm-up."""
+    import dataclasses
+    import statistics
+
+    from . import methods
+    from .pipeline import run_sequence
+    c = dataclasses.replace(cfg, eval_frames=[], keep_images=False, measure_overlap=False)
+    times = {"base": [], "top": []}
+    compiled = 0
+    for rep in range(repeats):
+        for k in (("base", "top") if rep % 2 == 0 else ("top", "base")):
+            r = run_sequence(scene, methods.create(spec, scene, seed=seed), base if k == "base" else top, c)
+            times[k].append(r.time_ms)
+            compiled = max(compiled, r.compiled_after_warmup)
+    ratios = [t / max(b, 1e-9) for t, b in zip(times["top"], times["base"])]
+    return {"ratio": statistics.median(ratios) if ratios else float("nan"), "ratios": ratios,
+            "base_ms": times["base"], "top_ms": times["top"], "compiled_after_warmup": compiled}
+
+
 def setup(opts, quick: dict, full: dict, methods: list[str]):
     """The common start of a multi-viewer experiment: the preset (with
     --res/--frames applied), the method specs, the validated scenes and the
