@@ -22,10 +22,10 @@ install: llvm $(STAMP)
 
 # The first run: one viewer on the atrium, slc against 16 and 48 light samples per pixel.
 # 240x135 rather than the quick preset's 160x90: slc's per-frame host time (Python tracing,
-# syncs) does not grow with the pixels and weighs less there. First runs on an empty kernel
-# cache with the frozen update, on a loaded machine: slc/rt48 time 0.39x and 0.53x in two
-# runs, FLIP 0.83x rt48's (docs/cones.md, "Update, frozen"). Three methods keep it near a
-# minute on 2 idle cores (ground truth and kernel compilation included).
+# syncs) does not grow with the pixels and weighs less there. A first run on an empty kernel
+# cache, quiet machine (seventh session): slc/rt48 time 0.32x, FLIP 0.83x rt48's, 24 s
+# (docs/results/make-run.md). Three methods keep it under a minute on 2 idle cores (ground
+# truth and kernel compilation included).
 run: install
 	@echo "make run: atrium 240x135, 24 frames (10 warm-up); slc (Surface Light Cones) vs rt16 / rt48"
 	@echo "(16 / 48 light samples + shadow rays per pixel); time = median direct-light ms per frame"
