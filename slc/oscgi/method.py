@@ -224,6 +224,10 @@ class OSCGI(PayloadMethod):
               "max(secondary_cm, secondary_lod t), in powers of 2 (0: fixed cells)", lo=0.0, hi=4.0),
         Param("secondary_rays", 16, "cosine rays per secondary cell update (32 before session gi8)", lo=1, hi=1024),
         Param("light_samples", 4, "light samples per secondary cell update", lo=1, hi=1024),
+        Param("secondary_direct", "plain", "secondary cells' direct light: plain light samples, or each chosen by "
+              "resampled importance sampling among secondary_ris_m candidates (ris, one shadow ray)",
+              choices=("plain", "ris")),
+        Param("secondary_ris_m", 8, "secondary_direct=ris: candidates per light sample", lo=1, hi=256),
         Param("direct_rays", 8, "light samples per primary entry update (output=full)", lo=1, hi=1024),
         Param("glossy_samples", 16, "BSDF samples of the hemisphere per glossy pixel (8 before session gi8)", lo=1, hi=1024),
         Param("secondary_slots", 17, "log2 of the secondary hash-table size", lo=8, hi=24),
@@ -326,7 +330,8 @@ class OSCGI(PayloadMethod):
                                         1 << self.secondary_slots, shape_key=self.shape_key, seed=self.seed,
                                         budget=self.secondary_budget, evict_after=self.secondary_evict,
                                         freeze=bool(self.freeze), glossy_hits=bool(self.glossy_hits),
-                                        lod=self.secondary_lod)
+                                        lod=self.secondary_lod, direct=self.secondary_direct,
+                                        ris_m=self.secondary_ris_m)
         self.secondary.laps = self.laps
 
     # ----------------------------------------------------------------- update
