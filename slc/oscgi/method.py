@@ -21,6 +21,7 @@ from ..sh.shading import diffuse_only, shade_radiance
 from .hemisphere import HemiGrid
 from .laps import Laps
 from .secondary import SecondaryCache, _glossy_kernel
+from .origins import backface_share, representative_points
 from .spatial import SpatialFilter
 
 STREAM_PRIMARY = 0x05C61001
@@ -253,9 +254,14 @@ class OSCGI(PayloadMethod):
         Param("update_budget", 2.0, "primary entries updated per frame at most, in units of one viewer's share: "
               "update_budget x (pixels of the largest viewer) / bias^2; new entries always, then the most due "
               "(fewest samples, oldest update); 0: every requested entry", lo=0.0, hi=1e6),
+        Param("origin", "texel", "where an entry's rays start: its own surface point (texel), or its point projected "
+              "onto the plane of its island's first triangle (representative: the slides' naive triangle ids, "
+              "for measuring the artefact)", choices=("texel", "representative")),
         Param("front_only", True, "only pixels facing the viewer request entries (back faces are shaded black)"),
     ) + _cache_params()
     storage_type = mi.Float
+    probe_origins = False          # count the cache rays hitting a back face (origin_probe: back, valid)
+    origin_probe = (0, 0)
 
     def __init__(self, scene, **kw):
         super().__init__(scene, **kw)
@@ -386,11 +392,15 @@ class OSCGI(PayloadMethod):
         tl = dr.compress(traced)
         et, kt = tl // D, tl % D
         ray_k = self._k_ray if dr.width(tl) > 1 else _primary_ray_kernel
-        ray, ok = ray_k((fr.si.p, fr.si.n, fr.si.sh_frame.n), fr.keys, tl,
+        o = fr.si.p if self.origin == "texel" else representative_points(self.cache, fr.active, fr.si.p)
+        ray, ok = ray_k((o, fr.si.n, fr.si.sh_frame.n), fr.keys, tl,
                         stream_key(self.seed, ctx.frame, STREAM_PRIMARY), D, self.hemi)
         laps.lap("primary_raygen", ray, ok)
         hits = sec.trace(ray, ok)   # (p, n, t, shape index, preliminary intersection, valid, key, home, front n)
         laps.lap("primary_rays", *hits)
+        if self.probe_origins:                      # (measurements, tests: back-face hits of the cache rays)
+            b, v = backface_share(hits[1], ray.d, hits[5])
+            self.origin_probe = (self.origin_probe[0] + b, self.origin_probe[1] + v)
 
         # ------------- secondary caches: cells of the hits, requests, update (all shared) -------------
         req = sec.begin_frame(ctx.frame)              # eviction first: slots move in a rebuild
