@@ -20,8 +20,8 @@ from ..osc.payload import PayloadMethod, RayPolicy
 from ..sh.shading import diffuse_only, shade_radiance
 from .hemisphere import HemiGrid
 from .laps import Laps
-from .secondary import SecondaryCache, _glossy_kernel
 from .origins import backface_share, representative_points
+from .secondary import SecondaryCache, _glossy_kernel
 from .spatial import SpatialFilter
 
 STREAM_PRIMARY = 0x05C61001
