@@ -20,6 +20,7 @@ from ..osc.payload import PayloadMethod, RayPolicy
 from ..sh.shading import diffuse_only, shade_radiance
 from .hemisphere import HemiGrid
 from .laps import Laps
+from .origins import backface_share, representative_points
 from .secondary import SecondaryCache, _glossy_kernel
 from .spatial import SpatialFilter
 
@@ -224,6 +225,10 @@ class OSCGI(PayloadMethod):
               "max(secondary_cm, secondary_lod t), in powers of 2 (0: fixed cells)", lo=0.0, hi=4.0),
         Param("secondary_rays", 16, "cosine rays per secondary cell update (32 before session gi8)", lo=1, hi=1024),
         Param("light_samples", 4, "light samples per secondary cell update", lo=1, hi=1024),
+        Param("secondary_direct", "plain", "secondary cells' direct light: plain light samples, or each chosen by "
+              "resampled importance sampling among secondary_ris_m candidates (ris, one shadow ray)",
+              choices=("plain", "ris")),
+        Param("secondary_ris_m", 8, "secondary_direct=ris: candidates per light sample", lo=1, hi=256),
         Param("direct_rays", 8, "light samples per primary entry update (output=full)", lo=1, hi=1024),
         Param("glossy_samples", 16, "BSDF samples of the hemisphere per glossy pixel (8 before session gi8)", lo=1, hi=1024),
         Param("secondary_slots", 17, "log2 of the secondary hash-table size", lo=8, hi=24),
@@ -249,9 +254,14 @@ class OSCGI(PayloadMethod):
         Param("update_budget", 2.0, "primary entries updated per frame at most, in units of one viewer's share: "
               "update_budget x (pixels of the largest viewer) / bias^2; new entries always, then the most due "
               "(fewest samples, oldest update); 0: every requested entry", lo=0.0, hi=1e6),
+        Param("origin", "texel", "where an entry's rays start: its own surface point (texel), or its point projected "
+              "onto the plane of its island's first triangle (representative: the slides' naive triangle ids, "
+              "for measuring the artefact)", choices=("texel", "representative")),
         Param("front_only", True, "only pixels facing the viewer request entries (back faces are shaded black)"),
     ) + _cache_params()
     storage_type = mi.Float
+    probe_origins = False          # count the cache rays hitting a back face (origin_probe: back, valid)
+    origin_probe = (0, 0)
 
     def __init__(self, scene, **kw):
         super().__init__(scene, **kw)
@@ -326,7 +336,8 @@ class OSCGI(PayloadMethod):
                                         1 << self.secondary_slots, shape_key=self.shape_key, seed=self.seed,
                                         budget=self.secondary_budget, evict_after=self.secondary_evict,
                                         freeze=bool(self.freeze), glossy_hits=bool(self.glossy_hits),
-                                        lod=self.secondary_lod)
+                                        lod=self.secondary_lod, direct=self.secondary_direct,
+                                        ris_m=self.secondary_ris_m)
         self.secondary.laps = self.laps
 
     # ----------------------------------------------------------------- update
@@ -381,11 +392,15 @@ class OSCGI(PayloadMethod):
         tl = dr.compress(traced)
         et, kt = tl // D, tl % D
         ray_k = self._k_ray if dr.width(tl) > 1 else _primary_ray_kernel
-        ray, ok = ray_k((fr.si.p, fr.si.n, fr.si.sh_frame.n), fr.keys, tl,
+        o = fr.si.p if self.origin == "texel" else representative_points(self.cache, fr.active, fr.si.p)
+        ray, ok = ray_k((o, fr.si.n, fr.si.sh_frame.n), fr.keys, tl,
                         stream_key(self.seed, ctx.frame, STREAM_PRIMARY), D, self.hemi)
         laps.lap("primary_raygen", ray, ok)
         hits = sec.trace(ray, ok)   # (p, n, t, shape index, preliminary intersection, valid, key, home, front n)
         laps.lap("primary_rays", *hits)
+        if self.probe_origins:                      # (measurements, tests: back-face hits of the cache rays)
+            b, v = backface_share(hits[1], ray.d, hits[5])
+            self.origin_probe = (self.origin_probe[0] + b, self.origin_probe[1] + v)
 
         # ------------- secondary caches: cells of the hits, requests, update (all shared) -------------
         req = sec.begin_frame(ctx.frame)              # eviction first: slots move in a rebuild

@@ -151,11 +151,20 @@ def _rep_kernel(sc, pi, ray, idx, slots, p, nf):
     return sl, words
 
 
-def _direct_kernel(sc, lights, rep, keys_tab, cells, mix, ns, n_samples: float):
-    """Direct light at the representative points of ``cells``: ``ns`` (opaque) light samples
+def _direct_kernel(sc, lights, rep, keys_tab, cells, mix, ns, n_samples: float, ris_m: int = 0):
+    r"""Direct light at the representative points of ``cells``: ``ns`` (opaque) light samples
     (the project's light sampling, shadow rays); ``lights`` declares the emitter table as an
     input. Returns (E_dir/pi, the outgoing direct radiance before the albedo; point, normal,
-    albedo, key and lit mask of each cell)."""
+    albedo, key and lit mask of each cell).
+
+    ``ris_m`` = 0 (``direct=plain``): each sample is one light sample x_i with weight
+    :math:`L_e \cos / p`. ``ris_m`` = M > 0 (``direct=ris``): each sample is chosen by resampled
+    importance sampling among M candidates x_1..x_M of the same light sampling (one weighted
+    reservoir, one shadow ray), with the unshadowed contribution as target,
+    :math:`\hat p(x) = \mathrm{lum}(L_e(x) \cos(x))`, candidate weights
+    :math:`w_i = \hat p(x_i) / p(x_i)` and the estimate
+    :math:`L_e(y) \cos(y) V(y) / \hat p(y) \cdot \frac{1}{M}\sum_i w_i` (unbiased: :math:`\hat p > 0`
+    wherever the integrand is)."""
     rp = [dr.gather(mi.Float, rep, cells * _REP + j) for j in range(_REP)]
     p, nrm, rho = mi.Point3f(*rp[0:3]), mi.Vector3f(*rp[3:6]), mi.Color3f(*rp[6:9])
     keys = dr.gather(mi.UInt32, keys_tab, cells)
@@ -175,7 +184,30 @@ def _direct_kernel(sc, lights, rep, keys_tab, cells, mix, ns, n_samples: float):
         ok = visible(sc, si, ds, ok)
         return i + 1, E + dr.select(ok, w * cos, 0.0), sampler
 
-    _, E_dir, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
+    def body_ris(i, E, sampler):
+        # ---------------- M candidates into one weighted reservoir (no rays) ----------------
+        wsum, y_ds, y_c, y_ph = mi.Float(0.0), dr.zeros(mi.DirectionSample3f), mi.Color3f(0.0), mi.Float(0.0)
+        for _ in range(ris_m):
+            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
+            ds, w, ok = sample_light(sc, si, u, lit)
+            cos = dr.dot(ds.d, nrm)
+            ok &= (cos > 0.0) & dr.all(dr.isfinite(w))
+            c = dr.select(ok, w * cos, 0.0)               # L_e cos / p of the candidate
+            wi = mi.luminance(c)                          # w_i = p^(x_i) / p(x_i)
+            wi = dr.select(ok & (wi > 0.0) & dr.isfinite(wi), wi, 0.0)
+            wsum += wi
+            take = (wi > 0.0) & (sampler.next_float32() * wsum < wi)
+            y_ds = dr.select(take, ds, y_ds)
+            y_c = dr.select(take, c, y_c)
+            y_ph = dr.select(take, wi, y_ph)
+        # ---------------- the chosen sample: one shadow ray, weight (1/p^(y)) (1/M) sum w_i ----------------
+        ok = lit & (y_ph > 0.0)
+        ok = visible(sc, si, y_ds, ok)
+        W = wsum * (1.0 / ris_m) * dr.rcp(dr.select(ok, y_ph, 1.0))
+        return i + 1, E + dr.select(ok, y_c * W, 0.0), sampler
+
+    _, E_dir, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond,
+                                body=body_ris if ris_m > 0 else body,
                                 labels=("i", "E", "sampler"))
     L_dir = (E_dir / n_samples) * (1.0 / math.pi)
     dr.eval(L_dir, p, nrm, rho, keys, lit)
@@ -233,6 +265,8 @@ class SecondaryCache:
     ``slots`` (table size, a power of two), ``probes`` (linear-probing rounds), ``shape_key``,
     ``budget`` (cell updates per frame, 0: unlimited), ``evict_after`` (frames unused, 0: never),
     ``max_load`` (with eviction on: cells kept at the start of a frame, as a fraction of ``slots``),
+    ``direct`` (the cells' light samples: ``plain`` light sampling, or ``ris``: each chosen by
+    resampled importance sampling among ``ris_m`` (8) candidates, one shadow ray; session gi11),
     ``freeze`` (True: the kernels with shape, BSDF and emitter calls, the ray tracing with the cell
     keys, the representative albedo, the direct light and the secondary rays, are traced once and
     replayed by :class:`slc.freeze.FrozenFunction`; same results as traced)."""
@@ -240,9 +274,13 @@ class SecondaryCache:
     def __init__(self, mi_scene: mi.Scene, cell: float, bounces: int = 2, n_max: int = 8, rays: int = 32,
                  light_samples: int = 4, slots: int = 1 << 16, probes: int = 32, shape_key: bool = True,
                  seed: int = 0, budget: int = 0, evict_after: int = 0, max_load: float = 0.25,
-                 freeze: bool = True, glossy_hits: bool = True, lod: float = 0.0):
+                 freeze: bool = True, glossy_hits: bool = True, lod: float = 0.0, direct: str = "plain",
+                 ris_m: int = 8):
         if slots & (slots - 1):
             raise ValueError("slots must be a power of two")
+        if direct not in ("plain", "ris"):
+            raise ValueError("direct must be 'plain' or 'ris'")
+        self.direct, self.ris_m = direct, max(1, int(ris_m))
         self.sc, self.h, self.B = mi_scene, float(cell), int(bounces)
         self.n_max, self.rays, self.light_samples = int(n_max), int(rays), int(light_samples)
         self.slots, self.probes, self.shape_key, self.seed = int(slots), int(probes), bool(shape_key), int(seed)
@@ -528,7 +566,8 @@ class SecondaryCache:
         # ------------------- direct light at the representative point (NEE) -------------------
         L_dir, p, nrm, rho, keys, lit = direct_k(
             sc, light_inputs(sc), self.rep, self.keys, cells, stream_key(self.seed, frame, STREAM_SECONDARY),
-            dr.opaque(mi.UInt32, self.light_samples), float(max(self.light_samples, 1)))
+            dr.opaque(mi.UInt32, self.light_samples), float(max(self.light_samples, 1)),
+            self.ris_m if self.direct == "ris" else 0)
         self.laps.lap("sec_direct")
 
         # ------------- cosine rays to other cells: layers b-1 of their previous update -------------
