@@ -265,6 +265,13 @@ class OSCGI(PayloadMethod):
     ``output``: ``indirect`` (light after at least one reflection) or ``full`` (direct + indirect;
     the emission seen directly is added by the pipeline).
 
+    *Sharp reflections and interpolation* (session gi10, both off): ``sharp`` > 0: pixels with a
+    delta lobe or a GGX alpha below ``sharp`` trace ``sharp_rays`` BSDF rays for their glossy /
+    delta lobes and read the secondary cell at each hit (:func:`_sharp_shade`; the diffuse lobe
+    from the texels as above); ``trilinear``: each BSDF sample reads one texel of its bilinear
+    footprint chosen with probability = its bilinear weight (unbiased for the bilinear blend;
+    :meth:`~slc.oscgi.hemisphere.HemiGrid.texel_stochastic`), not the nearest texel.
+
     *Direct light* (``output=full``), ``direct``: ``rt`` (default) ``direct_n`` (16) light samples
     per pixel with shadow rays, :math:`\frac1n\sum_j f L_e G V/p` (RT-N, frozen; with ``direct_lds``,
     on, the n points a Hammersley set shifted by a random offset per pixel), added to the
