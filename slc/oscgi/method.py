@@ -128,9 +128,10 @@ def _sharp_mask(si, bsdf, g, alpha: float):
     the attribute ``alpha``; principled: ``roughness``^2, Disney's mapping; a BSDF with
     neither attribute reads 0 and counts as sharp only through its flags)."""
     flags = bsdf.flags()
-    a = dr.maximum(bsdf.eval_attribute_1("alpha", si, g), dr.square(bsdf.eval_attribute_1("roughness", si, g)))
-    has = (bsdf.eval_attribute_1("alpha", si, g) > 0.0) | (bsdf.eval_attribute_1("roughness", si, g) > 0.0)
-    return g & (mi.has_flag(flags, mi.BSDFFlags.Delta) | (has & (a < alpha)))
+    a_ggx = bsdf.eval_attribute_1("alpha", si, g)
+    rough = bsdf.eval_attribute_1("roughness", si, g)
+    a = dr.maximum(a_ggx, dr.square(rough))
+    return g & (mi.has_flag(flags, mi.BSDFFlags.Delta) | ((a_ggx > 0.0) | (rough > 0.0)) & (a < alpha))
 
 
 def _sharp_shade(sc, sec, si, bsdf, sharp, frame_e, texel_at, sampler, n: int, n_texel: int, emitters: bool):
