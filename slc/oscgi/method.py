@@ -21,7 +21,7 @@ from ..sh.shading import diffuse_only, shade_radiance
 from .hemisphere import HemiGrid
 from .laps import Laps
 from .origins import backface_share, representative_points
-from .secondary import SecondaryCache, _glossy_kernel
+from .secondary import EMPTY, SecondaryCache, _glossy_kernel, cell_key
 from .spatial import SpatialFilter
 
 STREAM_PRIMARY = 0x05C61001
@@ -29,6 +29,7 @@ STREAM_PRIMARY_DIRECT = 0x05C61002
 STREAM_SHADE = 0x05C61003
 STREAM_GLOSSY = 0x05C61004
 STREAM_PIXEL_DIRECT = 0x05C61005
+STREAM_SHARP = 0x05C61006
 DIRECT_METHODS = {"cones": "slc", "restir": "restir"}   # direct=... -> the registered method run beside
 INITIAL_ENTRIES = 1 << 14     # the pool starts small and doubles on demand (entries are ~0.8 KB)
 
@@ -122,6 +123,96 @@ def _pixel_direct_kernel(sc, lights, table, si, active, idx, mix, n, lds):
     return L
 
 
+def _sharp_mask(si, bsdf, g, alpha: float):
+    """Pixels (of ``g``, the non-diffuse ones) whose reflection is sharper than the hemisphere
+    texels: a delta lobe, or a GGX roughness below ``alpha`` (roughconductor / roughplastic:
+    the attribute ``alpha``; principled: ``roughness``^2, Disney's mapping; a BSDF with
+    neither attribute reads 0 and counts as sharp only through its flags)."""
+    flags = bsdf.flags()
+    a_ggx = bsdf.eval_attribute_1("alpha", si, g)
+    rough = bsdf.eval_attribute_1("roughness", si, g)
+    a = dr.maximum(a_ggx, dr.square(rough))
+    return g & (mi.has_flag(flags, mi.BSDFFlags.Delta) | ((a_ggx > 0.0) | (rough > 0.0)) & (a < alpha))
+
+
+def _sharp_shade(sc, sec, si, bsdf, sharp, frame_e, texel_at, sampler, n: int, n_texel: int, emitters: bool):
+    r"""Sharp reflections of the pixels ``sharp`` (session gi10). The BSDF's samples are split by
+    the lobe they come from (:math:`\mathbb 1_g`: a glossy or delta lobe, ``bs.sampled_type``),
+    two estimators of the two parts of the same integral, so their sum is that of one estimator:
+
+    .. math:: L_o \approx \frac1n\sum_{j\le n} \mathbb 1_g\, w_j\, L_c(\omega_j)
+              + \frac1m\sum_{j\le m} (1 - \mathbb 1_g)\, w_j\, L_k(\omega_j),
+              \qquad w_j = f\cos/p,
+
+    the first by ``n`` BSDF-sampled rays, :math:`L_c` the outgoing radiance (layer ``bounces``)
+    of the secondary cell at the ray's hit (what a primary cache ray reads there; a miss gives 0),
+    the second (the diffuse lobe of a principled BSDF, 0 for a conductor) from the entry's texels
+    as before, ``m`` = ``n_texel`` samples, no rays. Where a ray's hit has no cell holding a value
+    (never touched by a cache ray, or not updated yet) or has a glossy / delta BSDF (a cell holds
+    diffuse light only) the entry's texel towards :math:`\omega_j` is read instead
+    (``texel_at(d, m)``). ``emitters``: the emission at the hit is added (only when the entries
+    hold direct light too, ``direct=cache``; else the pixel's direct light comes from elsewhere).
+    The cell is found by probing the hash table from the key's home slot (no insertion)."""
+    ctx = mi.BSDFContext()
+    mask = sec.slots - 1
+
+    def lobe(t):
+        return mi.has_flag(t, mi.BSDFFlags.Glossy) | mi.has_flag(t, mi.BSDFFlags.Delta)
+
+    L = mi.Color3f(0.0)
+    # ------------------ glossy / delta lobes: BSDF rays into the secondary cells ------------------
+    for _ in range(n):
+        bs, bw = bsdf.sample(ctx, si, sampler.next_float32(), mi.Point2f(sampler.next_float32(),
+                                                                         sampler.next_float32()), sharp)
+        ok = sharp & (bs.pdf > 0.0) & lobe(bs.sampled_type)
+        d = si.to_world(bs.wo)
+        ray = si.spawn_ray(d)
+        pi = sc.ray_intersect_preliminary(ray, coherent=False, active=ok)
+        sh = pi.compute_surface_interaction(ray, mi.RayFlags.All, ok)
+        hit = ok & sh.is_valid()
+        hflags = sh.bsdf().flags()
+        diff = hit & ~mi.has_flag(hflags, mi.BSDFFlags.Glossy) & ~mi.has_flag(hflags, mi.BSDFFlags.Delta)
+        # ---------------- the hit's cell: linear probing, no insertion ----------------
+        key, home, _ = cell_key(sh, ray.d, mi.UInt32(pi.shape_index), sec.h, sec.slots, sec.shape_key, sec.lod)
+        k0 = dr.gather(mi.UInt32, sec.keys, home, diff)
+
+        def cond(j, s, k):
+            return diff & (j < sec.probes) & (k != key) & (k != EMPTY)
+
+        def body(j, s, k):
+            s = (s + 1) & mask
+            return j + 1, s, dr.gather(mi.UInt32, sec.keys, s, diff)
+
+        _, slot_c, k = dr.while_loop(state=(mi.UInt32(0), mi.UInt32(home), k0), cond=cond, body=body,
+                                     labels=("j", "s", "k"))
+        found = diff & (k == key)
+        found &= dr.gather(mi.UInt32, sec.count, slot_c, found) > 0
+        Lc = sec.radiance(slot_c, found)
+        # ---------------- else the entry's texel (the cached estimate) ----------------
+        Lt, okt = texel_at(d, hit & ~found)
+        Li = dr.select(found, Lc, dr.select(okt, Lt, 0.0))
+        if emitters:
+            Li += dr.select(hit, sh.emitter(sc).eval(sh, hit), 0.0)
+        L += dr.select(ok, mi.Color3f(bw) * Li, 0.0) * (1.0 / float(n))
+
+    # ------------------ the other lobes (diffuse): the entry's texels, no rays ------------------
+    m_t = dr.opaque(mi.UInt32, n_texel)
+
+    def cond_t(i, Lt, sampler):
+        return (i < m_t) & sharp
+
+    def body_t(i, Lt, sampler):
+        bs, bw = bsdf.sample(ctx, si, sampler.next_float32(), mi.Point2f(sampler.next_float32(),
+                                                                         sampler.next_float32()), sharp)
+        okj = sharp & (bs.pdf > 0.0) & ~lobe(bs.sampled_type)
+        Li, okj = texel_at(si.to_world(bs.wo), okj)
+        return i + 1, Lt + dr.select(okj, mi.Color3f(bw) * mi.Color3f(Li), 0.0), sampler
+
+    _, Ld, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond_t, body=body_t,
+                             labels=("i", "Lt", "sampler"))
+    return L + Ld * (1.0 / float(n_texel))
+
+
 def _cache_params():
     """The on-surface cache's settings: mip bias 2 as in the slides (one entry per about 2x2
     pixels) and 4x4 blocks (the slides: 2x2; the cache's per-frame request flag spans every
@@ -175,6 +266,13 @@ class OSCGI(PayloadMethod):
     ``glossy_samples`` BSDF samples of the hemisphere, :math:`\frac{1}{n}\sum_j w_j L_{k(\omega_j)}`.
     ``output``: ``indirect`` (light after at least one reflection) or ``full`` (direct + indirect;
     the emission seen directly is added by the pipeline).
+
+    *Sharp reflections and interpolation* (session gi10, both off): ``sharp`` > 0: pixels with a
+    delta lobe or a GGX alpha below ``sharp`` trace ``sharp_rays`` BSDF rays for their glossy /
+    delta lobes and read the secondary cell at each hit (:func:`_sharp_shade`; the diffuse lobe
+    from the texels as above); ``trilinear``: each BSDF sample reads one texel of its bilinear
+    footprint chosen with probability = its bilinear weight (unbiased for the bilinear blend;
+    :meth:`~slc.oscgi.hemisphere.HemiGrid.texel_stochastic`), not the nearest texel.
 
     *Direct light* (``output=full``), ``direct``: ``rt`` (default) ``direct_n`` (16) light samples
     per pixel with shadow rays, :math:`\frac1n\sum_j f L_e G V/p` (RT-N, frozen; with ``direct_lds``,
@@ -258,6 +356,12 @@ class OSCGI(PayloadMethod):
               "onto the plane of its island's first triangle (representative: the slides' naive triangle ids, "
               "for measuring the artefact)", choices=("texel", "representative")),
         Param("front_only", True, "only pixels facing the viewer request entries (back faces are shaded black)"),
+        Param("sharp", 0.0, "sharp reflections (session gi10): pixels with a delta lobe or a GGX alpha below this "
+              "trace sharp_rays BSDF rays and read the secondary cell at the hit instead of the entry's texels "
+              "(0: off)", lo=0.0, hi=1.0),
+        Param("sharp_rays", 2, "sharp: BSDF-sampled rays per sharp pixel", lo=1, hi=64),
+        Param("trilinear", False, "glossy shading reads one texel of the direction's bilinear footprint, chosen "
+              "with probability = its bilinear weight (stochastic interpolation; else the nearest texel)"),
     ) + _cache_params()
     storage_type = mi.Float
     probe_origins = False          # count the cache rays hitting a back face (origin_probe: back, valid)
@@ -655,15 +759,26 @@ class OSCGI(PayloadMethod):
             return mi.Color3f(*[dr.gather(mi.Float, self.storage, slot * W + 3 * D + c, ok & d_only)
                                 for c in range(3)])
 
-        def radiance(d, m):
-            # glossy: the entry's hemisphere texel towards d (BSDF importance sampling)
+        def radiance(d, m, u=None):
+            # glossy: the entry's hemisphere texel towards d (BSDF importance sampling); with
+            # trilinear one texel of the bilinear footprint, chosen by its weight (u)
             loc = frame_e.to_local(d)
             m = m & (loc.z > 0.0)
-            t = slot * W + G.texel(loc) * 3
+            t = slot * W + (G.texel(loc) if u is None else G.texel_stochastic(loc, u)) * 3
             return mi.Color3f(*[dr.gather(mi.Float, self.storage, t + c, m) for c in range(3)]), m
 
         sampler = keyed_rng(pid, self.seed, ctx.frame, STREAM_SHADE)
-        return shade_radiance(si, bsdf, ok, irradiance, radiance, sampler, self.glossy_samples)
+        if self.sharp <= 0.0:
+            return shade_radiance(si, bsdf, ok, irradiance, radiance, sampler, self.glossy_samples,
+                                  jitter=bool(self.trilinear))
+        # ------- sharp reflections: BSDF rays to the secondary cells (the others as above) -------
+        sharp = _sharp_mask(si, bsdf, g, float(self.sharp))
+        L = shade_radiance(si, bsdf, ok & ~sharp, irradiance, radiance, sampler, self.glossy_samples,
+                           jitter=bool(self.trilinear))
+        s2 = keyed_rng(pid, self.seed, ctx.frame, STREAM_SHARP)
+        Ls = _sharp_shade(self.scene.mi_scene, self.secondary, si, bsdf, sharp, frame_e, radiance, s2,
+                          int(self.sharp_rays), int(self.glossy_samples), bool(self._cache_direct))
+        return dr.select(sharp, Ls, L)
 
     # ------------------------------------------------------------------ frame
     def render(self, ctx, gbuffers, timer):
