@@ -172,21 +172,24 @@ def _retime(s, v, cfg, srows, opts, bar=None) -> None:
     import dataclasses
     import statistics
 
-    from slc import methods
-    from slc.pipeline import run_sequence
+    from slc import experiment
     pts = [r for r in srows if r["group"] == "full" and r["family"] == "pt"]
     rows = [r for r in srows if r["group"] == "full" and r["setting"] in RETIMED]
     if not pts or not rows:
         return
     tcfg = dataclasses.replace(cfg, eval_frames=[], keep_images=False)      # no frame evaluated
-    times = {r["setting"]: [] for r in rows + pts}
-    for _ in range(opts.retime):
-        for r in rows + pts:
-            if bar is not None:
-                bar.set_postfix_str(f"{s.name}/{r['setting']} (retime)")
-            res = run_sequence(s, methods.create(r["setting"], s, seed=opts.seed), v, tcfg)
-            times[r["setting"]].append(res.time_ms)
-            r["retime_compiled_after_warmup"] = r.get("retime_compiled_after_warmup", 0) + res.compiled_after_warmup
+    every = rows + pts
+
+    def before(i):
+        if bar is not None:
+            bar.set_postfix_str(f"{s.name}/{every[i]['setting']} (retime)")
+
+    runs = experiment.runs_in_turn(s, [(r["setting"], v) for r in every], tcfg, opts.retime, opts.seed,
+                                   alternate=False, before=before)
+    times = {r["setting"]: [x.time_ms for x in rs] for r, rs in zip(every, runs)}
+    for r, rs in zip(every, runs):
+        r["retime_compiled_after_warmup"] = r.get("retime_compiled_after_warmup", 0) + sum(
+            x.compiled_after_warmup for x in rs)
     for r in rows:
         ratios = []
         for i in range(opts.retime):
@@ -378,17 +381,17 @@ def run(opts) -> dict:
                 # repetitions in alternating order (1, 4, 16, ... then back): the ratio to one viewer is
                 # taken within each repetition (rows minutes apart saw other loads on the shared cores) and
                 # its median reported with its range; quality from the first repetition
-                reps, runs = preset.get("multi_repeats", 1), {}
-                for rep in range(reps):
-                    for spec, n, rig in (m_runs if rep % 2 == 0 else m_runs[::-1]):
-                        # about the look-at point where the camera is outside the scene (cornell: a fan
-                        # about the eye left 11 of 16 views empty)
-                        vs = views.overlap_rig(s, n, preset["overlap"], pivot="auto") if n > 1 else v
-                        if rig == "view0":
-                            vs = views.overlap_rig(s, nmax, preset["overlap"], pivot="auto")[:1]
-                        m = methods.create(spec, s, seed=opts.seed)
-                        runs.setdefault((spec, n, rig), []).append(
-                            run_sequence(s, m, vs, mcfg if rep == 0 else dataclasses.replace(mcfg, eval_frames=[])))
+                def rig_of(n, rig):
+                    # pivot "auto": tiles of the camera's own view where it is outside the scene
+                    # (cornell: a fan about the eye left 11 of 16 views empty)
+                    if rig == "view0":
+                        return views.overlap_rig(s, nmax, preset["overlap"], pivot="auto")[:1]
+                    return views.overlap_rig(s, n, preset["overlap"], pivot="auto") if n > 1 else v
+
+                reps = preset.get("multi_repeats", 1)
+                runs = dict(zip(m_runs, experiment.runs_in_turn(
+                    s, [(spec, rig_of(n, rig)) for spec, n, rig in m_runs], dataclasses.replace(mcfg, eval_frames=[]),
+                    reps, opts.seed, first_cfg=mcfg)))
                 one = runs[("osc-gi", 1, "fan")]
                 for spec, n, rig in m_runs:
                     rs = runs[(spec, n, rig)]

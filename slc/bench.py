@@ -185,13 +185,12 @@ def _update_rays(sc, cap: dict, p, seed: int):
     the update's own sampler (:func:`slc.lights.sample_light`, the scene's emitter
     table; independent random numbers instead of the entry's R2 sequence: the same
     distribution of rays), and the shrink test's closest-hit rays, made by the
-    update's own :func:`slc.cones.update.shrink_test_dirs` on the entries'
-    cone records before the update, with the update's schedule (every
-    unsettled entry, settled ones every ``shrink_period``-th frame by key).
+    update's own :func:`slc.cones.update.shrink_test_plan` (directions and
+    schedule) on the entries' cone records before the update.
     Returns (shadow rays, their mask, shrink rays, their mask)."""
     import numpy as np
     from .cones.packing import unpack
-    from .cones.update import frame_rng, frame_u32, shrink_test_dirs
+    from .cones.update import frame_rng, frame_u32, shrink_test_plan
     from .keys import STREAM_CONE_UPDATE
     si, rays, words = cap["si"], cap["rays"], cap["words"]
     N = dr.width(rays)
@@ -203,15 +202,12 @@ def _update_rays(sc, cap: dict, p, seed: int):
     shadow = si_r.spawn_ray_to(ds.p)
     # --------------- shrink-test rays: one per tested cone ---------------
     D, A, _, _, n = unpack(words, p.max_cones)
-    period = max(int(p.shrink_period), 1)
-    phase = int(cap["frame"]) % period
-    do_shrink = si.is_valid() & (cap["unsettled"] | (((cap["keys"] + phase) % period) == 0))
     sampler = frame_rng(cap["keys"], seed, frame_u32(cap["frame"]), STREAM_CONE_UPDATE)
-    dirs, tested = shrink_test_dirs(D, A, n, [sampler.next_float32() for _ in range(p.max_cones)], p)
+    dirs, tested = shrink_test_plan(D, A, n, cap["keys"], si.is_valid(), cap["unsettled"], sampler, cap["frame"], p)
     o, d, m = [], [], []
     for i in range(p.max_cones):
         r = si.spawn_ray(si.sh_frame.to_world(dirs[i]))
-        o.append(r.o.numpy()), d.append(r.d.numpy()), m.append((tested[i] & do_shrink).numpy())
+        o.append(r.o.numpy()), d.append(r.d.numpy()), m.append(tested[i].numpy())
     shrink = mi.Ray3f(mi.Point3f(np.concatenate(o, axis=1)),
                       mi.Vector3f(np.concatenate(d, axis=1)))
     shrink_ok = mi.Bool(np.concatenate(m))
@@ -256,7 +252,6 @@ def bench_update(scene_name: str = "atrium", width: int = 320, height: int = 180
     sc = s.mi_scene
     from .cones.packing import gather_words
     cap["words"] = gather_words(mi.UInt32(cap.pop("storage")), cap.pop("active"), m.max_cones)
-    cap["si"] = dr.gather(mi.SurfaceInteraction3f, cap["si"], dr.arange(mi.UInt32, dr.width(cap["rays"])))
     shadow, ok, shrink, shrink_ok = _update_rays(sc, cap, m.cone_params, 0)
 
     # --------------- the rays alone, interleaved rounds ---------------

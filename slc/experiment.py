@@ -318,30 +318,44 @@ def ratio(a, b):
         return None
 
 
-def ratio_in_turn(scene, spec: str, base, top, cfg, repeats: int = 3, seed: int = 0) -> dict:
-    """Time one method on two rigs again, in turn: ``repeats`` repetitions in
-    alternating order (base, top; top, base; ...), each a whole
-    :func:`slc.pipeline.run_sequence` of ``cfg`` (no evaluation), and the ratio
-    top / base taken within each repetition. Rows of an experiment run minutes
-    apart, under whatever load the shared cores had then; a ratio of two runs
-    side by side moves less. Returns the median ratio, every repetition's ratio
-    and times, and the most kernels any run built after its warm-up."""
-    import dataclasses
-    import statistics
-
+def runs_in_turn(scene, cases, cfg, repeats: int = 3, seed: int = 0, alternate: bool = True,
+                 first_cfg=None, before=None) -> list[list]:
+    """Run ``cases`` ((method spec, viewers) pairs) again, in turn: ``repeats``
+    repetitions of every case, each a whole :func:`slc.pipeline.run_sequence` of
+    ``cfg`` with a new method instance; with ``alternate`` every other repetition
+    runs the cases in reverse order (a load that drifts during the repetitions
+    then weighs on both ends alike). ``first_cfg`` (default ``cfg``): the first
+    repetition's config (e.g. with frames evaluated); ``before(i)`` is called
+    before each run of case i (a progress bar). Returns per case its results, one
+    per repetition. Rows of an experiment run minutes apart, under whatever load
+    the shared cores had then; ratios of runs side by side move less."""
     from . import methods
     from .pipeline import run_sequence
-    c = dataclasses.replace(cfg, eval_frames=[], keep_images=False, measure_overlap=False)
-    times = {"base": [], "top": []}
-    compiled = 0
+    out = [[] for _ in cases]
+    order = list(range(len(cases)))
     for rep in range(repeats):
-        for k in (("base", "top") if rep % 2 == 0 else ("top", "base")):
-            r = run_sequence(scene, methods.create(spec, scene, seed=seed), base if k == "base" else top, c)
-            times[k].append(r.time_ms)
-            compiled = max(compiled, r.compiled_after_warmup)
-    ratios = [t / max(b, 1e-9) for t, b in zip(times["top"], times["base"])]
+        for i in (order if rep % 2 == 0 or not alternate else order[::-1]):
+            if before is not None:
+                before(i)
+            spec, viewers = cases[i]
+            c = first_cfg if rep == 0 and first_cfg is not None else cfg
+            out[i].append(run_sequence(scene, methods.create(spec, scene, seed=seed), viewers, c))
+    return out
+
+
+def ratio_in_turn(scene, spec: str, base, top, cfg, repeats: int = 3, seed: int = 0) -> dict:
+    """Time one method on two rigs again, in turn (:func:`runs_in_turn`: base, top; top,
+    base; ...; no evaluation), the ratio top / base taken within each repetition. Returns
+    the median ratio, every repetition's ratio and times, and the most kernels any run
+    built after its warm-up."""
+    import dataclasses
+    import statistics
+    c = dataclasses.replace(cfg, eval_frames=[], keep_images=False, measure_overlap=False)
+    b, t = runs_in_turn(scene, [(spec, base), (spec, top)], c, repeats, seed)
+    ratios = [x.time_ms / max(y.time_ms, 1e-9) for x, y in zip(t, b)]
     return {"ratio": statistics.median(ratios) if ratios else float("nan"), "ratios": ratios,
-            "base_ms": times["base"], "top_ms": times["top"], "compiled_after_warmup": compiled}
+            "base_ms": [x.time_ms for x in b], "top_ms": [x.time_ms for x in t],
+            "compiled_after_warmup": max((x.compiled_after_warmup for x in b + t), default=0)}
 
 
 def setup(opts, quick: dict, full: dict, methods: list[str]):

@@ -275,16 +275,16 @@ def _scene_window(scene: Scene, p) -> tuple[float, float, float, float]:
     return float(x.min()), float(x.max()), float(y.min()), float(y.max())
 
 
-def _tiles(scene: Scene, p, n: int, step: float, aspect: float):
-    """Viewers at the path's position, each aimed at a tile of what its camera
-    sees of the scene (:func:`_scene_window`): a grid of ceil(sqrt(n)) columns,
+def _tiles(p, n: int, step: float, aspect: float, window):
+    """Viewers at the path's position, each aimed at a tile of ``window``, what
+    its camera sees of the scene (:func:`_scene_window`): a grid of ceil(sqrt(n)) columns,
     tiles of the render's aspect as large as fit ``1 + (k - 1) step`` tiles
     across the window on both axes, centres ``step`` tiles apart (step 0: n
     identical views of the whole window; 1: adjacent tiles). For a camera
     outside the scene (the cornell box seen through its open side) every view
     looks into the box at the front of its walls. Viewer 0 holds the tile
     nearest the window's centre."""
-    x0, x1, y0, y1 = _scene_window(scene, p)
+    x0, x1, y0, y1 = window
     cols = int(math.ceil(math.sqrt(n)))
     rows = int(math.ceil(n / cols))
     tw = min((x1 - x0) / (1.0 + (cols - 1) * step), (y1 - y0) * aspect / (1.0 + (rows - 1) * step))
@@ -316,12 +316,18 @@ def fan_pivot(scene: Scene, path: int = 0) -> str:
     return "eye" if inside else "tile"
 
 
-def _fan_overlap(scene: Scene, p, n: int, step: float, aspect: float, pivot: str = "eye") -> float:
+def _rig(p, n: int, step: float, aspect: float, pivot: str, window=None):
+    """The views of a fan (:func:`_fan`) or, with ``pivot="tile"``, of tiles of ``window``
+    (:func:`_tiles`)."""
+    return _tiles(p, n, step, aspect, window) if pivot == "tile" else _fan(p, n, step, aspect, pivot)
+
+
+def _fan_overlap(scene: Scene, p, n: int, step: float, aspect: float, pivot: str = "eye", window=None) -> float:
     """Mean measured overlap of a fan over ``CALIBRATION_FRAMES``."""
     from .gbuffer import render_gbuffer
     w, h = CALIBRATION_RES
     w = max(int(round(h * aspect)), 1)
-    vs = _tiles(scene, p, n, step, aspect) if pivot == "tile" else _fan(p, n, step, aspect, pivot)
+    vs = _rig(p, n, step, aspect, pivot, window)
     m = []
     for f in CALIBRATION_FRAMES:
         scene.set_frame(f)
@@ -343,12 +349,13 @@ def calibrated_step(scene: Scene, n: int, overlap: float, aspect: float = 16 / 9
         return _CALIBRATED[key]
     p = scene.path(path)
     target = 100.0 * max(float(overlap), 0.0)
-    best = (1.0, _fan_overlap(scene, p, n, 1.0, aspect, pivot))
+    window = _scene_window(scene, p) if pivot == "tile" else None      # rendered once per calibration
+    best = (1.0, _fan_overlap(scene, p, n, 1.0, aspect, pivot, window))
     if target > best[1]:
         a, b = 0.0, 1.0      # measured overlap falls as the step grows
         for _ in range(iterations):
             m = 0.5 * (a + b)
-            got = _fan_overlap(scene, p, n, m, aspect, pivot)
+            got = _fan_overlap(scene, p, n, m, aspect, pivot, window)
             if abs(got - target) < abs(best[1] - target):
                 best = (m, got)
             if got > target:
@@ -386,9 +393,8 @@ def overlap_rig(scene: Scene, n: int, overlap: float, aspect: float = 16 / 9,
     if pivot == "auto":
         pivot = fan_pivot(scene, path)
     step, _ = calibrated_step(scene, n, overlap, aspect, path, pivot=pivot)
-    if pivot == "tile":
-        return _tiles(scene, scene.path(path), n, step, aspect)
-    return _fan(scene.path(path), n, step, aspect, pivot)
+    p = scene.path(path)
+    return _rig(p, n, step, aspect, pivot, _scene_window(scene, p) if pivot == "tile" else None)
 
 
 def _with_fov(c: Camera, fov: float) -> Camera:

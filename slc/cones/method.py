@@ -154,7 +154,7 @@ class SurfaceLightCones(PayloadMethod):
         if lay is None or any(gb.layers is not lay or gb.layer != v for v, gb in enumerate(gbuffers)):
             lay = None
         sizes = [gb.size for gb in gbuffers]
-        offsets = [sum(sizes[:v]) for v in range(len(sizes))]
+        lanes, batch_pid = self._batch_layout(sizes)
         total = sum(sizes)
 
         # ------------------- the viewers' pixels, one after another -------------------
@@ -164,13 +164,13 @@ class SurfaceLightCones(PayloadMethod):
         slot = fr.layer_slot if own else dr.empty(mi.UInt32, total)
         index = fr.layer_index if own else dr.empty(mi.UInt32, total)
         if lay is None:
-            si, valid, pid = dr.empty(mi.SurfaceInteraction3f, total), dr.empty(mi.Bool, total), self._batch_pid(sizes)
+            si, valid, pid = dr.empty(mi.SurfaceInteraction3f, total), dr.empty(mi.Bool, total), batch_pid
         else:
             si, valid, pid = lay.si, lay.valid, lay.pixel
         for v, gb in enumerate(gbuffers):
             if own and lay is not None:
                 break
-            at = viewer_lanes(sizes[v], offsets[v])
+            at = lanes[v]
             if not own:
                 dr.scatter(slot, mi.UInt32(fr.pixel_slot[v]), at)
                 dr.scatter(index, mi.UInt32(fr.pixel_index[v]), at)
@@ -183,32 +183,23 @@ class SurfaceLightCones(PayloadMethod):
         # (each pixel's entry frame is gathered inside the launch: ``index`` into the frames)
         out = shader_for(self, self.max_cones)(self.storage, slot, ok, si, index, self.shade_samples,
                                                shade_key(ctx.frame, self.seed), pid, fr.si.sh_frame)
-        return [dr.gather(mi.Color3f, out, at) for at in self._split_lanes(sizes, offsets)]
+        return [dr.gather(mi.Color3f, out, at) for at in lanes]
 
-    def _split_lanes(self, sizes, offsets):
-        """Each viewer's lanes of the batched launch (``viewer_lanes``, evaluated and kept
-        while the sizes hold: no opaque offset made per viewer and frame)."""
-        key = (tuple(sizes), tuple(offsets))
-        cached = getattr(self, "_lanes_cache", None)
-        if cached is None or cached[0] != key:
-            lanes = [viewer_lanes(n, off) for n, off in zip(sizes, offsets)]
-            dr.eval(lanes)
-            self._lanes_cache = cached = (key, lanes)
-        return cached[1]
-
-    def _batch_pid(self, sizes):
-        """Each batched pixel's index within its own viewer (kept while the sizes hold)."""
+    def _batch_layout(self, sizes):
+        """Each viewer's lanes of the batched launch (:func:`slc.gbuffer.viewer_lanes`) and each
+        batched pixel's index within its own viewer, evaluated and kept while the sizes hold (no
+        opaque offset made per viewer and frame)."""
         key = tuple(sizes)
-        cached = getattr(self, "_pid_cache", None)
+        cached = getattr(self, "_layout_cache", None)
         if cached is None or cached[0] != key:
+            offsets = [sum(sizes[:v]) for v in range(len(sizes))]
+            lanes = [viewer_lanes(n, off) for n, off in zip(sizes, offsets)]
             pid = dr.empty(mi.UInt32, sum(sizes))
-            off = 0
-            for n in sizes:
-                dr.scatter(pid, dr.arange(mi.UInt32, n), viewer_lanes(n, off))
-                off += n
-            dr.eval(pid)
-            self._pid_cache = cached = (key, pid)
-        return cached[1]
+            for n, at in zip(sizes, lanes):
+                dr.scatter(pid, dr.arange(mi.UInt32, n), at)
+            dr.eval(lanes, pid)
+            self._layout_cache = cached = (key, lanes, pid)
+        return cached[1], cached[2]
 
     def _shade_bilinear(self, gb, slot, ok, tf, frame):
         """Bilinear fetch: the 4 entries around the pixel's cache coordinate, each

@@ -350,6 +350,18 @@ def shrink_test_dirs(D, A, n, u, p: ConeParams):
     return dirs, tested
 
 
+def shrink_test_plan(D, A, n, key: mi.UInt32, valid: mi.Bool, unsettled: mi.Bool, sampler, frame, p: ConeParams):
+    """Per cone: (test direction, tested mask) of this update, on the schedule of
+    :func:`shrink_test`: every update of an ``unsettled`` entry, else every
+    ``shrink_period``-th frame (staggered by ``key``); draws one number per cone from ``sampler``."""
+    period = max(int(p.shrink_period), 1)
+    phase = frame_u32(frame) % period  # opaque: no recompilation per frame
+    do_shrink = valid & (unsettled | (((key + phase) % period) == 0))
+    us = [sampler.next_float32() for _ in range(p.max_cones)]
+    dirs, tested = shrink_test_dirs(D, A, n, us, p)
+    return dirs, [t & do_shrink for t in tested]
+
+
 def shrink_test(scene: mi.Scene, si: mi.SurfaceInteraction3f, D, A, n, key: mi.UInt32, valid: mi.Bool,
                 unsettled: mi.Bool, sampler, frame: int, p: ConeParams, area_only: bool = False):
     """Trace one shrink-test ray per cone (paper Sec. 3.3) of the ``valid``
@@ -358,14 +370,9 @@ def shrink_test(scene: mi.Scene, si: mi.SurfaceInteraction3f, D, A, n, key: mi.U
     (:func:`constant_area_emitters`, read by the caller outside any frozen
     function) tests a hit without the emitter's virtual call. Returns
     (directions, tested masks, hit-a-light masks) per cone."""
-    period = max(int(p.shrink_period), 1)
-    phase = frame_u32(frame) % period  # opaque: no recompilation per frame
-    do_shrink = valid & (unsettled | (((key + phase) % period) == 0))
-    us = [sampler.next_float32() for _ in range(p.max_cones)]
-    dirs, tested = shrink_test_dirs(D, A, n, us, p)
+    dirs, tested = shrink_test_plan(D, A, n, key, valid, unsettled, sampler, frame, p)
     hits = []
     for i in range(p.max_cones):
-        tested[i] = tested[i] & do_shrink
         si2 = scene.ray_intersect(si.spawn_ray(si.sh_frame.to_world(dirs[i])), tested[i])
         if area_only:
             # Mitsuba's area emitter: L_e = radiance where cos(theta) > 0 (its front side), else 0;

@@ -45,9 +45,7 @@ class HemiGrid:
         """Texel of a local direction in the upper hemisphere (clamped to the grid)."""
         R = self.res
         sq = mi.warp.cosine_hemisphere_to_square(d_local)
-        i = dr.clip(mi.Int32(dr.floor(sq.x * R)), 0, R - 1)
-        j = dr.clip(mi.Int32(dr.floor(sq.y * R)), 0, R - 1)
-        return mi.UInt32(j * R + i)
+        return self.texel_index(mi.Int32(dr.floor(sq.x * R)), mi.Int32(dr.floor(sq.y * R)))
 
     def bilinear(self, d_local: mi.Vector3f):
         r"""The bilinear footprint of a direction on the texel grid: (i0, j0, fx, fy) with texel

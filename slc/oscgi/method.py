@@ -21,7 +21,7 @@ from ..sh.shading import diffuse_only, shade_radiance
 from .hemisphere import HemiGrid
 from .laps import Laps
 from .origins import backface_share, representative_points
-from .secondary import EMPTY, SecondaryCache, _glossy_kernel, cell_key
+from .secondary import SecondaryCache, _glossy_kernel
 from .spatial import SpatialFilter
 
 STREAM_PRIMARY = 0x05C61001
@@ -152,9 +152,8 @@ def _sharp_shade(sc, sec, si, bsdf, sharp, frame_e, texel_at, sampler, n: int, n
     diffuse light only) the entry's texel towards :math:`\omega_j` is read instead
     (``texel_at(d, m)``). ``emitters``: the emission at the hit is added (only when the entries
     hold direct light too, ``direct=cache``; else the pixel's direct light comes from elsewhere).
-    The cell is found by probing the hash table from the key's home slot (no insertion)."""
+    The cell is looked up without insertion (:meth:`SecondaryCache.find`)."""
     ctx = mi.BSDFContext()
-    mask = sec.slots - 1
 
     def lobe(t):
         return mi.has_flag(t, mi.BSDFFlags.Glossy) | mi.has_flag(t, mi.BSDFFlags.Delta)
@@ -172,21 +171,10 @@ def _sharp_shade(sc, sec, si, bsdf, sharp, frame_e, texel_at, sampler, n: int, n
         hit = ok & sh.is_valid()
         hflags = sh.bsdf().flags()
         diff = hit & ~mi.has_flag(hflags, mi.BSDFFlags.Glossy) & ~mi.has_flag(hflags, mi.BSDFFlags.Delta)
-        # ---------------- the hit's cell: linear probing, no insertion ----------------
-        key, home, _ = cell_key(sh, ray.d, mi.UInt32(pi.shape_index), sec.h, sec.slots, sec.shape_key, sec.lod)
-        k0 = dr.gather(mi.UInt32, sec.keys, home, diff)
-
-        def cond(j, s, k):
-            return diff & (j < sec.probes) & (k != key) & (k != EMPTY)
-
-        def body(j, s, k):
-            s = (s + 1) & mask
-            return j + 1, s, dr.gather(mi.UInt32, sec.keys, s, diff)
-
-        _, slot_c, k = dr.while_loop(state=(mi.UInt32(0), mi.UInt32(home), k0), cond=cond, body=body,
-                                     labels=("j", "s", "k"))
-        found = diff & (k == key)
-        found &= dr.gather(mi.UInt32, sec.count, slot_c, found) > 0
+        # ---------------- the hit's cell (looked up, not inserted), if it holds a value ----------------
+        key, home, _ = sec.key_of(sh, ray.d, mi.UInt32(pi.shape_index))
+        slot_c, found = sec.find(key, home, diff)
+        found = sec.updated_once(slot_c, found)
         Lc = sec.radiance(slot_c, found)
         # ---------------- else the entry's texel (the cached estimate) ----------------
         Lt, okt = texel_at(d, hit & ~found)

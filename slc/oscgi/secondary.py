@@ -369,6 +369,23 @@ class SecondaryCache:
         dr.eval(self.home, self.used)
         return found
 
+    def find(self, key: mi.UInt32, home: mi.UInt32, active: mi.Bool) -> tuple:
+        """(slot, found) of each key, looked up without insertion: linear probing from its home
+        slot (a symbolic loop, at most ``probes`` rounds) until the key or an empty slot."""
+        mask = self.slots - 1
+        k0 = dr.gather(mi.UInt32, self.keys, home, active)
+
+        def cond(j, s, k):
+            return active & (j < self.probes) & (k != key) & (k != EMPTY)
+
+        def body(j, s, k):
+            s = (s + 1) & mask
+            return j + 1, s, dr.gather(mi.UInt32, self.keys, s, active)
+
+        _, slot, k = dr.while_loop(state=(mi.UInt32(0), mi.UInt32(home), k0), cond=cond, body=body,
+                                   labels=("j", "s", "k"))
+        return slot, active & (k == key)
+
     def trace(self, ray: mi.Ray3f, active=True):
         """Hits of cache rays and their cells' keys (:func:`_trace_kernel`, frozen): position,
         geometric normal and shape only (``RayFlags.Minimal``): the cell key needs no more, and
