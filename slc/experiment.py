@@ -408,6 +408,10 @@ def time_vs_viewers_plot(path: Path, rows: list[dict], title: str, group=("metho
     plt.close(fig)
 
 
+def _file_name(name: str) -> str:
+    return name.replace(':', '_').replace(',', '_')
+
+
 def save_strip(out: Path, scene, label: str, res) -> None:
     """EXR/PNG of the first evaluated viewer and its comparison strip, and the image, its
     reference and its FLIP map as layers of the scene's multi-layer EXR of that frame

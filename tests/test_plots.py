@@ -127,3 +127,18 @@ def test_experiment_stage_plots_read(tmp_path, figures):
     assert len(figs) == 3
     for fig in figs:
         assert layout_problems(fig) == [], fig.axes[0].get_title()
+
+
+def test_megaviews_plots_read(tmp_path, figures):
+    mv = ex.load("megaviews")
+    rows = [dict(scene=s, sweep=sw, method=m, views=v, resolution=res, time_ms=(1 + i) * v / 64 * res / 16,
+                 memory_mb=(1 + i) * v / 256, views_per_render=v / 64)
+            for s in ("cornell", "atrium") for i, m in enumerate(mv.METHODS)
+            for sw, pts in (("views", [(v, 16) for v in (256, 1024, 4096, 16384)]),
+                            ("resolution", [(1024, r) for r in (16, 32, 64, 128)]))
+            for v, res in pts]
+    mv._plots(tmp_path, rows)
+    figs = figures()
+    assert len(figs) == 2
+    for fig in figs:
+        assert layout_problems(fig) == []
