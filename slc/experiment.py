@@ -191,15 +191,36 @@ def place_labels(fig, ax, points, fontsize: int = 7) -> list:
     return texts
 
 
+def _options(r: dict) -> list[str]:
+    """The ``key=value`` settings of a row's label (``method:key=value,...``)."""
+    return [o for o in r.get("label", r["method"]).partition(":")[2].split(",") if o]
+
+
+def shared_options(rows: list[dict]) -> list[str]:
+    """The settings every one of ``rows`` has (in the first row's order); none for one row."""
+    if len(rows) < 2:
+        return []
+    common = set.intersection(*(set(_options(r)) for r in rows))
+    return [o for o in _options(rows[0]) if o in common]
+
+
 def short_names(rows: list[dict], family_of) -> tuple[list[str], list[str]]:
-    """Per row a short name for its point (its label without the family prefix, the family's
-    name for the family's own row, a number when still longer than :data:`SHORT_NAME`), and the
-    key lines ``N  full label`` of the numbered rows."""
+    """Per row a short name for its point: its settings without those its whole family shares
+    (those go in the legend, :func:`shared_options`), the family's name when none is left, a
+    number when still longer than :data:`SHORT_NAME`; and the key lines ``N  full label`` of
+    the numbered rows."""
     import textwrap
+    shared = {}
+    for r in rows:
+        shared.setdefault(family_of(r), []).append(r)
+    shared = {f: set(shared_options(rs)) for f, rs in shared.items()}
     names, key = [], []
     for r in rows:
         label, fam = r.get("label", r["method"]), family_of(r)
-        short = label[len(fam) + 1:] if label.startswith(fam + ":") else label
+        if label.startswith(fam + ":"):
+            short = ",".join(o for o in _options(r) if o not in shared[fam]) or fam
+        else:
+            short = label
         if len(short) > SHORT_NAME:
             n = str(len(key) + 1)
             key.append(textwrap.fill(f"{n}  {label.replace(',', ', ')}", KEY_WIDTH, subsequent_indent="     ",
@@ -225,6 +246,8 @@ def speed_error_plot(path: Path, rows: list[dict], title: str, x="time_ms", y="f
     the axes, whose width the key leaves alone. A family's points are joined by a line when
     they are one sweep (:func:`_one_sweep`). The time axis is logarithmic when the times
     span a decade or more."""
+    import textwrap
+
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -240,7 +263,9 @@ def speed_error_plot(path: Path, rows: list[dict], title: str, x="time_ms", y="f
     ax = fig.add_subplot()
     for fam, rs in sorted(fams.items()):
         rs = sorted(rs, key=lambda r: r[x])
-        ax.plot([r[x] for r in rs], [r[y] for r in rs], "o-" if _one_sweep(rs) else "o", label=fam, ms=4)
+        common = shared_options(rs)
+        ax.plot([r[x] for r in rs], [r[y] for r in rs], "o-" if _one_sweep(rs) else "o", ms=4,
+                label=textwrap.fill(fam + (f" ({', '.join(common)})" if common else ""), 36))
     log_if_wide(ax, [r[x] for r in rows])
     ax.set_xlabel("time per frame [ms]" + (" (log)" if ax.get_xscale() == "log" else ""))
     ax.set_ylabel("FLIP (lower is better)")

@@ -81,6 +81,18 @@ def test_speed_error_plot_reads(tmp_path, figures):
     assert (tmp_path / "se.png").stat().st_size > 0
 
 
+def test_speed_error_plot_names_points_by_what_differs(tmp_path, figures):
+    rows = [dict(method="pt", label=f"pt:spp={n},output=indirect", family="pt", time_ms=2.0 * n, flip=0.3 / n ** 0.5)
+            for n in (1, 2, 4, 8, 16)] + [dict(method="osc-gi", label="osc-gi:output=indirect", family="osc-gi",
+                                               time_ms=40.0, flip=0.1)]
+    ex.speed_error_plot(tmp_path / "se.png", rows, "cornell: indirect light, time vs FLIP (64x36)")
+    (fig,) = figures()
+    assert layout_problems(fig) == []
+    ax = fig.axes[0]
+    assert sorted(t.get_text() for t in ax.texts) == sorted(["output=indirect"] + [f"spp={n}" for n in (1, 2, 4, 8, 16)])
+    assert "pt (output=indirect)" in [t.get_text() for t in ax.get_legend().get_texts()]
+
+
 def test_speed_error_plot_linear_when_times_are_close(tmp_path, figures):
     rows = [dict(method=m, label=m, time_ms=t, flip=f) for m, t, f in
             [("rt16", 10.0, 0.2), ("rt48", 28.0, 0.12), ("slc", 12.0, 0.1), ("restir", 15.0, 0.11)]]
