@@ -1,4 +1,4 @@
-"""Every plot helper rendered on small synthetic rows: no text leaves the canvas (the tight
+"""Every plot function rendered on small synthetic rows: no text leaves the canvas (the tight
 bounding box of every Text artist inside the figure), point labels overlap neither each other
 nor the title, a speed-against-error plot keeps its axes at nearly full width with long
 settings, and a time axis spanning a decade or more is logarithmic."""
@@ -18,7 +18,7 @@ LONG = "osc-gi:direct=cache,texel_rays=32,n_max=8,secondary_scene=0,glossy_sampl
 
 @pytest.fixture
 def figures(monkeypatch):
-    """The figures a helper made (plt.close deferred), closed afterwards."""
+    """The figures a plot function made (plt.close deferred), closed afterwards."""
     monkeypatch.setattr(plt, "close", lambda *a, **k: None)
     before = set(plt.get_fignums())
     made = []
