@@ -384,8 +384,10 @@ def _plots(out: Path, rows: list) -> None:
     import matplotlib.pyplot as plt
 
     from slc import io
+    from slc.experiment import place_labels
     for sweep, x, xl in [("views", "views", "views"), ("resolution", "resolution", "map resolution")]:
         fig, axs = plt.subplots(1, 2, figsize=(10, 4))
+        marks = []
         for scene in sorted({r["scene"] for r in rows}):
             for m in METHODS:
                 rs = sorted([r for r in rows if r["scene"] == scene and r["sweep"] == sweep and r["method"] == m],
@@ -395,9 +397,7 @@ def _plots(out: Path, rows: list) -> None:
                 for ax, y in zip(axs, ["time_ms", "memory_mb"]):
                     ax.plot([r[x] for r in rs], [r[y] for r in rs], "o-", label=f"{scene}/{m}")
                     if m == "megaviews" and y == "time_ms":
-                        for r in rs:
-                            ax.annotate(f"{r['views_per_render']:.1f}", (r[x], r[y]), fontsize=7,
-                                        textcoords="offset points", xytext=(3, 3))
+                        marks += [(r[x], r[y], f"{r['views_per_render']:.1f}") for r in rs]
         for ax, yl in zip(axs, ["shadow-map time [ms]", "memory [MB]"]):
             ax.set_xscale("log", base=2)
             ax.set_yscale("log")
@@ -407,6 +407,7 @@ def _plots(out: Path, rows: list) -> None:
             ax.legend(fontsize=7)
         axs[0].set_title("labels: views sharing a rendered node")
         fig.tight_layout()
+        place_labels(fig, axs[0], marks)
         io.write_figure(out / f"{sweep}.png", fig, dpi=110)
         plt.close(fig)
 

@@ -136,6 +136,31 @@ def env_info() -> dict:
     }
 
 
+def code_version() -> str:
+    """``git describe --always --dirty`` of the checkout the package runs from, else the
+    installed package's version (``slc 0.1.0``)."""
+    global _CODE_VERSION
+    if _CODE_VERSION is None:
+        import subprocess
+        from pathlib import Path
+        try:
+            r = subprocess.run(["git", "describe", "--always", "--dirty", "--tags"], capture_output=True, text=True,
+                               cwd=Path(__file__).resolve().parents[1], timeout=10)
+            _CODE_VERSION = r.stdout.strip() if r.returncode == 0 and r.stdout.strip() else None
+        except (OSError, subprocess.SubprocessError):
+            _CODE_VERSION = None
+        if _CODE_VERSION is None:
+            from importlib import metadata
+            try:
+                _CODE_VERSION = f"slc {metadata.version('slc')}"
+            except metadata.PackageNotFoundError:
+                _CODE_VERSION = "unknown"
+    return _CODE_VERSION
+
+
+_CODE_VERSION: str | None = None
+
+
 def aligned(a, dtype):
     """A contiguous copy of ``a`` in a 64-byte aligned numpy buffer.
 

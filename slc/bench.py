@@ -292,3 +292,83 @@ def update_report_lines(r: dict) -> list[str]:
     if r.get("load"):
         lines.append(" load average (1, 5, 15 min) after the run: " + ", ".join(f"{x:.2f}" for x in r["load"]))
     return lines
+
+
+# ---------------------------------------------------------------------------
+# Two method settings timed in turn
+# ---------------------------------------------------------------------------
+
+def image_md5(img) -> str:
+    """md5 of an image's float32 values (bit-identical images give the same digest)."""
+    import hashlib
+
+    import numpy as np
+    return hashlib.md5(np.ascontiguousarray(np.asarray(img, np.float32)).tobytes()).hexdigest()
+
+
+def bench_ab(scene_name: str, spec_a: str, spec_b: str, width: int = 160, height: int = 90, frames: int = 24,
+             warmup: int | None = None, repeats: int = 3, seed: int = 0, ref_spp: int | None = None) -> dict:
+    """Two method settings on one viewer (the scene's first camera path), timed in turn in one
+    process (:func:`slc.experiment.runs_in_turn`: A, B; B, A; ...), each repetition a whole
+    :func:`slc.pipeline.run_sequence` of ``frames`` frames with a new method instance.
+
+    Per setting: the median over repetitions of the median ms per frame after ``warmup``
+    (default ``frames // 3``), the median stage times, the most kernels any timed frame built,
+    the metrics of the last frame against the reference of the method's output kind (first
+    repetition only; ``ref_spp``: samples of an indirect reference, default
+    :data:`slc.references.INDIRECT_SAMPLES`) and the md5 of the last frame's image in every
+    repetition (equal digests of A and B: bit-identical images). ``ratio``: the median of B / A
+    taken within each repetition, the ratio a drifting load on a shared machine moves least."""
+    import dataclasses
+
+    from . import methods
+    from .experiment import runs_in_turn
+    from .pipeline import RunConfig
+    if frames < 1 or repeats < 1:
+        raise ValueError("bench ab: frames and repeats must be at least 1")
+    warmup = frames // 3 if warmup is None else warmup
+    if not 0 <= warmup < frames:
+        raise ValueError(f"bench ab: warm-up ({warmup}) must be below the frame count ({frames})")
+    s = scenes.load(scene_name)
+    for spec in (spec_a, spec_b):      # bad settings stop the run before anything is timed
+        methods.create(spec, s, seed=seed)
+    v = views.single(s)
+    first = RunConfig(width=width, height=height, frames=frames, warmup=warmup, eval_frames=[frames - 1],
+                      seed=seed, ref_spp=ref_spp, measure_overlap=False)
+    rest = dataclasses.replace(first, eval_frames=[])
+    runs = runs_in_turn(s, [(spec_a, v), (spec_b, v)], rest, repeats, seed, first_cfg=first)
+    out = {"scene": s.name, "width": width, "height": height, "frames": frames, "warmup": warmup,
+           "repeats": repeats, "seed": seed, "settings": []}
+    for spec, rs in zip((spec_a, spec_b), runs):
+        stages = {k: statistics.median(r.stages.get(k, 0.0) for r in rs) for k in rs[0].stages}
+        out["settings"].append({
+            "setting": spec, "time_ms": statistics.median(r.time_ms for r in rs), "times_ms": [r.time_ms for r in rs],
+            "stages_ms": stages, "metrics": dict(rs[0].metrics),
+            "compiled_after_warmup": max(r.compiled_after_warmup for r in rs),
+            "md5": [image_md5(next(iter(r.last.values()))) for r in rs]})
+    a, b = out["settings"]
+    out["ratios"] = [tb / max(ta, 1e-9) for ta, tb in zip(a["times_ms"], b["times_ms"])]
+    out["ratio"] = statistics.median(out["ratios"])
+    out["load"] = _loadavg()
+    return out
+
+
+def ab_report_lines(r: dict) -> list[str]:
+    """The lines ``slc bench ab`` prints."""
+    lines = [f"scene {r['scene']} {r['width']}x{r['height']}, one viewer, {r['frames']} frames ({r['warmup']} "
+             f"warm-up), {r['repeats']} repetitions in turn; time = median over repetitions of the median ms "
+             f"per frame after warm-up; metrics of the last frame against its reference (first repetition)"]
+    for tag, x in zip("AB", r["settings"]):
+        st = ", ".join(f"{k} {v:.2f}" for k, v in x["stages_ms"].items())
+        me = ", ".join(f"{k} {v:.4f}" for k, v in x["metrics"].items())
+        same = "" if len(set(x["md5"])) == 1 else " (differs between repetitions)"
+        lines += [f"  {tag} {x['setting']}",
+                  f"    time {x['time_ms']:.2f} ms ({st}); kernels after warm-up {x['compiled_after_warmup']}",
+                  f"    {me or 'no metrics'}; md5 {x['md5'][0]}{same}"]
+    a, b = r["settings"]
+    lines.append(f"  B / A time: {r['ratio']:.3f}x (per repetition: "
+                 + ", ".join(f"{x:.3f}" for x in r["ratios"]) + ")")
+    lines.append("  images: " + ("bit-identical" if a["md5"][0] == b["md5"][0] else "differ"))
+    if r.get("load"):
+        lines.append(" load average (1, 5, 15 min) after the run: " + ", ".join(f"{x:.2f}" for x in r["load"]))
+    return lines

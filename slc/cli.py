@@ -6,6 +6,7 @@
     slc run EXPERIMENT [--quick] [--out DIR] [--scene NAME]... [experiment options]
     slc bench rays                  RT-N shadow-ray throughput vs raw ray_test
     slc bench update                slc's frame vs the rays of its own update, alone
+    slc bench ab A B [--scene S]... two method settings timed in turn: time, ratio, FLIP, md5
 
 Every command takes ``--variant`` (or ``SLC_VARIANT``) and ``--check`` (or
 ``SLC_CHECK=1``: stop at the first NaN/Inf or negative value, see
@@ -190,6 +191,41 @@ def bench_update(scene_name, res, frames, warmup, repeats, method):
         raise click.BadParameter(f"--frames ({frames}) must exceed --warmup ({warmup})")
     for line in update_report_lines(run(scene_name, w, h, frames, warmup, repeats, method)):
         click.echo(line)
+
+
+@bench_grp.command("ab")
+@click.argument("spec_a")
+@click.argument("spec_b")
+@click.option("--scene", "scene_names", multiple=True, default=["cornell"], show_default=True,
+              help="scene name or .xml path (repeatable: one comparison per scene)")
+@click.option("--res", default="160x90", show_default=True, help="image size WxH [pixels]")
+@click.option("--frames", default=24, show_default=True, type=int, help="frames per run")
+@click.option("--warmup", default=None, type=int, help="frames whose times are dropped [default: frames // 3]")
+@click.option("--repeat", "repeats", default=3, show_default=True, type=int,
+              help="repetitions of the pair, in turn (A B, B A, ...)")
+@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--ref-spp", default=None, type=int,
+              help="samples per pixel of an indirect reference [default: the references' own]")
+@click.option("--json", "json_path", default=None, help="also write the figures to this JSON file")
+def bench_ab(spec_a, spec_b, scene_names, res, frames, warmup, repeats, seed, ref_spp, json_path):
+    """Two method settings (e.g. osc-gi osc-gi:sharp=0.2) timed in turn in one process on one viewer:
+    median time per frame of each, the ratio B / A within each repetition, the metrics of the last
+    frame against its reference and each image's md5 (a bit-identical refactor shows equal digests)."""
+    from .bench import ab_report_lines, bench_ab as run
+    w, h = _parse_res(res)
+    if frames < 1 or repeats < 1:
+        _fail("--frames and --repeat must be at least 1")
+    if warmup is not None and not 0 <= warmup < frames:
+        _fail(f"--warmup ({warmup}) must be at least 0 and below --frames ({frames})")
+    out = []
+    for name in scene_names:
+        r = run(name, spec_a, spec_b, w, h, frames, warmup, repeats, seed, ref_spp)
+        out.append(r)
+        for line in ab_report_lines(r):
+            click.echo(line)
+    if json_path:
+        from . import io
+        io.write_json(Path(json_path), out)
 
 
 def main(argv=None):

@@ -58,6 +58,55 @@ def read_exr(path) -> np.ndarray:
     return np.array(mi.Bitmap(str(path)), dtype=np.float32)
 
 
+def layer_name(name: str) -> str:
+    """``name`` as an EXR layer name: a dot would nest layers in EXR viewers, so dots become
+    underscores (the full name belongs in the header)."""
+    return str(name).replace(".", "_")
+
+
+def write_layers(path, layers: dict, header: dict | None = None) -> None:
+    """One multi-layer EXR written with OpenEXR: an (H, W, 3) image as the channels
+    ``LAYER.R``, ``LAYER.G``, ``LAYER.B``, an (H, W) map as ``LAYER.Y``; float32, ZIP
+    compression, raw values (NaN/Inf/negative as they are). ``header``: extra attributes
+    (str, int or float values) next to the standard ones."""
+    import OpenEXR
+    channels = {}
+    for name, a in layers.items():
+        a = np.asarray(a, np.float32)
+        name = layer_name(name)
+        if a.ndim == 3 and a.shape[2] == 3:
+            for i, c in enumerate("RGB"):
+                channels[f"{name}.{c}"] = np.ascontiguousarray(a[..., i])
+        elif a.ndim == 2 or (a.ndim == 3 and a.shape[2] == 1):
+            channels[f"{name}.Y"] = np.ascontiguousarray(a.reshape(a.shape[:2]))
+        else:
+            raise ValueError(f"layer {name!r}: expected an (H, W, 3) image or an (H, W) map, got {a.shape}")
+    hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, **(header or {})}
+
+    def write(p):
+        with OpenEXR.File(hdr, channels) as f:
+            f.write(p)
+    _atomic(path, write)
+
+
+def read_layers(path) -> tuple[dict, dict]:
+    """(layers, header) of an EXR: per layer an (H, W, 3) image (channels R, G, B) or an
+    (H, W) map (one channel); the header with OpenEXR's standard attributes."""
+    import OpenEXR
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        header = dict(f.header())
+        chans = {k: np.array(c.pixels, np.float32) for k, c in f.channels().items()}
+    groups: dict[str, dict] = {}
+    for k, a in chans.items():
+        layer, _, c = k.rpartition(".")
+        groups.setdefault(layer, {})[c] = a
+    layers = {}
+    for layer, cs in groups.items():
+        layers[layer] = np.stack([cs[c] for c in "RGB"], axis=-1) if set("RGB") <= set(cs) else \
+            next(iter(cs.values()))
+    return layers, header
+
+
 def write_png(path, ldr: np.ndarray) -> None:
     import matplotlib.image as mpimg
     a = np.clip(np.asarray(ldr, np.float32), 0.0, 1.0)
