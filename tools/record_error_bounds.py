@@ -56,14 +56,13 @@ def main(argv=None) -> int:
         print(f"record_error_bounds: error: {e}", file=sys.stderr)
         return 2
     findings = bounds.compare(recorded, measured)
-    same = 0
+    same = [f for f in findings if f.verdict == "same"]
     for f in findings:
-        if f.verdict == "same":
-            same += 1
-        else:
+        if f.verdict != "same":
             print(f.line())
-    print(f"{same} figures within {bounds.TOLERANCE:.0%} of the recorded ones, "
-          f"{len(findings) - same} changed, new or missing")
+    drift = max((abs(f.measured / f.recorded - 1.0) for f in same if f.recorded), default=0.0)
+    print(f"{len(same)} figures within {bounds.TOLERANCE:.0%} of the recorded ones (largest change "
+          f"{drift:.2%}), {len(findings) - len(same)} changed, new or missing")
     if opts.dry_run:
         return 0
     rows = {**recorded, **measured}
