@@ -39,7 +39,7 @@ print("RESULT " + json.dumps({"compiled_after_warmup": res.compiled_after_warmup
 # Not here: osc-gi:bounces=1, which in some runs (not all) builds one kernel in a timed frame in the
 # on-surface cache's block allocation (slc/osc/blocks.py, BlockPool.allocate/_map with one new
 # block), not in osc-gi's code; left to the cache's owner (see docs/osc-gi.md).
-@pytest.mark.parametrize("spec", ["osc-gi", "osc-gi:output=indirect", "osc-gi:sharp=0.2,trilinear=1"])
+@pytest.mark.parametrize("spec", ["osc-gi", "osc-gi:output=indirect", "osc-gi:direct=cache"])
 def test_no_kernel_builds_after_warmup_including_the_first_eviction(spec):
     frames, warmup = 9, 3
     r = run_case(_CASE, spec, frames, warmup)

@@ -55,6 +55,7 @@ and traces no rays. Temporal filter: exponential moving average with blend facto
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -83,16 +84,53 @@ def _take(v, idx):
     return type(v)(*[dr.gather(mi.Float, v[c], idx) for c in range(3)])
 
 
-def _trace_kernel(sc, ray, active, h: float, slots: int, shape_key: bool, lod: float = 0.0):
-    """Cache rays to their hits (``RayFlags.Minimal``) and the hits' cell keys: returns
-    (p, geometric normal, t, shape index, preliminary intersection, valid, key, home, front
-    normal, non-diffuse BSDF), evaluated. Frozen by :class:`SecondaryCache` (the rays of primary and secondary
-    caches: two recordings)."""
+@dataclass
+class CacheHits:
+    """The hits of cache rays (:meth:`SecondaryCache.trace`), one lane per ray."""
+    p: mi.Point3f                 # hit position
+    n: mi.Vector3f                # geometric normal
+    t: mi.Float                   # hit distance (inf: a miss)
+    shape: mi.UInt32              # shape index (into scene.shapes())
+    pi: mi.PreliminaryIntersection3f
+    valid: mi.Bool
+    key: mi.UInt32                # the hit's cell key and home slot (:func:`cell_key`)
+    home: mi.UInt32
+    front_n: mi.Vector3f          # geometric normal on the ray's side
+    glossy: mi.Bool               # the hit's BSDF has a glossy or delta lobe
+
+
+@dataclass
+class GlossyHits:
+    """At the non-diffuse hits ``lanes`` of cache rays (:func:`_glossy_kernel`): the NEE term
+    ``Ld``, one BSDF-sampled ray ``ray`` (mask ``ok``, weight ``bw``) and, when traced, the
+    cells that ray hit (``slots``, ``hit``)."""
+    lanes: mi.UInt32
+    Ld: mi.Color3f
+    bw: mi.Color3f
+    ray: mi.Ray3f
+    ok: mi.Bool
+    slots: mi.UInt32 | None = None
+    hit: mi.Bool | None = None
+
+
+@dataclass
+class CellHits:
+    """Cache rays traced to the cells they hit (:meth:`SecondaryCache.sample`)."""
+    hits: CacheHits
+    slots: mi.UInt32              # the hit cell of each ray (INVALID: none)
+    ok: mi.Bool                   # the ray has a cell
+    glossy: GlossyHits | None     # the non-diffuse hits' own estimate (None: none this frame)
+
+
+def _trace_kernel(sc, ray, active, h: float, slots: int, shape_key: bool):
+    """Cache rays to their hits (``RayFlags.Minimal``) and the hits' cell keys: the fields of
+    :class:`CacheHits` in order, evaluated. Frozen by :class:`SecondaryCache` (the rays of
+    primary and secondary caches: two recordings)."""
     pi = sc.ray_intersect_preliminary(ray, coherent=False, active=active)
     si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
     sidx = mi.UInt32(pi.shape_index)
     ok = mi.Bool(active) & si.is_valid()
-    key, home, nf = cell_key(si, ray.d, sidx, h, slots, shape_key, lod)
+    key, home, nf = cell_key(si, ray.d, sidx, h, slots, shape_key)
     flags = pi.shape.bsdf().flags()
     glossy = ok & (mi.has_flag(flags, mi.BSDFFlags.Glossy) | mi.has_flag(flags, mi.BSDFFlags.Delta))
     out = (mi.Point3f(si.p), mi.Vector3f(si.n), mi.Float(si.t), sidx, pi, ok, key, home, nf, glossy)
@@ -100,26 +138,11 @@ def _trace_kernel(sc, ray, active, h: float, slots: int, shape_key: bool, lod: f
     return out
 
 
-MAX_LOD = 7
-
-
-def cell_level(t, h: float, lod: float):
-    """The cell level of a hit at distance ``t`` along its ray: the largest l <= ``MAX_LOD`` with
-    h 2^l <= max(h, lod t), i.e. the cell's edge h 2^l is about the ray's footprint lod t (a
-    texel's or a secondary ray's angular width times the distance), never below h; 0 with lod 0."""
-    if lod <= 0.0:
-        return mi.UInt32(0)
-    x = dr.maximum(mi.Float(t) * (lod / h), 1.0)
-    x = dr.select(dr.isfinite(x), x, 1.0)
-    return mi.UInt32(dr.minimum(dr.floor(dr.log2(x)), float(MAX_LOD)))
-
-
-def cell_key(si, d, shape_index, h: float, slots: int, shape_key: bool, lod: float = 0.0):
+def cell_key(si, d, shape_index, h: float, slots: int, shape_key: bool):
     """(key, home slot, front normal) of hits ``si`` reached along ``d`` (see
-    :meth:`SecondaryCache.key_of`); with ``lod`` > 0 the cell's edge grows with the hit
-    distance ``si.t`` (:func:`cell_level`) and the level enters the key."""
+    :meth:`SecondaryCache.key_of`)."""
     nf = front_normal(si, d)
-    level = cell_level(si.t, h, lod)
+    level = mi.UInt32(0)           # key bits 28-31: 0 (one cell size)
     hl = h * mi.Float(mi.UInt32(1) << level)
     c = mi.Vector3i(dr.floor(si.p / hl))
     a = dr.abs(nf)
@@ -151,20 +174,11 @@ def _rep_kernel(sc, pi, ray, idx, slots, p, nf):
     return sl, words
 
 
-def _direct_kernel(sc, lights, rep, keys_tab, cells, mix, ns, n_samples: float, ris_m: int = 0):
+def _direct_kernel(sc, lights, rep, keys_tab, cells, mix, ns, n_samples: float):
     r"""Direct light at the representative points of ``cells``: ``ns`` (opaque) light samples
-    (the project's light sampling, shadow rays); ``lights`` declares the emitter table as an
-    input. Returns (E_dir/pi, the outgoing direct radiance before the albedo; point, normal,
-    albedo, key and lit mask of each cell).
-
-    ``ris_m`` = 0 (``direct=plain``): each sample is one light sample x_i with weight
-    :math:`L_e \cos / p`. ``ris_m`` = M > 0 (``direct=ris``): each sample is chosen by resampled
-    importance sampling among M candidates x_1..x_M of the same light sampling (one weighted
-    reservoir, one shadow ray), with the unshadowed contribution as target,
-    :math:`\hat p(x) = \mathrm{lum}(L_e(x) \cos(x))`, candidate weights
-    :math:`w_i = \hat p(x_i) / p(x_i)` and the estimate
-    :math:`L_e(y) \cos(y) V(y) / \hat p(y) \cdot \frac{1}{M}\sum_i w_i` (unbiased: :math:`\hat p > 0`
-    wherever the integrand is)."""
+    x_i (the project's light sampling, shadow rays), each weighted :math:`L_e \cos / p`;
+    ``lights`` declares the emitter table as an input. Returns (E_dir/pi, the outgoing direct
+    radiance before the albedo; point, normal, albedo, key and lit mask of each cell)."""
     rp = [dr.gather(mi.Float, rep, cells * _REP + j) for j in range(_REP)]
     p, nrm, rho = mi.Point3f(*rp[0:3]), mi.Vector3f(*rp[3:6]), mi.Color3f(*rp[6:9])
     keys = dr.gather(mi.UInt32, keys_tab, cells)
@@ -184,30 +198,7 @@ def _direct_kernel(sc, lights, rep, keys_tab, cells, mix, ns, n_samples: float, 
         ok = visible(sc, si, ds, ok)
         return i + 1, E + dr.select(ok, w * cos, 0.0), sampler
 
-    def body_ris(i, E, sampler):
-        # ---------------- M candidates into one weighted reservoir (no rays) ----------------
-        wsum, y_ds, y_c, y_ph = mi.Float(0.0), dr.zeros(mi.DirectionSample3f), mi.Color3f(0.0), mi.Float(0.0)
-        for _ in range(ris_m):
-            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
-            ds, w, ok = sample_light(sc, si, u, lit)
-            cos = dr.dot(ds.d, nrm)
-            ok &= (cos > 0.0) & dr.all(dr.isfinite(w))
-            c = dr.select(ok, w * cos, 0.0)               # L_e cos / p of the candidate
-            wi = mi.luminance(c)                          # w_i = p^(x_i) / p(x_i)
-            wi = dr.select(ok & (wi > 0.0) & dr.isfinite(wi), wi, 0.0)
-            wsum += wi
-            take = (wi > 0.0) & (sampler.next_float32() * wsum < wi)
-            y_ds = dr.select(take, ds, y_ds)
-            y_c = dr.select(take, c, y_c)
-            y_ph = dr.select(take, wi, y_ph)
-        # ---------------- the chosen sample: one shadow ray, weight (1/p^(y)) (1/M) sum w_i ----------------
-        ok = lit & (y_ph > 0.0)
-        ok = visible(sc, si, y_ds, ok)
-        W = wsum * (1.0 / ris_m) * dr.rcp(dr.select(ok, y_ph, 1.0))
-        return i + 1, E + dr.select(ok, y_c * W, 0.0), sampler
-
-    _, E_dir, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond,
-                                body=body_ris if ris_m > 0 else body,
+    _, E_dir, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
                                 labels=("i", "E", "sampler"))
     L_dir = (E_dir / n_samples) * (1.0 / math.pi)
     dr.eval(L_dir, p, nrm, rho, keys, lit)
@@ -265,37 +256,32 @@ class SecondaryCache:
     ``slots`` (table size, a power of two), ``probes`` (linear-probing rounds), ``shape_key``,
     ``budget`` (cell updates per frame, 0: unlimited), ``evict_after`` (frames unused, 0: never),
     ``max_load`` (with eviction on: cells kept at the start of a frame, as a fraction of ``slots``),
-    ``direct`` (the cells' light samples: ``plain`` light sampling, or ``ris``: each chosen by
-    resampled importance sampling among ``ris_m`` (8) candidates, one shadow ray; session gi11),
-    ``freeze`` (True: the kernels with shape, BSDF and emitter calls, the ray tracing with the cell
-    keys, the representative albedo, the direct light and the secondary rays, are traced once and
-    replayed by :class:`slc.freeze.FrozenFunction`; same results as traced)."""
+    ``glossy_hits`` (True: :class:`GlossyHits` at non-diffuse hits), ``freeze`` (True: the kernels
+    with shape, BSDF and emitter calls, the ray tracing with the cell keys, the representative
+    albedo, the direct light, the secondary rays and the glossy hits, are traced once and replayed
+    by :class:`slc.freeze.FrozenFunction`; same results as traced)."""
 
     def __init__(self, mi_scene: mi.Scene, cell: float, bounces: int = 2, n_max: int = 8, rays: int = 32,
                  light_samples: int = 4, slots: int = 1 << 16, probes: int = 32, shape_key: bool = True,
                  seed: int = 0, budget: int = 0, evict_after: int = 0, max_load: float = 0.25,
-                 freeze: bool = True, glossy_hits: bool = True, lod: float = 0.0, direct: str = "plain",
-                 ris_m: int = 8):
+                 freeze: bool = True, glossy_hits: bool = True):
         if slots & (slots - 1):
             raise ValueError("slots must be a power of two")
-        if direct not in ("plain", "ris"):
-            raise ValueError("direct must be 'plain' or 'ris'")
-        self.direct, self.ris_m = direct, max(1, int(ris_m))
         self.sc, self.h, self.B = mi_scene, float(cell), int(bounces)
         self.n_max, self.rays, self.light_samples = int(n_max), int(rays), int(light_samples)
         self.slots, self.probes, self.shape_key, self.seed = int(slots), int(probes), bool(shape_key), int(seed)
         self.budget, self.evict_after, self.max_load = int(budget), int(evict_after), float(max_load)
-        self.lod = float(lod)
         self.laps = Laps(False)
-        # the kernels with BSDF, shape and emitter calls, traced once and replayed (dr.freeze)
+        # the kernels with BSDF, shape and emitter calls, traced once and replayed (dr.freeze); calls
+        # narrower than 2 lanes traced (``narrow``: the arguments whose width decides)
         self.freeze, self.glossy_hits = bool(freeze), bool(glossy_hits)
         self._k_trace = FrozenFunction(_trace_kernel, self.freeze, max_recordings=6)
         # lanes: the winning lanes idx (a pure kernel), run on a free width when their number equals the
         # size of some scene array (the atrium: 2,880, recorded again in a timed frame; slc.freeze)
-        self._k_rep = FrozenFunction(_rep_kernel, self.freeze, max_recordings=6, lanes=(3,))
-        self._k_direct = FrozenFunction(_direct_kernel, self.freeze, max_recordings=6)
-        self._k_ray = FrozenFunction(_ray_kernel, self.freeze, max_recordings=6)
-        self._k_glossy = FrozenFunction(_glossy_kernel, self.freeze, max_recordings=6)
+        self._k_rep = FrozenFunction(_rep_kernel, self.freeze, max_recordings=6, lanes=(3,), narrow=(3,))
+        self._k_direct = FrozenFunction(_direct_kernel, self.freeze, max_recordings=6, narrow=(4,))
+        self._k_ray = FrozenFunction(_ray_kernel, self.freeze, max_recordings=6, narrow=(0, 3))
+        self._k_glossy = FrozenFunction(_glossy_kernel, self.freeze, max_recordings=6, narrow=(4,))
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -339,7 +325,7 @@ class SecondaryCache:
         """(key, home slot, front normal) of hits ``si`` reached along ``d`` on the shapes
         ``shape_index`` (indices into ``scene.shapes()``: the same in every process, unlike the
         shape pointers)."""
-        return cell_key(si, d, shape_index, self.h, self.slots, self.shape_key, self.lod)
+        return cell_key(si, d, shape_index, self.h, self.slots, self.shape_key)
 
     def find_or_insert(self, key: mi.UInt32, home: mi.UInt32, active: mi.Bool) -> mi.UInt32:
         """Slot of each key (inserted when absent); INVALID where inactive or the table is full."""
@@ -386,16 +372,15 @@ class SecondaryCache:
                                    labels=("j", "s", "k"))
         return slot, active & (k == key)
 
-    def trace(self, ray: mi.Ray3f, active=True):
+    def trace(self, ray: mi.Ray3f, active=True) -> CacheHits:
         """Hits of cache rays and their cells' keys (:func:`_trace_kernel`, frozen): position,
         geometric normal and shape only (``RayFlags.Minimal``): the cell key needs no more, and
         the full interaction (for the albedo) is computed again for the one representative lane
-        per cell. Returns (p, n, t, shape index, preliminary intersection, valid, key, home,
-        front normal, non-diffuse BSDF)."""
+        per cell."""
         active = dr.zeros(mi.Bool, dr.width(ray.d)) | mi.Bool(active)      # an array of the rays' width
-        return self._k_trace(self.sc, ray, active, self.h, self.slots, self.shape_key, self.lod)
+        return CacheHits(*self._k_trace(self.sc, ray, active, self.h, self.slots, self.shape_key))
 
-    def _set_rep(self, slots: mi.UInt32, ok: mi.Bool, hits, ray: mi.Ray3f) -> None:
+    def _set_rep(self, slots: mi.UInt32, ok: mi.Bool, hits: CacheHits, ray: mi.Ray3f) -> None:
         """Each touched cell's representative point: the lowest lane that touched it. The albedo
         (a BSDF call on the full interaction, computed from the lane's preliminary intersection)
         is evaluated on the winning lanes only (one per touched cell)."""
@@ -407,26 +392,58 @@ class SecondaryCache:
         idx = dr.compress(w)
         if dr.width(idx) == 0:
             return
-        # 2 or more lanes replayed (a width-1 input would need a recording of its own)
-        rep_k = self._k_rep if dr.width(idx) > 1 else _rep_kernel
-        sl, words = rep_k(self.sc, hits[4], ray, idx, slots, hits[0], hits[8])
+        sl, words = self._k_rep(self.sc, hits.pi, ray, idx, slots, hits.p, hits.front_n)
         for j, v in enumerate(words):
             dr.scatter(self.rep, v, sl * _REP + j)
         dr.eval(self.rep)
 
-    def touch(self, hits, ray: mi.Ray3f, active: mi.Bool):
+    def touch(self, hits: CacheHits, ray: mi.Ray3f, active: mi.Bool):
         """Cells of the hits (from :meth:`trace`) of ``ray`` (inserted when new, representative
         point refreshed). Returns (slots, valid mask)."""
-        ok = mi.Bool(active) & hits[5]
-        key, home = hits[6], hits[7]
+        ok = mi.Bool(active) & hits.valid
         self.laps.lap("touch_key", ok)
-        slots = self.find_or_insert(key, home, ok)
+        slots = self.find_or_insert(hits.key, hits.home, ok)
         self.laps.lap("touch_find")
         ok &= slots != INVALID
         dr.eval(ok)
         self._set_rep(slots, ok, hits, ray)
         self.laps.lap("touch_rep")
         return slots, ok
+
+    def sample(self, ray: mi.Ray3f, active, lane_key: mi.UInt32, mix, lap: str, grazing: bool = True,
+               bounce: bool = False) -> CellHits:
+        """Cache rays to the cells they hit: :meth:`trace`, :meth:`touch` and, with
+        ``glossy_hits``, the non-diffuse hits' own estimate (:func:`_glossy_kernel`, random
+        numbers keyed by ``lane_key`` per ray and the stream ``mix``); with ``bounce`` (and
+        ``bounces`` > 1) the glossy hits' BSDF rays traced and touched too (their cells, ring 2,
+        are the caller's to request). ``grazing`` False drops the hits with n . d = 0.
+        ``lap``: the sub-stage clock's name for the tracing."""
+        hits = self.trace(ray, active)
+        self.laps.lap(lap, hits.p, hits.n, hits.t, hits.valid, hits.key, hits.home, hits.glossy)
+        slots, ok = self.touch(hits, ray, active)
+        if not grazing:
+            ok &= dr.dot(hits.n, ray.d) != 0.0
+        glossy = None
+        if self.glossy_hits:
+            gi = dr.compress(hits.glossy)
+            if dr.width(gi) > 0:
+                glossy = GlossyHits(gi, *self._k_glossy(self.sc, light_inputs(self.sc), hits.pi, ray, gi,
+                                                        lane_key, mix))
+                if bounce and self.B > 1:
+                    h2 = self.trace(glossy.ray, glossy.ok)
+                    glossy.slots, glossy.hit = self.touch(h2, glossy.ray, glossy.ok)
+                    glossy.hit &= dr.dot(h2.n, glossy.ray.d) != 0.0
+        return CellHits(hits, slots, ok, glossy)
+
+    def hit_radiance(self, h: CellHits, glossy_L=None, layer: int | None = None) -> list:
+        """Per ray (3 channels): the outgoing radiance (layer ``layer``, default ``bounces``) of
+        the cell it hit, or ``glossy_L`` at the glossy hits ``h.glossy.lanes``."""
+        L = self.radiance(h.slots, h.ok, layer)
+        L = [mi.Float(L[c]) for c in range(3)]
+        if h.glossy is not None and glossy_L is not None:
+            for c in range(3):
+                dr.scatter(L[c], glossy_L[c], h.glossy.lanes)
+        return L
 
     def updated_once(self, slots: mi.UInt32, ok: mi.Bool) -> mi.Bool:
         """Whether cells hold a value (updated at least once)."""
@@ -577,14 +594,11 @@ class SecondaryCache:
         if n == 0:
             return cells
         ring = dr.gather(mi.UInt32, req, cells)
-        # kernels replayed for 2 or more lanes (a width-1 input would need a recording of its own)
-        direct_k = self._k_direct if n > 1 else _direct_kernel
 
         # ------------------- direct light at the representative point (NEE) -------------------
-        L_dir, p, nrm, rho, keys, lit = direct_k(
+        L_dir, p, nrm, rho, keys, lit = self._k_direct(
             sc, light_inputs(sc), self.rep, self.keys, cells, stream_key(self.seed, frame, STREAM_SECONDARY),
-            dr.opaque(mi.UInt32, self.light_samples), float(max(self.light_samples, 1)),
-            self.ris_m if self.direct == "ris" else 0)
+            dr.opaque(mi.UInt32, self.light_samples), float(max(self.light_samples, 1)))
         self.laps.lap("sec_direct")
 
         # ------------- cosine rays to other cells: layers b-1 of their previous update -------------
@@ -600,31 +614,15 @@ class SecondaryCache:
             tl = dr.compress(tracing)
         if dr.width(tl) > 0:      # (none: no cell of ring < B has albedo and light, e.g. a black scene)
             c_of = tl // R
-            ray_k = self._k_ray if n > 1 and dr.width(tl) > 1 else _ray_kernel
-            ray = ray_k(p, nrm, keys, tl, stream_key(self.seed, frame, STREAM_SECONDARY + 1), R)
-            hits = self.trace(ray)
-            self.laps.lap("sec_rays", *hits)
-            hit_slots, hok = self.touch(hits, ray, mi.Bool(True))
-            hok &= dr.dot(hits[1], ray.d) != 0.0
+            ray = self._k_ray(p, nrm, keys, tl, stream_key(self.seed, frame, STREAM_SECONDARY + 1), R)
             # ---- rays hitting glossy/metal surfaces: NEE with the hit's BSDF towards the cell
             # (the light after one reflection there, layer 1 exactly; a lower bound for layers >= 2) ----
-            Lg = None
-            if self.glossy_hits:
-                gi = dr.compress(hits[9])
-                if dr.width(gi) > 0:
-                    lane_key = dr.gather(mi.UInt32, keys, c_of) * R + tl % R
-                    gk = self._k_glossy if dr.width(gi) > 1 else _glossy_kernel
-                    Ld = gk(sc, light_inputs(sc), hits[4], ray, gi, lane_key,
-                            stream_key(self.seed, frame, STREAM_SECONDARY + 2))[0]
-                    Lg = (gi, Ld)
+            h = self.sample(ray, True, dr.gather(mi.UInt32, keys, c_of) * R + tl % R,
+                            stream_key(self.seed, frame, STREAM_SECONDARY + 2), "sec_rays", grazing=False)
             next_ring = dr.gather(mi.UInt32, ring, c_of) + 1
-            dr.scatter_reduce(dr.ReduceOp.Min, self.pending, next_ring, hit_slots, hok & (next_ring <= B))
+            dr.scatter_reduce(dr.ReduceOp.Min, self.pending, next_ring, h.slots, h.ok & (next_ring <= B))
             for b in range(1, B):
-                Lh = self.radiance(hit_slots, hok, layer=b)
-                if Lg is not None:
-                    Lh = [mi.Float(Lh[c]) for c in range(3)]
-                    for c in range(3):
-                        dr.scatter(Lh[c], Lg[1][c], Lg[0])
+                Lh = self.hit_radiance(h, h.glossy.Ld if h.glossy is not None else None, layer=b)
                 full = [dr.zeros(mi.Float, n * R) for _ in range(3)]
                 for c in range(3):
                     dr.scatter(full[c], Lh[c], tl)

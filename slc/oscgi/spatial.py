@@ -43,37 +43,32 @@ class SpatialFilter:
         self.r, self.angle, self.parallax = int(radius), float(angle), bool(parallax)
         self.cos_max = math.cos(math.radians(self.angle))
 
-    def apply(self, cache, storage: mi.Float, fr, grid, words: int) -> mi.Float:
+    def apply(self, topo, storage: mi.Float, fr, grid, words: int) -> mi.Float:
         """``storage`` with the texels and irradiance of the active entries ``fr.active``
-        replaced by their filtered values (a copy: ``storage`` itself is left as it is)."""
+        replaced by their filtered values (a copy: ``storage`` itself is left as it is);
+        ``topo``: the cache's entry topology (:class:`slc.osc.protocol.EntryTopology`)."""
         G, W, D = grid, words, grid.n
         N = fr.n_active
         if self.r <= 0 or N == 0:
             return storage
-        L, pool = cache.layout, cache.pool
         side = 2 * self.r + 1
         M = side * side
         sigma = max(self.r / 2.0, 0.5)
 
         # ------------------- neighbour pairs (entry, offset): slot, weight, offset -------------------
-        isl, lvl, tx, ty = pool.entry_texels(fr.active)
-        key = isl * L.levels + lvl
-        dr.eval(isl, key, tx, ty)
+        isl, lvl, tx, ty = topo.entry_texels(fr.active)
+        dr.eval(isl, lvl, tx, ty)
         p = dr.arange(mi.UInt32, N * M)
         e, j = p // M, p % M
         dx, dy = mi.Int32(j % side) - self.r, mi.Int32(j // side) - self.r
-        ke = dr.gather(mi.UInt32, key, e)
-        wl, hl = L.key_extent(ke)
         x2, y2 = mi.Int32(dr.gather(mi.UInt32, tx, e)) + dx, mi.Int32(dr.gather(mi.UInt32, ty, e)) + dy
-        inside = (x2 >= 0) & (y2 >= 0) & (x2 < wl) & (y2 < hl)
-        ux, uy = mi.UInt32(dr.maximum(x2, 0)), mi.UInt32(dr.maximum(y2, 0))
-        sy = pool.slot(L.vblock(ke, ux, uy, inside), L.within(ux, uy), inside)
-        ok = inside & (sy != INVALID)
+        sy = topo.slot_at(dr.gather(mi.UInt32, isl, e), dr.gather(mi.UInt32, lvl, e), x2, y2)
+        ok = sy != INVALID
         ok &= dr.gather(mi.Float, storage, sy * W + 3 * D + 3, ok) > 0.0       # holds a value
         dr.eval(sy, ok)
         # neighbours' points and normals (the cache's own surface points), valid pairs only
         pv = dr.compress(ok)
-        siy = cache.points.interactions(dr.gather(mi.UInt32, sy, pv), dr.gather(mi.UInt32, isl, dr.gather(mi.UInt32, e, pv)))
+        siy = topo.entry_points(dr.gather(mi.UInt32, sy, pv), dr.gather(mi.UInt32, isl, dr.gather(mi.UInt32, e, pv)))
         ey = dr.gather(mi.UInt32, e, pv)
         px = mi.Point3f(*[dr.gather(mi.Float, fr.si.p[c], ey) for c in range(3)])
         nx = mi.Vector3f(*[dr.gather(mi.Float, fr.si.sh_frame.n[c], ey) for c in range(3)])
