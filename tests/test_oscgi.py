@@ -205,8 +205,7 @@ def test_indirect_reference_matches_the_furnace_closed_form(bounces):
 def test_converges_to_the_indirect_reference(dcornell):
     """Diffuse Cornell box, still camera, 2 bounces: after 24 frames the mean indirect light is
     within 10% of the 256-path reference and the mean absolute pixel error within 25% of the mean
-    (measured: 0.961 of the reference, 0.151 with the defaults of session gi8; 0.968 and 0.151 with
-    those before it; 0.93 and 0.16 with 32 texels traced per update, before session gi6)."""
+    (measured: 0.961 of the reference, 0.151)."""
     m, gbs, imgs = _run(dcornell, "osc-gi:output=indirect", views.single(dcornell), 24)
     ref = references.reference_for("indirect", dcornell, gbs[0], 0, "test", spp=256,
                                    bounces=references.reference_bounces(m))

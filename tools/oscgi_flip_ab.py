@@ -1,8 +1,8 @@
 """FLIP, frame time, kernels after warm-up and the last image's md5 of osc-gi settings, one
-viewer on the scene's path (session gi10). The osc-gi experiment's RunConfig (ref_spp 256,
+viewer on the scene's path. The osc-gi experiment's RunConfig (ref_spp 256,
 warm-up F // 3, the last frame evaluated).
 
-    PYTHONPATH=. python tools/oscgi_flip_ab.py cornell,atrium 160 90 24 osc-gi osc-gi:sharp=0.2 ...
+    PYTHONPATH=. python tools/oscgi_flip_ab.py cornell,atrium 160 90 24 osc-gi osc-gi:bias=1 ...
 """
 import sys, hashlib, time
 import slc.backend

@@ -227,11 +227,13 @@ class PayloadMethod(Method):
         out = [dr.gather(self.storage_type, st, slots * self.words + (word + j), active) for j in range(n)]
         return out[0] if n == 1 else out
 
-    def write(self, value, slots, word: int, active=True) -> None:
-        """Word ``word`` of the entries ``slots`` set to ``value`` (a list: consecutive words)."""
+    def write(self, value, slots, word: int, active=True, storage=None) -> None:
+        """Word ``word`` of the entries ``slots`` set to ``value`` (a list: consecutive words);
+        ``storage``: another array of the same layout instead of ``self.storage``."""
+        st = self.storage if storage is None else storage
         values = value if isinstance(value, (list, tuple)) else [value]
         for j, v in enumerate(values):
-            dr.scatter(self.storage, v, slots * self.words + (word + j), active)
+            dr.scatter(st, v, slots * self.words + (word + j), active)
 
     def _set_up_cache(self):
         cache = self._cache_arg if self._cache_arg is not None else self.make_cache()

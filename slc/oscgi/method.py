@@ -288,7 +288,7 @@ class OSCGI(PayloadMethod):
         self.grid = HemiGrid(self.hemi)
         # an entry's words: 3 per texel (radiance), then the irradiance (3), the update count, the mean 1/t
         D = self.grid.n
-        self.words, self._irr, self._count, self._inv_t = 3 * D + 5, 3 * D, 3 * D + 3, 3 * D + 4
+        self.words, self.irr_word, self.count_word, self.inv_t_word = 3 * D + 5, 3 * D, 3 * D + 3, 3 * D + 4
         self.filter = SpatialFilter(self.filter_radius, self.filter_angle, self.parallax)
         self.label = None if self.output == "full" else "osc-gi:output=indirect"
         # traced once and replayed (FrozenFunction): a new width of the inputs needs no recording;
@@ -399,7 +399,7 @@ class OSCGI(PayloadMethod):
         # fine_old is read (masked) in the blend's kernel: not evaluated here over every texel
         dr.eval(fine_e)
         self.laps.lap("primary_seeds")
-        c_old = dr.select(is_new, dr.select(start.seeded | fine, 1.0, 0.0), self.read(slot, self._count))
+        c_old = dr.select(is_new, dr.select(start.seeded | fine, 1.0, 0.0), self.read(slot, self.count_word))
         c = mi.UInt32(c_old) + 1                                     # this update's number
         full = dr.gather(mi.UInt32, policy.rays, e) >= D
         traced = full | ((k % S) == (c % S))
@@ -497,7 +497,7 @@ class OSCGI(PayloadMethod):
         n_e, s_e = dr.block_sum(samples.n_t, D), dr.block_sum(samples.inv_t, D)
         c_e = dr.gather(mi.Float, lanes.c_old, dr.arange(mi.UInt32, N) * D) + 1.0
         st_e = entry_start(fr.is_new, fr.seed_slot, fr.active)
-        d_old = self.read(st_e.src, self._inv_t, st_e.keep)
+        d_old = self.read(st_e.src, self.inv_t_word, st_e.keep)
         a_e = dr.select(n_e > 0.0, dr.select(st_e.keep, dr.rcp(dr.minimum(c_e, float(self.n_max))), 1.0), 0.0)
         d_new = dr.fma(a_e, s_e * dr.rcp(dr.maximum(n_e, 1.0)) - d_old, d_old)
         dr.eval(*new, *E, cnt, d_new)
@@ -508,9 +508,9 @@ class OSCGI(PayloadMethod):
         lanes.fine_old = None
         for ch in range(3):
             self.write(new[ch], lanes.slot, k * 3 + ch)
-        self.write(E, fr.active, self._irr)
-        self.write(cnt, lanes.slot, self._count, k == 0)
-        self.write(d_new, fr.active, self._inv_t)
+        self.write(E, fr.active, self.irr_word)
+        self.write(cnt, lanes.slot, self.count_word, k == 0)
+        self.write(d_new, fr.active, self.inv_t_word)
         self.laps.lap("primary_ema", self.storage)
 
     def update_limit(self, fr) -> int:
@@ -555,7 +555,7 @@ class OSCGI(PayloadMethod):
         take = N
         if N > B:
             slot = np.array(fr.active, dtype=np.int64)
-            cnt = np.array(self.read(fr.active, self._count))
+            cnt = np.array(self.read(fr.active, self.count_word))
             last = np.array(dr.gather(mi.UInt32, self._upd_frame, fr.active), dtype=np.int64)
             due = last + np.minimum(cnt, float(self.n_max)).astype(np.int64)
             due[np.array(fr.is_new, dtype=bool)] = -1                  # new entries: always
@@ -597,7 +597,7 @@ class OSCGI(PayloadMethod):
             sl = topo.slot_at(isl, finer, tx * 2 + dx, ty * 2 + dy, need)
             m = need & (sl != INVALID)
             m &= ~dr.gather(mi.Bool, new_now, sl, m)
-            m &= self.read(sl, self._count, m) > 0.0
+            m &= self.read(sl, self.count_word, m) > 0.0
             kids.append(dr.select(m, sl, INVALID))
         dr.eval(*kids)
         return kids
@@ -612,7 +612,7 @@ class OSCGI(PayloadMethod):
         a frame instead of once per viewer. With the spatial filter on (``filter_radius`` > 0),
         from a filtered copy of the active entries (:class:`~slc.oscgi.spatial.SpatialFilter`,
         timed with the display), the temporal state left unfiltered."""
-        storage = self.filter.apply(self.cache, self.storage, fr, self.grid, self.words) if self.filter.r > 0 else None
+        storage = self.filter.apply(self, fr) if self.filter.r > 0 else None
         if len(gbuffers) < 2 or fr.layer_slot is None or fr.layer_index is None:
             return [self._shade_viewer(ctx, fr, v, gb, storage) for v, gb in enumerate(gbuffers)]
         lay = layered(gbuffers)
@@ -654,7 +654,7 @@ class OSCGI(PayloadMethod):
 
         def irradiance():
             # diffuse: E from the entry's irradiance words
-            return mi.Color3f(*self.read(slot, self._irr, ok & d_only, n=3, storage=storage))
+            return mi.Color3f(*self.read(slot, self.irr_word, ok & d_only, n=3, storage=storage))
 
         def radiance(d, m):
             # glossy: the entry's hemisphere texel towards d (BSDF importance sampling)

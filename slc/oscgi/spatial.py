@@ -43,12 +43,12 @@ class SpatialFilter:
         self.r, self.angle, self.parallax = int(radius), float(angle), bool(parallax)
         self.cos_max = math.cos(math.radians(self.angle))
 
-    def apply(self, topo, storage: mi.Float, fr, grid, words: int) -> mi.Float:
-        """``storage`` with the texels and irradiance of the active entries ``fr.active``
-        replaced by their filtered values (a copy: ``storage`` itself is left as it is);
-        ``topo``: the cache's entry topology (:class:`slc.osc.protocol.EntryTopology`)."""
-        G, W, D = grid, words, grid.n
-        N = fr.n_active
+    def apply(self, m, fr) -> mi.Float:
+        """The osc-gi method ``m``'s storage with the texels and irradiance of the active entries
+        ``fr.active`` replaced by their filtered values (a copy: ``m.storage`` is left as it is);
+        neighbours from the cache's entry topology (:class:`slc.osc.protocol.EntryTopology`)."""
+        topo, storage, G = m.cache, m.storage, m.grid
+        D, N = G.n, fr.n_active
         if self.r <= 0 or N == 0:
             return storage
         side = 2 * self.r + 1
@@ -64,7 +64,7 @@ class SpatialFilter:
         x2, y2 = mi.Int32(dr.gather(mi.UInt32, tx, e)) + dx, mi.Int32(dr.gather(mi.UInt32, ty, e)) + dy
         sy = topo.slot_at(dr.gather(mi.UInt32, isl, e), dr.gather(mi.UInt32, lvl, e), x2, y2)
         ok = sy != INVALID
-        ok &= dr.gather(mi.Float, storage, sy * W + 3 * D + 3, ok) > 0.0       # holds a value
+        ok &= m.read(sy, m.count_word, ok) > 0.0       # holds a value
         dr.eval(sy, ok)
         # neighbours' points and normals (the cache's own surface points), valid pairs only
         pv = dr.compress(ok)
@@ -95,7 +95,7 @@ class SpatialFilter:
         slot_x = dr.gather(mi.UInt32, fr.active, te)
         n_x = mi.Vector3f(*[dr.gather(mi.Float, fr.si.sh_frame.n[c], te) for c in range(3)])
         omega = mi.Frame3f(n_x).to_world(G.direction(k, mi.Point2f(0.5, 0.5)))
-        invd = dr.gather(mi.Float, storage, slot_x * W + 3 * D + 4) if self.parallax else mi.Float(0.0)
+        invd = m.read(slot_x, m.inv_t_word) if self.parallax else mi.Float(0.0)
         m = dr.opaque(mi.UInt32, M)
 
         def cond(i, acc, wsum):
@@ -111,8 +111,7 @@ class SpatialFilter:
             wy = dr.normalize(omega + o * invd)
             loc = mi.Frame3f(ny).to_local(wy)
             okq &= (loc.z > 0.0) & (dr.dot(wy, omega) >= self.cos_max) & dr.all(dr.isfinite(wy))
-            t = sy * W + G.texel(loc) * 3
-            Ly = mi.Color3f(*[dr.gather(mi.Float, storage, t + c, okq) for c in range(3)])
+            Ly = mi.Color3f(*m.read(sy, G.texel(loc) * 3, okq, n=3))
             return i + 1, acc + dr.select(okq, wq * Ly, 0.0), wsum + dr.select(okq, wq, 0.0)
 
         _, acc, wsum = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), mi.Float(0.0)), cond=cond,
@@ -123,8 +122,7 @@ class SpatialFilter:
 
         # ------------------------- the filtered copy of the storage -------------------------
         out = dr.copy(storage)       # the scatters below must not touch ``storage``
-        for c in range(3):
-            dr.scatter(out, Lf[c], slot_x * W + k * 3 + c)
-            dr.scatter(out, E[c], fr.active * W + 3 * D + c)
+        m.write([Lf[c] for c in range(3)], slot_x, k * 3, storage=out)
+        m.write(E, fr.active, m.irr_word, storage=out)
         dr.eval(out)
         return out

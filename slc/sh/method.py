@@ -102,11 +102,11 @@ class SHSurfaceCache(PayloadMethod):
 
     # ------------------------------------------------------------------ shade
     def shade(self, ctx, fr, v, gb):
-        enc, n, W = self.enc, self.enc.n, self.words
+        enc, n = self.enc, self.enc.n
         slot = mi.UInt32(fr.pixel_slot[v])
         si = gb.si
         ok = mi.Bool(gb.valid) & (slot != INVALID)
-        coeffs = [dr.gather(mi.Float, self.storage, slot * W + c, ok) for c in range(n)]
+        coeffs = self.read(slot, 0, ok, n=n)
         nrm = mi.Vector3f(si.sh_frame.n)
         # world-frame coefficients: the irradiance at the shading normal, the radiance towards d
         return shade_radiance(
