@@ -73,7 +73,7 @@ def test_stratified_light_samples_are_unbiased_and_less_noisy(cornell):
     from slc.cones.update import light_inputs
     from slc.keys import stream_key
     from slc.lights import _diffuse_table
-    from slc.oscgi.method import STREAM_PIXEL_DIRECT, _pixel_direct_kernel
+    from slc.oscgi.kernels import STREAM_PIXEL_DIRECT, pixel_direct_kernel
     from slc.pipeline import gbuffers_for
     gb = gbuffers_for(cornell, views.single(cornell), 0, 32, 18)[0]
     sc = cornell.mi_scene
@@ -82,7 +82,7 @@ def test_stratified_light_samples_are_unbiased_and_less_noisy(cornell):
     idx = dr.arange(mi.UInt32, dr.width(gb.valid))
     err1, err64, means = {}, {}, {}
     for lds in (True, False):
-        imgs = np.stack([references.image_of("full", gb, _pixel_direct_kernel(
+        imgs = np.stack([references.image_of("full", gb, pixel_direct_kernel(
             sc, light_inputs(sc), _diffuse_table(sc)[0], gb.si, mi.Bool(gb.valid), idx,
             stream_key(0, f, STREAM_PIXEL_DIRECT), dr.opaque(mi.UInt32, 4), lds)) for f in range(64)])
         assert np.isfinite(imgs).all()

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from ..keys import INVALID, STREAM_CONE_UPDATE, keyed_rng, mixed_rng
+from ..keys import STREAM_CONE_UPDATE, keyed_rng, mixed_rng
 from ..freeze import FrozenFunction
 from ..osc.protocol import entry_start
 from ..lights import sample_light
