@@ -10,7 +10,7 @@ from ..freeze import FrozenFunction
 from ..gbuffer import layered, per_viewer, viewer_lanes
 from ..keys import INVALID, keyed_rng, stream_key
 from ..lights import _diffuse_table
-from ..methods import MethodError, Param, register
+from ..methods import MethodError, Param, create, register
 from ..osc.cache import OnSurfaceCache
 from ..osc.payload import PayloadMethod, RayPolicy
 from ..osc.protocol import ENTRY_TOPOLOGY
@@ -104,7 +104,8 @@ class OSCGI(PrimaryUpdate, PayloadMethod):
     against its alternative (``docs/osc-gi.md``), and a subclass may switch one to measure it
     again (the tests do).
 
-    Storage per entry: 3 R^2 radiance words, the irradiance (3 words) and the update count.
+    Storage per entry: 3 R^2 radiance words, the irradiance (3 words), the update count and the
+    mean inverse hit distance of its rays (for the spatial filter's parallax).
     Ray budget (the ray policy): an entry's first update traces all R^2 texels, later updates
     ``texel_rays`` of them in rotation (texel k when k = c mod R^2/``texel_rays``, c the update
     number), each traced texel blended with 1/min(its own sample count, ``n_max``); light samples
@@ -155,7 +156,7 @@ class OSCGI(PrimaryUpdate, PayloadMethod):
     secondary_slots = 17      # log2 of the secondary hash table's size
     secondary_evict = 4       # secondary cells unused for this many frames are freed
     direct_rays = 8           # direct=cache: light samples per primary entry update
-    probe_origins = False          # count the cache rays hitting a back face (origin_probe: back, valid)
+    probe_origins = False     # count the cache rays hitting a back face (origin_probe: back, valid)
     origin_probe = (0, 0)
 
     def __init__(self, scene, **kw):
@@ -175,8 +176,7 @@ class OSCGI(PrimaryUpdate, PayloadMethod):
         self._cache_direct = self.output == "full" and self.direct == "cache"
         self._sub = None
         if self.output == "full" and self.direct in DIRECT_METHODS:
-            from .. import methods
-            self._sub = methods.create(DIRECT_METHODS[self.direct], scene, seed=self.seed)
+            self._sub = create(DIRECT_METHODS[self.direct], scene, seed=self.seed)
 
     def validate(self):
         if self.output not in ("full", "indirect"):
