@@ -96,10 +96,10 @@ class SpatialFilter:
         n_x = mi.Vector3f(*[dr.gather(mi.Float, fr.si.sh_frame.n[c], te) for c in range(3)])
         omega = mi.Frame3f(n_x).to_world(G.direction(k, mi.Point2f(0.5, 0.5)))
         invd = m.read(slot_x, m.inv_t_word) if self.parallax else mi.Float(0.0)
-        m = dr.opaque(mi.UInt32, M)
+        n_taps = dr.opaque(mi.UInt32, M)
 
         def cond(i, acc, wsum):
-            return i < m
+            return i < n_taps
 
         def body(i, acc, wsum):
             q = te * M + i
