@@ -237,13 +237,13 @@ def bench_update(scene_name: str = "atrium", width: int = 320, height: int = 180
     own_update = m.update
     last = frames - 1
 
-    def update(ctx, fr, rays, unsettled):
+    def update(ctx, fr, policy):
         if ctx.frame == last:     # no kernel in a timed frame: references, and a host copy of the
             # records before the update (the update writes them in place)
             import numpy as np
-            cap.update(storage=np.array(m.storage.numpy()), active=fr.active, si=fr.si, rays=mi.UInt32(rays),
-                       unsettled=mi.Bool(unsettled), keys=mi.UInt32(fr.keys), frame=ctx.frame)
-        return own_update(ctx, fr, rays, unsettled)
+            cap.update(storage=np.array(m.storage.numpy()), active=fr.active, si=fr.si, rays=mi.UInt32(policy.rays),
+                       unsettled=mi.Bool(policy.unsettled), keys=mi.UInt32(fr.keys), frame=ctx.frame)
+        return own_update(ctx, fr, policy)
 
     m.update = update
     res = run_sequence(s, m, views.single(s), RunConfig(width=width, height=height, frames=frames, warmup=warmup,

@@ -69,14 +69,17 @@ class FrozenFunction:
     every call), ``animated=False`` (the scene's meshes move),
     ``max_recordings=4``, ``lanes=()`` (positions of the per-lane arguments:
     a call whose lane count collides with another input's width runs on a
-    free width, see the module). ``calls`` counts the calls made while frozen,
+    free width, see the module), ``narrow=()`` (positions of arguments whose
+    width decides whether a call is replayed: a call where one of them has
+    fewer than 2 lanes runs ``fn`` traced, since a width-1 input is loaded as
+    a scalar and would need a recording of its own). ``calls`` counts the calls made while frozen,
     ``n_recordings`` the recordings made (including those of a dropped
     function), ``frozen`` whether calls are still replayed."""
 
     def __init__(self, fn, freeze: bool = True, animated: bool = False, max_recordings: int = 4,
-                 lanes: tuple = ()):
+                 lanes: tuple = (), narrow: tuple = ()):
         self.fn = fn
-        self.lanes = tuple(lanes)
+        self.lanes, self.narrow = tuple(lanes), tuple(narrow)
         self.padded_calls = 0           # calls run on a free width
         self._scene_key, self._scene_ws = None, set()
         self.animated, self.max_recordings = bool(animated), int(max_recordings)
@@ -91,6 +94,8 @@ class FrozenFunction:
         self.calls = 0
 
     def __call__(self, *args):
+        if self.narrow and any(_width(args[i]) < 2 for i in self.narrow):
+            return self.fn(*args)          # too narrow to replay (see the class)
         # no garbage collection while a function records or replays: the collector freed
         # cyclic garbage holding Dr.Jit state (an earlier test's objects) in the middle of
         # a recording, and Dr.Jit aborted the process

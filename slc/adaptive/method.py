@@ -181,7 +181,7 @@ class AdaptiveCache(PayloadMethod):
                          settled=self.rays_settled, moving=self.rays_moving)
 
     # ------------------------------------------------------------------ update
-    def update(self, ctx, fr, rays, unsettled):
+    def update(self, ctx, fr, policy):
         if self.pools is None:
             self._make_pools()
         if self.sph is not None:
@@ -195,12 +195,10 @@ class AdaptiveCache(PayloadMethod):
         # (tags, counts, the switch mask) would be literals that Dr.Jit folds into the kernels,
         # so the frame-0 warm-up would trace other kernels than a frame with real switches.
         # Opaque values keep the IR independent of the data (docs/adaptive.md, Cost).
-        is_new, rays, unsettled = mi.Bool(fr.is_new), mi.UInt32(rays), mi.Bool(unsettled)
+        is_new, rays, unsettled = mi.Bool(fr.is_new), mi.UInt32(policy.rays), mi.Bool(policy.unsettled)
         # the entries' ray-policy state before this update (as slc: moving entries cap C and
         # leave the stratified sequence; the others continue it after the samples they drew)
-        pstate = dr.select(is_new, 0, dr.gather(mi.UInt32, self.policy_state, fr.active))
-        moving = (pstate >> 16) > 0
-        first_sample = self.ray_policy().samples_before(pstate)
+        moving, first_sample = policy.moving, policy.first_sample
         dr.make_opaque(is_new, rays, unsettled, moving, first_sample)
         forced = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.force)
         start = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.start, self.prior)

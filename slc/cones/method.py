@@ -112,16 +112,13 @@ class SurfaceLightCones(PayloadMethod):
                          settled=self.rays_settled, moving=self.rays_moving, budget=self.ray_budget)
 
     # ------------------------------------------------------------------ update
-    def update(self, ctx, fr, rays, unsettled):
+    def update(self, ctx, fr, policy):
         info = {}
-        # the entries' policy state before this update (PayloadMethod.render advances it after)
-        state = dr.select(fr.is_new, 0, dr.gather(mi.UInt32, self.policy_state, fr.active))
-        policy = self.ray_policy()
-        moving = (state >> 16) > 0
+        moving = policy.moving
         self.storage, motion = update_entries(
-            self.scene.mi_scene, self.storage, fr.active, fr.si, rays, unsettled, fr.is_new, fr.seed_slot,
-            fr.keys, ctx.frame, self.seed, self.cone_params, info,
-            moving=moving, first_sample=policy.samples_before(state), strata=~moving,
+            self.scene.mi_scene, self.storage, fr.active, fr.si, policy.rays, policy.unsettled, fr.is_new,
+            fr.seed_slot, fr.keys, ctx.frame, self.seed, self.cone_params, info,
+            moving=moving, first_sample=policy.first_sample, strata=~moving,
             updater=updater_for(self))
         self._info = info
         return motion

@@ -24,8 +24,9 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from ..keys import INVALID, STREAM_CONE_UPDATE, keyed_rng, mixed_rng
+from ..keys import STREAM_CONE_UPDATE, keyed_rng, mixed_rng
 from ..freeze import FrozenFunction
+from ..osc.protocol import entry_start
 from ..lights import sample_light
 
 INF = float("inf")
@@ -486,9 +487,9 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_
     from .packing import gather_words, unpack
     K = p.max_cones
     state = unpack(gather_words(storage, active, K), K)
-    seed_slot = mi.UInt32(seed_slot)
-    has_seed = mi.Bool(is_new) & (seed_slot != INVALID)
-    seeds = unpack(gather_words(storage, dr.select(has_seed, seed_slot, 0), K, has_seed), K)
+    start = entry_start(is_new, seed_slot, 0)
+    has_seed = start.seeded
+    seeds = unpack(gather_words(storage, start.src, K, has_seed), K)
     words, motion, shrunk, dropped, _ = update_cycle(
         scene, state, key, si, rays, unsettled, moving, is_new, first_sample, strata, frame, seed, p,
         seeds=seeds, has_seed=has_seed, area_only=area_only)

@@ -47,25 +47,7 @@ class HemiGrid:
         sq = mi.warp.cosine_hemisphere_to_square(d_local)
         return self.texel_index(mi.Int32(dr.floor(sq.x * R)), mi.Int32(dr.floor(sq.y * R)))
 
-    def bilinear(self, d_local: mi.Vector3f):
-        r"""The bilinear footprint of a direction on the texel grid: (i0, j0, fx, fy) with texel
-        centres at (i + 1/2)/R, so the blend is :math:`\sum (1-f_x \text{ or } f_x)(1-f_y
-        \text{ or } f_y) L_{(i_0 + a, j_0 + b)}`, a, b in {0, 1}, indices clamped to the grid
-        (the square's edge is the horizon: clamp to edge)."""
-        R = self.res
-        sq = mi.warp.cosine_hemisphere_to_square(d_local)
-        x, y = sq.x * R - 0.5, sq.y * R - 0.5
-        x0, y0 = dr.floor(x), dr.floor(y)
-        return mi.Int32(x0), mi.Int32(y0), x - x0, y - y0
-
     def texel_index(self, i, j) -> mi.UInt32:
         """Texel of the (clamped) grid coordinates i, j."""
         R = self.res
         return mi.UInt32(dr.clip(j, 0, R - 1) * R + dr.clip(i, 0, R - 1))
-
-    def texel_stochastic(self, d_local: mi.Vector3f, u: mi.Point2f) -> mi.UInt32:
-        """One texel of the bilinear footprint (:meth:`bilinear`) chosen with probability equal
-        to its bilinear weight (``u`` uniform in [0,1)^2, one coordinate per axis): the texel's value
-        is then an unbiased estimate of the bilinear blend (stochastic bilinear interpolation)."""
-        i0, j0, fx, fy = self.bilinear(d_local)
-        return self.texel_index(i0 + dr.select(u.x < fx, 1, 0), j0 + dr.select(u.y < fy, 1, 0))

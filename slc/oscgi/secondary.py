@@ -2,29 +2,24 @@ r"""Secondary radiance caches: a hashed world grid of coarse cells on the surfac
 primary caches' rays hit (the slides' "secondary caches ... span ~30 cm x 30 cm, quantized to
 allow for more reuse").
 
-A cell is keyed by the hit's quantised position ``floor(p / h)`` (``h`` = the cell size), the
-dominant axis and sign of its front-facing geometric normal (6 bins: the two sides of a wall never
-share a cell) and, by default, the hit's shape (``shape_key``: two rooms whose floors are separate
-shapes never share a cell even where a 30 cm cell straddles the wall between them; the journal's
-secondary caches are on-surface texels of islands, which never straddle two islands either).
-The key is a 32-bit TEA hash of these; its home slot a second hash word. The table is open
-addressing with linear probing over ``slots`` entries, filled without races in ``probes`` rounds
-of gather / ``scatter_reduce(min)`` / gather (the smallest key wins a contested empty slot, the
-others probe on): the same requests give the same table on every run. A request that finds no
-slot within ``probes`` gets no cell and counts as overflow.
+A cell is keyed by the hit's position, normal bin and shape (:func:`slc.oscgi.cells.cell_key`);
+its home slot is a second hash word. The table is open addressing with linear probing over
+``slots`` entries, filled without races in ``probes`` rounds of gather / ``scatter_reduce(min)`` /
+gather (the smallest key wins a contested empty slot, the others probe on): the same requests
+give the same table on every run. A request that finds no slot within ``probes`` gets no cell
+and counts as overflow.
 
 *Eviction*: a cell not touched (hit by any cache ray) in ``evict_after`` whole frames is freed at
 the start of the next one (touched last in frame u: freed at the start of frame u + K + 1).
-Freeing slots of a linear-probing table would cut the probe chains of the cells behind them, so the table is rebuilt instead: the surviving keys are inserted into an empty
-table (deterministic, as above) and their data move with them; a freed slot is thus reused from
-a reset state (count 0, layers 0). With eviction on, the table is also brought down to
+Freeing slots of a linear-probing table would cut the probe chains of the cells behind them, so
+the table is rebuilt instead: the surviving keys are inserted into an empty table (deterministic,
+as above) and their data move with them; a freed slot is reused from a reset state. With eviction on, the table is also brought down to
 ``max_load`` (1/4) of its slots at the start of a frame by freeing the least recently touched
 cells, so that the frame's new cells find slots within ``probes`` rounds.
 
-*Budget*: at most ``budget`` cells are updated per frame (0: all requested). The requested cells
-are ranked by ring (the cells primary rays read this frame first), then least-sampled (update
-count), then oldest update, then slot; the others keep
-their value (their EMA is simply not advanced this frame) and their ring requests lapse.
+*Budget*: at most ``budget`` cells are updated per frame (0: all requested), ranked by ring (the
+cells primary rays read this frame first), then least-sampled, then oldest update, then slot;
+the others keep their value (their EMA is not advanced this frame) and their ring requests lapse.
 
 Each cell stores the *outgoing diffuse* radiance of its surface, :math:`L_o = \rho E / \pi`, in
 ``bounces`` layers: layer 1 holds direct light only, layer b adds light that arrived after b-1
@@ -43,18 +38,14 @@ over frames: layer b of a cell is at most b-1 updates behind.
 
 Glossy hits (``glossy_hits``): a cell holds diffuse radiance only (0 for a metal); a secondary ray
 whose hit has a glossy or delta BSDF reads instead one light sample with that BSDF towards the
-ray's origin (:func:`_glossy_kernel`), the hit's layer 1 exactly (a lower bound for layers >= 2).
-
-Points: a cell is updated from a representative point, the hit (lowest lane) that touched it last;
-as hits move over the cell from frame to frame, the temporal average spans the cell.
-Update set: every cell hit by a primary ray this frame (ring 1) and every cell hit by a ring-r
+ray's origin (:func:`~slc.oscgi.cells.glossy_kernel`), the hit's layer 1 exactly (a lower bound
+for layers >= 2). A cell is updated from a representative point, the hit (lowest lane) that
+touched it last. Update set: every cell hit by a primary ray this frame (ring 1) and every cell hit by a ring-r
 cell's rays in the previous frame (ring r+1 <= ``bounces``); ring ``bounces`` needs direct light only
 and traces no rays. Temporal filter: exponential moving average with blend factor
 1 / min(n, ``n_max``), n the cell's update count.
 """
 from __future__ import annotations
-
-import math
 
 import drjit as dr
 import mitsuba as mi
@@ -63,201 +54,14 @@ import numpy as np
 from ..backend import aligned
 from ..cones.update import light_inputs
 from ..freeze import FrozenFunction
-from ..keys import INVALID, mixed_rng, stream_key
-from ..lights import sample_light, visible
+from ..keys import INVALID, stream_key
+from .cells import (EMPTY, NO_RING, REP_WORDS, STREAM_SECONDARY, CacheHits, CellHits, GlossyHits, cell_key,
+                    direct_kernel, glossy_kernel, ray_kernel, rep_kernel, trace_kernel)
 from .laps import Laps
-
-EMPTY = INVALID
-NO_RING = 0xFFFF
-STREAM_SECONDARY = 0x05EC0001
-_REP = 9          # representative point (3), front normal (3), diffuse albedo (3)
+from .table import CellTable
 
 
-def front_normal(si: mi.SurfaceInteraction3f, d: mi.Vector3f) -> mi.Vector3f:
-    """Geometric normal of a hit, on the side the ray ``d`` came from."""
-    return dr.select(dr.dot(si.n, d) > 0.0, -si.n, si.n)
-
-
-def _take(v, idx):
-    """Components of the 3-vector ``v`` at ``idx`` (same type)."""
-    return type(v)(*[dr.gather(mi.Float, v[c], idx) for c in range(3)])
-
-
-def _trace_kernel(sc, ray, active, h: float, slots: int, shape_key: bool, lod: float = 0.0):
-    """Cache rays to their hits (``RayFlags.Minimal``) and the hits' cell keys: returns
-    (p, geometric normal, t, shape index, preliminary intersection, valid, key, home, front
-    normal, non-diffuse BSDF), evaluated. Frozen by :class:`SecondaryCache` (the rays of primary and secondary
-    caches: two recordings)."""
-    pi = sc.ray_intersect_preliminary(ray, coherent=False, active=active)
-    si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
-    sidx = mi.UInt32(pi.shape_index)
-    ok = mi.Bool(active) & si.is_valid()
-    key, home, nf = cell_key(si, ray.d, sidx, h, slots, shape_key, lod)
-    flags = pi.shape.bsdf().flags()
-    glossy = ok & (mi.has_flag(flags, mi.BSDFFlags.Glossy) | mi.has_flag(flags, mi.BSDFFlags.Delta))
-    out = (mi.Point3f(si.p), mi.Vector3f(si.n), mi.Float(si.t), sidx, pi, ok, key, home, nf, glossy)
-    dr.eval(*out)
-    return out
-
-
-MAX_LOD = 7
-
-
-def cell_level(t, h: float, lod: float):
-    """The cell level of a hit at distance ``t`` along its ray: the largest l <= ``MAX_LOD`` with
-    h 2^l <= max(h, lod t), i.e. the cell's edge h 2^l is about the ray's footprint lod t (a
-    texel's or a secondary ray's angular width times the distance), never below h; 0 with lod 0."""
-    if lod <= 0.0:
-        return mi.UInt32(0)
-    x = dr.maximum(mi.Float(t) * (lod / h), 1.0)
-    x = dr.select(dr.isfinite(x), x, 1.0)
-    return mi.UInt32(dr.minimum(dr.floor(dr.log2(x)), float(MAX_LOD)))
-
-
-def cell_key(si, d, shape_index, h: float, slots: int, shape_key: bool, lod: float = 0.0):
-    """(key, home slot, front normal) of hits ``si`` reached along ``d`` (see
-    :meth:`SecondaryCache.key_of`); with ``lod`` > 0 the cell's edge grows with the hit
-    distance ``si.t`` (:func:`cell_level`) and the level enters the key."""
-    nf = front_normal(si, d)
-    level = cell_level(si.t, h, lod)
-    hl = h * mi.Float(mi.UInt32(1) << level)
-    c = mi.Vector3i(dr.floor(si.p / hl))
-    a = dr.abs(nf)
-    axis = dr.select((a.x >= a.y) & (a.x >= a.z), 0, dr.select(a.y >= a.z, 1, 2))
-    neg = dr.select(axis == 0, nf.x < 0.0, dr.select(axis == 1, nf.y < 0.0, nf.z < 0.0))
-    bin_ = mi.UInt32(axis * 2) + dr.select(neg, 1, 0)
-    shape = mi.UInt32(shape_index) if shape_key else mi.UInt32(0)
-    ux, uy, uz = (dr.reinterpret_array(mi.UInt32, v) for v in (c.x, c.y, c.z))
-    k0, _ = mi.sample_tea_32(ux, uy, 4)
-    key, home = mi.sample_tea_32(k0 ^ (uz * 0x9E3779B9), bin_ | (shape << 3) | (level << 28), 4)
-    key = dr.minimum(key, EMPTY - 1)
-    return key, home & (slots - 1), nf
-
-
-def _rep_kernel(sc, pi, ray, idx, slots, p, nf):
-    """The representative points of the winning lanes ``idx``: (slots, the 9 words: position,
-    front normal and the diffuse albedo: the full interaction from the preliminary one, a BSDF
-    call), evaluated. The caller writes them (a frozen function copies an input it writes to).
-    ``sc`` (the scene, unused) declares the scene's arrays as inputs (the free width of
-    ``lanes``, :mod:`slc.freeze`)."""
-    pw = dr.gather(type(pi), pi, idx)
-    rw = dr.gather(mi.Ray3f, ray, idx)
-    sw = pw.compute_surface_interaction(rw, mi.RayFlags.All, True)
-    albedo = mi.Color3f(sw.bsdf().eval_diffuse_reflectance(sw, sw.is_valid()))
-    pp, nw = _take(p, idx), _take(nf, idx)
-    sl = dr.gather(mi.UInt32, slots, idx)
-    words = [pp.x, pp.y, pp.z, nw.x, nw.y, nw.z, albedo.x, albedo.y, albedo.z]
-    dr.eval(sl, *words)
-    return sl, words
-
-
-def _direct_kernel(sc, lights, rep, keys_tab, cells, mix, ns, n_samples: float, ris_m: int = 0):
-    r"""Direct light at the representative points of ``cells``: ``ns`` (opaque) light samples
-    (the project's light sampling, shadow rays); ``lights`` declares the emitter table as an
-    input. Returns (E_dir/pi, the outgoing direct radiance before the albedo; point, normal,
-    albedo, key and lit mask of each cell).
-
-    ``ris_m`` = 0 (``direct=plain``): each sample is one light sample x_i with weight
-    :math:`L_e \cos / p`. ``ris_m`` = M > 0 (``direct=ris``): each sample is chosen by resampled
-    importance sampling among M candidates x_1..x_M of the same light sampling (one weighted
-    reservoir, one shadow ray), with the unshadowed contribution as target,
-    :math:`\hat p(x) = \mathrm{lum}(L_e(x) \cos(x))`, candidate weights
-    :math:`w_i = \hat p(x_i) / p(x_i)` and the estimate
-    :math:`L_e(y) \cos(y) V(y) / \hat p(y) \cdot \frac{1}{M}\sum_i w_i` (unbiased: :math:`\hat p > 0`
-    wherever the integrand is)."""
-    rp = [dr.gather(mi.Float, rep, cells * _REP + j) for j in range(_REP)]
-    p, nrm, rho = mi.Point3f(*rp[0:3]), mi.Vector3f(*rp[3:6]), mi.Color3f(*rp[6:9])
-    keys = dr.gather(mi.UInt32, keys_tab, cells)
-    si = dr.zeros(mi.SurfaceInteraction3f)     # width 1: a literal of the inputs' width would be baked
-    si.p, si.n, si.sh_frame, si.wi = p, nrm, mi.Frame3f(nrm), mi.Vector3f(0, 0, 1)
-    lit = dr.max(rho) > 0.0
-    sampler = mixed_rng(keys, mix)
-
-    def cond(i, E, sampler):
-        return i < ns
-
-    def body(i, E, sampler):
-        u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
-        ds, w, ok = sample_light(sc, si, u, lit)
-        cos = dr.dot(ds.d, nrm)
-        ok &= (cos > 0.0) & dr.all(dr.isfinite(w))
-        ok = visible(sc, si, ds, ok)
-        return i + 1, E + dr.select(ok, w * cos, 0.0), sampler
-
-    def body_ris(i, E, sampler):
-        # ---------------- M candidates into one weighted reservoir (no rays) ----------------
-        wsum, y_ds, y_c, y_ph = mi.Float(0.0), dr.zeros(mi.DirectionSample3f), mi.Color3f(0.0), mi.Float(0.0)
-        for _ in range(ris_m):
-            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
-            ds, w, ok = sample_light(sc, si, u, lit)
-            cos = dr.dot(ds.d, nrm)
-            ok &= (cos > 0.0) & dr.all(dr.isfinite(w))
-            c = dr.select(ok, w * cos, 0.0)               # L_e cos / p of the candidate
-            wi = mi.luminance(c)                          # w_i = p^(x_i) / p(x_i)
-            wi = dr.select(ok & (wi > 0.0) & dr.isfinite(wi), wi, 0.0)
-            wsum += wi
-            take = (wi > 0.0) & (sampler.next_float32() * wsum < wi)
-            y_ds = dr.select(take, ds, y_ds)
-            y_c = dr.select(take, c, y_c)
-            y_ph = dr.select(take, wi, y_ph)
-        # ---------------- the chosen sample: one shadow ray, weight (1/p^(y)) (1/M) sum w_i ----------------
-        ok = lit & (y_ph > 0.0)
-        ok = visible(sc, si, y_ds, ok)
-        W = wsum * (1.0 / ris_m) * dr.rcp(dr.select(ok, y_ph, 1.0))
-        return i + 1, E + dr.select(ok, y_c * W, 0.0), sampler
-
-    _, E_dir, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond,
-                                body=body_ris if ris_m > 0 else body,
-                                labels=("i", "E", "sampler"))
-    L_dir = (E_dir / n_samples) * (1.0 / math.pi)
-    dr.eval(L_dir, p, nrm, rho, keys, lit)
-    return L_dir, p, nrm, rho, keys, lit
-
-
-def _ray_kernel(p, nrm, keys, tl, mix, R: int):
-    """The cosine rays of the tracing lanes ``tl`` (cell c = tl // R of the update's cells, ray
-    j = tl % R) from the cells' representative points ``p`` (normals ``nrm``, keys ``keys``)."""
-    c_of, j = tl // R, tl % R
-    s2 = mixed_rng(dr.gather(mi.UInt32, keys, c_of) * R + j, mix)
-    u = mi.Point2f(s2.next_float32(), s2.next_float32())
-    sil = dr.zeros(mi.SurfaceInteraction3f)    # width 1: a literal of the inputs' width would be baked
-    sil.p, sil.n = _take(p, c_of), _take(nrm, c_of)
-    sil.sh_frame = mi.Frame3f(sil.n)
-    d = sil.sh_frame.to_world(mi.warp.square_to_cosine_hemisphere(u))
-    ray = sil.spawn_ray(d)
-    dr.eval(ray)
-    return ray
-
-
-def _glossy_kernel(sc, lights, pi, ray, gi, lane_key, mix):
-    """At the hits ``gi`` of cache rays on non-diffuse surfaces (glossy, metal), the
-    outgoing radiance towards the entry is view-dependent, which a cell's diffuse radiance cannot
-    hold: one light sample with the hit's BSDF (next-event estimation: the light after one
-    reflection) and one BSDF-sampled ray, whose hit cell's radiance (layer ``bounces`` - 1) the
-    caller adds with the weight. Returns (NEE term, BSDF weight, BSDF ray, its mask)."""
-    ctx = mi.BSDFContext()
-    pw = dr.gather(type(pi), pi, gi)
-    rw = dr.gather(mi.Ray3f, ray, gi)
-    si = pw.compute_surface_interaction(rw, mi.RayFlags.All, True)
-    bsdf = si.bsdf()
-    rng = mixed_rng(dr.gather(mi.UInt32, lane_key, gi), mix)
-    # ------------------ next-event estimation at the hit ------------------
-    u = mi.Point2f(rng.next_float32(), rng.next_float32())
-    ds, w, okd = sample_light(sc, si, u, si.is_valid())
-    okd = visible(sc, si, ds, okd)
-    f = mi.Color3f(bsdf.eval(ctx, si, si.to_local(ds.d), okd))
-    Ld = dr.select(okd, f * w, 0.0)
-    # ------------------ one BSDF-sampled bounce ------------------
-    bs, bw = bsdf.sample(ctx, si, rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
-                         si.is_valid())
-    ok2 = si.is_valid() & (bs.pdf > 0.0) & (dr.max(mi.Color3f(bw)) > 0.0)
-    ray2 = si.spawn_ray(si.to_world(bs.wo))
-    bw = dr.select(ok2, mi.Color3f(bw), 0.0)
-    dr.eval(Ld, bw, ray2, ok2)
-    return Ld, bw, ray2, ok2
-
-
-class SecondaryCache:
+class SecondaryCache(CellTable):
     """Hashed grid of secondary radiance cells (see the module).
 
     Parameters: ``cell`` (edge in scene units), ``bounces`` (layers), ``n_max`` (EMA cap),
@@ -265,37 +69,32 @@ class SecondaryCache:
     ``slots`` (table size, a power of two), ``probes`` (linear-probing rounds), ``shape_key``,
     ``budget`` (cell updates per frame, 0: unlimited), ``evict_after`` (frames unused, 0: never),
     ``max_load`` (with eviction on: cells kept at the start of a frame, as a fraction of ``slots``),
-    ``direct`` (the cells' light samples: ``plain`` light sampling, or ``ris``: each chosen by
-    resampled importance sampling among ``ris_m`` (8) candidates, one shadow ray; session gi11),
-    ``freeze`` (True: the kernels with shape, BSDF and emitter calls, the ray tracing with the cell
-    keys, the representative albedo, the direct light and the secondary rays, are traced once and
-    replayed by :class:`slc.freeze.FrozenFunction`; same results as traced)."""
+    ``glossy_hits`` (True: :class:`GlossyHits` at non-diffuse hits), ``freeze`` (True: the kernels
+    with shape, BSDF and emitter calls, the ray tracing with the cell keys, the representative
+    albedo, the direct light, the secondary rays and the glossy hits, are traced once and replayed
+    by :class:`slc.freeze.FrozenFunction`; same results as traced)."""
 
     def __init__(self, mi_scene: mi.Scene, cell: float, bounces: int = 2, n_max: int = 8, rays: int = 32,
                  light_samples: int = 4, slots: int = 1 << 16, probes: int = 32, shape_key: bool = True,
                  seed: int = 0, budget: int = 0, evict_after: int = 0, max_load: float = 0.25,
-                 freeze: bool = True, glossy_hits: bool = True, lod: float = 0.0, direct: str = "plain",
-                 ris_m: int = 8):
+                 freeze: bool = True, glossy_hits: bool = True):
         if slots & (slots - 1):
             raise ValueError("slots must be a power of two")
-        if direct not in ("plain", "ris"):
-            raise ValueError("direct must be 'plain' or 'ris'")
-        self.direct, self.ris_m = direct, max(1, int(ris_m))
         self.sc, self.h, self.B = mi_scene, float(cell), int(bounces)
         self.n_max, self.rays, self.light_samples = int(n_max), int(rays), int(light_samples)
         self.slots, self.probes, self.shape_key, self.seed = int(slots), int(probes), bool(shape_key), int(seed)
         self.budget, self.evict_after, self.max_load = int(budget), int(evict_after), float(max_load)
-        self.lod = float(lod)
         self.laps = Laps(False)
-        # the kernels with BSDF, shape and emitter calls, traced once and replayed (dr.freeze)
+        # the kernels with BSDF, shape and emitter calls, traced once and replayed (dr.freeze); calls
+        # narrower than 2 lanes traced (``narrow``: the arguments whose width decides)
         self.freeze, self.glossy_hits = bool(freeze), bool(glossy_hits)
-        self._k_trace = FrozenFunction(_trace_kernel, self.freeze, max_recordings=6)
+        self._k_trace = FrozenFunction(trace_kernel, self.freeze, max_recordings=6)
         # lanes: the winning lanes idx (a pure kernel), run on a free width when their number equals the
         # size of some scene array (the atrium: 2,880, recorded again in a timed frame; slc.freeze)
-        self._k_rep = FrozenFunction(_rep_kernel, self.freeze, max_recordings=6, lanes=(3,))
-        self._k_direct = FrozenFunction(_direct_kernel, self.freeze, max_recordings=6)
-        self._k_ray = FrozenFunction(_ray_kernel, self.freeze, max_recordings=6)
-        self._k_glossy = FrozenFunction(_glossy_kernel, self.freeze, max_recordings=6)
+        self._k_rep = FrozenFunction(rep_kernel, self.freeze, max_recordings=6, lanes=(3,), narrow=(3,))
+        self._k_direct = FrozenFunction(direct_kernel, self.freeze, max_recordings=6, narrow=(4,))
+        self._k_ray = FrozenFunction(ray_kernel, self.freeze, max_recordings=6, narrow=(0, 3))
+        self._k_glossy = FrozenFunction(glossy_kernel, self.freeze, max_recordings=6, narrow=(4,))
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -314,7 +113,7 @@ class SecondaryCache:
         self.stamp = dr.zeros(mi.UInt32, cap)               # last frame updated
         self.count = dr.zeros(mi.UInt32, cap)
         self.pending = dr.full(mi.UInt32, NO_RING, cap)     # ring requested for the next update
-        self.rep = dr.zeros(mi.Float, cap * _REP)
+        self.rep = dr.zeros(mi.Float, cap * REP_WORDS)
         self.layers = dr.zeros(mi.Float, cap * 3 * self.B)
         self._reuse_count = dr.zeros(mi.UInt32, self.slots)   # primary hits per cell, last frame
         self._overflow = mi.UInt32(0)                         # kept lazy: no sync inside a timed stage
@@ -322,7 +121,7 @@ class SecondaryCache:
         dr.eval(self.keys, self.home, self.used, self.stamp, self.count, self.pending, self.rep, self.layers)
 
     def words_per_slot(self) -> int:
-        return 6 + _REP + 3 * self.B       # key, home, used, stamp, count, ring + rep. point + layers
+        return 6 + REP_WORDS + 3 * self.B       # key, home, used, stamp, count, ring + rep. point + layers
 
     def memory_bytes(self) -> int:
         """The whole table (allocated up front)."""
@@ -339,63 +138,17 @@ class SecondaryCache:
         """(key, home slot, front normal) of hits ``si`` reached along ``d`` on the shapes
         ``shape_index`` (indices into ``scene.shapes()``: the same in every process, unlike the
         shape pointers)."""
-        return cell_key(si, d, shape_index, self.h, self.slots, self.shape_key, self.lod)
+        return cell_key(si, d, shape_index, self.h, self.slots, self.shape_key)
 
-    def find_or_insert(self, key: mi.UInt32, home: mi.UInt32, active: mi.Bool) -> mi.UInt32:
-        """Slot of each key (inserted when absent); INVALID where inactive or the table is full."""
-        mask = self.slots - 1
-        slot, act = mi.UInt32(home), mi.Bool(active)
-        found = dr.full(mi.UInt32, INVALID, dr.width(key))
-        dr.eval(slot, act, found)
-        for r in range(self.probes):
-            # ------------- claim the probed slot where it is empty (smallest key wins) -------------
-            cur = dr.gather(mi.UInt32, self.keys, slot, act)
-            dr.eval(cur)                  # read before the claim (and no copy of the table on write)
-            dr.scatter_reduce(dr.ReduceOp.Min, self.keys, key, slot, act & (cur == EMPTY))
-            dr.eval(self.keys)
-            # --------------------- ours now (or already)? else probe the next slot ---------------------
-            cur = dr.gather(mi.UInt32, self.keys, slot, act)
-            mine = act & (cur == key)
-            found = dr.select(mine, slot, found)
-            act &= ~mine
-            slot = dr.select(act, (slot + 1) & mask, slot)
-            dr.eval(found, act, slot)
-            if r % 2 == 1 and not dr.any(act):       # most requests settle in one or two rounds
-                break
-        self._overflow = self._overflow + mi.UInt32(dr.count(act))
-        got = found != INVALID
-        dr.scatter(self.home, home, found, got)
-        dr.scatter(self.used, dr.opaque(mi.UInt32, self.frame), found, got)
-        dr.eval(self.home, self.used)
-        return found
-
-    def find(self, key: mi.UInt32, home: mi.UInt32, active: mi.Bool) -> tuple:
-        """(slot, found) of each key, looked up without insertion: linear probing from its home
-        slot (a symbolic loop, at most ``probes`` rounds) until the key or an empty slot."""
-        mask = self.slots - 1
-        k0 = dr.gather(mi.UInt32, self.keys, home, active)
-
-        def cond(j, s, k):
-            return active & (j < self.probes) & (k != key) & (k != EMPTY)
-
-        def body(j, s, k):
-            s = (s + 1) & mask
-            return j + 1, s, dr.gather(mi.UInt32, self.keys, s, active)
-
-        _, slot, k = dr.while_loop(state=(mi.UInt32(0), mi.UInt32(home), k0), cond=cond, body=body,
-                                   labels=("j", "s", "k"))
-        return slot, active & (k == key)
-
-    def trace(self, ray: mi.Ray3f, active=True):
-        """Hits of cache rays and their cells' keys (:func:`_trace_kernel`, frozen): position,
+    def trace(self, ray: mi.Ray3f, active=True) -> CacheHits:
+        """Hits of cache rays and their cells' keys (:func:`trace_kernel`, frozen): position,
         geometric normal and shape only (``RayFlags.Minimal``): the cell key needs no more, and
         the full interaction (for the albedo) is computed again for the one representative lane
-        per cell. Returns (p, n, t, shape index, preliminary intersection, valid, key, home,
-        front normal, non-diffuse BSDF)."""
+        per cell."""
         active = dr.zeros(mi.Bool, dr.width(ray.d)) | mi.Bool(active)      # an array of the rays' width
-        return self._k_trace(self.sc, ray, active, self.h, self.slots, self.shape_key, self.lod)
+        return CacheHits(*self._k_trace(self.sc, ray, active, self.h, self.slots, self.shape_key))
 
-    def _set_rep(self, slots: mi.UInt32, ok: mi.Bool, hits, ray: mi.Ray3f) -> None:
+    def _set_rep(self, slots: mi.UInt32, ok: mi.Bool, hits: CacheHits, ray: mi.Ray3f) -> None:
         """Each touched cell's representative point: the lowest lane that touched it. The albedo
         (a BSDF call on the full interaction, computed from the lane's preliminary intersection)
         is evaluated on the winning lanes only (one per touched cell)."""
@@ -407,26 +160,58 @@ class SecondaryCache:
         idx = dr.compress(w)
         if dr.width(idx) == 0:
             return
-        # 2 or more lanes replayed (a width-1 input would need a recording of its own)
-        rep_k = self._k_rep if dr.width(idx) > 1 else _rep_kernel
-        sl, words = rep_k(self.sc, hits[4], ray, idx, slots, hits[0], hits[8])
+        sl, words = self._k_rep(self.sc, hits.pi, ray, idx, slots, hits.p, hits.front_n)
         for j, v in enumerate(words):
-            dr.scatter(self.rep, v, sl * _REP + j)
+            dr.scatter(self.rep, v, sl * REP_WORDS + j)
         dr.eval(self.rep)
 
-    def touch(self, hits, ray: mi.Ray3f, active: mi.Bool):
+    def touch(self, hits: CacheHits, ray: mi.Ray3f, active: mi.Bool):
         """Cells of the hits (from :meth:`trace`) of ``ray`` (inserted when new, representative
         point refreshed). Returns (slots, valid mask)."""
-        ok = mi.Bool(active) & hits[5]
-        key, home = hits[6], hits[7]
+        ok = mi.Bool(active) & hits.valid
         self.laps.lap("touch_key", ok)
-        slots = self.find_or_insert(key, home, ok)
+        slots = self.find_or_insert(hits.key, hits.home, ok)
         self.laps.lap("touch_find")
         ok &= slots != INVALID
         dr.eval(ok)
         self._set_rep(slots, ok, hits, ray)
         self.laps.lap("touch_rep")
         return slots, ok
+
+    def sample(self, ray: mi.Ray3f, active, lane_key: mi.UInt32, mix, lap: str, grazing: bool = True,
+               bounce: bool = False) -> CellHits:
+        """Cache rays to the cells they hit: :meth:`trace`, :meth:`touch` and, with
+        ``glossy_hits``, the non-diffuse hits' own estimate (:func:`glossy_kernel`, random
+        numbers keyed by ``lane_key`` per ray and the stream ``mix``); with ``bounce`` (and
+        ``bounces`` > 1) the glossy hits' BSDF rays traced and touched too (their cells, ring 2,
+        are the caller's to request). ``grazing`` False drops the hits with n . d = 0.
+        ``lap``: the sub-stage clock's name for the tracing."""
+        hits = self.trace(ray, active)
+        self.laps.lap(lap, hits.p, hits.n, hits.t, hits.valid, hits.key, hits.home, hits.glossy)
+        slots, ok = self.touch(hits, ray, active)
+        if not grazing:
+            ok &= dr.dot(hits.n, ray.d) != 0.0
+        glossy = None
+        if self.glossy_hits:
+            gi = dr.compress(hits.glossy)
+            if dr.width(gi) > 0:
+                glossy = GlossyHits(gi, *self._k_glossy(self.sc, light_inputs(self.sc), hits.pi, ray, gi,
+                                                        lane_key, mix))
+                if bounce and self.B > 1:
+                    h2 = self.trace(glossy.ray, glossy.ok)
+                    glossy.slots, glossy.hit = self.touch(h2, glossy.ray, glossy.ok)
+                    glossy.hit &= dr.dot(h2.n, glossy.ray.d) != 0.0
+        return CellHits(hits, slots, ok, glossy)
+
+    def hit_radiance(self, h: CellHits, glossy_L=None, layer: int | None = None) -> list:
+        """Per ray (3 channels): the outgoing radiance (layer ``layer``, default ``bounces``) of
+        the cell it hit, or ``glossy_L`` at the glossy hits ``h.glossy.lanes``."""
+        L = self.radiance(h.slots, h.ok, layer)
+        L = [mi.Float(L[c]) for c in range(3)]
+        if h.glossy is not None and glossy_L is not None:
+            for c in range(3):
+                dr.scatter(L[c], glossy_L[c], h.glossy.lanes)
+        return L
 
     def updated_once(self, slots: mi.UInt32, ok: mi.Bool) -> mi.Bool:
         """Whether cells hold a value (updated at least once)."""
@@ -449,95 +234,6 @@ class SecondaryCache:
             self.evict()
         req, self.pending = self.pending, dr.full(mi.UInt32, NO_RING, self.slots)
         return req
-
-    def evict(self) -> int:
-        """Free the cells not touched in the last ``evict_after`` frames by rebuilding the table
-        with the others (see the module); returns the number freed."""
-        live = self.keys != EMPTY
-        old = self._old(live)
-        n_live, n_old = int(dr.count(live)[0]), int(dr.count(old)[0])
-        cap = int(self.slots * self.max_load)
-        if n_live - n_old > cap:
-            n_old += self._drop_least_recent(live, old, n_live - n_old - cap)
-        if n_old == 0:
-            return 0
-        keep = dr.compress(live & ~old)
-        if dr.width(keep) == 0:                # nothing survives: a fresh table
-            ov, frame = self._overflow, self.frame
-            self.reset()
-            self._overflow, self.evicted, self.frame = ov, n_old, frame
-            return n_old
-        self._rebuild(keep)
-        self.evicted = n_old
-        return n_old
-
-    def _old(self, live: mi.Bool) -> mi.Bool:
-        """Live cells not touched in the last ``evict_after`` whole frames."""
-        f = dr.opaque(mi.UInt32, self.frame)
-        return live & (f - self.used > self.evict_after) & (self.used < f)
-
-    def _drop_least_recent(self, live: mi.Bool, old: mi.Bool, n: int) -> int:
-        """Over the load cap: mark (in ``old``) the ``n`` least recently touched live cells that
-        are not old yet (then lowest slot); returns how many were marked."""
-        idx = np.asarray(dr.compress(live & ~old), dtype=np.int64)
-        u = np.asarray(dr.gather(mi.UInt32, self.used, mi.UInt32(aligned(idx, np.uint32))), dtype=np.int64)
-        drop = idx[np.lexsort((idx, u))[:n]]
-        dr.scatter(old, True, mi.UInt32(aligned(np.sort(drop), np.uint32)))
-        return int(drop.size)
-
-    def _rebuild(self, keep: mi.UInt32) -> None:
-        """An empty table with the cells at slots ``keep`` (evaluated, ascending) re-inserted and
-        their data moved; every other slot in its reset state."""
-        # every array in memory (a literal one, e.g. ``pending`` with one bounce, would fold into the
-        # gathers below and give another kernel than the one built by _warm_rebuild)
-        dr.make_opaque(self.home, self.used, self.stamp, self.count, self.pending, self._reuse_count, self.rep,
-                       self.layers)
-        per_slot = [(self.home, 1), (self.used, 1), (self.stamp, 1), (self.count, 1), (self.pending, 1),
-                    (self._reuse_count, 1), (self.rep, _REP), (self.layers, 3 * self.B)]
-        data = [(type(a), [dr.gather(type(a), a, keep * w + j) for j in range(w)], w) for a, w in per_slot]
-        kk, kh = dr.gather(mi.UInt32, self.keys, keep), dr.gather(mi.UInt32, self.home, keep)
-        dr.eval(kk, kh, *[v for _, vs, _ in data for v in vs])
-        # ------------- an empty table, the surviving keys re-inserted, their data moved -------------
-        self.keys = dr.full(mi.UInt32, EMPTY, self.slots)
-        ov = self._overflow
-        new = self.find_or_insert(kk, kh, mi.Bool(True))
-        self._overflow = ov            # the table only shrinks: every survivor finds a slot
-        ok = new != INVALID
-        fresh = [dr.zeros(mi.UInt32, self.slots), dr.zeros(mi.UInt32, self.slots), dr.zeros(mi.UInt32, self.slots),
-                 dr.zeros(mi.UInt32, self.slots), dr.full(mi.UInt32, NO_RING, self.slots),
-                 dr.zeros(mi.UInt32, self.slots), dr.zeros(mi.Float, self.slots * _REP),
-                 dr.zeros(mi.Float, self.slots * 3 * self.B)]
-        for arr, (_, vs, w) in zip(fresh, data):
-            for j, v in enumerate(vs):
-                dr.scatter(arr, v, new * w + j, ok)
-        dr.eval(*fresh)
-        (self.home, self.used, self.stamp, self.count, self.pending, self._reuse_count, self.rep,
-         self.layers) = fresh
-
-    def _warm_rebuild(self) -> None:
-        """Build the kernels of an eviction (the selection of old cells, the over-cap selection
-        and the rebuild) on a stand-in table of three cells, so that the first real eviction,
-        often after an experiment's warm-up frames, builds none. The caller then allocates the
-        table afresh. The stand-in must look like a running table to the JIT: distinct arrays in
-        memory (equal literal arrays are one variable, and gathers from literals are folded) and
-        at least two survivors (a width-1 array is read as a scalar)."""
-        U, F, n = mi.UInt32, mi.Float, self.slots
-        i = dr.arange(U, n)
-        self.keys = dr.select(i < 3, i + 1, EMPTY)
-        self.home, self.used, self.stamp, self.count = (dr.full(U, 1 + j, n) for j in range(4))
-        self.pending, self._reuse_count = dr.full(U, 5, n), dr.full(U, 6, n)
-        self.rep, self.layers = dr.full(F, 7.0, n * _REP), dr.full(F, 8.0, n * 3 * self.B)
-        dr.make_opaque(self.keys, self.home, self.used, self.stamp, self.count, self.pending, self.rep,
-                       self.layers, self._reuse_count)
-        ov, frame = self._overflow, self.frame
-        self.frame = 0
-        live = self.keys != EMPTY
-        old = self._old(live)                             # none (used = 2 > frame 0)
-        dr.count(live), dr.count(old)
-        dr.eval(dr.compress(live & ~old))                 # evict()'s selection without the cap
-        self._drop_least_recent(live, old, 1)             # the cap: one of the three dropped
-        self._rebuild(dr.compress(live & ~old))           # two survivors
-        self._overflow, self.frame = ov, frame
 
     def request(self, req: mi.UInt32, slots: mi.UInt32, ok: mi.Bool, ring: int = 1) -> None:
         dr.scatter_reduce(dr.ReduceOp.Min, req, mi.UInt32(ring), slots, ok)
@@ -577,14 +273,11 @@ class SecondaryCache:
         if n == 0:
             return cells
         ring = dr.gather(mi.UInt32, req, cells)
-        # kernels replayed for 2 or more lanes (a width-1 input would need a recording of its own)
-        direct_k = self._k_direct if n > 1 else _direct_kernel
 
         # ------------------- direct light at the representative point (NEE) -------------------
-        L_dir, p, nrm, rho, keys, lit = direct_k(
+        L_dir, p, nrm, rho, keys, lit = self._k_direct(
             sc, light_inputs(sc), self.rep, self.keys, cells, stream_key(self.seed, frame, STREAM_SECONDARY),
-            dr.opaque(mi.UInt32, self.light_samples), float(max(self.light_samples, 1)),
-            self.ris_m if self.direct == "ris" else 0)
+            dr.opaque(mi.UInt32, self.light_samples), float(max(self.light_samples, 1)))
         self.laps.lap("sec_direct")
 
         # ------------- cosine rays to other cells: layers b-1 of their previous update -------------
@@ -600,31 +293,15 @@ class SecondaryCache:
             tl = dr.compress(tracing)
         if dr.width(tl) > 0:      # (none: no cell of ring < B has albedo and light, e.g. a black scene)
             c_of = tl // R
-            ray_k = self._k_ray if n > 1 and dr.width(tl) > 1 else _ray_kernel
-            ray = ray_k(p, nrm, keys, tl, stream_key(self.seed, frame, STREAM_SECONDARY + 1), R)
-            hits = self.trace(ray)
-            self.laps.lap("sec_rays", *hits)
-            hit_slots, hok = self.touch(hits, ray, mi.Bool(True))
-            hok &= dr.dot(hits[1], ray.d) != 0.0
+            ray = self._k_ray(p, nrm, keys, tl, stream_key(self.seed, frame, STREAM_SECONDARY + 1), R)
             # ---- rays hitting glossy/metal surfaces: NEE with the hit's BSDF towards the cell
             # (the light after one reflection there, layer 1 exactly; a lower bound for layers >= 2) ----
-            Lg = None
-            if self.glossy_hits:
-                gi = dr.compress(hits[9])
-                if dr.width(gi) > 0:
-                    lane_key = dr.gather(mi.UInt32, keys, c_of) * R + tl % R
-                    gk = self._k_glossy if dr.width(gi) > 1 else _glossy_kernel
-                    Ld = gk(sc, light_inputs(sc), hits[4], ray, gi, lane_key,
-                            stream_key(self.seed, frame, STREAM_SECONDARY + 2))[0]
-                    Lg = (gi, Ld)
+            h = self.sample(ray, True, dr.gather(mi.UInt32, keys, c_of) * R + tl % R,
+                            stream_key(self.seed, frame, STREAM_SECONDARY + 2), "sec_rays", grazing=False)
             next_ring = dr.gather(mi.UInt32, ring, c_of) + 1
-            dr.scatter_reduce(dr.ReduceOp.Min, self.pending, next_ring, hit_slots, hok & (next_ring <= B))
+            dr.scatter_reduce(dr.ReduceOp.Min, self.pending, next_ring, h.slots, h.ok & (next_ring <= B))
             for b in range(1, B):
-                Lh = self.radiance(hit_slots, hok, layer=b)
-                if Lg is not None:
-                    Lh = [mi.Float(Lh[c]) for c in range(3)]
-                    for c in range(3):
-                        dr.scatter(Lh[c], Lg[1][c], Lg[0])
+                Lh = self.hit_radiance(h, h.glossy.Ld if h.glossy is not None else None, layer=b)
                 full = [dr.zeros(mi.Float, n * R) for _ in range(3)]
                 for c in range(3):
                     dr.scatter(full[c], Lh[c], tl)

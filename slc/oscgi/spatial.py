@@ -43,37 +43,32 @@ class SpatialFilter:
         self.r, self.angle, self.parallax = int(radius), float(angle), bool(parallax)
         self.cos_max = math.cos(math.radians(self.angle))
 
-    def apply(self, cache, storage: mi.Float, fr, grid, words: int) -> mi.Float:
-        """``storage`` with the texels and irradiance of the active entries ``fr.active``
-        replaced by their filtered values (a copy: ``storage`` itself is left as it is)."""
-        G, W, D = grid, words, grid.n
-        N = fr.n_active
+    def apply(self, m, fr) -> mi.Float:
+        """The osc-gi method ``m``'s storage with the texels and irradiance of the active entries
+        ``fr.active`` replaced by their filtered values (a copy: ``m.storage`` is left as it is);
+        neighbours from the cache's entry topology (:class:`slc.osc.protocol.EntryTopology`)."""
+        topo, storage, G = m.cache, m.storage, m.grid
+        D, N = G.n, fr.n_active
         if self.r <= 0 or N == 0:
             return storage
-        L, pool = cache.layout, cache.pool
         side = 2 * self.r + 1
         M = side * side
         sigma = max(self.r / 2.0, 0.5)
 
         # ------------------- neighbour pairs (entry, offset): slot, weight, offset -------------------
-        isl, lvl, tx, ty = pool.entry_texels(fr.active)
-        key = isl * L.levels + lvl
-        dr.eval(isl, key, tx, ty)
+        isl, lvl, tx, ty = topo.entry_texels(fr.active)
+        dr.eval(isl, lvl, tx, ty)
         p = dr.arange(mi.UInt32, N * M)
         e, j = p // M, p % M
         dx, dy = mi.Int32(j % side) - self.r, mi.Int32(j // side) - self.r
-        ke = dr.gather(mi.UInt32, key, e)
-        wl, hl = L.key_extent(ke)
         x2, y2 = mi.Int32(dr.gather(mi.UInt32, tx, e)) + dx, mi.Int32(dr.gather(mi.UInt32, ty, e)) + dy
-        inside = (x2 >= 0) & (y2 >= 0) & (x2 < wl) & (y2 < hl)
-        ux, uy = mi.UInt32(dr.maximum(x2, 0)), mi.UInt32(dr.maximum(y2, 0))
-        sy = pool.slot(L.vblock(ke, ux, uy, inside), L.within(ux, uy), inside)
-        ok = inside & (sy != INVALID)
-        ok &= dr.gather(mi.Float, storage, sy * W + 3 * D + 3, ok) > 0.0       # holds a value
+        sy = topo.slot_at(dr.gather(mi.UInt32, isl, e), dr.gather(mi.UInt32, lvl, e), x2, y2)
+        ok = sy != INVALID
+        ok &= m.read(sy, m.count_word, ok) > 0.0       # holds a value
         dr.eval(sy, ok)
         # neighbours' points and normals (the cache's own surface points), valid pairs only
         pv = dr.compress(ok)
-        siy = cache.points.interactions(dr.gather(mi.UInt32, sy, pv), dr.gather(mi.UInt32, isl, dr.gather(mi.UInt32, e, pv)))
+        siy = topo.entry_points(dr.gather(mi.UInt32, sy, pv), dr.gather(mi.UInt32, isl, dr.gather(mi.UInt32, e, pv)))
         ey = dr.gather(mi.UInt32, e, pv)
         px = mi.Point3f(*[dr.gather(mi.Float, fr.si.p[c], ey) for c in range(3)])
         nx = mi.Vector3f(*[dr.gather(mi.Float, fr.si.sh_frame.n[c], ey) for c in range(3)])
@@ -100,11 +95,11 @@ class SpatialFilter:
         slot_x = dr.gather(mi.UInt32, fr.active, te)
         n_x = mi.Vector3f(*[dr.gather(mi.Float, fr.si.sh_frame.n[c], te) for c in range(3)])
         omega = mi.Frame3f(n_x).to_world(G.direction(k, mi.Point2f(0.5, 0.5)))
-        invd = dr.gather(mi.Float, storage, slot_x * W + 3 * D + 4) if self.parallax else mi.Float(0.0)
-        m = dr.opaque(mi.UInt32, M)
+        invd = m.read(slot_x, m.inv_t_word) if self.parallax else mi.Float(0.0)
+        n_taps = dr.opaque(mi.UInt32, M)
 
         def cond(i, acc, wsum):
-            return i < m
+            return i < n_taps
 
         def body(i, acc, wsum):
             q = te * M + i
@@ -116,8 +111,7 @@ class SpatialFilter:
             wy = dr.normalize(omega + o * invd)
             loc = mi.Frame3f(ny).to_local(wy)
             okq &= (loc.z > 0.0) & (dr.dot(wy, omega) >= self.cos_max) & dr.all(dr.isfinite(wy))
-            t = sy * W + G.texel(loc) * 3
-            Ly = mi.Color3f(*[dr.gather(mi.Float, storage, t + c, okq) for c in range(3)])
+            Ly = mi.Color3f(*m.read(sy, G.texel(loc) * 3, okq, n=3))
             return i + 1, acc + dr.select(okq, wq * Ly, 0.0), wsum + dr.select(okq, wq, 0.0)
 
         _, acc, wsum = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), mi.Float(0.0)), cond=cond,
@@ -128,8 +122,7 @@ class SpatialFilter:
 
         # ------------------------- the filtered copy of the storage -------------------------
         out = dr.copy(storage)       # the scatters below must not touch ``storage``
-        for c in range(3):
-            dr.scatter(out, Lf[c], slot_x * W + k * 3 + c)
-            dr.scatter(out, E[c], fr.active * W + 3 * D + c)
+        m.write([Lf[c] for c in range(3)], slot_x, k * 3, storage=out)
+        m.write(E, fr.active, m.irr_word, storage=out)
         dr.eval(out)
         return out

@@ -8,7 +8,7 @@ import mitsuba as mi
 from ..keys import INVALID, STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng
 from ..lights import sample_light, visible
 from ..methods import Param, register
-from ..osc.payload import PayloadMethod, RayPolicy
+from ..osc.payload import PayloadMethod, RayPolicy, entry_start
 from .project import irradiance, project, radiance
 from .shading import shade_radiance
 from .ycocg import ENCODINGS, encoding as get_encoding
@@ -66,8 +66,8 @@ class SHSurfaceCache(PayloadMethod):
         return RayPolicy(new=self.rays_new, settled=self.rays_settled, moving=self.rays_new)
 
     # ----------------------------------------------------------------- update
-    def update(self, ctx, fr, rays, unsettled):
-        sc, enc, n = self.scene.mi_scene, self.enc, self.enc.n
+    def update(self, ctx, fr, policy):
+        sc, enc, n, rays = self.scene.mi_scene, self.enc, self.enc.n, policy.rays
         slots, si = fr.active, fr.si
         sampler = keyed_rng(fr.keys, self.seed, ctx.frame, STREAM_SH_UPDATE)
         ng = mi.Vector3f(si.n)
@@ -90,27 +90,23 @@ class SHSurfaceCache(PayloadMethod):
         inv = dr.rcp(mi.Float(dr.maximum(rays, 1)))
 
         # ------------------------- running mean, LOD seeding -------------------------
-        W = self.words
-        is_new = mi.Bool(fr.is_new)
-        seed_slot = mi.UInt32(fr.seed_slot)
-        seeded = is_new & (seed_slot != INVALID)
-        C_old = dr.select(is_new, dr.select(seeded, 1.0, 0.0), dr.gather(mi.Float, self.storage, slots * W + n))
+        start = entry_start(fr.is_new, fr.seed_slot, slots)
+        C_old = dr.select(fr.is_new, dr.select(start.seeded, 1.0, 0.0), self.read(slots, n))
         C = dr.minimum(C_old + 1.0, float(self.max_count))
         a = dr.rcp(C)
-        src = dr.select(seeded, seed_slot, slots)
         for c in range(n):
-            old = dr.gather(mi.Float, self.storage, src * W + c, ~is_new | seeded)
-            dr.scatter(self.storage, dr.fma(a, acc[c] * inv - old, old), slots * W + c)
-        dr.scatter(self.storage, C, slots * W + n)
+            old = self.read(start.src, c, start.keep)
+            self.write(dr.fma(a, acc[c] * inv - old, old), slots, c)
+        self.write(C, slots, n)
         return dr.zeros(mi.Bool, dr.width(slots))
 
     # ------------------------------------------------------------------ shade
     def shade(self, ctx, fr, v, gb):
-        enc, n, W = self.enc, self.enc.n, self.words
+        enc, n = self.enc, self.enc.n
         slot = mi.UInt32(fr.pixel_slot[v])
         si = gb.si
         ok = mi.Bool(gb.valid) & (slot != INVALID)
-        coeffs = [dr.gather(mi.Float, self.storage, slot * W + c, ok) for c in range(n)]
+        coeffs = self.read(slot, 0, ok, n=n)
         nrm = mi.Vector3f(si.sh_frame.n)
         # world-frame coefficients: the irradiance at the shading normal, the radiance towards d
         return shade_radiance(

@@ -38,16 +38,13 @@ def diffuse_only(bsdf: mi.BSDFPtr) -> mi.Bool:
 
 
 def shade_radiance(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, active: mi.Bool, irradiance_fn, radiance_fn,
-                   sampler: mi.PCG32, glossy_samples: int, jitter: bool = False) -> mi.Color3f:
+                   sampler: mi.PCG32, glossy_samples: int) -> mi.Color3f:
     """:math:`L_o` of the pixels ``si`` (see the module) where ``active``.
 
     - ``irradiance_fn()``: :class:`mi.Color3f` irradiance :math:`E` at each
       pixel's shading normal (used on diffuse-only pixels);
     - ``radiance_fn(d, m)``: (:class:`mi.Color3f` radiance towards world
       direction ``d``, mask of the lanes where it exists) for the lanes ``m``;
-      with ``jitter`` ``radiance_fn(d, m, u)``, ``u`` two more uniform numbers
-      per sample (drawn after the BSDF sample's: stochastic interpolation of the
-      field; without ``jitter`` the streams are those of before);
     - ``sampler``: one PCG32 stream per pixel for the BSDF samples;
     - ``glossy_samples``: BSDF samples per glossy pixel (a baked constant: the
       average's factor; the loop bound is opaque).
@@ -74,11 +71,7 @@ def shade_radiance(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, active: mi.Boo
         u2 = mi.Point2f(sampler.next_float32(), sampler.next_float32())
         bs, bw = bsdf.sample(ctx_b, si, u1, u2, g)
         okj = g & (bs.pdf > 0.0)
-        if jitter:
-            uj = mi.Point2f(sampler.next_float32(), sampler.next_float32())
-            Li, okj = radiance_fn(si.to_world(bs.wo), okj, uj)
-        else:
-            Li, okj = radiance_fn(si.to_world(bs.wo), okj)
+        Li, okj = radiance_fn(si.to_world(bs.wo), okj)
         return i + 1, Lg + dr.select(okj, mi.Color3f(bw) * mi.Color3f(Li), 0.0), sampler
 
     _, Lg, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), sampler), cond=cond, body=body,
