@@ -64,10 +64,10 @@ def test_memory_bounded_and_deterministic(cornell_ref):
     cap = m.grid.capacity
     assert cap == 1024
     imgs = [np.array(m.render(FrameContext(f), gbs, NullTimer())[0]) for f in range(3)]
-    assert m.memory_bytes() == 16 * cap + 44 * 8 * cap + 4 * W * H
+    assert m.memory_bytes() == (16 + 24) * cap + 44 * 8 * cap + 4 * W * H
     four = gbuffers_for(sc, views.independent(sc, 4), 0, W, H)
     m.render(FrameContext(3), four, NullTimer())
-    assert m.memory_bytes() == 16 * cap + 44 * 8 * cap + 4 * W * H * len(four)
+    assert m.memory_bytes() == (16 + 24) * cap + 44 * 8 * cap + 4 * W * H * len(four)
     m2 = methods.create("regir:cells=1024,slots=8", sc, seed=7)
     again = [np.array(m2.render(FrameContext(f), gbs, NullTimer())[0]) for f in range(3)]
     assert all(np.array_equal(a, b) for a, b in zip(imgs, again))

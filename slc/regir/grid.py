@@ -40,12 +40,6 @@ def cell_key(p: mi.Point3f, n: mi.Vector3f, h) -> mi.UInt64:
     return u[0] | (u[1] << _BITS) | (u[2] << (2 * _BITS)) | (octant << (3 * _BITS))
 
 
-def cell_centre(key: mi.UInt64, h) -> mi.Point3f:
-    """Centre of the cells of ``key`` (the octant is dropped)."""
-    c = [mi.Float(mi.Int32(mi.UInt32((key >> (k * _BITS)) & _MASK)) - _BIAS) for k in range(3)]
-    return mi.Point3f(*[(c[k] + 0.5) * h for k in range(3)])
-
-
 def key_hash(key: mi.UInt64) -> tuple[mi.UInt32, mi.UInt32]:
     """Two 32-bit hash words of keys (TEA of their two halves): home bucket, random stream."""
     return mi.sample_tea_32(mi.UInt32(key & 0xFFFFFFFF), mi.UInt32(key >> 32), 4)
@@ -83,11 +77,13 @@ class HashGrid:
         self.keys = dr.select(old, EMPTY, self.keys)
         dr.eval(self.keys)
 
-    def insert(self, key: mi.UInt64, active: mi.Bool, frame: mi.UInt32) -> mi.UInt32:
+    def insert(self, key: mi.UInt64, active: mi.Bool, frame: mi.UInt32) -> tuple[mi.UInt32, mi.Bool]:
         """Slot of every active key (placed if new; ``INVALID`` where the bucket is full or the
-        lane inactive); marks the slots used in ``frame`` and new ones born in it."""
+        lane inactive) and whether the lane's key was placed now; marks the slots used in
+        ``frame`` and new ones born in it."""
         n = dr.width(key)
         slot = dr.full(mi.UInt32, INVALID, n)
+        new = dr.zeros(mi.Bool, n)
         home = (key_hash(key)[0] & (self.buckets - 1)) * BUCKET
         lanes = dr.compress(mi.Bool(active))
         requests = dr.width(lanes)
@@ -102,12 +98,13 @@ class HashGrid:
             found = dr.gather(mi.UInt64, self.keys, s) == k
             dr.scatter(slot, s, lanes, found)
             dr.scatter(self.born, frame, s, found & free)
-            dr.eval(slot, self.born)
+            dr.scatter(new, True, lanes, found & free)
+            dr.eval(slot, self.born, new)
             lanes = dr.gather(mi.UInt32, lanes, dr.compress(~found))
         self.overflow = dr.width(lanes) / max(requests, 1)
         dr.scatter(self.used, frame, slot, slot != INVALID)
         dr.eval(self.used)
-        return slot
+        return slot, new
 
     def touched(self, frame: mi.UInt32) -> mi.UInt32:
         """Slots used in ``frame``, in slot order."""

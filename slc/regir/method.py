@@ -13,11 +13,12 @@ from ..gbuffer import per_viewer
 from ..keys import INVALID, mixed_rng, stream_key
 from ..lights import SurfaceBSDF, rng, sampler as light_table
 from ..methods import Method, MethodError, Param, register
-from .grid import HashGrid, cell_centre, cell_key, key_hash
+from .grid import HashGrid, cell_key, key_hash
 
 STREAM_BUILD = 0x6E61B001
 LOCAL_KINDS = (es.MESH, es.RECT, es.SPHERE, es.POINT)
 SLOT_BYTES = 4 * 11              # y (3), n (3), L_e (3), W, M
+REP_BYTES = 4 * 6                # a cell's representative point and normal
 
 
 @dataclass
@@ -49,6 +50,14 @@ def light_term(x: mi.Point3f, y: mi.Point3f, n: mi.Vector3f, Le: mi.Color3f, act
     return dr.select(ok, Le * (cos_y * dr.square(inv_d)), 0.0), d, ok
 
 
+def cell_target(rp: mi.Point3f, rn: mi.Vector3f, y: mi.Point3f, n: mi.Vector3f, Le: mi.Color3f,
+                floor, active: mi.Bool) -> mi.Float:
+    """The build target of a cell, ``lum(L_e G) max(cos_r, floor)`` at its representative point
+    ``rp`` with normal ``rn`` (no BSDF, no visibility)."""
+    t, d, ok = light_term(rp, y, n, Le, active)
+    return dr.select(ok, mi.luminance(t) * dr.maximum(dr.dot(d, rn), floor), 0.0)
+
+
 class ReGIR(Method):
     r"""Reservoir-based grid importance sampling of direct light (ReGIR), one grid shared by all
     viewers.
@@ -58,18 +67,23 @@ class ReGIR(Method):
     uniform offset in a box ``jitter`` cells wide; the cells looked up by any viewer's pixels in a
     frame are built once for all viewers (stage ``build``).
 
-    Build: each of a cell's ``slots`` reservoirs takes ``build`` candidates :math:`x_i` from the
-    scene's emitter table at the cell centre :math:`c` (:mod:`slc.emitter_sampling`) and keeps
-    one by resampled importance sampling with the target :math:`\hat p_c(x) = \mathrm{lum}(L_e(x)
-    G(c, x))` (no visibility, no receiver cosine), giving it the weight
+    Build: a cell's representative point :math:`c` and normal :math:`n_c` are those of the first
+    pixel (lowest lane of all viewers' pixels) that placed it in the table; they stay while the
+    cell lives. Each of its ``slots`` reservoirs takes ``build`` candidates :math:`x_i` from the
+    scene's emitter table at :math:`c` (:mod:`slc.emitter_sampling`) and keeps one by resampled
+    importance sampling with the target :math:`\hat p_c(x) = \mathrm{lum}(L_e(x) G(c, x))
+    \max(n_c \cdot \omega_{c \to x}, \kappa)\, v(c, x)` (``cosine`` = :math:`\kappa`; no BSDF;
+    :math:`v = 1` where :math:`c` sees :math:`x` and ``occluded`` elsewhere, one shadow ray per
+    candidate, so that every light keeps a non-zero target), giving it the weight
     :math:`W = \frac{1}{\hat p_c(y)} \frac{1}{B}\sum_i \hat p_c(x_i) / p(x_i)`. Only local lights
     (meshes, rectangles, spheres and point lights of the table) enter the grid. With
     ``temporal=1`` a slot then merges its previous reservoir (same cell, same target) with
     weights :math:`M_i / \sum M` and M capped at ``mcap`` (persistent world-space reservoirs);
     history is dropped when a light moved.
 
-    Shading (stage ``shade``, per viewer): ``taps`` slots of the pixel's cell drawn uniformly and
-    ``table`` emitter-table samples at the pixel are resampled with the full target
+    Shading (stage ``shade``, per viewer), ``samples`` times per pixel (averaged): ``taps`` slots
+    of the pixel's cell drawn uniformly and ``table`` emitter-table samples at the pixel are
+    resampled with the full target
     :math:`\hat p_x(y) = \mathrm{lum}(f(x, y) L_e(y) G(x, y))` (the BSDF value includes the
     cosine) and one shadow ray is traced to the chosen sample:
 
@@ -83,8 +97,8 @@ class ReGIR(Method):
     cell centre, a pixel whose cell did not fit in the table) gets :math:`1/\text{table}` per
     table sample. Every light thus keeps a non-zero probability and the estimate is unbiased.
 
-    Memory (bounded): the table (16 bytes per cell), ``slots`` reservoirs of 44 bytes per cell,
-    and a cell index per pixel.
+    Memory (bounded): the table (16 bytes per cell), the representative point and normal (24
+    bytes per cell), ``slots`` reservoirs of 44 bytes per cell, and a cell index per pixel.
     """
     name = "regir"
     params = (
@@ -93,7 +107,11 @@ class ReGIR(Method):
         Param("build", 8, "RIS candidates per reservoir at build time (RTXDI's default 8)", lo=1),
         Param("taps", 4, "reservoirs of its cell a pixel resamples", lo=0),
         Param("table", 1, "emitter-table samples a pixel adds to its resampling", lo=1),
+        Param("samples", 1, "resampled samples (and shadow rays) per pixel, averaged", lo=1),
         Param("defensive", 0.0, "MIS share of the table samples on lights the grid covers", lo=0.0, hi=1.0),
+        Param("cosine", 1.0, "floor of the receiver cosine in the build target (1: no cosine)", lo=0.0, hi=1.0),
+        Param("occluded", 1.0, "factor of the build target where the representative point does not see the "
+                                "candidate (one shadow ray per candidate; 1: no rays)", lo=1e-3, hi=1.0),
         Param("jitter", 1.0, "width of the cell-lookup jitter box in cells (RTXDI's default 1)", lo=0.0),
         Param("temporal", 0, "merge each reservoir with its previous frame's (0/1)", lo=0, hi=1),
         Param("mcap", 20.0, "confidence cap M of the temporal merge", lo=1.0),
@@ -114,6 +132,8 @@ class ReGIR(Method):
     def reset(self):
         self.grid = HashGrid(self.cells, self.cell)
         self.store = dr.zeros(Slots, self.grid.capacity * self.slots)
+        self.rep_p = dr.zeros(mi.Point3f, self.grid.capacity)       # representative point per cell
+        self.rep_n = dr.zeros(mi.Vector3f, self.grid.capacity)      # and its normal
         self._poses, self._stats = None, {}
 
     # ------------------------------------------------------------------ frame
@@ -156,6 +176,7 @@ class ReGIR(Method):
         offsets = [sum(sizes[:v]) for v in range(len(sizes))]
         total = sum(sizes)
         keys, valid = dr.empty(mi.UInt64, total), dr.empty(mi.Bool, total)
+        pts, nrm = dr.empty(mi.Point3f, total), dr.empty(mi.Vector3f, total)
         for v, (gb, off) in enumerate(zip(gbuffers, offsets)):
             smp = rng(gb.size, self.seed_for(ctx.frame, v), stream=2)
             jit = mi.Vector3f(smp.next_float32(), smp.next_float32(), smp.next_float32()) - 0.5
@@ -163,7 +184,18 @@ class ReGIR(Method):
             at = dr.arange(mi.UInt32, gb.size) + dr.opaque(mi.UInt32, off)
             dr.scatter(keys, cell_key(p, gb.si.sh_frame.n, self.cell), at)
             dr.scatter(valid, mi.Bool(gb.valid), at)
-        slot = self.grid.insert(keys, valid, frame)
+            dr.scatter(pts, gb.si.p, at)
+            dr.scatter(nrm, mi.Vector3f(gb.si.n), at)
+        slot, new = self.grid.insert(keys, valid, frame)
+
+        # ---------------- a new cell's representative: its lowest lane ----------------
+        lane = dr.arange(mi.UInt32, total)
+        first = dr.full(mi.UInt32, INVALID, self.grid.capacity)
+        dr.scatter_reduce(dr.ReduceOp.Min, first, lane, slot, new)
+        win = new & (dr.gather(mi.UInt32, first, slot, new) == lane)
+        dr.scatter(self.rep_p, pts, slot, win)
+        dr.scatter(self.rep_n, nrm, slot, win)
+        dr.eval(self.rep_p, self.rep_n)
         return per_viewer(slot, sizes, offsets) if len(gbuffers) > 1 else [slot]
 
     # ------------------------------------------------------------------ build
@@ -179,12 +211,14 @@ class ReGIR(Method):
         cell = dr.gather(mi.UInt32, cells, lane // S)
         j = lane % S
         key = dr.gather(mi.UInt64, self.grid.keys, cell)
-        c = cell_centre(key, self.cell)
+        c = dr.gather(mi.Point3f, self.rep_p, cell)
+        cn = dr.gather(mi.Vector3f, self.rep_n, cell)
         h1 = key_hash(key)[1]
         smp = mixed_rng(mi.sample_tea_32(h1, j, 4)[0], stream_key(self.seed, ctx.frame, STREAM_BUILD))
         si = dr.zeros(mi.SurfaceInteraction3f)
-        si.p = c
+        si.p, si.n = c, cn
         active = dr.full(mi.Bool, True, n_cells * S)
+        floor = dr.opaque(mi.Float, self.cosine)
 
         # ---------------- B candidates from the emitter table at the cell centre ----------------
         def body(i, y, n, Le, p_sel, w_sum, smp):
@@ -195,8 +229,8 @@ class ReGIR(Method):
             point = ok & (kind == es.POINT)
             Le_c = w * ds.pdf * dr.select(point, dr.square(ds.dist), 1.0)     # radiance, or intensity
             nc = dr.select(point, 0.0, mi.Vector3f(ds.n))
-            t, _, ok = light_term(c, ds.p, nc, Le_c, ok)
-            p_hat = mi.luminance(t)
+            p_hat = cell_target(c, cn, ds.p, nc, Le_c, floor, ok)
+            p_hat = self._shadowed(si, ds.p, p_hat)
             wi = mi.luminance(w)                                # p_hat / p: the same ratio in any measure
             wi = dr.select(ok & (p_hat > 0.0) & (wi > 0.0) & dr.isfinite(wi), wi, 0.0)
             w_sum += wi
@@ -222,8 +256,7 @@ class ReGIR(Method):
         if history:
             old = dr.gather(Slots, self.store, at)
             keep = (dr.gather(mi.UInt32, self.grid.born, cell) != frame) & (old.M > 0.0) & (old.W > 0.0)
-            t_old, _, keep = light_term(c, old.y, old.n, old.Le, keep)
-            p_old = mi.luminance(t_old)
+            p_old = self._shadowed(si, old.y, cell_target(c, cn, old.y, old.n, old.Le, floor, keep))
             keep &= p_old > 0.0
             M_old = dr.select(keep, dr.minimum(old.M, self.mcap), 0.0)
             inv = dr.rcp(1.0 + M_old)
@@ -239,31 +272,42 @@ class ReGIR(Method):
         dr.scatter(self.store, Slots(y, n, Le, W, dr.select(ok, M, 0.0)), at)
         return n_cells
 
+    def _shadowed(self, si, y, p_hat):
+        """The build target times ``occluded`` where the segment from the cell's representative
+        point to ``y`` is blocked (one shadow ray per candidate; none with ``occluded=1``)."""
+        if self.occluded >= 1.0:
+            return p_hat
+        test = p_hat > 0.0
+        blocked = self.scene.mi_scene.ray_test(si.spawn_ray_to(y), test)
+        return dr.select(test & blocked, p_hat * dr.opaque(mi.Float, self.occluded), p_hat)
+
     # ------------------------------------------------------------------ shading
 
     def shade(self, gb, slot, frame: int, v: int) -> mi.Color3f:
-        """One viewer's direct light: resampling of slot taps and table samples, one shadow ray."""
+        """One viewer's direct light: ``samples`` times a resampling of slot taps and table
+        samples with one shadow ray, averaged."""
         sc = self.scene.mi_scene
         si, active = gb.si, mi.Bool(gb.valid)
         if self._table is None:
             return dr.zeros(mi.Color3f, gb.size)
         bsdf = SurfaceBSDF(sc, si, active, mi.BSDFContext())
-        smp = rng(gb.size, self.seed_for(frame, v), stream=3)
         has_cell = active & (slot != INVALID)
-        key = dr.gather(mi.UInt64, self.grid.keys, slot, has_cell)
-        c = cell_centre(key, self.cell)
+        c = dr.gather(mi.Point3f, self.rep_p, slot, has_cell)
+        cn = dr.gather(mi.Vector3f, self.rep_n, slot, has_cell)
         alpha = self.defensive if self.taps > 0 else 1.0
         m_tap = dr.opaque(mi.Float, (1.0 - alpha) / max(self.taps, 1))
         S = dr.opaque(mi.UInt32, self.slots)
         Sf = dr.opaque(mi.Float, float(self.slots))
+        n_taps = dr.opaque(mi.UInt32, self.taps)
+        inv_b = 1.0 / self.table
+        floor = dr.opaque(mi.Float, self.cosine)
 
         # ---------------- slot taps of the pixel's cell ----------------
         def tap(i, y_sel, r_sel, w_sum, smp):
             j = dr.minimum(mi.UInt32(smp.next_float32() * Sf), S - 1)
             s = dr.gather(Slots, self.store, slot * S + j, has_cell)
             t, d, ok = light_term(si.p, s.y, s.n, s.Le, has_cell & (s.W > 0.0))
-            f = bsdf.eval(si.to_local(d), ok)
-            col = f * t
+            col = bsdf.eval(si.to_local(d), ok) * t
             p_hat = mi.luminance(col)
             w = dr.select(ok & (p_hat > 0.0), m_tap * p_hat * s.W, 0.0)
             w = dr.select(dr.isfinite(w), w, 0.0)
@@ -273,43 +317,47 @@ class ReGIR(Method):
             r_sel = dr.select(take, col / dr.select(take, p_hat, 1.0), r_sel)
             return i + 1, y_sel, r_sel, w_sum, smp
 
-        state = (mi.UInt32(0), mi.Point3f(0.0), mi.Color3f(0.0), mi.Float(0.0), smp)
-        n_taps = dr.opaque(mi.UInt32, self.taps)
-        with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
+        def sample(k, L, smp):
+            state = (mi.UInt32(0), mi.Point3f(0.0), mi.Color3f(0.0), mi.Float(0.0), smp)
             _, y_sel, r_sel, w_sum, smp = dr.while_loop(
-                state=state, cond=lambda i, *_: i < n_taps, body=tap,
-                labels=("i", "y", "ratio", "w_sum", "smp"))
+                state=state, cond=lambda i, *_: i < n_taps, body=tap, labels=("i", "y", "ratio", "w_sum", "smp"))
 
-        # ---------------- emitter-table samples at the pixel ----------------
-        inv_b = 1.0 / self.table
-        for _ in range(self.table):
-            u = mi.Point2f(smp.next_float32(), smp.next_float32())
-            ds, w, ok, em = self._table.sample(si, u, active)
-            kind = self._table.kind(em, ok)
-            local = (kind == es.MESH) | (kind == es.RECT) | (kind == es.SPHERE) | (kind == es.POINT)
-            point = kind == es.POINT
-            Le = w * ds.pdf * dr.select(point, dr.square(ds.dist), 1.0)
-            t_c, _, covered = light_term(c, ds.p, dr.select(point, 0.0, mi.Vector3f(ds.n)), Le,
-                                         ok & local & has_cell)
-            covered &= mi.luminance(t_c) > 0.0
-            m = dr.select(covered, alpha * inv_b, inv_b)
-            col = bsdf.eval(si.to_local(ds.d), ok) * w          # f L_e / p: p_hat / p in colour
-            p_ratio = mi.luminance(col)
-            wb = dr.select(ok & (p_ratio > 0.0) & dr.isfinite(p_ratio), m * p_ratio, 0.0)
-            w_sum += wb
-            take = (wb > 0.0) & (smp.next_float32() * w_sum < wb)
-            y_sel = dr.select(take, ds.p, y_sel)
-            r_sel = dr.select(take, col / dr.select(take, p_ratio, 1.0), r_sel)
+            # ---------------- emitter-table samples at the pixel ----------------
+            for _ in range(self.table):
+                u = mi.Point2f(smp.next_float32(), smp.next_float32())
+                ds, w, ok, em = self._table.sample(si, u, active)
+                kind = self._table.kind(em, ok)
+                local = (kind == es.MESH) | (kind == es.RECT) | (kind == es.SPHERE) | (kind == es.POINT)
+                point = kind == es.POINT
+                Le = w * ds.pdf * dr.select(point, dr.square(ds.dist), 1.0)
+                covered = cell_target(c, cn, ds.p, dr.select(point, 0.0, mi.Vector3f(ds.n)), Le, floor,
+                                      ok & local & has_cell) > 0.0
+                m = dr.select(covered, alpha * inv_b, inv_b)
+                col = bsdf.eval(si.to_local(ds.d), ok) * w          # f L_e / p: p_hat / p in colour
+                p_ratio = mi.luminance(col)
+                wb = dr.select(ok & (p_ratio > 0.0) & dr.isfinite(p_ratio), m * p_ratio, 0.0)
+                w_sum += wb
+                take = (wb > 0.0) & (smp.next_float32() * w_sum < wb)
+                y_sel = dr.select(take, ds.p, y_sel)
+                r_sel = dr.select(take, col / dr.select(take, p_ratio, 1.0), r_sel)
 
-        # ---------------- one shadow ray to the chosen sample ----------------
-        hit = active & (w_sum > 0.0)
-        hit &= ~sc.ray_test(si.spawn_ray_to(y_sel), hit)
-        return dr.select(hit, r_sel * w_sum, 0.0)
+            # ---------------- one shadow ray to the chosen sample ----------------
+            hit = active & (w_sum > 0.0)
+            hit &= ~sc.ray_test(si.spawn_ray_to(y_sel), hit)
+            return k + 1, L + dr.select(hit, r_sel * w_sum, 0.0), smp
+
+        smp = rng(gb.size, self.seed_for(frame, v), stream=3)
+        n_samples = dr.opaque(mi.UInt32, self.samples)
+        with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
+            _, L, _ = dr.while_loop(state=(mi.UInt32(0), mi.Color3f(0.0), smp), cond=lambda k, *_: k < n_samples,
+                                    body=sample, labels=("k", "L", "smp"))
+        return L / float(self.samples)
 
     # ------------------------------------------------------------------ state
 
     def memory_bytes(self) -> int:
-        return self.grid.memory_bytes() + SLOT_BYTES * self.slots * self.grid.capacity + 4 * self._pixels
+        return (self.grid.memory_bytes() + (REP_BYTES + SLOT_BYTES * self.slots) * self.grid.capacity
+                + 4 * self._pixels)
 
     def stats(self) -> dict:
         return dict(self._stats)
