@@ -39,7 +39,8 @@ for name in opts.scenes:
         row = {"scene": name, "spec": spec, "flip": r.metrics["flip"], "rel_mse": r.metrics["rel_mse"],
                "time_ms": r.time_ms, "cells_ms": r.stages.get("cells", 0.0), "build_ms": r.stages.get("build", 0.0),
                "shade_ms": r.stages.get("shade", 0.0), "compiled_after_warmup": r.compiled_after_warmup,
-               "memory_mb": r.memory_mb}
+               "memory_mb": r.memory_mb, "cells_built": r.stats.get("cells_built", 0.0),
+               "cell_load": r.stats.get("cell_load", 0.0)}
         rows.append(row)
         print(json.dumps(row), flush=True)
 

@@ -78,12 +78,13 @@ class ReGIR(Method):
     :math:`W = \frac{1}{\hat p_c(y)} \frac{1}{B}\sum_i \hat p_c(x_i) / p(x_i)`. Only local lights
     (meshes, rectangles, spheres and point lights of the table) enter the grid. With
     ``temporal=1`` a slot then merges its previous reservoir (same cell, same target) with
-    weights :math:`M_i / \sum M` and M capped at ``mcap`` (persistent world-space reservoirs);
-    history is dropped when a light moved.
+    weights :math:`M_i / \sum M`, M the number of frames merged (capped at ``mcap``, counted
+    whatever the samples were, so that the weights do not depend on them; persistent world-space
+    reservoirs); history is dropped when a light moved.
 
-    Shading (stage ``shade``, per viewer), ``samples`` times per pixel (averaged): ``taps`` slots
-    of the pixel's cell drawn uniformly and ``table`` emitter-table samples at the pixel are
-    resampled with the full target
+    Shading (stage ``shade``, per viewer), ``samples`` times per pixel with fresh candidates
+    (averaged): ``taps`` slots of the pixel's cell drawn uniformly and ``table`` emitter-table
+    samples at the pixel are resampled with the full target
     :math:`\hat p_x(y) = \mathrm{lum}(f(x, y) L_e(y) G(x, y))` (the BSDF value includes the
     cosine) and one shadow ray is traced to the chosen sample:
 
@@ -102,12 +103,12 @@ class ReGIR(Method):
     """
     name = "regir"
     params = (
-        Param("cell", 1.0, "cell size in metres (RTXDI's default 1)", lo=1e-3),
-        Param("slots", 32, "light reservoirs per cell", lo=1, hi=4096),
+        Param("cell", 2.0, "cell size in metres (RTXDI's default: 1; 2 measured best at equal time)", lo=1e-3),
+        Param("slots", 128, "light reservoirs per cell (RTXDI: 512 lights per cell)", lo=1, hi=4096),
         Param("build", 8, "RIS candidates per reservoir at build time (RTXDI's default 8)", lo=1),
-        Param("taps", 4, "reservoirs of its cell a pixel resamples", lo=0),
+        Param("taps", 8, "reservoirs of its cell a pixel resamples per sample", lo=0),
         Param("table", 1, "emitter-table samples a pixel adds to its resampling", lo=1),
-        Param("samples", 1, "resampled samples (and shadow rays) per pixel, averaged", lo=1),
+        Param("samples", 8, "resampled samples (and shadow rays) per pixel, averaged", lo=1),
         Param("defensive", 0.0, "MIS share of the table samples on lights the grid covers", lo=0.0, hi=1.0),
         Param("cosine", 1.0, "floor of the receiver cosine in the build target (1: no cosine)", lo=0.0, hi=1.0),
         Param("occluded", 1.0, "factor of the build target where the representative point does not see the "
@@ -115,7 +116,7 @@ class ReGIR(Method):
         Param("jitter", 1.0, "width of the cell-lookup jitter box in cells (RTXDI's default 1)", lo=0.0),
         Param("temporal", 0, "merge each reservoir with its previous frame's (0/1)", lo=0, hi=1),
         Param("mcap", 20.0, "confidence cap M of the temporal merge", lo=1.0),
-        Param("cells", 32768, "hash-table capacity in cells (rounded up to a power of two)", lo=32),
+        Param("cells", 8192, "hash-table capacity in cells (rounded up to a power of two)", lo=32),
         Param("evict", 8, "frames a cell may stay unused before it is freed", lo=0),
     )
 
@@ -255,13 +256,15 @@ class ReGIR(Method):
         # ---------------- temporal merge with the slot's previous reservoir ----------------
         if history:
             old = dr.gather(Slots, self.store, at)
-            keep = (dr.gather(mi.UInt32, self.grid.born, cell) != frame) & (old.M > 0.0) & (old.W > 0.0)
-            p_old = self._shadowed(si, old.y, cell_target(c, cn, old.y, old.n, old.Le, floor, keep))
-            keep &= p_old > 0.0
-            M_old = dr.select(keep, dr.minimum(old.M, self.mcap), 0.0)
+            # M counts the frames merged, whatever the samples were (an empty reservoir included), so
+            # that the weights M_i / sum M do not depend on the samples they weigh
+            alive = dr.gather(mi.UInt32, self.grid.born, cell) != frame
+            M_old = dr.select(alive, dr.minimum(old.M, dr.opaque(mi.Float, self.mcap)), 0.0)
+            use = alive & (old.W > 0.0)
+            p_old = self._shadowed(si, old.y, cell_target(c, cn, old.y, old.n, old.Le, floor, use))
             inv = dr.rcp(1.0 + M_old)
             w_new = dr.select(ok, p_sel * W * inv, 0.0)
-            w_old = dr.select(keep, p_old * old.W * M_old * inv, 0.0)
+            w_old = dr.select(use & (p_old > 0.0), p_old * old.W * M_old * inv, 0.0)
             total = w_new + w_old
             take = (w_old > 0.0) & (smp.next_float32() * total < w_old)
             y, n, Le = dr.select(take, old.y, y), dr.select(take, old.n, n), dr.select(take, old.Le, Le)
@@ -269,7 +272,7 @@ class ReGIR(Method):
             ok = (p_sel > 0.0) & (total > 0.0)
             W = dr.select(ok, total / dr.select(ok, p_sel, 1.0), 0.0)
             M = 1.0 + M_old
-        dr.scatter(self.store, Slots(y, n, Le, W, dr.select(ok, M, 0.0)), at)
+        dr.scatter(self.store, Slots(y, n, Le, W, M), at)
         return n_cells
 
     def _shadowed(self, si, y, p_hat):
@@ -364,4 +367,5 @@ class ReGIR(Method):
 
 
 register("regir", ReGIR, help="ReGIR: a world-space hash grid of light reservoirs shared by all viewers "
-                              "(cell 1 m, 8 build candidates, jitter 1 cell as RTXDI)")
+                              "(cell 2 m, 128 reservoirs per cell, 8 build candidates, jitter 1 cell, "
+                              "8 samples of 8 taps per pixel)")
