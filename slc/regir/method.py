@@ -114,7 +114,7 @@ class ReGIR(Method):
         Param("occluded", 1.0, "factor of the build target where the representative point does not see the "
                                 "candidate (one shadow ray per candidate; 1: no rays)", lo=1e-3, hi=1.0),
         Param("jitter", 1.0, "width of the cell-lookup jitter box in cells (RTXDI's default 1)", lo=0.0),
-        Param("temporal", 0, "merge each reservoir with its previous frame's (0/1)", lo=0, hi=1),
+        Param("temporal", 1, "merge each reservoir with its previous frame's (0/1; 1 measured best at equal time)", lo=0, hi=1),
         Param("mcap", 20.0, "confidence cap M of the temporal merge", lo=1.0),
         Param("cells", 8192, "hash-table capacity in cells (rounded up to a power of two)", lo=32),
         Param("evict", 8, "frames a cell may stay unused before it is freed", lo=0),
@@ -368,4 +368,4 @@ class ReGIR(Method):
 
 register("regir", ReGIR, help="ReGIR: a world-space hash grid of light reservoirs shared by all viewers "
                               "(cell 2 m, 128 reservoirs per cell, 8 build candidates, jitter 1 cell, "
-                              "8 samples of 8 taps per pixel)")
+                              "temporal merge, 8 samples of 8 taps per pixel)")
