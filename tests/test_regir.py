@@ -25,7 +25,7 @@ def cornell_ref():
     return sc, gbs, g.mean(axis=0), g.var(axis=0, ddof=1) / len(g), np.array(gbs[0].valid)
 
 
-def _z(spec, ref_data, frames=1, runs=32, var_runs=96):
+def _z(spec, ref_data, frames=1, runs=32, var_runs=96, scale=1.02):
     """z_test of ``runs`` runs with the variance of one run taken from all runs (``runs`` and
     ``var_runs`` more): a shadowed pixel whose light the cell's target misses gets rare large
     values (measured on cornell with temporal merge: one value 200x the pixel's mean in 32 runs),
@@ -34,7 +34,7 @@ def _z(spec, ref_data, frames=1, runs=32, var_runs=96):
     r = independent_runs(spec, sc, gbs, range(runs), frames=frames)
     v = np.concatenate([r, independent_runs(spec, sc, gbs, range(1000, 1000 + var_runs), frames=frames)])
     t = z_test(r[:, mask], ref[mask], ref_var=ref_var[mask], var_runs=v[:, mask])
-    biased = z_test(r[:, mask] * 1.02, ref[mask], ref_var=ref_var[mask], var_runs=v[:, mask])
+    biased = z_test(r[:, mask] * scale, ref[mask], ref_var=ref_var[mask], var_runs=v[:, mask])
     return t, biased
 
 
@@ -107,3 +107,19 @@ def test_no_kernels_after_warmup():
     with and without temporal merge."""
     out = run_case(_COMPILE, "regir", "regir:temporal=0")
     assert out == {"regir": 0, "regir:temporal=0": 0}, out
+
+
+def test_environment_only_scene():
+    """A scene lit by a constant environment alone (no light in the emitter table, so the grid
+    stays empty): every sample comes from the pixel's own light sampling. The mean over pixels of
+    64 runs is within 3% of the ground truth's (measured 0.6% above). (A
+    per-pixel Z-test is not used here: uniform sampling of the sky gives ground pixels rare large
+    values under rt8 as well.)"""
+    sc = scenes.load("skylit", env="constant")
+    gbs = gbuffers_for(sc, views.single(sc), 0, 48, 27)
+    ref = np.array(direct_mis(sc.mi_scene, gbs[0], 2048, seed=300), np.float64).T
+    mask = np.array(gbs[0].valid)
+    runs = independent_runs("regir", sc, gbs, range(64))
+    ratio = runs[:, mask].mean() / ref[mask].mean()
+    print("environment only: regir / ground truth", ratio)
+    assert abs(ratio - 1.0) < 0.03, ratio

@@ -11,7 +11,7 @@ import numpy as np
 from .. import emitter_sampling as es
 from ..gbuffer import per_viewer
 from ..keys import INVALID, mixed_rng, stream_key
-from ..lights import SurfaceBSDF, rng, sampler as light_table
+from ..lights import SurfaceBSDF, rng, sample_light_reference, sampler as light_table
 from ..methods import Method, MethodError, Param, register
 from .grid import HashGrid, cell_key, key_hash
 
@@ -275,6 +275,18 @@ class ReGIR(Method):
         dr.scatter(self.store, Slots(y, n, Le, W, M), at)
         return n_cells
 
+    def _pixel_sample(self, si, u, active):
+        """A light sample at the pixel: (DirectionSample3f, L_e / p, mask, local light of the
+        table, point light); the scene's own sampling where no emitter is in the table (the grid
+        is then empty and every sample comes from here)."""
+        if self._table is None:
+            ds, w, ok = sample_light_reference(self.scene.mi_scene, si, u, active)
+            return ds, w, ok, mi.Bool(False), mi.Bool(False)
+        ds, w, ok, em = self._table.sample(si, u, active)
+        kind = self._table.kind(em, ok)
+        local = (kind == es.MESH) | (kind == es.RECT) | (kind == es.SPHERE) | (kind == es.POINT)
+        return ds, w, ok, local, kind == es.POINT
+
     def _shadowed(self, si, y, p_hat):
         """The build target times ``occluded`` where the segment from the cell's representative
         point to ``y`` is blocked (one shadow ray per candidate; none with ``occluded=1``)."""
@@ -291,8 +303,6 @@ class ReGIR(Method):
         samples with one shadow ray, averaged."""
         sc = self.scene.mi_scene
         si, active = gb.si, mi.Bool(gb.valid)
-        if self._table is None:
-            return dr.zeros(mi.Color3f, gb.size)
         bsdf = SurfaceBSDF(sc, si, active, mi.BSDFContext())
         has_cell = active & (slot != INVALID)
         c = dr.gather(mi.Point3f, self.rep_p, slot, has_cell)
@@ -328,10 +338,7 @@ class ReGIR(Method):
             # ---------------- emitter-table samples at the pixel ----------------
             for _ in range(self.table):
                 u = mi.Point2f(smp.next_float32(), smp.next_float32())
-                ds, w, ok, em = self._table.sample(si, u, active)
-                kind = self._table.kind(em, ok)
-                local = (kind == es.MESH) | (kind == es.RECT) | (kind == es.SPHERE) | (kind == es.POINT)
-                point = kind == es.POINT
+                ds, w, ok, local, point = self._pixel_sample(si, u, active)
                 Le = w * ds.pdf * dr.select(point, dr.square(ds.dist), 1.0)
                 covered = cell_target(c, cn, ds.p, dr.select(point, 0.0, mi.Vector3f(ds.n)), Le, floor,
                                       ok & local & has_cell) > 0.0
