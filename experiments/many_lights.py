@@ -20,7 +20,7 @@ if __name__ == "__main__" and __package__ is None:
 NAME = "many-lights"
 FULL = dict(scene="hangar", lights=[3, 6, 12, 24], width=320, height=180, frames=120, warmup=10, eval_frames=[59, 119])
 QUICK = dict(scene="hangar", lights=[3, 12, 24], width=160, height=90, frames=24, warmup=10, eval_frames=[23])
-METHODS = ["rt48", "restir", "slc:max_cones=1", "slc:max_cones=2", "slc", "slc:max_cones=4", "adaptive"]
+METHODS = ["rt48", "restir", "regir", "slc:max_cones=1", "slc:max_cones=2", "slc", "slc:max_cones=4", "adaptive"]
 
 
 def add_arguments(p):

@@ -16,7 +16,7 @@ FULL = dict(scenes=["atrium", "cornell"], viewers=[1, 16], width=320, height=180
             eval_frames=[239], eval_viewers=2)
 QUICK = dict(scenes=["atrium"], viewers=[1, 16], width=96, height=54, frames=24, warmup=10, eval_frames=[23],
              eval_viewers=1)
-METHODS = ["slc", "rt48"]
+METHODS = ["slc", "rt48", "regir"]
 
 
 def add_arguments(p):

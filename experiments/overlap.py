@@ -25,7 +25,7 @@ FULL = dict(scenes=["street", "atrium"], viewers=[1, 4, 16], overlaps=[0, 25, 50
             width=320, height=180, frames=240, warmup=10, eval_frames=[239], eval_viewers=2)
 QUICK = dict(scenes=["atrium"], viewers=[1, 4, 16], overlaps=[0, 50, 100],
              width=96, height=54, frames=24, warmup=10, eval_frames=[23], eval_viewers=1)
-METHODS = ["slc", "rt48", "restir"]
+METHODS = ["slc", "rt48", "restir", "regir"]
 CACHE_METHODS = ("slc", "sh")
 
 

@@ -19,7 +19,7 @@ if __name__ == "__main__" and __package__ is None:
 NAME = "point-lights"
 FULL = dict(scene="lamps", lights=[16, 32, 64], width=320, height=180, frames=120, warmup=10, eval_frames=[59, 119])
 QUICK = dict(scene="lamps", lights=[16, 64], width=160, height=90, frames=24, warmup=10, eval_frames=[23])
-METHODS = ["rt48", "restir", "slc", "slc:max_cones=4", "sh", "adaptive"]
+METHODS = ["rt48", "restir", "regir", "slc", "slc:max_cones=4", "sh", "adaptive"]
 
 
 def add_arguments(p):

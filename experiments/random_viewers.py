@@ -23,7 +23,7 @@ FULL = dict(scenes=["atrium", "sponza"], viewers=[1, 4, 16], width=320, height=1
 QUICK = dict(scenes=["atrium"], viewers=[1, 4, 16], width=96, height=54, frames=24, warmup=10, eval_frames=[23],
              eval_viewers=2)
 OVERLAP_FRAMES = list(range(0, 241, 30))   # the rig's overlap over its first 4 s (60 Hz), every 0.5 s
-METHODS = ["slc", "rt48", "restir"]
+METHODS = ["slc", "rt48", "restir", "regir"]
 
 
 def add_arguments(p):

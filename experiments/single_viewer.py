@@ -29,7 +29,7 @@ FULL = dict(scenes=["atrium", "street", "village", "garden", "sponza"], width=32
             sweep=["rt4", "rt8", "rt32", "slc:rays_settled=2", "slc:max_cones=2", "slc:bias=0.5", "slc:bias=2"])
 QUICK = dict(scenes=["atrium"], width=160, height=90, frames=24, warmup=10, eval_frames=[15, 23],
              sweep=["rt4"])
-BASE_METHODS = ["rt16", "rt48", "restir", "slc", "slc:fetch=bilinear"]
+BASE_METHODS = ["rt16", "rt48", "restir", "regir", "slc", "slc:fetch=bilinear"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -18,7 +18,7 @@ FULL = dict(scenes=["atrium"], singles=16, pairs=[8, 16], width=320, height=180,
             eval_frames=[239], eval_viewers=2)
 QUICK = dict(scenes=["atrium"], singles=16, pairs=[8, 16], width=64, height=36, frames=20, warmup=10,
              eval_frames=[19], eval_viewers=1)
-METHODS = ["slc", "rt48", "restir"]
+METHODS = ["slc", "rt48", "restir", "regir"]
 STEADY_COLUMNS = [("scene", "scene"), ("method", "method"), ("rig", "rig"), ("viewers", "viewers"),
                   ("measured_overlap", "measured overlap %"), ("time_ms", "t [ms]"),
                   ("startup_ms", "start-up t [ms]"), ("compiled_after_warmup", "kernels after warm-up"),

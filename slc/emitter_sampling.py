@@ -493,6 +493,10 @@ class EmitterSampler:
 
     # ------------------------------------------------------------------ densities
 
+    def kind(self, index: mi.UInt32, active: mi.Bool) -> mi.UInt32:
+        """Entry kind (MESH, RECT, SPHERE, POINT or OTHER) of emitters (indices into ``scene.emitters()``)."""
+        return dr.gather(mi.UInt32, self._e_kind, index, active)
+
     def choice_pmf(self, index: mi.UInt32, active: mi.Bool) -> mi.Float:
         """P(e) of emitters (indices into ``scene.emitters()``; 0 outside the subset)."""
         return dr.gather(mi.Float, self._e_pmf, index, active)
