@@ -1,20 +1,20 @@
 """crc: Table 1 and Figs. 5, 9 and 10 of "Real-time Radiance Caching using
 Chrominance Compression" (Vardis, Papaioannou and Gkaravelis 2014).
 
-With the paper's defaults (``slc.crc.CRCCache``: RSM first bounce with
+With the paper's defaults (``slc.methods.crc.CRCCache``: RSM first bounce with
 Halton sampling, 10 march samples for the first bounce and 5 for later
 ones, depth-occupancy stride 10 at 1 MPixel), per scene and bounce count
 (1 bounce: depth occupancy; 2 bounces: geometry occupancy):
 
 - *Table 1* (each configuration is the registered method ``crc`` through
-  the common pipeline, :func:`slc.experiment.run_case`): occupancy off
+  the common pipeline, :func:`slc.run.experiment.run_case`): occupancy off
   (RGB3, the "unoptimized" Radiance Hints) and on with RGB3 (27
   coefficients), Y3Co2Cg2 (17) and Y3Co1Cg1 (11), Y3Co1Cg1 with the
   "ratio" chroma decoding, and our earlier choices as named variants (``first_bounce=paths``: light-traced VPLs
   chosen by PCG32; ``dense``: one march sample per voxel; ``stride10``: the
   paper's literal s = 10 at this small frame size). Per row: median cache
   time per frame, occupancy ratio, CIE Lab RMSE and pdiff (Yee's
-  PerceptualDiff, :func:`slc.crc.quality.pdiff`) against the RGB3 cache
+  PerceptualDiff, :func:`slc.methods.crc.quality.pdiff`) against the RGB3 cache
   of the same sampling (the paper's comparison), and FLIP/PSNR/SSIM/Lab
   RMSE of ground-truth direct + cache indirect against direct + the
   path-traced indirect reference (``lab_rmse_ref``).
@@ -127,8 +127,8 @@ def _profile(scene, viewers, specs: list[str], W: int, H: int, frames: int, warm
 
     from slc import methods
     from slc.methods import FrameContext
-    from slc.pipeline import gbuffers_for
-    from slc.timing import StageTimer
+    from slc.run.pipeline import gbuffers_for
+    from slc.core.timing import StageTimer
     made = {sp: methods.create(sp, scene, seed=seed) for sp in specs}
     timers = {sp: StageTimer() for sp in specs}
     for f in range(frames):
@@ -161,7 +161,7 @@ def _profile(scene, viewers, specs: list[str], W: int, H: int, frames: int, warm
 def _profile_rows(scene_name: str, nb: int, prof: dict, specs: dict) -> list[dict]:
     """Rows (one per stage and the sums) with the ms of each encoding and the
     ratio to RGB3, for the minimum and the median over frames."""
-    from slc.crc.cache import CRCCache
+    from slc.methods.crc.cache import CRCCache
     groups = {"coefficient stages": CRCCache.COEFFICIENT_STAGES, "fixed stages": CRCCache.FIXED_STAGES}
     stages = [k for k in CRCCache.FIXED_STAGES + CRCCache.COEFFICIENT_STAGES if k in prof[specs["rgb3"]]]
     rows = []
@@ -194,9 +194,9 @@ def _last_image(scene, viewers, spec: str, W: int, H: int, frames: int, seed: in
     """(method, G-buffer, indirect image) of the last of ``frames`` frames."""
     from slc import methods
     from slc.methods import FrameContext
-    from slc.pipeline import gbuffers_for
-    from slc.references import image_of
-    from slc.timing import NullTimer
+    from slc.run.pipeline import gbuffers_for
+    from slc.reference.references import image_of
+    from slc.core.timing import NullTimer
     m = methods.create(spec, scene, seed=seed)
     for f in range(frames):
         gbs = gbuffers_for(scene, viewers, f, W, H)
@@ -227,8 +227,8 @@ def _error_terms(scene, viewers, nb: int, common: dict, W: int, H: int, frames: 
     import mitsuba as mi
     import numpy as np
 
-    from slc.metrics import lab_rmse
-    from slc.references import image_of, reference_for
+    from slc.reference.metrics import lab_rmse
+    from slc.reference.references import image_of, reference_for
     f = frames - 1
 
     def spec(**kw):
@@ -286,7 +286,7 @@ def _moving(scene, viewers, nb: int, common: dict, W: int, H: int, frames: int, 
     per rendered frame, both on the same G-buffers in alternating order.
     Times: median ms per frame after 2 warm-up frames; kernels built or
     loaded by the moving cache after warm-up and after its first move (the
-    first move builds the scroll kernel; slc.timing.KernelCounter);
+    first move builds the scroll kernel; slc.core.timing.KernelCounter);
     errors at the last frame (composited, Lab RMSE): each against the
     reference over the image and over the pixels inside the window, and the
     two caches against each other inside the window."""
@@ -295,12 +295,12 @@ def _moving(scene, viewers, nb: int, common: dict, W: int, H: int, frames: int, 
     import numpy as np
 
     from slc import methods
-    from slc.crc.cache import front_normal
+    from slc.methods.crc.cache import front_normal
     from slc.methods import FrameContext
-    from slc.metrics import lab_rmse
-    from slc.pipeline import gbuffers_for
-    from slc.references import image_of, reference_for
-    from slc.timing import KernelCounter, StageTimer
+    from slc.reference.metrics import lab_rmse
+    from slc.run.pipeline import gbuffers_for
+    from slc.reference.references import image_of, reference_for
+    from slc.core.timing import KernelCounter, StageTimer
     window = max(4, int(round(common["resolution"] * MOVING["window_fraction"])))
     sp_scene = _spec({**common, "bounces": nb})
     sp_cam = _spec({**common, "bounces": nb, "volume": "camera", "window": window, "ahead": MOVING["ahead"]})
@@ -365,10 +365,10 @@ def _along_path(scene, viewer, spec: str, W: int, H: int, positions: int, seed: 
     """Fig. 5: depth occupancy ratio and first-bounce ms at ``positions``
     viewer positions spread over the camera path (3 frames at each, the
     last one timed; the cache is reset between positions)."""
-    from slc import gbuffer as gbuf
+    from slc.scene import gbuffer as gbuf
     from slc import methods
     from slc.methods import FrameContext
-    from slc.timing import StageTimer
+    from slc.core.timing import StageTimer
     m = methods.create(spec, scene, seed=seed)
     path = getattr(viewer.pose, "__self__", None)
     n = int(getattr(path, "n_frames", 0) or 0) or 600
@@ -397,8 +397,8 @@ def _sweep(scene, viewers, resolutions, W: int, H: int, seed: int) -> list[dict]
     CRC resolution; Y3Co1Cg1, 2 bounces."""
     from slc import methods
     from slc.methods import FrameContext
-    from slc.pipeline import gbuffers_for
-    from slc.timing import StageTimer
+    from slc.run.pipeline import gbuffers_for
+    from slc.core.timing import StageTimer
     rows = []
     for r in resolutions:
         m = methods.create(f"crc:resolution={r},bounces=2", scene, seed=seed)
@@ -425,7 +425,7 @@ def _plot(path, rows, title):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from slc import io
+    from slc.core import io
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.6))
     std = [r for r in rows if r["variant"] == "" and r["visibility"] == "march" and r["chroma"] == "offset"]
     a1.bar(range(len(std)), [r["time_ms"] for r in std], color="tab:blue")
@@ -450,7 +450,7 @@ def _strip(path, panels, exposure, title):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from slc import io
+    from slc.core import io
     fig, axes = plt.subplots(1, len(panels), figsize=(2.6 * len(panels), 2.0))
     for ax, (label, img) in zip(axes, panels):
         ax.imshow(io.tonemap(img, exposure))
@@ -467,7 +467,7 @@ def _plot_path(path, pts, title):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from slc import io
+    from slc.core import io
     fig, a1 = plt.subplots(figsize=(5, 3.2))
     x = [p["position"] + 1 for p in pts]
     a1.plot(x, [100 * p["occupancy_ratio"] for p in pts], "o-", color="tab:blue")
@@ -487,8 +487,8 @@ def _plot_sweep(path, rows, title):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from slc import io
-    from slc.crc.cache import CRCCache
+    from slc.core import io
+    from slc.methods.crc.cache import CRCCache
     fig, ax = plt.subplots(figsize=(5.5, 3.4))
     stages = [k for k in CRCCache.FIXED_STAGES + CRCCache.COEFFICIENT_STAGES if any(k in r for r in rows)]
     x = range(len(rows))
@@ -515,7 +515,7 @@ def _plot_sweep(path, rows, title):
 # ---------------------------------------------------------------------------
 
 def _preset(opts) -> dict:
-    from slc import experiment
+    from slc.run import experiment
     preset = dict(QUICK if opts.quick else FULL)
     if opts.res:
         w, _, h = opts.res.lower().partition("x")
@@ -559,12 +559,18 @@ def run(opts) -> dict:
     import numpy as np
     from tqdm import tqdm
 
-    from slc import experiment, io, methods, views
-    from slc.crc.grid import Grid
-    from slc.crc.quality import de76_fraction, pdiff
-    from slc.metrics import evaluate, lab_rmse
-    from slc.pipeline import RunConfig
-    from slc.references import reference_for
+    from slc.run import experiment
+
+    from slc.core import io
+
+    from slc import methods
+
+    from slc.scene import views
+    from slc.methods.crc.grid import Grid
+    from slc.methods.crc.quality import de76_fraction, pdiff
+    from slc.reference.metrics import evaluate, lab_rmse
+    from slc.run.pipeline import RunConfig
+    from slc.reference.references import reference_for
 
     preset = _preset(opts)
     W, H = preset["width"], preset["height"]
@@ -679,12 +685,12 @@ def run(opts) -> dict:
                 _plot_sweep(out / f"fig10_{s.name}.png", sw, f"Fig. 10: {s.name}, 2 bounces, Y3Co1Cg1")
 
     config = {"quick": bool(opts.quick), "scenes": names, **preset, "seed": opts.seed,
-              "pdiff": "Yee and Newman's PerceptualDiff (slc.crc.quality.pdiff): percent of pixels visibly "
+              "pdiff": "Yee and Newman's PerceptualDiff (slc.methods.crc.quality.pdiff): percent of pixels visibly "
                        "different from the RGB3 cache (pdiff_ref: from the reference)",
               "de76_fraction": "percent of pixels with CIE76 dE > 2.3 against the RGB3 cache",
               "lab_rmse": "CIE Lab RMSE (percent) against the RGB3 cache of the same sampling; "
                           "lab_rmse_ref against the reference",
-              "reference": "slc.references: indirect reference (the method's bounces) + ground-truth direct light",
+              "reference": "slc.reference.references: indirect reference (the method's bounces) + ground-truth direct light",
               "indirect_metrics": "indirect_*: the pipeline's comparison of the indirect light alone with the "
                                   "indirect reference (exposure 0.8 / p99 of the reference)",
               "profile": "stage ms, minimum and median over frames after 3 warm-up, encodings run frame by frame "
@@ -706,7 +712,7 @@ def _f(v, fmt="{:.2f}"):
 
 
 def _markdown(rows, prof_rows, path_rows, sweep_rows, preset, names, term_rows=(), moving_rows=()) -> str:
-    from slc import experiment
+    from slc.run import experiment
     W, H = preset["width"], preset["height"]
     cols = [("scene", "scene"), ("bounces", "b"), ("variant", "variant"), ("visibility", "visibility"),
             ("occupancy", "occ."), ("encoding", "encoding"), ("chroma", "chroma"), ("coefficients", "coeffs"),
@@ -720,12 +726,12 @@ def _markdown(rows, prof_rows, path_rows, sweep_rows, preset, names, term_rows=(
           f"the pipeline, configurations one after the other (load-sensitive; see the stage profile for "
           f"side-by-side ratios). Lab RMSE and pdiff (Yee's PerceptualDiff) against the RGB3 cache of the same "
           f"sampling (the paper's Table 1 comparison) and against the reference (ground-truth direct + "
-          f"{preset['ref_spp']} spp path-traced indirect, slc.references; FLIP and SSIM too). Variants: "
+          f"{preset['ref_spp']} spp path-traced indirect, slc.reference.references; FLIP and SSIM too). Variants: "
           f"`paths` = light-traced VPLs + PCG32, `dense` = one march sample per voxel, `stride10` = the literal "
           f"s = 10 at this frame size.\n\n" + experiment.markdown_table(rows, cols) + "\n")
     # ------------------------------- stage profile -------------------------------
     encs = [e for e in PROFILED if e != "rgb3"]
-    from slc.crc.cache import CRCCache
+    from slc.methods.crc.cache import CRCCache
     stage_names = set(CRCCache.FIXED_STAGES + CRCCache.COEFFICIENT_STAGES)
     md += ("\n## Stage profile (encodings side by side)\n\nms per frame, minimum (median) over the profiled frames "
            "after warm-up, encodings run frame by frame in alternating order on the same G-buffers "
@@ -753,7 +759,7 @@ def _markdown(rows, prof_rows, path_rows, sweep_rows, preset, names, term_rows=(
             md += (f"| {p['scene']} | {p['position'] + 1} | {p['frame']} | {p['occupancy_ratio']:.3f} | "
                    f"{p['active_cells']} | {p['bounce1_ms']:.2f} | {p['total_ms']:.2f} |\n")
     if sweep_rows:
-        from slc.crc.cache import CRCCache
+        from slc.methods.crc.cache import CRCCache
         st = [k for k in CRCCache.FIXED_STAGES + CRCCache.COEFFICIENT_STAGES if any(k in r for r in sweep_rows)]
         md += ("\n## Fig. 10: stage ms against the CRC resolution (2 bounces, Y3Co1Cg1, min of 3 frames)\n\n"
                "| scene | resolution | cells | occupancy | " + " | ".join(st) + " | total | voxelize (once) |\n|"
@@ -845,5 +851,5 @@ def _markdown(rows, prof_rows, path_rows, sweep_rows, preset, names, term_rows=(
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

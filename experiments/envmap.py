@@ -23,14 +23,14 @@ METHODS = ["rt48", "restir", "regir", "slc", "slc:max_cones=4", "sh", "adaptive"
 
 
 def add_arguments(p):
-    from slc.experiment import add_common_arguments
+    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
     p.add_argument("--maps", nargs="+", help="environment maps: venice, studio (../shared/envmaps), spots, constant")
 
 
 def run(opts):
-    from slc import experiment as ex
-    from slc.scenes import ENVMAPS_DIR
+    from slc.run import experiment as ex
+    from slc.scene.scenes import ENVMAPS_DIR
     pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
     scene = (opts.scene or [pr["scene"]])[0]
     maps = opts.maps or pr["maps"]
@@ -43,10 +43,10 @@ def run(opts):
     specs = opts.methods or ex.available_methods(METHODS)
     res = ex.variant_experiment(opts, NAME, pr, specs, variants, "envmap",
                                 f"{scene}: error and time per environment map")
-    from slc.adaptive.viz import add_choice_section
+    from slc.methods.adaptive.viz import add_choice_section
     return add_choice_section(opts, NAME, res, "envmap")
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

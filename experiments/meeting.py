@@ -20,14 +20,14 @@ METHODS = ["slc", "rt48", "regir"]
 
 
 def add_arguments(p):
-    from slc.experiment import add_viewer_arguments
+    from slc.run.experiment import add_viewer_arguments
     add_viewer_arguments(p)
 
 
 def run(opts):
-    from slc import experiment as ex
-    from slc import views
-    from slc.timing import stage_table
+    from slc.run import experiment as ex
+    from slc.scene import views
+    from slc.core.timing import stage_table
 
     rows, names, specs, cfg, out, counts = ex.viewer_count_experiment(
         opts, NAME, QUICK, FULL, METHODS, "meeting", views.meeting, lambda name, cfg: f"{name}: meeting rig")
@@ -51,5 +51,5 @@ def run(opts):
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

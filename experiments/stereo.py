@@ -26,14 +26,14 @@ STEADY_COLUMNS = [("scene", "scene"), ("method", "method"), ("rig", "rig"), ("vi
 
 
 def add_arguments(p):
-    from slc.experiment import add_common_arguments
+    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
 
 
 def run(opts):
-    from slc import experiment as ex
-    from slc import views
-    from slc.timing import stage_table
+    from slc.run import experiment as ex
+    from slc.scene import views
+    from slc.core.timing import stage_table
 
     pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     def cases(s):
@@ -66,5 +66,5 @@ def run(opts):
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

@@ -5,7 +5,7 @@ import json
 import pytest
 from click.testing import CliRunner
 
-from slc import cli
+from slc.run import cli
 
 
 def test_bench_ab_reports_both_settings(tmp_path):

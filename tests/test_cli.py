@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SLC = [sys.executable, "-m", "slc.cli"]
+SLC = [sys.executable, "-m", "slc.run.cli"]
 
 
 def run(args, cwd=None):
@@ -47,7 +47,7 @@ CAMERA_FOV_XML = _camera_xml('<lookat origin="0,1,3" target="0,0,0" up="0,1,0"/>
 
 
 def _py_scene(paths, shapes=True):
-    return ("from slc.scenes import CameraPath, SceneBuilder, diffuse\n"
+    return ("from slc.scene.scenes import CameraPath, SceneBuilder, diffuse\n"
             "def build(**options):\n"
             "    b = SceneBuilder('py_bad')\n"
             + ("    b.add_quad([0, 0, 0], [1, 0, 0], [0, 0, -1], bsdf=diffuse([0.7] * 3), name='floor')\n" if shapes else "")
@@ -150,7 +150,7 @@ def test_check_mode_stops_at_first_inf(xmls, tmp_path):
     r = run(args + ["--out", str(tmp_path / "raw")])
     assert r.returncode == 0, r.stderr
     import numpy as np
-    from slc.io import read_exr
+    from slc.core.io import read_exr
     assert np.isinf(read_exr(next((tmp_path / "raw").glob("*.exr")))).any()
     r = run(["--check"] + args + ["--out", str(tmp_path / "chk")])
     _one_line_error(r, "check: rt4 frame 0 stage 'shade'", "+Inf", "pixel (")

@@ -7,7 +7,9 @@ from types import SimpleNamespace
 import numpy as np
 import OpenEXR
 
-from slc import experiment, io
+from slc.run import experiment
+
+from slc.core import io
 
 
 def _images(rng, gt, frame=5):

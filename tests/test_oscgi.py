@@ -10,14 +10,20 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import check, methods, references, scenes, views
-from slc.gbuffer import to_image
+from slc.core import check
+
+from slc import methods
+
+from slc.reference import references
+
+from slc.scene import scenes, views
+from slc.scene.gbuffer import to_image
 from slc.methods import FrameContext, MethodError
-from slc.oscgi import HemiGrid, SecondaryCache
-from slc.oscgi.method import OSCGI
-from slc.pipeline import RunConfig, gbuffers_for, run_sequence
-from slc.scenes import CameraPath, SceneBuilder, box_mesh, diffuse
-from slc.timing import NullTimer
+from slc.methods.oscgi import HemiGrid, SecondaryCache
+from slc.methods.oscgi.method import OSCGI
+from slc.run.pipeline import RunConfig, gbuffers_for, run_sequence
+from slc.scene.scenes import CameraPath, SceneBuilder, box_mesh, diffuse
+from slc.core.timing import NullTimer
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_crc import diffuse_cornell  # noqa: E402

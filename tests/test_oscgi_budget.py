@@ -9,10 +9,12 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import methods, scenes, views
+from slc import methods
+
+from slc.scene import scenes, views
 from slc.methods import FrameContext
-from slc.pipeline import gbuffers_for
-from slc.timing import NullTimer
+from slc.run.pipeline import gbuffers_for
+from slc.core.timing import NullTimer
 
 W, H, FRAMES = 32, 18, 24
 

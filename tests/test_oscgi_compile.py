@@ -8,8 +8,9 @@ from helpers import run_case
 
 _CASE = r"""
 import json, sys
-from slc import methods, scenes, views
-from slc.pipeline import RunConfig, run_sequence
+from slc import methods
+from slc.scene import scenes, views
+from slc.run.pipeline import RunConfig, run_sequence
 spec, frames, warmup = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
 n_views = int(sys.argv[4]) if len(sys.argv) > 4 else 1
 mode = sys.argv[5] if len(sys.argv) > 5 else ""   # "view0": the fan's first view alone; "after": one viewer
@@ -63,7 +64,7 @@ def test_no_kernel_builds_after_warmup_16_viewers_budgeted():
     """The same rig over 16 frames with the update budget biting every frame after the first
     (update_budget 0.5: ~410 entries, 72 a frame): the selection's index list came from
     numpy at an aligned or unaligned address, whichever the allocator gave, and a gather reading it
-    unaligned was another kernel (built in a timed frame in about 1 run of 3 before slc.backend.aligned)."""
+    unaligned was another kernel (built in a timed frame in about 1 run of 3 before slc.core.backend.aligned)."""
     r = run_case(_CASE, "osc-gi:update_budget=0.5", 16, 3, 16)
     assert r["compiled_after_warmup"] == 0, r
 

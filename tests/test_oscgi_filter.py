@@ -1,5 +1,5 @@
 """New entries seeded from finer levels (at the end), and the spatial filter of osc-gi
-(slc/oscgi/spatial.py) on a field with a closed form: inside the
+(slc/methods/oscgi/spatial.py) on a field with a closed form: inside the
 furnace sphere (uniform emission E, albedo rho) the incoming radiance is the same in every
 direction at every point, so a correct filter (weights normalised, parallax-corrected directions
 mapped to the neighbour's texels, the irradiance re-summed) keeps the mean and adds no error."""
@@ -10,7 +10,7 @@ import drjit as dr
 import numpy as np
 import pytest
 
-from slc import views
+from slc.scene import views
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_oscgi import _run, create, furnace  # noqa: E402
@@ -46,10 +46,11 @@ def test_new_coarser_entries_start_from_their_finer_entries():
     """Frames at 64x36, then one at 16x9 (coarser cache levels, new entries without a coarser
     seed): with ``OSCGI.seed_finer`` the new entries start from the mean of the finer entries under
     them, so that first frame is closer to the reference than a start from nothing."""
-    from slc import check, references
+    from slc.core import check
+    from slc.reference import references
     from slc.methods import FrameContext
-    from slc.pipeline import gbuffers_for
-    from slc.timing import NullTimer
+    from slc.run.pipeline import gbuffers_for
+    from slc.core.timing import NullTimer
     from test_crc import diffuse_cornell
     s = diffuse_cornell()
     v = views.single(s)

@@ -5,8 +5,10 @@ import math
 import numpy as np
 import pytest
 
-from slc import methods, views
-from slc.scenes import CameraPath, SceneBuilder, diffuse
+from slc import methods
+
+from slc.scene import views
+from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
 
 import sys
 from pathlib import Path

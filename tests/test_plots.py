@@ -11,7 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import pytest  # noqa: E402
 from matplotlib.text import Annotation, Text  # noqa: E402
 
-from slc import experiment as ex  # noqa: E402
+from slc.run import experiment as ex  # noqa: E402
 
 LONG = "osc-gi:direct=cache,texel_rays=32,n_max=8,secondary_scene=0,glossy_samples=8,secondary_cm=30,secondary_rays=32"
 
@@ -123,7 +123,7 @@ def test_metric_vs_value_plot_reads(tmp_path, figures):
 
 def test_experiment_stage_plots_read(tmp_path, figures):
     crc, osc_gi = ex.load("crc"), ex.load("osc-gi")
-    from slc.crc.cache import CRCCache
+    from slc.methods.crc.cache import CRCCache
     stages = CRCCache.FIXED_STAGES + CRCCache.COEFFICIENT_STAGES
     sweep = [dict(resolution=n, occupancy_ratio=0.3 + 0.1 * i, **{k: 1.0 + i for k in stages})
              for i, n in enumerate((16, 32, 64, 128))]

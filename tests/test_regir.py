@@ -1,4 +1,4 @@
-"""Tests of the world-space light-reservoir grid (slc.regir): unbiased against the ground truth
+"""Tests of the world-space light-reservoir grid (slc.methods.regir): unbiased against the ground truth
 (per-pixel Z-test) by default, with temporal merge and with a full table; memory bounded;
 deterministic; no kernel built after warm-up."""
 import numpy as np
@@ -6,11 +6,12 @@ import pytest
 
 import slc  # noqa: F401  (selects the Mitsuba variant)
 from helpers import independent_runs, run_case, z_test
-from slc import methods, scenes, views
-from slc.groundtruth import direct_mis
+from slc import methods
+from slc.scene import scenes, views
+from slc.reference.groundtruth import direct_mis
 from slc.methods import FrameContext, MethodError
-from slc.pipeline import gbuffers_for
-from slc.timing import NullTimer
+from slc.run.pipeline import gbuffers_for
+from slc.core.timing import NullTimer
 
 W, H = 64, 36
 
@@ -91,8 +92,9 @@ def test_settings_checked(cornell_ref):
 _COMPILE = r"""
 import json, sys
 import slc
-from slc import methods, scenes, views
-from slc.pipeline import RunConfig, run_sequence
+from slc import methods
+from slc.scene import scenes, views
+from slc.run.pipeline import RunConfig, run_sequence
 sc = scenes.load("cornell")
 out = {}
 for spec in sys.argv[1:]:

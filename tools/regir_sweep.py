@@ -11,8 +11,12 @@ import statistics
 import sys
 from pathlib import Path
 
-from slc import experiment as ex, methods, scenes, views
-from slc.pipeline import RunConfig, run_sequence
+from slc.run import experiment as ex
+
+from slc import methods
+
+from slc.scene import scenes, views
+from slc.run.pipeline import RunConfig, run_sequence
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--scenes", nargs="+", default=["atrium", "sponza"])

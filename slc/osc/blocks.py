@@ -23,8 +23,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..keys import INVALID
-from .layout import CacheLayout
+from slc.core.keys import INVALID
+from slc.osc.layout import CacheLayout
 
 PAGE_SHIFT = 6   # 64 virtual blocks per page: measured best on Sponza at 320x180 (docs/osc.md)
 

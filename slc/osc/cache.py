@@ -26,15 +26,15 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .. import gbuffer as gbuf
-from ..keys import INVALID
-from ..timing import NullTimer
-from .blocks import BlockPool, widen
-from .islands import DEFAULT_MAX_ANGLE, DEFAULT_MAX_TRIANGLES
-from .layout import CacheLayout
-from .protocol import BILINEAR_TAPS, ENTRY_TEXELS, ENTRY_TOPOLOGY, FrameRequests
-from .requests import bilinear_taps, dedupe, lod_seeds, requested_blocks
-from .surface import EntryInteractions, TexelPoints
+from slc.scene import gbuffer as gbuf
+from slc.core.keys import INVALID
+from slc.core.timing import NullTimer
+from slc.osc.blocks import BlockPool, widen
+from slc.osc.islands import DEFAULT_MAX_ANGLE, DEFAULT_MAX_TRIANGLES
+from slc.osc.layout import CacheLayout
+from slc.osc.protocol import BILINEAR_TAPS, ENTRY_TEXELS, ENTRY_TOPOLOGY, FrameRequests
+from slc.osc.requests import bilinear_taps, dedupe, lod_seeds, requested_blocks
+from slc.osc.surface import EntryInteractions, TexelPoints
 
 DEFAULT_CAPACITY_ENTRIES = 2 ** 20   # default initial pool: 1M entries (16384 blocks of 8x8), at most the virtual size
 
@@ -44,7 +44,7 @@ class OnSurfaceCache:
 
     Parameters
     ----------
-    scene: :class:`slc.scenes.Scene` (its triangle meshes and analytic
+    scene: :class:`slc.scene.scenes.Scene` (its triangle meshes and analytic
         spheres, disks and cylinders get islands; other shapes are named in
         one warning, not cached, and their pixels get INVALID slots).
     block_size: texels per block edge (8 as in OSC, 2 as in the slides);

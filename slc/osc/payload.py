@@ -35,9 +35,9 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from ..methods import Method, MethodError, Param
-from .cache import OnSurfaceCache
-from .protocol import EntryStart, FrameRequests, SurfaceCache, entry_start  # noqa: F401 (re-exported)
+from slc.methods import Method, MethodError, Param
+from slc.osc.cache import OnSurfaceCache
+from slc.osc.protocol import EntryStart, FrameRequests, SurfaceCache, entry_start  # noqa: F401 (re-exported)
 
 _UPD_MASK = 0xFFFF
 

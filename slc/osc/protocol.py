@@ -21,7 +21,7 @@ What the cache gives a payload (:class:`FrameRequests`):
   G-buffer is invalid or nothing is cached) and ``pixel_index`` (the pixel's
   index into ``active``/``si``, INVALID likewise); optionally the same for all
   viewers' pixels in the order of the frame's layered G-buffer
-  (:class:`slc.gbuffer.Layers`): ``layer_slot``, ``layer_index`` (None when
+  (:class:`slc.scene.gbuffer.Layers`): ``layer_slot``, ``layer_index`` (None when
   the cache does not provide them).
 
 What the cache promises: slots index payload arrays of ``capacity`` entries
@@ -56,7 +56,7 @@ from typing import Protocol, runtime_checkable
 import drjit as dr
 import mitsuba as mi
 
-from ..keys import INVALID
+from slc.core.keys import INVALID
 
 BILINEAR_TAPS = "bilinear_taps"
 ENTRY_TEXELS = "entry_texels"
@@ -75,7 +75,7 @@ class FrameRequests:
     pixel_slot: list = field(default_factory=list)
     pixel_index: list = field(default_factory=list)
     layer_slot: mi.UInt32 | None = None      # pixel_slot of all viewers laid out as the frame's layers
-    layer_index: mi.UInt32 | None = None     # pixel_index likewise (slc.gbuffer.Layers order)
+    layer_index: mi.UInt32 | None = None     # pixel_index likewise (slc.scene.gbuffer.Layers order)
 
     @property
     def n_active(self) -> int:
