@@ -43,7 +43,7 @@ def run(opts):
     specs = opts.methods or ex.available_methods(METHODS)
     res = ex.variant_experiment(opts, NAME, pr, specs, variants, "envmap",
                                 f"{scene}: error and time per environment map")
-    from slc.methods.adaptive.viz import add_choice_section
+    from slc.run.adaptive_viz import add_choice_section
     return add_choice_section(opts, NAME, res, "envmap")
 
 

@@ -33,7 +33,7 @@ def run(opts):
     from slc.run import experiment as ex
     res = ex.scene_option_sweep(opts, NAME, QUICK, FULL, METHODS, "lights",
                                 "error and time against the number of moving lights")
-    from slc.methods.adaptive.viz import add_choice_section
+    from slc.run.adaptive_viz import add_choice_section
     return add_choice_section(opts, NAME, res, "lights")
 
 

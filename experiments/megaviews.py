@@ -128,7 +128,7 @@ def run(opts) -> dict:
 
     from slc.scene import views
     from slc.methods.megaviews import vpl as vp
-    from slc.run.pipeline import RunConfig, gbuffers_for
+    from slc.run.pipeline import RunConfig, gbuffers_for, run_case
 
     preset = dict(QUICK if opts.quick else FULL)
     if opts.views:
@@ -284,7 +284,7 @@ def run(opts) -> dict:
                 continue
             spec = (f"{mode}:views={preset['seq_views']},scene_depth={preset['scene_depth']},"
                     f"view_depth={preset['view_depth']}")
-            row = experiment.run_case(s, spec, views.single(s), cfg, seed=opts.seed, sweep="pipeline",
+            row = run_case(s, spec, views.single(s), cfg, seed=opts.seed, sweep="pipeline",
                                       distribution="vpl1", views=preset["seq_views"], resolution=16)
             row.pop("_result")
             rows.append(row)

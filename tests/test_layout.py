@@ -160,11 +160,18 @@ def test_no_private_name_imported_across_modules():
 
 def test_function_level_imports_say_why():
     """A function-level import of a project module is there for a reason stated beside it."""
+    def explained(lines, i):   # a comment on the import's line, or above its block of imports
+        if "#" in lines[i]:
+            return True
+        while i > 0 and lines[i - 1].strip().startswith(("import ", "from ")):
+            i -= 1
+        return lines[i - 1].strip().startswith("#")
+
     bad = []
     for name, path in MODULES.items():
         lines = path.read_text().splitlines()
         for mod, _, line, fn_level in _imports(name, path):
-            if fn_level and "#" not in lines[line - 1] and not lines[line - 2].strip().startswith("#"):
+            if fn_level and not explained(lines, line - 1):
                 bad.append(f"{path.relative_to(ROOT)}:{line}: {lines[line - 1].strip()}")
     assert not bad, "function-level imports without a reason:\n" + "\n".join(sorted(set(bad)))
 

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from slc.core import spec as spec_syntax
+
 OUTPUTS = ("direct", "indirect", "full")
 
 
@@ -282,14 +284,10 @@ def available() -> dict[str, str]:
 def parse_spec(spec: str) -> tuple[str, dict]:
     """``"slc:max_cones=2,bias=0.5"`` -> ``("slc", {"max_cones": "2", "bias": "0.5"})``;
     values stay strings: each method's :class:`Param` converts and checks them."""
-    name, _, rest = spec.partition(":")
-    settings = {}
-    for item in filter(None, rest.split(",")):
-        k, eq, v = item.partition("=")
-        if not eq or not k.strip():
-            raise MethodError(f"bad method setting '{item}' in '{spec}' (expected key=value)")
-        settings[k.strip()] = v.strip()
-    return name.strip(), settings
+    try:
+        return spec_syntax.parse_spec(spec, "method setting")
+    except spec_syntax.SpecError as e:
+        raise MethodError(str(e)) from None
 
 
 def create(spec: str, scene, **settings) -> Method:

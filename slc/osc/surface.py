@@ -22,7 +22,7 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.core.freeze import FrozenFunction
-from slc.osc.blocks import _extend
+from slc.osc.blocks import extend_array
 from slc.osc.layout import CacheLayout
 
 # the layout tables that surface_interaction reads (passed to the frozen function as inputs)
@@ -47,7 +47,7 @@ class TexelPoints:
         if dr.width(self.slot_tri) >= capacity:
             return
         n_old = dr.width(self.slot_tri)
-        self.slot_tri = _extend(self.slot_tri, 0, capacity, mi.UInt32)
+        self.slot_tri = extend_array(self.slot_tri, 0, capacity, mi.UInt32)
         sb = dr.zeros(mi.Point2f, capacity)
         dr.scatter(sb, self.slot_b, dr.arange(mi.UInt32, n_old))
         self.slot_b = sb

@@ -5,7 +5,7 @@ Per sample: one light sample (shadow ray, power-heuristic weight against the
 BSDF pdf; delta lights weight 1) plus one BSDF sample (a ray; if it hits an
 emitter or escapes to the environment, weighted against the light pdf).
 Results are cached on disk (``$SLC_CACHE/gt`` or ``~/.cache/slc/gt``) under
-the one key of :func:`slc.reference.references.cache_path` (scene, frame, viewer,
+the one key of :func:`slc.reference.cache.cache_path` (scene, frame, viewer,
 resolution, sample count, camera, scene time, G-buffer hash), so
 experiments never recompute the same reference.
 """
@@ -22,7 +22,7 @@ from slc.scene.gbuffer import GBuffer, compose, to_image
 from slc.core.io import cached_array
 from slc.scene.lights import mis_weight, rng, visible
 from slc.scene.lights import sample_light_reference as sample_light  # Mitsuba's own sampling: an independent check
-from slc.reference.references import cache_path, cache_root
+from slc.reference.cache import cache_path, cache_root
 
 GT_SAMPLES = 2048
 _VERSION = "gt-v1"

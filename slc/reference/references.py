@@ -29,61 +29,28 @@ sum of the direct and the indirect reference counts every path of up to
 (:func:`reference_bounces`).
 
 Every reference is cached on disk (``$SLC_CACHE`` or ``~/.cache/slc``), in
-one folder per kind, under one key (:func:`cache_path`): scene, frame,
+one folder per kind, under one key (:func:`slc.reference.cache.cache_path`): scene, frame,
 viewer, resolution, sample count, bounces, estimator version, camera,
 scene time and a hash of the G-buffer points themselves, so a changed
 scene file or G-buffer never reuses a stale reference.
 """
 from __future__ import annotations
 
-import hashlib
-import json
-import os
-from pathlib import Path
-
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from slc.scene.gbuffer import GBuffer, compose, to_image
 from slc.core.io import cached_array
+from slc.reference.cache import cache_path
+from slc.reference.groundtruth import GT_SAMPLES, ground_truth
+from slc.scene.gbuffer import GBuffer, compose, to_image
 from slc.scene.lights import rng, visible
 from slc.scene.lights import sample_light_reference as sample_light  # Mitsuba's own sampling: an independent check
 
 INDIRECT_SAMPLES = 256      # default paths per pixel of the indirect reference
 INDIRECT_SEED = 5
 _INDIRECT_VERSION = "ind-v2"
-_STREAM_INDIRECT = 31
-
-
-# -----------------------------------------------------------------------------
-# The one cache key
-# -----------------------------------------------------------------------------
-
-def cache_root() -> Path:
-    return Path(os.environ.get("SLC_CACHE", Path.home() / ".cache" / "slc"))
-
-
-def gbuffer_hash(gb: GBuffer) -> str:
-    """Hash of the G-buffer's points, normals and valid mask (what every
-    reference is evaluated at)."""
-    h = hashlib.sha1()
-    for v in (gb.si.p, gb.si.sh_frame.n, gb.valid):
-        h.update(np.ascontiguousarray(np.array(v)).tobytes())
-    return h.hexdigest()[:16]
-
-
-def cache_path(folder: str, version: str, scene, gb: GBuffer, frame: int, viewer: str, spp: int,
-               bounces: int | None = None, seed: int | None = None) -> Path:
-    """``$SLC_CACHE/<folder>/<scene>_f<frame>_<viewer>_<W>x<H>_s<spp>[_b<bounces>]_<hash>.npy``."""
-    cam, t = gb.camera, scene.time
-    ident = [version, scene.name, int(frame), viewer, gb.width, gb.height, int(spp), bounces, seed,
-             np.round(cam.origin, 6).tolist(), np.round(cam.target, 6).tolist(), float(cam.fov),
-             None if t is None else round(float(t), 6), gbuffer_hash(gb)]
-    h = hashlib.sha1(json.dumps(ident).encode()).hexdigest()[:16]
-    safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in f"{scene.name}_f{frame}_{viewer}")
-    b = "" if bounces is None else f"_b{bounces}"
-    return cache_root() / folder / f"{safe}_{gb.width}x{gb.height}_s{spp}{b}_{h}.npy"
+STREAM_INDIRECT = 31
 
 
 # -----------------------------------------------------------------------------
@@ -94,7 +61,7 @@ def indirect_light(mi_scene: mi.Scene, gb: GBuffer, spp: int = INDIRECT_SAMPLES,
                    seed: int = INDIRECT_SEED) -> mi.Color3f:
     """Indirect radiance (1..``bounces`` reflections) leaving each G-buffer
     point towards its camera, ``spp`` paths per pixel (see the module text)."""
-    sampler = rng(gb.size, seed, stream=_STREAM_INDIRECT + int(bounces))
+    sampler = rng(gb.size, seed, stream=STREAM_INDIRECT + int(bounces))
     return indirect_paths(mi_scene, gb.si, mi.Bool(gb.valid), sampler, spp, bounces)
 
 
@@ -156,7 +123,6 @@ def reference_for(method_output: str, scene, gb: GBuffer, frame: int, viewer: st
     """(H, W, 3) reference of the kind a method's ``output`` names. ``spp``
     (None: 2048 for direct light, :data:`INDIRECT_SAMPLES` for indirect) is
     used for every part of a ``full`` reference."""
-    from slc.reference.groundtruth import GT_SAMPLES, ground_truth
     if method_output == "direct":
         return ground_truth(scene, gb, frame, viewer, spp=spp or GT_SAMPLES, use_cache=use_cache)
     if method_output == "indirect":

@@ -19,11 +19,16 @@ import time
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
-from slc.scene import scenes, views
+from slc import methods
+from slc.core.keys import STREAM_CONE_UPDATE
+from slc.methods.cones.packing import gather_words, unpack
+from slc.methods.cones.update import frame_rng, frame_u32, shrink_test_plan
 from slc.methods.rt.method import RandomLightSampling
+from slc.run.pipeline import RunConfig, gbuffers_for, run_sequence
+from slc.scene import scenes, views
 from slc.scene.lights import emitter_sampling_as, rng, sample_light, sampler, visible
-from slc.run.pipeline import gbuffers_for
 
 SAMPLERS = ("mitsuba", "table")
 
@@ -188,10 +193,6 @@ def _update_rays(sc, cap: dict, p, seed: int):
     update's own :func:`slc.methods.cones.update.shrink_test_plan` (directions and
     schedule) on the entries' cone records before the update.
     Returns (shadow rays, their mask, shrink rays, their mask)."""
-    import numpy as np
-    from slc.methods.cones.packing import unpack
-    from slc.methods.cones.update import frame_rng, frame_u32, shrink_test_plan
-    from slc.core.keys import STREAM_CONE_UPDATE
     si, rays, words = cap["si"], cap["rays"], cap["words"]
     N = dr.width(rays)
     # --------------- shadow rays: entry i repeated rays[i] times ---------------
@@ -227,8 +228,6 @@ def bench_update(scene_name: str = "atrium", width: int = 320, height: int = 180
     on the shrink test's rays (Mitsuba's raw traversal, no surface interaction).
     The ratios frame / rays and update / rays say how much the method adds on top
     of the rays it must cast (issue 13's target: frame <= 1.5x its update's rays)."""
-    from slc import methods
-    from slc.run.pipeline import RunConfig, run_sequence
     s = scenes.load(scene_name)
     m = methods.create(method, s, seed=0)
     if not hasattr(m, "cone_params"):
@@ -240,7 +239,6 @@ def bench_update(scene_name: str = "atrium", width: int = 320, height: int = 180
     def update(ctx, fr, policy):
         if ctx.frame == last:     # no kernel in a timed frame: references, and a host copy of the
             # records before the update (the update writes them in place)
-            import numpy as np
             cap.update(storage=np.array(m.storage.numpy()), active=fr.active, si=fr.si, rays=mi.UInt32(policy.rays),
                        unsettled=mi.Bool(policy.unsettled), keys=mi.UInt32(fr.keys), frame=ctx.frame)
         return own_update(ctx, fr, policy)
@@ -250,7 +248,6 @@ def bench_update(scene_name: str = "atrium", width: int = 320, height: int = 180
                                                         eval_frames=[], keep_images=False,
                                                         measure_overlap=False))
     sc = s.mi_scene
-    from slc.methods.cones.packing import gather_words
     cap["words"] = gather_words(mi.UInt32(cap.pop("storage")), cap.pop("active"), m.max_cones)
     shadow, ok, shrink, shrink_ok = _update_rays(sc, cap, m.cone_params, 0)
 

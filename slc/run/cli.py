@@ -27,6 +27,7 @@ from slc.core import backend
 
 
 def _errors():
+    # after --variant (the module builds Mitsuba types on import)
     from slc.run.experiment import ExperimentError
     from slc.methods import MethodError
     from slc.scene.scenes import SceneError
@@ -35,6 +36,7 @@ def _errors():
 
 
 def _jobs_failed():
+    # after --variant (the module builds Mitsuba types on import)
     from slc.run.jobs import JobsFailed
     return JobsFailed
 
@@ -61,6 +63,7 @@ def _parse_res(res: str) -> tuple[int, int]:
 def cli(variant, check_mode):
     """slc: shared caches of incoming light for many viewers."""
     if check_mode:
+        # after --variant (the module builds Mitsuba types on import)
         from slc.core import check
         check.enable()
     try:
@@ -72,6 +75,7 @@ def cli(variant, check_mode):
 @cli.command("scenes")
 def scenes_cmd():
     """List the built-in scenes."""
+    # after --variant (the module builds Mitsuba types on import)
     from slc.scene import scenes
     for name, desc in scenes.describe_builtins():
         click.echo(f"{name:10s} {desc}")
@@ -81,6 +85,7 @@ def scenes_cmd():
 @cli.command("methods")
 def methods_cmd():
     """List the available methods."""
+    # after --variant (the module builds Mitsuba types on import)
     from slc import methods
     for name, desc in sorted(methods.available().items()):
         click.echo(f"{name:10s} {desc}")
@@ -102,6 +107,7 @@ def methods_cmd():
 @click.option("--out", default="out/render", show_default=True)
 def render_cmd(scene_name, method, viewers, rig, overlap, res, frames, warmup, seed, gt, out):
     """Render a sequence with one method; write images and timings."""
+    # after --variant (the module builds Mitsuba types on import)
     from slc.core import io
     from slc import methods
     from slc.scene import scenes, views
@@ -140,6 +146,7 @@ def render_cmd(scene_name, method, viewers, rig, overlap, res, frames, warmup, s
 @click.argument("args", nargs=-1, type=click.UNPROCESSED)
 def run_cmd(experiment_name, args):
     """Run an experiment (single-viewer, ...); options after the name."""
+    # after --variant (the module builds Mitsuba types on import)
     from slc.run import experiment
     mod = experiment.load(experiment_name)
     _run_module(mod, list(args), prog=f"slc run {experiment_name}")
@@ -153,8 +160,10 @@ def _run_module(mod, argv, prog):
                    help="check mode (= SLC_CHECK=1): stop at the first NaN/Inf or negative value")
     opts = p.parse_args(argv)
     if opts.check:
+        # after --variant (the module builds Mitsuba types on import)
         from slc.core import check
         check.enable()
+    # after --variant (the module builds Mitsuba types on import)
     from slc.run.jobs import session_for
     with session_for(getattr(mod, "NAME", prog.split()[-1]), opts):
         mod.run(opts)
@@ -172,6 +181,7 @@ def bench_grp():
 @click.option("--repeats", default=5, show_default=True, type=int)
 def bench_rays(scene_name, res, n, repeats):
     """RT-N throughput next to Mitsuba's raw scene.ray_test on the same rays, with Mitsuba's light sampler and the emitter table."""
+    # after --variant (the module builds Mitsuba types on import)
     from slc.run.bench import bench_rays as run, report_lines
     w, h = _parse_res(res)
     for line in report_lines(run(scene_name, w, h, n, repeats)):
@@ -187,6 +197,7 @@ def bench_rays(scene_name, res, n, repeats):
 @click.option("--method", default="slc", show_default=True, help="slc, with settings (slc:max_cones=2)")
 def bench_update(scene_name, res, frames, warmup, repeats, method):
     """slc's frame time next to the rays its update traces, traced alone."""
+    # after --variant (the module builds Mitsuba types on import)
     from slc.run.bench import bench_update as run, update_report_lines
     w, h = _parse_res(res)
     if frames <= warmup:
@@ -250,6 +261,7 @@ def main(argv=None):
 
 def run_experiment_standalone(path: str) -> int:
     """Entry point of ``python experiments/NAME.py [options]``."""
+    # after --variant (the module builds Mitsuba types on import)
     from slc.run import experiment
     try:
         mod = experiment.load(Path(path).stem)

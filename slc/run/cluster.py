@@ -1,7 +1,7 @@
 """Jobs on Ray: a pool of scene-caching actors (used by :mod:`slc.run.jobs`).
 
-- ``RayPool(workers=N)`` starts a local Ray instance in this process (no
-  dashboard) with N actors; ``RayPool(address="auto" | "HOST:PORT")``
+- ``RayPool(runner, workers=N)`` starts a local Ray instance in this process (no
+  dashboard) with N actors; ``RayPool(runner, address="auto" | "HOST:PORT")``
   connects to a running cluster (``ray start --head`` / ``ray start
   --address``, see ``docs/cluster.md``).
 - Each actor (:class:`SceneWorker`) reserves ``threads`` CPUs and runs one
@@ -30,17 +30,16 @@ from pathlib import Path
 
 import ray
 
-from slc.run.jobs import _raise_fatal
+from slc.core import backend
+from slc.run.errors import ExperimentError, raise_fatal
 
 
 @ray.remote
 class SceneWorker:
-    """A Ray actor running :class:`slc.run.jobs.Runner` jobs one at a time."""
+    """A Ray actor running jobs one at a time on a ``runner`` (:class:`slc.run.jobs.Runner`)."""
 
-    def __init__(self, threads: int):
-        import slc  # noqa: F401  (selects the variant)
-        from slc.run.jobs import Runner
-        self.runner = Runner(threads)
+    def __init__(self, runner, threads: int):
+        self.runner = runner(threads)
 
     def info(self) -> dict:
         import socket
@@ -53,7 +52,6 @@ class SceneWorker:
 
 
 def _runtime_env() -> dict:
-    from slc.core import backend
     root = str(Path(__file__).resolve().parents[2])
     env = {"SLC_VARIANT": backend.variant(),
            "PYTHONPATH": os.pathsep.join([root] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep)
@@ -87,7 +85,6 @@ def _check_reachable(address: str, timeout: float = 5.0) -> None:
     try:
         socket.create_connection((host or "127.0.0.1", int(port)), timeout=timeout).close()
     except (OSError, ValueError) as e:
-        from slc.run.experiment import ExperimentError
         raise ExperimentError(f"no Ray head at '{address}' ({e}); start one with 'ray start --head' "
                               f"(docs/cluster.md)") from None
 
@@ -95,7 +92,8 @@ def _check_reachable(address: str, timeout: float = 5.0) -> None:
 class RayPool:
     """N :class:`SceneWorker` actors on a local instance or a cluster."""
 
-    def __init__(self, workers: int | None = None, address: str | None = None, threads: int | None = None):
+    def __init__(self, runner, workers: int | None = None, address: str | None = None,
+                 threads: int | None = None):
         self._own = not ray.is_initialized()
         kw = dict(logging_level=logging.WARNING, runtime_env=_runtime_env())
         if address:
@@ -104,7 +102,6 @@ class RayPool:
                 try:
                     ray.init(address=address, **kw)
                 except (ConnectionError, ValueError, RuntimeError) as e:
-                    from slc.run.experiment import ExperimentError
                     msg = str(e).strip().splitlines()
                     raise ExperimentError(f"cannot connect to Ray at '{address}': {msg[0] if msg else e}") from None
             cpus = [int(n["Resources"].get("CPU", 0)) for n in ray.nodes() if n.get("Alive")]
@@ -115,7 +112,7 @@ class RayPool:
             threads = threads or max((os.cpu_count() or 1) // workers, 1)
             if self._own:
                 ray.init(num_cpus=workers * threads, include_dashboard=False, **kw)
-        self.workers, self.threads = workers, threads
+        self.runner, self.workers, self.threads = runner, workers, threads
         self._replacements = 0
         self.actors = [self._new_actor() for _ in range(workers)]
         # wait until every worker has imported slc, so that jobs are not charged with worker start-up
@@ -123,7 +120,7 @@ class RayPool:
 
     def _new_actor(self):
         return SceneWorker.options(num_cpus=self.threads, scheduling_strategy="SPREAD",
-                                   max_restarts=0, max_task_retries=0).remote(self.threads)
+                                   max_restarts=0, max_task_retries=0).remote(self.runner, self.threads)
 
     def close(self) -> None:
         for a in self.actors:
@@ -197,7 +194,7 @@ class RayPool:
                     continue
                 idle.append(actor)
                 res = _writable(res)
-                _raise_fatal(res)  # check mode: the first bad value stops the run
+                raise_fatal(res)  # check mode: the first bad value stops the run
                 if "error" in res:
                     retry_or_give_up(job, res["error"])
                 else:

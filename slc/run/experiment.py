@@ -16,20 +16,25 @@ plots. A row whose timed frames built kernels (``compiled_after_warmup`` >
 """
 from __future__ import annotations
 
+import dataclasses
+import gc
 import importlib.util
 import math
+import statistics
+import sys
 import time
 from pathlib import Path
 
+from slc import methods
 from slc.core import io
 from slc.core.backend import env_info
+from slc.run import jobs
+from slc.run.errors import ExperimentError
+from slc.run.pipeline import RunConfig, run_sequence
+from slc.scene import scenes, views
 from slc.scene.scenes import REPO_ROOT
 
 EXPERIMENTS_DIR = REPO_ROOT / "experiments"
-
-
-class ExperimentError(ValueError):
-    """Unknown experiment or bad experiment options (one-line message)."""
 
 
 def names() -> list[str]:
@@ -105,7 +110,6 @@ def compiled_rows(rows: list[dict]) -> list[str]:
 def flag_compiled(results: dict, markdown: str) -> str:
     """Warn on stderr about every row with ``compiled_after_warmup`` > 0 and
     return ``markdown`` with a note listing them (unchanged when none)."""
-    import sys
     lines = compiled_rows(results.get("rows", []))
     if not lines:
         return markdown
@@ -328,7 +332,6 @@ def apply_common(opts, preset: dict) -> dict:
 
 def available_methods(wanted: list[str]) -> list[str]:
     """``wanted`` without the methods that are not implemented (yet)."""
-    from slc import methods
     return [spec for spec in wanted if methods.known(methods.parse_spec(spec)[0])]
 
 
@@ -337,9 +340,6 @@ def load_and_validate(scene_names: list[str], method_specs: list[str], explicit_
     so bad input stops the run before anything is written; returns the names
     to run. Sponza is skipped with a note when it was only in the default
     list and is absent. The scenes are released again: see :func:`each_scene`."""
-    import sys
-    from slc import methods
-    from slc.scene import scenes
     names = []
     for name in scene_names:
         try:
@@ -360,7 +360,6 @@ def load_and_validate(scene_names: list[str], method_specs: list[str], explicit_
 
 
 def _release() -> None:
-    import gc
     gc.collect()
     gc.collect()
 
@@ -373,27 +372,12 @@ def each_scene(names: list[str]):
     emitter and shape call is traced and dispatched over all of them; the
     atrium's ``slc`` frame measured 110 ms instead of 49 ms, ``restir`` 142
     instead of 44 (``rt48`` was barely affected)."""
-    from slc.scene import scenes
     for name in names:
         s = scenes.load(name)
         s.source = name  # what loads it again (jobs run elsewhere)
         yield s
         del s
         _release()
-
-
-def run_case(scene, spec: str, viewers, cfg, bar=None, seed: int = 0, **extra) -> dict:
-    """One (scene, method, viewers) sequence -> a results row."""
-    from slc import methods
-    from slc.run.pipeline import run_sequence
-    m = methods.create(spec, scene, seed=seed)
-    if bar is not None:
-        bar.set_postfix_str(f"{scene.name}/{spec}/{len(viewers)}v")
-    res = run_sequence(scene, m, viewers, cfg, progress=bar)
-    row = {"scene": scene.name, **res.row(), "setting": spec, "label": m.label or m.name,
-           "resolution": f"{cfg.width}x{cfg.height}", **extra}
-    row["_result"] = res
-    return row
 
 
 def strip_private(rows: list[dict]) -> list[dict]:
@@ -510,8 +494,6 @@ def runs_in_turn(scene, cases, cfg, repeats: int = 3, seed: int = 0, alternate: 
     before each run of case i (a progress bar). Returns per case its results, one
     per repetition. Rows of an experiment run minutes apart, under whatever load
     the shared cores had then; ratios of runs side by side move less."""
-    from slc import methods
-    from slc.run.pipeline import run_sequence
     out = [[] for _ in cases]
     order = list(range(len(cases)))
     for rep in range(repeats):
@@ -529,8 +511,6 @@ def ratio_in_turn(scene, spec: str, base, top, cfg, repeats: int = 3, seed: int 
     base; ...; no evaluation), the ratio top / base taken within each repetition. Returns
     the median ratio, every repetition's ratio and times, and the most kernels any run
     built after its warm-up."""
-    import dataclasses
-    import statistics
     c = dataclasses.replace(cfg, eval_frames=[], keep_images=False, measure_overlap=False)
     b, t = runs_in_turn(scene, [(spec, base), (spec, top)], c, repeats, seed)
     ratios = [x.time_ms / max(y.time_ms, 1e-9) for x, y in zip(t, b)]
@@ -543,7 +523,6 @@ def setup(opts, quick: dict, full: dict, methods: list[str]):
     """The common start of a multi-viewer experiment: the preset (with
     --res/--frames applied), the method specs, the validated scenes and the
     RunConfig. Returns (preset, specs, scene names, cfg)."""
-    from slc.run.pipeline import RunConfig
     pr = apply_common(opts, quick if opts.quick else full)
     specs = opts.methods or available_methods(methods)
     names = load_and_validate(opts.scene or pr["scenes"], specs, bool(opts.scene))
@@ -589,7 +568,6 @@ def run_per_scene(names, make_cases, cfg, desc: str, seed: int = 0, keep_images:
     jobs run under one progress bar, serially or on Ray (``--workers``,
     ``--address``), resumable (``--resume``). ``keep_images``/``on_result``:
     see :meth:`slc.run.jobs.Session.run`."""
-    from slc.run import jobs
     session = jobs.current(desc.split()[0])
     js, n, live = [], 0, {}
     for i, s in enumerate(each_scene(names)):
@@ -614,7 +592,6 @@ def run_cases(cases, cfg, desc: str, seed: int = 0, keep: bool = False) -> list[
     :func:`save_strip`)."""
     from types import SimpleNamespace
 
-    from slc.run import jobs
     session = jobs.current(desc.split()[0])
     js = jobs.jobs_from_cases(session.experiment, cases, cfg, seed, keep_images=keep)
     live = {jobs.scene_source(s): s for s, *_ in cases}
@@ -671,7 +648,6 @@ def add_startup(rows: list[dict], settle: int = SETTLE_FRAMES) -> list[dict]:
     median after the warm-up, i.e. the steady state when the warm-up is at
     least ``settle`` frames. Per-viewer methods have no start-up; their
     figure shows the same frames for comparison."""
-    import statistics
     for r in rows:
         fr = r.get("frames_ms") or []
         ts = [f.get("total", 0.0) for i, f in enumerate(fr[:settle]) if i >= 1 and not f.get("compiled")]
@@ -690,8 +666,6 @@ def variant_experiment(opts, name: str, preset: dict, specs: list[str], variants
     rows carry the value in ``field``. Writes results.json/results.md, a
     FLIP-and-time-against-``field`` plot, a speed-against-error plot per
     variant and an image strip per (variant, method)."""
-    from slc.run.pipeline import RunConfig
-    from slc.scene import views
     out = Path(opts.out) / name
     scene_specs = load_and_validate([v for _, v in variants], specs, True)
     value_of = {s: v for v, s in variants}

@@ -44,6 +44,7 @@ failed ones.
 """
 from __future__ import annotations
 
+import gc
 import hashlib
 import json
 import os
@@ -56,7 +57,16 @@ from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import drjit as dr
 import numpy as np
+
+from slc.core import io
+from slc.core.backend import variant
+from slc.core.check import CheckError
+from slc.run.errors import ExperimentError, raise_fatal
+from slc.run.pipeline import run_case
+from slc.scene import scenes
+from slc.scene.views import Viewer
 
 # Row fields that depend on the run, not on the job's inputs: how long things
 # took and where/how the job ran. Everything else must be identical between a
@@ -101,7 +111,6 @@ class Rig:
         return cls(tuple((v.name, v.rig, {f: v.camera(f) for f in frames}) for v in viewers))
 
     def build(self) -> list:
-        from slc.scene.views import Viewer
         return [Viewer(name, FrozenPose(cams), rig) for name, rig, cams in self.viewers]
 
     def __len__(self) -> int:
@@ -188,9 +197,6 @@ def jobs_from_cases(experiment: str, cases, cfg, seed: int = 0, keep_images: boo
 # -----------------------------------------------------------------------------
 
 def run_fields(threads: int | None = None) -> dict:
-    import drjit as dr
-
-    from slc.core.backend import variant
     return {"host": socket.gethostname(), "threads": int(threads or dr.thread_count()), "backend": variant()}
 
 
@@ -201,7 +207,6 @@ class Runner:
     (``dr.set_thread_count``); None keeps Dr.Jit's default (all cores)."""
 
     def __init__(self, threads: int | None = None):
-        import drjit as dr
         if threads:
             dr.set_thread_count(int(threads))
         self.threads = int(dr.thread_count())
@@ -216,13 +221,11 @@ class Runner:
     def release(self) -> None:
         if self._scene is not None:
             self._scene = self._src = None
-            import gc
             gc.collect()
             gc.collect()
 
     def scene(self, src: str):
         if src != self._src:
-            from slc.scene import scenes
             self.release()  # one scene alive at a time (see slc.run.experiment.each_scene)
             self._scene, self._src = scenes.load(src), src
         return self._scene
@@ -230,7 +233,6 @@ class Runner:
     def run(self, job: Job, progress=None) -> dict:
         """Rows (and images) of every case of ``job``; ``run_s`` is the time
         spent in the cases, ``load_s`` in loading the scene."""
-        from slc.run.experiment import run_case
         t0 = time.perf_counter()
         s = self.scene(job.scene)
         t1 = time.perf_counter()
@@ -253,7 +255,6 @@ class Runner:
         (reported and retried by the driver). A check-mode error
         (:class:`slc.core.check.CheckError`) is no job failure but stops the whole
         run: ``{"fatal": message}``."""
-        from slc.core.check import CheckError
         try:
             return self.run(job, progress)
         except CheckError as e:
@@ -261,13 +262,6 @@ class Runner:
         except Exception as e:
             msg = str(e).strip().splitlines()
             return {"error": f"{type(e).__name__}: {msg[0] if msg else ''}".strip()}
-
-
-def _raise_fatal(res: dict) -> None:
-    """Stop the run on a check-mode error from a job (see :meth:`Runner.run_safe`)."""
-    if "fatal" in res:
-        from slc.core.check import CheckError
-        raise CheckError(res["fatal"])
 
 
 # -----------------------------------------------------------------------------
@@ -350,8 +344,7 @@ class RowStore:
             for viewer, d in (per_case or {}).items():
                 for k, v in d.items():
                     arrays[f"{i}\x1f{viewer}\x1f{k}"] = np.asarray(v)
-        from slc.core.io import write_npz
-        write_npz(self.images_path(job), **arrays)
+        io.write_npz(self.images_path(job), **arrays)
 
     def load_images(self, job: Job) -> list:
         """Per case, ``{viewer: {"gt", "img", "flip_map", "frame"}}`` as saved ({} when absent)."""
@@ -429,7 +422,6 @@ class Session:
 
     def __init__(self, experiment: str, out=None, workers: int | None = None, address: str | None = None,
                  threads: int | None = None, resume: bool = False, retries: int = 2):
-        from slc.run.experiment import ExperimentError
         if workers is not None and workers < 1:
             raise ExperimentError("--workers must be at least 1")
         if threads is not None and threads < 1:
@@ -455,8 +447,8 @@ class Session:
     # ----------------------------------------------------------------------
     def pool(self):
         if self._pool is None:
-            from slc.run.cluster import RayPool
-            self._pool = RayPool(workers=self.workers, address=self.address, threads=self.threads)
+            from slc.run.cluster import RayPool  # Ray is optional: imported for --workers/--address only
+            self._pool = RayPool(Runner, workers=self.workers, address=self.address, threads=self.threads)
         return self._pool
 
     def close(self) -> None:
@@ -549,7 +541,7 @@ class Session:
             for attempt in range(1, self.retries + 2):
                 t0 = time.perf_counter()
                 res = runner.run_safe(job, progress)
-                _raise_fatal(res)
+                raise_fatal(res)
                 if "error" not in res:
                     finished(job, res, t0, attempt)
                     break
@@ -613,7 +605,6 @@ def session_for(experiment: str, opts):
         s.close()
         o = s.overhead()
         if o is not None:
-            from slc.core import io
             io.write_json(out / "jobs.json", {"summary": o, "jobs": s.stats})
             print(f"jobs: {o['jobs']} run, median job {o['median_job_s']:.2f} s; median overhead "
                   f"{o['median_overhead_s']:.3f} s ({o['overhead_pct']:.2f}%), of which job machinery "

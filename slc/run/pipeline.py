@@ -25,6 +25,7 @@ from slc.core import check
 from slc.scene import gbuffer as gbuf
 from slc.reference import references
 from slc.reference.groundtruth import GT_SAMPLES
+from slc import methods
 from slc.methods import FrameContext, Method
 from slc.reference.metrics import evaluate
 from slc.core.timing import KernelCounter, StageTimer
@@ -181,3 +182,15 @@ def _mean(vals):
         finite = [v for v in vals if np.isfinite(v)]
         return float("inf") if not finite else statistics.mean(finite)
     return statistics.mean(vals) if vals else float("nan")
+
+
+def run_case(scene, spec: str, viewers, cfg, bar=None, seed: int = 0, **extra) -> dict:
+    """One (scene, method, viewers) sequence -> a results row."""
+    m = methods.create(spec, scene, seed=seed)
+    if bar is not None:
+        bar.set_postfix_str(f"{scene.name}/{spec}/{len(viewers)}v")
+    res = run_sequence(scene, m, viewers, cfg, progress=bar)
+    row = {"scene": scene.name, **res.row(), "setting": spec, "label": m.label or m.name,
+           "resolution": f"{cfg.width}x{cfg.height}", **extra}
+    row["_result"] = res
+    return row

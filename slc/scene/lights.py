@@ -227,3 +227,21 @@ def mis_weight(a, b):
     """Power heuristic a^2 / (a^2 + b^2), 0 where both pdfs are 0."""
     a2, b2 = dr.square(a), dr.square(b)
     return dr.select(a2 > 0.0, a2 / (a2 + b2), 0.0)
+
+
+def light_inputs(scene) -> list:
+    """The Dr.Jit arrays of the scene's emitter table (:mod:`slc.scene.emitter_sampling`;
+    empty with Mitsuba's sampling), refreshed for moved emissive meshes. A frozen
+    function may read only arrays reachable from its inputs: passing these makes
+    the table an input (read at each replay, so a refreshed table is followed)."""
+    s = sampler(scene)
+    if s is None:
+        return []
+
+    def arrays(v):
+        if isinstance(v, dr.ArrayBase):
+            return [v]
+        if isinstance(v, (list, tuple)):
+            return [a for x in v for a in arrays(x)]
+        return []
+    return [a for k in sorted(vars(s)) for a in arrays(vars(s)[k])]

@@ -34,9 +34,13 @@ from typing import Callable
 import numpy as np
 
 from slc.core import backend
+from slc.core.spec import SpecError, parse_spec
 
 backend.init()
 import mitsuba as mi  # noqa: E402
+
+from slc.scene.emitter_sampling import for_scene  # noqa: E402
+from slc.scene.lights import forget  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SCENES_DIR = REPO_ROOT / "scenes"
@@ -266,7 +270,6 @@ def _release_tables(scene_id: int) -> None:
         _WRAPPERS[scene_id] = n
         return
     _WRAPPERS.pop(scene_id, None)
-    from slc.scene.lights import forget
     forget(scene_id)
 
 
@@ -307,7 +310,6 @@ class Scene:
         self.time = None
         self._params = mi.traverse(mi_scene) if self.animated else None
         check_emitters(mi_scene, name)
-        from slc.scene.emitter_sampling import for_scene
         for_scene(mi_scene)   # the emitter table, built here: never inside a symbolic loop
         # per-scene tables (emitter table, BSDF flags) hold the scene's emitters and
         # shapes: dropped with the last Scene of this mi.Scene, so that a freed scene
@@ -346,7 +348,6 @@ class Scene:
                 N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
                 self._params[f"{a.shape_id}.vertex_normals"] = mi.Float(N.astype(np.float32).ravel())
         self._params.update()
-        from slc.scene.emitter_sampling import for_scene
         for_scene(self.mi_scene)   # re-read moved emissive meshes outside kernels
         self.time = t
 
@@ -589,11 +590,10 @@ def _import_definition(path: Path):
 def parse_scene_spec(spec: str) -> tuple[str, dict]:
     """``"hangar:lights=24"`` -> ``("hangar", {"lights": "24"})``, the syntax of
     method specs (values stay strings; each scene's ``build`` converts its own)."""
-    from slc.methods import MethodError, parse_spec
     try:
-        return parse_spec(spec)
-    except MethodError as e:
-        raise SceneError(str(e).replace("method setting", "scene option")) from None
+        return parse_spec(spec, "scene option")
+    except SpecError as e:
+        raise SceneError(str(e)) from None
 
 
 def load(name_or_path: str, **options) -> Scene:

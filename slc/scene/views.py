@@ -22,7 +22,8 @@ from typing import Callable
 
 import numpy as np
 
-from slc.scene.scenes import Camera, Scene, SceneError
+from slc.scene.gbuffer import render_gbuffer
+from slc.scene.scenes import Camera, CameraPath, Scene, SceneError
 
 INTEROCULAR_M = 0.064
 RIGS = ("single", "random", "overlap", "stereo", "meeting")
@@ -136,7 +137,6 @@ def random_viewers(scene: Scene, n: int, seed: int = 0) -> list[Viewer]:
     64% and 45% (the views share the ground floor). Figures per scene in
     ``docs/experiments.md``; the experiments report ``overlap_start`` and
     ``overlap_4s`` per run."""
-    from slc.scene.scenes import CameraPath
     lo, hi = scene.bbox_min, scene.bbox_max
     ext = hi - lo
     c = np.asarray(scene.meeting_center, float)
@@ -261,7 +261,6 @@ def _scene_window(scene: Scene, p) -> tuple[float, float, float, float]:
     a surface, in tangent units of the camera's basis (x right, y up), from a
     G-buffer at ``CALIBRATION_RES``."""
     import mitsuba as mi
-    from slc.scene.gbuffer import render_gbuffer
     cam = p.at(0)
     w, h = CALIBRATION_RES
     gb = render_gbuffer(scene, cam, w, h, None, "window")
@@ -324,7 +323,6 @@ def _rig(p, n: int, step: float, aspect: float, pivot: str, window=None):
 
 def _fan_overlap(scene: Scene, p, n: int, step: float, aspect: float, pivot: str = "eye", window=None) -> float:
     """Mean measured overlap of a fan over ``CALIBRATION_FRAMES``."""
-    from slc.scene.gbuffer import render_gbuffer
     w, h = CALIBRATION_RES
     w = max(int(round(h * aspect)), 1)
     vs = _rig(p, n, step, aspect, pivot, window)

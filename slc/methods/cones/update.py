@@ -27,7 +27,7 @@ import mitsuba as mi
 from slc.core.keys import STREAM_CONE_UPDATE, keyed_rng, mixed_rng
 from slc.core.freeze import FrozenFunction
 from slc.osc.protocol import entry_start
-from slc.scene.lights import sample_light
+from slc.scene.lights import light_inputs, sample_light
 
 INF = float("inf")
 # A stream of its own for the per-entry shift of the stratified update samples
@@ -495,25 +495,6 @@ def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_
         seeds=seeds, has_seed=has_seed, area_only=area_only)
     dr.eval(*words, motion, shrunk, dropped)
     return words, motion, shrunk, dropped
-
-
-def light_inputs(scene) -> list:
-    """The Dr.Jit arrays of the scene's emitter table (:mod:`slc.scene.emitter_sampling`;
-    empty with Mitsuba's sampling), refreshed for moved emissive meshes. A frozen
-    function may read only arrays reachable from its inputs: passing these makes
-    the table an input (read at each replay, so a refreshed table is followed)."""
-    from slc.scene.lights import sampler
-    s = sampler(scene)
-    if s is None:
-        return []
-
-    def arrays(v):
-        if isinstance(v, dr.ArrayBase):
-            return [v]
-        if isinstance(v, (list, tuple)):
-            return [a for x in v for a in arrays(x)]
-        return []
-    return [a for k in sorted(vars(s)) for a in arrays(vars(s)[k])]
 
 
 class ConeUpdate(FrozenFunction):

@@ -40,15 +40,15 @@ def _p3(a):
     return mi.Point3f(_f(a[:, 0]), _f(a[:, 1]), _f(a[:, 2]))
 
 
-def _u(a):
+def as_u32(a):
     return mi.UInt32(aligned(a, np.uint32))
 
 
-def _b(a):
+def as_bool(a):
     return mi.Bool(aligned(a, np.bool_))
 
 
-def _np3(v, k: int) -> np.ndarray:
+def to_np3(v, k: int) -> np.ndarray:
     """(k, 3) numpy copy of a 3-vector Dr.Jit array (broadcast if width 1)."""
     cols = [np.broadcast_to(np.array(v[i], np.float64).ravel(), (k,)) for i in range(3)]
     return np.stack(cols, axis=1)
@@ -94,9 +94,9 @@ def sample_surface(mi_scene: mi.Scene, n_points: int, seed: int = 1):
         si.wi = mi.Vector3f(0.0, 0.0, 1.0)
         si.sh_frame = mi.Frame3f(si.n)
         alb = s.bsdf().eval_diffuse_reflectance(si)
-        P.append(_np3(ps.p, k))
-        N.append(_np3(ps.n, k))
-        A.append(_np3(mi.Color3f(alb), k))
+        P.append(to_np3(ps.p, k))
+        N.append(to_np3(ps.n, k))
+        A.append(to_np3(mi.Color3f(alb), k))
     P, N, A = np.concatenate(P), np.concatenate(N), np.concatenate(A)
     N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
     return P, N, np.clip(A, 0.0, 1.0), total / max(len(P), 1)
@@ -141,8 +141,8 @@ class SceneHierarchy:
         self.normal = _p3(nrm)
         self.cone = _f(cone)
         self.colour = mi.Color3f(*[_f(col[:, i]) for i in range(3)])
-        self.first_child = _u(t.first_child)
-        self.child_count = _u(t.child_count)
+        self.first_child = as_u32(t.first_child)
+        self.child_count = as_u32(t.child_count)
         self.leaf_radius = float(t.cell_radius[-1])
 
     @property
@@ -222,11 +222,11 @@ class ViewHierarchy:
         self.dir = _p3(dirs)
         self.theta = _f(theta)
         self.phi = _f(np.full(len(centre), phi))
-        self.first_child = _u(first_child)
-        self.child_count = _u(child_count)
-        self.n_views = _u(n_views)
-        self.parent = _u(np.maximum(self.parent_np, 0))
-        self.leaf_of_view = _u(self.leaf_of_view_np)
+        self.first_child = as_u32(first_child)
+        self.child_count = as_u32(child_count)
+        self.n_views = as_u32(n_views)
+        self.parent = as_u32(np.maximum(self.parent_np, 0))
+        self.leaf_of_view = as_u32(self.leaf_of_view_np)
 
     def memory_bytes(self) -> int:
         """256 bits per node (ManyLoDs: 256 bits per view)."""

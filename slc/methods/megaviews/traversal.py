@@ -69,7 +69,7 @@ import mitsuba as mi
 import numpy as np
 
 from slc.methods.megaviews import paraboloid as pb
-from slc.methods.megaviews.hierarchy import SceneHierarchy, ViewHierarchy, _u
+from slc.methods.megaviews.hierarchy import SceneHierarchy, ViewHierarchy, as_u32
 
 INV_SQRT3 = 1.0 / math.sqrt(3.0)  # sphere radius -> half edge of the cubic voxel
 PAIR_BYTES = 8          # two 32-bit node ids, as in the paper (64 bits per pair)
@@ -306,7 +306,7 @@ class Traversal:
         chunks = [(a, min(a + self.budget, n0)) for a in range(0, n0, self.budget)]
         stack = []
         for a, b in reversed(chunks):
-            qs, qv = _u(qs_np[a:b]), _u(qv_np[a:b])   # aligned: see hierarchy.aligned
+            qs, qv = as_u32(qs_np[a:b]), as_u32(qv_np[a:b])   # aligned: see hierarchy.aligned
             dr.make_opaque(qs, qv)   # a one-pair start (a pass root) must not become a kernel literal
             stack.append(("queue", qs, qv))
         live, processed = n0, 0

@@ -45,7 +45,7 @@ import numpy as np
 from slc.scene.gbuffer import to_image  # noqa: F401  (callers use vpl.to_image)
 from slc.scene.lights import rng
 from slc.methods.megaviews import traversal as tv
-from slc.methods.megaviews.hierarchy import ViewHierarchy, _b, _np3, _u
+from slc.methods.megaviews.hierarchy import ViewHierarchy, as_bool, as_u32, to_np3
 
 
 @dataclass
@@ -134,7 +134,7 @@ def _generate(mi_scene: mi.Scene, n: int, bounces: int = 1, seed: int = 0) -> VP
     dr.eval(si, flux, wi_world)
     # numpy copies one component at a time: converting a 3-vector whole runs a
     # kernel with the VPL count baked in (component strides), rebuilt per frame
-    P, N, wi_world = _np3(si.p, dr.width(flux)), _np3(si.n, dr.width(flux)), _np3(wi_world, dr.width(flux))
+    P, N, wi_world = to_np3(si.p, dr.width(flux)), to_np3(si.n, dr.width(flux)), to_np3(wi_world, dr.width(flux))
     side = np.sign(np.sum(N * wi_world, axis=1))
     N = N * np.where(side == 0, 1.0, side)[:, None]
     return VPLSet(si, flux, P, N, np.concatenate(all_b) if all_b else np.zeros(0))
@@ -178,13 +178,13 @@ def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cu
     V = cull_tree if cull_tree is not None else maps.view_h
     if V.flat:
         raise ValueError("gathering needs an octree view hierarchy for culling")
-    order = _u(V.tree.order)
+    order = as_u32(V.tree.order)
     nodes_np, skip_np, accept_np = cull_walk(V, cull_level)
-    nodes = _u(nodes_np)
-    first = _u(V.tree.first_point[nodes_np])
-    count = _u(V.tree.point_count[nodes_np])
-    skip = _u(skip_np)
-    accept = _b(accept_np)
+    nodes = as_u32(nodes_np)
+    first = as_u32(V.tree.first_point[nodes_np])
+    count = as_u32(V.tree.point_count[nodes_np])
+    skip = as_u32(skip_np)
+    accept = as_bool(accept_np)
     ncentre = dr.gather(mi.Point3f, V.centre, nodes)
     nradius = dr.gather(mi.Float, V.radius, nodes)
     ndir = mi.Vector3f(dr.gather(mi.Point3f, V.dir, nodes))

@@ -5,10 +5,10 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.core.freeze import FrozenFunction
-from slc.scene.lights import direct_sample, sample_light_reference, visible
+from slc.scene.lights import direct_sample, light_inputs
 from slc.methods import MethodError, Param, register
 from slc.methods import Method
-from slc.reference.references import _STREAM_INDIRECT, indirect_paths
+from slc.reference.references import STREAM_INDIRECT, indirect_paths
 
 _STREAM_DIRECT = 3
 
@@ -24,7 +24,7 @@ def _pt_kernel(scene, lights, si0, active0, s_ind, s_dir, spp: int, bounces: int
     """The estimator of :class:`PathTracing` for the points ``si0`` (``active0`` valid), random
     streams from the init states ``s_ind`` / ``s_dir``. The indirect part is
     :func:`slc.reference.references.indirect_light` line for line (same streams: the same numbers for the
-    same seed); ``lights`` (:func:`slc.methods.cones.update.light_inputs`) declares the emitter table
+    same seed); ``lights`` (:func:`slc.scene.lights.light_inputs`) declares the emitter table
     read by the project's light sampling (direct part) as an input."""
     idx = dr.arange(mi.UInt64, dr.width(active0))
 
@@ -90,13 +90,12 @@ class PathTracing(Method):
             raise MethodError(f"{self.name}: output must be full or indirect")
 
     def shade(self, gb, frame: int, v: int) -> mi.Color3f:
-        from slc.methods.cones.update import light_inputs
         if self._kernel is None:
             self._kernel = FrozenFunction(_pt_kernel, bool(self.freeze),
                                           animated=bool(getattr(self.scene, "dynamic", False)))
         sc, seed = self.scene.mi_scene, self.seed_for(frame, v)
         return self._kernel(sc, light_inputs(sc), gb.si, mi.Bool(gb.valid),
-                            _stream_state(seed, _STREAM_INDIRECT + int(self.bounces)),
+                            _stream_state(seed, STREAM_INDIRECT + int(self.bounces)),
                             _stream_state(seed, _STREAM_DIRECT), int(self.spp), int(self.bounces),
                             self.output == "full")
 

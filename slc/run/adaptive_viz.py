@@ -3,10 +3,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import drjit as dr
 import numpy as np
 
+from slc import methods
 from slc.core import io
+from slc.core.timing import NullTimer
+from slc.methods import FrameContext
 from slc.methods.adaptive.choice import CONES, NONE, SH, VIS, NAMES
+from slc.run.experiment import each_scene
+from slc.run.pipeline import gbuffers_for
+from slc.scene import gbuffer, views
 
 #: display colours (linear RGB in [0, 1]) of the representations
 COLOURS = {NONE: (0.0, 0.0, 0.0), VIS: (1.0, 0.55, 0.05), CONES: (0.15, 0.4, 1.0), SH: (0.2, 0.8, 0.25)}
@@ -24,14 +31,6 @@ def run_choice(scene, spec: str = "adaptive", width: int = 160, height: int = 90
                viewers=None, seed: int = 0):
     """Run ``spec`` (an adaptive method) for ``frames`` frames on the scene's
     single-viewer rig; returns (tags (H, W), composed image (H, W, 3), method)."""
-    import drjit as dr
-
-    from slc.scene import gbuffer, views
-
-    from slc import methods
-    from slc.methods import FrameContext
-    from slc.run.pipeline import gbuffers_for
-    from slc.core.timing import NullTimer
     m = methods.create(spec, scene, seed=seed)
     vs = viewers or views.single(scene)
     for f in range(frames):
@@ -79,7 +78,6 @@ def add_choice_section(opts, name: str, results: dict, field: str) -> dict:
     a false-colour image of the choice per scene variant
     (``images/SCENE_choice.png``), for the adaptive specs among the results'
     methods. Returns ``results``."""
-    from slc.run.experiment import each_scene
     out_dir = Path(opts.out) / name
     c = results["config"]
     width, height, frames = c["width"], c["height"], c["frames"]
