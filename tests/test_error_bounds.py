@@ -1,8 +1,8 @@
-"""Error bounds of every method family on built-in scenes (slc/reference/bounds.py, docs/error-bounds.md).
+"""Error bounds of every method family on built-in scenes (slc/run/bounds.py, docs/error-bounds.md).
 
 Each scene is measured once per module (every method and its ratio partner in this
 process, the scene loaded once) and every (scene, method) row is judged against
-tests/data/error_bounds.json by slc.reference.bounds.compare, the comparison the recording
+tests/data/error_bounds.json by slc.run.bounds.compare, the comparison the recording
 tool prints: a figure more than 10% worse fails, more than 10% better warns
 (re-record with ``python tools/record_error_bounds.py``).
 """

@@ -4,9 +4,9 @@
     python tools/record_error_bounds.py --scene cornell # only these scenes (the others' rows are kept)
     python tools/record_error_bounds.py --dry-run       # print changes, write nothing
 
-Every (scene, method) of slc.reference.bounds.SCENES x slc.reference.bounds.METHODS is run once at
-slc.reference.bounds.CONFIG (160x90, a few frames) and compared with the recorded row by
-slc.reference.bounds.compare, the comparison tests/test_error_bounds.py makes: each figure
+Every (scene, method) of slc.run.bounds.SCENES x slc.run.bounds.METHODS is run once at
+slc.run.bounds.CONFIG (160x90, a few frames) and compared with the recorded row by
+slc.run.bounds.compare, the comparison tests/test_error_bounds.py makes: each figure
 is printed as worse (> +10%: the test would fail), better (< -10%: the test asks
 for a re-record), new or missing; unchanged figures are counted. References come
 from the disk cache ($SLC_CACHE) when present. Exit status: 0, or 2 on bad input.
@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scene", action="append", default=None,
-                   help="scene to measure (repeatable; default: every scene of slc.reference.bounds.SCENES)")
+                   help="scene to measure (repeatable; default: every scene of slc.run.bounds.SCENES)")
     p.add_argument("--dry-run", action="store_true", help="print the changes, do not write the table")
     p.add_argument("--table", default=None, help="table path (default: tests/data/error_bounds.json)")
     opts = p.parse_args(argv)
@@ -38,7 +38,7 @@ def main(argv=None) -> int:
     names = opts.scene or list(bounds.SCENES)
     unknown = [n for n in names if n not in bounds.SCENES]
     if unknown:
-        print(f"record_error_bounds: error: scene '{unknown[0]}' is not in slc.reference.bounds.SCENES "
+        print(f"record_error_bounds: error: scene '{unknown[0]}' is not in slc.run.bounds.SCENES "
               f"({', '.join(bounds.SCENES)})", file=sys.stderr)
         return 2
     table = bounds.load_table(table_path)

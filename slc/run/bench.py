@@ -14,6 +14,7 @@ from other processes on a shared machine hits both samplers alike.
 """
 from __future__ import annotations
 
+import dataclasses
 import statistics
 import time
 
@@ -26,6 +27,7 @@ from slc.core.keys import STREAM_CONE_UPDATE
 from slc.methods.cones.packing import gather_words, unpack
 from slc.methods.cones.update import frame_rng, frame_u32, shrink_test_plan
 from slc.methods.rt.method import RandomLightSampling
+from slc.run.experiment import runs_in_turn
 from slc.run.pipeline import RunConfig, gbuffers_for, run_sequence
 from slc.scene import scenes, views
 from slc.scene.lights import emitter_sampling_as, rng, sample_light, sampler, visible
@@ -316,11 +318,6 @@ def bench_ab(scene_name: str, spec_a: str, spec_b: str, width: int = 160, height
     :data:`slc.reference.references.INDIRECT_SAMPLES`) and the md5 of the last frame's image in every
     repetition (equal digests of A and B: bit-identical images). ``ratio``: the median of B / A
     taken within each repetition, the ratio a drifting load on a shared machine moves least."""
-    import dataclasses
-
-    from slc import methods
-    from slc.run.experiment import runs_in_turn
-    from slc.run.pipeline import RunConfig
     if frames < 1 or repeats < 1:
         raise ValueError("bench ab: frames and repeats must be at least 1")
     warmup = frames // 3 if warmup is None else warmup

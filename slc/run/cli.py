@@ -224,6 +224,7 @@ def bench_ab(spec_a, spec_b, scene_names, res, frames, warmup, repeats, seed, re
     """Two method settings (e.g. osc-gi osc-gi:sharp=0.2) timed in turn in one process on one viewer:
     median time per frame of each, the ratio B / A within each repetition, the metrics of the last
     frame against its reference and each image's md5 (a bit-identical refactor shows equal digests)."""
+    # after --variant (the module builds Mitsuba types on import)
     from slc.run.bench import ab_report_lines, bench_ab as run
     w, h = _parse_res(res)
     if frames < 1 or repeats < 1:
@@ -237,7 +238,7 @@ def bench_ab(spec_a, spec_b, scene_names, res, frames, warmup, repeats, seed, re
         for line in ab_report_lines(r):
             click.echo(line)
     if json_path:
-        from slc.core import io
+        from slc.core import io  # after --variant, as above
         io.write_json(Path(json_path), out)
 
 

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from slc import methods
 from slc.core import io
-from slc.core.backend import env_info
+from slc.core.backend import code_version, env_info
 from slc.run import jobs
 from slc.run.errors import ExperimentError
 from slc.run.pipeline import RunConfig, run_sequence
@@ -355,11 +355,12 @@ def load_and_validate(scene_names: list[str], method_specs: list[str], explicit_
                                       f"light (use 'slc run megaviews')")
         names.append(name)
         del s
-    _release()
+    release_scenes()
     return names
 
 
-def _release() -> None:
+def release_scenes() -> None:
+    """Free the scenes no longer referenced (see :func:`each_scene`)."""
     gc.collect()
     gc.collect()
 
@@ -377,7 +378,7 @@ def each_scene(names: list[str]):
         s.source = name  # what loads it again (jobs run elsewhere)
         yield s
         del s
-        _release()
+        release_scenes()
 
 
 def strip_private(rows: list[dict]) -> list[dict]:
@@ -453,7 +454,6 @@ def add_to_frame_exr(out: Path, scene, label: str, im: dict) -> Path:
 
     import numpy as np
 
-    from slc.core.backend import code_version
     frame = int(im.get("frame", -1))
     path = out / "images" / f"{_file_name(scene.name)}_frame{frame}.exr"
     layers, meta = {}, {}

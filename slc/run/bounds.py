@@ -37,6 +37,11 @@ import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from slc import methods as registry
+from slc.run.experiment import release_scenes
+from slc.run.pipeline import RunConfig, run_sequence
+from slc.scene import scenes, views
+
 TABLE = Path(__file__).resolve().parents[1] / "tests" / "data" / "error_bounds.json"
 TOLERANCE = 0.10
 FIGURES = ("flip", "rel_mse")
@@ -112,10 +117,6 @@ def measure_scene(scene_name: str, methods=METHODS, cfg: Config = CONFIG, progre
     """{method: {"partner", "flip", "rel_mse"[, "flip_ratio", "rel_mse_ratio"]}} of one
     scene: every method of ``methods`` (and the partners they need) run once in this
     process, the scene loaded once. ``progress(spec)`` is called before each run."""
-    from slc import methods as registry
-    from slc.scene import scenes, views
-    from slc.run.experiment import _release
-    from slc.run.pipeline import RunConfig, run_sequence
 
     def run_cfg(spec):
         n = 1 if registry.parse_spec(spec)[0] in STATELESS else cfg.frames
@@ -138,7 +139,7 @@ def measure_scene(scene_name: str, methods=METHODS, cfg: Config = CONFIG, progre
             made[spec] = None            # release the method's state before the next run
     finally:
         del scene
-        _release()
+        release_scenes()
     out = {}
     for spec, r in raw.items():
         p = partner_of(r["output"])
