@@ -10,8 +10,9 @@ Layers, bottom to top (a module may import from its own layer and the layers bel
     method     one folder per method under slc/methods/ (baselines included)
     run        the frame loop, experiments, jobs, the command line, benchmarks
 
-Method folders do not import each other, except through the modules a method names in ``SHARED``
-below (``adaptive`` is built from the cone and SH representations).
+Method folders do not import each other, except the representations named in ``SHARED`` below:
+``adaptive`` is built from the cone and SH representations, and the SH basis, projection, YCoCg
+encodings and shading of ``slc/methods/sh`` serve the other SH caches (``crc``, ``osc-gi``).
 """
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ PKG = ROOT / "slc"
 
 RANK = {"core": 0, "scene": 1, "reference": 2, "methods": 3, "osc": 4, "method": 5, "run": 6}
 # method folders whose modules other methods may import (representations reused by a composite method)
-SHARED = {"adaptive": {"cones", "sh"}}
+SHARED = {"adaptive": {"cones", "sh"}, "crc": {"sh"}, "oscgi": {"sh"}}
 MAX_LINES, MAX_LONG, LONG = 650, 5, 450
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from slc.methods.cones.update import light_inputs
+from slc.scene.lights import light_inputs
 from slc.core.freeze import FrozenFunction
 from slc.scene.gbuffer import layered, per_viewer, viewer_lanes
 from slc.core.keys import INVALID, keyed_rng, stream_key

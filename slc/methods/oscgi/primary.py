@@ -11,7 +11,7 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.core.backend import aligned
-from slc.methods.cones.update import light_inputs
+from slc.scene.lights import light_inputs
 from slc.core.keys import INVALID, stream_key
 from slc.osc.protocol import EntryStart, entry_start
 from slc.methods.oscgi.kernels import STREAM_GLOSSY, STREAM_PRIMARY, STREAM_PRIMARY_DIRECT

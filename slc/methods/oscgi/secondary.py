@@ -52,7 +52,7 @@ import mitsuba as mi
 import numpy as np
 
 from slc.core.backend import aligned
-from slc.methods.cones.update import light_inputs
+from slc.scene.lights import light_inputs
 from slc.core.freeze import FrozenFunction
 from slc.core.keys import INVALID, stream_key
 from slc.methods.oscgi.cells import (EMPTY, NO_RING, REP_WORDS, STREAM_SECONDARY, CacheHits, CellHits, GlossyHits, cell_key,
