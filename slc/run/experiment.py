@@ -28,7 +28,7 @@ from pathlib import Path
 from slc import methods
 from slc.core import io
 from slc.core.backend import code_version, env_info
-from slc.run import jobs
+from slc.run import jobs, jobspec
 from slc.run.errors import ExperimentError
 from slc.run.pipeline import RunConfig, run_sequence
 from slc.scene import scenes, views
@@ -563,7 +563,7 @@ def run_per_scene(names, make_cases, cfg, desc: str, seed: int = 0, keep_images:
     """For each scene (one alive at a time), ``make_cases(scene)`` gives
     (spec, viewers, extra-fields) tuples; returns all rows, in that order.
 
-    The cases of every scene become jobs first (:func:`slc.run.jobs.jobs_from_cases`:
+    The cases of every scene become jobs first (:func:`slc.run.jobspec.jobs_from_cases`:
     the viewers are frozen into cameras, so no live scene is kept), then all
     jobs run under one progress bar, serially or on Ray (``--workers``,
     ``--address``), resumable (``--resume``). ``keep_images``/``on_result``:
@@ -572,11 +572,11 @@ def run_per_scene(names, make_cases, cfg, desc: str, seed: int = 0, keep_images:
     js, n, live = [], 0, {}
     for i, s in enumerate(each_scene(names)):
         cases = [(s, *c) for c in make_cases(s)]
-        js += jobs.jobs_from_cases(session.experiment, cases, cfg, seed, keep_images, start=n)
+        js += jobspec.jobs_from_cases(session.experiment, cases, cfg, seed, keep_images, start=n)
         n += len(cases)
         del cases
         if i == len(names) - 1 and not session.distributed:
-            live = {jobs.scene_source(s): s}  # a serial run starts with the scene still loaded
+            live = {jobspec.scene_source(s): s}  # a serial run starts with the scene still loaded
         del s
     js.sort(key=lambda j: j.scene not in live)  # stable: that scene's jobs first
     rows = session.run(js, desc, scenes=live, on_result=on_result)
@@ -593,8 +593,8 @@ def run_cases(cases, cfg, desc: str, seed: int = 0, keep: bool = False) -> list[
     from types import SimpleNamespace
 
     session = jobs.current(desc.split()[0])
-    js = jobs.jobs_from_cases(session.experiment, cases, cfg, seed, keep_images=keep)
-    live = {jobs.scene_source(s): s for s, *_ in cases}
+    js = jobspec.jobs_from_cases(session.experiment, cases, cfg, seed, keep_images=keep)
+    live = {jobspec.scene_source(s): s for s, *_ in cases}
     rows = _in_case_order(js, session.run(js, desc, scenes=live))
     if keep:  # from this run, or committed with the job by the run that --resume continues
         images = {c.index: im for j in js for c, im in zip(j.cases, jobs.images_of(session, j))}

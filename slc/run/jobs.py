@@ -1,8 +1,7 @@
 """Experiments as jobs: run here or on Ray, resumable, the same rows either way.
 
-Why one long module: the job description, its atomic row store, the serial runner and the
-resume/retry logic must agree on one key and one file layout; Ray lives apart in
-:mod:`slc.run.cluster`.
+The job description lives in :mod:`slc.run.jobspec`, the committed rows in :mod:`slc.run.rowstore`,
+Ray in :mod:`slc.run.cluster`.
 
 A :class:`Job` is one unit of work that can be retried on its own: one scene
 and a list of :class:`Case` s (method spec, viewers, extra row fields) that
@@ -45,28 +44,24 @@ failed ones.
 from __future__ import annotations
 
 import gc
-import hashlib
-import json
 import os
 import socket
 import statistics
 import sys
-import tempfile
 import time
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import drjit as dr
-import numpy as np
 
 from slc.core import io
 from slc.core.backend import variant
 from slc.core.check import CheckError
 from slc.run.errors import ExperimentError, raise_fatal
+from slc.run.jobspec import Case, Job
 from slc.run.pipeline import run_case
+from slc.run.rowstore import RowStore, normalize_rows
 from slc.scene import scenes
-from slc.scene.views import Viewer
 
 # Row fields that depend on the run, not on the job's inputs: how long things
 # took and where/how the job ran. Everything else must be identical between a
@@ -77,119 +72,6 @@ RUN_FIELDS = ("host", "threads", "backend", "job")
 
 class JobsFailed(RuntimeError):
     """Some jobs still failed after their retries (one-line summary)."""
-
-
-# -----------------------------------------------------------------------------
-# Jobs as data
-# -----------------------------------------------------------------------------
-
-class FrozenPose:
-    """A viewer's camera at a fixed set of frames (picklable stand-in for a
-    :class:`~slc.scene.views.Viewer` pose function)."""
-
-    def __init__(self, cameras: dict):
-        self.cameras = cameras
-
-    def __call__(self, frame):
-        try:
-            return self.cameras[int(frame)]
-        except KeyError:
-            raise KeyError(f"frame {frame} is outside the frames this job was built for "
-                           f"({min(self.cameras)}-{max(self.cameras)})") from None
-
-
-@dataclass(frozen=True)
-class Rig:
-    """Viewers as data: ``(name, rig, {frame: Camera})`` per viewer, for the
-    frames ``cfg`` renders (and the frame before each, for motion)."""
-    viewers: tuple
-
-    @classmethod
-    def from_viewers(cls, viewers, cfg) -> "Rig":
-        first = max(cfg.start_frame - 1, 0)
-        frames = range(first, cfg.start_frame + cfg.frames)
-        return cls(tuple((v.name, v.rig, {f: v.camera(f) for f in frames}) for v in viewers))
-
-    def build(self) -> list:
-        return [Viewer(name, FrozenPose(cams), rig) for name, rig, cams in self.viewers]
-
-    def __len__(self) -> int:
-        return len(self.viewers)
-
-    def fingerprint(self) -> str:
-        h = hashlib.sha1()
-        for name, rig, cams in self.viewers:
-            h.update(f"{name}|{rig}|".encode())
-            for f in sorted(cams):
-                c = cams[f]
-                h.update(str(f).encode())
-                for a in (c.origin, c.target, c.up, [c.fov]):
-                    h.update(np.asarray(a, np.float64).tobytes())
-        return h.hexdigest()[:16]
-
-
-@dataclass(frozen=True)
-class Case:
-    """One (method, viewers) sequence of a job -> one row. ``index`` is the
-    case's place in the experiment's order (not part of the key)."""
-    spec: str
-    rig: Rig
-    extra: dict = field(default_factory=dict)
-    index: int = 0
-
-
-@dataclass
-class Job:
-    """Cases on one scene, run in order in one process (see the module).
-
-    ``scene`` is what :func:`slc.scene.scenes.load` takes (a built-in name or a
-    path, which must then exist on every worker); ``keep_images`` returns the
-    evaluated images to the driver (for the experiment's image files)."""
-    experiment: str
-    scene: str
-    cases: tuple
-    cfg: object
-    seed: int = 0
-    keep_images: bool = False
-
-    @property
-    def key(self) -> str:
-        k = getattr(self, "_key", None)
-        if k is None:
-            desc = {"experiment": self.experiment, "scene": self.scene, "cfg": asdict(self.cfg), "seed": self.seed,
-                    "keep_images": self.keep_images,
-                    "cases": [[c.spec, c.extra, c.rig.fingerprint()] for c in self.cases]}
-            h = hashlib.sha1(json.dumps(desc, sort_keys=True, default=repr).encode()).hexdigest()[:12]
-            safe = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in Path(self.scene).stem)
-            k = self._key = f"{safe}-{h}"
-        return k
-
-    def describe(self) -> str:
-        n = sorted({len(c.rig) for c in self.cases})
-        rigs = sorted({str(c.extra.get("rig", "")) for c in self.cases} - {""})
-        specs = list(dict.fromkeys(c.spec for c in self.cases))
-        return (f"{Path(self.scene).stem} {'/'.join(rigs) + ' ' if rigs else ''}"
-                f"{','.join(map(str, n))}v [{' '.join(specs)}]")
-
-
-def scene_source(scene) -> str:
-    """What loads ``scene`` again (set by :func:`slc.run.experiment.each_scene`)."""
-    return getattr(scene, "source", None) or scene.name
-
-
-def jobs_from_cases(experiment: str, cases, cfg, seed: int = 0, keep_images: bool = False,
-                    start: int = 0) -> list[Job]:
-    """(scene, spec, viewers, extra) cases -> jobs, one per (scene, viewers):
-    every method of one comparison runs in the same job, in the given order.
-    Cases are numbered from ``start`` (:attr:`Case.index`)."""
-    groups: dict[tuple, list] = {}
-    rigs: dict[tuple, Rig] = {}
-    for i, (s, spec, viewers, extra) in enumerate(cases):
-        rig = Rig.from_viewers(viewers, cfg)
-        g = (scene_source(s), rig.fingerprint())
-        rigs.setdefault(g, rig)
-        groups.setdefault(g, []).append(Case(spec, rigs[g], dict(extra), start + i))
-    return [Job(experiment, src, tuple(cs), cfg, seed, keep_images) for (src, _), cs in groups.items()]
 
 
 # -----------------------------------------------------------------------------
@@ -262,112 +144,6 @@ class Runner:
         except Exception as e:
             msg = str(e).strip().splitlines()
             return {"error": f"{type(e).__name__}: {msg[0] if msg else ''}".strip()}
-
-
-# -----------------------------------------------------------------------------
-# Committed rows
-# -----------------------------------------------------------------------------
-
-def _write_durable(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` atomically and durably: temp file in the
-    same folder, fsync, rename, fsync the folder."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".part", dir=path.parent)  # never matches *.json
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    try:
-        dfd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-    except OSError:
-        pass
-
-
-def _json_default(o):
-    if isinstance(o, np.floating):
-        return float(o)
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, np.bool_):
-        return bool(o)
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serializable: {type(o).__name__}")
-
-
-def _normalize(rows: list[dict]) -> list[dict]:
-    """Rows as they read back from their file (a resumed run and a fresh one
-    hand the experiment exactly the same values)."""
-    return json.loads(json.dumps(rows, default=_json_default, allow_nan=True))
-
-
-class RowStore:
-    """``OUT/EXPERIMENT/rows/KEY.json``, one committed file per finished job."""
-
-    def __init__(self, folder: Path | None):
-        self.folder = Path(folder) / "rows" if folder is not None else None
-
-    def path(self, job: Job) -> Path:
-        return self.folder / f"{job.key}.json"
-
-    def load(self, job: Job):
-        """The job's committed rows, or None (absent, unreadable or another key)."""
-        if self.folder is None:
-            return None
-        try:
-            d = json.loads(self.path(job).read_text())
-        except (OSError, ValueError):
-            return None
-        if d.get("key") != job.key or len(d.get("rows", [])) != len(job.cases):
-            return None
-        return d["rows"]
-
-    def images_path(self, job: Job) -> Path:
-        return self.folder / f"{job.key}.images.npz"
-
-    def save_images(self, job: Job, images: list) -> None:
-        """The evaluated images of a ``keep_images`` job (before its commit)."""
-        if self.folder is None or not job.keep_images:
-            return
-        arrays = {}
-        for i, per_case in enumerate(images):
-            for viewer, d in (per_case or {}).items():
-                for k, v in d.items():
-                    arrays[f"{i}\x1f{viewer}\x1f{k}"] = np.asarray(v)
-        io.write_npz(self.images_path(job), **arrays)
-
-    def load_images(self, job: Job) -> list:
-        """Per case, ``{viewer: {"gt", "img", "flip_map", "frame"}}`` as saved ({} when absent)."""
-        out = [{} for _ in job.cases]
-        if self.folder is None:
-            return out
-        try:
-            with np.load(self.images_path(job), allow_pickle=False) as z:
-                for name in z.files:
-                    i, viewer, k = name.split("\x1f")
-                    v = z[name]
-                    out[int(i)].setdefault(viewer, {})[k] = v.item() if v.ndim == 0 else v
-        except (OSError, ValueError):
-            pass
-        return out
-
-    def commit(self, job: Job, rows: list[dict], timing: dict) -> None:
-        if self.folder is None:
-            return
-        text = json.dumps({"key": job.key, "experiment": job.experiment, "scene": job.scene,
-                           "job": job.describe(), "timing": timing, "rows": rows},
-                          indent=1, default=_json_default, allow_nan=True)
-        _write_durable(self.path(job), text)
 
 
 # -----------------------------------------------------------------------------
@@ -491,7 +267,7 @@ class Session:
         progress = _Progress(len(jobs), len(done), desc)
 
         def finished(job, res, t_submit, attempts):
-            rows = _normalize(res["rows"])
+            rows = normalize_rows(res["rows"])
             t_out = time.perf_counter()
             if on_result is not None:
                 on_result(job, rows, res)
