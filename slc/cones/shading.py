@@ -59,6 +59,8 @@ import math
 import drjit as dr
 import mitsuba as mi
 
+from .. import bsdf_table as bsdf_tables
+from ..bsdf_table import KIND_DIFFUSE, KIND_NOT_PRINCIPLED, KIND_OTHER, KIND_PRINCIPLED, ZERO_ATTRS
 from ..freeze import FrozenFunction
 from .packing import gather_words, unpack
 
@@ -153,7 +155,7 @@ def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw
             mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) & \
             ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & \
             (mi.Frame3f.cos_theta(si.wi) > 0.0)
-        for name in _ZERO_ATTRS:
+        for name in ZERO_ATTRS:
             m &= bsdf.eval_attribute_1(name, si, m) == 0.0
         return (m, mi.Color3f(bsdf.eval_attribute_3("base_color", si, m)), bsdf.eval_attribute_1("roughness", si, m),
                 bsdf.eval_attribute_1("metallic", si, m))
@@ -429,12 +431,12 @@ def _table_consts(table, bsdf, active):
     virtual calls): (kind, consts or None), the constants read lazily."""
     if table is None:
         return mi.UInt32(KIND_OTHER), None
-    t_w, t_kind, t_col, t_rough, t_metal = table
     rid = dr.reinterpret_array(mi.UInt32, bsdf)
-    t_ok = active & (bsdf != None) & (rid < t_w)  # noqa: E711 (BSDFPtr comparison)
-    kind = dr.gather(mi.UInt32, t_kind, rid, t_ok)
-    return kind, (kind, lambda: dr.gather(mi.Color3f, t_col, rid, t_ok), lambda: dr.gather(mi.Float, t_rough, rid, t_ok),
-                  lambda: dr.gather(mi.Float, t_metal, rid, t_ok))
+    t_ok = active & (bsdf != None) & (rid < table.width)  # noqa: E711 (BSDFPtr comparison)
+    kind = dr.gather(mi.UInt32, table.kind, rid, t_ok)
+    return kind, (kind, lambda: dr.gather(mi.Color3f, table.colour, rid, t_ok),
+                  lambda: dr.gather(mi.Float, table.roughness, rid, t_ok),
+                  lambda: dr.gather(mi.Float, table.metallic, rid, t_ok))
 
 
 def _horizon_terms(si, active, K, A, L, Dw, live, delta, h, zero, horizon, sin_a, cos_a):
@@ -716,74 +718,10 @@ def shader_for(owner, max_cones: int) -> ConeShading:
     return sh
 
 
-KIND_OTHER, KIND_DIFFUSE, KIND_PRINCIPLED, KIND_NOT_PRINCIPLED = 0, 1, 2, 3
-_ZERO_ATTRS = ("clearcoat", "sheen", "flatness", "anisotropic", "spec_trans")
-
-
 def bsdf_table(scene):
-    r"""Per-BSDF constants read once on the host, so that the shading kernel gathers them
-    instead of making a virtual call per pixel and attribute (``eval_attribute``,
-    ``eval_diffuse_reflectance``: about half of a principled pixel's cost, measured).
-
-    Indexed by the BSDF's registry id (``dr.reinterpret_array(mi.UInt32, bsdf)``): kind
-    ``KIND_DIFFUSE`` (Mitsuba's ``diffuse`` with a constant reflectance: that reflectance),
-    ``KIND_PRINCIPLED`` (``principled`` whose clearcoat, sheen, flatness, anisotropy and
-    specular transmission are constant 0 and whose base colour, roughness and metallic
-    are constant: those three), ``KIND_NOT_PRINCIPLED`` (other BSDFs without the
-    ``clearcoat`` or ``base_color`` attribute, which the principled closed form never
-    takes: its test of them, a few virtual calls per pixel, is skipped), else
-    ``KIND_OTHER`` (textured parameters: the kernel's virtual calls, per pixel as before). The constants are the BSDF's own
-    ``eval_attribute`` / ``eval_diffuse_reflectance`` values (a constant texture ignores
-    the point), so the images are the same bit for bit. Returns (width as an opaque
-    UInt32, kind UInt32, colour Color3f, roughness Float, metallic Float), or None for
-    scenes with instances (their BSDFs are not listed by ``scene.shapes()``)."""
-    import numpy as np
-    ms = getattr(scene, "mi_scene", scene)
-    shapes = ms.shapes()
-    if any(sh.class_name() in ("Instance", "ShapeGroup") for sh in shapes):
-        return None
-    bsdfs = {}
-    for sh in shapes:
-        b = sh.bsdf()
-        if b is not None:
-            bsdfs[int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(b))[0])] = b
-    if not bsdfs:
-        return None
-    W = max(bsdfs) + 1
-    kind = np.zeros(W, np.uint32)
-    col = np.zeros((3, W), np.float32)
-    rough = np.zeros(W, np.float32)
-    metal = np.zeros(W, np.float32)
-    si = dr.zeros(mi.SurfaceInteraction3f, 1)
-    si.wi = mi.Vector3f(0.0, 0.0, 1.0)
-    for rid, b in bsdfs.items():
-        keys = [k for k in mi.traverse(b).keys()]
-
-        def constant(name):
-            own = [k for k in keys if k == name or k.startswith(name + ".")]
-            return own == [name + ".value"]
-        if b.class_name() == "SmoothDiffuse" and constant("reflectance"):
-            kind[rid] = KIND_DIFFUSE
-            col[:, rid] = np.array(b.eval_diffuse_reflectance(si)).reshape(3)
-        elif b.class_name() == "Principled" and all(constant(a) for a in _ZERO_ATTRS + ("base_color", "roughness",
-                                                                                       "metallic")) \
-                and all(float(b.eval_attribute_1(a, si)[0]) == 0.0 for a in _ZERO_ATTRS) \
-                and _principled_flags(int(b.flags())):
-            kind[rid] = KIND_PRINCIPLED
-            col[:, rid] = np.array(b.eval_attribute_3("base_color", si)).reshape(3)
-            rough[rid] = float(b.eval_attribute_1("roughness", si)[0])
-            metal[rid] = float(b.eval_attribute_1("metallic", si)[0])
-        elif not (b.has_attribute("clearcoat") and b.has_attribute("base_color")):
-            kind[rid] = KIND_NOT_PRINCIPLED
-    return (dr.opaque(mi.UInt32, W), mi.UInt32(kind), mi.Color3f(col), mi.Float(rough), mi.Float(metal))
-
-
-def _principled_flags(f: int) -> bool:
-    """The flags :func:`_principled_cones` asks for (diffuse + glossy reflection, no
-    transmission, no Dirac lobe)."""
-    F = mi.BSDFFlags
-    return bool(f & int(F.DiffuseReflection)) and bool(f & int(F.GlossyReflection)) and \
-        not (f & int(F.Transmission)) and not (f & int(F.Delta))
+    """The scene's :class:`slc.bsdf_table.BSDFTable` (the kinds and constants the shading
+    kernel reads instead of virtual calls), None for scenes with instances."""
+    return bsdf_tables.for_scene(scene)
 
 
 def _ggx_conductors_only(scene) -> bool:

@@ -13,7 +13,7 @@ from ..cones.update import light_inputs
 from ..freeze import FrozenFunction
 from ..gbuffer import layered, per_viewer, viewer_lanes
 from ..keys import INVALID, keyed_rng, mixed_rng, stream_key
-from ..lights import SurfaceBSDF, _diffuse_table, direct_sample, sample_light, visible
+from ..lights import SurfaceBSDF, diffuse_flags, direct_sample, sample_light, visible
 from ..methods import MethodError, Param, register
 from ..osc.cache import OnSurfaceCache
 from ..osc.payload import PayloadMethod, RayPolicy
@@ -784,7 +784,7 @@ class OSCGI(PayloadMethod):
                 lay = layered(gbuffers)
                 idx = lay.pixel if lay.pixel is not None else dr.arange(mi.UInt32, lay.size)
                 k = self._k_pixel if lay.size > 1 else _pixel_direct_kernel
-                L = k(sc, light_inputs(sc), _diffuse_table(sc)[0], lay.si, mi.Bool(lay.valid), idx, mix, n,
+                L = k(sc, light_inputs(sc), diffuse_flags(sc), lay.si, mi.Bool(lay.valid), idx, mix, n,
                       bool(self.direct_lds))
                 if len(gbuffers) == 1:
                     out[0] = out[0] + L
