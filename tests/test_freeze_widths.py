@@ -96,11 +96,11 @@ def test_free_width_skips_every_taken_width():
 
 def test_cone_update_declares_its_lanes():
     """The cone update's per-lane arguments are exactly those of one width per
-    call (order .. strata), so that padding touches nothing else."""
+    call (the lane order and the batch of per-entry inputs), so that padding
+    touches nothing else."""
     import inspect
 
     from slc.cones.update import ConeUpdate, _update_kernel
     names = list(inspect.signature(_update_kernel).parameters)
     lanes = ConeUpdate().lanes
-    assert [names[i] for i in lanes] == ["order", "active", "keys", "si", "rays", "unsettled", "moving",
-                                         "is_new", "seed_slot", "first_sample", "strata"]
+    assert [names[i] for i in lanes] == ["order", "batch"]

@@ -15,7 +15,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..cones.packing import pack, unpack
-from ..cones.update import (ConeParams, SampleObserver, empty_state, end_cycle, frame_u32, insert_sample,
+from ..cones.update import (ConeParams, CycleEntries, SampleObserver, empty_state, end_cycle, frame_u32, insert_sample,
                             light_inputs, update_cycle)
 from ..freeze import FrozenFunction
 from .sampling import lum, sampler_of
@@ -67,9 +67,9 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, moving, first_sample,
     restarting empty (no LOD seed) and the choice rule's statistics gathered
     from the same samples. Returns (new words, motion, stats values)."""
     moving = mi.Bool(moving)
-    words, motion, _, _, st = update_cycle(
-        scene, unpack(rec, p.max_cones), key, si, rays, unsettled, moving, fresh, first_sample, ~moving, frame,
-        seed, p, valid=mi.Bool(on) & si.is_valid(), observer=_LightStats(scene, sph, env))
+    entries = CycleEntries(key, si, rays, unsettled, moving, fresh, first_sample, ~moving)
+    words, motion, _, _, st = update_cycle(scene, unpack(rec, p.max_cones), entries, frame, seed, p,
+                                           valid=mi.Bool(on) & si.is_valid(), observer=_LightStats(scene, sph, env))
     return words, motion, list(st)
 
 
