@@ -101,7 +101,8 @@ class ConesUpdate(FrozenFunction):
             dr.eval(out, motion, st)
             return out, motion, st
         super().__init__(kernel, freeze, False, max_recordings,
-                         lanes=tuple(range(3, 12)))     # rec .. on: per entry (see slc.freeze)
+                         lanes=("rec", "si", "key", "rays", "unsettled", "moving", "first_sample", "fresh",
+                                "on"))     # per entry (slc.freeze)
 
     def __call__(self, scene, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame: int):
         from .visibility import _sampler_inputs, _tables

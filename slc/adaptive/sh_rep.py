@@ -141,7 +141,7 @@ class SHUpdate(FrozenFunction):
             dr.eval(out, st)
             return out, st
         super().__init__(kernel, freeze, False, max_recordings,
-                         lanes=tuple(range(3, 9)))     # rec .. on: per entry (see slc.freeze)
+                         lanes=("rec", "si", "key", "rays", "fresh", "on"))     # per entry (slc.freeze)
 
     def __call__(self, scene, rec, si, key, rays, fresh, on, frame: int):
         from ..keys import stream_key

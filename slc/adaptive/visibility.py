@@ -452,7 +452,7 @@ class VisUpdate(FrozenFunction):
             dr.eval(out, gone, st)
             return out, gone, st
         super().__init__(kernel, freeze, False, max_recordings,
-                         lanes=tuple(range(3, 10)))     # rec .. on: per entry (see slc.freeze)
+                         lanes=("rec", "si", "key", "rays", "moving", "fresh", "on"))     # per entry (slc.freeze)
 
     def __call__(self, scene, rec, si, key, rays, moving, fresh, on, frame: int):
         from ..keys import stream_key
