@@ -26,7 +26,9 @@ class SampleStats:
     samples ``ed``, of other samples ``en``, and ``m`` = sum of the other
     samples' energy times their local direction."""
 
-    def __init__(self, n: int):
+    DRJIT_STRUCT = {"ed": mi.Float, "en": mi.Float, "m": mi.Vector3f}
+
+    def __init__(self, n: int = 0):
         self.ed = dr.zeros(mi.Float, n)
         self.en = dr.zeros(mi.Float, n)
         self.m = dr.zeros(mi.Vector3f, n)

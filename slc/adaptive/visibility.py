@@ -47,6 +47,7 @@ each at its own direction.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -79,6 +80,30 @@ class Record:
 
     def __init__(self, idx, vis, cnt, E, C, vu, nu):
         self.idx, self.vis, self.cnt, self.E, self.C, self.vu, self.nu = idx, vis, cnt, E, C, vu, nu
+
+
+@dataclass
+class ListLoop:
+    """The state of the update's sample loop (one lane per entry): ``k`` the samples
+    drawn; per listed light (lists of K) its emitter ``idx``, visible fraction ``vis``,
+    sample count ``cnt``, unoccluded irradiance ``wl`` and importance ``imp`` (its
+    irradiance's luminance, -1 for an empty slot); ``S`` the cycle's sum of the other
+    samples (the residual's estimate), ``adj`` the energy moved between the list and
+    the residual by replacements, ``vu`` and ``nu`` the unlisted environment regions'
+    visible fraction and sample count, ``stats`` the choice rule's sums
+    (:class:`~slc.adaptive.sampling.SampleStats`) and ``rng`` the random numbers."""
+    k: mi.UInt32
+    idx: list
+    vis: list
+    cnt: list
+    wl: list
+    imp: list
+    S: mi.Color3f
+    adj: mi.Color3f
+    vu: mi.Float
+    nu: mi.UInt32
+    stats: SampleStats
+    rng: mi.PCG32
 
 
 def unpack(w, K: int, env: bool = False) -> Record:
@@ -226,10 +251,13 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
     adj = dr.zeros(mi.Color3f, N)
 
     # ----------------------- light samples, one at a time per entry
-    def cond(k, *state):
-        return k < rays
+    def cond(ls: ListLoop):
+        return ls.k < rays
 
-    def body(k, idx, vis, cnt, wl, imp, S, adj, vu, nu, ed, en, m, rng):
+    def body(ls: ListLoop):
+        k, idx, vis, cnt, wl, imp, S, adj, vu, nu, rng = (ls.k, ls.idx, ls.vis, ls.cnt, ls.wl, ls.imp, ls.S, ls.adj,
+                                                          ls.vu, ls.nu, ls.rng)
+        ed, en, m = ls.stats.ed, ls.stats.en, ls.stats.m
         u = mi.Point2f(rng.next_float32(), rng.next_float32())
         act = valid & (k < rays)
         ds, w, ok, em = samp.sample(si, u, act)
@@ -294,11 +322,15 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
         vu = dr.select(unl, dr.fma(au, Vf - vu, vu), vu)
         nu = dr.select(unl, dr.minimum(nu + 1, 255), nu)
         S += dr.select(V & ~handled & ~unl, w * cos, 0.0)
-        return k + 1, idx, vis, cnt, wl, imp, S, adj, vu, nu, ed, en, m, rng
+        ls.stats.ed, ls.stats.en, ls.stats.m = ed, en, m
+        ls.k, ls.idx, ls.vis, ls.cnt, ls.wl, ls.imp, ls.S, ls.adj, ls.vu, ls.nu, ls.rng = \
+            k + 1, idx, vis, cnt, wl, imp, S, adj, vu, nu, rng
+        return (ls,)
 
-    _, idx, vis, cnt, wl, imp, S, adj, vu, nu, ed, en, m, rng = dr.while_loop(
-        state=(mi.UInt32(0), idx, vis, cnt, wl, imp, S, adj, vu, nu, st.ed, st.en, st.m, rng),
-        cond=cond, body=body)
+    ls, = dr.while_loop(state=(ListLoop(mi.UInt32(0), idx, vis, cnt, wl, imp, S, adj, vu, nu, st, rng),),
+                        cond=cond, body=body)
+    idx, vis, cnt, S, adj, vu, nu = ls.idx, ls.vis, ls.cnt, ls.S, ls.adj, ls.vu, ls.nu
+    ed, en, m = ls.stats.ed, ls.stats.en, ls.stats.m
 
     # ----------------------- the residual's running mean (with the energy moved by swaps)
     # the count is in samples (as the cones' C): a cycle of n samples weighs n / C

@@ -594,6 +594,27 @@ def updater_for(owner) -> ConeUpdate:
     return up
 
 
+@dataclass
+class SampleLoop:
+    """The state of an update cycle's sample loop (one lane per entry): ``k`` the
+    samples drawn, the cones (``D`` axes, ``A`` half-angles, ``L`` integrated
+    radiance: lists of ``K``) and ``n`` their number, ``S`` the cycle's sample sums
+    per cone, ``beta`` the cycle's largest cone turn [rad], ``sampler`` the
+    unstratified random numbers, ``q0``, ``q1`` the R2 sequence's next point (32-bit
+    fixed point) and ``extra`` the observer's state (:class:`SampleObserver`)."""
+    k: mi.UInt32
+    D: list
+    A: list
+    L: list
+    S: list
+    n: mi.UInt32
+    beta: mi.Float
+    sampler: mi.PCG32
+    q0: mi.UInt32
+    q1: mi.UInt32
+    extra: tuple
+
+
 class SampleObserver:
     """Hook of :func:`update_cycle` for callers that need more than the cones
     from the cycle's light samples (the adaptive cache's light statistics):
@@ -680,28 +701,29 @@ def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams
     else:
         q0 = q1 = dr.zeros(mi.UInt32, N)
 
-    def cond(k, D, A, L, S, n, beta, sampler, q0, q1, extra):
-        return k < rays
+    def cond(st: SampleLoop):
+        return st.k < rays
 
-    def body(k, D, A, L, S, n, beta, sampler, q0, q1, extra):
+    def body(st: SampleLoop):
         if p.stratified:
             # top 24 bits: a float32 in [0, 1)
-            u = mi.Point2f(mi.Float(q0 >> 8) * (1.0 / 16777216.0), mi.Float(q1 >> 8) * (1.0 / 16777216.0))
-            q0, q1 = q0 + R2_STEP[0], q1 + R2_STEP[1]
+            u = mi.Point2f(mi.Float(st.q0 >> 8) * (1.0 / 16777216.0), mi.Float(st.q1 >> 8) * (1.0 / 16777216.0))
+            st.q0, st.q1 = st.q0 + R2_STEP[0], st.q1 + R2_STEP[1]
         else:
-            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
+            u = mi.Point2f(st.sampler.next_float32(), st.sampler.next_float32())
         ds, w, ok = sample_light(scene, si, u, valid)
         ok &= dr.all(dr.isfinite(w))
         ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), ok)
         s = dr.normalize(frame_l.to_local(ds.d))
         if observer is not None:
-            extra = observer.observe(extra, ds, w, ok, s)
-        D, A, L, S, n, beta, _ = insert_sample(D, A, L, S, n, beta, s, w, ok, p)
-        return k + 1, D, A, L, S, n, beta, sampler, q0, q1, extra
+            st.extra = observer.observe(st.extra, ds, w, ok, s)
+        st.D, st.A, st.L, st.S, st.n, st.beta, _ = insert_sample(st.D, st.A, st.L, st.S, st.n, st.beta, s, w, ok, p)
+        st.k = st.k + 1
+        return (st,)
 
-    _, D, A, L, S, n, beta, sampler, _, _, extra = dr.while_loop(
-        state=(mi.UInt32(0), D, A, L, S, n, beta, sampler, q0, q1, extra), cond=cond, body=body,
-        labels=("k", "D", "A", "L", "S", "n", "beta", "sampler", "q0", "q1", "extra"))
+    st, = dr.while_loop(state=(SampleLoop(mi.UInt32(0), D, A, L, S, n, beta, sampler, q0, q1, extra),), cond=cond,
+                        body=body, labels=("cycle",))
+    D, A, L, S, n, beta, sampler, extra = st.D, st.A, st.L, st.S, st.n, st.beta, st.sampler, st.extra
 
     # ----------------------------------------------- shrink test: one ray per cone
     dirs, tested, hits = shrink_test(scene, si, D, A, n, key, valid, mi.Bool(unsettled), sampler, frame, p,
