@@ -72,7 +72,8 @@ class FrozenFunction:
     ``max_recordings=4``, ``lanes=()`` (the per-lane arguments, by the names of
     ``fn``'s parameters, or their positions: a call whose lane count collides with another input's
     width runs on a free width, see the module; an argument named here may be a
-    structure, a Dr.Jit struct or a dataclass, whose every array is per lane). ``calls`` counts the calls made while frozen,
+    structure, a Dr.Jit struct or a dataclass, whose every array is per lane).
+    ``calls`` counts the calls made while frozen,
     ``n_recordings`` the recordings made (including those of a dropped
     function), ``frozen`` whether calls are still replayed."""
 

@@ -183,7 +183,8 @@ def _principled_cones(bsdf, si, ctx, active, cones: ConeState, term, below, cons
       ``L_c S_r exp(lambda_l (d_c . r - 1))``. A cap wholly under the horizon adds nothing;
       the lobe's part under the horizon is not clipped.
     """
-    K, live, delta, A, inv_om, L, Dw = cones.K, cones.live, cones.dirac, cones.alpha, cones.inv_omega, cones.L, cones.axis
+    K, live, delta, A = cones.K, cones.live, cones.dirac, cones.alpha
+    inv_om, L, Dw = cones.inv_omega, cones.L, cones.axis
     # ------------------- which pixels, and their parameters (one read per pixel) -------------------
     # (BSDFs without textures: from the table ``consts``, see :func:`bsdf_table`; BSDFs of
     # kind KIND_NOT_PRINCIPLED are not read: they lack the attributes ``read`` asks for)
@@ -316,7 +317,8 @@ def _conductor_cones(bsdf, si, ctx, active, cones: ConeState, below):
     m = active & bsdf.has_attribute("alpha", active) & mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) & \
         ~mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & \
         ~mi.has_flag(flags, mi.BSDFFlags.Delta) & (mi.Frame3f.cos_theta(si.wi) > 0.0)
-    K, live, delta, A, inv_om, L, Dw = cones.K, cones.live, cones.dirac, cones.alpha, cones.inv_omega, cones.L, cones.axis
+    K, live, delta, A = cones.K, cones.live, cones.dirac, cones.alpha
+    inv_om, L, Dw = cones.inv_omega, cones.L, cones.axis
     alpha = dr.maximum(bsdf.eval_attribute_1("alpha", si, m), 1e-3)
     ci = dr.maximum(mi.Frame3f.cos_theta(si.wi), 1e-4)
     r_loc = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
