@@ -59,7 +59,7 @@ ENCODINGS = ["rgb3", "y3co2cg2", "y3co1cg1"]
 BUDGET = ["y3co1cg1", "y2co2cg2"]
 PROFILED = ["rgb3", "y3co1cg1"]
 PROFILE_REPEATS = 3     # the profiled encodings' runs in turn: A B, B A, A B
-#: earlier choices, kept as named settings (run as Y3Co1Cg1 variants)
+#: variants of Y3Co1Cg1: light-traced VPLs (paths), one march sample per voxel (dense), the literal s = 10
 VARIANTS = {"paths": dict(first_bounce="paths"),
             "dense": dict(march_samples=0, secondary_march_samples=0),
             "stride10": dict(depth_stride=10)}
