@@ -55,7 +55,7 @@ import mitsuba as mi
 from ..cones.packing import _Reader, _Writer, decode_radiance, encode_radiance
 from ..freeze import FrozenFunction
 from ..keys import keyed_rng, mixed_rng
-from .sampling import SampleStats, lum, sampler_of
+from .sampling import LightStats, SampleStats, lum, sampler_of
 
 EMPTY = 0xFFFF
 STREAM_VIS = 0x3C6EF372
@@ -246,7 +246,7 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
         rng = keyed_rng(key, seed, frame, STREAM_VIS)
     else:                              # keyed_rng with the mix given
         rng = mixed_rng(key, mix)
-    st = SampleStats(N)
+    stats = LightStats(sc, si, sph, env)
     S = dr.zeros(mi.Color3f, N)
     adj = dr.zeros(mi.Color3f, N)
 
@@ -257,7 +257,6 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
     def body(ls: ListLoop):
         k, idx, vis, cnt, wl, imp, S, adj, vu, nu, rng = (ls.k, ls.idx, ls.vis, ls.cnt, ls.wl, ls.imp, ls.S, ls.adj,
                                                           ls.vu, ls.nu, ls.rng)
-        ed, en, m = ls.stats.ed, ls.stats.en, ls.stats.m
         u = mi.Point2f(rng.next_float32(), rng.next_float32())
         act = valid & (k < rays)
         ds, w, ok, em = samp.sample(si, u, act)
@@ -265,7 +264,6 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
         V = ok & ~sc.ray_test(si.spawn_ray_to(ds.p), ok)
         cos = dr.maximum(dr.dot(ds.d, nrm), 0.0)
         Vf = dr.select(V, 1.0, 0.0)
-        c = lum(w) * cos * Vf
         delta = ok & ds.delta
         # the light's own unoccluded irradiance (w has the choice pmf ds.pdf in it)
         w1 = w * ds.pdf * cos
@@ -283,11 +281,8 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
             delta |= region
             em = dr.select(region, li, em)
             w1 = dr.select(region, E_j, w1)
-        # statistics
-        ed = ed + dr.select(delta, c, 0.0)
-        en_k = dr.select(delta, 0.0, c)
-        en = en + en_k
-        m = m + frame_l.to_local(ds.d) * en_k
+        # the choice rule's statistics
+        ls.stats = stats.observe(ls.stats, ds, w, V, frame_l.to_local(ds.d))
         i1 = lum(w1)
         hit = mi.Bool(False)
         for i in range(K):
@@ -322,15 +317,13 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
         vu = dr.select(unl, dr.fma(au, Vf - vu, vu), vu)
         nu = dr.select(unl, dr.minimum(nu + 1, 255), nu)
         S += dr.select(V & ~handled & ~unl, w * cos, 0.0)
-        ls.stats.ed, ls.stats.en, ls.stats.m = ed, en, m
         ls.k, ls.idx, ls.vis, ls.cnt, ls.wl, ls.imp, ls.S, ls.adj, ls.vu, ls.nu, ls.rng = \
             k + 1, idx, vis, cnt, wl, imp, S, adj, vu, nu, rng
         return (ls,)
 
-    ls, = dr.while_loop(state=(ListLoop(mi.UInt32(0), idx, vis, cnt, wl, imp, S, adj, vu, nu, st, rng),),
+    ls, = dr.while_loop(state=(ListLoop(mi.UInt32(0), idx, vis, cnt, wl, imp, S, adj, vu, nu, stats.init(N), rng),),
                         cond=cond, body=body)
     idx, vis, cnt, S, adj, vu, nu = ls.idx, ls.vis, ls.cnt, ls.S, ls.adj, ls.vu, ls.nu
-    ed, en, m = ls.stats.ed, ls.stats.en, ls.stats.m
 
     # ----------------------- the residual's running mean (with the energy moved by swaps)
     # the count is in samples (as the cones' C): a cycle of n samples weighs n / C
@@ -340,7 +333,7 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
     E = dr.maximum(E + adj, 0.0)
     E = E + (S / n - E) * dr.minimum(n * dr.rcp(dr.maximum(C, 1.0)), 1.0)
     out = pack(Record(idx, vis, cnt, E, C, vu, nu), K, hx)
-    return out, gone, [ed, en, m]
+    return out, gone, ls.stats.values()
 
 
 # ----------------------------------------------------------------------------- shading

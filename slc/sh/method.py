@@ -6,11 +6,11 @@ import drjit as dr
 import mitsuba as mi
 
 from ..keys import INVALID, STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng
-from ..lights import sample_light, visible
 from ..methods import Param, register
 from ..osc.payload import PayloadMethod, RayPolicy
-from .project import irradiance, project, radiance
+from .project import irradiance, radiance
 from .shading import shade_radiance
+from .update import project_samples, running_mean, world_frame
 from .ycocg import ENCODINGS, encoding as get_encoding
 
 
@@ -25,11 +25,14 @@ class SHSurfaceCache(PayloadMethod):
     texel's surface are dropped) and estimates
 
     .. math:: \hat\lambda_{lm} = \frac{1}{n}\sum_k \frac{L_e(\omega_k) V}{p(\omega_k)} Y_{lm}(\omega_k),
-              \qquad \lambda \leftarrow \lambda + (\hat\lambda - \lambda)/C,
+              \qquad \lambda \leftarrow \lambda + \min(n/C, 1)(\hat\lambda - \lambda),
 
-    with :math:`C` the update count capped at ``max_count`` (an exponential
-    moving average once capped, so moving lights fade in). A new entry
-    starts from its LOD seed (a coarser entry) when there is one.
+    with :math:`C` the sample count capped at ``max_count`` (an exponential
+    moving average once capped, so moving lights fade in; :mod:`slc.sh.update`,
+    shared with the adaptive cache's SH records): a new entry's ``rays_new``-sample
+    updates average evenly until the cap, a settled entry's 1-sample update
+    weighs ``1/max_count``. A new entry starts from its LOD seed (a coarser
+    entry, weighing as one update of ``rays_new`` samples) when there is one.
 
     Shading per pixel, no rays: diffuse-only BSDFs in closed form,
     :math:`L_o = \rho/\pi\, E(n)` with the Ramamoorthi-Hanrahan irradiance;
@@ -46,7 +49,8 @@ class SHSurfaceCache(PayloadMethod):
     name = "sh"
     params = (
         Param("encoding", "y3co1cg1", "SH encoding (bands per channel)", choices=tuple(ENCODINGS)),
-        Param("max_count", 16, "running-mean count cap (then an exponential moving average)", lo=1),
+        Param("max_count", 64, "running-mean cap on the sample count, then an exponential moving average "
+              "[samples]", lo=1),
         Param("glossy_samples", 8, "BSDF samples of the reconstructed radiance per glossy pixel", lo=1, hi=1024),
         Param("rays_new", 8, "update rays of new entries", lo=1, hi=1024),
         Param("rays_settled", 1, "update rays of settled entries", lo=1, hi=1024),
@@ -70,37 +74,22 @@ class SHSurfaceCache(PayloadMethod):
         sc, enc, n = self.scene.mi_scene, self.enc, self.enc.n
         slots, si = fr.active, fr.si
         sampler = keyed_rng(fr.keys, self.seed, ctx.frame, STREAM_SH_UPDATE)
-        ng = mi.Vector3f(si.n)
-
-        # ------------------- light samples at the texel's own point -------------------
-        def cond(i, acc, sampler):
-            return i < rays
-
-        def body(i, acc, sampler):
-            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
-            ds, w, ok = sample_light(sc, si, u, i < rays)
-            ok &= (dr.dot(ds.d, ng) > 0.0) & dr.all(dr.isfinite(w))
-            ok = visible(sc, si, ds, ok)
-            c = project(enc, ds.d, dr.select(ok, w, 0.0))
-            return i + 1, [a + b for a, b in zip(acc, c)], sampler
-
-        acc0 = [mi.Float(0.0) for _ in range(n)]
-        _, acc, _ = dr.while_loop(state=(mi.UInt32(0), acc0, sampler), cond=cond, body=body,
-                                  labels=("i", "acc", "sampler"))
-        inv = dr.rcp(mi.Float(dr.maximum(rays, 1)))
+        acc, _ = project_samples(sc, si, world_frame(), rays, sampler, si.is_valid(), enc)
 
         # ------------------------- running mean, LOD seeding -------------------------
+        # a new entry starts empty, or from its LOD seed (a coarser entry) weighing as one update
+        # of a new entry (rays_new samples)
         W = self.words
         is_new = mi.Bool(fr.is_new)
         seed_slot = mi.UInt32(fr.seed_slot)
         seeded = is_new & (seed_slot != INVALID)
-        C_old = dr.select(is_new, dr.select(seeded, 1.0, 0.0), dr.gather(mi.Float, self.storage, slots * W + n))
-        C = dr.minimum(C_old + 1.0, float(self.max_count))
-        a = dr.rcp(C)
+        C_old = dr.select(is_new, dr.select(seeded, float(self.rays_new), 0.0),
+                          dr.gather(mi.Float, self.storage, slots * W + n))
         src = dr.select(seeded, seed_slot, slots)
+        old = [dr.gather(mi.Float, self.storage, src * W + c, ~is_new | seeded) for c in range(n)]
+        coeffs, C = running_mean(old, C_old, acc, rays, self.max_count)
         for c in range(n):
-            old = dr.gather(mi.Float, self.storage, src * W + c, ~is_new | seeded)
-            dr.scatter(self.storage, dr.fma(a, acc[c] * inv - old, old), slots * W + c)
+            dr.scatter(self.storage, coeffs[c], slots * W + c)
         dr.scatter(self.storage, C, slots * W + n)
         return dr.zeros(mi.Bool, dr.width(slots))
 
