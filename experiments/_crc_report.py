@@ -2,7 +2,7 @@
 figures. ``c`` is the experiment's module (its constants)."""
 from __future__ import annotations
 
-from slc import experiment
+from slc.run import experiment
 
 
 def _f(v, fmt="{:.2f}"):
@@ -35,7 +35,7 @@ def _table1(c, rows, preset) -> str:
           f"the pipeline, configurations one after the other (load-sensitive; see the stage profile for "
           f"side-by-side ratios). Lab RMSE and pdiff (Yee's PerceptualDiff) against the RGB3 cache of the same "
           f"sampling (the paper's Table 1 comparison) and against the reference (ground-truth direct + "
-          f"{preset['ref_spp']} spp path-traced indirect, slc.references; FLIP and SSIM too). Variants: "
+          f"{preset['ref_spp']} spp path-traced indirect, slc.reference.references; FLIP and SSIM too). Variants: "
           f"`paths` = light-traced VPLs + PCG32, `dense` = one march sample per voxel, `stride10` = the literal "
           f"s = 10 at this frame size.\n\n" + experiment.markdown_table(rows, cols) + "\n")
     return md
@@ -43,7 +43,7 @@ def _table1(c, rows, preset) -> str:
 
 def _profile(c, prof_rows) -> str:
     encs = [e for e in c.PROFILED if e != "rgb3"]
-    from slc.crc.cache import CRCCache
+    from slc.methods.crc.cache import CRCCache
     stage_names = set(CRCCache.FIXED_STAGES + CRCCache.COEFFICIENT_STAGES)
     md = ("\n## Stage profile (encodings side by side)\n\nms per frame, minimum (median) over the profiled frames "
           f"after warm-up of {c.PROFILE_REPEATS} runs of each encoding, run in turn (A B, B A, ...; the same frames). "
@@ -74,7 +74,7 @@ def _figs(path_rows, sweep_rows) -> str:
             md += (f"| {p['scene']} | {p['position'] + 1} | {p['frame']} | {p['occupancy_ratio']:.3f} | "
                    f"{p['active_cells']} | {p['bounce1_ms']:.2f} | {p['total_ms']:.2f} |\n")
     if sweep_rows:
-        from slc.crc.cache import CRCCache
+        from slc.methods.crc.cache import CRCCache
         st = [k for k in CRCCache.FIXED_STAGES + CRCCache.COEFFICIENT_STAGES if any(k in r for r in sweep_rows)]
         md += ("\n## Fig. 10: stage ms against the CRC resolution (2 bounces, Y3Co1Cg1, min of 3 frames)\n\n"
                "| scene | resolution | cells | occupancy | " + " | ".join(st) + " | total | voxelize (once) |\n|"
@@ -194,7 +194,7 @@ def _figure(ncols: int, size):
 def _save(path, fig, title: str, fontsize: int = 9) -> None:
     import matplotlib.pyplot as plt
 
-    from slc import io
+    from slc.core import io
     fig.suptitle(title, fontsize=fontsize)
     fig.tight_layout()
     io.write_figure(path, fig, dpi=120)
@@ -220,7 +220,7 @@ def plot(path, rows, title):
 
 def _strip(path, panels, exposure, title):
     """Fig. 9: tone-mapped images side by side, titles with their errors."""
-    from slc import io
+    from slc.core import io
     fig, axes = _figure(len(panels), (2.6 * len(panels), 2.0))
     for ax, (label, img) in zip(axes, panels):
         ax.imshow(io.tonemap(img, exposure))
@@ -260,14 +260,14 @@ def plot_sweep(path, rows, title):
 
 def _stages(rows) -> list[str]:
     """The cache's stages that ``rows`` have, in the cache's order."""
-    from slc.crc.cache import CRCCache
+    from slc.methods.crc.cache import CRCCache
     return [k for k in CRCCache.FIXED_STAGES + CRCCache.COEFFICIENT_STAGES if any(k in r for r in rows)]
 
 
 def fig9(c, out, s, nb: int, group: list[dict], finals: list[dict]) -> None:
     """The last evaluated frame's images (reference, RGB3 and the equal-budget encodings) and
     their strip."""
-    from slc import io
+    from slc.core import io
     stem = out / "images" / f"{s.name}_b{nb}"
     last = max(finals[0])
     io.write_hdr_and_png(stem.with_name(stem.name + "_reference"), finals[0][last][1], s.exposure)

@@ -15,7 +15,7 @@ MOVING = dict(window_fraction=0.5, step=20, ahead=0.0, skip=("cornell",))
 def last_image(c, scene, viewers, spec: str, W: int, H: int, frames: int, seed: int):
     """(method, G-buffer, indirect image) of the last of ``frames`` frames."""
     from slc import methods
-    from slc.pipeline import gbuffers_for, run_sequence
+    from slc.run.pipeline import gbuffers_for, run_sequence
     m = methods.create(spec, scene, seed=seed)
     res = run_sequence(scene, m, viewers, c.run_config(W, H, frames, 0))
     gb = gbuffers_for(scene, viewers, frames - 1, W, H)[0]
@@ -35,8 +35,8 @@ def error_terms(c, scene, viewers, nb: int, common: dict, W: int, H: int, frames
     import mitsuba as mi
     import numpy as np
 
-    from slc.metrics import lab_rmse
-    from slc.references import image_of, reference_for
+    from slc.reference.metrics import lab_rmse
+    from slc.reference.references import image_of, reference_for
     f = frames - 1
 
     def last(seed_=seed, **kw):
@@ -102,10 +102,10 @@ def moving(c, scene, viewers, nb: int, common: dict, W: int, H: int, frames: int
     import numpy as np
 
     from slc import methods
-    from slc.crc.cache import front_normal
-    from slc.metrics import lab_rmse
-    from slc.pipeline import gbuffers_for, run_sequence
-    from slc.references import reference_for
+    from slc.methods.crc.cache import front_normal
+    from slc.reference.metrics import lab_rmse
+    from slc.run.pipeline import gbuffers_for, run_sequence
+    from slc.reference.references import reference_for
     window = max(4, int(round(common["resolution"] * MOVING["window_fraction"])))
     sp_cam = c.spec_of({**common, "bounces": nb, "volume": "camera", "window": window, "ahead": MOVING["ahead"]})
     ms = methods.create(c.spec_of({**common, "bounces": nb}), scene, seed=seed)

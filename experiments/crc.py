@@ -1,20 +1,20 @@
 """crc: Table 1 and Figs. 5, 9 and 10 of "Real-time Radiance Caching using
 Chrominance Compression" (Vardis, Papaioannou and Gkaravelis 2014).
 
-With the paper's defaults (``slc.crc.CRCCache``: RSM first bounce with
+With the paper's defaults (``slc.methods.crc.CRCCache``: RSM first bounce with
 Halton sampling, 10 march samples for the first bounce and 5 for later
 ones, depth-occupancy stride 10 at 1 MPixel), per scene and bounce count
 (1 bounce: depth occupancy; 2 bounces: geometry occupancy):
 
 - *Table 1* (each configuration is the registered method ``crc`` through
-  the common pipeline, :func:`slc.experiment.run_case`): occupancy off
+  the common pipeline, :func:`slc.run.experiment.run_case`): occupancy off
   (RGB3, the "unoptimized" Radiance Hints) and on with RGB3 (27
   coefficients), Y3Co2Cg2 (17) and Y3Co1Cg1 (11), Y3Co1Cg1 with the
   "ratio" chroma decoding, and our earlier choices as named variants (``first_bounce=paths``: light-traced VPLs
   chosen by PCG32; ``dense``: one march sample per voxel; ``stride10``: the
   paper's literal s = 10 at this small frame size). Per row: median cache
   time per frame, occupancy ratio, CIE Lab RMSE and pdiff (Yee's
-  PerceptualDiff, :func:`slc.crc.quality.pdiff`) against the RGB3 cache
+  PerceptualDiff, :func:`slc.methods.crc.quality.pdiff`) against the RGB3 cache
   of the same sampling (the paper's comparison), and FLIP/PSNR/SSIM/Lab
   RMSE of ground-truth direct + cache indirect against direct + the
   path-traced indirect reference (``lab_rmse_ref``).
@@ -22,7 +22,7 @@ ones, depth-occupancy stride 10 at 1 MPixel), per scene and bounce count
   Y2Co2Cg2 (12; RGB2 gives identical images, a linear transform of the same
   bands), against RGB3 and the reference (rows and an image strip).
 - *Stage profile*: RGB3 and Y3Co1Cg1 run in turn (whole sequences, A B then
-  B A, :func:`slc.experiment.runs_in_turn`); per stage the minimum and
+  B A, :func:`slc.run.experiment.runs_in_turn`); per stage the minimum and
   median ms over the frames after warm-up; the saving on the stages whose
   work scales with the coefficient count (projection/propagation, blend,
   reconstruction) next to the total (marching, light injection and
@@ -109,7 +109,7 @@ def _extra_specs(specs, nb: int, common: dict) -> list[dict]:
 
 def run_config(W: int, H: int, frames: int, warmup: int, **kw):
     """A run of ``frames`` frames, nothing evaluated (the experiment compares images itself)."""
-    from slc.pipeline import RunConfig
+    from slc.run.pipeline import RunConfig
     return RunConfig(width=W, height=H, frames=frames, warmup=warmup, eval_frames=[], measure_overlap=False, **kw)
 
 
@@ -128,7 +128,7 @@ def _profile(scene, viewers, specs: list[str], W: int, H: int, frames: int, warm
     ``PROFILE_REPEATS`` runs of each, in turn (A B, B A, ...: load changes hit all alike)."""
     import statistics
 
-    from slc import experiment
+    from slc.run import experiment
     runs = experiment.runs_in_turn(scene, [(sp, viewers) for sp in specs], run_config(W, H, frames, warmup),
                                    PROFILE_REPEATS, seed)
     out = {}
@@ -142,7 +142,7 @@ def _profile(scene, viewers, specs: list[str], W: int, H: int, frames: int, warm
 def _profile_rows(scene_name: str, nb: int, prof: dict, specs: dict) -> list[dict]:
     """Rows (one per stage and the sums) with the ms of each encoding and the
     ratio to RGB3, for the minimum and the median over frames."""
-    from slc.crc.cache import CRCCache
+    from slc.methods.crc.cache import CRCCache
     groups = {"coefficient stages": CRCCache.COEFFICIENT_STAGES, "fixed stages": CRCCache.FIXED_STAGES}
     stages = [k for k in CRCCache.FIXED_STAGES + CRCCache.COEFFICIENT_STAGES if k in prof[specs["rgb3"]]]
     rows = []
@@ -167,7 +167,7 @@ def _along_path(scene, viewer, spec: str, W: int, H: int, positions: int, seed: 
     spread over the camera path (3 frames at each, the last one timed; the run resets the
     cache)."""
     from slc import methods
-    from slc.pipeline import run_sequence
+    from slc.run.pipeline import run_sequence
     m = methods.create(spec, scene, seed=seed)
     path = getattr(viewer.pose, "__self__", None)
     n = int(getattr(path, "n_frames", 0) or 0) or 600
@@ -187,7 +187,7 @@ def _sweep(scene, viewers, resolutions, W: int, H: int, seed: int) -> list[dict]
     """Fig. 10: stage ms (minimum of 3 frames after 2 warm-up) against the
     CRC resolution; Y3Co1Cg1, 2 bounces."""
     from slc import methods
-    from slc.pipeline import run_sequence
+    from slc.run.pipeline import run_sequence
     rows = []
     for r in resolutions:
         m = methods.create(f"crc:resolution={r},bounces=2", scene, seed=seed)
@@ -204,7 +204,7 @@ def _sweep(scene, viewers, resolutions, W: int, H: int, seed: int) -> list[dict]
 # ---------------------------------------------------------------------------
 
 def _preset(opts) -> dict:
-    from slc import experiment
+    from slc.run import experiment
     preset = dict(QUICK if opts.quick else FULL)
     if opts.res:
         w, _, h = opts.res.lower().partition("x")
@@ -243,17 +243,17 @@ def _base_for(r: dict, group: list[dict]):
 
 
 def _table1_row(s, c: dict, m, viewers, cfg, preset, bar, seed: int):
-    """One configuration through the common pipeline (:func:`slc.experiment.run_case`): its row
+    """One configuration through the common pipeline (:func:`slc.run.experiment.run_case`): its row
     and its composited images (ground-truth direct + indirect: {frame: (image, reference)})."""
     import dataclasses
 
     import numpy as np
 
-    from slc import experiment
-    from slc.crc.grid import Grid
-    from slc.crc.quality import pdiff
-    from slc.metrics import evaluate
-    from slc.references import reference_for
+    from slc.run import experiment
+    from slc.methods.crc.grid import Grid
+    from slc.methods.crc.quality import pdiff
+    from slc.reference.metrics import evaluate
+    from slc.reference.references import reference_for
     composed = {}
 
     def on_eval(f, v, gb, img, ref):
@@ -284,8 +284,8 @@ def _against_rgb3(group: list[dict], finals: list[dict], exposure: float) -> Non
     comparison) and its time against RGB3 and the unoptimized cache."""
     import numpy as np
 
-    from slc.crc.quality import de76_fraction, pdiff
-    from slc.metrics import lab_rmse
+    from slc.methods.crc.quality import de76_fraction, pdiff
+    from slc.reference.metrics import lab_rmse
     for r, fin in zip(group, finals):
         base = _base_for(r, group)
         r["lab_rmse"] = r["pdiff"] = r["de76_fraction"] = None
@@ -338,8 +338,10 @@ def _figures(s, viewers, first: bool, common: dict, preset: dict, out: Path, see
 def run(opts) -> dict:
     from tqdm import tqdm
 
-    from slc import methods, views
-    from slc.pipeline import RunConfig
+    from slc import methods
+
+    from slc.scene import views
+    from slc.run.pipeline import RunConfig
     report = experiment.load_part("crc_report")
     preset = _preset(opts)
     W, H = preset["width"], preset["height"]
@@ -369,12 +371,12 @@ def run(opts) -> dict:
                 _scene_parts(s, viewers, nb, common, preset, out, opts.seed, bar, acc)
             _figures(s, viewers, si == 0, common, preset, out, opts.seed, bar, acc)
     config = {"quick": bool(opts.quick), "scenes": names, **preset, "seed": opts.seed,
-              "pdiff": "Yee and Newman's PerceptualDiff (slc.crc.quality.pdiff): percent of pixels visibly "
+              "pdiff": "Yee and Newman's PerceptualDiff (slc.methods.crc.quality.pdiff): percent of pixels visibly "
                        "different from the RGB3 cache (pdiff_ref: from the reference)",
               "de76_fraction": "percent of pixels with CIE76 dE > 2.3 against the RGB3 cache",
               "lab_rmse": "CIE Lab RMSE (percent) against the RGB3 cache of the same sampling; "
                           "lab_rmse_ref against the reference",
-              "reference": "slc.references: indirect reference (the method's bounces) + ground-truth direct light",
+              "reference": "slc.reference.references: indirect reference (the method's bounces) + ground-truth direct light",
               "indirect_metrics": "indirect_*: the pipeline's comparison of the indirect light alone with the "
                                   "indirect reference (exposure 0.8 / p99 of the reference)",
               "profile": f"stage ms, minimum and median over frames after 3 warm-up of {PROFILE_REPEATS} runs of "
@@ -389,5 +391,5 @@ def run(opts) -> dict:
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

@@ -4,7 +4,7 @@ kind and constants instead of making a virtual call per point and attribute.
 Indexed by the BSDF's registry id (``dr.reinterpret_array(mi.UInt32, bsdf)``). Per BSDF:
 
 - ``diffuse``: Mitsuba's smooth ``diffuse`` (any reflectance, textured or not), the BSDFs whose
-  value :class:`slc.lights.SurfaceBSDF` evaluates without the virtual call;
+  value :class:`slc.scene.lights.SurfaceBSDF` evaluates without the virtual call;
 - ``kind``: ``KIND_DIFFUSE`` (``diffuse`` with a constant reflectance: ``colour`` holds it),
   ``KIND_PRINCIPLED`` (``principled`` whose clearcoat, sheen, flatness, anisotropy and
   specular transmission are constant 0 and whose base colour, roughness and metallic are
@@ -15,7 +15,7 @@ Indexed by the BSDF's registry id (``dr.reinterpret_array(mi.UInt32, bsdf)``). P
   point), so kernels reading them give the images of the virtual calls bit for bit.
 
 The table is built once per scene, outside symbolic loops (:func:`for_scene`), and dropped
-with the scene's last :class:`slc.scenes.Scene` (a ``mi.Scene`` takes neither attributes nor
+with the scene's last :class:`slc.scene.scenes.Scene` (a ``mi.Scene`` takes neither attributes nor
 weak references, so the table is found by the scene's address and its first shape, held
 alive by the entry: a new scene at a recycled address is never mistaken for an old one).
 Scenes with instances have no table (their BSDFs are not listed by ``scene.shapes()``).
@@ -49,7 +49,7 @@ _TABLES: dict[int, tuple] = {}
 
 
 def for_scene(scene) -> BSDFTable | None:
-    """The table of ``scene`` (a :class:`slc.scenes.Scene` or a ``mi.Scene``), built on first
+    """The table of ``scene`` (a :class:`slc.scene.scenes.Scene` or a ``mi.Scene``), built on first
     use (outside symbolic loops), None for scenes with instances or without BSDFs."""
     ms = getattr(scene, "mi_scene", scene)
     shapes = ms.shapes()
@@ -58,14 +58,14 @@ def for_scene(scene) -> BSDFTable | None:
     if hit is not None and hit[0] is first:
         return hit[1]
     if dr.flag(dr.JitFlag.SymbolicScope):
-        raise RuntimeError("build the BSDF table (slc.bsdf_table.for_scene) outside symbolic loops")
+        raise RuntimeError("build the BSDF table (slc.scene.bsdf_table.for_scene) outside symbolic loops")
     table = _build(shapes)
     _TABLES[id(ms)] = (first, table)
     return table
 
 
 def forget(scene_id: int) -> None:
-    """Drop the table of the scene at address ``scene_id`` (its :class:`slc.scenes.Scene`
+    """Drop the table of the scene at address ``scene_id`` (its :class:`slc.scene.scenes.Scene`
     was freed): the entry holds the scene's shapes, which would otherwise stay in
     Mitsuba's registry, which every frozen function traverses."""
     _TABLES.pop(scene_id, None)

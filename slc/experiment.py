@@ -22,9 +22,9 @@ import sys
 import time
 from pathlib import Path
 
-from . import io
-from .backend import env_info
-from .scenes import REPO_ROOT
+from slc.core import io
+from slc.core.backend import env_info
+from slc.scene.scenes import REPO_ROOT
 
 EXPERIMENTS_DIR = REPO_ROOT / "experiments"
 
@@ -222,7 +222,7 @@ def apply_common(opts, preset: dict) -> dict:
 
 def available_methods(wanted: list[str]) -> list[str]:
     """``wanted`` without the methods that are not implemented (yet)."""
-    from . import methods
+    from slc import methods
     return [spec for spec in wanted if methods.known(methods.parse_spec(spec)[0])]
 
 
@@ -232,7 +232,8 @@ def load_and_validate(scene_names: list[str], method_specs: list[str], explicit_
     to run. Sponza is skipped with a note when it was only in the default
     list and is absent. The scenes are released again: see :func:`each_scene`."""
     import sys
-    from . import methods, scenes
+    from slc import methods
+    from slc.scene import scenes
     names = []
     for name in scene_names:
         try:
@@ -266,7 +267,7 @@ def each_scene(names: list[str]):
     emitter and shape call is traced and dispatched over all of them; the
     atrium's ``slc`` frame measured 110 ms instead of 49 ms, ``restir`` 142
     instead of 44 (``rt48`` was barely affected)."""
-    from . import scenes
+    from slc.scene import scenes
     for name in names:
         s = scenes.load(name)
         s.source = name  # what loads it again (jobs run elsewhere)
@@ -277,8 +278,8 @@ def each_scene(names: list[str]):
 
 def run_case(scene, spec: str, viewers, cfg, bar=None, seed: int = 0, **extra) -> dict:
     """One (scene, method, viewers) sequence -> a results row."""
-    from . import methods
-    from .pipeline import run_sequence
+    from slc import methods
+    from slc.run.pipeline import run_sequence
     m = methods.create(spec, scene, seed=seed)
     if bar is not None:
         bar.set_postfix_str(f"{scene.name}/{spec}/{len(viewers)}v")
@@ -335,7 +336,7 @@ def ratio(a, b):
 def runs_in_turn(scene, cases, cfg, repeats: int = 3, seed: int = 0, alternate: bool = True,
                  first_cfg=None, before=None) -> list[list]:
     """Run ``cases`` ((method spec, viewers) pairs) again, in turn: ``repeats``
-    repetitions of every case, each a whole :func:`slc.pipeline.run_sequence` of
+    repetitions of every case, each a whole :func:`slc.run.pipeline.run_sequence` of
     ``cfg`` with a new method instance; with ``alternate`` every other repetition
     runs the cases in reverse order (a load that drifts during the repetitions
     then weighs on both ends alike). ``first_cfg`` (default ``cfg``): the first
@@ -343,8 +344,8 @@ def runs_in_turn(scene, cases, cfg, repeats: int = 3, seed: int = 0, alternate: 
     before each run of case i (a progress bar). Returns per case its results, one
     per repetition. Rows of an experiment run minutes apart, under whatever load
     the shared cores had then; ratios of runs side by side move less."""
-    from . import methods
-    from .pipeline import run_sequence
+    from slc import methods
+    from slc.run.pipeline import run_sequence
     out = [[] for _ in cases]
     order = list(range(len(cases)))
     for rep in range(repeats):
@@ -376,7 +377,7 @@ def setup(opts, quick: dict, full: dict, methods: list[str]):
     """The common start of a multi-viewer experiment: the preset (with
     --res/--frames applied), the method specs, the validated scenes and the
     RunConfig. Returns (preset, specs, scene names, cfg)."""
-    from .pipeline import RunConfig
+    from slc.run.pipeline import RunConfig
     pr = apply_common(opts, quick if opts.quick else full)
     specs = opts.methods or available_methods(methods)
     names = load_and_validate(opts.scene or pr["scenes"], specs, bool(opts.scene))
@@ -417,12 +418,12 @@ def run_per_scene(names, make_cases, cfg, desc: str, seed: int = 0, keep_images:
     """For each scene (one alive at a time), ``make_cases(scene)`` gives
     (spec, viewers, extra-fields) tuples; returns all rows, in that order.
 
-    The cases of every scene become jobs first (:func:`slc.jobs.jobs_from_cases`:
+    The cases of every scene become jobs first (:func:`slc.run.jobs.jobs_from_cases`:
     the viewers are frozen into cameras, so no live scene is kept), then all
     jobs run under one progress bar, serially or on Ray (``--workers``,
     ``--address``), resumable (``--resume``). ``keep_images``/``on_result``:
-    see :meth:`slc.jobs.Session.run`."""
-    from . import jobs
+    see :meth:`slc.run.jobs.Session.run`."""
+    from slc.run import jobs
     session = jobs.current(desc.split()[0])
     js, n, live = [], 0, {}
     for i, s in enumerate(each_scene(names)):
@@ -447,7 +448,7 @@ def run_cases(cases, cfg, desc: str, seed: int = 0, keep: bool = False) -> list[
     :func:`save_strip`)."""
     from types import SimpleNamespace
 
-    from . import jobs
+    from slc.run import jobs
     session = jobs.current(desc.split()[0])
     js = jobs.jobs_from_cases(session.experiment, cases, cfg, seed, keep_images=keep)
     live = {jobs.scene_source(s): s for s, *_ in cases}
@@ -523,8 +524,8 @@ def variant_experiment(opts, name: str, preset: dict, specs: list[str], variants
     rows carry the value in ``field``. Writes results.json/results.md, a
     FLIP-and-time-against-``field`` plot, a speed-against-error plot per
     variant and an image strip per (variant, method)."""
-    from .pipeline import RunConfig
-    from . import views
+    from slc.run.pipeline import RunConfig
+    from slc.scene import views
     out = Path(opts.out) / name
     scene_specs = load_and_validate([v for _, v in variants], specs, True)
     value_of = {s: v for v, s in variants}

@@ -13,8 +13,8 @@ call):
   in the domains the inputs reach (all shapes, emitters, BSDFs alive in the
   process, of any scene), and the key holds an equivalence class of sizes over
   all those arrays. Objects of a released scene must therefore be freed (the
-  per-scene tables of :mod:`slc.emitter_sampling` and :mod:`slc.lights` are
-  dropped with their :class:`slc.scenes.Scene`); and a call whose number of
+  per-scene tables of :mod:`slc.scene.emitter_sampling` and :mod:`slc.scene.lights` are
+  dropped with their :class:`slc.scene.scenes.Scene`); and a call whose number of
   lanes equals the size of some registry array (a mesh's 486 vertex
   coordinates) has a key of its own: one more recording, replayed whenever
   that width comes back (sponza, 240 frames: 3 recordings of the cone update),

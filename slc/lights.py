@@ -2,7 +2,7 @@
 ReSTIR, the cache updates and the ground truth.
 
 :func:`sample_light` is the one switch. By default (``table``) it samples
-from the scene's :class:`~slc.emitter_sampling.EmitterSampler` (one alias
+from the scene's :class:`~slc.scene.emitter_sampling.EmitterSampler` (one alias
 table over emissive triangles and emitters, no virtual call over emitters;
 emitters chosen uniformly as Mitsuba does, or in proportion to power with
 ``SLC_EMITTER_CHOICE=power``); with ``mitsuba``
@@ -25,7 +25,7 @@ import os
 import drjit as dr
 import mitsuba as mi
 
-from . import bsdf_table, emitter_sampling
+from slc.scene import bsdf_table, emitter_sampling
 
 MODES = ("table", "mitsuba")
 _mode = None   # None: read SLC_EMITTER_SAMPLING (default 'table') on first use
@@ -175,13 +175,13 @@ class SurfaceBSDF:
 
 def forget(scene_id: int) -> None:
     """Drop the per-scene tables of the scene at address ``scene_id`` (its
-    :class:`slc.scenes.Scene` was freed; see :func:`slc.emitter_sampling.forget`)."""
+    :class:`slc.scene.scenes.Scene` was freed; see :func:`slc.scene.emitter_sampling.forget`)."""
     bsdf_table.forget(scene_id)
     emitter_sampling.forget(scene_id)
 
 
 def diffuse_flags(scene: mi.Scene):
-    """The Bool per BSDF registry id: smooth diffuse (:mod:`slc.bsdf_table`), None for
+    """The Bool per BSDF registry id: smooth diffuse (:mod:`slc.scene.bsdf_table`), None for
     scenes without a table."""
     t = bsdf_table.for_scene(scene)
     return None if t is None else t.diffuse

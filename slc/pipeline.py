@@ -5,11 +5,11 @@ per viewer, hand all of them to the method (timed by stage; G-buffer
 generation and tone mapping are not timed, as in the papers), compose with
 directly seen emission, and on evaluation frames compare every viewer's
 image with the reference of the method's own ``output`` kind at the same
-points (:func:`slc.references.reference_for`: the 2048-sample direct
+points (:func:`slc.reference.references.reference_for`: the 2048-sample direct
 ground truth, the indirect reference, or both).
 
 Kernels compiled or loaded from Dr.Jit's disk cache while the method
-renders are counted per frame (:class:`slc.timing.KernelCounter`); their sum
+renders are counted per frame (:class:`slc.core.timing.KernelCounter`); their sum
 over the timed frames is ``compiled_after_warmup`` in every row, and it must
 be 0: otherwise the median time depends on the state of the kernel cache.
 """
@@ -21,14 +21,14 @@ from typing import Callable
 
 import numpy as np
 
-from . import check
-from . import gbuffer as gbuf
-from . import references
-from .groundtruth import GT_SAMPLES
-from .methods import FrameContext, Method
-from .metrics import evaluate
-from .timing import KernelCounter, StageTimer
-from .views import measure_overlap
+from slc.core import check
+from slc.scene import gbuffer as gbuf
+from slc.reference import references
+from slc.reference.groundtruth import GT_SAMPLES
+from slc.methods import FrameContext, Method
+from slc.reference.metrics import evaluate
+from slc.core.timing import KernelCounter, StageTimer
+from slc.scene.views import measure_overlap
 
 
 @dataclass
@@ -90,7 +90,7 @@ class RunResult:
 
 def gbuffers_for(scene, viewers, frame: int, width: int, height: int) -> list:
     """One G-buffer per viewer; with several viewers they are also laid out as one
-    array (:func:`slc.gbuffer.attach_layers`), as part of G-buffer generation."""
+    array (:func:`slc.scene.gbuffer.attach_layers`), as part of G-buffer generation."""
     scene.set_frame(frame)
     out = []
     for v in viewers:

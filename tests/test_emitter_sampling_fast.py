@@ -1,6 +1,6 @@
 """The fast paths of light sampling and shading: the emitter table's packed
-rows and selected segments (slc.emitter_sampling) and the BSDF evaluation
-without the virtual call for diffuse BSDFs (slc.lights.SurfaceBSDF). Each is
+rows and selected segments (slc.scene.emitter_sampling) and the BSDF evaluation
+without the virtual call for diffuse BSDFs (slc.scene.lights.SurfaceBSDF). Each is
 checked against the plain path it replaces, bit for bit, or against closed
 forms (the triangle areas)."""
 import drjit as dr
@@ -8,9 +8,9 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import emitter_sampling, lights, scenes, views
-from slc.baselines.rt import RandomLightSampling
-from slc.pipeline import gbuffers_for
+from slc.scene import emitter_sampling, lights, scenes, views
+from slc.methods.rt.method import RandomLightSampling
+from slc.run.pipeline import gbuffers_for
 
 from test_emitter_sampling import _mixed_scene, _shading_point
 
@@ -173,8 +173,8 @@ def test_one_bsdf_table_per_scene():
     """The diffuse flags of SurfaceBSDF and the cone shading's BSDF kinds come from one
     table, built once per scene (cached, dropped by ``forget``): smooth diffuse BSDFs are
     flagged whatever their reflectance, only the constant one is KIND_DIFFUSE."""
-    from slc import bsdf_table
-    from slc.cones.shading import bsdf_table as cone_table
+    from slc.scene import bsdf_table
+    from slc.methods.cones.shading import bsdf_table as cone_table
     sc = _bsdf_scene()
     t = bsdf_table.for_scene(sc)
     assert cone_table(sc) is t and bsdf_table.for_scene(sc) is t

@@ -1,5 +1,5 @@
 """issue 13: a frozen function whose lane count happens to equal the width of
-another input (an array of the scene) is not recorded again (``slc.freeze``:
+another input (an array of the scene) is not recorded again (``slc.core.freeze``:
 such a call runs on a free width, its extra lanes copies of the last one).
 
 Dr.Jit keys a recording on which inputs share a width; the atrium's active
@@ -12,8 +12,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-import slc.backend  # noqa: F401
-from slc.freeze import FrozenFunction, _input_widths
+import slc.core.backend  # noqa: F401
+from slc.core.freeze import FrozenFunction, _input_widths
 
 
 def _scene():
@@ -103,7 +103,7 @@ def test_cone_update_declares_its_lanes():
     touches nothing else."""
     import inspect
 
-    from slc.cones.update import ConeUpdate, _update_kernel
+    from slc.methods.cones.update import ConeUpdate, _update_kernel
     names = list(inspect.signature(_update_kernel).parameters)
     lanes = ConeUpdate().lanes
     assert [names[i] for i in lanes] == ["order", "batch"]

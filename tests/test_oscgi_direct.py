@@ -9,8 +9,12 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import methods, references, scenes, views
-from slc.oscgi.secondary import MAX_LOD, cell_level
+from slc import methods
+
+from slc.reference import references
+
+from slc.scene import scenes, views
+from slc.methods.oscgi.secondary import MAX_LOD, cell_level
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_oscgi import _run  # noqa: E402
@@ -84,11 +88,11 @@ def test_stratified_light_samples_are_unbiased_and_less_noisy(cornell):
     error no larger), and a single frame's error is smaller than with independent samples. Measured
     on Cornell at 32x18: mean 0.9999 (independent 0.9994), RMSE of one frame 0.73x, of the 64-frame
     average 0.66x that of independent samples."""
-    from slc.cones.update import light_inputs
-    from slc.keys import stream_key
-    from slc.lights import diffuse_flags
-    from slc.oscgi.method import STREAM_PIXEL_DIRECT, _pixel_direct_kernel
-    from slc.pipeline import gbuffers_for
+    from slc.methods.cones.update import light_inputs
+    from slc.core.keys import stream_key
+    from slc.scene.lights import diffuse_flags
+    from slc.methods.oscgi.method import STREAM_PIXEL_DIRECT, _pixel_direct_kernel
+    from slc.run.pipeline import gbuffers_for
     gb = gbuffers_for(cornell, views.single(cornell), 0, 32, 18)[0]
     sc = cornell.mi_scene
     gt = references.reference_for("direct", cornell, gb, 0, "test")

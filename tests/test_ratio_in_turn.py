@@ -1,9 +1,11 @@
-"""`slc.experiment.ratio_in_turn`: two rigs timed again in alternating order, the ratio
+"""`slc.run.experiment.ratio_in_turn`: two rigs timed again in alternating order, the ratio
 taken within each repetition (the overlap experiment's target figure)."""
 from types import SimpleNamespace
 
-from slc import experiment, methods, pipeline
-from slc.pipeline import RunConfig
+from slc.run import experiment, pipeline
+
+from slc import methods
+from slc.run.pipeline import RunConfig
 
 
 def test_ratio_in_turn_alternates_and_divides_within_each_repetition(monkeypatch):

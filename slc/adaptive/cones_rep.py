@@ -1,24 +1,24 @@
-r"""CONES representation: the Surface Light Cones record of :mod:`slc.cones`
+r"""CONES representation: the Surface Light Cones record of :mod:`slc.methods.cones`
 (insertion cases A-D, accumulation count, shrink test, 286-bit packing for 3
 cones) in a pool of its own.
 
 :func:`update` is the ``slc`` method's own update cycle
-(:func:`slc.cones.update.update_cycle`: same light sampler, same per-entry
+(:func:`slc.methods.cones.update.update_cycle`: same light sampler, same per-entry
 R2 samples, same ray ramp through the shared ray policy), on records of the
-pool, with the :class:`~slc.adaptive.sampling.LightStats` observer that
+pool, with the :class:`~slc.methods.adaptive.sampling.LightStats` observer that
 gathers the cycle's light statistics for the choice rule. Shading is
-:class:`slc.cones.shading.ConeShading` on the pool, unchanged.
+:class:`slc.methods.cones.shading.ConeShading` on the pool, unchanged.
 """
 from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
 
-from ..cones.packing import pack, unpack
-from ..cones.update import (ConeParams, CycleEntries, empty_state, end_cycle, frame_u32, insert_sample,
+from slc.methods.cones.packing import pack, unpack
+from slc.methods.cones.update import (ConeParams, CycleEntries, empty_state, end_cycle, frame_u32, insert_sample,
                             light_inputs, update_cycle)
-from ..freeze import FrozenFunction
-from .sampling import LightStats, lum
+from slc.core.freeze import FrozenFunction
+from slc.methods.adaptive.sampling import LightStats, lum
 
 CONVERT_COUNT = 4.0     # C of a record converted from another representation: new samples take over fast
 
@@ -26,7 +26,7 @@ CONVERT_COUNT = 4.0     # C of a record converted from another representation: n
 def update(scene: mi.Scene, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame: int, seed: int,
            p: ConeParams, sph=None, env=None):
     """One update cycle of cone records ``rec`` (packed words, one lane per
-    entry): :func:`slc.cones.update.update_cycle`, the ``slc`` method's update
+    entry): :func:`slc.methods.cones.update.update_cycle`, the ``slc`` method's update
     (its light sampler, per-entry R2 samples from ``first_sample`` where not
     ``moving``, C capped for ``moving`` entries), with ``fresh`` records
     restarting empty (no LOD seed) and the choice rule's statistics gathered
@@ -40,12 +40,12 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, moving, first_sample,
 
 class ConesUpdate(FrozenFunction):
     """:func:`update` traced once and replayed (``dr.freeze``, as ``slc``'s
-    :class:`slc.cones.update.ConeUpdate` and :class:`~slc.adaptive.visibility.VisUpdate`):
+    :class:`slc.methods.cones.update.ConeUpdate` and :class:`~slc.methods.adaptive.visibility.VisUpdate`):
     tracing the cone update cycle (the sample loop, cases A-D, the shrink test,
     packing, the light statistics) cost ~45 ms of Python per frame on the
     atrium whatever the number of entries. Inputs: the scene, the emitter
-    tables' arrays (the light sampler's, :func:`slc.cones.update.light_inputs`,
-    and the statistics' :func:`~slc.adaptive.visibility._sampler_inputs`), the
+    tables' arrays (the light sampler's, :func:`slc.methods.cones.update.light_inputs`,
+    and the statistics' :func:`~slc.methods.adaptive.visibility._sampler_inputs`), the
     sphere and region tables, the entries' records and interactions, and the
     frame as an opaque ``mi.UInt32`` (a new frame is no new recording). The
     cone parameters, ``seed``, ``sph`` and ``env`` are fixed per instance.
@@ -67,10 +67,10 @@ class ConesUpdate(FrozenFunction):
             return out, motion, st
         super().__init__(kernel, freeze, False, max_recordings,
                          lanes=("rec", "si", "key", "rays", "unsettled", "moving", "first_sample", "fresh",
-                                "on"))     # per entry (slc.freeze)
+                                "on"))     # per entry (slc.core.freeze)
 
     def __call__(self, scene, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame: int):
-        from .visibility import _sampler_inputs, _tables
+        from slc.methods.adaptive.visibility import _sampler_inputs, _tables
         lights = light_inputs(scene)
         if self.sph is not None or self.env is not None:
             lights = lights + _sampler_inputs(scene)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .. import emitter_sampling
-from ..cones.update import SampleObserver
+from slc.scene import emitter_sampling
+from slc.methods.cones.update import SampleObserver
 
 
 def lum(c):
@@ -15,7 +15,7 @@ def lum(c):
 
 def sampler_of(scene: mi.Scene):
     """The scene's emitter table (built outside any kernel; see
-    :func:`slc.emitter_sampling.for_scene`). The adaptive cache needs the
+    :func:`slc.scene.emitter_sampling.for_scene`). The adaptive cache needs the
     emitter index of every sample, so it samples from the table whatever
     ``SLC_EMITTER_SAMPLING`` says; emitters the table does not model (spot,
     directional, environment) are sampled by Mitsuba inside it."""
@@ -67,9 +67,9 @@ class LightStats(SampleObserver):
 
     def listable(self, ds, ok):
         """Samples of a light a VISIBILITY record lists: a delta light, a sphere light small
-        at the entry (``sph``, :mod:`slc.adaptive.sphere_lights`), a bright region of the
+        at the entry (``sph``, :mod:`slc.methods.adaptive.sphere_lights`), a bright region of the
         environment wholly above the entry's horizon (``env``,
-        :mod:`slc.adaptive.env_lights`)."""
+        :mod:`slc.methods.adaptive.env_lights`)."""
         delta = mi.Bool(ds.delta)
         if self.samp is None:
             return delta

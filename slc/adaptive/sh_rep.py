@@ -1,17 +1,17 @@
 r"""SH representation: incident direct radiance as spherical harmonics with
-YCoCg chrominance compression (:mod:`slc.sh`, default Y3Co1Cg1: 11
+YCoCg chrominance compression (:mod:`slc.methods.sh`, default Y3Co1Cg1: 11
 coefficients), in the entry's local frame, in a pool of its own.
 
 Record: the coefficients and the sample count, one float word each. Update: the
-``sh`` method's (:mod:`slc.sh.update`), in the entry's frame,
+``sh`` method's (:mod:`slc.methods.sh.update`), in the entry's frame,
 :math:`\hat\lambda_{lm} = \frac1n \sum_k w_k V_k Y_{lm}(\omega_k)`,
 :math:`\lambda \leftarrow \lambda + \min(n/C, 1)(\hat\lambda - \lambda)`, C the sample
 count capped at ``max_count``; lights below the surface are dropped. Shading: the
 Ramamoorthi-Hanrahan irradiance for diffuse-only BSDFs (chrominance by the
-"ratio" rule of :func:`slc.sh.project.irradiance`: the paper's offset rule
+"ratio" rule of :func:`slc.methods.sh.project.irradiance`: the paper's offset rule
 shifted the colour of a constant sky on a plane by 5%), BSDF samples of the
 reconstructed radiance otherwise: the ``sh`` method's shading
-(:func:`slc.sh.shading.shade_radiance`) on the pool's local-frame coefficients.
+(:func:`slc.methods.sh.shading.shade_radiance`) on the pool's local-frame coefficients.
 
 Conversion. To lobes: one cone about the mean direction of the luminance,
 :math:`\mathbf d \propto (\lambda_{1,1}, \lambda_{1,-1}, \lambda_{1,0})`, with
@@ -29,14 +29,14 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from ..freeze import FrozenFunction
-from ..keys import STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng, mixed_rng
-from ..sh.basis import C1, band_of, basis
-from ..sh.project import irradiance, radiance
-from ..sh.shading import shade_radiance
-from ..sh.update import project_samples, running_mean
-from ..sh.ycocg import encoding as get_encoding
-from .sampling import LightStats
+from slc.core.freeze import FrozenFunction
+from slc.core.keys import STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng, mixed_rng
+from slc.methods.sh.basis import C1, band_of, basis
+from slc.methods.sh.project import irradiance, radiance
+from slc.methods.sh.shading import shade_radiance
+from slc.methods.sh.update import project_samples, running_mean
+from slc.methods.sh.ycocg import encoding as get_encoding
+from slc.methods.adaptive.sampling import LightStats
 
 CONVERT_COUNT = 4.0
 
@@ -56,11 +56,11 @@ def pack(coeffs, C):
 
 def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int, enc, max_count: int, sph=None,
            env=None, mix=None):
-    """One update cycle of SH records (:mod:`slc.sh.update`, in the entry's frame, fresh
+    """One update cycle of SH records (:mod:`slc.methods.sh.update`, in the entry's frame, fresh
     records restarting empty), with the choice rule's statistics
-    (:class:`~slc.adaptive.sampling.LightStats`, ``sph`` and ``env`` see there) from the
+    (:class:`~slc.methods.adaptive.sampling.LightStats`, ``sph`` and ``env`` see there) from the
     same samples. Returns (new words, stats values). ``mix``: the random streams' (seed,
-    frame) mix as an opaque ``mi.UInt32`` (:func:`slc.keys.stream_key`), in place of
+    frame) mix as an opaque ``mi.UInt32`` (:func:`slc.core.keys.stream_key`), in place of
     ``seed`` and ``frame`` (:class:`SHUpdate`)."""
     if mix is None:
         rng = keyed_rng(key, seed, frame, STREAM_SH_UPDATE)
@@ -77,11 +77,11 @@ def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int
 
 class SHUpdate(FrozenFunction):
     """:func:`update` traced once and replayed (``dr.freeze``, as
-    :class:`~slc.adaptive.visibility.VisUpdate` and
-    :class:`~slc.adaptive.cones_rep.ConesUpdate`): tracing the SH update (the
+    :class:`~slc.methods.adaptive.visibility.VisUpdate` and
+    :class:`~slc.methods.adaptive.cones_rep.ConesUpdate`): tracing the SH update (the
     sample loop, the projection on the encoding's basis) was Python work on
     every frame. Inputs: the scene, the emitter table's arrays
-    (:func:`~slc.adaptive.visibility._sampler_inputs`), the sphere and region
+    (:func:`~slc.methods.adaptive.visibility._sampler_inputs`), the sphere and region
     tables, the entries' records and interactions, and the random streams' mix
     (opaque: a new frame is no new recording). The encoding, ``seed``,
     ``max_count``, ``sph`` and ``env`` are fixed per instance. Unfrozen in
@@ -102,18 +102,18 @@ class SHUpdate(FrozenFunction):
             dr.eval(out, st)
             return out, st
         super().__init__(kernel, freeze, False, max_recordings,
-                         lanes=("rec", "si", "key", "rays", "fresh", "on"))     # per entry (slc.freeze)
+                         lanes=("rec", "si", "key", "rays", "fresh", "on"))     # per entry (slc.core.freeze)
 
     def __call__(self, scene, rec, si, key, rays, fresh, on, frame: int):
-        from ..keys import stream_key
-        from .visibility import _sampler_inputs, _tables
+        from slc.core.keys import stream_key
+        from slc.methods.adaptive.visibility import _sampler_inputs, _tables
         return super().__call__(scene, _sampler_inputs(scene), _tables(self.sph, self.env),
                                 [mi.UInt32(w) for w in rec], si, mi.UInt32(key), mi.UInt32(rays), mi.Bool(fresh),
                                 mi.Bool(on), stream_key(self.seed, frame, STREAM_SH_UPDATE))
 
 
 def shade(rec, si, bsdf, tf, active, enc, seed: int, glossy_samples: int) -> mi.Color3f:
-    """L_o of the pixels from their SH records (:func:`slc.sh.shading.shade_radiance`);
+    """L_o of the pixels from their SH records (:func:`slc.methods.sh.shading.shade_radiance`);
     ``tf`` each entry's local frame, in which the coefficients live."""
     coeffs, _ = unpack(rec, enc)
     nrm = tf.to_local(mi.Vector3f(si.sh_frame.n))
@@ -171,7 +171,7 @@ def _shade_kernel(rec, active, si, bsdf, tf, enc_name: str, seed: int, glossy_sa
 
 class SHShading(FrozenFunction):
     """:func:`shade` on an SH pool, traced once and replayed (``dr.freeze``, as
-    :class:`slc.cones.shading.ConeShading`): tracing the SH shading (basis,
+    :class:`slc.methods.cones.shading.ConeShading`): tracing the SH shading (basis,
     BSDF sampling loop) cost more host time than its kernel. The pixels' records
     (gathered outside: the pool's width changes when it grows, the pixels' does
     not), mask and interactions are the frozen function's inputs; the encoding, seed

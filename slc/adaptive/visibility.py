@@ -29,13 +29,13 @@ the residual's running mean, :math:`E_r \leftarrow E_r + n(\hat E_r - E_r)/C_r` 
 the sample count, at most 255, or 4 cycles while the entry is moving)
 with :math:`\hat E_r = \frac1n\sum_k [k \text{ not in the list}]\, w_k V_k c_k`.
 
-Small sphere lights (:mod:`slc.adaptive.sphere_lights`, ``sph``) are listed
+Small sphere lights (:mod:`slc.methods.adaptive.sphere_lights`, ``sph``) are listed
 like delta lights where they are small at the entry (:math:`r/d` below
 ``sph.max_sin``): their :math:`v_i` is the running mean of shadow rays to
 sampled points on the sphere and their unoccluded term is the closed form
 :math:`\pi L r^2/d^2` towards the current centre.
 
-Bright small regions of the environment map (:mod:`slc.adaptive.env_lights`,
+Bright small regions of the environment map (:mod:`slc.methods.adaptive.env_lights`,
 ``env``) are listed like delta lights where wholly above the entry's horizon
 (index ``env.base + j``, unoccluded term :math:`\Phi_j R_j` along
 :math:`\mathbf d_j`); samples of regions above the horizon but not listed
@@ -52,10 +52,10 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from ..cones.packing import _Reader, _Writer, decode_radiance, encode_radiance
-from ..freeze import FrozenFunction
-from ..keys import keyed_rng, mixed_rng
-from .sampling import LightStats, SampleStats, lum, sampler_of
+from slc.methods.cones.packing import _Reader, _Writer, decode_radiance, encode_radiance
+from slc.core.freeze import FrozenFunction
+from slc.core.keys import keyed_rng, mixed_rng
+from slc.methods.adaptive.sampling import LightStats, SampleStats, lum, sampler_of
 
 EMPTY = 0xFFFF
 STREAM_VIS = 0x3C6EF372
@@ -91,7 +91,7 @@ class ListLoop:
     samples (the residual's estimate), ``adj`` the energy moved between the list and
     the residual by replacements, ``vu`` and ``nu`` the unlisted environment regions'
     visible fraction and sample count, ``stats`` the choice rule's sums
-    (:class:`~slc.adaptive.sampling.SampleStats`) and ``rng`` the random numbers."""
+    (:class:`~slc.methods.adaptive.sampling.SampleStats`) and ``rng`` the random numbers."""
     k: mi.UInt32
     idx: list
     vis: list
@@ -193,15 +193,15 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
            env=None, mix=None):
     """One update cycle of VISIBILITY records ``rec`` (lists of words, one lane
     per entry) at the entries' points ``si`` (``sph``: the scene's
-    :class:`~slc.adaptive.sphere_lights.SphereLights`, or None). A listed light whose unoccluded
+    :class:`~slc.methods.adaptive.sphere_lights.SphereLights`, or None). A listed light whose unoccluded
     irradiance here is now 0 (switched off, turned or moved away) is dropped
     and reported as motion. Moving entries (the ray policy's state; new
     entries are not capped: their light did not move) cap the residual's
     count at ``UNSETTLED_COUNT`` cycles. Returns (new words, motion,
     stats values). ``env``: the environment's bright regions
-    (:class:`~slc.adaptive.env_lights.EnvLights`), listed where wholly above
+    (:class:`~slc.methods.adaptive.env_lights.EnvLights`), listed where wholly above
     the entry's horizon. ``mix``: the random streams' (seed, frame) mix as an
-    opaque array (:func:`slc.keys.stream_key`; the frozen update's input),
+    opaque array (:func:`slc.core.keys.stream_key`; the frozen update's input),
     else computed from ``seed`` and ``frame``."""
     sc = scene
     dl = has_delta(sc)
@@ -408,7 +408,7 @@ def from_irradiance(E, n: int, K: int, env: bool = False):
 
 class VisShading(FrozenFunction):
     """:func:`shade` on the pixels' VISIBILITY records, traced once and replayed
-    (``dr.freeze``, as :class:`slc.adaptive.sh_rep.SHShading`): tracing the
+    (``dr.freeze``, as :class:`slc.methods.adaptive.sh_rep.SHShading`): tracing the
     shading (a BSDF call site in the listed lights' loop and one in the
     environment regions' loop) cost more host time than its kernel. The
     records (gathered outside), mask, interactions and the scene are inputs;
@@ -460,7 +460,7 @@ def _sampler_inputs(scene) -> list:
 
 class VisUpdate(FrozenFunction):
     """:func:`update` traced once and replayed (``dr.freeze``, as ``slc``'s
-    :class:`slc.cones.update.ConeUpdate`): tracing the update (the sample loop
+    :class:`slc.methods.cones.update.ConeUpdate`): tracing the update (the sample loop
     with its K unrolled slots) cost more host time than its kernel. Inputs:
     the scene, the emitter table's arrays (:func:`_sampler_inputs`),
     the sphere and region tables, the entries' records and interactions, and
@@ -477,10 +477,10 @@ class VisUpdate(FrozenFunction):
             dr.eval(out, gone, st)
             return out, gone, st
         super().__init__(kernel, freeze, False, max_recordings,
-                         lanes=("rec", "si", "key", "rays", "moving", "fresh", "on"))     # per entry (slc.freeze)
+                         lanes=("rec", "si", "key", "rays", "moving", "fresh", "on"))     # per entry (slc.core.freeze)
 
     def __call__(self, scene, rec, si, key, rays, moving, fresh, on, frame: int):
-        from ..keys import stream_key
+        from slc.core.keys import stream_key
         return super().__call__(scene, _sampler_inputs(scene), _tables(self.sph, self.env), [mi.UInt32(w) for w in rec],
                                 si, mi.UInt32(key), mi.UInt32(rays), mi.Bool(moving), mi.Bool(fresh), mi.Bool(on),
                                 stream_key(self.seed, frame, STREAM_VIS))

@@ -19,8 +19,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..lights import rng, sampler as light_table
-from ..methods import Method, MethodError, Param, register
+from slc.scene.lights import rng, sampler as light_table
+from slc.methods import Method, MethodError, Param, register
 
 # Emitter kinds (the measure in which a stored sample lives)
 AREA, DELTA_POS, INFINITE = 0, 1, 2
@@ -104,7 +104,7 @@ class ReSTIR(Method):
     Stages (timed as ``initial``, ``temporal``, ``spatial``, ``shade``):
 
     1. *initial*: RIS over ``local`` local-light candidates (from the
-       scene's emitter table over the local lights, :mod:`slc.emitter_sampling`:
+       scene's emitter table over the local lights, :mod:`slc.scene.emitter_sampling`:
        light choice and density from the table; with
        ``SLC_EMITTER_SAMPLING=mitsuba`` a uniform light choice and Mitsuba's
        ``sample_direction`` per light), ``env`` candidates
@@ -146,7 +146,7 @@ class ReSTIR(Method):
     index; a change of resolution or viewer count reallocates it.
     Limitations: textured area-light radiance is evaluated at uv = 0;
     point/spot lights are assumed not to move (they cannot in
-    :class:`~slc.scenes.SceneBuilder` scenes).
+    :class:`~slc.scene.scenes.SceneBuilder` scenes).
     """
 
     name = "restir"

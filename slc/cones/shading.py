@@ -60,10 +60,10 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from .. import bsdf_table as bsdf_tables
-from ..bsdf_table import KIND_DIFFUSE, KIND_NOT_PRINCIPLED, KIND_OTHER, KIND_PRINCIPLED, ZERO_ATTRS
-from ..freeze import FrozenFunction
-from .packing import gather_words, unpack
+from slc.scene import bsdf_table as bsdf_tables
+from slc.scene.bsdf_table import KIND_DIFFUSE, KIND_NOT_PRINCIPLED, KIND_OTHER, KIND_PRINCIPLED, ZERO_ATTRS
+from slc.core.freeze import FrozenFunction
+from slc.methods.cones.packing import gather_words, unpack
 
 GOLDEN = 0.6180339887498949           # 1 / phi: azimuths of the spherical-Fibonacci pattern
 R3 = 1.2207440846057596               # plastic constant of the 3-D Roberts (R3) sequence
@@ -732,7 +732,7 @@ class ConeShading(FrozenFunction):
         """Shade the pixels ``si``; ``pid``: the random-number key per pixel (default:
         the index in the arrays); ``entry_frames``: ``texel_frame`` is an index into
         them (see :func:`shade_kernel`)."""
-        # (no garbage collection inside the call: slc.freeze.FrozenFunction)
+        # (no garbage collection inside the call: slc.core.freeze.FrozenFunction)
         return super().__call__(storage, mi.UInt32(slot), mi.Bool(active), si, si.bsdf(), texel_frame,
                                 dr.opaque(mi.UInt32, max(int(n_samples), 1)), dr.opaque(mi.UInt32, int(key)), pid,
                                 self.table, entry_frames, self.opts)
@@ -759,7 +759,7 @@ def shader_for(owner, max_cones: int) -> ConeShading:
 
 
 def bsdf_table(scene):
-    """The scene's :class:`slc.bsdf_table.BSDFTable` (the kinds and constants the shading
+    """The scene's :class:`slc.scene.bsdf_table.BSDFTable` (the kinds and constants the shading
     kernel reads instead of virtual calls), None for scenes with instances."""
     return bsdf_tables.for_scene(scene)
 

@@ -24,9 +24,9 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from ..keys import INVALID, STREAM_CONE_UPDATE, keyed_rng, mixed_rng
-from ..freeze import FrozenFunction
-from ..lights import sample_light
+from slc.core.keys import INVALID, STREAM_CONE_UPDATE, keyed_rng, mixed_rng
+from slc.core.freeze import FrozenFunction
+from slc.scene.lights import sample_light
 
 INF = float("inf")
 # A stream of its own for the per-entry shift of the stratified update samples
@@ -70,8 +70,8 @@ def frame_u32(frame) -> mi.UInt32:
 
 
 def frame_rng(keys: mi.UInt32, seed: int, frame: mi.UInt32, stream: int) -> mi.PCG32:
-    """:func:`slc.keys.keyed_rng` for a frame held in a ``mi.UInt32``: the same
-    (seed, frame, stream) mix as :func:`slc.keys.stream_key`, wrapped modulo
+    """:func:`slc.core.keys.keyed_rng` for a frame held in a ``mi.UInt32``: the same
+    (seed, frame, stream) mix as :func:`slc.core.keys.stream_key`, wrapped modulo
     2^32 in the kernel instead of in Python, so the same streams bit for bit."""
     return mixed_rng(keys, frame * 0x85EBCA77 + ((int(seed) * 0x9E3779B1 + int(stream)) & 0xFFFFFFFF))
 
@@ -492,10 +492,10 @@ def _update_kernel(scene, lights, storage, order, batch: UpdateBatch, frame, see
     an opaque ``mi.UInt32``), and nothing here reads an array's width, so
     that :class:`ConeUpdate` can trace it once and replay it for any number
     of entries. ``lights`` (:func:`light_inputs`) is not read here: it declares
-    the emitter table's arrays, which :func:`slc.lights.sample_light` reads, as
+    the emitter table's arrays, which :func:`slc.scene.lights.sample_light` reads, as
     inputs of the frozen function. ``area_only`` (a Python bool, part of the recording's
     key) see :func:`shrink_test`. Returns (storage, motion, shrunk, dropped), the masks in lane order."""
-    from .packing import scatter_words
+    from slc.methods.cones.packing import scatter_words
     act = dr.gather(mi.UInt32, batch.slot, order)
     e = batch.entries
     entries = CycleEntries(
@@ -516,7 +516,7 @@ def _updated_words(scene, storage, active, entries: CycleEntries, seed_slot, fra
     """The update kernel proper on the packed ``storage``: unpack the active
     entries (and the LOD seeds of new ones), :func:`update_cycle`, pack.
     Returns the evaluated (words, motion, shrunk, dropped)."""
-    from .packing import gather_words, unpack
+    from slc.methods.cones.packing import gather_words, unpack
     K = p.max_cones
     state = unpack(gather_words(storage, active, K), K)
     seed_slot = mi.UInt32(seed_slot)
@@ -529,11 +529,11 @@ def _updated_words(scene, storage, active, entries: CycleEntries, seed_slot, fra
 
 
 def light_inputs(scene) -> list:
-    """The Dr.Jit arrays of the scene's emitter table (:mod:`slc.emitter_sampling`;
+    """The Dr.Jit arrays of the scene's emitter table (:mod:`slc.scene.emitter_sampling`;
     empty with Mitsuba's sampling), refreshed for moved emissive meshes. A frozen
     function may read only arrays reachable from its inputs: passing these makes
     the table an input (read at each replay, so a refreshed table is followed)."""
-    from ..lights import sampler
+    from slc.scene.lights import sampler
     s = sampler(scene)
     if s is None:
         return []
@@ -562,9 +562,9 @@ class ConeUpdate(FrozenFunction):
     size (it grows with the cache) may change between calls without a new recording;
     what forces one is a change of which inputs share a width (e.g. an input of
     width 1: one active entry, or as many entries as a mesh has vertex
-    coordinates: such calls run on a free width, see :mod:`slc.freeze`), or a
+    coordinates: such calls run on a free width, see :mod:`slc.core.freeze`), or a
     change of the scene's traversed state. As
-    :class:`slc.cones.shading.ConeShading`: in a static scene a function recorded
+    :class:`slc.methods.cones.shading.ConeShading`: in a static scene a function recorded
     more than ``max_recordings`` times is dropped (traced from then on); in an
     animated one it keeps 2 recordings and is dropped once 8 calls show that almost
     every call records."""
@@ -635,7 +635,7 @@ class SampleObserver:
 def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams, seeds=None, has_seed=None,
                  valid=None, observer: SampleObserver | None = None, area_only: bool = False):
     """One update cycle of unpacked cone records ``state = (D, A, L, C, n)``
-    (one lane per entry, as :func:`slc.cones.packing.unpack` returns it) with
+    (one lane per entry, as :func:`slc.methods.cones.packing.unpack` returns it) with
     the per-entry inputs ``entries`` (:class:`CycleEntries`):
     fresh entries restart empty, or from their LOD seed's unpacked
     record ``seeds`` where ``has_seed``; ``rays`` light samples per entry from
@@ -646,7 +646,7 @@ def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams
     Shared by ``slc`` (through :func:`update_entries`) and the adaptive cache's
     cone pool. Returns (packed words, motion, shrunk, dropped, observer state);
     nothing evaluated."""
-    from .packing import pack
+    from slc.methods.cones.packing import pack
     key, si, rays, unsettled, moving = entries.key, entries.si, entries.rays, entries.unsettled, entries.moving
     is_new, first_sample, strata = entries.fresh, entries.first_sample, entries.strata
     K = p.max_cones

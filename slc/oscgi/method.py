@@ -8,21 +8,21 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from ..backend import aligned
-from ..cones.update import light_inputs
-from ..freeze import FrozenFunction
-from ..gbuffer import layered, per_viewer, viewer_lanes
-from ..keys import INVALID, keyed_rng, mixed_rng, stream_key
-from ..lights import SurfaceBSDF, diffuse_flags, direct_sample, sample_light, visible
-from ..methods import MethodError, Param, register
-from ..osc.cache import OnSurfaceCache
-from ..osc.payload import PayloadMethod, RayPolicy
-from ..sh.shading import diffuse_only, shade_radiance
-from .hemisphere import HemiGrid
-from .laps import Laps
-from .origins import backface_share, representative_points
-from .secondary import SecondaryCache, _glossy_kernel
-from .spatial import SpatialFilter
+from slc.core.backend import aligned
+from slc.methods.cones.update import light_inputs
+from slc.core.freeze import FrozenFunction
+from slc.scene.gbuffer import layered, per_viewer, viewer_lanes
+from slc.core.keys import INVALID, keyed_rng, mixed_rng, stream_key
+from slc.scene.lights import SurfaceBSDF, diffuse_flags, direct_sample, sample_light, visible
+from slc.methods import MethodError, Param, register
+from slc.osc.cache import OnSurfaceCache
+from slc.osc.payload import PayloadMethod, RayPolicy
+from slc.methods.sh.shading import diffuse_only, shade_radiance
+from slc.methods.oscgi.hemisphere import HemiGrid
+from slc.methods.oscgi.laps import Laps
+from slc.methods.oscgi.origins import backface_share, representative_points
+from slc.methods.oscgi.secondary import SecondaryCache, _glossy_kernel
+from slc.methods.oscgi.spatial import SpatialFilter
 
 STREAM_PRIMARY = 0x05C61001
 STREAM_PRIMARY_DIRECT = 0x05C61002
@@ -86,9 +86,9 @@ def _primary_direct_kernel(sc, lights, sie, keys, scratch, mix, nd, scale: float
 
 def _pixel_direct_kernel(sc, lights, table, si, active, idx, mix, n, lds):
     r"""RT-N direct light of the pixels ``si``: ``n`` (opaque) light samples with shadow rays,
-    :math:`\frac1n\sum_j f\,L_e G V / p` (:func:`slc.lights.direct_sample`); ``idx`` the pixels'
+    :math:`\frac1n\sum_j f\,L_e G V / p` (:func:`slc.scene.lights.direct_sample`); ``idx`` the pixels'
     stream keys (their width is the launch width), ``lights`` and ``table`` (the diffuse-BSDF table of
-    :class:`slc.lights.SurfaceBSDF`) declare what the kernel reads as inputs.
+    :class:`slc.scene.lights.SurfaceBSDF`) declare what the kernel reads as inputs.
 
     ``lds`` (a Python bool, part of the recording's key): the n sample points of a pixel are the Hammersley set
     :math:`((j + \tfrac12)/n,\ \Phi_2(j))` shifted by one random offset r per pixel (Cranley-Patterson
@@ -220,17 +220,17 @@ class OSCGI(PayloadMethod):
 
     *Primary caches*: every requested on-surface cache entry x (its own surface point, rays offset
     along its normal) keeps the incoming radiance over its hemisphere in ``hemi`` x ``hemi`` texels
-    of the cosine-weighted concentric map (:class:`~slc.oscgi.hemisphere.HemiGrid`, frame of the
+    of the cosine-weighted concentric map (:class:`~slc.methods.oscgi.hemisphere.HemiGrid`, frame of the
     entry's shading normal). Each update traces one jittered cosine ray per texel; a ray's hit y
     falls in a secondary cell whose outgoing radiance :math:`L_o(y)` (layer ``bounces``) is the
     texel's new sample; with ``output=full``, ``direct_rays`` light samples (next-event
-    estimation, :func:`slc.lights.sample_light` + shadow ray) are binned into the texels of their
+    estimation, :func:`slc.scene.lights.sample_light` + shadow ray) are binned into the texels of their
     directions, :math:`\hat L_k \mathrel{+}= \frac{L_e\cos\theta}{n\,p\,\pi/R^2}[\omega\in k]`.
     Temporal filter: :math:`L_k \leftarrow L_k + (\hat L_k - L_k)/\min(c, N_{max})`, c the
     entry's update count (an EMA over ``n_max`` samples once settled); a new entry starts from
     its LOD seed (a coarser entry) when the cache gives one.
 
-    *Secondary caches*: :class:`~slc.oscgi.secondary.SecondaryCache`, cells of
+    *Secondary caches*: :class:`~slc.methods.oscgi.secondary.SecondaryCache`, cells of
     ``secondary_cm`` cm keyed by position, normal bin and shape, storing outgoing diffuse radiance
     in ``bounces`` layers (direct light by ``light_samples`` light samples, indirect by
     ``secondary_rays`` cosine rays into other cells; EMA capped at ``secondary_n_max``), so the primary point receives light after
@@ -247,7 +247,7 @@ class OSCGI(PayloadMethod):
 
     ``freeze`` (on): the kernels with shape, BSDF or emitter calls (cache rays and cell keys,
     representative albedo, direct light of cells and entries, secondary rays, glossy hits) are
-    traced once and replayed (:class:`slc.freeze.FrozenFunction`); the same images as traced.
+    traced once and replayed (:class:`slc.core.freeze.FrozenFunction`); the same images as traced.
 
     *Shading* (no rays): diffuse-only BSDFs exactly from the texels,
     :math:`L_o = \frac{\rho}{\pi} E,\ E = \frac{\pi}{R^2}\sum_k L_k`; other BSDFs by
@@ -260,7 +260,7 @@ class OSCGI(PayloadMethod):
     delta lobes and read the secondary cell at each hit (:func:`_sharp_shade`; the diffuse lobe
     from the texels as above); ``trilinear``: each BSDF sample reads one texel of its bilinear
     footprint chosen with probability = its bilinear weight (unbiased for the bilinear blend;
-    :meth:`~slc.oscgi.hemisphere.HemiGrid.texel_stochastic`), not the nearest texel.
+    :meth:`~slc.methods.oscgi.hemisphere.HemiGrid.texel_stochastic`), not the nearest texel.
 
     *Direct light* (``output=full``), ``direct``: ``rt`` (default) ``direct_n`` (16) light samples
     per pixel with shadow rays, :math:`\frac1n\sum_j f L_e G V/p` (RT-N, frozen; with ``direct_lds``,
@@ -370,7 +370,7 @@ class OSCGI(PayloadMethod):
         self._cache_direct = self.output == "full" and self.direct == "cache"
         self._sub = None
         if self.output == "full" and self.direct in DIRECT_METHODS:
-            from .. import methods
+            from slc import methods
             self._sub = methods.create(DIRECT_METHODS[self.direct], scene, seed=self.seed)
 
     def validate(self):
@@ -646,7 +646,7 @@ class OSCGI(PayloadMethod):
             due[np.array(fr.is_new, dtype=bool)] = -1                  # new entries: always
             order = np.lexsort((slot, due))
             take = min(max(B, int(np.count_nonzero(due < 0))), N)
-        # an aligned copy: a numpy buffer at an unaligned address is another kernel (slc.backend.aligned)
+        # an aligned copy: a numpy buffer at an unaligned address is another kernel (slc.core.backend.aligned)
         sel = (mi.UInt32(aligned(np.sort(order[:take]), np.uint32)) if take < N
                else dr.arange(mi.UInt32, N))
         sub = dataclasses.replace(fr, active=dr.gather(mi.UInt32, fr.active, sel),
@@ -693,14 +693,14 @@ class OSCGI(PayloadMethod):
     # ------------------------------------------------------------------ shade
     def shade_all(self, ctx, fr, gbuffers):
         """Every viewer's pixels. Several viewers are shaded in one launch over the frame's
-        layered G-buffer (:func:`slc.gbuffer.layered`; the cache's slots laid out the same way,
+        layered G-buffer (:func:`slc.scene.gbuffer.layered`; the cache's slots laid out the same way,
         ``fr.layer_slot`` / ``fr.layer_index``), then split per viewer: each pixel keeps the
         random-number key it has per viewer (its index within its own viewer), so the images are
         those of :meth:`shade` bit for bit, and the shading (BSDF calls) is traced in Python once
         a frame instead of once per viewer (session gi9: 16 viewers at 32x18 spent 17 of 31 ms a
         frame tracing 16 shading kernels, 0.2 ms of it executing them). With the spatial filter
         on (``filter_radius`` > 0), from a filtered copy of the active entries
-        (:class:`~slc.oscgi.spatial.SpatialFilter`, timed with the display), the temporal state
+        (:class:`~slc.methods.oscgi.spatial.SpatialFilter`, timed with the display), the temporal state
         left unfiltered."""
         raw = self.storage
         if self.filter.r > 0:
@@ -733,7 +733,7 @@ class OSCGI(PayloadMethod):
         """Pixels ``si`` (G-buffer mask ``valid``) from their entries (``slot`` into the storage,
         ``idx`` into ``fr.si``); ``pid`` each pixel's index within its own viewer (the key of
         its random numbers). Diffuse BSDFs from the irradiance words, others by BSDF samples of
-        the hemisphere texels (:func:`slc.sh.shading.shade_radiance`)."""
+        the hemisphere texels (:func:`slc.methods.sh.shading.shade_radiance`)."""
         G, W, D = self.grid, self.words, self.grid.n
         ok = valid & (slot != INVALID) & (si.wi.z > 0.0)
         bsdf = si.bsdf()

@@ -5,13 +5,13 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ..keys import INVALID, STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng
-from ..methods import Param, register
-from ..osc.payload import PayloadMethod, RayPolicy
-from .project import irradiance, radiance
-from .shading import shade_radiance
-from .update import project_samples, running_mean, world_frame
-from .ycocg import ENCODINGS, encoding as get_encoding
+from slc.core.keys import INVALID, STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng
+from slc.methods import Param, register
+from slc.osc.payload import PayloadMethod, RayPolicy
+from slc.methods.sh.project import irradiance, radiance
+from slc.methods.sh.shading import shade_radiance
+from slc.methods.sh.update import project_samples, running_mean, world_frame
+from slc.methods.sh.ycocg import ENCODINGS, encoding as get_encoding
 
 
 class SHSurfaceCache(PayloadMethod):
@@ -21,14 +21,14 @@ class SHSurfaceCache(PayloadMethod):
     direct radiance :math:`L_i(x, \omega)` projected onto real SH in the
     chosen encoding (default Y3Co1Cg1, 11 coefficients; ``rgb3``,
     ``y3co3cg3``, ``y3co2cg2``). One update draws ``rays`` light samples at x
-    (``slc.lights.sample_light`` + shadow ray; lights below the
+    (``slc.scene.lights.sample_light`` + shadow ray; lights below the
     texel's surface are dropped) and estimates
 
     .. math:: \hat\lambda_{lm} = \frac{1}{n}\sum_k \frac{L_e(\omega_k) V}{p(\omega_k)} Y_{lm}(\omega_k),
               \qquad \lambda \leftarrow \lambda + \min(n/C, 1)(\hat\lambda - \lambda),
 
     with :math:`C` the sample count capped at ``max_count`` (an exponential
-    moving average once capped, so moving lights fade in; :mod:`slc.sh.update`,
+    moving average once capped, so moving lights fade in; :mod:`slc.methods.sh.update`,
     shared with the adaptive cache's SH records): a new entry's ``rays_new``-sample
     updates average evenly until the cap, a settled entry's 1-sample update
     weighs ``1/max_count``. A new entry starts from its LOD seed (a coarser

@@ -3,7 +3,7 @@ light samples at an entry's point projected onto an encoding's basis, and the ru
 mean of the coefficients.
 
 One cycle draws :math:`n` (``rays``) light samples at the entry's point x
-(:func:`slc.lights.sample_light` and a shadow ray; lights below the surface's geometric
+(:func:`slc.scene.lights.sample_light` and a shadow ray; lights below the surface's geometric
 normal are dropped) and estimates, in the frame the caller gives (the world's for ``sh``,
 the entry's own for the adaptive pool),
 
@@ -25,8 +25,8 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from ..lights import sample_light, visible
-from .project import project
+from slc.scene.lights import sample_light, visible
+from slc.methods.sh.project import project
 
 
 def world_frame() -> mi.Frame3f:
@@ -50,7 +50,7 @@ def project_samples(scene: mi.Scene, si: mi.SurfaceInteraction3f, frame: mi.Fram
     """The sums over ``rays`` light samples per entry (points ``si``, lanes ``valid``) of
     their projections onto ``enc``'s basis, directions in ``frame``: (list of ``enc.n``
     arrays, the observer's state). ``observer`` (a
-    :class:`slc.cones.update.SampleObserver`, optional) sees every sample with its
+    :class:`slc.methods.cones.update.SampleObserver`, optional) sees every sample with its
     direction in ``frame``."""
     N = dr.width(valid)
     ng = mi.Vector3f(si.n)
