@@ -23,7 +23,7 @@ def _kind(sc, m):
     for sh in sc.mi_scene.shapes():
         if sh.id() == "plane" or "plane" in sh.id():
             rid = dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(sh.bsdf()))
-    return int(dr.gather(mi.UInt32, t[1], rid)[0]), t
+    return int(dr.gather(mi.UInt32, t.kind, rid)[0]), t
 
 
 def _bitmap():

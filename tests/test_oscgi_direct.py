@@ -76,7 +76,7 @@ def test_stratified_light_samples_are_unbiased_and_less_noisy(cornell):
     average 0.66x that of independent samples."""
     from slc.methods.cones.update import light_inputs
     from slc.core.keys import stream_key
-    from slc.scene.lights import _diffuse_table
+    from slc.scene.lights import diffuse_flags
     from slc.methods.oscgi.kernels import STREAM_PIXEL_DIRECT, pixel_direct_kernel
     from slc.run.pipeline import gbuffers_for
     gb = gbuffers_for(cornell, views.single(cornell), 0, 32, 18)[0]
@@ -87,7 +87,7 @@ def test_stratified_light_samples_are_unbiased_and_less_noisy(cornell):
     err1, err64, means = {}, {}, {}
     for lds in (True, False):
         imgs = np.stack([references.image_of("full", gb, pixel_direct_kernel(
-            sc, light_inputs(sc), _diffuse_table(sc)[0], gb.si, mi.Bool(gb.valid), idx,
+            sc, light_inputs(sc), diffuse_flags(sc), gb.si, mi.Bool(gb.valid), idx,
             stream_key(0, f, STREAM_PIXEL_DIRECT), dr.opaque(mi.UInt32, 4), lds)) for f in range(64)])
         assert np.isfinite(imgs).all()
         avg = imgs.mean(0)

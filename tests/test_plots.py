@@ -122,17 +122,17 @@ def test_metric_vs_value_plot_reads(tmp_path, figures):
 
 
 def test_experiment_stage_plots_read(tmp_path, figures):
-    crc, osc_gi = ex.load("crc"), ex.load("osc-gi")
+    crc, osc_gi = ex.load_part("crc_report"), ex.load("osc-gi")
     from slc.methods.crc.cache import CRCCache
     stages = CRCCache.FIXED_STAGES + CRCCache.COEFFICIENT_STAGES
     sweep = [dict(resolution=n, occupancy_ratio=0.3 + 0.1 * i, **{k: 1.0 + i for k in stages})
              for i, n in enumerate((16, 32, 64, 128))]
-    crc._plot_sweep(tmp_path / "fig10.png", sweep, "Fig. 10: cornell, 2 bounces, Y3Co1Cg1")
+    crc.plot_sweep(tmp_path / "fig10.png", sweep, "Fig. 10: cornell, 2 bounces, Y3Co1Cg1")
     rows = [dict(variant="", visibility="march", chroma="offset", encoding=e, occupancy=occ, time_ms=3.0 + i,
                  lab_rmse=0.5 * i, lab_rmse_ref=1.0 + i, coefficients=c)
             for i, (e, c, occ) in enumerate([("rgb3", 27, True), ("y3co1cg1", 11, True), ("y2co2cg2", 12, True),
                                              ("rgb3", 27, False)])]
-    crc._plot(tmp_path / "crc.png", rows, "cornell, 2 bounce(s), 160x90")
+    crc.plot(tmp_path / "crc.png", rows, "cornell, 2 bounce(s), 160x90")
     osc_gi._reuse_plot(tmp_path / "reuse.png", {"bins": [1, 2, 4, 8, 16, 1 << 21], "counts": [50, 30, 10, 5, 1]},
                        "cornell: primary rays per secondary cell")
     figs = figures()

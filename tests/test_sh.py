@@ -262,3 +262,20 @@ def test_shade_radiance_glossy_constant_field_and_radiance_mask():
     albedo = L[on] / np.array([0.5, 1.0, 2.0])
     assert np.allclose(albedo[:, 0], albedo[:, 1], rtol=1e-5) and np.allclose(albedo[:, 1], albedo[:, 2], rtol=1e-5)
     assert (albedo <= 1.0 + 1e-4).all() and albedo.mean() > 0.9
+
+
+def test_running_mean_counts_samples():
+    """The SH update's running mean (shared by ``sh`` and the adaptive cache) counts samples:
+    after an 8-sample cycle a 1-sample cycle weighs 1/9; once C reaches the cap, a cycle of n
+    samples weighs n / cap."""
+    import drjit as dr
+    import mitsuba as mi
+
+    import slc.core.backend  # noqa: F401
+    from slc.methods.sh.update import running_mean
+    c, C = running_mean([mi.Float(5.0)], mi.Float(0.0), [mi.Float(8 * 2.0)], mi.UInt32(8), 16)
+    assert dr.allclose(c[0], 2.0) and dr.allclose(C, 8.0)
+    c, C = running_mean(c, C, [mi.Float(11.0)], mi.UInt32(1), 16)
+    assert dr.allclose(c[0], 3.0) and dr.allclose(C, 9.0)
+    c, C = running_mean(c, mi.Float(16.0), [mi.Float(4 * 7.0)], mi.UInt32(4), 16)
+    assert dr.allclose(c[0], 3.0 + 0.25 * (7.0 - 3.0)) and dr.allclose(C, 16.0)

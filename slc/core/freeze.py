@@ -56,7 +56,9 @@ value).
 """
 from __future__ import annotations
 
+import dataclasses
 import gc
+import inspect
 
 import drjit as dr
 import mitsuba as mi
@@ -67,19 +69,20 @@ class FrozenFunction:
 
     Parameters (defaults): ``fn``, ``freeze=True`` (False: ``fn`` traced on
     every call), ``animated=False`` (the scene's meshes move),
-    ``max_recordings=4``, ``lanes=()`` (positions of the per-lane arguments:
-    a call whose lane count collides with another input's width runs on a
-    free width, see the module), ``narrow=()`` (positions of arguments whose
-    width decides whether a call is replayed: a call where one of them has
-    fewer than 2 lanes runs ``fn`` traced, since a width-1 input is loaded as
-    a scalar and would need a recording of its own). ``calls`` counts the calls made while frozen,
+    ``max_recordings=4``, ``lanes=()`` (the per-lane arguments, by the names of
+    ``fn``'s parameters, or their positions: a call whose lane count collides with another input's
+    width runs on a free width, see the module; an argument named here may be a
+    structure, a Dr.Jit struct or a dataclass, whose every array is per lane), ``narrow=()``
+    (the arguments, by name or position, whose width decides whether a call is replayed: a call
+    where one of them has fewer than 2 lanes runs ``fn`` traced, since a width-1 input is loaded
+    as a scalar and would need a recording of its own). ``calls`` counts the calls made while frozen,
     ``n_recordings`` the recordings made (including those of a dropped
     function), ``frozen`` whether calls are still replayed."""
 
     def __init__(self, fn, freeze: bool = True, animated: bool = False, max_recordings: int = 4,
                  lanes: tuple = (), narrow: tuple = ()):
         self.fn = fn
-        self.lanes, self.narrow = tuple(lanes), tuple(narrow)
+        self.lanes, self.narrow = _positions(fn, lanes), _positions(fn, narrow)
         self.padded_calls = 0           # calls run on a free width
         self._scene_key, self._scene_ws = None, set()
         self.animated, self.max_recordings = bool(animated), int(max_recordings)
@@ -185,14 +188,26 @@ class FrozenFunction:
         return int(self.kernel.n_cached_recordings) if self.frozen else 0
 
 
+def _positions(fn, lanes) -> tuple:
+    """The positions of ``fn``'s parameters named in ``lanes`` (an int: a position)."""
+    names = list(inspect.signature(fn).parameters)
+    unknown = [n for n in lanes if not isinstance(n, int) and n not in names]
+    if unknown:
+        raise ValueError(f"{getattr(fn, '__name__', fn)} has no parameter {', '.join(unknown)}")
+    return tuple(n if isinstance(n, int) else names.index(n) for n in lanes)
+
+
 # ----------------------------------------------------------------------------- widths
 
 def _leaves(x):
-    """The 1-D Dr.Jit arrays of a (nested) array, Dr.Jit struct, or a list /
-    tuple of them."""
+    """The 1-D Dr.Jit arrays of a (nested) array, Dr.Jit struct, dataclass, or a
+    list / tuple of them."""
     if isinstance(x, (list, tuple)):
         for v in x:
             yield from _leaves(v)
+    elif _is_dataclass(x):
+        for f in dataclasses.fields(x):
+            yield from _leaves(getattr(x, f.name))
     elif dr.is_struct_v(x) and not dr.is_array_v(x):
         for k in type(x).DRJIT_STRUCT:
             yield from _leaves(getattr(x, k))
@@ -204,10 +219,13 @@ def _leaves(x):
 
 
 def _map_leaves(x, f):
-    """``x`` (an array, a Dr.Jit struct, or a tuple / list of them) with
-    ``f`` applied to each 1-D leaf (structs and nested arrays rebuilt)."""
+    """``x`` (an array, a Dr.Jit struct, a dataclass, or a tuple / list of them)
+    with ``f`` applied to each 1-D leaf (structs and nested arrays rebuilt)."""
     if isinstance(x, (list, tuple)):
         return type(x)(_map_leaves(v, f) for v in x)
+    if _is_dataclass(x):
+        return dataclasses.replace(x, **{k.name: _map_leaves(getattr(x, k.name), f) for k in dataclasses.fields(x)
+                                         if k.init})
     if dr.is_struct_v(x) and not dr.is_array_v(x):
         out = type(x)()
         for k in type(x).DRJIT_STRUCT:
@@ -221,10 +239,16 @@ def _map_leaves(x, f):
 
 
 def _is_tree(x) -> bool:
-    """Whether ``x`` is a Dr.Jit array or struct, or a list / tuple of them."""
+    """Whether ``x`` is a Dr.Jit array or struct, a dataclass, or a list / tuple of them."""
     if isinstance(x, (list, tuple)):
         return all(_is_tree(v) for v in x)
+    if _is_dataclass(x):
+        return True
     return dr.is_array_v(x) or dr.is_struct_v(x)
+
+
+def _is_dataclass(x) -> bool:
+    return dataclasses.is_dataclass(x) and not isinstance(x, type)
 
 
 def _width(x) -> int:

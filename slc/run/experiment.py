@@ -47,8 +47,21 @@ def load(name: str):
     path = EXPERIMENTS_DIR / f"{name.replace('-', '_')}.py"
     if not path.exists():
         raise ExperimentError(f"unknown experiment '{name}' (available: {', '.join(names())})")
+    return _load_file(path)
+
+
+def load_part(name: str):
+    """A part of the experiments that is no experiment itself (``experiments/_NAME.py``,
+    e.g. an experiment's report), loaded once."""
+    return sys.modules.get(f"slc_experiment__{name}") or _load_file(EXPERIMENTS_DIR / f"_{name}.py")
+
+
+def _load_file(path: Path):
+    """The module at ``path``, registered in ``sys.modules`` as ``slc_experiment_STEM`` (so
+    that its parts can name it, e.g. ``sys.modules[__name__]``)."""
     spec = importlib.util.spec_from_file_location(f"slc_experiment_{path.stem}", path)
     mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
     spec.loader.exec_module(mod)
     return mod
 

@@ -47,6 +47,7 @@ class RunConfig:
     gt_spp: int = GT_SAMPLES
     keep_images: bool = True
     start_frame: int = 0
+    frame_step: int = 1               # camera-path frames per rendered frame (frame i is start + i * step)
     eval_viewers: int | None = None   # compare only the first k viewers with the ground truth
     measure_overlap: bool = True      # screen-independent overlap of the viewers' visible surface
     ref_spp: int | None = None        # samples of indirect references (None: references.INDIRECT_SAMPLES)
@@ -120,7 +121,7 @@ def _run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress, kc: 
     stats_acc: dict[str, list] = {}
     last = {}
     for i in range(cfg.frames):
-        f = cfg.start_frame + i
+        f = cfg.start_frame + i * cfg.frame_step
         gbs = gbuffers_for(scene, viewers, f, cfg.width, cfg.height)
         ctx = FrameContext(frame=f)
         kc.take()                 # kernels of the G-buffer and of the previous frame's evaluation

@@ -24,9 +24,8 @@ import os
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
-from slc.scene import emitter_sampling
+from slc.scene import bsdf_table, emitter_sampling
 
 MODES = ("table", "mitsuba")
 _mode = None   # None: read SLC_EMITTER_SAMPLING (default 'table') on first use
@@ -150,16 +149,16 @@ class SurfaceBSDF:
                  ctx: mi.BSDFContext | None = None):
         self.si, self.ctx = si, ctx if ctx is not None else mi.BSDFContext()
         self.bsdf = si.bsdf()
-        table, all_diffuse = _diffuse_table(scene)
+        table = bsdf_table.for_scene(scene)
         plain = (self.ctx.mode == mi.TransportMode.Radiance and self.ctx.component == 0xFFFFFFFF
                  and self.ctx.type_mask == int(mi.BSDFFlags.All))
         if table is None or not plain:
             self.diffuse, self.others, self.kd = mi.Bool(False), True, None
             return
         rid = dr.reinterpret_array(mi.UInt32, self.bsdf)
-        ok = mi.Bool(active) & (self.bsdf != None) & (rid < dr.width(table))  # noqa: E711 (BSDFPtr comparison)
-        self.diffuse = dr.gather(mi.Bool, table, rid, ok) & ok
-        self.others = not all_diffuse
+        ok = mi.Bool(active) & (self.bsdf != None) & (rid < table.n)  # noqa: E711 (BSDFPtr comparison)
+        self.diffuse = dr.gather(mi.Bool, table.diffuse, rid, ok) & ok
+        self.others = not table.all_diffuse
         # k_d = rho / pi: Mitsuba's own eval at wo = +z (cos theta_o = 1, an exact product)
         self.kd = mi.Color3f(self.bsdf.eval(self.ctx, si, mi.Vector3f(0.0, 0.0, 1.0), self.diffuse))
 
@@ -174,38 +173,18 @@ class SurfaceBSDF:
         return dr.select(active, f, 0.0)
 
 
-_DIFFUSE: dict[int, tuple] = {}
-_DIFFUSE_CLASS = "SmoothDiffuse"
-
-
 def forget(scene_id: int) -> None:
     """Drop the per-scene tables of the scene at address ``scene_id`` (its
     :class:`slc.scene.scenes.Scene` was freed; see :func:`slc.scene.emitter_sampling.forget`)."""
-    _DIFFUSE.pop(scene_id, None)
+    bsdf_table.forget(scene_id)
     emitter_sampling.forget(scene_id)
 
 
-def _diffuse_table(scene: mi.Scene):
-    """(Bool per BSDF registry id: smooth diffuse; True if every shape's BSDF is),
-    cached per scene; (None, False) for scenes with instances (whose BSDFs are not
-    listed by ``scene.shapes()``)."""
-    shapes = scene.shapes()
-    hit = _DIFFUSE.get(id(scene))
-    if hit is not None and hit[0] is (shapes[0] if shapes else None):
-        return hit[1], hit[2]
-    if dr.flag(dr.JitFlag.SymbolicScope):
-        raise RuntimeError("build slc.scene.lights.SurfaceBSDF outside symbolic loops")
-    bsdfs = [sh.bsdf() for sh in shapes if sh.bsdf() is not None]
-    if any(sh.class_name() in ("Instance", "ShapeGroup") for sh in shapes) or not bsdfs:
-        table, all_diffuse = None, False
-    else:
-        ids = [int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(b))[0]) for b in bsdfs]
-        flags = np.zeros(max(ids) + 1, bool)
-        for i, b in zip(ids, bsdfs):
-            flags[i] = b.class_name() == _DIFFUSE_CLASS
-        table, all_diffuse = mi.Bool(flags), bool(all(flags[i] for i in ids))
-    _DIFFUSE[id(scene)] = (shapes[0] if shapes else None, table, all_diffuse)
-    return table, all_diffuse
+def diffuse_flags(scene: mi.Scene):
+    """The Bool per BSDF registry id: smooth diffuse (:mod:`slc.scene.bsdf_table`), None for
+    scenes without a table."""
+    t = bsdf_table.for_scene(scene)
+    return None if t is None else t.diffuse
 
 
 def direct_sample(scene: mi.Scene, si: mi.SurfaceInteraction3f, bsdf, u: mi.Point2f,

@@ -5,8 +5,8 @@ cones) in a pool of its own.
 :func:`update` is the ``slc`` method's own update cycle
 (:func:`slc.methods.cones.update.update_cycle`: same light sampler, same per-entry
 R2 samples, same ray ramp through the shared ray policy), on records of the
-pool, with a :class:`~slc.methods.cones.update.SampleObserver` that gathers the
-cycle's light statistics for the choice rule. Shading is
+pool, with the :class:`~slc.methods.adaptive.sampling.LightStats` observer that
+gathers the cycle's light statistics for the choice rule. Shading is
 :class:`slc.methods.cones.shading.ConeShading` on the pool, unchanged.
 """
 from __future__ import annotations
@@ -15,47 +15,12 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.methods.cones.packing import pack, unpack
-from slc.methods.cones.update import (ConeParams, SampleObserver, empty_state, end_cycle, frame_u32, insert_sample,
+from slc.methods.cones.update import (ConeParams, CycleEntries, empty_state, end_cycle, frame_u32, insert_sample,
                             light_inputs, update_cycle)
 from slc.core.freeze import FrozenFunction
-from slc.methods.adaptive.sampling import lum, sampler_of
+from slc.methods.adaptive.sampling import LightStats, lum
 
 CONVERT_COUNT = 4.0     # C of a record converted from another representation: new samples take over fast
-
-
-class _LightStats(SampleObserver):
-    """The choice rule's per-entry sums over a cycle's samples (see
-    :class:`slc.methods.adaptive.sampling.SampleStats`): visible delta-light energy
-    ``ed``, other energy ``en`` and its direction-weighted sum ``m``, each
-    sample's energy being ``lum(w) max(s_z, 0)``. With ``sph`` (the scene's
-    :class:`~slc.methods.adaptive.sphere_lights.SphereLights`) samples of sphere
-    lights small at the entry count as delta-light energy (what a
-    VISIBILITY record can list); with ``env`` (the environment's bright
-    regions) so do samples in a region with s_z >= 2 sin(alpha_j) (the
-    observer has the sample's local direction, not the entry's normal: a
-    conservative stand-in for the region being wholly above the horizon)."""
-
-    def __init__(self, scene=None, sph=None, env=None):
-        self.sph, self.env = sph, env
-        self.samp = sampler_of(scene) if (sph is not None or env is not None) else None
-
-    def init(self, n: int) -> tuple:
-        return (dr.zeros(mi.Float, n), dr.zeros(mi.Float, n), dr.zeros(mi.Vector3f, n))
-
-    def observe(self, extra, ds, w, ok, s):
-        ed, en, m = extra
-        c = dr.select(ok, lum(w) * dr.maximum(s.z, 0.0), 0.0)
-        delta = mi.Bool(ds.delta)
-        if self.sph is not None:
-            em, known = self.samp.index_of(ds.emitter, ok & ~delta)
-            delta |= self.sph.small(ds.p - ds.d * ds.dist, em, known)
-        if self.env is not None:
-            em, known = self.samp.index_of(ds.emitter, ok & ~delta)
-            inr, j = self.env.region_of(ds.d, em, known)
-            _, _, _, sj = self.env.light(self.env.base + j, inr)
-            delta |= inr & (s.z >= 2.0 * sj)
-        cn = dr.select(delta, 0.0, c)
-        return ed + dr.select(delta, c, 0.0), en + cn, m + s * cn
 
 
 def update(scene: mi.Scene, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame: int, seed: int,
@@ -67,10 +32,10 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, moving, first_sample,
     restarting empty (no LOD seed) and the choice rule's statistics gathered
     from the same samples. Returns (new words, motion, stats values)."""
     moving = mi.Bool(moving)
-    words, motion, _, _, st = update_cycle(
-        scene, unpack(rec, p.max_cones), key, si, rays, unsettled, moving, fresh, first_sample, ~moving, frame,
-        seed, p, valid=mi.Bool(on) & si.is_valid(), observer=_LightStats(scene, sph, env))
-    return words, motion, list(st)
+    entries = CycleEntries(key, si, rays, unsettled, moving, fresh, first_sample, ~moving)
+    words, motion, _, _, st = update_cycle(scene, unpack(rec, p.max_cones), entries, frame, seed, p,
+                                           valid=mi.Bool(on) & si.is_valid(), observer=LightStats(scene, si, sph, env))
+    return words, motion, st.values()
 
 
 class ConesUpdate(FrozenFunction):
@@ -101,7 +66,8 @@ class ConesUpdate(FrozenFunction):
             dr.eval(out, motion, st)
             return out, motion, st
         super().__init__(kernel, freeze, False, max_recordings,
-                         lanes=tuple(range(3, 12)))     # rec .. on: per entry (see slc.core.freeze)
+                         lanes=("rec", "si", "key", "rays", "unsettled", "moving", "first_sample", "fresh",
+                                "on"))     # per entry (slc.core.freeze)
 
     def __call__(self, scene, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame: int):
         from slc.methods.adaptive.visibility import _sampler_inputs, _tables

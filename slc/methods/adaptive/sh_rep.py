@@ -2,12 +2,11 @@ r"""SH representation: incident direct radiance as spherical harmonics with
 YCoCg chrominance compression (:mod:`slc.methods.sh`, default Y3Co1Cg1: 11
 coefficients), in the entry's local frame, in a pool of its own.
 
-Record: the coefficients and the update count, one float word each. Update
-as the ``sh`` method (:class:`slc.methods.sh.method.SHSurfaceCache`):
+Record: the coefficients and the sample count, one float word each. Update: the
+``sh`` method's (:mod:`slc.methods.sh.update`), in the entry's frame,
 :math:`\hat\lambda_{lm} = \frac1n \sum_k w_k V_k Y_{lm}(\omega_k)`,
-:math:`\lambda \leftarrow \lambda + n(\hat\lambda - \lambda)/C`, C the sample count
-capped at ``max_count`` (the ``sh`` method counts updates: a 1-sample update then
-weighs as much as an 8-sample one); lights below the surface are dropped. Shading: the
+:math:`\lambda \leftarrow \lambda + \min(n/C, 1)(\hat\lambda - \lambda)`, C the sample
+count capped at ``max_count``; lights below the surface are dropped. Shading: the
 Ramamoorthi-Hanrahan irradiance for diffuse-only BSDFs (chrominance by the
 "ratio" rule of :func:`slc.methods.sh.project.irradiance`: the paper's offset rule
 shifted the colour of a constant sky on a plane by 5%), BSDF samples of the
@@ -33,10 +32,11 @@ import mitsuba as mi
 from slc.core.freeze import FrozenFunction
 from slc.core.keys import STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng, mixed_rng
 from slc.methods.sh.basis import C1, band_of, basis
-from slc.methods.sh.project import irradiance, project, radiance
+from slc.methods.sh.project import irradiance, radiance
 from slc.methods.sh.shading import shade_radiance
+from slc.methods.sh.update import project_samples, running_mean
 from slc.methods.sh.ycocg import encoding as get_encoding
-from slc.methods.adaptive.sampling import lum, sampler_of
+from slc.methods.adaptive.sampling import LightStats
 
 CONVERT_COUNT = 4.0
 
@@ -56,62 +56,23 @@ def pack(coeffs, C):
 
 def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int, enc, max_count: int, sph=None,
            env=None, mix=None):
-    """One update cycle of SH records. Returns (new words, stats values)
-    (``sph``: small sphere lights count as delta-light energy, see
-    :mod:`slc.methods.adaptive.sphere_lights`; ``env``: so do samples of the
-    environment's bright regions wholly above the horizon,
-    :mod:`slc.methods.adaptive.env_lights`). ``mix``: the random streams' (seed,
-    frame) mix as an opaque ``mi.UInt32`` (:func:`slc.core.keys.stream_key`), in
-    place of ``seed`` and ``frame`` (:class:`SHUpdate`)."""
-    n_c = enc.n
-    N = dr.width(key)
-    samp = sampler_of(scene)
-    valid = mi.Bool(on) & si.is_valid()
-    frame_l = si.sh_frame
-    ng = mi.Vector3f(si.n)
+    """One update cycle of SH records (:mod:`slc.methods.sh.update`, in the entry's frame, fresh
+    records restarting empty), with the choice rule's statistics
+    (:class:`~slc.methods.adaptive.sampling.LightStats`, ``sph`` and ``env`` see there) from the
+    same samples. Returns (new words, stats values). ``mix``: the random streams' (seed,
+    frame) mix as an opaque ``mi.UInt32`` (:func:`slc.core.keys.stream_key`), in place of
+    ``seed`` and ``frame`` (:class:`SHUpdate`)."""
     if mix is None:
         rng = keyed_rng(key, seed, frame, STREAM_SH_UPDATE)
     else:                              # keyed_rng with the mix given
         rng = mixed_rng(key, mix)
-    z = dr.zeros(mi.Float, N)
-
-    def cond(i, *state):
-        return i < rays
-
-    def body(i, acc, ed, en, m, rng):
-        u = mi.Point2f(rng.next_float32(), rng.next_float32())
-        ds, w, ok, em = samp.sample(si, u, valid & (i < rays))
-        ok &= (dr.dot(ds.d, ng) > 0.0) & dr.all(dr.isfinite(w))
-        ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), ok)
-        s = frame_l.to_local(ds.d)
-        c = dr.select(ok, lum(w) * dr.maximum(s.z, 0.0), 0.0)
-        delta = mi.Bool(ds.delta)
-        if sph is not None:
-            delta |= sph.small(si.p, em, ok & ~delta)
-        if env is not None:
-            delta |= env.sample_listable(ds.d, em, frame_l.n, ok & ~delta)[0]
-        ed = ed + dr.select(delta, c, 0.0)
-        cn = dr.select(delta, 0.0, c)
-        en, m = en + cn, m + s * cn
-        cs = project(enc, s, dr.select(ok, w, 0.0))
-        return i + 1, [a + b for a, b in zip(acc, cs)], ed, en, m, rng
-
-    acc0 = [mi.Float(z) for _ in range(n_c)]
-    _, acc, ed, en, m, _ = dr.while_loop(state=(mi.UInt32(0), acc0, z, mi.Float(z), mi.Vector3f(z, z, z), rng),
-                                         cond=cond, body=body)
-    inv = dr.rcp(mi.Float(dr.maximum(mi.UInt32(rays), 1)))
+    acc, st = project_samples(scene, si, si.sh_frame, rays, rng, mi.Bool(on) & si.is_valid(), enc,
+                              LightStats(scene, si, sph, env))
     coeffs, C = unpack(rec, enc)
     fresh = mi.Bool(fresh)
-    # the count is in samples (as the cones' C): a cycle of n samples weighs n / C
-    n_s = mi.Float(dr.maximum(mi.UInt32(rays), 1))
-    C = dr.select(fresh, 0.0, C)
-    C = dr.minimum(C + n_s, float(max_count))
-    a = dr.minimum(n_s * dr.rcp(C), 1.0)
-    out = []
-    for c in range(n_c):
-        old = dr.select(fresh, 0.0, coeffs[c])
-        out.append(dr.fma(a, acc[c] * inv - old, old))
-    return pack(out, C), [ed, en, m]
+    coeffs, C = running_mean([dr.select(fresh, 0.0, c) for c in coeffs], dr.select(fresh, 0.0, C), acc, rays,
+                             max_count)
+    return pack(coeffs, C), st.values()
 
 
 class SHUpdate(FrozenFunction):
@@ -141,7 +102,7 @@ class SHUpdate(FrozenFunction):
             dr.eval(out, st)
             return out, st
         super().__init__(kernel, freeze, False, max_recordings,
-                         lanes=tuple(range(3, 9)))     # rec .. on: per entry (see slc.core.freeze)
+                         lanes=("rec", "si", "key", "rays", "fresh", "on"))     # per entry (slc.core.freeze)
 
     def __call__(self, scene, rec, si, key, rays, fresh, on, frame: int):
         from slc.core.keys import stream_key

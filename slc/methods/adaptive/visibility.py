@@ -47,6 +47,7 @@ each at its own direction.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -54,7 +55,7 @@ import mitsuba as mi
 from slc.methods.cones.packing import _Reader, _Writer, decode_radiance, encode_radiance
 from slc.core.freeze import FrozenFunction
 from slc.core.keys import keyed_rng, mixed_rng
-from slc.methods.adaptive.sampling import SampleStats, lum, sampler_of
+from slc.methods.adaptive.sampling import LightStats, SampleStats, lum, sampler_of
 
 EMPTY = 0xFFFF
 STREAM_VIS = 0x3C6EF372
@@ -79,6 +80,30 @@ class Record:
 
     def __init__(self, idx, vis, cnt, E, C, vu, nu):
         self.idx, self.vis, self.cnt, self.E, self.C, self.vu, self.nu = idx, vis, cnt, E, C, vu, nu
+
+
+@dataclass
+class ListLoop:
+    """The state of the update's sample loop (one lane per entry): ``k`` the samples
+    drawn; per listed light (lists of K) its emitter ``idx``, visible fraction ``vis``,
+    sample count ``cnt``, unoccluded irradiance ``wl`` and importance ``imp`` (its
+    irradiance's luminance, -1 for an empty slot); ``S`` the cycle's sum of the other
+    samples (the residual's estimate), ``adj`` the energy moved between the list and
+    the residual by replacements, ``vu`` and ``nu`` the unlisted environment regions'
+    visible fraction and sample count, ``stats`` the choice rule's sums
+    (:class:`~slc.methods.adaptive.sampling.SampleStats`) and ``rng`` the random numbers."""
+    k: mi.UInt32
+    idx: list
+    vis: list
+    cnt: list
+    wl: list
+    imp: list
+    S: mi.Color3f
+    adj: mi.Color3f
+    vu: mi.Float
+    nu: mi.UInt32
+    stats: SampleStats
+    rng: mi.PCG32
 
 
 def unpack(w, K: int, env: bool = False) -> Record:
@@ -221,15 +246,17 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
         rng = keyed_rng(key, seed, frame, STREAM_VIS)
     else:                              # keyed_rng with the mix given
         rng = mixed_rng(key, mix)
-    st = SampleStats(N)
+    stats = LightStats(sc, si, sph, env)
     S = dr.zeros(mi.Color3f, N)
     adj = dr.zeros(mi.Color3f, N)
 
     # ----------------------- light samples, one at a time per entry
-    def cond(k, *state):
-        return k < rays
+    def cond(ls: ListLoop):
+        return ls.k < rays
 
-    def body(k, idx, vis, cnt, wl, imp, S, adj, vu, nu, ed, en, m, rng):
+    def body(ls: ListLoop):
+        k, idx, vis, cnt, wl, imp, S, adj, vu, nu, rng = (ls.k, ls.idx, ls.vis, ls.cnt, ls.wl, ls.imp, ls.S, ls.adj,
+                                                          ls.vu, ls.nu, ls.rng)
         u = mi.Point2f(rng.next_float32(), rng.next_float32())
         act = valid & (k < rays)
         ds, w, ok, em = samp.sample(si, u, act)
@@ -237,7 +264,6 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
         V = ok & ~sc.ray_test(si.spawn_ray_to(ds.p), ok)
         cos = dr.maximum(dr.dot(ds.d, nrm), 0.0)
         Vf = dr.select(V, 1.0, 0.0)
-        c = lum(w) * cos * Vf
         delta = ok & ds.delta
         # the light's own unoccluded irradiance (w has the choice pmf ds.pdf in it)
         w1 = w * ds.pdf * cos
@@ -255,11 +281,8 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
             delta |= region
             em = dr.select(region, li, em)
             w1 = dr.select(region, E_j, w1)
-        # statistics
-        ed = ed + dr.select(delta, c, 0.0)
-        en_k = dr.select(delta, 0.0, c)
-        en = en + en_k
-        m = m + frame_l.to_local(ds.d) * en_k
+        # the choice rule's statistics
+        ls.stats = stats.observe(ls.stats, ds, w, V, frame_l.to_local(ds.d))
         i1 = lum(w1)
         hit = mi.Bool(False)
         for i in range(K):
@@ -294,11 +317,13 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
         vu = dr.select(unl, dr.fma(au, Vf - vu, vu), vu)
         nu = dr.select(unl, dr.minimum(nu + 1, 255), nu)
         S += dr.select(V & ~handled & ~unl, w * cos, 0.0)
-        return k + 1, idx, vis, cnt, wl, imp, S, adj, vu, nu, ed, en, m, rng
+        ls.k, ls.idx, ls.vis, ls.cnt, ls.wl, ls.imp, ls.S, ls.adj, ls.vu, ls.nu, ls.rng = \
+            k + 1, idx, vis, cnt, wl, imp, S, adj, vu, nu, rng
+        return (ls,)
 
-    _, idx, vis, cnt, wl, imp, S, adj, vu, nu, ed, en, m, rng = dr.while_loop(
-        state=(mi.UInt32(0), idx, vis, cnt, wl, imp, S, adj, vu, nu, st.ed, st.en, st.m, rng),
-        cond=cond, body=body)
+    ls, = dr.while_loop(state=(ListLoop(mi.UInt32(0), idx, vis, cnt, wl, imp, S, adj, vu, nu, stats.init(N), rng),),
+                        cond=cond, body=body)
+    idx, vis, cnt, S, adj, vu, nu = ls.idx, ls.vis, ls.cnt, ls.S, ls.adj, ls.vu, ls.nu
 
     # ----------------------- the residual's running mean (with the energy moved by swaps)
     # the count is in samples (as the cones' C): a cycle of n samples weighs n / C
@@ -308,7 +333,7 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
     E = dr.maximum(E + adj, 0.0)
     E = E + (S / n - E) * dr.minimum(n * dr.rcp(dr.maximum(C, 1.0)), 1.0)
     out = pack(Record(idx, vis, cnt, E, C, vu, nu), K, hx)
-    return out, gone, [ed, en, m]
+    return out, gone, ls.stats.values()
 
 
 # ----------------------------------------------------------------------------- shading
@@ -452,7 +477,7 @@ class VisUpdate(FrozenFunction):
             dr.eval(out, gone, st)
             return out, gone, st
         super().__init__(kernel, freeze, False, max_recordings,
-                         lanes=tuple(range(3, 10)))     # rec .. on: per entry (see slc.core.freeze)
+                         lanes=("rec", "si", "key", "rays", "moving", "fresh", "on"))     # per entry (slc.core.freeze)
 
     def __call__(self, scene, rec, si, key, rays, moving, fresh, on, frame: int):
         from slc.core.keys import stream_key

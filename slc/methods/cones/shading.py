@@ -55,10 +55,13 @@ Each :class:`ConeShading` (one per method instance) owns its own frozen function
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
 
+from slc.scene import bsdf_table as bsdf_tables
+from slc.scene.bsdf_table import KIND_DIFFUSE, KIND_NOT_PRINCIPLED, KIND_OTHER, KIND_PRINCIPLED, ZERO_ATTRS
 from slc.core.freeze import FrozenFunction
 from slc.methods.cones.packing import gather_words, unpack
 
@@ -69,6 +72,46 @@ ROUGH_MIN = 0.25                      # rough lobes keep at least this share of 
 ALPHA_DELTA = 1e-3                    # rad; narrower cones are Dirac cones (as in ConeParams.alpha_delta)
 BACK_MARGIN = 1e-3                    # cos; a cap this far above the horizon holds no direction below it,
                                       # even with the quadrature's cap-membership tolerance
+
+
+@dataclass
+class ConeState:
+    r"""The cones of the pixels' entries, as the shading reads them (docs/cones.md). Per cone
+    ``c`` (lists of ``K`` arrays, one lane per pixel): ``axis`` (:math:`d_c`, world),
+    ``alpha`` (:math:`\alpha_c` [rad]), ``L`` (:math:`L_c`), ``live`` (the cone exists:
+    ``c < n``), ``h`` (:math:`1 - \cos\alpha_c`), ``dirac`` (a live cone narrower than
+    ``ALPHA_DELTA``), ``dense`` (a live cone with a density), ``inv_omega``
+    (:math:`1/\Omega_c`, 0 for Dirac cones), ``sin_alpha``, ``cos_alpha``. Per pixel: ``n``
+    (the number of cones) and ``zero`` (a zero of the pixels' width). ``K`` the number of
+    cone slots."""
+    K: int
+    axis: list
+    alpha: list
+    L: list
+    n: mi.UInt32
+    zero: mi.Float
+    live: list
+    h: list
+    dirac: list
+    dense: list
+    inv_omega: list
+    sin_alpha: list
+    cos_alpha: list
+
+
+@dataclass(frozen=True)
+class ShadeOptions:
+    """The shading's choices (part of a frozen recording's key), see :class:`ConeShading`:
+    ``max_cones``, ``adaptive``, ``rotate``, ``horizon``, ``principled`` and ``conductor``
+    (closed forms on), ``glossy_half``, ``compact``."""
+    max_cones: int
+    adaptive: bool = True
+    rotate: bool = True
+    horizon: bool = True
+    principled: bool = True
+    conductor: bool = False
+    glossy_half: bool = False
+    compact: bool = False
 
 
 def cone_samples(Dw, A, s_idx: mi.UInt32, nS: int):
@@ -110,7 +153,7 @@ def _schlick_weight(c):
     return dr.square(dr.square(m)) * m
 
 
-def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw, term, below, zero, consts=None):
+def _principled_cones(bsdf, si, ctx, active, cones: ConeState, term, below, consts=None):
     r"""Cone shading of pixels with Mitsuba's ``principled`` BSDF, no quadrature
     (``principled="sg"``, the default). Returns (value, mask of the pixels it applies to).
 
@@ -140,6 +183,8 @@ def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw
       ``L_c S_r exp(lambda_l (d_c . r - 1))``. A cap wholly under the horizon adds nothing;
       the lobe's part under the horizon is not clipped.
     """
+    K, live, delta, A = cones.K, cones.live, cones.dirac, cones.alpha
+    inv_om, L, Dw = cones.inv_omega, cones.L, cones.axis
     # ------------------- which pixels, and their parameters (one read per pixel) -------------------
     # (BSDFs without textures: from the table ``consts``, see :func:`bsdf_table`; BSDFs of
     # kind KIND_NOT_PRINCIPLED are not read: they lack the attributes ``read`` asks for)
@@ -153,7 +198,7 @@ def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw
             mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) & \
             ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & \
             (mi.Frame3f.cos_theta(si.wi) > 0.0)
-        for name in _ZERO_ATTRS:
+        for name in ZERO_ATTRS:
             m &= bsdf.eval_attribute_1(name, si, m) == 0.0
         return (m, mi.Color3f(bsdf.eval_attribute_3("base_color", si, m)), bsdf.eval_attribute_1("roughness", si, m),
                 bsdf.eval_attribute_1("metallic", si, m))
@@ -188,7 +233,7 @@ def _principled_cones(bsdf, si, ctx, active, K, live, delta, A, h, inv_om, L, Dw
     lobe = _sg_lobe(si, dr.maximum(dr.square(rough), 1e-3), ci)
 
     # ------------------- per cone: diffuse at the axis, the part of the lobe in the cap -------------------
-    out = mi.Color3f(zero)
+    out = mi.Color3f(cones.zero)
     for i in range(K):
         d_loc = si.to_local(Dw[i])
         diff = kd * (fdiff(d_loc) * term[i])
@@ -259,7 +304,7 @@ def _sg_cone(lobe, Dw, A, inv_om, delta):
     return dr.select(delta, dr.exp(-0.5 * m2), sg), m2, th
 
 
-def _conductor_cones(bsdf, si, ctx, active, K, live, delta, A, inv_om, L, Dw, below, zero):
+def _conductor_cones(bsdf, si, ctx, active, cones: ConeState, below):
     r"""Cone shading of pixels with Mitsuba's isotropic GGX ``roughconductor``, no
     quadrature (``conductor="sg"``): the lobe ``f_s cos`` as the Gaussian of
     :func:`_principled_cones`'s specular part, of peak ``S_r = f cos(r)`` from Mitsuba's
@@ -272,12 +317,14 @@ def _conductor_cones(bsdf, si, ctx, active, K, live, delta, A, inv_om, L, Dw, be
     m = active & bsdf.has_attribute("alpha", active) & mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) & \
         ~mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & \
         ~mi.has_flag(flags, mi.BSDFFlags.Delta) & (mi.Frame3f.cos_theta(si.wi) > 0.0)
+    K, live, delta, A = cones.K, cones.live, cones.dirac, cones.alpha
+    inv_om, L, Dw = cones.inv_omega, cones.L, cones.axis
     alpha = dr.maximum(bsdf.eval_attribute_1("alpha", si, m), 1e-3)
     ci = dr.maximum(mi.Frame3f.cos_theta(si.wi), 1e-4)
     r_loc = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
     S_r = dr.maximum(mi.Color3f(bsdf.eval(ctx, si, r_loc, m)), 0.0)
     lobe = _sg_lobe(si, alpha, ci)
-    out = mi.Color3f(zero)
+    out = mi.Color3f(cones.zero)
     for i in range(K):
         sg, m2, th = _sg_cone(lobe, Dw[i], A[i], inv_om[i], delta[i])
         # GGX's tail (a Student t) far outweighs the Gaussian's away from r: what the
@@ -295,27 +342,23 @@ def _conductor_cones(bsdf, si, ctx, active, K, live, delta, A, inv_om, L, Dw, be
 
 
 def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.SurfaceInteraction3f,
-                 bsdf: mi.BSDFPtr, texel_frame: mi.Frame3f, max_cones: int, n_total: mi.UInt32,
-                 key: mi.UInt32, adaptive: bool = True, rotate: bool = True,
-                 pid: mi.UInt32 | None = None, horizon: bool = True, principled: bool = True,
-                 conductor: bool = False, table=None, entry_frames=None, glossy_half: bool = False,
-                 compact: bool = False) -> mi.Color3f:
+                 bsdf: mi.BSDFPtr, texel_frame: mi.Frame3f, n_total: mi.UInt32, key: mi.UInt32,
+                 pid: mi.UInt32 | None, table, entry_frames, opts: ShadeOptions) -> mi.Color3f:
     """Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
     ``slot``; ``texel_frame`` is the local frame of each pixel's entry (the frame its
     cone directions are stored in). ``n_total`` directions per live cone and ``key``
-    are opaque scalars; ``adaptive`` / ``rotate`` / ``horizon`` / ``principled`` / ``conductor`` see
-    :class:`ConeShading`. ``pid``
-    keys each pixel's random numbers (default: its index in the arrays; several viewers
+    are opaque scalars; ``opts`` the shading's choices (:class:`ShadeOptions`, see
+    :class:`ConeShading`). ``pid``
+    keys each pixel's random numbers (None: its index in the arrays; several viewers
     shaded in one launch pass each pixel's index within its own viewer). ``table``
     (:func:`bsdf_table`, optional) gives the constants of BSDFs without textures. With
     ``entry_frames`` (the entries' frames), ``texel_frame`` is instead each pixel's index
     into them (the gather then runs inside this kernel, not as a kernel of its own).
-    ``compact``: see :class:`ConeShading`.
     Entries without cones and inactive pixels give 0."""
-    K = max_cones
+    K = opts.max_cones
     tf_in = texel_frame
-    A, L, n, Dw, zero, live, h, delta, area, inv_om, sin_a, cos_a = _cone_state(storage, slot, active, texel_frame,
-                                                                             entry_frames, K)
+    cones = _cone_state(storage, slot, active, texel_frame, entry_frames, K)
+    n = cones.n
     ctx = mi.BSDFContext()
     if pid is None:
         pid = dr.arange(mi.UInt32, dr.width(slot))
@@ -329,8 +372,7 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     # lights): int = (cos_d acos(y) - x sin_d sqrt(1 - y^2)) sin^2(alpha) + atan(sin_d sqrt(1 - y^2) / x),
     # x = cot(alpha), y = -x cos_d / sin_d; a cap wholly below (or a Dirac cone below) adds 0.
     # Cones wider than a hemisphere across the horizon still go to sampling.
-    closed, cones_ok, clear, term, below_c = _horizon_terms(si, active, K, A, L, Dw, live, delta, h, zero, horizon,
-                                                            sin_a, cos_a)
+    closed, cones_ok, clear, term, below_c = _horizon_terms(si, active, cones, opts.horizon)
     lambert = _lambertian(bsdf, si, active) & cones_ok
 
     # Each kind of pixel runs in a symbolic branch of its own (Lambertian closed form,
@@ -349,8 +391,8 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
                         false_fn=lambda closed: mi.Color3f(0.0), label="lambert")
 
     # ------------------- principled (and GGX conductor) pixels: closed forms -------------------
-    prin, pfast = _glossy_closed(bsdf, si, ctx, active & cones_ok & ~lambert, K, live, delta, A, h, inv_om, L, Dw,
-                                 term, below_c, zero, consts, principled, conductor)
+    prin, pfast = _glossy_closed(bsdf, si, ctx, active & cones_ok & ~lambert, cones, term, below_c, consts,
+                                 opts.principled, opts.conductor)
     # ------------------- pixels seen from behind whose cones are all in front: 0, no quadrature -------------------
     # A BSDF without transmission (or null) lobes reflects only into the side of w_i: with
     # cos(theta_i) <= 0 and every cone wholly above the horizon, f_r = 0 for every direction
@@ -361,12 +403,11 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
         ~mi.has_flag(flags, mi.BSDFFlags.Transmission) & ~mi.has_flag(flags, mi.BSDFFlags.Null)
     sampled = active & ~lambert & ~pfast & (n > 0) & ~backside
 
-    if not compact:
-        n_px = _samples_px(bsdf, n_total, glossy_half)
+    if not opts.compact:
+        n_px = _samples_px(bsdf, n_total, opts.glossy_half)
 
         def sampled_fn(sampled):
-            return _quadrature(bsdf, si, ctx, sampled, K, n_px, key, pid, adaptive, rotate, live, delta, area, h,
-                               inv_om, L, A, Dw, zero)
+            return _quadrature(bsdf, si, ctx, sampled, cones, n_px, key, pid, opts)
 
         acc = dr.if_stmt(args=(sampled,), cond=sampled, true_fn=sampled_fn,
                          false_fn=lambda sampled: mi.Color3f(0.0), label="quadrature")
@@ -389,35 +430,32 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     idx = dr.compress(sampled | (dr.arange(mi.UInt32, N) == (N - 1)))
     on = dr.gather(mi.Bool, sampled, idx)
     si_c, bsdf_c = dr.gather(type(si), si, idx), dr.gather(mi.BSDFPtr, bsdf, idx)
-    A_c, L_c, _, Dw_c, zero_c, live_c, h_c, delta_c, area_c, inv_om_c, _, _ = _cone_state(
-        storage, dr.gather(mi.UInt32, slot, idx), on, dr.gather(type(tf_in), tf_in, idx), entry_frames, K)
-    acc = _quadrature(bsdf_c, si_c, ctx, on, K, _samples_px(bsdf_c, n_total, glossy_half), key,
-                      dr.gather(mi.UInt32, pid, idx), adaptive, rotate, live_c, delta_c, area_c, h_c, inv_om_c, L_c,
-                      A_c, Dw_c, zero_c)
+    cones_c = _cone_state(storage, dr.gather(mi.UInt32, slot, idx), on, dr.gather(type(tf_in), tf_in, idx),
+                          entry_frames, K)
+    acc = _quadrature(bsdf_c, si_c, ctx, on, cones_c, _samples_px(bsdf_c, n_total, opts.glossy_half), key,
+                      dr.gather(mi.UInt32, pid, idx), opts)
     dr.scatter(out, acc, idx, on)
     # raw values: a NaN or Inf made here reaches the image, where check mode names it
     return out
 
 
-def _glossy_closed(bsdf, si, ctx, pm, K, live, delta, A, h, inv_om, L, Dw, term, below_c, zero, consts,
-                   principled, conductor):
+def _glossy_closed(bsdf, si, ctx, pm, cones: ConeState, term, below_c, consts, principled, conductor):
     """The closed forms of the candidate pixels ``pm`` (Lambertian closed form for every
     cone, not Lambertian): principled (``principled``), GGX conductor (``conductor``), each
     in a symbolic branch. Returns (value, mask of the pixels that have one)."""
     if principled:
         prin, pfast = dr.if_stmt(
             args=(pm,), cond=pm,
-            true_fn=lambda pm: _principled_cones(bsdf, si, ctx, pm, K, live, delta, A, h, inv_om, L, Dw,
-                                                 term, below_c, zero, consts),
+            true_fn=lambda pm: _principled_cones(bsdf, si, ctx, pm, cones, term, below_c, consts),
             false_fn=lambda pm: (mi.Color3f(0.0), mi.Bool(False)), label="principled")
     else:
-        prin, pfast = mi.Color3f(zero), pm & False
+        prin, pfast = mi.Color3f(cones.zero), pm & False
     # ------------------- GGX conductor pixels: the lobe as an SG (an option) -------------------
     if conductor:
         cm = pm & ~pfast
         cond_v, cfast = dr.if_stmt(
             args=(cm,), cond=cm,
-            true_fn=lambda cm: _conductor_cones(bsdf, si, ctx, cm, K, live, delta, A, inv_om, L, Dw, below_c, zero),
+            true_fn=lambda cm: _conductor_cones(bsdf, si, ctx, cm, cones, below_c),
             false_fn=lambda cm: (mi.Color3f(0.0), mi.Bool(False)), label="conductor")
         prin = dr.select(pfast, prin, cond_v)
         pfast = pfast | cfast
@@ -429,21 +467,23 @@ def _table_consts(table, bsdf, active):
     virtual calls): (kind, consts or None), the constants read lazily."""
     if table is None:
         return mi.UInt32(KIND_OTHER), None
-    t_w, t_kind, t_col, t_rough, t_metal = table
     rid = dr.reinterpret_array(mi.UInt32, bsdf)
-    t_ok = active & (bsdf != None) & (rid < t_w)  # noqa: E711 (BSDFPtr comparison)
-    kind = dr.gather(mi.UInt32, t_kind, rid, t_ok)
-    return kind, (kind, lambda: dr.gather(mi.Color3f, t_col, rid, t_ok), lambda: dr.gather(mi.Float, t_rough, rid, t_ok),
-                  lambda: dr.gather(mi.Float, t_metal, rid, t_ok))
+    t_ok = active & (bsdf != None) & (rid < table.width)  # noqa: E711 (BSDFPtr comparison)
+    kind = dr.gather(mi.UInt32, table.kind, rid, t_ok)
+    return kind, (kind, lambda: dr.gather(mi.Color3f, table.colour, rid, t_ok),
+                  lambda: dr.gather(mi.Float, table.roughness, rid, t_ok),
+                  lambda: dr.gather(mi.Float, table.metallic, rid, t_ok))
 
 
-def _horizon_terms(si, active, K, A, L, Dw, live, delta, h, zero, horizon, sin_a, cos_a):
+def _horizon_terms(si, active, cones: ConeState, horizon: bool):
     """Per cone the Lambertian closed form ``L_c (1/Omega_c) int_c cos`` (horizon-clipped
     with ``horizon``; 0 if not live) and whether its cap lies wholly below the horizon;
     their sum, and per pixel whether every live cone has the closed form (``cones_ok``)
     and lies wholly above the horizon with a margin (``clear``). See :func:`shade_kernel`."""
+    K, A, L, Dw, live, delta, h = cones.K, cones.alpha, cones.L, cones.axis, cones.live, cones.dirac, cones.h
+    sin_a, cos_a = cones.sin_alpha, cones.cos_alpha
     nrm = si.sh_frame.n
-    closed = mi.Color3f(zero)
+    closed = mi.Color3f(cones.zero)
     cones_ok = mi.Bool(active)                 # every live cone has a closed form
     clear = mi.Bool(active)                    # every live cone wholly above the horizon (with a margin)
     term, below_c = [], []                     # per cone: L_c (1/Omega_c) int_c cos (0 if not live); cap below
@@ -475,9 +515,7 @@ def _horizon_terms(si, active, K, A, L, Dw, live, delta, h, zero, horizon, sin_a
     return closed, cones_ok, clear, term, below_c
 
 def _cone_state(storage, slot, active, texel_frame, entry_frames, K):
-    """The cones of each pixel's entry, read from ``storage``: (A, L, n, world axes Dw, a
-    zero of the pixels' width, and per cone: live, 1 - cos(alpha_c), Dirac, with a density,
-    1 / Omega_c, sin(alpha_c), cos(alpha_c))."""
+    """The cones of each pixel's entry, read from ``storage`` (:class:`ConeState`)."""
     if entry_frames is not None:
         texel_frame = dr.gather(mi.Frame3f, entry_frames, texel_frame, active)
     D, A, L, C, n = unpack(gather_words(storage, slot, K, active), K)
@@ -490,7 +528,8 @@ def _cone_state(storage, slot, active, texel_frame, entry_frames, K):
     delta = [live[i] & (A[i] < ALPHA_DELTA) for i in range(K)]
     area = [live[i] & ~delta[i] for i in range(K)]                        # cones with a density
     inv_om = [dr.select(area[i], dr.rcp(dr.maximum(2.0 * math.pi * h[i], 1e-30)), 0.0) for i in range(K)]
-    return A, L, n, Dw, zero, live, h, delta, area, inv_om, [dr.sin(a) for a in A], [dr.cos(a) for a in A]
+    return ConeState(K, axis=Dw, alpha=A, L=L, n=n, zero=zero, live=live, h=h, dirac=delta, dense=area,
+                     inv_omega=inv_om, sin_alpha=[dr.sin(a) for a in A], cos_alpha=[dr.cos(a) for a in A])
 
 
 def _samples_px(bsdf, n_total, glossy_half):
@@ -516,10 +555,12 @@ def _across_cap(cos_d, sin_d, sa, ca, A, L, delta, h):
     return dr.select(delta, L * dr.maximum(cos_d, 0.0), L * (dr.maximum(part, 0.0) * inv_om_i))
 
 
-def _quadrature(bsdf, si, ctx, sampled, K, n_total, key, pid, adaptive, rotate, live, delta, area, h, inv_om, L,
-                A, Dw, zero):
+def _quadrature(bsdf, si, ctx, sampled, cones: ConeState, n_total, key, pid, opts: ShadeOptions):
     """The MIS quadrature of the pixels ``sampled`` (the module docstring): returns
     the sum over their cone and BSDF samples."""
+    K, A, L, Dw, live, delta, area, h = cones.K, cones.alpha, cones.L, cones.axis, cones.live, cones.dirac, \
+        cones.dense, cones.h
+    inv_om, zero = cones.inv_omega, cones.zero
     def density(w, own=None):
         """(sum over cones holding w of L_c/Omega_c, of 1/Omega_c); cone ``own`` holds w."""
         Lt, dt = mi.Color3f(zero), mi.Float(zero)
@@ -552,7 +593,7 @@ def _quadrature(bsdf, si, ctx, sampled, K, n_total, key, pid, adaptive, rotate, 
     # their density does not depend on the cones, and a lobe narrower than the cones sees
     # a nearly constant L~ whatever the cone count (docs/cones.md, "Per-viewer cost").
     ns_f = mi.Float(n_total)
-    if adaptive:
+    if opts.adaptive:
         om_max = mi.Float(zero)
         for i in range(K):
             om_max = dr.maximum(om_max, dr.select(area[i], 2.0 * math.pi * h[i], 0.0))
@@ -570,7 +611,7 @@ def _quadrature(bsdf, si, ctx, sampled, K, n_total, key, pid, adaptive, rotate, 
     nc_rcp = dr.rcp(dr.maximum(nc_f, 1.0))
 
     # per-pixel rotations of the two patterns
-    if rotate:
+    if opts.rotate:
         rot = [(_hash_float(pid, key, 2 * i), _hash_float(pid, key, 2 * i + 1)) for i in range(K)]
     else:
         rot = [(mi.Float(0.5), mi.Float(0.0)) for i in range(K)]
@@ -681,6 +722,9 @@ class ConeShading(FrozenFunction):
         self.max_cones = int(max_cones)
         self.adaptive, self.rotate, self.horizon = bool(adaptive), bool(rotate), bool(horizon)
         self.principled = principled
+        self.opts = ShadeOptions(self.max_cones, adaptive=bool(adaptive), rotate=bool(rotate), horizon=bool(horizon),
+                                 principled=principled == "sg", conductor=conductor == "sg",
+                                 glossy_half=glossy == "half", compact=bool(compact))
         super().__init__(shade_kernel, freeze, animated, max_recordings)
 
     def __call__(self, storage, slot, active, si, texel_frame, n_samples: int = 16, key: int = 0,
@@ -690,10 +734,8 @@ class ConeShading(FrozenFunction):
         them (see :func:`shade_kernel`)."""
         # (no garbage collection inside the call: slc.core.freeze.FrozenFunction)
         return super().__call__(storage, mi.UInt32(slot), mi.Bool(active), si, si.bsdf(), texel_frame,
-                                self.max_cones, dr.opaque(mi.UInt32, max(int(n_samples), 1)),
-                                dr.opaque(mi.UInt32, int(key)), self.adaptive, self.rotate, pid, self.horizon,
-                                self.principled == "sg", self.conductor == "sg", self.table, entry_frames,
-                                self.glossy == "half", self.compact)
+                                dr.opaque(mi.UInt32, max(int(n_samples), 1)), dr.opaque(mi.UInt32, int(key)), pid,
+                                self.table, entry_frames, self.opts)
 
 
 def shader_for(owner, max_cones: int) -> ConeShading:
@@ -716,74 +758,10 @@ def shader_for(owner, max_cones: int) -> ConeShading:
     return sh
 
 
-KIND_OTHER, KIND_DIFFUSE, KIND_PRINCIPLED, KIND_NOT_PRINCIPLED = 0, 1, 2, 3
-_ZERO_ATTRS = ("clearcoat", "sheen", "flatness", "anisotropic", "spec_trans")
-
-
 def bsdf_table(scene):
-    r"""Per-BSDF constants read once on the host, so that the shading kernel gathers them
-    instead of making a virtual call per pixel and attribute (``eval_attribute``,
-    ``eval_diffuse_reflectance``: about half of a principled pixel's cost, measured).
-
-    Indexed by the BSDF's registry id (``dr.reinterpret_array(mi.UInt32, bsdf)``): kind
-    ``KIND_DIFFUSE`` (Mitsuba's ``diffuse`` with a constant reflectance: that reflectance),
-    ``KIND_PRINCIPLED`` (``principled`` whose clearcoat, sheen, flatness, anisotropy and
-    specular transmission are constant 0 and whose base colour, roughness and metallic
-    are constant: those three), ``KIND_NOT_PRINCIPLED`` (other BSDFs without the
-    ``clearcoat`` or ``base_color`` attribute, which the principled closed form never
-    takes: its test of them, a few virtual calls per pixel, is skipped), else
-    ``KIND_OTHER`` (textured parameters: the kernel's virtual calls, per pixel as before). The constants are the BSDF's own
-    ``eval_attribute`` / ``eval_diffuse_reflectance`` values (a constant texture ignores
-    the point), so the images are the same bit for bit. Returns (width as an opaque
-    UInt32, kind UInt32, colour Color3f, roughness Float, metallic Float), or None for
-    scenes with instances (their BSDFs are not listed by ``scene.shapes()``)."""
-    import numpy as np
-    ms = getattr(scene, "mi_scene", scene)
-    shapes = ms.shapes()
-    if any(sh.class_name() in ("Instance", "ShapeGroup") for sh in shapes):
-        return None
-    bsdfs = {}
-    for sh in shapes:
-        b = sh.bsdf()
-        if b is not None:
-            bsdfs[int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(b))[0])] = b
-    if not bsdfs:
-        return None
-    W = max(bsdfs) + 1
-    kind = np.zeros(W, np.uint32)
-    col = np.zeros((3, W), np.float32)
-    rough = np.zeros(W, np.float32)
-    metal = np.zeros(W, np.float32)
-    si = dr.zeros(mi.SurfaceInteraction3f, 1)
-    si.wi = mi.Vector3f(0.0, 0.0, 1.0)
-    for rid, b in bsdfs.items():
-        keys = [k for k in mi.traverse(b).keys()]
-
-        def constant(name):
-            own = [k for k in keys if k == name or k.startswith(name + ".")]
-            return own == [name + ".value"]
-        if b.class_name() == "SmoothDiffuse" and constant("reflectance"):
-            kind[rid] = KIND_DIFFUSE
-            col[:, rid] = np.array(b.eval_diffuse_reflectance(si)).reshape(3)
-        elif b.class_name() == "Principled" and all(constant(a) for a in _ZERO_ATTRS + ("base_color", "roughness",
-                                                                                       "metallic")) \
-                and all(float(b.eval_attribute_1(a, si)[0]) == 0.0 for a in _ZERO_ATTRS) \
-                and _principled_flags(int(b.flags())):
-            kind[rid] = KIND_PRINCIPLED
-            col[:, rid] = np.array(b.eval_attribute_3("base_color", si)).reshape(3)
-            rough[rid] = float(b.eval_attribute_1("roughness", si)[0])
-            metal[rid] = float(b.eval_attribute_1("metallic", si)[0])
-        elif not (b.has_attribute("clearcoat") and b.has_attribute("base_color")):
-            kind[rid] = KIND_NOT_PRINCIPLED
-    return (dr.opaque(mi.UInt32, W), mi.UInt32(kind), mi.Color3f(col), mi.Float(rough), mi.Float(metal))
-
-
-def _principled_flags(f: int) -> bool:
-    """The flags :func:`_principled_cones` asks for (diffuse + glossy reflection, no
-    transmission, no Dirac lobe)."""
-    F = mi.BSDFFlags
-    return bool(f & int(F.DiffuseReflection)) and bool(f & int(F.GlossyReflection)) and \
-        not (f & int(F.Transmission)) and not (f & int(F.Delta))
+    """The scene's :class:`slc.scene.bsdf_table.BSDFTable` (the kinds and constants the shading
+    kernel reads instead of virtual calls), None for scenes with instances."""
+    return bsdf_tables.for_scene(scene)
 
 
 def _ggx_conductors_only(scene) -> bool:

@@ -413,6 +413,35 @@ def _positive(v) -> bool:
 
 # ----------------------------------------------------------------------------- the update kernel
 
+@dataclass
+class CycleEntries:
+    """The per-entry inputs of one update cycle (one lane per entry): ``key`` (the
+    entry's random-number and shrink-schedule key), ``si`` (its surface point and
+    frame), ``rays`` (light samples this cycle), ``unsettled`` (the ray policy's
+    flag), ``moving`` (C capped, see :func:`end_cycle`), ``fresh`` (the entry
+    restarts: new, or a record converted from elsewhere), ``first_sample`` (the
+    index of the cycle's first sample in the entry's stratified sequence) and
+    ``strata`` (the samples continue that sequence; false: a per-frame one)."""
+    key: mi.UInt32
+    si: mi.SurfaceInteraction3f
+    rays: mi.UInt32
+    unsettled: mi.Bool
+    moving: mi.Bool
+    fresh: mi.Bool
+    first_sample: mi.UInt32
+    strata: mi.Bool
+
+
+@dataclass
+class UpdateBatch:
+    """The per-lane inputs of :func:`_update_kernel`: the entries' ``slot`` in the
+    storage, the ``seed_slot`` of their LOD seed (``INVALID``: none) and their
+    :class:`CycleEntries`."""
+    slot: mi.UInt32
+    seed_slot: mi.UInt32
+    entries: CycleEntries
+
+
 def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: mi.SurfaceInteraction3f,
                    rays: mi.UInt32, unsettled: mi.Bool, is_new: mi.Bool, seed_slot: mi.UInt32, keys: mi.UInt32,
                    frame: int, seed: int, p: ConeParams, stats: dict | None = None,
@@ -443,9 +472,11 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     # dr.argsort bakes the array's length into its kernels.
     order = dr.argsort(mi.UInt32(rays), descending=True)
     kernel = updater if updater is not None else _update_kernel
+    batch = UpdateBatch(mi.UInt32(active), mi.UInt32(seed_slot),
+                        CycleEntries(mi.UInt32(keys), si, mi.UInt32(rays), mi.Bool(unsettled), moving,
+                                     mi.Bool(is_new), first_sample, strata))
     storage, motion_o, shrunk_o, dropped_o = kernel(
-        scene, light_inputs(scene), storage, order, mi.UInt32(active), mi.UInt32(keys), si, mi.UInt32(rays), mi.Bool(unsettled), moving,
-        mi.Bool(is_new), mi.UInt32(seed_slot), first_sample, strata, frame_u32(frame), int(seed), p,
+        scene, light_inputs(scene), storage, order, batch, frame_u32(frame), int(seed), p,
         updater.area_only(scene) if updater is not None else constant_area_emitters(scene))
     motion = dr.zeros(mi.Bool, N)
     dr.scatter(motion, motion_o, order)
@@ -455,8 +486,8 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     return storage, motion
 
 
-def _update_kernel(scene, lights, storage, order, active, keys, si, rays, unsettled, moving, is_new, seed_slot,
-                   first_sample, strata, frame, seed, p: ConeParams, area_only: bool = False):
+def _update_kernel(scene, lights, storage, order, batch: UpdateBatch, frame, seed, p: ConeParams,
+                   area_only: bool = False):
     """The update proper, in the lane order ``order``: gather the inputs,
     :func:`_updated_words`, write the words back into ``storage``. Every
     argument that changes from frame to frame is a Dr.Jit array (``frame``
@@ -467,32 +498,34 @@ def _update_kernel(scene, lights, storage, order, active, keys, si, rays, unsett
     inputs of the frozen function. ``area_only`` (a Python bool, part of the recording's
     key) see :func:`shrink_test`. Returns (storage, motion, shrunk, dropped), the masks in lane order."""
     from slc.methods.cones.packing import scatter_words
-    act = dr.gather(mi.UInt32, active, order)
+    act = dr.gather(mi.UInt32, batch.slot, order)
+    e = batch.entries
+    entries = CycleEntries(
+        dr.gather(mi.UInt32, e.key, order), dr.gather(type(e.si), e.si, order), dr.gather(mi.UInt32, e.rays, order),
+        dr.gather(mi.Bool, e.unsettled, order), dr.gather(mi.Bool, e.moving, order),
+        dr.gather(mi.Bool, e.fresh, order), dr.gather(mi.UInt32, e.first_sample, order),
+        dr.gather(mi.Bool, e.strata, order))
     words, motion_o, shrunk_o, dropped_o = _updated_words(
-        scene, storage, act, dr.gather(mi.UInt32, keys, order), dr.gather(type(si), si, order),
-        dr.gather(mi.UInt32, rays, order), dr.gather(mi.Bool, unsettled, order), dr.gather(mi.Bool, moving, order),
-        dr.gather(mi.Bool, is_new, order), dr.gather(mi.UInt32, seed_slot, order),
-        dr.gather(mi.UInt32, first_sample, order), dr.gather(mi.Bool, strata, order), frame, seed, p, area_only)
+        scene, storage, act, entries, dr.gather(mi.UInt32, batch.seed_slot, order), frame, seed, p, area_only)
     # Every intermediate that read ``storage`` died with _updated_words' locals, so
     # the scatter below writes in place (a live reader would force a full copy).
     scatter_words(storage, words, act, p.max_cones)
     return storage, motion_o, shrunk_o, dropped_o
 
 
-def _updated_words(scene, storage, active, key, si, rays, unsettled, moving, is_new, seed_slot, first_sample,
-                   strata, frame, seed, p: ConeParams, area_only: bool = False):
+def _updated_words(scene, storage, active, entries: CycleEntries, seed_slot, frame, seed, p: ConeParams,
+                   area_only: bool = False):
     """The update kernel proper on the packed ``storage``: unpack the active
     entries (and the LOD seeds of new ones), :func:`update_cycle`, pack.
     Returns the evaluated (words, motion, shrunk, dropped)."""
     from slc.methods.cones.packing import gather_words, unpack
     K = p.max_cones
     state = unpack(gather_words(storage, active, K), K)
-    start = entry_start(is_new, seed_slot, 0)
+    start = entry_start(entries.fresh, seed_slot, 0)
     has_seed = start.seeded
     seeds = unpack(gather_words(storage, start.src, K, has_seed), K)
-    words, motion, shrunk, dropped, _ = update_cycle(
-        scene, state, key, si, rays, unsettled, moving, is_new, first_sample, strata, frame, seed, p,
-        seeds=seeds, has_seed=has_seed, area_only=area_only)
+    words, motion, shrunk, dropped, _ = update_cycle(scene, state, entries, frame, seed, p, seeds=seeds,
+                                                     has_seed=has_seed, area_only=area_only)
     dr.eval(*words, motion, shrunk, dropped)
     return words, motion, shrunk, dropped
 
@@ -520,9 +553,9 @@ class ConeUpdate(FrozenFunction):
     every call records."""
 
     def __init__(self, freeze: bool = True, animated: bool = False, max_recordings: int = 4):
-        # per-lane: order .. strata (a lane count equal to a scene array's width runs
+        # per-lane: the order and the batch (a lane count equal to a scene array's width runs
         # on a free width; the extra lanes repeat the last one: same words, same slot)
-        super().__init__(_update_kernel, freeze, animated, max_recordings, lanes=tuple(range(3, 14)))
+        super().__init__(_update_kernel, freeze, animated, max_recordings, lanes=("order", "batch"))
         self._area_only = None      # (id of the scene, constant_area_emitters): one scene per instance
 
     def area_only(self, scene) -> bool:
@@ -544,6 +577,27 @@ def updater_for(owner) -> ConeUpdate:
     return up
 
 
+@dataclass
+class SampleLoop:
+    """The state of an update cycle's sample loop (one lane per entry): ``k`` the
+    samples drawn, the cones (``D`` axes, ``A`` half-angles, ``L`` integrated
+    radiance: lists of ``K``) and ``n`` their number, ``S`` the cycle's sample sums
+    per cone, ``beta`` the cycle's largest cone turn [rad], ``sampler`` the
+    unstratified random numbers, ``q0``, ``q1`` the R2 sequence's next point (32-bit
+    fixed point) and ``extra`` the observer's state (:class:`SampleObserver`)."""
+    k: mi.UInt32
+    D: list
+    A: list
+    L: list
+    S: list
+    n: mi.UInt32
+    beta: mi.Float
+    sampler: mi.PCG32
+    q0: mi.UInt32
+    q1: mi.UInt32
+    extra: tuple
+
+
 class SampleObserver:
     """Hook of :func:`update_cycle` for callers that need more than the cones
     from the cycle's light samples (the adaptive cache's light statistics):
@@ -561,12 +615,12 @@ class SampleObserver:
         return extra
 
 
-def update_cycle(scene, state, key, si, rays, unsettled, moving, is_new, first_sample, strata, frame, seed,
-                 p: ConeParams, seeds=None, has_seed=None, valid=None, observer: SampleObserver | None = None,
-                 area_only: bool = False):
+def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams, seeds=None, has_seed=None,
+                 valid=None, observer: SampleObserver | None = None, area_only: bool = False):
     """One update cycle of unpacked cone records ``state = (D, A, L, C, n)``
-    (one lane per entry, as :func:`slc.methods.cones.packing.unpack` returns it):
-    new entries (``is_new``) restart empty, or from their LOD seed's unpacked
+    (one lane per entry, as :func:`slc.methods.cones.packing.unpack` returns it) with
+    the per-entry inputs ``entries`` (:class:`CycleEntries`):
+    fresh entries restart empty, or from their LOD seed's unpacked
     record ``seeds`` where ``has_seed``; ``rays`` light samples per entry from
     the stratified sequence (see below), insertion (cases A-D), the shrink test,
     the end of the cycle. ``valid`` (default: the interaction's) masks the lanes
@@ -576,6 +630,8 @@ def update_cycle(scene, state, key, si, rays, unsettled, moving, is_new, first_s
     cone pool. Returns (packed words, motion, shrunk, dropped, observer state);
     nothing evaluated."""
     from slc.methods.cones.packing import pack
+    key, si, rays, unsettled, moving = entries.key, entries.si, entries.rays, entries.unsettled, entries.moving
+    is_new, first_sample, strata = entries.fresh, entries.first_sample, entries.strata
     K = p.max_cones
     N = dr.width(key)
     valid = si.is_valid() if valid is None else mi.Bool(valid)
@@ -628,28 +684,29 @@ def update_cycle(scene, state, key, si, rays, unsettled, moving, is_new, first_s
     else:
         q0 = q1 = dr.zeros(mi.UInt32, N)
 
-    def cond(k, D, A, L, S, n, beta, sampler, q0, q1, extra):
-        return k < rays
+    def cond(st: SampleLoop):
+        return st.k < rays
 
-    def body(k, D, A, L, S, n, beta, sampler, q0, q1, extra):
+    def body(st: SampleLoop):
         if p.stratified:
             # top 24 bits: a float32 in [0, 1)
-            u = mi.Point2f(mi.Float(q0 >> 8) * (1.0 / 16777216.0), mi.Float(q1 >> 8) * (1.0 / 16777216.0))
-            q0, q1 = q0 + R2_STEP[0], q1 + R2_STEP[1]
+            u = mi.Point2f(mi.Float(st.q0 >> 8) * (1.0 / 16777216.0), mi.Float(st.q1 >> 8) * (1.0 / 16777216.0))
+            st.q0, st.q1 = st.q0 + R2_STEP[0], st.q1 + R2_STEP[1]
         else:
-            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
+            u = mi.Point2f(st.sampler.next_float32(), st.sampler.next_float32())
         ds, w, ok = sample_light(scene, si, u, valid)
         ok &= dr.all(dr.isfinite(w))
         ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), ok)
         s = dr.normalize(frame_l.to_local(ds.d))
         if observer is not None:
-            extra = observer.observe(extra, ds, w, ok, s)
-        D, A, L, S, n, beta, _ = insert_sample(D, A, L, S, n, beta, s, w, ok, p)
-        return k + 1, D, A, L, S, n, beta, sampler, q0, q1, extra
+            st.extra = observer.observe(st.extra, ds, w, ok, s)
+        st.D, st.A, st.L, st.S, st.n, st.beta, _ = insert_sample(st.D, st.A, st.L, st.S, st.n, st.beta, s, w, ok, p)
+        st.k = st.k + 1
+        return (st,)
 
-    _, D, A, L, S, n, beta, sampler, _, _, extra = dr.while_loop(
-        state=(mi.UInt32(0), D, A, L, S, n, beta, sampler, q0, q1, extra), cond=cond, body=body,
-        labels=("k", "D", "A", "L", "S", "n", "beta", "sampler", "q0", "q1", "extra"))
+    st, = dr.while_loop(state=(SampleLoop(mi.UInt32(0), D, A, L, S, n, beta, sampler, q0, q1, extra),), cond=cond,
+                        body=body, labels=("cycle",))
+    D, A, L, S, n, beta, sampler, extra = st.D, st.A, st.L, st.S, st.n, st.beta, st.sampler, st.extra
 
     # ----------------------------------------------- shrink test: one ray per cone
     dirs, tested, hits = shrink_test(scene, si, D, A, n, key, valid, mi.Bool(unsettled), sampler, frame, p,

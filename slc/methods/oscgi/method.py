@@ -9,7 +9,7 @@ from slc.scene.lights import light_inputs
 from slc.core.freeze import FrozenFunction
 from slc.scene.gbuffer import layered, per_viewer, viewer_lanes
 from slc.core.keys import INVALID, keyed_rng, stream_key
-from slc.scene.lights import _diffuse_table
+from slc.scene.lights import diffuse_flags
 from slc.methods import MethodError, Param, create, register
 from slc.osc.cache import OnSurfaceCache
 from slc.osc.payload import PayloadMethod, RayPolicy
@@ -306,7 +306,7 @@ class OSCGI(PrimaryUpdate, PayloadMethod):
                 # index within its viewer (identical viewers: identical images)
                 lay = layered(gbuffers)
                 idx = lay.pixel if lay.pixel is not None else dr.arange(mi.UInt32, lay.size)
-                L = self._k_pixel(sc, light_inputs(sc), _diffuse_table(sc)[0], lay.si, mi.Bool(lay.valid), idx,
+                L = self._k_pixel(sc, light_inputs(sc), diffuse_flags(sc), lay.si, mi.Bool(lay.valid), idx,
                                   mix, n, bool(self.direct_lds))
                 if len(gbuffers) == 1:
                     out[0] = out[0] + L

@@ -57,17 +57,18 @@ class Reservoir:
 
 
 class _Stream:
-    """A reservoir being filled by weighted streaming selection:
-    candidate sample (y, n, light), its target value ``p_hat`` at the
-    reservoir's own shading point, running weight sum and confidence."""
+    """A reservoir being filled by weighted streaming selection: the
+    selected candidate sample (``y``, ``n``, ``light``), its target value
+    ``p_hat`` at the reservoir's own shading point and the running weight
+    sum ``w_sum`` (loop state of the candidate and resampling loops)."""
+    DRJIT_STRUCT = {"y": mi.Point3f, "n": mi.Vector3f, "light": mi.UInt32, "p_hat": mi.Float, "w_sum": mi.Float}
 
-    def __init__(self, n: int):
+    def __init__(self, n: int = 0):
         self.y = dr.zeros(mi.Point3f, n)
         self.n = dr.zeros(mi.Vector3f, n)
         self.light = dr.zeros(mi.UInt32, n)
         self.p_hat = dr.zeros(mi.Float, n)
         self.w_sum = dr.zeros(mi.Float, n)
-        self.M = dr.zeros(mi.Float, n)
 
     def update(self, y, n, light, p_hat, w, u, active):
         """Add one candidate of resampling weight ``w`` (selection by ``u``)."""
@@ -347,7 +348,7 @@ class ReSTIR(Method):
         if self._table is not None:
             self._table.refresh()   # animated emissive meshes
 
-        def add(y, nrm, light, ok, u_sel, p_dir=None):
+        def add(res, y, nrm, light, ok, u_sel, p_dir=None):
             _, p_hat, d, dist, kind, ds, p_bsdf = self._eval(si, bsdf, y, nrm, light, ok, with_pdf=True)
             denom = self._pdf_sum(si, bsdf, light, kind, d, dist, nrm, ds, ok & (p_hat > 0.0),
                                   p_dir=p_dir, p_bsdf=p_bsdf)
@@ -358,30 +359,27 @@ class ReSTIR(Method):
         # ---------------- Local-light candidates (symbolic loop) ----------------
         if self._L and self.n_local:
             n_local = dr.opaque(mi.UInt32, self.n_local)
-            state = (mi.UInt32(0), res.y, res.n, res.light, res.p_hat, res.w_sum, sampler)
 
-            def cond(i, *_):
+            def cond(i, res, smp):
                 return i < n_local
 
-            def body(i, y_, n_, l_, p_, w_, smp):
-                res.y, res.n, res.light, res.p_hat, res.w_sum = y_, n_, l_, p_, w_
+            def body(i, res, smp):
                 if self._table is not None:
                     u = mi.Point2f(smp.next_float32(), smp.next_float32())
                     ds, _, ok, light = self._table.sample(si, u, active)
-                    add(mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32())
-                    return i + 1, res.y, res.n, res.light, res.p_hat, res.w_sum, smp
+                    add(res, mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32())
+                    return i + 1, res, smp
                 k = dr.minimum(mi.UInt32(smp.next_float32() * self._L), self._L - 1)
                 light = dr.gather(mi.UInt32, self._local, k, active)
                 em = dr.gather(mi.EmitterPtr, self._emitters, light, active)
                 u = mi.Point2f(smp.next_float32(), smp.next_float32())
                 ds, _ = em.sample_direction(si, u, active)
                 ok = active & (ds.pdf > 0.0)
-                add(mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32(), p_dir=ds.pdf)
-                return i + 1, res.y, res.n, res.light, res.p_hat, res.w_sum, smp
+                add(res, mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32(), p_dir=ds.pdf)
+                return i + 1, res, smp
 
-            out = dr.while_loop(state=state, cond=cond, body=body,
-                                labels=("i", "y", "n", "light", "p_hat", "w_sum", "sampler"))
-            _, res.y, res.n, res.light, res.p_hat, res.w_sum, sampler = out
+            _, res, sampler = dr.while_loop(state=(mi.UInt32(0), res, sampler), cond=cond, body=body,
+                                            labels=("i", "reservoir", "sampler"))
 
         # ---------------- Environment candidates ----------------
         if self._E and self.n_env:
@@ -392,7 +390,7 @@ class ReSTIR(Method):
                 u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
                 ds, _ = em.sample_direction(si, u, active)
                 ok = active & (ds.pdf > 0.0)
-                add(mi.Point3f(ds.d), dr.zeros(mi.Vector3f, n), light, ok, sampler.next_float32(), p_dir=ds.pdf)
+                add(res, mi.Point3f(ds.d), dr.zeros(mi.Vector3f, n), light, ok, sampler.next_float32(), p_dir=ds.pdf)
 
         # ---------------- BSDF candidates ----------------
         for _ in range(self.n_bsdf):
@@ -416,7 +414,7 @@ class ReSTIR(Method):
                 cand = hit_em | miss
             else:
                 cand = hit_em
-            add(y, nrm, light, cand, sampler.next_float32())
+            add(res, y, nrm, light, cand, sampler.next_float32())
 
         # ---------------- Finalize (M = 1) and initial visibility ----------------
         r = res.finalize(mi.Float(1.0), mi.Float(1.0), active)
@@ -524,11 +522,9 @@ class ReSTIR(Method):
         st = _Stream(n)
         st.update(r.y, r.n, r.light, p_cur, p_cur * r.W * r.M, sel.next_float32(), active)
         M = mi.Float(r.M)
-        state = (mi.UInt32(0), rng(n, seed, stream=13), sel, st.y, st.n, st.light, st.p_hat, st.w_sum,
-                 M, mi.UInt32(0))
+        state = (mi.UInt32(0), rng(n, seed, stream=13), sel, st, M, mi.UInt32(0))
 
-        def body(i, smp, sel, y, nrm, light, p_hat, w_sum, M, used):
-            st.y, st.n, st.light, st.p_hat, st.w_sum = y, nrm, light, p_hat, w_sum
+        def body(i, smp, sel, st, M, used):
             q, ok = self._neighbour(smp, x0, y0, R, W_, H_)
             ok &= dr.gather(mi.Bool, gb.valid, q, ok)
             ok &= self._similar(n0, dr.gather(mi.Vector3f, n0, q, ok), depth0, dr.gather(mi.Float, gb.depth, q, ok))
@@ -539,11 +535,10 @@ class ReSTIR(Method):
             st.update(rq.y, rq.n, rq.light, p_here, p_here * rq.W * rq.M, sel.next_float32(), ok)
             M = M + dr.select(ok, rq.M, 0.0)
             used = used | dr.select(ok, mi.UInt32(1) << i, 0)
-            return i + 1, smp, sel, st.y, st.n, st.light, st.p_hat, st.w_sum, M, used
+            return i + 1, smp, sel, st, M, used
 
-        out = dr.while_loop(state=state, cond=lambda i, *_: i < k, body=body,
-                            labels=("i", "smp", "sel", "y", "n", "light", "p_hat", "w_sum", "M", "used"))
-        _, _, _, st.y, st.n, st.light, st.p_hat, st.w_sum, M, used = out
+        _, _, _, st, M, used = dr.while_loop(state=state, cond=lambda i, *_: i < k, body=body,
+                                             labels=("i", "smp", "sel", "reservoir", "M", "used"))
 
         # ---------------- Pass 2: bias correction (replay the neighbours) ----------------
         if self.bias == "off":

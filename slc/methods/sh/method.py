@@ -6,11 +6,11 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.core.keys import INVALID, STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng
-from slc.scene.lights import sample_light, visible
 from slc.methods import Param, register
 from slc.osc.payload import PayloadMethod, RayPolicy, entry_start
-from slc.methods.sh.project import irradiance, project, radiance
+from slc.methods.sh.project import irradiance, radiance
 from slc.methods.sh.shading import shade_radiance
+from slc.methods.sh.update import project_samples, running_mean, world_frame
 from slc.methods.sh.ycocg import ENCODINGS, encoding as get_encoding
 
 
@@ -25,11 +25,14 @@ class SHSurfaceCache(PayloadMethod):
     texel's surface are dropped) and estimates
 
     .. math:: \hat\lambda_{lm} = \frac{1}{n}\sum_k \frac{L_e(\omega_k) V}{p(\omega_k)} Y_{lm}(\omega_k),
-              \qquad \lambda \leftarrow \lambda + (\hat\lambda - \lambda)/C,
+              \qquad \lambda \leftarrow \lambda + \min(n/C, 1)(\hat\lambda - \lambda),
 
-    with :math:`C` the update count capped at ``max_count`` (an exponential
-    moving average once capped, so moving lights fade in). A new entry
-    starts from its LOD seed (a coarser entry) when there is one.
+    with :math:`C` the sample count capped at ``max_count`` (an exponential
+    moving average once capped, so moving lights fade in; :mod:`slc.methods.sh.update`,
+    shared with the adaptive cache's SH records): a new entry's ``rays_new``-sample
+    updates average evenly until the cap, a settled entry's 1-sample update
+    weighs ``1/max_count``. A new entry starts from its LOD seed (a coarser
+    entry, weighing as one update of ``rays_new`` samples) when there is one.
 
     Shading per pixel, no rays: diffuse-only BSDFs in closed form,
     :math:`L_o = \rho/\pi\, E(n)` with the Ramamoorthi-Hanrahan irradiance;
@@ -46,7 +49,8 @@ class SHSurfaceCache(PayloadMethod):
     name = "sh"
     params = (
         Param("encoding", "y3co1cg1", "SH encoding (bands per channel)", choices=tuple(ENCODINGS)),
-        Param("max_count", 16, "running-mean count cap (then an exponential moving average)", lo=1),
+        Param("max_count", 64, "running-mean cap on the sample count, then an exponential moving average "
+              "[samples]", lo=1),
         Param("glossy_samples", 8, "BSDF samples of the reconstructed radiance per glossy pixel", lo=1, hi=1024),
         Param("rays_new", 8, "update rays of new entries", lo=1, hi=1024),
         Param("rays_settled", 1, "update rays of settled entries", lo=1, hi=1024),
@@ -70,33 +74,17 @@ class SHSurfaceCache(PayloadMethod):
         sc, enc, n, rays = self.scene.mi_scene, self.enc, self.enc.n, policy.rays
         slots, si = fr.active, fr.si
         sampler = keyed_rng(fr.keys, self.seed, ctx.frame, STREAM_SH_UPDATE)
-        ng = mi.Vector3f(si.n)
-
-        # ------------------- light samples at the texel's own point -------------------
-        def cond(i, acc, sampler):
-            return i < rays
-
-        def body(i, acc, sampler):
-            u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
-            ds, w, ok = sample_light(sc, si, u, i < rays)
-            ok &= (dr.dot(ds.d, ng) > 0.0) & dr.all(dr.isfinite(w))
-            ok = visible(sc, si, ds, ok)
-            c = project(enc, ds.d, dr.select(ok, w, 0.0))
-            return i + 1, [a + b for a, b in zip(acc, c)], sampler
-
-        acc0 = [mi.Float(0.0) for _ in range(n)]
-        _, acc, _ = dr.while_loop(state=(mi.UInt32(0), acc0, sampler), cond=cond, body=body,
-                                  labels=("i", "acc", "sampler"))
-        inv = dr.rcp(mi.Float(dr.maximum(rays, 1)))
+        acc, _ = project_samples(sc, si, world_frame(), rays, sampler, si.is_valid(), enc)
 
         # ------------------------- running mean, LOD seeding -------------------------
+        # a new entry starts empty, or from its LOD seed (a coarser entry) weighing as one update
+        # of a new entry (rays_new samples)
         start = entry_start(fr.is_new, fr.seed_slot, slots)
-        C_old = dr.select(fr.is_new, dr.select(start.seeded, 1.0, 0.0), self.read(slots, n))
-        C = dr.minimum(C_old + 1.0, float(self.max_count))
-        a = dr.rcp(C)
+        C_old = dr.select(fr.is_new, dr.select(start.seeded, float(self.rays_new), 0.0), self.read(slots, n))
+        old = [self.read(start.src, c, start.keep) for c in range(n)]
+        coeffs, C = running_mean(old, C_old, acc, rays, self.max_count)
         for c in range(n):
-            old = self.read(start.src, c, start.keep)
-            self.write(dr.fma(a, acc[c] * inv - old, old), slots, c)
+            self.write(coeffs[c], slots, c)
         self.write(C, slots, n)
         return dr.zeros(mi.Bool, dr.width(slots))
 
