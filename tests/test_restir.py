@@ -212,7 +212,7 @@ def test_settings_and_presets(cornell):
     f = methods.create("restir:preset=falcor", cornell)
     assert (f.n_local, f.n_env, f.n_bsdf) == (24, 8, 1)
     d = methods.create("restir", cornell)
-    assert (d.n_local, d.n_env, d.n_bsdf, d.spatial, d.mcap, d.bias) == (8, 1, 1, 1, 20.0, "basic")
+    assert (d.n_local, d.n_env, d.n_bsdf, d.spatial, d.mcap, d.bias) == (8, 1, 1, 1, 20.0, "pairwise")
     c = methods.create("restir:local=16,bsdf=1,spatial=5,bias=off", cornell)
     assert (c.n_local, c.spatial, c.bias) == (16, 5, "off")
     for bad in ("restir:bias=maybe", "restir:preset=nope", "restir:foo=1"):

@@ -88,6 +88,13 @@ class _Stream:
                          dr.select(valid, M, 0.0))
 
 
+def _share(a, b):
+    """a / (a + b) for non-negative a, b: the balance-heuristic share of the
+    technique weighted a (0 where a = 0)."""
+    ok = a > 0.0
+    return dr.select(ok, a / dr.select(ok, a + b, 1.0), 0.0)
+
+
 class ReSTIR(Method):
     r"""ReSTIR DI with temporal and spatial reuse, one set of reservoirs per viewer.
 
@@ -162,8 +169,9 @@ class ReSTIR(Method):
         Param("spatial", 1, "spatial neighbours", lo=0, hi=MAX_NEIGHBOURS),
         Param("radius", 32.0, "spatial radius in pixels at 1080p (scaled)", lo=0.0),
         Param("boost", 8, "spatial neighbours where history was rejected", lo=0, hi=MAX_NEIGHBOURS),
-        Param("bias", "basic", "bias correction (pairwise and ray-traced are not implemented)",
-              choices=("off", "basic")),
+        Param("bias", "pairwise", "reuse weights: pairwise (pairwise MIS), basic (1/Z over the reservoirs "
+              "whose target is non-zero) or off (1/sum M, biased); ray-traced is not implemented",
+              choices=("off", "basic", "pairwise")),
         Param("visibility", 1, "final visibility ray on/off", lo=0, hi=1),
     )
 
@@ -463,10 +471,21 @@ class ReSTIR(Method):
 
         # ---------------- Resampling: current + history ----------------
         st = _Stream(n)
-        st.update(r.y, r.n, r.light, p_cur, p_cur * r.W * r.M, sampler.next_float32(), active)
-        _, p_here, _, _, _, _ = self._eval(si, bsdf, rp.y, rp.n, rp.light, ok & (rp.W > 0.0))
-        st.update(rp.y, rp.n, rp.light, p_here, p_here * rp.W * M_p, sampler.next_float32(), ok)
         M = r.M + M_p
+        _, p_here, _, _, _, _ = self._eval(si, bsdf, rp.y, rp.n, rp.light, ok & (rp.W > 0.0))
+        if self.bias == "pairwise":
+            # balance heuristic over the two reservoirs' targets, weighted by their M:
+            # m_c(y) = M_c p_c(y) / (M_c p_c(y) + M_p p_p(y)), m_p(y) = 1 - m_c(y)
+            bsdf_p = si_p.bsdf()
+            _, p_pp, _, _, _, _ = self._eval(si_p, bsdf_p, rp.y, rp.n, rp.light, ok & (rp.W > 0.0))
+            _, p_pc, _, _, _, _ = self._eval(si_p, bsdf_p, r.y, r.n, r.light, ok & (r.W > 0.0))
+            m_c = _share(r.M * p_cur, dr.select(ok, M_p * p_pc, 0.0))
+            m_p = _share(M_p * p_pp, r.M * p_here)
+            st.update(r.y, r.n, r.light, p_cur, m_c * p_cur * r.W, sampler.next_float32(), active)
+            st.update(rp.y, rp.n, rp.light, p_here, m_p * p_here * rp.W, sampler.next_float32(), ok)
+            return st.finalize(mi.Float(1.0), M, active), ok, st.p_hat
+        st.update(r.y, r.n, r.light, p_cur, p_cur * r.W * r.M, sampler.next_float32(), active)
+        st.update(rp.y, rp.n, rp.light, p_here, p_here * rp.W * M_p, sampler.next_float32(), ok)
 
         # ---------------- Bias correction ----------------
         if self.bias == "off":
@@ -507,9 +526,7 @@ class ReSTIR(Method):
         bsdf = si.bsdf()
         W_, H_ = gb.width, gb.height
         R = max(self.radius * H_ / 1080.0, 2.0)
-        idx = dr.arange(mi.UInt32, n)
-        x0, y0 = mi.Int32(idx % W_), mi.Int32(idx // W_)
-        depth0, n0 = gb.depth, mi.Vector3f(si.sh_frame.n)
+        x0, y0 = self._xy(n, W_)
 
         # ---------------- Per-pixel neighbour count ----------------
         # spatial everywhere; max(spatial, boost) where temporal history was
@@ -518,6 +535,8 @@ class ReSTIR(Method):
         if self.temporal and self.boost > self.spatial:
             k = dr.select(reused, k, self.boost)
         k = dr.select(active, k, 0)
+        if self.bias == "pairwise":
+            return self._spatial_pairwise(gb, r, p_cur, k, R, seed)
 
         # ---------------- Pass 1: resampling self + neighbours ----------------
         sel = rng(n, seed, stream=14)
@@ -529,11 +548,7 @@ class ReSTIR(Method):
 
         def body(i, smp, sel, y, nrm, light, p_hat, w_sum, M, used):
             st.y, st.n, st.light, st.p_hat, st.w_sum = y, nrm, light, p_hat, w_sum
-            q, ok = self._neighbour(smp, x0, y0, R, W_, H_)
-            ok &= dr.gather(mi.Bool, gb.valid, q, ok)
-            ok &= self._similar(n0, dr.gather(mi.Vector3f, n0, q, ok), depth0, dr.gather(mi.Float, gb.depth, q, ok))
-            rq = dr.gather(Reservoir, r, q, ok)
-            ok &= rq.M > 0.0
+            q, ok, rq = self._accepted(smp, gb, r, R)
             # the target is only needed for a non-zero resampling weight; M counts regardless
             _, p_here, _, _, _, _ = self._eval(si, bsdf, rq.y, rq.n, rq.light, ok & (rq.W > 0.0))
             st.update(rq.y, rq.n, rq.light, p_here, p_here * rq.W * rq.M, sel.next_float32(), ok)
@@ -565,6 +580,91 @@ class ReSTIR(Method):
             _, _, Z = dr.while_loop(state=(mi.UInt32(0), rng(n, seed, stream=13), Z),
                                     cond=lambda i, *_: i < k2, body=body_z, labels=("i", "smp", "Z"))
         return st.finalize(Z, M, active), st.p_hat
+
+    def _accepted(self, smp, gb, r: Reservoir, R: float):
+        """Next neighbour of the sequence ``smp`` (see :meth:`_neighbour`) and
+        whether it is reused: valid, similar depth and normal, M > 0; (index,
+        mask, its reservoir)."""
+        W_, H_ = gb.width, gb.height
+        n0 = mi.Vector3f(gb.si.sh_frame.n)
+        q, ok = self._neighbour(smp, *self._xy(gb.size, W_), R, W_, H_)
+        ok &= dr.gather(mi.Bool, gb.valid, q, ok)
+        ok &= self._similar(n0, dr.gather(mi.Vector3f, n0, q, ok), gb.depth, dr.gather(mi.Float, gb.depth, q, ok))
+        rq = dr.gather(Reservoir, r, q, ok)
+        return q, ok & (rq.M > 0.0), rq
+
+    def _spatial_pairwise(self, gb, r: Reservoir, p_cur, k, R: float, seed: int):
+        """Spatial reuse with pairwise MIS (Bitterli 2022, Lin et al. 2022),
+        M-weighted: the current (canonical) reservoir c and each of the K
+        accepted neighbours i form a pair that holds the share
+        f_i = (M_i + M_c / K) / (M_c + sum_j M_j) of the total M; within the
+        pair, the balance heuristic of M_i p_i and (M_c / K) p_c:
+
+            m_i(y) = f_i M_i p_i(y) / (M_i p_i(y) + M_c / K p_c(y)),
+            m_c(y) = sum_i f_i (M_c / K) p_c(y) / (M_i p_i(y) + M_c / K p_c(y)),
+
+        which sum to 1 wherever p_c(y) > 0 (m_c = 1 without neighbours).
+        Resampling weights w = m(y) p_c(y) W, W = sum w / p_c(y_selected).
+        A neighbour's sample that its own target rates low gets a small
+        weight even where the current target is large; with the 1/Z weights
+        of ``basic`` it is w = p_c(y) W M, unbounded as p_c / p_i grows.
+
+        Pass 1 finds the accepted neighbours (bit mask, count K, sum of M);
+        pass 2 replays them and resamples, three target evaluations per
+        neighbour: p_c(y_i), p_i(y_i) and p_i(y_c)."""
+        n = gb.size
+        si, active = gb.si, gb.valid
+        bsdf = si.bsdf()
+
+        # ---------------- Pass 1: accepted neighbours ----------------
+        def body(i, smp, K, M_n, used):
+            _, ok, rq = self._accepted(smp, gb, r, R)
+            used = used | dr.select(ok, mi.UInt32(1) << i, 0)
+            return i + 1, smp, K + dr.select(ok, 1.0, 0.0), M_n + dr.select(ok, rq.M, 0.0), used
+
+        _, _, K, M_n, used = dr.while_loop(
+            state=(mi.UInt32(0), rng(n, seed, stream=13), mi.Float(0.0), mi.Float(0.0), mi.UInt32(0)),
+            cond=lambda i, *_: i < k, body=body, labels=("i", "smp", "K", "M_n", "used"))
+        M = r.M + M_n
+        Mc_K = r.M / dr.select(K > 0.0, K, 1.0)
+        inv_total = dr.select(M > 0.0, dr.rcp(dr.select(M > 0.0, M, 1.0)), 0.0)
+
+        # ---------------- Pass 2: pairwise MIS resampling ----------------
+        st = _Stream(n)
+        k2 = dr.select(active, 32 - dr.lzcnt(used), 0)
+        c_ok = active & (r.W > 0.0)
+
+        def body2(i, smp, sel, y, nrm, light, p_hat, w_sum, m_c):
+            st.y, st.n, st.light, st.p_hat, st.w_sum = y, nrm, light, p_hat, w_sum
+            q, _ = self._neighbour(smp, *self._xy(n, gb.width), R, gb.width, gb.height)
+            ok = ((used >> i) & 1) != 0
+            rq = dr.gather(Reservoir, r, q, ok)
+            si_q = dr.gather(mi.SurfaceInteraction3f, si, q, ok)
+            bsdf_q = si_q.bsdf()
+            has = ok & (rq.W > 0.0)
+            _, p_c_i, _, _, _, _ = self._eval(si, bsdf, rq.y, rq.n, rq.light, has)
+            _, p_i_i, _, _, _, _ = self._eval(si_q, bsdf_q, rq.y, rq.n, rq.light, has)
+            _, p_i_c, _, _, _, _ = self._eval(si_q, bsdf_q, r.y, r.n, r.light, ok & c_ok)
+            f = (rq.M + Mc_K) * inv_total
+            m_i = f * _share(rq.M * p_i_i, Mc_K * p_c_i)
+            st.update(rq.y, rq.n, rq.light, p_c_i, m_i * p_c_i * rq.W, sel.next_float32(), has)
+            m_c = m_c + dr.select(ok, f * _share(Mc_K * p_cur, rq.M * p_i_c), 0.0)
+            return i + 1, smp, sel, st.y, st.n, st.light, st.p_hat, st.w_sum, m_c
+
+        state = (mi.UInt32(0), rng(n, seed, stream=13), rng(n, seed, stream=14), st.y, st.n, st.light,
+                 st.p_hat, st.w_sum, mi.Float(0.0))
+        out = dr.while_loop(state=state, cond=lambda i, *_: i < k2, body=body2,
+                            labels=("i", "smp", "sel", "y", "n", "light", "p_hat", "w_sum", "m_c"))
+        _, _, sel, st.y, st.n, st.light, st.p_hat, st.w_sum, m_c = out
+        m_c = dr.select(K > 0.0, m_c, 1.0)
+        st.update(r.y, r.n, r.light, p_cur, m_c * p_cur * r.W, sel.next_float32(), c_ok)
+        return st.finalize(mi.Float(1.0), M, active), st.p_hat
+
+    @staticmethod
+    def _xy(n: int, width: int):
+        """Pixel coordinates (x, y) of the ``n`` pixels of a ``width``-wide image."""
+        idx = dr.arange(mi.UInt32, n)
+        return mi.Int32(idx % width), mi.Int32(idx // width)
 
     # ------------------------------ Stage 4: shade ------------------------------
 
