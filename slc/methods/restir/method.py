@@ -131,20 +131,26 @@ class ReSTIR(Method):
        in a disk of ``radius`` pixels at 1080p, scaled by height/1080 (at
        least 2 px), same depth/normal tests; pixels whose temporal reuse
        failed take ``max(spatial, boost)`` neighbours (RTXDI's disocclusion
-       boost). Two symbolic loops over the per-pixel count (at most 32):
-       resampling, then Z over the accepted neighbours (RTXDI's bit mask).
+       boost). Two symbolic loops over the per-pixel count (at most 32)
+       with the neighbours recorded in a bit mask (as RTXDI).
     4. *shade*: one shadow ray to the final sample.
 
-    Bias correction ``bias``: ``off`` (Z = sum of M, biased where
-    neighbours differ), ``basic`` (Z = sum of the M of reservoirs whose
-    surface has :math:`\hat p(y) > 0`, the 1/Z weights of Bitterli et al.,
-    no visibility). Pairwise MIS and ray-traced bias correction are not
+    Reuse weights ``bias``: ``pairwise`` (default; pairwise MIS, M-weighted,
+    see :meth:`_spatial_pairwise`; in the temporal pass the balance
+    heuristic of the two reservoirs), ``basic`` (1/Z with Z = sum of the M
+    of reservoirs whose surface has :math:`\hat p(y) > 0`, Bitterli et
+    al.'s weights, no visibility) or ``off`` (Z = sum of M, biased where
+    neighbours differ). ``pairwise`` and ``basic`` are unbiased for the
+    unshadowed target; ``basic`` weighs a neighbour's sample by
+    :math:`\hat p_c(y) W M`, which grows without bound where the current
+    target exceeds the neighbour's (glossy lobes, small bright lights: bright
+    blotches), pairwise MIS does not. Ray-traced bias correction is not
     implemented (a shadow-ray test in Z is inconsistent with the unshadowed
     target, see ``docs/restir.md``).
 
     The defaults are RTXDI's library defaults (``spatial=5`` is the other
-    usual setting); ``preset=falcor`` sets 24 local / 8 environment / 1 BSDF
-    candidates.
+    usual setting) except the reuse weights; ``preset=falcor`` sets 24
+    local / 8 environment / 1 BSDF candidates.
 
     Memory: per viewer and pixel two reservoir buffers (history and
     working, 36 bytes each) and the previous surface (28 bytes):
@@ -516,7 +522,8 @@ class ReSTIR(Method):
     def spatial_reuse(self, gb, r: Reservoir, p_cur, reused, seed: int):
         """Merge neighbours' reservoirs (read from the temporal output ``r``).
 
-        Two symbolic loops over a per-pixel neighbour count ``k``: the first
+        Two symbolic loops over a per-pixel neighbour count ``k``. With
+        ``bias=pairwise`` see :meth:`_spatial_pairwise`. Otherwise the first
         resamples and records the accepted neighbours in a bit mask, the
         second (``bias=basic``) replays the same neighbour sequence up to
         the last accepted one and sums Z over the accepted neighbours whose
@@ -736,4 +743,5 @@ class ReSTIR(Method):
 
 register("restir", ReSTIR,
          help="ReSTIR DI (RTXDI defaults: 8 local/1 env/1 BSDF candidates, temporal M<=20, 1 spatial "
-              "neighbour in 32 px@1080p, bias=basic); restir:preset=falcor for 24/8/1")
+              "neighbour in 32 px@1080p; pairwise MIS reuse weights, bias=basic for RTXDI's 1/Z); "
+              "restir:preset=falcor for 24/8/1")
