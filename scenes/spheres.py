@@ -15,7 +15,7 @@ Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
 """
 import numpy as np
 
-from slc.scenes import CameraPath, SceneBuilder, diffuse, principled, rough_conductor
+from slc.scene.scenes import CameraPath, SceneBuilder, diffuse, principled, rough_conductor
 
 HX, Z0, Z1, HH = 5.0, -4.0, 7.0, 4.5
 # (centre, radius, RGB radiance) of the four lights: radii 0.03-1 m, radiances 1-1e4

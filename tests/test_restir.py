@@ -9,6 +9,7 @@ from slc import methods
 from slc.scene import scenes, views
 from slc.scene.gbuffer import to_image
 from slc.reference.groundtruth import direct_mis
+from slc.reference.metrics import rel_mse
 from slc.methods import FrameContext, MethodError
 from slc.run.pipeline import gbuffers_for
 from slc.scene.scenes import Camera, SceneBuilder, diffuse, translate
@@ -384,7 +385,6 @@ def spheres_static():
 
 def spheres_rel_mse(spec, spheres_static, seed=1):
     """relMSE against the reference of the last of SPHERES_FRAMES frames."""
-    from slc.metrics import rel_mse
     sc, gbs, gt = spheres_static
     img = run_frames(methods.create(spec, sc, seed=seed), sc, None, SPHERES_FRAMES, gbs=gbs)[-1]
     assert np.isfinite(img).all()
