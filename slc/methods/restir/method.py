@@ -13,7 +13,6 @@ from neighbouring pixels, and final shading with one shadow ray.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
@@ -21,6 +20,8 @@ import numpy as np
 
 from slc.scene.lights import rng, sampler as light_table
 from slc.methods import Method, MethodError, Param, register
+from slc.methods.restir.pairwise import spatial_pairwise
+from slc.methods.restir.reservoir import Reservoir, Stream, share
 
 # Emitter kinds (the measure in which a stored sample lives)
 AREA, DELTA_POS, INFINITE = 0, 1, 2
@@ -37,62 +38,6 @@ PRESETS = {
     "rtxdi": dict(local=8, env=1, bsdf=1),
     "falcor": dict(local=24, env=8, bsdf=1),
 }
-
-
-@dataclass
-class Reservoir:
-    """Per-pixel reservoirs (structure of arrays).
-
-    ``y``: point on a local light (area or point/spot), or the world
-    direction towards an infinite light (environment, directional);
-    ``n``: light surface normal (area lights); ``light``: index into
-    ``scene.emitters()``; ``W``: unbiased contribution weight; ``M``:
-    confidence (number of candidates the reservoir stands for)."""
-    y: mi.Point3f = field(default_factory=mi.Point3f)
-    n: mi.Vector3f = field(default_factory=mi.Vector3f)
-    light: mi.UInt32 = field(default_factory=mi.UInt32)
-    W: mi.Float = field(default_factory=mi.Float)
-    M: mi.Float = field(default_factory=mi.Float)
-    DRJIT_STRUCT = {"y": mi.Point3f, "n": mi.Vector3f, "light": mi.UInt32, "W": mi.Float, "M": mi.Float}
-
-
-class _Stream:
-    """A reservoir being filled by weighted streaming selection:
-    candidate sample (y, n, light), its target value ``p_hat`` at the
-    reservoir's own shading point, running weight sum and confidence."""
-
-    def __init__(self, n: int):
-        self.y = dr.zeros(mi.Point3f, n)
-        self.n = dr.zeros(mi.Vector3f, n)
-        self.light = dr.zeros(mi.UInt32, n)
-        self.p_hat = dr.zeros(mi.Float, n)
-        self.w_sum = dr.zeros(mi.Float, n)
-        self.M = dr.zeros(mi.Float, n)
-
-    def update(self, y, n, light, p_hat, w, u, active):
-        """Add one candidate of resampling weight ``w`` (selection by ``u``)."""
-        w = dr.select(active & (w > 0.0) & dr.isfinite(w), w, 0.0)
-        self.w_sum += w
-        take = (w > 0.0) & (u * self.w_sum < w)
-        self.y = dr.select(take, y, self.y)
-        self.n = dr.select(take, n, self.n)
-        self.light = dr.select(take, light, self.light)
-        self.p_hat = dr.select(take, p_hat, self.p_hat)
-
-    def finalize(self, Z, M, valid) -> Reservoir:
-        """W = w_sum / (Z p_hat(y)), every division guarded."""
-        ok = valid & (self.p_hat > 0.0) & (Z > 0.0) & (self.w_sum > 0.0)
-        W = dr.select(ok, self.w_sum / dr.select(ok, Z * self.p_hat, 1.0), 0.0)
-        W = dr.select(dr.isfinite(W), W, 0.0)
-        return Reservoir(mi.Point3f(self.y), mi.Vector3f(self.n), mi.UInt32(self.light), W,
-                         dr.select(valid, M, 0.0))
-
-
-def _share(a, b):
-    """a / (a + b) for non-negative a, b: the balance-heuristic share of the
-    technique weighted a (0 where a = 0)."""
-    ok = a > 0.0
-    return dr.select(ok, a / dr.select(ok, a + b, 1.0), 0.0)
 
 
 class ReSTIR(Method):
@@ -136,7 +81,7 @@ class ReSTIR(Method):
     4. *shade*: one shadow ray to the final sample.
 
     Reuse weights ``bias``: ``pairwise`` (default; pairwise MIS, M-weighted,
-    see :meth:`_spatial_pairwise`; in the temporal pass the balance
+    see :func:`slc.methods.restir.pairwise.spatial_pairwise`; in the temporal pass the balance
     heuristic of the two reservoirs), ``basic`` (1/Z with Z = sum of the M
     of reservoirs whose surface has :math:`\hat p(y) > 0`, Bitterli et
     al.'s weights, no visibility) or ``off`` (Z = sum of M, biased where
@@ -263,7 +208,7 @@ class ReSTIR(Method):
         d = dr.select(inf, mi.Vector3f(y), to / dr.select(dist > 0.0, dist, 1.0))
         return d, dist, kind
 
-    def _eval(self, si, bsdf, y, n, light, active, with_pdf: bool = False):
+    def evaluate(self, si, bsdf, y, n, light, active, with_pdf: bool = False):
         """Unshadowed contribution f_r L_e G of stored samples at ``si``:
         (colour, p_hat = luminance, world direction, distance, kind,
         DirectionSample3f), plus the BSDF's solid-angle pdf of the direction
@@ -357,12 +302,12 @@ class ReSTIR(Method):
         bsdf = si.bsdf()
         ctx = mi.BSDFContext()
         sampler = rng(n, seed, stream=11)
-        res = _Stream(n)
+        res = Stream(n)
         if self._table is not None:
             self._table.refresh()   # animated emissive meshes
 
         def add(y, nrm, light, ok, u_sel, p_dir=None):
-            _, p_hat, d, dist, kind, ds, p_bsdf = self._eval(si, bsdf, y, nrm, light, ok, with_pdf=True)
+            _, p_hat, d, dist, kind, ds, p_bsdf = self.evaluate(si, bsdf, y, nrm, light, ok, with_pdf=True)
             denom = self._pdf_sum(si, bsdf, light, kind, d, dist, nrm, ds, ok & (p_hat > 0.0),
                                   p_dir=p_dir, p_bsdf=p_bsdf)
             good = ok & (p_hat > 0.0) & (denom > 0.0)
@@ -476,17 +421,17 @@ class ReSTIR(Method):
         M_p = dr.select(ok, dr.minimum(rp.M, self.mcap), 0.0)
 
         # ---------------- Resampling: current + history ----------------
-        st = _Stream(n)
+        st = Stream(n)
         M = r.M + M_p
-        _, p_here, _, _, _, _ = self._eval(si, bsdf, rp.y, rp.n, rp.light, ok & (rp.W > 0.0))
+        _, p_here, _, _, _, _ = self.evaluate(si, bsdf, rp.y, rp.n, rp.light, ok & (rp.W > 0.0))
         if self.bias == "pairwise":
             # balance heuristic over the two reservoirs' targets, weighted by their M:
             # m_c(y) = M_c p_c(y) / (M_c p_c(y) + M_p p_p(y)), m_p(y) = 1 - m_c(y)
             bsdf_p = si_p.bsdf()
-            _, p_pp, _, _, _, _ = self._eval(si_p, bsdf_p, rp.y, rp.n, rp.light, ok & (rp.W > 0.0))
-            _, p_pc, _, _, _, _ = self._eval(si_p, bsdf_p, r.y, r.n, r.light, ok & (r.W > 0.0))
-            m_c = _share(r.M * p_cur, dr.select(ok, M_p * p_pc, 0.0))
-            m_p = _share(M_p * p_pp, r.M * p_here)
+            _, p_pp, _, _, _, _ = self.evaluate(si_p, bsdf_p, rp.y, rp.n, rp.light, ok & (rp.W > 0.0))
+            _, p_pc, _, _, _, _ = self.evaluate(si_p, bsdf_p, r.y, r.n, r.light, ok & (r.W > 0.0))
+            m_c = share(r.M * p_cur, dr.select(ok, M_p * p_pc, 0.0))
+            m_p = share(M_p * p_pp, r.M * p_here)
             st.update(r.y, r.n, r.light, p_cur, m_c * p_cur * r.W, sampler.next_float32(), active)
             st.update(rp.y, rp.n, rp.light, p_here, m_p * p_here * rp.W, sampler.next_float32(), ok)
             return st.finalize(mi.Float(1.0), M, active), ok, st.p_hat
@@ -501,13 +446,13 @@ class ReSTIR(Method):
             bsdf_p = si_p.bsdf()
             # only where a sample was selected (W = 0 otherwise, whatever Z)
             sel = ok & (st.p_hat > 0.0) & (st.w_sum > 0.0)
-            _, p_prev, _, _, _, _ = self._eval(si_p, bsdf_p, st.y, st.n, st.light, sel)
+            _, p_prev, _, _, _, _ = self.evaluate(si_p, bsdf_p, st.y, st.n, st.light, sel)
             Z += dr.select(sel & (p_prev > 0.0), M_p, 0.0)
         return st.finalize(Z, M, active), ok, st.p_hat
 
     # ------------------------------ Stage 3: spatial ------------------------------
 
-    def _neighbour(self, smp, x0, y0, R: float, W_: int, H_: int):
+    def neighbour(self, smp, x0, y0, R: float, W_: int, H_: int):
         """Next neighbour of the sequence ``smp``: a pixel uniform in the disk
         of radius ``R`` around (x0, y0), rounded; (index, in-bounds mask).
         The pixel itself does not count as a neighbour."""
@@ -523,7 +468,7 @@ class ReSTIR(Method):
         """Merge neighbours' reservoirs (read from the temporal output ``r``).
 
         Two symbolic loops over a per-pixel neighbour count ``k``. With
-        ``bias=pairwise`` see :meth:`_spatial_pairwise`. Otherwise the first
+        ``bias=pairwise`` see :func:`slc.methods.restir.pairwise.spatial_pairwise`. Otherwise the first
         resamples and records the accepted neighbours in a bit mask, the
         second (``bias=basic``) replays the same neighbour sequence up to
         the last accepted one and sums Z over the accepted neighbours whose
@@ -533,7 +478,7 @@ class ReSTIR(Method):
         bsdf = si.bsdf()
         W_, H_ = gb.width, gb.height
         R = max(self.radius * H_ / 1080.0, 2.0)
-        x0, y0 = self._xy(n, W_)
+        x0, y0 = self.pixel_xy(n, W_)
 
         # ---------------- Per-pixel neighbour count ----------------
         # spatial everywhere; max(spatial, boost) where temporal history was
@@ -543,11 +488,11 @@ class ReSTIR(Method):
             k = dr.select(reused, k, self.boost)
         k = dr.select(active, k, 0)
         if self.bias == "pairwise":
-            return self._spatial_pairwise(gb, r, p_cur, k, R, seed)
+            return spatial_pairwise(self, gb, r, p_cur, k, R, seed)
 
         # ---------------- Pass 1: resampling self + neighbours ----------------
         sel = rng(n, seed, stream=14)
-        st = _Stream(n)
+        st = Stream(n)
         st.update(r.y, r.n, r.light, p_cur, p_cur * r.W * r.M, sel.next_float32(), active)
         M = mi.Float(r.M)
         state = (mi.UInt32(0), rng(n, seed, stream=13), sel, st.y, st.n, st.light, st.p_hat, st.w_sum,
@@ -555,9 +500,9 @@ class ReSTIR(Method):
 
         def body(i, smp, sel, y, nrm, light, p_hat, w_sum, M, used):
             st.y, st.n, st.light, st.p_hat, st.w_sum = y, nrm, light, p_hat, w_sum
-            q, ok, rq = self._accepted(smp, gb, r, R)
+            q, ok, rq = self.accepted_neighbour(smp, gb, r, R)
             # the target is only needed for a non-zero resampling weight; M counts regardless
-            _, p_here, _, _, _, _ = self._eval(si, bsdf, rq.y, rq.n, rq.light, ok & (rq.W > 0.0))
+            _, p_here, _, _, _, _ = self.evaluate(si, bsdf, rq.y, rq.n, rq.light, ok & (rq.W > 0.0))
             st.update(rq.y, rq.n, rq.light, p_here, p_here * rq.W * rq.M, sel.next_float32(), ok)
             M = M + dr.select(ok, rq.M, 0.0)
             used = used | dr.select(ok, mi.UInt32(1) << i, 0)
@@ -577,98 +522,31 @@ class ReSTIR(Method):
             y_s, n_s, l_s = mi.Point3f(st.y), mi.Vector3f(st.n), mi.UInt32(st.light)
 
             def body_z(i, smp, Z):
-                q, _ = self._neighbour(smp, x0, y0, R, W_, H_)
+                q, _ = self.neighbour(smp, x0, y0, R, W_, H_)
                 ok = ((used >> i) & 1) != 0
                 Mq = dr.gather(mi.Float, r.M, q, ok)
                 si_q = dr.gather(mi.SurfaceInteraction3f, si, q, ok)
-                _, p_q, _, _, _, _ = self._eval(si_q, si_q.bsdf(), y_s, n_s, l_s, ok)
+                _, p_q, _, _, _, _ = self.evaluate(si_q, si_q.bsdf(), y_s, n_s, l_s, ok)
                 return i + 1, smp, Z + dr.select(ok & (p_q > 0.0), Mq, 0.0)
 
             _, _, Z = dr.while_loop(state=(mi.UInt32(0), rng(n, seed, stream=13), Z),
                                     cond=lambda i, *_: i < k2, body=body_z, labels=("i", "smp", "Z"))
         return st.finalize(Z, M, active), st.p_hat
 
-    def _accepted(self, smp, gb, r: Reservoir, R: float):
-        """Next neighbour of the sequence ``smp`` (see :meth:`_neighbour`) and
+    def accepted_neighbour(self, smp, gb, r: Reservoir, R: float):
+        """Next neighbour of the sequence ``smp`` (see :meth:`neighbour`) and
         whether it is reused: valid, similar depth and normal, M > 0; (index,
         mask, its reservoir)."""
         W_, H_ = gb.width, gb.height
         n0 = mi.Vector3f(gb.si.sh_frame.n)
-        q, ok = self._neighbour(smp, *self._xy(gb.size, W_), R, W_, H_)
+        q, ok = self.neighbour(smp, *self.pixel_xy(gb.size, W_), R, W_, H_)
         ok &= dr.gather(mi.Bool, gb.valid, q, ok)
         ok &= self._similar(n0, dr.gather(mi.Vector3f, n0, q, ok), gb.depth, dr.gather(mi.Float, gb.depth, q, ok))
         rq = dr.gather(Reservoir, r, q, ok)
         return q, ok & (rq.M > 0.0), rq
 
-    def _spatial_pairwise(self, gb, r: Reservoir, p_cur, k, R: float, seed: int):
-        """Spatial reuse with pairwise MIS (Bitterli 2022, Lin et al. 2022),
-        M-weighted: the current (canonical) reservoir c and each of the K
-        accepted neighbours i form a pair that holds the share
-        f_i = (M_i + M_c / K) / (M_c + sum_j M_j) of the total M; within the
-        pair, the balance heuristic of M_i p_i and (M_c / K) p_c:
-
-            m_i(y) = f_i M_i p_i(y) / (M_i p_i(y) + M_c / K p_c(y)),
-            m_c(y) = sum_i f_i (M_c / K) p_c(y) / (M_i p_i(y) + M_c / K p_c(y)),
-
-        which sum to 1 wherever p_c(y) > 0 (m_c = 1 without neighbours).
-        Resampling weights w = m(y) p_c(y) W, W = sum w / p_c(y_selected).
-        A neighbour's sample that its own target rates low gets a small
-        weight even where the current target is large; with the 1/Z weights
-        of ``basic`` it is w = p_c(y) W M, unbounded as p_c / p_i grows.
-
-        Pass 1 finds the accepted neighbours (bit mask, count K, sum of M);
-        pass 2 replays them and resamples, three target evaluations per
-        neighbour: p_c(y_i), p_i(y_i) and p_i(y_c)."""
-        n = gb.size
-        si, active = gb.si, gb.valid
-        bsdf = si.bsdf()
-
-        # ---------------- Pass 1: accepted neighbours ----------------
-        def body(i, smp, K, M_n, used):
-            _, ok, rq = self._accepted(smp, gb, r, R)
-            used = used | dr.select(ok, mi.UInt32(1) << i, 0)
-            return i + 1, smp, K + dr.select(ok, 1.0, 0.0), M_n + dr.select(ok, rq.M, 0.0), used
-
-        _, _, K, M_n, used = dr.while_loop(
-            state=(mi.UInt32(0), rng(n, seed, stream=13), mi.Float(0.0), mi.Float(0.0), mi.UInt32(0)),
-            cond=lambda i, *_: i < k, body=body, labels=("i", "smp", "K", "M_n", "used"))
-        M = r.M + M_n
-        Mc_K = r.M / dr.select(K > 0.0, K, 1.0)
-        inv_total = dr.select(M > 0.0, dr.rcp(dr.select(M > 0.0, M, 1.0)), 0.0)
-
-        # ---------------- Pass 2: pairwise MIS resampling ----------------
-        st = _Stream(n)
-        k2 = dr.select(active, 32 - dr.lzcnt(used), 0)
-        c_ok = active & (r.W > 0.0)
-
-        def body2(i, smp, sel, y, nrm, light, p_hat, w_sum, m_c):
-            st.y, st.n, st.light, st.p_hat, st.w_sum = y, nrm, light, p_hat, w_sum
-            q, _ = self._neighbour(smp, *self._xy(n, gb.width), R, gb.width, gb.height)
-            ok = ((used >> i) & 1) != 0
-            rq = dr.gather(Reservoir, r, q, ok)
-            si_q = dr.gather(mi.SurfaceInteraction3f, si, q, ok)
-            bsdf_q = si_q.bsdf()
-            has = ok & (rq.W > 0.0)
-            _, p_c_i, _, _, _, _ = self._eval(si, bsdf, rq.y, rq.n, rq.light, has)
-            _, p_i_i, _, _, _, _ = self._eval(si_q, bsdf_q, rq.y, rq.n, rq.light, has)
-            _, p_i_c, _, _, _, _ = self._eval(si_q, bsdf_q, r.y, r.n, r.light, ok & c_ok)
-            f = (rq.M + Mc_K) * inv_total
-            m_i = f * _share(rq.M * p_i_i, Mc_K * p_c_i)
-            st.update(rq.y, rq.n, rq.light, p_c_i, m_i * p_c_i * rq.W, sel.next_float32(), has)
-            m_c = m_c + dr.select(ok, f * _share(Mc_K * p_cur, rq.M * p_i_c), 0.0)
-            return i + 1, smp, sel, st.y, st.n, st.light, st.p_hat, st.w_sum, m_c
-
-        state = (mi.UInt32(0), rng(n, seed, stream=13), rng(n, seed, stream=14), st.y, st.n, st.light,
-                 st.p_hat, st.w_sum, mi.Float(0.0))
-        out = dr.while_loop(state=state, cond=lambda i, *_: i < k2, body=body2,
-                            labels=("i", "smp", "sel", "y", "n", "light", "p_hat", "w_sum", "m_c"))
-        _, _, sel, st.y, st.n, st.light, st.p_hat, st.w_sum, m_c = out
-        m_c = dr.select(K > 0.0, m_c, 1.0)
-        st.update(r.y, r.n, r.light, p_cur, m_c * p_cur * r.W, sel.next_float32(), c_ok)
-        return st.finalize(mi.Float(1.0), M, active), st.p_hat
-
     @staticmethod
-    def _xy(n: int, width: int):
+    def pixel_xy(n: int, width: int):
         """Pixel coordinates (x, y) of the ``n`` pixels of a ``width``-wide image."""
         idx = dr.arange(mi.UInt32, n)
         return mi.Int32(idx % width), mi.Int32(idx // width)
@@ -678,7 +556,7 @@ class ReSTIR(Method):
     def shade(self, gb, r: Reservoir) -> mi.Color3f:
         si, active = gb.si, gb.valid
         ok = active & (r.W > 0.0)
-        c, _, d, dist, kind, _ = self._eval(si, si.bsdf(), r.y, r.n, r.light, ok)
+        c, _, d, dist, kind, _ = self.evaluate(si, si.bsdf(), r.y, r.n, r.light, ok)
         vis = self._visible(si, d, dist, kind, ok)
         return dr.select(vis, c * r.W, 0.0)
 
