@@ -51,6 +51,7 @@ SCENES = {
     "cornell": "closed box, one square ceiling light, a glossy and a diffuse block",
     "atrium": "large court, three small round lamps and one large light, colonnades",
     "village": "glossy slate and iron under a 10 m moon far away and 8 cm torches close by",
+    "spheres": "dark room, four spherical lights (radii 0.03-1 m, radiances 1-1e4) over glossy plates",
 }
 
 # the VPL methods with 1024 VPLs and depth-5 hierarchies (the defaults, 4096 VPLs and depth 7,
