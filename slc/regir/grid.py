@@ -106,6 +106,22 @@ class HashGrid:
         dr.eval(self.used)
         return slot, new
 
+    def find(self, key: mi.UInt64, active: mi.Bool) -> mi.UInt32:
+        """Slot of every active key already in the table (the first of its bucket's slots that
+        holds it, as :meth:`insert` finds it), ``INVALID`` where it is not; places nothing and
+        marks nothing used."""
+        home = (key_hash(key)[0] & (self.buckets - 1)) * BUCKET
+        found = dr.full(mi.UInt32, INVALID, dr.width(key))
+
+        def body(r, found):
+            s = home + r
+            hit = mi.Bool(active) & (found == INVALID) & (dr.gather(mi.UInt64, self.keys, s, active) == key)
+            return r + 1, dr.select(hit, s, found)
+
+        _, found = dr.while_loop((mi.UInt32(0), found), lambda r, f: mi.Bool(active) & (r < BUCKET) & (f == INVALID),
+                                 body, labels=("r", "found"))
+        return found
+
     def touched(self, frame: mi.UInt32) -> mi.UInt32:
         """Slots used in ``frame``, in slot order."""
         return dr.compress((self.keys != EMPTY) & (self.used == frame))
