@@ -106,10 +106,10 @@ class HashGrid:
         dr.eval(self.used)
         return slot, new
 
-    def find(self, key: mi.UInt64, active: mi.Bool) -> mi.UInt32:
+    def find(self, key: mi.UInt64, active: mi.Bool, frame: mi.UInt32 | None = None) -> mi.UInt32:
         """Slot of every active key already in the table (the first of its bucket's slots that
-        holds it, as :meth:`insert` finds it), ``INVALID`` where it is not; places nothing and
-        marks nothing used."""
+        holds it, as :meth:`insert` finds it), ``INVALID`` where it is not; places nothing, and
+        marks the slots found used in ``frame`` when one is given."""
         home = (key_hash(key)[0] & (self.buckets - 1)) * BUCKET
         found = dr.full(mi.UInt32, INVALID, dr.width(key))
 
@@ -120,6 +120,8 @@ class HashGrid:
 
         _, found = dr.while_loop((mi.UInt32(0), found), lambda r, f: mi.Bool(active) & (r < BUCKET) & (f == INVALID),
                                  body, labels=("r", "found"))
+        if frame is not None:
+            dr.scatter(self.used, frame, found, found != INVALID)
         return found
 
     def touched(self, frame: mi.UInt32) -> mi.UInt32:

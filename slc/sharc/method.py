@@ -119,7 +119,7 @@ class SHaRC(Method):
             resolved = self.resolve(frame)
             st.outputs(self.rad, self.count)
         with timer.stage("shade") as st:
-            res = [self.shade(gb, ctx.frame, v) for v, gb in enumerate(gbuffers)]
+            res = [self.shade(gb, ctx.frame, v, frame) for v, gb in enumerate(gbuffers)]
             outs = [r[0] for r in res]
             st.outputs(*outs)
         self._hit = [(r[1], dr.width(r[1])) for r in res]
@@ -212,7 +212,7 @@ class SHaRC(Method):
 
     # ------------------------------------------------------------------ query
 
-    def shade(self, gb, frame: int, v: int):
+    def shade(self, gb, frame: int, v: int, frame_id):
         """One viewer's light: ``spp`` query paths (the cache at the first secondary hit, else one
         more path segment) and, with ``output=full``, direct light; also the mask of the query
         paths that read the cache (of the last path)."""
@@ -228,7 +228,7 @@ class SHaRC(Method):
             ok = valid & (bs.pdf > 0.0)
             si = sc.ray_intersect(si0.spawn_ray(si0.to_world(bs.wo)), ok)
             ok &= si.is_valid()
-            slot = self.grid.find(cell_key(si.p, si.sh_frame.n, h), ok & (si.t > h))
+            slot = self.grid.find(cell_key(si.p, si.sh_frame.n, h), ok & (si.t > h), frame_id)
             cached = (slot != INVALID) & (dr.gather(mi.Float, self.count, slot, slot != INVALID) > 0.0)
             Lc = dr.gather(mi.Color3f, self.rad, slot, cached)
 
