@@ -46,17 +46,17 @@ def test_mean_close_to_indirect_reference(cornell):
 
 
 def test_memory_bounded_and_deterministic(cornell):
-    """Memory is the table's capacity (48 bytes per cell), whatever the frames or viewers; same
+    """Memory is the table's capacity (64 bytes per cell), whatever the frames or viewers; same
     seed, same images; another seed, another image."""
     sc, gbs = cornell
     m = methods.create("sharc:cells=4096", sc, seed=7)
     cap = m.grid.capacity
     assert cap == 4096
     imgs = [np.array(m.render(FrameContext(f), gbs, NullTimer())[0]) for f in range(3)]
-    assert m.memory_bytes() == 48 * cap
+    assert m.memory_bytes() == 64 * cap
     four = gbuffers_for(sc, views.independent(sc, 4), 0, W, H)
     m.render(FrameContext(3), four, NullTimer())
-    assert m.memory_bytes() == 48 * cap and m.stats()["cell_load"] < 1.0
+    assert m.memory_bytes() == 64 * cap and m.stats()["cell_load"] < 1.0
     again = methods.create("sharc:cells=4096", sc, seed=7)
     imgs2 = [np.array(again.render(FrameContext(f), gbs, NullTimer())[0]) for f in range(3)]
     assert all(np.array_equal(a, b) for a, b in zip(imgs, imgs2))

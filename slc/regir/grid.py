@@ -45,6 +45,23 @@ def key_hash(key: mi.UInt64) -> tuple[mi.UInt32, mi.UInt32]:
     return mi.sample_tea_32(mi.UInt32(key & 0xFFFFFFFF), mi.UInt32(key >> 32), 4)
 
 
+def find_slot(keys: mi.UInt64, buckets: int, key: mi.UInt64, active: mi.Bool) -> mi.UInt32:
+    """Slot of every active ``key`` in the table ``keys`` of ``buckets`` buckets: the first of
+    its bucket's slots that holds it (as :meth:`HashGrid.insert` finds it), ``INVALID`` where none
+    does. Places nothing; a function of its arguments alone (usable inside a frozen kernel)."""
+    home = (key_hash(key)[0] & (buckets - 1)) * BUCKET
+    found = dr.full(mi.UInt32, INVALID, dr.width(key))
+
+    def body(r, found):
+        s = home + r
+        hit = mi.Bool(active) & (found == INVALID) & (dr.gather(mi.UInt64, keys, s, active) == key)
+        return r + 1, dr.select(hit, s, found)
+
+    _, found = dr.while_loop((mi.UInt32(0), found), lambda r, f: mi.Bool(active) & (r < BUCKET) & (f == INVALID),
+                             body, labels=("r", "found"))
+    return found
+
+
 class HashGrid:
     """The table: ``keys`` (UInt64 per slot), ``used`` (last frame a slot was used) and ``born``
     (frame its key was placed), ``capacity`` slots (a power of two, at least one bucket)."""
@@ -107,22 +124,16 @@ class HashGrid:
         return slot, new
 
     def find(self, key: mi.UInt64, active: mi.Bool, frame: mi.UInt32 | None = None) -> mi.UInt32:
-        """Slot of every active key already in the table (the first of its bucket's slots that
-        holds it, as :meth:`insert` finds it), ``INVALID`` where it is not; places nothing, and
-        marks the slots found used in ``frame`` when one is given."""
-        home = (key_hash(key)[0] & (self.buckets - 1)) * BUCKET
-        found = dr.full(mi.UInt32, INVALID, dr.width(key))
-
-        def body(r, found):
-            s = home + r
-            hit = mi.Bool(active) & (found == INVALID) & (dr.gather(mi.UInt64, self.keys, s, active) == key)
-            return r + 1, dr.select(hit, s, found)
-
-        _, found = dr.while_loop((mi.UInt32(0), found), lambda r, f: mi.Bool(active) & (r < BUCKET) & (f == INVALID),
-                                 body, labels=("r", "found"))
+        """Slot of every active key already in the table (:func:`find_slot`); marks the slots
+        found used in ``frame`` when one is given."""
+        found = find_slot(self.keys, self.buckets, key, active)
         if frame is not None:
-            dr.scatter(self.used, frame, found, found != INVALID)
+            self.mark_used(found, frame)
         return found
+
+    def mark_used(self, slot: mi.UInt32, frame: mi.UInt32) -> None:
+        """Mark the slots (``INVALID`` lanes skipped) used in ``frame``."""
+        dr.scatter(self.used, frame, slot, slot != INVALID)
 
     def touched(self, frame: mi.UInt32) -> mi.UInt32:
         """Slots used in ``frame``, in slot order."""
