@@ -152,7 +152,7 @@ class SHaRC(Method):
 
     Grid: a cell is ``floor(p / cell)`` and the octant of the shading normal, in a hash table of
     ``cells`` slots (:mod:`slc.regir.grid`, shared with ``regir``); the cell size is fixed per scene
-    (default: 1/32 of the bounding-box diagonal of its geometry), so every viewer maps a point to
+    (default: 1/12 of the bounding-box diagonal of its geometry), so every viewer maps a point to
     the same cell.
 
     Update (stage ``update``, once per frame for all viewers): in every ``block`` x ``block`` pixel
@@ -166,40 +166,45 @@ class SHaRC(Method):
               \qquad w_i = \frac{f(x_i)\cos\theta_i}{p(\omega_i)},
 
     an estimate of the radiance :math:`x_k` sends towards :math:`x_{k-1}` after 0 to :math:`m`
-    reflections (sums and counts by ``scatter_reduce(add)``: concurrent updates of one cell are
-    not lost). Emitters hit by bounce rays are not counted (next-event estimation counts them).
+    reflections. Sums (fixed point, 2^20 per unit, 64-bit integers: SHaRC's premultiplied
+    integer sums) and counts are added with ``scatter_reduce(add)``: concurrent updates of one cell
+    are not lost, and integer sums do not depend on their order (deterministic). Emitters hit by
+    bounce rays are not counted (next-event estimation counts them).
 
     Resolve (stage ``resolve``, once per frame): a cell that received :math:`n > 0` samples of sum
-    :math:`S` this frame blends :math:`R \leftarrow R + (S/n - R)/F` with
-    :math:`F = \min(F + 1, \text{frames})` (a running mean over frames, an exponential average
-    once the cap is reached); a new cell starts from :math:`F = 0`. Cells that received no sample
-    for ``evict`` frames are freed.
+    :math:`S` this frame becomes :math:`R \leftarrow (R N k + S) / (N k + n)`,
+    :math:`N \leftarrow N k + n`, with :math:`k = 1` while its frame count :math:`F` (frames with
+    samples, capped at ``frames``) is below the cap and :math:`k = 1 - 1/\text{frames}` once it is
+    reached: a mean weighted by samples that becomes an exponential average over about ``frames``
+    frames. A new cell starts from :math:`N = F = 0`. Cells neither updated nor read by a query for
+    ``evict`` frames are freed.
 
     Query (stage ``shade``, per viewer), ``spp`` paths per pixel: one BSDF sample from the G-buffer
     point :math:`x_0` to :math:`x_1`; where the segment is longer than a cell and the cell of
-    :math:`x_1` holds a value (:math:`F > 0`), :math:`L \approx w_0 R(x_1)`; elsewhere the path goes
-    on as ``pt``'s does: :math:`L \approx w_0 (D_1 + \text{bounces} - 1 \text{ more bounces with
-    next-event estimation})`. ``output=full`` adds ``spp`` light samples of direct light at
-    :math:`x_0`. Biased (the cell's mean stands for every point of the cell, the blend for the
-    frames), consistent as the cell size goes to 0.
+    :math:`x_1` holds a value (:math:`F > 0`), :math:`L \approx w_0 R(x_1)`; the other paths are
+    gathered and go on as ``pt``'s do: :math:`L \approx w_0 (D_1 + \text{bounces} - 1 \text{
+    more bounces with next-event estimation})`. ``output=full`` adds ``spp`` light samples of
+    direct light at :math:`x_0`. Biased (the cell's mean stands for every point of the cell, the
+    average for the frames), consistent as the cell size goes to 0.
 
-    Memory (bounded): the table (16 bytes per cell) and 32 bytes of radiance, frame count and
-    this frame's sums per cell.
+    Memory (bounded): the table (16 bytes per cell) and 48 bytes per cell for the resolved
+    radiance, frame count and sample weight and the frame's sums and counts.
     """
     name = "sharc"
     output = "full"
     params = (
-        Param("cell", None, "cell size in scene units (default: 1/32 of the scene geometry's bounding-box "
-                            "diagonal)", lo=1e-4, kind=float),
-        Param("block", 5, "one update path per block x block pixels of each viewer, drawn anew each frame "
-                          "(SHaRC's 5: 4% of the pixels)", lo=1, hi=64),
+        Param("cell", None, "cell size in scene units (default: 1/12 of the scene geometry's bounding-box "
+                            "diagonal; measured on cornell)", lo=1e-4, kind=float),
+        Param("block", 8, "one update path per block x block pixels of each viewer, drawn anew each frame "
+                          "(SHaRC recommends 5: 4% of the pixels; 8 measured better at equal time)", lo=1, hi=64),
         Param("vertices", 4, "vertices of an update path, the G-buffer point included (SHaRC's propagation "
                              "depth 4)", lo=1, hi=8),
         Param("bounces", 2, "indirect bounces (as pt; the reference's)", lo=1, hi=8),
         Param("frames", 32, "cap of a cell's accumulated frame count (SHaRC allows 1-64)", lo=1, hi=1 << 16),
         Param("evict", 8, "frames a cell may go without update samples before it is freed", lo=0),
         Param("cells", 1 << 16, "hash-table capacity in cells (rounded up to a power of two)", lo=32),
-        Param("spp", 1, "query paths (and direct light samples) per pixel", lo=1, hi=64),
+        Param("spp", 10, "query paths (and direct light samples) per pixel (10 measured at equal time with pt10)",
+              lo=1, hi=256),
         Param("output", "full", "direct + indirect, or indirect light only", choices=("full", "indirect")),
         Param("freeze", True, "trace the update and query kernels once and replay them (dr.freeze)"),
     )
@@ -207,7 +212,7 @@ class SHaRC(Method):
     def __init__(self, scene, **kw):
         super().__init__(scene, **kw)
         if self.cell is None:
-            self.cell = float(np.linalg.norm(np.asarray(scene.bbox_max) - np.asarray(scene.bbox_min))) / 32.0
+            self.cell = float(np.linalg.norm(np.asarray(scene.bbox_max) - np.asarray(scene.bbox_min))) / 12.0
             self.cell = max(self.cell, 1e-4)
         self.label = None if self.output == "full" else "sharc:output=indirect"
         self._stats, self._hit = {}, None
@@ -362,4 +367,5 @@ class SHaRC(Method):
 
 
 register("sharc", SHaRC, help="SHaRC: a world-space radiance hash grid for indirect light shared by all viewers "
-                              "(4% update paths of 4 vertices, 32-frame blend, eviction after 8 frames)")
+                              "(one update path of 4 vertices per 8x8 pixels, 32-frame blend, eviction after 8 unused "
+                              "frames, 10 query paths per pixel)")
