@@ -26,14 +26,16 @@ def cornell():
 
 
 def test_mean_close_to_indirect_reference(cornell):
-    """With a static camera, the mean of the images of frames 8-15 (the cache filled by 4% of the
-    pixels per frame) of two seeds is within 15% of the 256-path indirect reference's mean (2
-    bounces; measured 7.4% below; per seed 0-3: 3.1%, 11.6%, 1.2% and 0.4% below, one frame's
-    image alone +-20%); part of the query paths read the cache."""
+    """With a static camera, the mean of the images of frames 8-15 of four seeds is within 15% of
+    the 256-path indirect reference's mean (2 bounces; measured 2.8% below; per seed 0-3: 1.1%
+    above, 10.5% below, 4.0% above, 6.1% below: a rare bright update sample stays in its cell's
+    mean for many frames). One update path per 4x4 pixels: at 64x36 the default 8x8 blocks give
+    40 update paths per frame, and the seeds' means then spread from 10% below to 42% above.
+    Part of the query paths read the cache."""
     sc, gbs = cornell
     imgs = []
-    for seed in (0, 1):
-        m = methods.create("sharc:output=indirect", sc, seed=seed)
+    for seed in range(4):
+        m = methods.create("sharc:output=indirect,block=4", sc, seed=seed)
         for f in range(16):
             out = m.render(FrameContext(f), gbs, NullTimer())
             if f >= 8:
