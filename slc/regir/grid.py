@@ -62,6 +62,13 @@ def find_slot(keys: mi.UInt64, buckets: int, key: mi.UInt64, active: mi.Bool) ->
     return found
 
 
+def _two_or_more(idx: mi.UInt32) -> mi.UInt32:
+    """``idx`` (an evaluated index list), its one lane twice if it has one: a width-1 array is a
+    scalar to Dr.Jit, whose kernels would be new ones; the copy (made on the host: no kernel) gives
+    the kernels of any other width and the same result (both copies write the same values)."""
+    return mi.UInt32([int(idx[0])] * 2) if dr.width(idx) == 1 else idx
+
+
 class HashGrid:
     """The table: ``keys`` (UInt64 per slot), ``used`` (last frame a slot was used) and ``born``
     (frame its key was placed), ``capacity`` slots (a power of two, at least one bucket)."""
@@ -102,7 +109,7 @@ class HashGrid:
         slot = dr.full(mi.UInt32, INVALID, n)
         new = dr.zeros(mi.Bool, n)
         home = (key_hash(key)[0] & (self.buckets - 1)) * BUCKET
-        lanes = dr.compress(mi.Bool(active))
+        lanes = _two_or_more(dr.compress(mi.Bool(active)))
         requests = dr.width(lanes)
         for r in range(BUCKET):
             if dr.width(lanes) == 0:
@@ -117,7 +124,8 @@ class HashGrid:
             dr.scatter(self.born, frame, s, found & free)
             dr.scatter(new, True, lanes, found & free)
             dr.eval(slot, self.born, new)
-            lanes = dr.gather(mi.UInt32, lanes, dr.compress(~found))
+            lanes = dr.gather(mi.UInt32, lanes, _two_or_more(dr.compress(~found)))
+            dr.eval(lanes)
         self.overflow = dr.width(lanes) / max(requests, 1)
         dr.scatter(self.used, frame, slot, slot != INVALID)
         dr.eval(self.used)
