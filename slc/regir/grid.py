@@ -12,6 +12,9 @@ slot ``r`` of its bucket; a slot holding the key places it, an empty slot is cla
 ``scatter_reduce(min)`` (the smallest contending key wins, the others go on to the next slot). A
 key that finds no slot in its bucket gets ``INVALID`` (an overflow; the caller falls back).
 
+A lookup (:func:`find_slot`, :meth:`HashGrid.find`) returns the first slot of the key's bucket
+that holds it, as insertion finds it, and places nothing.
+
 Eviction frees the cells not used for ``evict_after`` frames. A freed slot can be claimed again
 by a key stored further along the bucket; the key then has two cells, the older of which is not
 used and is freed in turn: every cell is still a cell of its own key, only its history is lost.
