@@ -201,7 +201,7 @@ class SHaRC(Method):
                              "depth 4)", lo=1, hi=8),
         Param("bounces", 2, "indirect bounces (as pt; the reference's)", lo=1, hi=8),
         Param("frames", 32, "cap of a cell's accumulated frame count (SHaRC allows 1-64)", lo=1, hi=1 << 16),
-        Param("evict", 8, "frames a cell may go without update samples before it is freed", lo=0),
+        Param("evict", 8, "frames a cell may go neither updated nor read before it is freed", lo=0),
         Param("cells", 1 << 16, "hash-table capacity in cells (rounded up to a power of two)", lo=32),
         Param("spp", 10, "query paths (and direct light samples) per pixel (10 measured at equal time with pt10)",
               lo=1, hi=256),
