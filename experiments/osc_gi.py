@@ -8,7 +8,7 @@ osc-gi's time: its time fitted as a + b spp, FLIP interpolated log-log in spp); 
 alone (osc-gi, pt, crc); ``ABLATIONS``; ``--retime N``: osc-gi and PT timed again in turn, one
 equal-time ratio per pass. Multi-viewer: 1, 4, 16 viewers at about 75% overlap, repetitions in
 turn, the ratio to one viewer per repetition. Memory against resolution, extrapolated to 1080p.
-``--laps``: the update's sub-stage clock (:class:`slc.oscgi.laps.Laps`). Presets: cornell and
+``--laps``: the update's sub-stage clock (:class:`slc.methods.oscgi.laps.Laps`). Presets: cornell and
 atrium at 160x90, 24 frames (``--quick``: cornell, 64x36, 8 frames).
 
     python experiments/osc_gi.py --quick
@@ -121,9 +121,9 @@ def _against_pt(srows) -> None:
 
 def _retime(s, v, cfg, srows, opts, bar=None) -> None:
     """The rows ``RETIMED`` and the full-light PT rows timed again in turn, ``opts.retime`` passes
-    (:func:`slc.experiment.runs_in_turn`): osc-gi / PT at equal time from each pass's own times (a
+    (:func:`slc.run.experiment.runs_in_turn`): osc-gi / PT at equal time from each pass's own times (a
     load that changes during the run weighs on both). Writes ``retimed_ms``, ``flip_vs_pt_retimed``."""
-    from slc import experiment
+    from slc.run import experiment
     pts = [r for r in srows if r["group"] == "full" and r["family"] == "pt"]
     rows = [r for r in srows if r["group"] == "full" and r["setting"] in RETIMED]
     if not pts or not rows:
@@ -151,9 +151,10 @@ def _retime(s, v, cfg, srows, opts, bar=None) -> None:
 
 
 def _row(s, spec, group, cfg, bar, seed):
-    """One single-viewer sequence (:func:`slc.pipeline.run_sequence`) -> (row, result, method)."""
-    from slc import methods, views
-    from slc.pipeline import run_sequence
+    """One single-viewer sequence (:func:`slc.run.pipeline.run_sequence`) -> (row, result, method)."""
+    from slc import methods
+    from slc.scene import views
+    from slc.run.pipeline import run_sequence
     m = methods.create(spec, s, seed=seed)
     bar.set_postfix_str(f"{s.name}/{spec}")
     res = run_sequence(s, m, views.single(s), cfg, progress=bar)
@@ -174,7 +175,7 @@ def _reuse_plot(path, hist, title):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from slc import io
+    from slc.core import io
     fig, ax = plt.subplots(figsize=(5, 3.2))
     b = hist["bins"]
     labels = [str(a) if z == a + 1 else (f"{a}-{z - 1}" if z < 1 << 20 else f">={a}") for a, z in zip(b, b[1:])]
@@ -189,8 +190,10 @@ def _reuse_plot(path, hist, title):
 def _multi_viewer(s, preset, cfg, seed) -> list:
     """1, 4, 16 viewers (and the ablations) in turn, ``multi_repeats`` times in alternating order;
     the ratio to one viewer within each repetition, its median reported with its range."""
-    from slc import experiment, methods, views
-    from slc.pipeline import run_sequence
+    from slc.run import experiment
+    from slc import methods
+    from slc.scene import views
+    from slc.run.pipeline import run_sequence
     v = views.single(s)
     mw, mh = preset["multi_res"]
     mf, mw_up = preset["multi_frames"], preset["multi_warmup"]
@@ -240,8 +243,10 @@ def _memory_scaling(s, resolutions, seed) -> list:
     fitted linearly in the pixel count and evaluated at 1920 x 1080 (the slides: 300-700 MB)."""
     import numpy as np
 
-    from slc import methods, views
-    from slc.pipeline import RunConfig, run_sequence
+    from slc import methods
+
+    from slc.scene import views
+    from slc.run.pipeline import RunConfig, run_sequence
     out = []
     for w, h in resolutions:
         m = methods.create("osc-gi", s, seed=seed)
@@ -260,8 +265,10 @@ def _memory_scaling(s, resolutions, seed) -> list:
 
 def _scene(s, preset, cfg, specs, opts, out, bar, res) -> None:
     """Every part of the experiment on one scene; rows appended to ``res`` (a dict of lists)."""
-    from slc import experiment, methods, views
-    from slc.pipeline import run_sequence
+    from slc.run import experiment
+    from slc import methods
+    from slc.scene import views
+    from slc.run.pipeline import run_sequence
     W, H = cfg.width, cfg.height
     srows = []
     for group, group_specs in specs.items():
@@ -302,8 +309,10 @@ def _scene(s, preset, cfg, specs, opts, out, bar, res) -> None:
 def run(opts) -> dict:
     from tqdm import tqdm
 
-    from slc import experiment, methods
-    from slc.pipeline import RunConfig
+    from slc.run import experiment
+
+    from slc import methods
+    from slc.run.pipeline import RunConfig
 
     preset = experiment.apply_common(opts, QUICK if opts.quick else FULL)
     if getattr(opts, "warmup", None) is not None:
@@ -369,7 +378,7 @@ def _stage_line(r, label) -> str:
 
 
 def _report(res, names, cfg) -> str:
-    from slc import experiment
+    from slc.run import experiment
     rows, multi, memory = res["rows"], res["multi"], res["memory"]
     md = (f"# {NAME}\n\n{cfg.width}x{cfg.height}, {cfg.frames} frames ({cfg.warmup} warm-up), one moving viewer; "
           f"quality on frames {cfg.evaluated()} against the reference of each method's output (full: {cfg.ref_spp}-"
@@ -443,5 +452,5 @@ def _targets(res, name) -> str:
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

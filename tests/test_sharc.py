@@ -1,4 +1,4 @@
-"""Tests of the world-space radiance hash grid (slc.sharc): image mean close to the path-traced
+"""Tests of the world-space radiance hash grid (slc.methods.sharc): image mean close to the path-traced
 indirect reference; deterministic; memory bounded; no kernel built after warm-up; check mode
 clean; bad settings stop with one line."""
 import json
@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 
 import slc  # noqa: F401  (selects the Mitsuba variant)
-from slc import methods, scenes, views
+from slc import methods
+from slc.scene import scenes, views
 from slc.methods import FrameContext, MethodError
-from slc.pipeline import gbuffers_for
-from slc.references import image_of, reference_for
-from slc.timing import NullTimer
+from slc.run.pipeline import gbuffers_for
+from slc.reference.references import image_of, reference_for
+from slc.core.timing import NullTimer
 
 W, H = 64, 36
 
@@ -77,7 +78,7 @@ def test_cli_check_mode_kernels_and_bad_setting(tmp_path):
     """A fresh process (``slc --check render``, two moving viewers) finds no NaN/Inf or negative
     value and builds no kernel after the warm-up frames; a bad setting is one line, exit 2."""
     root = Path(__file__).resolve().parents[1]
-    run = lambda *a: subprocess.run([sys.executable, "-m", "slc.cli", *a], capture_output=True, text=True,  # noqa: E731
+    run = lambda *a: subprocess.run([sys.executable, "-m", "slc.run.cli", *a], capture_output=True, text=True,  # noqa: E731
                                     cwd=root, timeout=600)
     ok = run("--check", "render", "--scene", "cornell", "--method", "sharc", "--viewers", "2", "--rig", "random",
              "--res", "48x27", "--frames", "6", "--warmup", "3", "--out", str(tmp_path))

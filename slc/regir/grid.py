@@ -24,7 +24,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ..keys import INVALID
+from slc.core.keys import INVALID
 
 BUCKET = 32                      # slots per bucket (SHaRC's HASH_GRID_HASH_MAP_BUCKET_SIZE)
 EMPTY = 0xFFFFFFFFFFFFFFFF       # key of a free slot

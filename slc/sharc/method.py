@@ -1,5 +1,5 @@
 """``sharc``: a world-space radiance hash grid for indirect light shared by every viewer (SHaRC, as
-in NVIDIA's RTXGI, on the hash grid of :mod:`slc.regir.grid` with a fixed cell size). See
+in NVIDIA's RTXGI, on the hash grid of :mod:`slc.methods.regir.grid` with a fixed cell size). See
 :class:`SHaRC` and ``docs/world-space.md``."""
 from __future__ import annotations
 
@@ -9,13 +9,13 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..baselines.pt import _stream_state
-from ..freeze import FrozenFunction
-from ..keys import INVALID
-from ..lights import direct_sample, rng
-from ..methods import Method, MethodError, Param, register
-from ..references import indirect_paths
-from ..regir.grid import HashGrid, cell_key, find_slot
+from slc.methods.pt.method import _stream_state
+from slc.core.freeze import FrozenFunction
+from slc.core.keys import INVALID
+from slc.scene.lights import direct_sample, rng
+from slc.methods import Method, MethodError, Param, register
+from slc.reference.references import indirect_paths
+from slc.methods.regir.grid import HashGrid, cell_key, find_slot
 
 CELL_BYTES = 4 * 5 + 8 * 3 + 4   # resolved radiance (3), frame count, sample weight; this frame's sum (3), count
 RADIANCE_SCALE = float(1 << 20)  # fixed point of the frame's sums (SHaRC: 1e3 in 32 bits; here 64 bits)
@@ -151,7 +151,7 @@ class SHaRC(Method):
     a few paths and read at the first secondary hit of every viewer's paths.
 
     Grid: a cell is ``floor(p / cell)`` and the octant of the shading normal, in a hash table of
-    ``cells`` slots (:mod:`slc.regir.grid`, shared with ``regir``); the cell size is fixed per scene
+    ``cells`` slots (:mod:`slc.methods.regir.grid`, shared with ``regir``); the cell size is fixed per scene
     (default: 1/12 of the bounding-box diagonal of its geometry), so every viewer maps a point to
     the same cell.
 
@@ -275,7 +275,7 @@ class SHaRC(Method):
     def update(self, gb, frame: int, v: int, frame_id) -> tuple:
         """Trace one viewer's update paths and add their vertices' samples to their cells;
         returns the number of paths and the samples."""
-        from ..cones.update import light_inputs
+        from slc.methods.cones.update import light_inputs
         sc = self.scene.mi_scene
         idx = self._update_pixels(gb, frame, v)
         si = dr.gather(mi.SurfaceInteraction3f, gb.si, idx)
@@ -331,7 +331,7 @@ class SHaRC(Method):
         """One viewer's light: the first segments of the query paths (:func:`_query_kernel`), then
         the paths without a cached value, gathered, go on (:func:`_continue_kernel`); the cells
         read stay alive. Also the mask of the query paths that read the cache."""
-        from ..cones.update import light_inputs
+        from slc.methods.cones.update import light_inputs
         sc, seed, spp = self.scene.mi_scene, self.seed_for(frame, v), int(self.spp)
         lights = light_inputs(sc)
         q = self._query_k(sc, lights, gb.si, mi.Bool(gb.valid), self.grid.keys, self.rad, self.count,
