@@ -329,9 +329,9 @@ def run(opts) -> dict:
     names = experiment.load_and_validate(opts.scene or preset["scenes"], [], bool(opts.scene))
     cfg = RunConfig(width=preset["width"], height=preset["height"], frames=preset["frames"], warmup=preset["warmup"],
                     eval_frames=preset["eval_frames"], seed=opts.seed, ref_spp=preset["ref_spp"], measure_overlap=False)
-    specs = {"full": ["osc-gi"] + DIRECT_VARIANTS + [f"pt:spp={n}" for n in preset["pt_spp"]],
+    specs = {"full": ["osc-gi"] + DIRECT_VARIANTS + ["sharc"] + [f"pt:spp={n}" for n in preset["pt_spp"]],
              "indirect": (["osc-gi:output=indirect"]
-                          + [f"pt:spp={n},output=indirect" for n in preset["pt_spp"][:preset["ind_pt"]]] + ["crc"]),
+                          + [f"pt:spp={n},output=indirect" for n in preset["pt_spp"][:preset["ind_pt"]]] + ["crc", "sharc:output=indirect"]),
              "ablation": [] if opts.no_ablations else list(preset["ablations"])}
     specs = {} if opts.only_multi else specs
     for spec in [x for group in specs.values() for x in group]:      # bad specs stop the run before any work
@@ -391,7 +391,7 @@ def _report(res, names, cfg) -> str:
         md += "\n## Multi-viewer\n\n" + experiment.markdown_table(multi, MULTI_COLUMNS) + "\n"
         md += "\nPer stage (wall ms / of which kernel execution):\n\n"
         md += "".join(_stage_line(r, f"{r['scene']} {r['setting']}, {r['viewers']} viewers") for r in multi)
-    st_rows = [r for r in rows if r["family"] in ("osc-gi", "pt") and r["group"] in ("full", "indirect")]
+    st_rows = [r for r in rows if r["family"] in ("osc-gi", "pt", "sharc") and r["group"] in ("full", "indirect")]
     if st_rows:
         md += ("\n## Where the frame time goes (wall ms per stage / of which kernel execution; the rest is host "
                "time: Python tracing of the kernels, launches, syncs)\n\n")

@@ -71,12 +71,17 @@ def sampler(scene: mi.Scene, subset=None):
     return s if s.tabled else None
 
 
+def stream_state(seed: int, stream: int) -> mi.UInt64:
+    """The PCG32 init state of :func:`rng` for (seed, stream), as an opaque array: an input of a
+    frozen kernel (a Python int inside it would be baked into the recording)."""
+    return dr.opaque(mi.UInt64, (int(seed) * 0x9E3779B97F4A7C15 + int(stream) * 0xBF58476D1CE4E5B9)
+                     & 0xFFFFFFFFFFFFFFFF)
+
+
 def rng(n: int, seed: int, stream: int = 0) -> mi.PCG32:
     """``n`` independent PCG32 streams for one (seed, stream) pair. The seed
     is opaque so that a new frame or seed never recompiles a kernel."""
-    idx = dr.arange(mi.UInt64, n)
-    s = dr.opaque(mi.UInt64, (int(seed) * 0x9E3779B97F4A7C15 + int(stream) * 0xBF58476D1CE4E5B9) & 0xFFFFFFFFFFFFFFFF)
-    return mi.PCG32(size=n, initstate=s, initseq=idx)
+    return mi.PCG32(size=n, initstate=stream_state(seed, stream), initseq=dr.arange(mi.UInt64, n))
 
 
 def sample_light(scene: mi.Scene, si: mi.SurfaceInteraction3f, u: mi.Point2f, active: mi.Bool):

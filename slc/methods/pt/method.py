@@ -5,19 +5,12 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.core.freeze import FrozenFunction
-from slc.scene.lights import direct_sample, light_inputs
+from slc.scene.lights import direct_sample, light_inputs, stream_state
 from slc.methods import MethodError, Param, register
 from slc.methods import Method
 from slc.reference.references import STREAM_INDIRECT, indirect_paths
 
 _STREAM_DIRECT = 3
-
-
-def _stream_state(seed: int, stream: int) -> mi.UInt64:
-    """The PCG32 init state of :func:`slc.scene.lights.rng` for (seed, stream), as an opaque array: an
-    input of the frozen kernel (a Python int inside it would be baked into the recording)."""
-    return dr.opaque(mi.UInt64, (int(seed) * 0x9E3779B97F4A7C15 + int(stream) * 0xBF58476D1CE4E5B9)
-                     & 0xFFFFFFFFFFFFFFFF)
 
 
 def _pt_kernel(scene, lights, si0, active0, s_ind, s_dir, spp: int, bounces: int, full: bool):
@@ -95,8 +88,8 @@ class PathTracing(Method):
                                           animated=bool(getattr(self.scene, "dynamic", False)))
         sc, seed = self.scene.mi_scene, self.seed_for(frame, v)
         return self._kernel(sc, light_inputs(sc), gb.si, mi.Bool(gb.valid),
-                            _stream_state(seed, STREAM_INDIRECT + int(self.bounces)),
-                            _stream_state(seed, _STREAM_DIRECT), int(self.spp), int(self.bounces),
+                            stream_state(seed, STREAM_INDIRECT + int(self.bounces)),
+                            stream_state(seed, _STREAM_DIRECT), int(self.spp), int(self.bounces),
                             self.output == "full")
 
     def render(self, ctx, gbuffers, timer):

@@ -13,7 +13,7 @@ from slc.scene.gbuffer import per_viewer
 from slc.core.keys import INVALID, mixed_rng, stream_key
 from slc.scene.lights import SurfaceBSDF, rng, sample_light_reference, sampler as light_table
 from slc.methods import Method, MethodError, Param, register
-from slc.methods.regir.grid import HashGrid, cell_key, key_hash
+from slc.core.hashgrid import HashGrid, cell_key, key_hash
 
 STREAM_BUILD = 0x6E61B001
 LOCAL_KINDS = (es.MESH, es.RECT, es.SPHERE, es.POINT)
@@ -63,7 +63,7 @@ class ReGIR(Method):
     viewers.
 
     Grid: a cell is ``floor(p / cell)`` and the octant of the shading normal, in a hash table of
-    ``cells`` slots (:mod:`slc.methods.regir.grid`). A pixel looks up the cell of its point jittered by a
+    ``cells`` slots (:mod:`slc.core.hashgrid`). A pixel looks up the cell of its point jittered by a
     uniform offset in a box ``jitter`` cells wide; the cells looked up by any viewer's pixels in a
     frame are built once for all viewers (stage ``build``).
 

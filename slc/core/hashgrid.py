@@ -12,6 +12,9 @@ slot ``r`` of its bucket; a slot holding the key places it, an empty slot is cla
 ``scatter_reduce(min)`` (the smallest contending key wins, the others go on to the next slot). A
 key that finds no slot in its bucket gets ``INVALID`` (an overflow; the caller falls back).
 
+A lookup (:func:`find_slot`, :meth:`HashGrid.find`) returns the first slot of the key's bucket
+that holds it, as insertion finds it, and places nothing.
+
 Eviction frees the cells not used for ``evict_after`` frames. A freed slot can be claimed again
 by a key stored further along the bucket; the key then has two cells, the older of which is not
 used and is freed in turn: every cell is still a cell of its own key, only its history is lost.
@@ -43,6 +46,30 @@ def cell_key(p: mi.Point3f, n: mi.Vector3f, h) -> mi.UInt64:
 def key_hash(key: mi.UInt64) -> tuple[mi.UInt32, mi.UInt32]:
     """Two 32-bit hash words of keys (TEA of their two halves): home bucket, random stream."""
     return mi.sample_tea_32(mi.UInt32(key & 0xFFFFFFFF), mi.UInt32(key >> 32), 4)
+
+
+def find_slot(keys: mi.UInt64, buckets: int, key: mi.UInt64, active: mi.Bool) -> mi.UInt32:
+    """Slot of every active ``key`` in the table ``keys`` of ``buckets`` buckets: the first of
+    its bucket's slots that holds it (as :meth:`HashGrid.insert` finds it), ``INVALID`` where none
+    does. Places nothing; a function of its arguments alone (usable inside a frozen kernel)."""
+    home = (key_hash(key)[0] & (buckets - 1)) * BUCKET
+    found = dr.full(mi.UInt32, INVALID, dr.width(key))
+
+    def body(r, found):
+        s = home + r
+        hit = mi.Bool(active) & (found == INVALID) & (dr.gather(mi.UInt64, keys, s, active) == key)
+        return r + 1, dr.select(hit, s, found)
+
+    _, found = dr.while_loop((mi.UInt32(0), found), lambda r, f: mi.Bool(active) & (r < BUCKET) & (f == INVALID),
+                             body, labels=("r", "found"))
+    return found
+
+
+def _two_or_more(idx: mi.UInt32) -> mi.UInt32:
+    """``idx`` (an evaluated index list), its one lane twice if it has one: a width-1 array is a
+    scalar to Dr.Jit, whose kernels would be new ones; the copy (made on the host: no kernel) gives
+    the kernels of any other width and the same result (both copies write the same values)."""
+    return mi.UInt32([int(idx[0])] * 2) if dr.width(idx) == 1 else idx
 
 
 class HashGrid:
@@ -85,7 +112,7 @@ class HashGrid:
         slot = dr.full(mi.UInt32, INVALID, n)
         new = dr.zeros(mi.Bool, n)
         home = (key_hash(key)[0] & (self.buckets - 1)) * BUCKET
-        lanes = dr.compress(mi.Bool(active))
+        lanes = _two_or_more(dr.compress(mi.Bool(active)))
         requests = dr.width(lanes)
         for r in range(BUCKET):
             if dr.width(lanes) == 0:
@@ -100,11 +127,24 @@ class HashGrid:
             dr.scatter(self.born, frame, s, found & free)
             dr.scatter(new, True, lanes, found & free)
             dr.eval(slot, self.born, new)
-            lanes = dr.gather(mi.UInt32, lanes, dr.compress(~found))
+            lanes = dr.gather(mi.UInt32, lanes, _two_or_more(dr.compress(~found)))
+            dr.eval(lanes)
         self.overflow = dr.width(lanes) / max(requests, 1)
         dr.scatter(self.used, frame, slot, slot != INVALID)
         dr.eval(self.used)
         return slot, new
+
+    def find(self, key: mi.UInt64, active: mi.Bool, frame: mi.UInt32 | None = None) -> mi.UInt32:
+        """Slot of every active key already in the table (:func:`find_slot`); marks the slots
+        found used in ``frame`` when one is given."""
+        found = find_slot(self.keys, self.buckets, key, active)
+        if frame is not None:
+            self.mark_used(found, frame)
+        return found
+
+    def mark_used(self, slot: mi.UInt32, frame: mi.UInt32) -> None:
+        """Mark the slots (``INVALID`` lanes skipped) used in ``frame``."""
+        dr.scatter(self.used, frame, slot, slot != INVALID)
 
     def touched(self, frame: mi.UInt32) -> mi.UInt32:
         """Slots used in ``frame``, in slot order."""
