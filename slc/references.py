@@ -30,9 +30,10 @@ sum of the direct and the indirect reference counts every path of up to
 
 Every reference is cached on disk (``$SLC_CACHE`` or ``~/.cache/slc``), in
 one folder per kind, under one key (:func:`cache_path`): scene, frame,
-viewer, resolution, sample count, bounces, estimator version, camera,
-scene time and a hash of the G-buffer points themselves, so a changed
-scene file or G-buffer never reuses a stale reference.
+viewer, resolution, sample count, bounces, estimator version, the version
+of scene loading (:data:`slc.scenes.LOAD_VERSION`), camera, scene time and
+a hash of the G-buffer points themselves, so a changed scene file, loader
+or G-buffer never reuses a stale reference.
 """
 from __future__ import annotations
 
@@ -49,6 +50,7 @@ from .gbuffer import GBuffer, compose, to_image
 from .io import cached_array
 from .lights import rng, visible
 from .lights import sample_light_reference as sample_light  # Mitsuba's own sampling: an independent check
+from .scenes import LOAD_VERSION
 
 INDIRECT_SAMPLES = 256      # default paths per pixel of the indirect reference
 INDIRECT_SEED = 5
@@ -77,8 +79,8 @@ def cache_path(folder: str, version: str, scene, gb: GBuffer, frame: int, viewer
                bounces: int | None = None, seed: int | None = None) -> Path:
     """``$SLC_CACHE/<folder>/<scene>_f<frame>_<viewer>_<W>x<H>_s<spp>[_b<bounces>]_<hash>.npy``."""
     cam, t = gb.camera, scene.time
-    ident = [version, scene.name, int(frame), viewer, gb.width, gb.height, int(spp), bounces, seed,
-             np.round(cam.origin, 6).tolist(), np.round(cam.target, 6).tolist(), float(cam.fov),
+    ident = [version, LOAD_VERSION, scene.name, int(frame), viewer, gb.width, gb.height, int(spp),
+             bounces, seed, np.round(cam.origin, 6).tolist(), np.round(cam.target, 6).tolist(), float(cam.fov),
              None if t is None else round(float(t), 6), gbuffer_hash(gb)]
     h = hashlib.sha1(json.dumps(ident).encode()).hexdigest()[:16]
     safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in f"{scene.name}_f{frame}_{viewer}")

@@ -47,6 +47,11 @@ FPS = 60.0            # frames per second of every camera path and animation (th
 WALK_SPEED = 1.4      # m/s: camera speed of the built-in paths (a walking pace)
 TURN_RATE = 30.0      # deg/s: fastest turn of a built-in path's view direction
 SUPPORTED_EMITTERS = ("area", "point", "spot", "envmap", "constant", "directional")
+# Version of what loading makes of a scene definition (today: emitter meshes made flat,
+# flatten_emitter_meshes). Part of every cached reference's key (slc.references.cache_path):
+# raised whenever loading changes a scene's lights or geometry, so that no reference
+# computed from an older build is served.
+LOAD_VERSION = 2
 
 
 class SceneError(ValueError):
@@ -307,6 +312,10 @@ class Scene:
         self.time = None
         self._params = mi.traverse(mi_scene) if self.animated else None
         check_emitters(mi_scene, name)
+        flat = flatten_emitter_meshes(mi_scene)
+        for a in self.animated:
+            if a.shape_id in flat:
+                a.rest_normals = None       # posed flat: set_time writes no normals back
         from .emitter_sampling import for_scene
         for_scene(mi_scene)   # the emitter table, built here: never inside a symbolic loop
         # per-scene tables (emitter table, BSDF flags) hold the scene's emitters and
@@ -366,6 +375,26 @@ class Scene:
         fov = base.fov if base else 60.0
         return random_path(rng, lo + 0.2 * ext, hi - 0.2 * ext, lo + 0.3 * ext, hi - 0.3 * ext,
                            fov=fov, name=f"random{i}", unit=self.unit)
+
+
+def flatten_emitter_meshes(mi_scene: mi.Scene) -> set[str]:
+    """Drop the vertex normals of every triangle mesh that carries an area light,
+    so that it is shaded and sampled flat; returns the ids of the meshes changed.
+
+    Mitsuba samples a mesh emitter uniformly by area but reports the density of
+    a sample, and decides which side emits, with the *interpolated* normal of a
+    smooth mesh, which is not the density its samples follow: light sampling
+    (and the ground truth built on it) is then biased, and the MIS weights of
+    BSDF samples that hit the emitter use the same wrong density. With the
+    geometric normal both are exact (docs/emitter-sampling.md)."""
+    flat = set()
+    for sh in mi_scene.shapes():
+        if sh.is_emitter() and sh.is_mesh() and sh.has_vertex_normals():
+            p = mi.traverse(sh)
+            p["vertex_normals"] = mi.Float()
+            p.update()
+            flat.add(sh.id())
+    return flat
 
 
 def check_emitters(mi_scene: mi.Scene, name: str) -> None:
