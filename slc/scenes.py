@@ -36,6 +36,7 @@ import numpy as np
 from . import backend
 
 backend.init()
+import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -408,7 +409,6 @@ def _label(obj, index) -> str:
 
 
 def _check_params(obj, scene_name: str, what: str, signed: bool) -> None:
-    import drjit as dr
     params = mi.traverse(obj)
     for key in params.keys():
         v = params[key]
