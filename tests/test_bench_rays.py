@@ -1,6 +1,6 @@
 """`slc bench rays`: the split of RT-N's time (a smoke test of the report: no
 timing is asserted, only that every part is measured and reported)."""
-from slc import bench
+from slc.run import bench
 
 
 def test_bench_rays_reports_where_the_time_goes():

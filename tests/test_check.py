@@ -1,14 +1,16 @@
-"""Check mode (slc.check, SLC_CHECK / --check): the first NaN/Inf or negative
+"""Check mode (slc.core.check, SLC_CHECK / --check): the first NaN/Inf or negative
 value raises with the method, stage and pixel; off, nothing is checked."""
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import check, gbuffer, scenes, views
+from slc.core import check
+
+from slc.scene import gbuffer, scenes, views
 from slc.methods import Method
-from slc.pipeline import RunConfig, run_sequence
-from slc.timing import StageTimer
+from slc.run.pipeline import RunConfig, run_sequence
+from slc.core.timing import StageTimer
 
 W, H = 24, 16
 BAD_X, BAD_Y = 13, 9
@@ -136,7 +138,7 @@ def test_env_values():
 
 def test_ground_truth_checked(cornell, check_on, monkeypatch, tmp_path):
     """In check mode the ground-truth image is checked as well (a cached copy included)."""
-    from slc import groundtruth
+    from slc.reference import groundtruth
     monkeypatch.setenv("SLC_CACHE", str(tmp_path))
     gb = gbuffer.render_gbuffer(cornell, views.single(cornell)[0].camera(0), W, H)
     groundtruth.ground_truth(cornell, gb, 0, "v", spp=16)                 # fine
@@ -151,7 +153,7 @@ def test_ground_truth_checked(cornell, check_on, monkeypatch, tmp_path):
 def test_composed_image_checked(cornell, check_on, monkeypatch):
     """The image composed with the emission seen directly (what is written and
     compared) is checked too: a NaN in the emission is named at stage 'compose'."""
-    from slc import references
+    from slc.reference import references
     real = references.compose
 
     def nan_emission(gb, value):
@@ -174,7 +176,8 @@ def test_check_mode_sees_every_stage_of_every_method(cornell, check_on, monkeypa
     """Every timed stage of each method family declares its outputs to check mode, and
     a NaN in one stage's outputs stops the run naming method, frame and stage (frames
     0-1 at 12x8; the NaN is added to the stage's outputs in frame 1)."""
-    from slc import methods, timing
+    from slc import methods
+    from slc.core import timing
     state = {"stage": None, "frame": 0, "timed": set(), "declared": set()}
     real_stage, real_outputs = timing.StageTimer.stage, timing._Stage.outputs
     real_begin = timing.StageTimer.begin_frame

@@ -1,6 +1,6 @@
 """CRC grid cache as a method: voxelization, occupancy, ray marching, the
 occupancy optimization being exact at shaded points, agreement with the
-indirect reference (slc.references), its settings, and the pipeline
+indirect reference (slc.reference.references), its settings, and the pipeline
 comparing it with the indirect reference."""
 import subprocess
 import sys
@@ -11,16 +11,20 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import methods, references, scenes, views
-from slc.crc import CRCCache, Grid
-from slc.crc import volume
-from slc.crc.march import visible
-from slc.crc.quality import de76_fraction, delta_e76, pdiff
-from slc.crc.quality import _xyz_lab_yee
-from slc.gbuffer import to_image
+from slc import methods
+
+from slc.reference import references
+
+from slc.scene import scenes, views
+from slc.methods.crc import CRCCache, Grid
+from slc.methods.crc import volume
+from slc.methods.crc.march import visible
+from slc.methods.crc.quality import de76_fraction, delta_e76, pdiff
+from slc.methods.crc.quality import _xyz_lab_yee
+from slc.scene.gbuffer import to_image
 from slc.methods import FrameContext, MethodError
-from slc.pipeline import RunConfig, gbuffers_for, run_sequence
-from slc.timing import NullTimer
+from slc.run.pipeline import RunConfig, gbuffers_for, run_sequence
+from slc.core.timing import NullTimer
 
 from helpers import plane_under_rect_light
 
@@ -47,7 +51,7 @@ def diffuse_cornell():
     every surface is Lambertian, the case CRC models (it reconstructs
     rho E / pi)."""
     import importlib.util
-    from slc.scenes import SCENES_DIR, diffuse
+    from slc.scene.scenes import SCENES_DIR, diffuse
     spec = importlib.util.spec_from_file_location("cornell_diffuse", SCENES_DIR / "cornell.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -225,7 +229,7 @@ def test_bad_settings_are_refused(cornell, spec, words):
 
 def test_bad_setting_through_the_experiment_is_one_line(tmp_path):
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "slc.cli", "run", "crc", "--quick", "--scene", "cornell",
+    r = subprocess.run([sys.executable, "-m", "slc.run.cli", "run", "crc", "--quick", "--scene", "cornell",
                         "--methods", "crc:encoding=bogus", "--out", str(out)],
                        capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert r.returncode == 2, (r.stdout, r.stderr)
@@ -254,7 +258,7 @@ def test_render_gt_uses_the_reference_of_the_output_kind(tmp_path):
     """``slc render --gt`` with an indirect method compares it with the
     indirect reference (and says so), not with the direct ground truth."""
     out = tmp_path / "r"
-    r = subprocess.run([sys.executable, "-m", "slc.cli", "render", "--scene", "cornell", "--method",
+    r = subprocess.run([sys.executable, "-m", "slc.run.cli", "render", "--scene", "cornell", "--method",
                         "crc:vpls=256,samples=4", "--res", "32x18", "--frames", "2", "--warmup", "1", "--gt",
                         "--out", str(out)], capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert r.returncode == 0, r.stderr
@@ -269,7 +273,7 @@ def test_halton_rectangle_and_paper_stride(cornell):
     """The precomputed Halton points are the radical inverses (bases 2, 3);
     the default depth stride is the paper's 10 at 1 MPixel scaled by the
     frame's side (1 at 128x72, 2 at 320x180), a set stride is kept."""
-    from slc.crc.cache import halton
+    from slc.methods.crc.cache import halton
     assert np.allclose(halton(5, 2), [0, 1 / 2, 1 / 4, 3 / 4, 1 / 8])
     assert np.allclose(halton(5, 3), [0, 1 / 3, 2 / 3, 1 / 9, 4 / 9])
     c = CRCCache(cornell, samples=8)
@@ -282,7 +286,7 @@ def test_halton_rectangle_and_paper_stride(cornell):
 def test_stages_split_by_encoding_dependence(cornell):
     """Every timed stage is either one whose work scales with the
     coefficient count or one that does not depend on the encoding."""
-    from slc.timing import StageTimer
+    from slc.core.timing import StageTimer
     m = methods.create("crc:bounces=2,samples=8,secondary_rays=4,rsm_size=16", cornell)
     t = StageTimer()
     gbs = gbuffers_for(cornell, views.single(cornell), 0, 32, 18)

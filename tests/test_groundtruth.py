@@ -2,9 +2,11 @@
 import numpy as np
 
 from helpers import plane_under_rect_light, rect_irradiance
-from slc import gbuffer, groundtruth, methods, scenes, views
-from slc.metrics import rel_mse
-from slc.pipeline import gbuffers_for
+from slc.scene import gbuffer, scenes, views
+from slc.reference import groundtruth
+from slc import methods
+from slc.reference.metrics import rel_mse
+from slc.run.pipeline import gbuffers_for
 
 
 def test_ground_truth_matches_closed_form_irradiance():
@@ -54,16 +56,16 @@ def test_ground_truth_is_cached(tmp_path, monkeypatch):
 
 def test_reference_of_an_older_scene_build_is_not_served(tmp_path, monkeypatch):
     """The scene-loading version is part of every reference's cache key: once loading
-    changes a scene (slc.scenes.LOAD_VERSION raised), the cached reference of the
+    changes a scene (slc.scene.scenes.LOAD_VERSION raised), the cached reference of the
     former build is not read back."""
-    from slc import references
+    from slc.reference import cache
     monkeypatch.setenv("SLC_CACHE", str(tmp_path))
     s = scenes.load("cornell")
     gb = gbuffers_for(s, views.single(s), 0, 8, 8)[0]
     groundtruth.ground_truth(s, gb, 0, "v", spp=16)
-    before = references.cache_path("gt", groundtruth._VERSION, s, gb, 0, "v", 16)
-    monkeypatch.setattr(references, "LOAD_VERSION", references.LOAD_VERSION + 1)
-    after = references.cache_path("gt", groundtruth._VERSION, s, gb, 0, "v", 16)
+    before = cache.cache_path("gt", groundtruth._VERSION, s, gb, 0, "v", 16)
+    monkeypatch.setattr(cache, "LOAD_VERSION", cache.LOAD_VERSION + 1)
+    after = cache.cache_path("gt", groundtruth._VERSION, s, gb, 0, "v", 16)
     assert before.exists() and after != before and not after.exists()
     groundtruth.ground_truth(s, gb, 0, "v", spp=16)
     assert after.exists() and len(list((tmp_path / "gt").glob("*.npy"))) == 2

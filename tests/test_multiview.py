@@ -2,8 +2,9 @@
 import numpy as np
 
 from helpers import render_frames
-from slc import methods, scenes, views
-from slc.pipeline import gbuffers_for
+from slc import methods
+from slc.scene import scenes, views
+from slc.run.pipeline import gbuffers_for
 
 W, H, FRAMES = 48, 27, 6
 

@@ -8,8 +8,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import references, views
-from slc.scenes import CameraPath, SceneBuilder, diffuse
+from slc.reference import references
+
+from slc.scene import views
+from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
 
 import sys
 from pathlib import Path
@@ -42,9 +44,8 @@ def floor_scene():
 
 
 @pytest.mark.parametrize("spec", [
-    "osc-gi",     # measured 1.01 (0.98 before session gi8's defaults; 0.84 with direct=cache, 1.11 before gi5)
-    # the filter now smooths the cached indirect light only (direct light per pixel): measured 1.38
-    # (1.06 before session gi8's defaults: 15 cm cells, the cells' EMA over 2 updates)
+    "osc-gi",     # measured 1.01 (0.84 with direct=cache)
+    # the filter smooths the cached indirect light only (direct light per pixel): measured 1.38
     "osc-gi:filter_radius=3",
     # the island-local spatial filter smooths inside islands, not across their borders: with the direct
     # light cached in the entries (and filtered with them) the borders show: measured 3.0

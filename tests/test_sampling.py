@@ -3,11 +3,11 @@
 1. Chi-square tests (``mi.chi2.ChiSquareTest`` on a ``mi.chi2.SphericalDomain``
    with our own sample/pdf pair):
    a. the light sampling that RT-N, the ground truth and the cache updates use
-      (``slc.lights.sample_light``) from real shading points of built-in scenes,
+      (``slc.scene.lights.sample_light``) from real shading points of built-in scenes,
       against ``scene.pdf_emitter_direction`` summed over every emitter surface
       along the direction (occluders are ignored: the sampler does not test
       visibility) plus the environment where the direction escapes;
-   b. the cone-direction map of the cone shading (``slc.cones.shading.cone_samples``)
+   b. the cone-direction map of the cone shading (``slc.methods.cones.shading.cone_samples``)
       against the uniform pdf over the cone, 1 / (2 pi (1 - cos alpha)).
       The shading itself uses a fixed stratified (spherical-Fibonacci) pattern of
       16 directions, the same for every pixel and frame: a fixed point set has no
@@ -32,13 +32,14 @@ import numpy as np
 import pytest
 
 from helpers import independent_runs, plane_under_rect_light, rect_irradiance, z_test
-from slc import methods, scenes, views
-from slc.cones.shading import GOLDEN, cone_samples
-from slc.groundtruth import direct_mis
-from slc.lights import sample_light, sample_light_reference
+from slc import methods
+from slc.scene import scenes, views
+from slc.methods.cones.shading import GOLDEN, cone_samples
+from slc.reference.groundtruth import direct_mis
+from slc.scene.lights import sample_light, sample_light_reference
 from slc.methods import FrameContext
-from slc.pipeline import gbuffers_for
-from slc.timing import NullTimer
+from slc.run.pipeline import gbuffers_for
+from slc.core.timing import NullTimer
 
 W, H = 32, 24
 
@@ -212,7 +213,7 @@ def _light_case(name, pixel, emitter):
 LIGHT_CASES = [("cornell", (0.5, 0.8), 0), ("cornell", (0.15, 0.5), 0), ("atrium", (0.5, 0.7), 3),
                ("garden", (0.4, 0.6), 5), ("garden", (0.4, 0.6), 7)]
 # Round lamps built smooth (icospheres with vertex normals, 320 faces) and loaded flat:
-# slc.scenes drops the vertex normals of every mesh that carries an area light, since
+# slc.scene.scenes drops the vertex normals of every mesh that carries an area light, since
 # Mitsuba samples such a mesh by area but reports the density with the interpolated
 # normal (test_light_sampling_chi2_rejects_smooth_emitters). A flat sphere's density
 # has a spike on every facet seen edge-on at its silhouette (d^2 / cos, cos -> 0),

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from helpers import render_frames
-from slc import methods, scenes, views
+from slc import methods
+from slc.scene import scenes, views
 
 BUILTIN = scenes.builtin_names()
 
@@ -103,7 +104,7 @@ def test_paths_are_deterministic():
 def test_every_method_renders_finite_and_deterministic(name, monkeypatch):
     """Check mode on: every stage output finite, every returned image finite and
     >= 0 (raw values, nothing clamped), a lit image, the same images twice."""
-    from slc import check
+    from slc.core import check
     monkeypatch.setenv(check.ENV, "1")
     s = _load(name)
     vs = views.single(s)
@@ -170,7 +171,7 @@ def test_degenerate_cameras_raise_one_line_scene_errors():
     NaN rays); a zero or >= 180 degree field of view rendered garbage. Each
     is a SceneError with one line naming the problem; a view straight along
     the up axis (a legitimate pose of a path) gets a finite orthonormal basis."""
-    from slc.scenes import Camera, CameraPath, SceneError
+    from slc.scene.scenes import Camera, CameraPath, SceneError
     with pytest.raises(SceneError, match="degenerate camera.*no view direction") as e:
         Camera(np.array([0.0, 1.0, 3.0]), np.array([0.0, 1.0, 3.0])).basis()
     assert "\n" not in str(e.value)
@@ -189,7 +190,7 @@ def test_degenerate_cameras_raise_one_line_scene_errors():
 def test_scene_without_shapes_raises():
     """A scene with emitters only has nothing to shade: one-line SceneError
     from the Scene itself (XML and .py scenes alike)."""
-    from slc.scenes import CameraPath, SceneBuilder, SceneError
+    from slc.scene.scenes import CameraPath, SceneBuilder, SceneError
     b = SceneBuilder("emitters_only")
     b.add_point_light([0, 2, 0], [10.0] * 3)
     with pytest.raises(SceneError, match="no shapes"):
@@ -214,7 +215,7 @@ def _last_lines_of_three_processes(code: str) -> list[str]:
     import subprocess
     import sys
     from pathlib import Path
-    code = "from slc import backend; backend.init(); from slc import scenes; " + code
+    code = "from slc.core import backend; backend.init(); from slc.scene import scenes; " + code
     root = Path(__file__).resolve().parents[1]
     return [subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, check=True)
             .stdout.strip().splitlines()[-1] for _ in range(3)]

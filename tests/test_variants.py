@@ -10,8 +10,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import scenes
-from slc.scenes import SceneError
+from slc.scene import scenes
+from slc.scene.scenes import SceneError
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -55,7 +55,7 @@ def test_spots_map_has_small_bright_regions():
 
 
 def test_many_lights_experiment_writes_rows(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "slc.cli", "run", "many-lights", "--quick", "--res", "32x18",
+    r = subprocess.run([sys.executable, "-m", "slc.run.cli", "run", "many-lights", "--quick", "--res", "32x18",
                         "--frames", "3", "--lights", "2", "4", "--methods", "rt4", "slc:max_cones=1",
                         "--out", str(tmp_path)], capture_output=True, text=True, cwd=ROOT, timeout=900)
     assert r.returncode == 0, r.stderr[-2000:]

@@ -24,9 +24,9 @@ import numpy as np
 def dump(out: Path, scenes: list[str], methods: list[str], width: int, height: int, frames: int,
          warmup: int, eval_frames: list[int]) -> None:
     from slc import methods as mt
-    from slc import scenes as sc
-    from slc import views
-    from slc.pipeline import RunConfig, run_sequence
+    from slc.scene import scenes as sc
+    from slc.scene import views
+    from slc.run.pipeline import RunConfig, run_sequence
     out.mkdir(parents=True, exist_ok=True)
     for name in scenes:
         s = sc.load(name)
@@ -43,7 +43,7 @@ def dump(out: Path, scenes: list[str], methods: list[str], width: int, height: i
 
 
 def compare(a: Path, b: Path) -> None:
-    from slc.metrics import evaluate, rel_mse
+    from slc.reference.metrics import evaluate, rel_mse
     files = sorted(p.name for p in a.glob("*.npz") if (b / p.name).exists())
     seen = set()
     print("| scene | frame | GT mean change | mean pixel rel. change | p99 pixel rel. change | relMSE(B vs A) |")
