@@ -148,3 +148,63 @@ def test_ground_truth_checked(cornell, check_on, monkeypatch, tmp_path):
     np.save(path, a)
     with pytest.raises(check.CheckError, match=r"gt frame 0 stage 'ground truth': NaN at viewer 0 pixel \(13, 9\)"):
         groundtruth.ground_truth(cornell, gb, 0, "v", spp=16)
+
+
+def test_composed_image_checked(cornell, check_on, monkeypatch):
+    """The image composed with the emission seen directly (what is written and
+    compared) is checked too: a NaN in the emission is named at stage 'compose'."""
+    from slc.reference import references
+    real = references.compose
+
+    def nan_emission(gb, value):
+        out = real(gb, value)
+        return dr.select(dr.arange(mi.UInt32, gb.size) == BAD_Y * gb.width + BAD_X, dr.nan, out)
+
+    monkeypatch.setattr(references, "compose", nan_emission)
+    with pytest.raises(check.CheckError, match=r"stub frame 0 stage 'compose': NaN at viewer 0 pixel \(13, 9\)"):
+        run_sequence(cornell, Stub(cornell, value=0.25), views.single(cornell), _cfg())
+
+
+# One method per family, and the stage whose outputs get a NaN in frame 1.
+FAMILY_STAGES = [("rt4", "shade"), ("restir", "spatial"), ("slc", "update"), ("sh", "update"),
+                 ("adaptive", "update"), ("crc", "bounce1_march"), ("osc-gi", "direct"), ("pt", "shade"),
+                 ("megaviews", "traverse"), ("manylods", "push"), ("brute", "fuse")]
+
+
+@pytest.mark.parametrize("spec,poisoned", FAMILY_STAGES, ids=[s for s, _ in FAMILY_STAGES])
+def test_check_mode_sees_every_stage_of_every_method(cornell, check_on, monkeypatch, spec, poisoned):
+    """Every timed stage of each method family declares its outputs to check mode, and
+    a NaN in one stage's outputs stops the run naming method, frame and stage (frames
+    0-1 at 12x8; the NaN is added to the stage's outputs in frame 1)."""
+    from slc import methods
+    from slc.core import timing
+    state = {"stage": None, "frame": 0, "timed": set(), "declared": set()}
+    real_stage, real_outputs = timing.StageTimer.stage, timing._Stage.outputs
+    real_begin = timing.StageTimer.begin_frame
+
+    def stage(self, name):
+        state["stage"] = name
+        state["timed"].add(name)
+        return real_stage(self, name)
+
+    def outputs(self, *values):
+        if values:
+            state["declared"].add(state["stage"])
+        if state["frame"] == 1 and state["stage"] == poisoned:
+            values = values + (mi.Float([0.0, dr.nan]),)
+        real_outputs(self, *values)
+
+    def begin_frame(self):
+        state["frame"] = len(self.frames)
+        real_begin(self)
+
+    monkeypatch.setattr(timing.StageTimer, "stage", stage)
+    monkeypatch.setattr(timing.StageTimer, "begin_frame", begin_frame)
+    monkeypatch.setattr(timing._Stage, "outputs", outputs)
+    m = methods.create(spec, cornell, seed=0)
+    with pytest.raises(check.CheckError) as e:
+        run_sequence(cornell, m, views.single(cornell),
+                     RunConfig(width=12, height=8, frames=2, warmup=0, eval_frames=[], measure_overlap=False))
+    msg = str(e.value)
+    assert f"frame 1 stage '{poisoned}': NaN" in msg and m.name.split(":")[0] in msg, msg
+    assert state["timed"] and state["timed"] <= state["declared"], (state["timed"], state["declared"])

@@ -4,6 +4,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -58,6 +59,13 @@ def _py_scene(paths, shapes=True):
 PY_NO_SHAPES = _py_scene("CameraPath([([0, 1, 3], [0, 1, 0]), ([1, 1, 3], [0, 1, 0])], fov=45)", shapes=False)
 PY_CAMERA_SAME = _py_scene("CameraPath([([0, 1, 3], [0, 1, 3]), ([1, 1, 3], [0, 1, 0])], fov=45)")
 PY_CAMERA_FOV = _py_scene("CameraPath([([0, 1, 3], [0, 1, 0]), ([1, 1, 3], [0, 1, 0])], fov=0)")
+NAN_LIGHT_XML = INF_LIGHT_XML.replace('value="inf"', 'value="nan, 1, 1"')
+NAN_TEXTURE_XML = """<scene version="3.0.0">
+  <shape type="rectangle"><bsdf type="diffuse">
+    <texture type="bitmap" name="reflectance"><string name="filename" value="nan.exr"/></texture></bsdf></shape>
+  <shape type="sphere"><point name="center" x="0" y="0" z="2"/><float name="radius" value="0.2"/>
+    <emitter type="area"><rgb name="radiance" value="20"/></emitter></shape>
+</scene>"""
 GOOD_XML = """<scene version="3.0.0">
   <shape type="rectangle"><bsdf type="diffuse"/></shape>
   <shape type="sphere"><point name="center" x="0" y="0" z="2"/><float name="radius" value="0.2"/>
@@ -71,10 +79,15 @@ def xmls(tmp_path):
     for name, text in [("none", NO_EMITTER_XML), ("unsupported", UNSUPPORTED_XML), ("good", GOOD_XML), ("inf", INF_LIGHT_XML),
                        ("broken", "<scene version='3.0.0'><shape type='nonexistent_plugin'/></scene>"),
                        ("garbage", "this is < not xml"), ("emitters_only", EMITTERS_ONLY_XML),
-                       ("camera_same", CAMERA_SAME_XML), ("camera_up", CAMERA_UP_XML), ("camera_fov", CAMERA_FOV_XML)]:
+                       ("camera_same", CAMERA_SAME_XML), ("camera_up", CAMERA_UP_XML), ("camera_fov", CAMERA_FOV_XML),
+                       ("nan_light", NAN_LIGHT_XML), ("nan_texture", NAN_TEXTURE_XML)]:
         p = tmp_path / f"{name}.xml"
         p.write_text(text)
         paths[name] = p
+    import mitsuba as mi
+    texels = np.full((4, 4, 3), 0.5, np.float32)
+    texels[1, 2, 0] = np.nan
+    mi.Bitmap(texels).write(str(tmp_path / "nan.exr"))
     for name, text in [("py_no_shapes", PY_NO_SHAPES), ("py_camera_same", PY_CAMERA_SAME),
                        ("py_camera_fov", PY_CAMERA_FOV)]:
         p = tmp_path / f"{name}.py"
@@ -98,7 +111,8 @@ def _one_line_error(r, *words):
     ("emitters_only", ["no shapes"]), ("py_no_shapes", ["no shapes"]),
     ("camera_same", ["degenerate camera"]), ("camera_up", ["degenerate camera"]),
     ("camera_fov", ["degenerate camera", "field of view"]),
-    ("py_camera_same", ["degenerate camera", "own origin"]), ("py_camera_fov", ["degenerate camera", "field of view"])])
+    ("py_camera_same", ["degenerate camera", "own origin"]), ("py_camera_fov", ["degenerate camera", "field of view"]),
+    ("nan_light", ["area light", "NaN", "radiance"]), ("nan_texture", ["BSDF", "NaN", "reflectance.data"])])
 def test_bad_scene_files(xmls, tmp_path, case, words):
     path = tmp_path / "missing.xml" if case == "missing" else xmls[case]
     out = tmp_path / "out"
@@ -142,20 +156,11 @@ def test_indirect_method_refused_by_direct_light_experiment(tmp_path):
     assert not (tmp_path / "o").exists()
 
 
-def test_check_mode_stops_at_first_inf(xmls, tmp_path):
-    """A light of infinite radiance: without --check the run completes and the
-    Inf reaches the EXR (raw values); with --check (or SLC_CHECK=1) it stops
-    with one line naming method, stage and pixel, exit 2, nothing written."""
+def test_non_finite_light_refused_at_load_with_and_without_check(xmls, tmp_path):
+    """A light of infinite radiance is refused when the scene loads (one line, exit 2,
+    nothing written), with or without --check: no method runs on it."""
     args = ["render", "--scene", str(xmls["inf"]), "--method", "rt4", "--res", "32x18", "--frames", "2"]
-    r = run(args + ["--out", str(tmp_path / "raw")])
-    assert r.returncode == 0, r.stderr
-    import numpy as np
-    from slc.core.io import read_exr
-    assert np.isinf(read_exr(next((tmp_path / "raw").glob("*.exr")))).any()
-    r = run(["--check"] + args + ["--out", str(tmp_path / "chk")])
-    _one_line_error(r, "check: rt4 frame 0 stage 'shade'", "+Inf", "pixel (")
+    _one_line_error(run(args + ["--out", str(tmp_path / "raw")]), "area light", "Inf", "radiance")
+    assert not (tmp_path / "raw").exists()
+    _one_line_error(run(["--check"] + args + ["--out", str(tmp_path / "chk")]), "Inf", "radiance")
     assert not (tmp_path / "chk").exists()
-    r = run(["run", "single-viewer", "--quick", "--check", "--scene", str(xmls["inf"]), "--methods", "rt4",
-             "--frames", "2", "--res", "32x18", "--out", str(tmp_path / "exp")])
-    _one_line_error(r, "check: rt4", "+Inf")
-    assert not (tmp_path / "exp" / "single-viewer" / "results.json").exists()

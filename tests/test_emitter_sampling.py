@@ -90,6 +90,14 @@ def _pdf_of_direction(scene, table):
     return pdf
 
 
+@pytest.fixture
+def in_tmp(tmp_path, monkeypatch):
+    """A chi-square test that fails writes ``chi2_data.py`` into the working folder:
+    run it in a temporary one."""
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
 def _chi2(scene, sample_dir, pdf, seed=3):
     """Pearson's test over the sphere of directions. The densities are
     discontinuous at every emitter's silhouette, where the trapezoid rule of
@@ -116,6 +124,7 @@ def test_table_kinds():
 
 
 @pytest.mark.parametrize("choice", ["power", "uniform"])
+@pytest.mark.usefixtures("in_tmp")
 def test_chi2_table_samples_follow_table_pdf(choice):
     """Directions sampled by the table (all continuous emitters; the point
     light excluded by ``subset``) follow the table's own ``pdf``."""
@@ -132,6 +141,7 @@ def test_chi2_table_samples_follow_table_pdf(choice):
     assert ok, msg
 
 
+@pytest.mark.usefixtures("in_tmp")
 def test_chi2_rejects_a_wrong_density():
     """The test has the power to see a 10% error in the sphere's density."""
     sc = _mixed_scene(point=False, smooth=True)
@@ -149,6 +159,7 @@ def test_chi2_rejects_a_wrong_density():
     assert not ok, msg
 
 
+@pytest.mark.usefixtures("in_tmp")
 def test_chi2_mitsuba_samples_follow_table_pdf():
     """The other way round: directions from Mitsuba's
     ``scene.sample_emitter_direction`` follow the table's pdf with the

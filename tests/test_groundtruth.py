@@ -52,3 +52,20 @@ def test_ground_truth_is_cached(tmp_path, monkeypatch):
     assert len(files) == 1 and "cornell" in files[0].name and "16x16" in files[0].name
     b = groundtruth.ground_truth(s, gb, 0, "v", spp=64)
     assert np.array_equal(a, b)
+
+
+def test_reference_of_an_older_scene_build_is_not_served(tmp_path, monkeypatch):
+    """The scene-loading version is part of every reference's cache key: once loading
+    changes a scene (slc.scene.scenes.LOAD_VERSION raised), the cached reference of the
+    former build is not read back."""
+    from slc.reference import cache
+    monkeypatch.setenv("SLC_CACHE", str(tmp_path))
+    s = scenes.load("cornell")
+    gb = gbuffers_for(s, views.single(s), 0, 8, 8)[0]
+    groundtruth.ground_truth(s, gb, 0, "v", spp=16)
+    before = cache.cache_path("gt", groundtruth._VERSION, s, gb, 0, "v", 16)
+    monkeypatch.setattr(cache, "LOAD_VERSION", cache.LOAD_VERSION + 1)
+    after = cache.cache_path("gt", groundtruth._VERSION, s, gb, 0, "v", 16)
+    assert before.exists() and after != before and not after.exists()
+    groundtruth.ground_truth(s, gb, 0, "v", spp=16)
+    assert after.exists() and len(list((tmp_path / "gt").glob("*.npy"))) == 2

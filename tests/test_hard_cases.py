@@ -408,3 +408,261 @@ def test_slc_light_switches_off():
     gb, img = res[OFF_AT + 20]
     ref, mask = _quad_ref(sc, gb, SWITCH[:1], _plane_mask(gb), n=32)
     _report("switched-off", img, ref, mask, SLC_BOUNDS["switched-off"])
+
+
+# ------------------------------------------------------------------------------------------------
+# Scale, position, degenerate geometry, a camera inside a solid, a small bright sun, and slc's
+# hemisphere-sized light at its default settings. Each: the methods it applies to, in check mode
+# (this module's autouse fixture), 32x24, against a closed form, a quadrature or exactly 0; bounds
+# about 1.5x the figures measured at this size (mean bound at least 2%), printed with -s.
+
+SMALL_W, SMALL_H = 32, 24
+# frames per method (cache methods need a few to fill their entries)
+FRAMES = {"rt16": 1, "restir": 4, "slc": 10, "adaptive": 10, "osc-gi": 10}
+
+
+def _small_frames(sc, spec):
+    """Image (N x 3) and G-buffer of ``spec``'s last frame at SMALL_W x SMALL_H, in check mode."""
+    global W, H
+    saved = W, H
+    W, H = SMALL_W, SMALL_H
+    try:
+        (gb, img), = _slc_frames(sc, FRAMES[spec], spec=spec).values()
+    finally:
+        W, H = saved
+    return gb, img
+
+
+def _bounded(name, img, ref, mask, bound):
+    assert mask.sum() > 300, (name, mask.sum())
+    a, r = img[mask], ref[mask]
+    mean_err = a.mean() / r.mean() - 1.0
+    pix_err = np.abs(a - r).mean() / r.mean()
+    print(f"hard case {name}: mean error {mean_err:+.4f}, per-pixel {pix_err:.4f} ({mask.sum()} px)")
+    assert abs(mean_err) < bound[0] and pix_err < bound[1], (name, mean_err, pix_err, bound)
+
+
+def _lit_plane(name, scale=1.0, origin=(0.0, 0.0, 0.0)):
+    """The plane (4 x 4 m, albedo 0.5) under a 0.5 x 0.5 m light of radiance 10 at 1 m,
+    all lengths times ``scale`` and moved to ``origin`` (unit 1: nothing tells the
+    methods the scene's size)."""
+    from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
+    o = np.asarray(origin, float)
+    b = SceneBuilder(name)
+    b.add_quad(o, [2 * scale, 0, 0], [0, 0, -2 * scale], bsdf=diffuse([0.5] * 3), name="plane")
+    b.add_quad(o + [0, scale, 0], [0.25 * scale, 0, 0], [0, 0, 0.25 * scale], bsdf=diffuse([0] * 3),
+               emission=[10.0] * 3, name="light")
+    return b.build([CameraPath([(o + scale * np.array([0, 0.8, 1.2]), o)], frames=8, fov=70)])
+
+
+def _lit_plane_reference(gb, scale=1.0, origin=(0.0, 0.0, 0.0)):
+    """(closed form N x 3, plane pixels) of :func:`_lit_plane`: the rectangle's irradiance,
+    which does not change with the scale."""
+    o = np.asarray(origin, float)
+    p = np.array(gb.si.p, np.float64).T
+    mask = np.array(gb.valid) & (np.abs(p[:, 1] - o[1]) < 1e-3 * scale)
+    E = rect_irradiance((p[:, 0] - o[0]) / scale, (p[:, 2] - o[2]) / scale, -0.25, 0.25, -0.25, 0.25, 1.0, 10.0)
+    return np.repeat((0.5 / np.pi * E)[:, None], 3, axis=1), mask
+
+
+# method: (mean, per-pixel) bound. Measured (mean / per-pixel) at x1e-3, x1e3, 1 km and 10 km
+# from the origin: rt16 +0.2% / 4.6% (all four); restir +0.1..+1.0% / 2.8-3.3%; slc -0.5..-1.5% /
+# 6.3-6.6%; adaptive as slc; osc-gi -0.04% / 2.0%.
+SCALE_BOUNDS = {"rt16": (0.02, 0.07), "restir": (0.02, 0.05), "slc": (0.025, 0.10), "adaptive": (0.025, 0.10),
+                "osc-gi": (0.02, 0.031)}
+SCALES = {"x1e-3": (1e-3, (0, 0, 0)), "x1e3": (1e3, (0, 0, 0)), "1km-away": (1.0, (1e3, 0, -1e3)),
+          "10km-away": (1.0, (1e4, 0, -1e4))}
+
+
+@pytest.mark.parametrize("spec", sorted(SCALE_BOUNDS))
+@pytest.mark.parametrize("where", sorted(SCALES))
+def test_scene_scale_and_distance_from_origin(where, spec):
+    """The lit plane at 1e-3 and 1e3 times its size, and 1 km and 10 km from the origin
+    (float32 spacing there 6e-5 m and 1e-3 m): every method within its bound of the
+    closed form."""
+    scale, origin = SCALES[where]
+    sc = _lit_plane(f"hard_{where}", scale, origin)
+    gb, img = _small_frames(sc, spec)
+    ref, mask = _lit_plane_reference(gb, scale, origin)
+    _bounded(f"{where} {spec}", img, ref, mask, SCALE_BOUNDS[spec])
+
+
+def _degenerate_scene():
+    """The lit plane built with zero-area triangles in both meshes (a repeated corner,
+    three equal corners, three collinear corners) and a second emitter whose every
+    triangle has zero area (radiance 50)."""
+    from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
+    b = SceneBuilder("hard_degenerate")
+    V = np.array([[-2, 0, 2], [2, 0, 2], [2, 0, -2], [-2, 0, -2], [0, 0, 0], [1, 0, 0]], float)
+    b.add_mesh(V, np.array([[0, 1, 2], [0, 2, 3], [4, 4, 4], [4, 5, 4], [0, 4, 2]]), bsdf=diffuse([0.5] * 3),
+               name="plane")
+    L = np.array([[-0.25, 1, -0.25], [0.25, 1, -0.25], [0.25, 1, 0.25], [-0.25, 1, 0.25], [0, 1, 0]], float)
+    b.add_mesh(L, np.array([[0, 1, 2], [0, 2, 3], [4, 4, 4], [0, 4, 2], [1, 1, 3]]), bsdf=diffuse([0] * 3),
+               emission=[10.0] * 3, name="light")
+    Z = np.array([[0.5, 0.8, 0], [0.6, 0.8, 0], [0.7, 0.8, 0]], float)
+    b.add_mesh(Z, np.array([[0, 1, 2], [0, 0, 1]]), bsdf=diffuse([0] * 3), emission=[50.0] * 3, name="zero_area")
+    return b.build([CameraPath([([0, 0.8, 1.2], [0, 0, 0])], frames=8, fov=70)])
+
+
+# Measured (mean / per-pixel): rt16 +0.4% / 22% (half the samples go to the zero-area emitter,
+# uniform choice: noise, no bias); restir -3.1% / 8.2%; slc -0.7% / 6.7%; adaptive as slc;
+# osc-gi -0.6% / 4.9%.
+DEGENERATE_BOUNDS = {"rt16": (0.02, 0.33), "restir": (0.047, 0.123), "slc": (0.02, 0.10),
+                     "adaptive": (0.02, 0.10), "osc-gi": (0.02, 0.073)}
+
+
+@pytest.mark.parametrize("spec", sorted(DEGENERATE_BOUNDS))
+def test_degenerate_triangles_and_zero_area_emitter(spec):
+    """Zero-area triangles in the plane and the light, and an emitter of zero area: no
+    NaN anywhere (check mode), and the light of the rest within the bound of the
+    closed form (the zero-area emitter adds nothing)."""
+    sc = _degenerate_scene()
+    gb, img = _small_frames(sc, spec)
+    ref, mask = _lit_plane_reference(gb)
+    _bounded(f"degenerate {spec}", img, ref, mask, DEGENERATE_BOUNDS[spec])
+
+
+def test_degenerate_triangles_ground_truth():
+    """The ground truth (Mitsuba's sampling, MIS) on the degenerate scene, 256 samples:
+    finite in check mode and near the closed form (measured +0.3% / 5.3%; half the light
+    samples go to the zero-area emitter)."""
+    sc = _degenerate_scene()
+    gb, _ = _small_frames(sc, "rt16")
+    g = np.array(direct_mis(sc.mi_scene, gb, 256), np.float64).T
+    check.images([g.astype(np.float32)], [gb], stage="ground truth")
+    ref, mask = _lit_plane_reference(gb)
+    _bounded("degenerate ground truth", g, ref, mask, (0.01, 0.08))
+
+
+INSIDE_METHODS = ["rt16", "restir", "slc", "adaptive", "osc-gi"]
+
+
+@pytest.fixture(scope="module")
+def camera_in_box():
+    """The lit plane with the camera inside a closed box (0.6 m cube around it): every
+    pixel sees the inside of the box, the back of its faces."""
+    from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
+    b = SceneBuilder("hard_camera_inside")
+    b.add_quad([0, 0, 0], [2, 0, 0], [0, 0, -2], bsdf=diffuse([0.5] * 3), name="plane")
+    b.add_quad([0, 1, 0], [0.25, 0, 0], [0, 0, 0.25], bsdf=diffuse([0] * 3), emission=[10.0] * 3, name="light")
+    b.add_box([-0.3, 0.5, 0.9], [0.3, 1.1, 1.5], bsdf=diffuse([0.5] * 3), name="box")
+    return b.build([CameraPath([([0, 0.8, 1.2], [0, 0, 0])], frames=8, fov=70)])
+
+
+@pytest.mark.parametrize("spec", INSIDE_METHODS)
+def test_camera_inside_a_solid(camera_in_box, spec):
+    """Seen from inside a closed box, every pixel is the back of a one-sided diffuse face:
+    the ground truth is exactly 0 there, and so is every method's image (check mode: no
+    NaN, nothing negative)."""
+    gb, img = _small_frames(camera_in_box, spec)
+    valid = np.array(gb.valid)
+    assert valid.all()
+    g = np.array(direct_mis(camera_in_box.mi_scene, gb, 16), np.float64).T
+    print(f"hard case camera inside ({spec}): max {img[valid].max():.3g}, ground truth max {g.max():.3g}")
+    assert g.max() == 0.0 and img[valid].max() == 0.0
+
+
+def _sun_scene():
+    """The plane (albedo 0.5) alone under an environment map of 128 x 64 texels: radiance
+    0.05 everywhere but one texel of 1e5 at 35 degrees from the zenith (about 2.8 degrees
+    across, 700 times the irradiance of the rest of the sky)."""
+    from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
+    sky = np.full((64, 128, 3), 0.05, np.float32)
+    sky[12, 40] = 1e5
+    b = SceneBuilder("hard_sun")
+    b.add_quad([0, 0, 0], [2, 0, 0], [0, 0, -2], bsdf=diffuse([0.5] * 3), name="plane")
+    b.add_envmap(bitmap=sky)
+    return b.build([CameraPath([([0, 0.8, 1.2], [0, 0, 0])], frames=8, fov=70)])
+
+
+def _sky_irradiance(sc, n=2048):
+    """Quadrature of the upper hemisphere (+y) of the scene's environment, as Mitsuba
+    evaluates it (bilinear texels): E = sum L(w) cos(theta) dw on an n x 2n midpoint grid
+    in (theta, phi); the sun spans about 60 x 60 grid points."""
+    import drjit as dr
+    import mitsuba as mi
+    env, = [e for e in sc.mi_scene.emitters() if e.is_environment()]
+    th = (np.arange(n) + 0.5) * (0.5 * np.pi / n)
+    ph = (np.arange(2 * n) + 0.5) * (np.pi / n)
+    T, P = np.meshgrid(th, ph, indexing="ij")
+    d = np.stack([np.sin(T) * np.cos(P), np.cos(T), np.sin(T) * np.sin(P)], -1).reshape(-1, 3)
+    si = dr.zeros(mi.SurfaceInteraction3f, len(d))
+    si.wi = mi.Vector3f(*[mi.Float(-d[:, k].astype(np.float32)) for k in range(3)])
+    L = np.array(mi.Color3f(env.eval(si)), np.float64).T
+    w = (np.cos(T) * np.sin(T)).reshape(-1) * (0.5 * np.pi / n) * (np.pi / n)
+    return (L * w[:, None]).sum(0)
+
+
+SUN_METHODS = ["rt16", "restir", "slc", "adaptive", "osc-gi"]
+
+
+@pytest.fixture(scope="module")
+def sun():
+    sc = _sun_scene()
+    return sc, _sky_irradiance(sc)
+
+
+@pytest.mark.parametrize("spec", SUN_METHODS)
+def test_small_bright_hdr_sun(sun, spec):
+    """A small, very bright sun in an HDR environment over an open plane: every plane
+    point sees the whole sky, so the reference is one number, the quadrature of the sky's
+    irradiance (times albedo / pi)."""
+    sc, E = sun
+    gb, img = _small_frames(sc, spec)
+    mask = _plane_mask(gb)
+    ref = np.broadcast_to(0.5 / np.pi * E, img.shape)
+    _bounded(f"sun {spec}", img, ref, mask, SUN_BOUNDS[spec])
+
+
+def test_small_bright_hdr_sun_ground_truth(sun):
+    """The ground truth (256 samples) on the sun scene against the same quadrature."""
+    sc, E = sun
+    gb, _ = _small_frames(sc, "rt16")
+    g = np.array(direct_mis(sc.mi_scene, gb, 256), np.float64).T
+    check.images([g.astype(np.float32)], [gb], stage="ground truth")
+    _bounded("sun ground truth", g, np.broadcast_to(0.5 / np.pi * E, g.shape), _plane_mask(gb), SUN_BOUNDS["gt"])
+
+
+# Measured (mean / per-pixel): rt16 +0.02% / 0.68%, restir -0.00% / 0.91%, slc +0.02% / 0.46%,
+# adaptive +0.14% / 0.15% (the sun listed as a directional light), osc-gi +0.03% / 0.56%,
+# ground truth +0.00% / 0.33%.
+SUN_BOUNDS = {"rt16": (0.02, 0.0102), "restir": (0.02, 0.0137), "slc": (0.02, 0.0069), "adaptive": (0.02, 0.0023),
+              "osc-gi": (0.02, 0.0084), "gt": (0.02, 0.005)}
+
+
+# slc at its default settings under the hemisphere-sized light (a 120 m square 2 m above the
+# plane, closed form): measured mean -44.5%, per-pixel 74.8% at 32x24 after 10 frames (3 cones
+# cannot hold a light that fills the hemisphere; docs/hard-cases.md). Target (5%, 10%); the
+# ceiling test holds the miss to 1.5x its measured size.
+HEMISPHERE_SLC = {"measured": (0.445, 0.748), "target": (0.05, 0.10)}
+
+
+def _hemisphere_slc_errors():
+    sc = hard_scene("hemisphere")
+    gb, img = _small_frames(sc, "slc")
+    p = np.array(gb.si.p, np.float64).T
+    (c, u, v, L), = HARD_RECTS["hemisphere"].values()
+    E = rect_irradiance(p[:, 0], p[:, 2], -u[0], u[0], -v[2], v[2], c[1], L)
+    ref = np.repeat((0.5 / np.pi * E)[:, None], 3, axis=1)
+    mask = _plane_mask(gb)
+    a, r = img[mask], ref[mask]
+    errs = abs(a.mean() / r.mean() - 1.0), np.abs(a - r).mean() / r.mean()
+    print(f"hard case hemisphere slc (default settings): mean error {errs[0]:.4f}, per-pixel {errs[1]:.4f}")
+    return errs
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="slc's default 3 cones under a hemisphere-sized light: mean -44.5%, per-pixel 74.8%")
+def test_slc_hemisphere_sized_light_default_settings():
+    """slc with its default settings under the hemisphere-sized light, in check mode,
+    against the closed form of the rectangle: within (5%, 10%)."""
+    mean_err, pix_err = _hemisphere_slc_errors()
+    bm, bp = HEMISPHERE_SLC["target"]
+    assert mean_err < bm and pix_err < bp, (mean_err, pix_err)
+
+
+def test_slc_hemisphere_sized_light_default_settings_ceiling():
+    """The miss of the test above is no worse than 1.5x its measured figures."""
+    mean_err, pix_err = _hemisphere_slc_errors()
+    m, p = HEMISPHERE_SLC["measured"]
+    assert mean_err < 1.5 * m and pix_err < 1.5 * p, (mean_err, pix_err)

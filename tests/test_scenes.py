@@ -1,5 +1,6 @@
 """Every built-in scene renders every method; paths, animation, rigs."""
 import drjit as dr
+import mitsuba as mi
 import numpy as np
 import pytest
 
@@ -234,3 +235,54 @@ def test_xml_scene_shape_order_is_the_same_in_every_process():
         "print([(sh.id(), sh.primitive_count(), sh.class_name()) for sh in s.mi_scene.shapes()], "
         "len(s.mi_scene.emitters()), len(s.mi_scene.sensors()))")
     assert outs[0] == outs[1] == outs[2]
+
+
+_VALUE_XML = """<scene version="3.0.0">
+  <shape type="rectangle">{bsdf}</shape>
+  <shape type="sphere"><point name="center" x="0" y="0" z="2"/><float name="radius" value="0.2"/>
+    <emitter type="area"><rgb name="radiance" value="{radiance}"/></emitter></shape>
+  {emitter}
+</scene>"""
+_NAN_TEXTURE = ('<bsdf type="diffuse"><texture type="bitmap" name="reflectance">'
+                '<string name="filename" value="nan.exr"/></texture></bsdf>')
+
+
+@pytest.mark.parametrize("case,words", [
+    (dict(radiance="nan, 1, 1"), ["area light", "#1 (Sphere)", "NaN", "'radiance.value'"]),
+    (dict(radiance="-1, 1, 1"), ["area light", "negative value -1", "'radiance.value'"]),
+    (dict(emitter='<emitter type="point"><point name="position" x="0" y="1" z="0"/>'
+                  '<rgb name="intensity" value="inf"/></emitter>'), ["emitter (PointLight)", "Inf", "intensity"]),
+    (dict(emitter='<emitter type="constant"><rgb name="radiance" value="-0.5"/></emitter>'),
+     ["ConstantBackgroundEmitter", "negative value -0.5"]),
+    (dict(bsdf='<bsdf type="diffuse"><rgb name="reflectance" value="0.5, nan, 0.5"/></bsdf>'),
+     ["BSDF (SmoothDiffuse) of shape #0 (Rectangle)", "NaN", "'reflectance.value'"]),
+    (dict(bsdf='<bsdf type="roughconductor"><float name="alpha" value="-0.1"/></bsdf>'),
+     ["RoughConductor", "negative value -0.1", "'alpha.value'"]),
+    (dict(bsdf=_NAN_TEXTURE), ["SmoothDiffuse", "NaN", "'reflectance.data'"]),
+], ids=["nan-radiance", "negative-radiance", "inf-point-light", "negative-environment", "nan-reflectance",
+        "negative-roughness", "nan-bitmap-texel"])
+def test_bad_light_and_material_values_refused_at_load(tmp_path, case, words):
+    """Non-finite or negative emitter, BSDF and texture values are refused when the
+    scene loads, with one line naming the object, the parameter and the value."""
+    texels = np.full((4, 4, 3), 0.5, np.float32)
+    texels[1, 2, 0] = np.nan
+    mi.Bitmap(texels).write(str(tmp_path / "nan.exr"))
+    xml = tmp_path / "bad.xml"
+    xml.write_text(_VALUE_XML.format(**{"bsdf": '<bsdf type="diffuse"/>', "radiance": "5", "emitter": "", **case}))
+    with pytest.raises(scenes.SceneError) as e:
+        scenes.load(str(xml))
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith("scene 'bad'"), msg
+    for w in words:
+        assert w in msg, (w, msg)
+
+
+def test_signed_bump_map_heights_load(tmp_path):
+    """A bump map's heights are signed: only their finiteness is checked (every
+    built-in scene loads through the same check in the tests above)."""
+    mi.Bitmap(np.linspace(-1, 1, 16, dtype=np.float32).reshape(4, 4, 1)).write(str(tmp_path / "h.exr"))
+    bump = ('<bsdf type="bumpmap"><texture type="bitmap"><boolean name="raw" value="true"/>'
+            '<string name="filename" value="h.exr"/></texture><bsdf type="diffuse"/></bsdf>')
+    xml = tmp_path / "bump.xml"
+    xml.write_text(_VALUE_XML.format(bsdf=bump, radiance="5", emitter=""))
+    assert scenes.load(str(xml)).mi_scene is not None

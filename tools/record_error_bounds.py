@@ -30,7 +30,7 @@ def main(argv=None) -> int:
     opts = p.parse_args(argv)
 
     import slc  # noqa: F401  (selects the variant)
-    from slc.reference import bounds
+    from slc.run import bounds
     from slc.methods import MethodError
     from slc.scene.scenes import SceneError
 

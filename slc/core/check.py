@@ -9,7 +9,9 @@ pixel in a plot:
   is checked for NaN/Inf after the stage's ``dr.eval`` (outside the timed
   interval);
 - every image a method returns (:func:`slc.run.pipeline.run_sequence`) is checked
-  for NaN/Inf and for negative values.
+  for NaN/Inf and for negative values, and so is the image composed from it
+  with the emission seen directly (stage ``'compose'``), which is what is
+  written and compared.
 
 The first bad value raises :class:`CheckError` with a one-line message naming
 the method, the frame, the stage and the pixel ``(viewer, x, y)`` or the
@@ -21,6 +23,11 @@ Turn it on with ``SLC_CHECK=1`` in the environment or ``slc --check ...``
 (which sets the variable, so experiments and their sub-steps see it).
 Off (the default) it costs one environment look-up per stage: nothing is
 read back from the device.
+
+Stage outputs are what each stage declares (``st.outputs``), float arrays
+checked, integer ones not: the cone cache's packed words (:mod:`slc.methods.cones.packing`)
+encode a NaN or negative radiance sample as 0, so check mode sees such a
+sample of the cone update only through the images it leads to.
 
 Negative values are only an error in images (radiance): stage outputs hold
 directions, SH coefficients, chroma and other quantities that are negative
@@ -96,8 +103,8 @@ def _kind(x: float) -> str:
 
 def _leaves(v, path: str, inf_ok: bool = False):
     """(path, 1-D float numpy array per component, +Inf allowed) of every
-    float leaf of a Dr.Jit value, list/tuple/dict of them, or a DRJIT_STRUCT
-    / Mitsuba struct (fields by name)."""
+    float leaf of a Dr.Jit value or float numpy array, list/tuple/dict of them,
+    or a DRJIT_STRUCT / Mitsuba struct (fields by name)."""
     if v is None or isinstance(v, (bool, int, str)):
         return
     if isinstance(v, (list, tuple)):
@@ -107,6 +114,10 @@ def _leaves(v, path: str, inf_ok: bool = False):
     if isinstance(v, dict):
         for k, x in v.items():
             yield from _leaves(x, f"{path}.{k}")
+        return
+    if isinstance(v, np.ndarray):              # host-side stage outputs (e.g. MegaViews' hierarchies)
+        if v.dtype.kind == "f":
+            yield path, v.astype(np.float64, copy=False).ravel(), inf_ok
         return
     fields = getattr(type(v), "DRJIT_STRUCT", None)
     if fields:

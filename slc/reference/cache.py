@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from slc.scene.gbuffer import GBuffer
+from slc.scene.scenes import LOAD_VERSION
 
 
 def cache_root() -> Path:
@@ -28,8 +29,8 @@ def cache_path(folder: str, version: str, scene, gb: GBuffer, frame: int, viewer
                bounces: int | None = None, seed: int | None = None) -> Path:
     """``$SLC_CACHE/<folder>/<scene>_f<frame>_<viewer>_<W>x<H>_s<spp>[_b<bounces>]_<hash>.npy``."""
     cam, t = gb.camera, scene.time
-    ident = [version, scene.name, int(frame), viewer, gb.width, gb.height, int(spp), bounces, seed,
-             np.round(cam.origin, 6).tolist(), np.round(cam.target, 6).tolist(), float(cam.fov),
+    ident = [version, LOAD_VERSION, scene.name, int(frame), viewer, gb.width, gb.height, int(spp),
+             bounces, seed, np.round(cam.origin, 6).tolist(), np.round(cam.target, 6).tolist(), float(cam.fov),
              None if t is None else round(float(t), 6), gbuffer_hash(gb)]
     h = hashlib.sha1(json.dumps(ident).encode()).hexdigest()[:16]
     safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in f"{scene.name}_f{frame}_{viewer}")

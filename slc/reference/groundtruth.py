@@ -6,8 +6,9 @@ BSDF pdf; delta lights weight 1) plus one BSDF sample (a ray; if it hits an
 emitter or escapes to the environment, weighted against the light pdf).
 Results are cached on disk (``$SLC_CACHE/gt`` or ``~/.cache/slc/gt``) under
 the one key of :func:`slc.reference.cache.cache_path` (scene, frame, viewer,
-resolution, sample count, camera, scene time, G-buffer hash), so
-experiments never recompute the same reference.
+resolution, sample count, estimator and scene-loading versions, camera,
+scene time, G-buffer hash), so experiments never recompute the same
+reference and never reuse one of an older definition.
 """
 from __future__ import annotations
 

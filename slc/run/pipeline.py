@@ -130,6 +130,8 @@ def _run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress, kc: 
             direct = method.render(ctx, gbs, timer)
             if check.enabled():                                     # raw images: no NaN/Inf, >= 0
                 check.images(direct, gbs)
+                check.images([references.image_of(method.output, gb, d) for gb, d in zip(gbs, direct)], gbs,
+                             stage="compose")
         timer.end_frame()
         compiled.append(kc.take())
         for k, v in method.stats().items():

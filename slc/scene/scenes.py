@@ -37,6 +37,7 @@ from slc.core import backend
 from slc.core.spec import SpecError, parse_spec
 
 backend.init()
+import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 from slc.scene.emitter_sampling import for_scene  # noqa: E402
@@ -51,6 +52,11 @@ FPS = 60.0            # frames per second of every camera path and animation (th
 WALK_SPEED = 1.4      # m/s: camera speed of the built-in paths (a walking pace)
 TURN_RATE = 30.0      # deg/s: fastest turn of a built-in path's view direction
 SUPPORTED_EMITTERS = ("area", "point", "spot", "envmap", "constant", "directional")
+# Version of what loading makes of a scene definition (today: emitter meshes made flat,
+# flatten_emitter_meshes). Part of every cached reference's key (slc.reference.cache.cache_path):
+# raised whenever loading changes a scene's lights or geometry, so that no reference
+# computed from an older build is served.
+LOAD_VERSION = 2
 
 
 class SceneError(ValueError):
@@ -310,6 +316,11 @@ class Scene:
         self.time = None
         self._params = mi.traverse(mi_scene) if self.animated else None
         check_emitters(mi_scene, name)
+        check_values(mi_scene, name)
+        flat = flatten_emitter_meshes(mi_scene)
+        for a in self.animated:
+            if a.shape_id in flat:
+                a.rest_normals = None       # posed flat: set_time writes no normals back
         for_scene(mi_scene)   # the emitter table, built here: never inside a symbolic loop
         # per-scene tables (emitter table, BSDF flags) hold the scene's emitters and
         # shapes: dropped with the last Scene of this mi.Scene, so that a freed scene
@@ -367,6 +378,78 @@ class Scene:
         fov = base.fov if base else 60.0
         return random_path(rng, lo + 0.2 * ext, hi - 0.2 * ext, lo + 0.3 * ext, hi - 0.3 * ext,
                            fov=fov, name=f"random{i}", unit=self.unit)
+
+
+_SIGNED_BSDFS = ("BumpMap",)    # a height map and its scale are signed: finiteness only
+
+
+def check_values(mi_scene: mi.Scene, name: str) -> None:
+    """Raise :class:`SceneError` (one line) at the first non-finite or negative
+    value of an emitter (radiance, intensity, irradiance, scale, environment
+    map) or of a BSDF, textures included (a bitmap with a NaN texel). Positions
+    and transforms are not values of light or reflectance and are not checked."""
+    for e in mi_scene.emitters():
+        if e.get_shape() is None:
+            _check_params(e, name, f"emitter {_label(e, None)}", signed=False)
+    seen = []
+    for i, sh in enumerate(mi_scene.shapes()):
+        if sh.is_emitter():
+            _check_params(sh.emitter(), name, f"area light of shape {_label(sh, i)}", signed=False)
+        b = sh.bsdf()
+        if b is None or any(b is x for x in seen):
+            continue
+        seen.append(b)
+        _check_params(b, name, f"BSDF {_label(b, None)} of shape {_label(sh, i)}",
+                      signed=b.class_name() in _SIGNED_BSDFS)
+
+
+def _label(obj, index) -> str:
+    """'id' (Class), or #index (Class) for objects without an id."""
+    ident = f"'{obj.id()}'" if obj.id() else (f"#{index}" if index is not None else "")
+    return f"{ident} ({obj.class_name()})".strip()
+
+
+def _check_params(obj, scene_name: str, what: str, signed: bool) -> None:
+    params = mi.traverse(obj)
+    for key in params.keys():
+        v = params[key]
+        if isinstance(v, float):
+            a = np.array([v])
+        elif isinstance(v, (mi.Float, mi.Color3f, mi.TensorXf)):
+            flat = v.array if isinstance(v, mi.TensorXf) else v
+            finite = bool(dr.all(dr.isfinite(flat), axis=None))
+            if finite and (signed or bool(dr.all(flat >= 0.0, axis=None))):
+                continue                                   # the usual case: no read-back of the data
+            a = np.asarray(flat, dtype=np.float64).ravel()
+        else:
+            continue                                       # positions, transforms, integers
+        bad = ~np.isfinite(a) if signed else ~(np.isfinite(a) & (a >= 0.0))
+        if bad.any():
+            x = float(a[np.argmax(bad)])
+            kind = "NaN" if np.isnan(x) else ("Inf" if np.isinf(x) else f"negative value {x:g}")
+            raise SceneError(f"scene '{scene_name}': {what} has {kind} in '{key}' "
+                             f"(emitter, BSDF and texture values must be finite"
+                             f"{'' if signed else ' and >= 0'})")
+
+
+def flatten_emitter_meshes(mi_scene: mi.Scene) -> set[str]:
+    """Drop the vertex normals of every triangle mesh that carries an area light,
+    so that it is shaded and sampled flat; returns the ids of the meshes changed.
+
+    Mitsuba samples a mesh emitter uniformly by area but reports the density of
+    a sample, and decides which side emits, with the *interpolated* normal of a
+    smooth mesh, which is not the density its samples follow: light sampling
+    (and the ground truth built on it) is then biased, and the MIS weights of
+    BSDF samples that hit the emitter use the same wrong density. With the
+    geometric normal both are exact (docs/emitter-sampling.md)."""
+    flat = set()
+    for sh in mi_scene.shapes():
+        if sh.is_emitter() and sh.is_mesh() and sh.has_vertex_normals():
+            p = mi.traverse(sh)
+            p["vertex_normals"] = mi.Float()
+            p.update()
+            flat.add(sh.id())
+    return flat
 
 
 def check_emitters(mi_scene: mi.Scene, name: str) -> None:

@@ -102,9 +102,11 @@ class ManyViewIR(Method):
         (hemispheres, ``phi = pi/2``; ``pi`` for omnidirectional views)."""
         sh = self.scene_hierarchy()
         from contextlib import nullcontext
-        with (timer.stage("view_hierarchy") if timer is not None else nullcontext()):
+        with (timer.stage("view_hierarchy") if timer is not None else nullcontext()) as st:
             tree = ViewHierarchy(vpls.position, vpls.normal, phi, self.view_depth)
             flat = None if self.mode == "megaviews" else ViewHierarchy(vpls.position, vpls.normal, phi, flat=True)
+            if st is not None:
+                st.outputs(*[(h.positions_np, h.directions_np) for h in (tree, flat) if h is not None])
         mode = "viewonly" if (self.mode == "megaviews" and not self.scene_h) else self.mode
         maps = tv.render_maps(sh, tree if flat is None else flat, self.res, mode, cull=self.cull,
                               budget_pairs=self.budget, fusion=self.fusion, timer=timer,
@@ -124,7 +126,7 @@ class ManyViewIR(Method):
     def render(self, ctx, gbuffers, timer):
         with timer.stage("vpl") as st:
             vpls = self.lights(self.seed_for(ctx.frame))
-            st.outputs(vpls.flux)
+            st.outputs(vpls.flux, vpls.position, vpls.normal)
         maps, tree = self.shadow_maps(vpls, timer)
         with timer.stage("maps") as st:
             st.outputs(maps.depth)

@@ -497,20 +497,25 @@ def render_maps(scene_h: SceneHierarchy, view_h: ViewHierarchy, R: int = 16, mod
     hierarchy: scene leaves x view root), ``manylods`` or ``brute`` (flat
     view sets)."""
     from contextlib import nullcontext
+    from types import SimpleNamespace
+    untimed = SimpleNamespace(outputs=lambda *values: None)   # no timer: no stage, nothing checked
 
     def stage(name):
-        return timer.stage(name) if timer is not None else nullcontext()
+        return timer.stage(name) if timer is not None else nullcontext(untimed)
 
-    with stage("traverse"):
+    with stage("traverse") as st:
         if mode == "brute":
             maps = brute_force(scene_h, view_h, R, cull, budget_pairs, multi_pixel)
         else:
             maps = Traversal(scene_h, view_h, R, cull, budget_pairs, record, multi_pixel, split, split_level,
                              "leaves" if mode == "viewonly" else "root").run()
-    with stage("push"):
+        st.outputs(maps.depth)
+    with stage("push") as st:
         if maps.stats.multi_pixel > 0:
             push(maps)
-    with stage("fuse"):
+        st.outputs(maps.depth)
+    with stage("fuse") as st:
         if fusion:
             fuse(maps)
+        st.outputs(maps.depth)
     return maps
