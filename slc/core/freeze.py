@@ -25,7 +25,8 @@ call):
   structure): Dr.Jit records the function again on most frames' first call
   (hangar with 3 moving lights: every other frame; street: every frame), and
   each recording traces the function anew. Recordings made in timed frames
-  would make the timings depend on the pose.
+  would make the timings depend on the pose, and the replays between two
+  recordings (hangar) do not give the traced function's images bit for bit.
 
 So:
 
