@@ -20,15 +20,22 @@ call):
   that width comes back (sponza, 240 frames: 3 recordings of the cone update),
   unless the function declares its lanes (below) and the array belongs to the
   call's own scene.
-- When meshes move, the traversed state changes from frame to frame and the
-  function is recorded again on the frame's first call.
+- When meshes move, the traversed state changes from frame to frame (the
+  moved meshes' buffers, their area distributions, the rebuilt acceleration
+  structure): Dr.Jit records the function again on most frames' first call
+  (hangar with 3 moving lights: every other frame; street: every frame), and
+  each recording traces the function anew. Recordings made in timed frames
+  would make the timings depend on the pose, and the replays between two
+  recordings (hangar) do not give the traced function's images bit for bit.
 
 So:
 
 - in a static scene, a function recorded more than ``max_recordings`` times is
   dropped (traced on every call from then on);
-- in an animated scene, the function keeps at most 2 recordings (LRU) and is
-  dropped once 8 calls show that almost every call records (> 90%).
+- in an animated scene, the function is traced on every call (never frozen):
+  its kernels are built in the first frame and found in Dr.Jit's in-memory
+  kernel cache from then on (no value that changes per frame is baked into
+  them), so no frame after the first builds a kernel, whatever the poses.
 
 Widths that coincide. Dr.Jit keys a recording on which of its inputs share a
 width (their "size equivalence class"), and the inputs include every array of
@@ -68,7 +75,8 @@ class FrozenFunction:
     """``fn`` frozen under the module's policy.
 
     Parameters (defaults): ``fn``, ``freeze=True`` (False: ``fn`` traced on
-    every call), ``animated=False`` (the scene's meshes move),
+    every call), ``animated=False`` (the scene's meshes move: ``fn`` traced on
+    every call, see the module),
     ``max_recordings=4``, ``lanes=()`` (the per-lane arguments, by the names of
     ``fn``'s parameters, or their positions: a call whose lane count collides with another input's
     width runs on a free width, see the module; an argument named here may be a
@@ -86,11 +94,9 @@ class FrozenFunction:
         self.padded_calls = 0           # calls run on a free width
         self._scene_key, self._scene_ws = None, set()
         self.animated, self.max_recordings = bool(animated), int(max_recordings)
-        self.frozen = bool(freeze)
-        if not freeze:
+        self.frozen = bool(freeze) and not self.animated
+        if not self.frozen:
             self.kernel = fn
-        elif self.animated:
-            self.kernel = dr.freeze(fn, limit=2, warn_after=1 << 30)
         else:
             self.kernel = dr.freeze(fn, warn_after=self.max_recordings + 1)
         self.recordings = 0
@@ -134,11 +140,7 @@ class FrozenFunction:
             if recs == self.recordings:     # a replay (a recording returns the traced outputs)
                 out = fit_literals(out)
             self.recordings = recs
-            if self.animated:
-                drop = self.calls >= 8 and self.recordings > 0.9 * self.calls
-            else:
-                drop = self.recordings > self.max_recordings
-            if drop:
+            if self.recordings > self.max_recordings:
                 self.kernel.clear()
                 self.kernel, self.frozen = self.fn, False
         return out

@@ -697,12 +697,11 @@ class ConeShading(FrozenFunction):
     function, so recordings are freed with the method and never shared between scenes.
     A frozen function traverses every object of Mitsuba's registry (shapes, BSDFs,
     emitters, the scene) on each call; when meshes move, that state changes from frame to
-    frame and the function is recorded again on the frame's first call (measured on
-    ``street``: one recording per frame), then replayed for the frame's other viewers and
-    bilinear taps. So in an animated scene the function keeps at most 2 recordings (LRU)
-    and is dropped (shading unfrozen from then on) once 8 calls show that almost no call
-    is a replay (one viewer, nearest fetch: a recording costs as much as plain tracing).
-    In a static scene a function recorded more than ``max_recordings`` times is dropped.
+    frame and the function would be recorded again on most frames' first call (measured
+    on ``street``: one recording per frame). So in an animated scene the shading is traced
+    on every call, never recorded (:mod:`slc.freeze`): no frame after the first builds a
+    kernel. In a static scene a function recorded more than ``max_recordings`` times is
+    dropped.
     """
 
     def __init__(self, max_cones: int, adaptive: bool = True, rotate: bool = True, freeze: bool = True,

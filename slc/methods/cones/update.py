@@ -549,8 +549,7 @@ class ConeUpdate(FrozenFunction):
     change of the scene's traversed state. As
     :class:`slc.methods.cones.shading.ConeShading`: in a static scene a function recorded
     more than ``max_recordings`` times is dropped (traced from then on); in an
-    animated one it keeps 2 recordings and is dropped once 8 calls show that almost
-    every call records."""
+    animated one it is traced on every call (:mod:`slc.freeze`)."""
 
     def __init__(self, freeze: bool = True, animated: bool = False, max_recordings: int = 4):
         # per-lane: the order and the batch (a lane count equal to a scene array's width runs
