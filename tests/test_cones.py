@@ -481,34 +481,35 @@ def _hard_scene(kind):
 
 # kind: (bound on |mean / reference - 1|, bound on the per-pixel mean error / mean).
 # Measured (40x30, 10 frames, check mode, plane pixels against helpers.quadrature_direct /
-# the closed form): point +0.2% / 4.8%, huge +0.06% / 4.6%, inside -0.3% / 6.1%;
-# grazing -38.7% / 49%, hemisphere (2 cones) -28% / 85%: known misses, xfail with the figure
-# while they miss (the assertion runs, so a fix turns them into passes).
+# the closed form): point +0.2% / 4.8%, huge +0.06% / 4.6%, inside -0.3% / 6.1%.
 HARD_BOUNDS = {"point": (0.01, 0.07), "huge": (0.01, 0.07), "inside": (0.02, 0.09),
                "grazing": (0.05, 0.10), "hemisphere": (0.05, 0.10)}
-HARD_MISSES = {"grazing": "a light standing on the horizon: measured mean -38.7%, per-pixel 49%",
-               "hemisphere": "a hemisphere-sized light with 2 cones: measured mean -28%, per-pixel 85%"}
+# Known misses (strict xfail while they miss; test_hard_case_misses_no_worse holds each to
+# 1.5x its measured (mean error, per-pixel error), same run as above):
+HARD_MISSES = {"grazing": (0.362, 0.489),      # a light standing on the horizon
+               "hemisphere": (0.358, 0.658)}   # a hemisphere-sized light with 2 cones
+_HARD_ERRORS = {}
 
 
-@pytest.mark.parametrize("kind", ["grazing", "point", "hemisphere", "zero", "huge", "inside"])
-def test_hard_cases_finite(kind, monkeypatch):
-    """Every hard case in check mode (SLC_CHECK=1: a NaN/Inf in any stage output or
-    a NaN/Inf/negative value in the returned image raises), and the raw image
-    against an independent reference on the plane's pixels: a quadrature over the
-    light with exact visibility (point, huge, inside, grazing) or the closed form
-    (hemisphere); zero radiance gives exactly 0. Bounds in HARD_BOUNDS."""
+def _hard_case_errors(kind):
+    """(mean error, per-pixel error) of slc on hard case ``kind`` against its independent
+    reference, rendered once per session in check mode (a NaN/Inf in any stage output or a
+    NaN/Inf/negative value in the returned image raises); ``zero``: the largest |value|."""
+    if kind in _HARD_ERRORS:
+        return _HARD_ERRORS[kind]
     from helpers import HARD_POINT, HARD_RECTS, quadrature_direct
     from slc import check
-    monkeypatch.setenv(check.ENV, "1")
     sc = _hard_scene(kind)
     m = _make(sc, max_cones=2 if kind == "hemisphere" else 3)
-    with check.scope("slc", None):
-        gb, d = _run(sc, m, 10)
-        check.images([d], [gb])
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv(check.ENV, "1")
+        with check.scope("slc", None):
+            gb, d = _run(sc, m, 10)
+            check.images([d], [gb])
     img = np.array(d).T.reshape(-1, 3)
     if kind == "zero":
-        assert np.all(img == 0)
-        return
+        _HARD_ERRORS[kind] = float(np.abs(img).max())
+        return _HARD_ERRORS[kind]
     p = np.array(gb.si.p).T.reshape(-1, 3)
     v = np.array(gb.valid) & (np.abs(p[:, 1]) < 1e-4)
     if kind == "hemisphere":
@@ -519,13 +520,39 @@ def test_hard_cases_finite(kind, monkeypatch):
         ref = quadrature_direct(sc, gb, rects, pts, n=64)
         coarse = quadrature_direct(sc, gb, rects, pts, n=32)       # converged pixels only
         v &= np.abs(ref - coarse).max(axis=1) <= 1e-3 * np.maximum(ref.max(axis=1), 1e-12)
+    assert v.sum() > 300, (kind, v.sum())
     a, r = img[v], ref[v]
-    mean_err, pix_err = abs(a.mean() / r.mean() - 1), np.abs(a - r).mean() / r.mean()
-    print(f"cones hard case {kind}: mean error {mean_err:.4f}, per-pixel {pix_err:.4f}")
+    _HARD_ERRORS[kind] = (abs(a.mean() / r.mean() - 1), np.abs(a - r).mean() / r.mean())
+    print(f"cones hard case {kind}: mean error {_HARD_ERRORS[kind][0]:.4f}, per-pixel {_HARD_ERRORS[kind][1]:.4f}")
+    return _HARD_ERRORS[kind]
+
+
+def _known_miss(case, misses, what):
+    return pytest.param(case, marks=pytest.mark.xfail(strict=True, raises=AssertionError,
+                                                      reason=f"{what}: measured {misses[case]}"))
+
+
+@pytest.mark.parametrize("kind", ["point", "zero", "huge", "inside"]
+                         + [_known_miss(k, HARD_MISSES, "mean, per-pixel error") for k in HARD_MISSES])
+def test_hard_cases_finite(kind):
+    """Every hard case in check mode, and the raw image against an independent reference
+    on the plane's pixels: a quadrature over the light with exact visibility (point, huge,
+    inside, grazing) or the closed form (hemisphere); zero radiance gives exactly 0.
+    Bounds in HARD_BOUNDS."""
+    if kind == "zero":
+        assert _hard_case_errors(kind) == 0.0
+        return
+    mean_err, pix_err = _hard_case_errors(kind)
     bm, bp = HARD_BOUNDS[kind]
-    if kind in HARD_MISSES and not (mean_err < bm and pix_err < bp):
-        pytest.xfail(HARD_MISSES[kind])
     assert mean_err < bm and pix_err < bp, (kind, mean_err, pix_err)
+
+
+@pytest.mark.parametrize("kind", list(HARD_MISSES))
+def test_hard_case_misses_no_worse(kind):
+    """A known miss runs in check mode and stays within 1.5x its measured errors."""
+    mean_err, pix_err = _hard_case_errors(kind)
+    bm, bp = HARD_MISSES[kind]
+    assert mean_err <= 1.5 * bm and pix_err <= 1.5 * bp, (kind, mean_err, pix_err)
 
 
 # ----------------------------------------------------------------------------- MIS shading

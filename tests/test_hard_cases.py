@@ -237,8 +237,6 @@ def _report(name, img, ref, mask, bounds):
     print(f"slc hard case {name}: mean error {mean_err:+.4f}, per-pixel {pix_err:.4f} ({mask.sum()} px)")
     mean_err = abs(mean_err)
     bm, bp = bounds
-    if name in SLC_MISSES and not (mean_err < bm and pix_err < bp):
-        pytest.xfail(SLC_MISSES[name])
     assert mean_err < bm and pix_err < bp, (name, mean_err, pix_err)
 
 
@@ -247,14 +245,17 @@ def _report(name, img, ref, mask, bounds):
 # on-surface cache, check mode; mean error, per-pixel error):
 #   point-like +0.4%, 5.3%   behind -0.8%, 4.9%   grazing-far +0.9%, 12.1%
 #   half-occluded -0.5%, 6.9%   many-lights -3.4%, 6.5%   moving-stopped +2.2%, 9.1%
-#   switched-off +144%, 144% (fourth session's code; docs/hard-cases.md) (a known miss: xfail with the figure while it misses; the
-#   assertion runs, so a fix turns it into a pass)
+#   switched-off: a known miss, SLC_MISSES
 SLC_BOUNDS = {"point-like": (0.02, 0.21), "behind": (0.02, 0.15), "grazing-far": (0.02, 0.16),
               "half-occluded": (0.02, 0.12), "many-lights": (0.07, 0.16),
               "moving-stopped": (0.03, 0.13), "switched-off": (0.05, 0.15)}
-SLC_MISSES = {"switched-off": "a light switched off 20 frames ago: measured mean +144%, per-pixel 144% "
-                              "(+194% 2 frames after; rt16 follows at once): a cone whose light went dark "
-                              "only decays as a running mean, nothing detects the change"}
+# Known misses (strict xfail while they miss; a separate test holds each to 1.5x its measured
+# (mean error, per-pixel error), same setup as above):
+#   switched-off: a light switched off 20 frames ago; measured (48x32) slc before the switch
+#   +0.08%, 5.1%; 2 frames after +203%; 10 after +183%; 20 after +165%, 165% (rt16 2 frames
+#   after: +0.4% in the mean). A cone whose light went dark only decays as a running mean,
+#   nothing detects the change.
+SLC_MISSES = {"switched-off": (1.65, 1.65)}
 
 
 def test_slc_point_like_sphere_light():
@@ -367,14 +368,16 @@ SWITCH = [("stays", [-0.3, 1.0, 0], [0.1, 0, 0], [0, 0, 0.1], 20.0),
 OFF_AT = 16
 
 
-def test_slc_light_switches_off():
-    """Two lights; the brighter one switches off at frame 16 (radiance 0
-    through mi.traverse, the emitter table re-read). The error against the
-    quadrature of the light that stays on, 20 frames after. First, rt16 on
-    the same switch is right 2 frames after it (the switch reaches the
-    methods). Measured (mean, per-pixel): slc before the switch +0.4%, 6.6%;
-    2 frames after +194%; 10 after +152%; 20 after +133% (a known miss);
-    rt16 2 frames after the switch: asserted within 3% in the mean."""
+_SWITCH_OFF = {}
+
+
+def _switch_off_errors():
+    """Two lights; the brighter one switches off at frame 16 (radiance 0 through
+    mi.traverse, the emitter table re-read). Rendered once per session: rt16's
+    (mean, per-pixel) error 2 frames after the switch, and slc's at frames 15, 18,
+    26 and 36 (the switch + 20), against the quadrature of the lights that are on."""
+    if _SWITCH_OFF:
+        return _SWITCH_OFF
     import mitsuba as mi
 
     from slc import emitter_sampling
@@ -395,14 +398,34 @@ def test_slc_light_switches_off():
     sc, rt = switching("rt16", OFF_AT + 3, ())
     gb, img = rt[OFF_AT + 2]
     ref, mask = _quad_ref(sc, gb, SWITCH[:1], _plane_mask(gb), n=32)
-    assert rel_errors(img, ref, mask)[0] < 0.03, rel_errors(img, ref, mask)
+    _SWITCH_OFF["rt16"] = rel_errors(img, ref, mask)
     sc, res = switching("slc", OFF_AT + 21, (OFF_AT - 1, OFF_AT + 2, OFF_AT + 10))
-    errs = {}
     for f, (gb, img) in res.items():
         on = SWITCH if f < OFF_AT else SWITCH[:1]
         ref, mask = _quad_ref(sc, gb, on, _plane_mask(gb), n=32)
-        errs[f] = rel_errors(img, ref, mask)
-    print("switched-off light, (mean, per-pixel) error by frame:", errs)
-    gb, img = res[OFF_AT + 20]
-    ref, mask = _quad_ref(sc, gb, SWITCH[:1], _plane_mask(gb), n=32)
+        _SWITCH_OFF[f] = (img, ref, mask) if f == OFF_AT + 20 else rel_errors(img, ref, mask)
+    print("switched-off light, (mean, per-pixel) error:",
+          {k: rel_errors(*v) if k == OFF_AT + 20 else v for k, v in _SWITCH_OFF.items()})
+    return _SWITCH_OFF
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason=f"measured {SLC_MISSES['switched-off']}")
+def test_slc_light_switches_off():
+    """20 frames after the switch slc's image is within SLC_BOUNDS of the light that
+    stays on (a known miss, SLC_MISSES)."""
+    img, ref, mask = _switch_off_errors()[OFF_AT + 20]
     _report("switched-off", img, ref, mask, SLC_BOUNDS["switched-off"])
+
+
+def test_slc_light_switches_off_no_worse():
+    """The switch reaches the methods: rt16 is within 3% in the mean 2 frames after it;
+    slc is within its bounds before the switch (one frame before), and 20 frames after
+    within 1.5x the measured miss (SLC_MISSES)."""
+    e = _switch_off_errors()
+    assert e["rt16"][0] < 0.03, e["rt16"]
+    assert e[OFF_AT - 1][0] < SLC_BOUNDS["switched-off"][0] and e[OFF_AT - 1][1] < SLC_BOUNDS["switched-off"][1], \
+        e[OFF_AT - 1]
+    img, ref, mask = e[OFF_AT + 20]
+    mean_err, pix_err = rel_errors(img, ref, mask)
+    bm, bp = SLC_MISSES["switched-off"]
+    assert mean_err <= 1.5 * bm and pix_err <= 1.5 * bp, (mean_err, pix_err)
