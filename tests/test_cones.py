@@ -9,7 +9,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import plane_under_rect_light, rect_irradiance
+from helpers import known_miss, plane_under_rect_light, rect_irradiance
 from slc import gbuffer
 from slc.cones import packing as P
 from slc.cones.method import SurfaceLightCones
@@ -527,13 +527,8 @@ def _hard_case_errors(kind):
     return _HARD_ERRORS[kind]
 
 
-def _known_miss(case, misses, what):
-    return pytest.param(case, marks=pytest.mark.xfail(strict=True, raises=AssertionError,
-                                                      reason=f"{what}: measured {misses[case]}"))
-
-
 @pytest.mark.parametrize("kind", ["point", "zero", "huge", "inside"]
-                         + [_known_miss(k, HARD_MISSES, "mean, per-pixel error") for k in HARD_MISSES])
+                         + [known_miss(k, HARD_MISSES[k], "mean, per-pixel error") for k in HARD_MISSES])
 def test_hard_cases_finite(kind):
     """Every hard case in check mode, and the raw image against an independent reference
     on the plane's pixels: a quadrature over the light with exact visibility (point, huge,
@@ -705,24 +700,22 @@ def _glossy_bsdf(kind, alpha):
 GLOSSY_FRAMES = 48
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("light", ["small", "large"])
-@pytest.mark.parametrize("alpha", [0.005, 0.01, 0.05, 0.2])
-@pytest.mark.parametrize("kind", ["conductor", "plastic"])
-def test_glossy_plane_relmse_vs_rt48(kind, alpha, light, request):
-    """issue 12 item 1: a conductor / plastic plane of GGX roughness alpha under a small
+_GLOSSY = {}
+
+
+def _glossy_case(kind, alpha, light):
+    """slc and rt48 on a conductor / plastic plane of GGX roughness alpha under a small
     (0.2 m square, 1 m above) or a large (2 m square) light, still camera, 48 frames on the
-    on-surface cache: relMSE(slc) <= relMSE(rt48) against the 2048-sample ground truth,
-    and no pixel above 10x the ground truth where the ground truth is smooth (3x3
-    neighbourhood within a factor 2: no fireflies). Cases that miss are marked xfail
-    (strict) with the measured ratio: the cones' piecewise-uniform model of a small square
-    light, not the shading's sampling, is what a near-mirror lobe resolves there."""
+    on-surface cache, rendered once per session: whether slc's image is finite, its
+    fireflies (pixels above 10x the ground truth where the ground truth is smooth: 3x3
+    neighbourhood within a factor 2) and the relMSE of both against the 2048-sample
+    ground truth."""
+    case = (kind, alpha, light)
+    if case in _GLOSSY:
+        return _GLOSSY[case]
     from scipy.ndimage import maximum_filter, minimum_filter
     from slc.groundtruth import ground_truth
     from slc.metrics import rel_mse
-    case = (kind, alpha, light)
-    if case in GLOSSY_MISSES:
-        request.applymarker(pytest.mark.xfail(strict=True, reason=f"measured relMSE ratio {GLOSSY_MISSES[case]}"))
     half, radiance = (0.1, 20.0) if light == "small" else (1.0, 1.0)
     sc = plane_under_rect_light(half=half, radiance=radiance, bsdf=_glossy_bsdf(kind, alpha),
                                 name=f"glossy_{kind}_{alpha}_{light}")
@@ -732,15 +725,41 @@ def test_glossy_plane_relmse_vs_rt48(kind, alpha, light, request):
     gt = ground_truth(sc, gb, GLOSSY_FRAMES - 1)
     d_rt = create("rt48", sc).render(FrameContext(GLOSSY_FRAMES - 1), [gb], NullTimer())[0]
     img_rt = gbuffer.to_image(gb, gbuffer.compose(gb, d_rt))
-    assert np.all(np.isfinite(img))
-    r_slc, r_rt = rel_mse(gt, img), rel_mse(gt, img_rt)
     g = gt.mean(-1)
     smooth = (maximum_filter(g, 3) <= 2.0 * minimum_filter(g, 3)) & (g > 1e-3)
-    fireflies = int(((img.mean(-1) > 10.0 * g) & smooth).sum())
-    print(f"glossy {kind} alpha={alpha} {light}: relMSE slc {r_slc:.4g} rt48 {r_rt:.4g} "
-          f"ratio {r_slc / r_rt:.3f} fireflies {fireflies}")
-    assert fireflies == 0, fireflies
-    assert r_slc <= r_rt, (r_slc, r_rt, r_slc / r_rt)
+    r = dict(finite=bool(np.all(np.isfinite(img))), fireflies=int(((img.mean(-1) > 10.0 * g) & smooth).sum()),
+             slc=rel_mse(gt, img), rt48=rel_mse(gt, img_rt))
+    print(f"glossy {kind} alpha={alpha} {light}: relMSE slc {r['slc']:.4g} rt48 {r['rt48']:.4g} "
+          f"ratio {r['slc'] / r['rt48']:.3f} fireflies {r['fireflies']}")
+    _GLOSSY[case] = r
+    return r
+
+
+GLOSSY_CASES = [(k, a, li) for k in ("conductor", "plastic") for a in (0.005, 0.01, 0.05, 0.2)
+                for li in ("small", "large")]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind,alpha,light", [
+    known_miss(c, GLOSSY_MISSES[c], "relMSE slc / rt48") if c in GLOSSY_MISSES else c for c in GLOSSY_CASES])
+def test_glossy_plane_relmse_vs_rt48(kind, alpha, light):
+    """issue 12 item 1: relMSE(slc) <= relMSE(rt48) against the 2048-sample ground truth
+    (_glossy_case). Cases that miss are strict xfails with the measured ratio
+    (GLOSSY_MISSES): the cones' piecewise-uniform model of a small square light, not the
+    shading's sampling, is what a near-mirror lobe resolves there."""
+    r = _glossy_case(kind, alpha, light)
+    assert r["slc"] <= r["rt48"], (r, r["slc"] / r["rt48"])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind,alpha,light", GLOSSY_CASES)
+def test_glossy_plane_no_fireflies(kind, alpha, light):
+    """Every glossy case (_glossy_case): slc's image is finite with no firefly, and a
+    known miss (GLOSSY_MISSES) stays within 1.5x its measured relMSE ratio to rt48."""
+    r = _glossy_case(kind, alpha, light)
+    assert r["finite"] and r["fireflies"] == 0, r
+    if (kind, alpha, light) in GLOSSY_MISSES:
+        assert r["slc"] / r["rt48"] <= 1.5 * GLOSSY_MISSES[kind, alpha, light], (r, r["slc"] / r["rt48"])
 
 
 def test_stratified_update_samples_lower_error():

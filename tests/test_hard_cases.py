@@ -409,7 +409,8 @@ def _switch_off_errors():
     return _SWITCH_OFF
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason=f"measured {SLC_MISSES['switched-off']}")
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason=f"known miss, mean, per-pixel error {SLC_MISSES['switched-off']}")
 def test_slc_light_switches_off():
     """20 frames after the switch slc's image is within SLC_BOUNDS of the light that
     stays on (a known miss, SLC_MISSES)."""
