@@ -207,9 +207,17 @@ def test_reference_has_no_indirect_light_on_a_lone_plane():
     assert np.all(ind == 0.0)
 
 
-def test_rays_visibility_option(cornell):
-    _, _, img = _render(cornell, encoding="y3co1cg1", visibility="rays", vpls=1024, samples=16)
-    assert np.isfinite(img).all() and img.mean() > 0
+def test_rays_visibility_option():
+    """Visibility by Mitsuba rays instead of the voxel march, one frame on the
+    all-diffuse Cornell box against a 64-spp indirect reference: the image mean per
+    channel within 15% and relMSE below 0.03. Measured: +7.6 / +2.8 / +10.3%, relMSE
+    0.0199 (the march: +2.2 / +3.6 / +14.6%, 0.0187)."""
+    from slc.metrics import rel_mse
+    scene = diffuse_cornell()
+    _, gbs, img = _render(scene, encoding="y3co1cg1", visibility="rays", vpls=1024, samples=16)
+    ref = to_image(gbs[0], references.indirect_light(scene.mi_scene, gbs[0], spp=64, bounces=1))
+    ratio = img.mean((0, 1)) / ref.mean((0, 1))
+    assert np.all(np.abs(ratio - 1) < 0.15) and rel_mse(ref, img) < 0.03, (ratio, rel_mse(ref, img))
 
 
 @pytest.mark.parametrize("spec,words", [
