@@ -196,3 +196,35 @@ def known_miss(case, measured, what="measured"):
     values = case if isinstance(case, tuple) else (case,)
     return pytest.param(*values, marks=pytest.mark.xfail(strict=True, raises=AssertionError,
                                                          reason=f"known miss, {what} {measured}"))
+
+
+def slc_cli(args, cwd=None):
+    """``slc ARGS`` run in this process (``slc.cli.main``, as the ``slc`` entry point
+    runs it) rather than in a fresh interpreter: a ``subprocess.CompletedProcess``
+    with the exit status and what the command printed to stdout and stderr. Check
+    mode (``--check``) is switched off again afterwards; an exception the command
+    does not turn into an exit status propagates (a traceback, as in a subprocess)."""
+    import contextlib
+    import io
+    import os
+    import subprocess
+    from pathlib import Path
+
+    from slc import check, cli
+    args = [str(a) for a in args]
+    out, err = io.StringIO(), io.StringIO()
+    before = os.environ.get(check.ENV)
+    code = 0
+    try:
+        with contextlib.chdir(cwd or Path(__file__).resolve().parents[1]), \
+                contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                cli.main(args)
+            except SystemExit as e:
+                code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    finally:
+        if before is None:
+            os.environ.pop(check.ENV, None)
+        else:
+            os.environ[check.ENV] = before
+    return subprocess.CompletedProcess(["slc", *args], code, out.getvalue(), err.getvalue())
