@@ -2,8 +2,6 @@
 occupancy optimization being exact at shaded points, agreement with the
 indirect reference (slc.references), its settings, and the pipeline
 comparing it with the indirect reference."""
-import subprocess
-import sys
 from pathlib import Path
 
 import drjit as dr
@@ -22,7 +20,7 @@ from slc.methods import FrameContext, MethodError
 from slc.pipeline import RunConfig, gbuffers_for, run_sequence
 from slc.timing import NullTimer
 
-from helpers import plane_under_rect_light
+from helpers import plane_under_rect_light, slc_cli
 
 W, H = 64, 36
 ROOT = Path(__file__).resolve().parents[1]
@@ -233,9 +231,7 @@ def test_bad_settings_are_refused(cornell, spec, words):
 
 def test_bad_setting_through_the_experiment_is_one_line(tmp_path):
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "slc.cli", "run", "crc", "--quick", "--scene", "cornell",
-                        "--methods", "crc:encoding=bogus", "--out", str(out)],
-                       capture_output=True, text=True, cwd=ROOT, timeout=600)
+    r = slc_cli(["run", "crc", "--quick", "--scene", "cornell", "--methods", "crc:encoding=bogus", "--out", out])
     assert r.returncode == 2, (r.stdout, r.stderr)
     lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
     assert len(lines) == 1 and "encoding" in lines[0] and "Traceback" not in r.stderr, r.stderr
@@ -260,16 +256,18 @@ def test_pipeline_compares_crc_with_the_indirect_reference(cornell):
 
 def test_render_gt_uses_the_reference_of_the_output_kind(tmp_path):
     """``slc render --gt`` with an indirect method compares it with the
-    indirect reference (and says so), not with the direct ground truth."""
+    indirect reference (and says so), not with the direct ground truth, and the
+    figures it writes are the measured ones."""
     out = tmp_path / "r"
-    r = subprocess.run([sys.executable, "-m", "slc.cli", "render", "--scene", "cornell", "--method",
-                        "crc:vpls=256,samples=4", "--res", "32x18", "--frames", "2", "--warmup", "1", "--gt",
-                        "--out", str(out)], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    r = slc_cli(["render", "--scene", "cornell", "--method", "crc:vpls=256,samples=4", "--res", "32x18",
+                 "--frames", "2", "--warmup", "1", "--gt", "--out", out])
     assert r.returncode == 0, r.stderr
     assert "vs the indirect reference" in r.stdout, r.stdout
     import json
     row = json.loads((out / "timings.json").read_text())
-    assert np.isfinite(row["flip"]) and row["psnr"] > 0
+    # measured FLIP 0.284, relMSE 0.410 (the Cornell box's rough-metal block: CRC's Lambertian
+    # reconstruction is too bright there); within 1.2x
+    assert row["flip"] < 0.34 and row["rel_mse"] < 0.49, row
     assert list(out.glob("*_strip.png"))
 
 
