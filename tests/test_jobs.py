@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from helpers import slc_cli
 from slc import jobs, views
 from slc.pipeline import RunConfig
 
@@ -28,8 +29,12 @@ needs_ray = pytest.mark.skipif(importlib.util.find_spec("ray") is None,
 
 
 def slc_run(out, *extra, timeout=900):
-    r = subprocess.run(SLC + TINY + ["--out", str(out), *extra], capture_output=True, text=True, cwd=ROOT,
-                       timeout=timeout)
+    """The tiny preset, in this process (helpers.slc_cli) unless it starts Ray workers."""
+    if "--workers" in extra:
+        r = subprocess.run(SLC + TINY + ["--out", str(out), *extra], capture_output=True, text=True, cwd=ROOT,
+                           timeout=timeout)
+    else:
+        r = slc_cli(TINY + ["--out", out, *extra])
     assert r.returncode == 0, r.stderr[-3000:]
     return r
 
@@ -171,6 +176,7 @@ def test_failed_jobs_are_retried_reported_and_resumable(tmp_path):
 # Serial: killed mid-way, resumed
 # -----------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_serial_run_killed_then_resumed_equals_uninterrupted(serial, tmp_path):
     out = tmp_path / "killed"
     p = spawn(out)
@@ -195,6 +201,7 @@ def test_serial_run_killed_then_resumed_equals_uninterrupted(serial, tmp_path):
 # Ray
 # -----------------------------------------------------------------------------
 
+@pytest.mark.slow
 @needs_ray
 def test_ray_workers_give_the_serial_rows(serial, tmp_path):
     out = tmp_path / "ray"
@@ -205,6 +212,7 @@ def test_ray_workers_give_the_serial_rows(serial, tmp_path):
     assert all(r["host"] and r["job"] for r in rb)
 
 
+@pytest.mark.slow
 @needs_ray
 def test_two_node_cluster_gives_the_serial_rows(serial, tmp_path):
     import ray
@@ -226,6 +234,7 @@ def test_two_node_cluster_gives_the_serial_rows(serial, tmp_path):
     assert len({s["node"] for s in stats}) == 2  # both nodes ran jobs
 
 
+@pytest.mark.slow
 @needs_ray
 def test_killed_ray_worker_loses_no_row_and_the_run_completes(serial, tmp_path):
     out = tmp_path / "raykill"
