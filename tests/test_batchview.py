@@ -52,6 +52,7 @@ def test_single_viewer_unchanged_by_batch(atrium):
     assert np.array_equal(a[0], b[0])
 
 
+@pytest.mark.slow      # a fresh interpreter counting kernels
 def test_batched_no_kernel_built_after_warmup():
     from test_compile import _run_case
     r = _run_case("slc:batch=viewers", "random", 4)
