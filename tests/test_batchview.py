@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 
 from helpers import render_frames
-from slc import methods, scenes, views
+from slc import methods, views
 
 W, H, FRAMES = 48, 27, 4
 
 
 @pytest.fixture(scope="module")
-def atrium():
-    return scenes.load("atrium")
+def atrium(scene):
+    return scene("atrium")
 
 
 def _run(scene, spec, rig):

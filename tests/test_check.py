@@ -5,7 +5,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import check, gbuffer, scenes, views
+from slc import check, gbuffer, views
 from slc.methods import Method
 from slc.pipeline import RunConfig, run_sequence
 from slc.timing import StageTimer
@@ -38,8 +38,8 @@ class Stub(Method):
 
 
 @pytest.fixture(scope="module")
-def cornell():
-    return scenes.load("cornell")
+def cornell(scene):
+    return scene("cornell")
 
 
 def _cfg(frames=2):

@@ -9,7 +9,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import methods, references, scenes, views
+from slc import methods, references, views
 from slc.crc import CRCCache, Grid
 from slc.crc import volume
 from slc.crc.march import visible
@@ -27,8 +27,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def cornell():
-    return scenes.load("cornell")
+def cornell(scene):
+    return scene("cornell")
 
 
 def _render(scene, frames=1, **kw):

@@ -9,7 +9,7 @@ import drjit as dr
 import numpy as np
 import pytest
 
-from slc import methods, scenes, views
+from slc import methods, views
 from slc.methods import FrameContext
 from slc.pipeline import gbuffers_for
 from slc.timing import KernelCounter, NullTimer
@@ -18,8 +18,8 @@ W, H = 64, 36
 
 
 @pytest.fixture(scope="module")
-def atrium():
-    return scenes.load("atrium")
+def atrium(scene):
+    return scene("atrium")
 
 
 def _pinned(scene, offset, **kw):

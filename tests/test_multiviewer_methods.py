@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 
 from helpers import render_frames
-from slc import methods, scenes, views
+from slc import methods, views
 
 W, H, FRAMES = 48, 27, 5
 
 
 @pytest.fixture(scope="module")
-def cornell():
-    return scenes.load("cornell")
+def cornell(scene):
+    return scene("cornell")
 
 
 def _still(rig):

@@ -9,7 +9,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import methods, scenes, views
+from slc import methods, views
 from slc.methods import FrameContext
 from slc.pipeline import gbuffers_for
 from slc.timing import NullTimer
@@ -18,8 +18,8 @@ W, H, FRAMES = 32, 18, 24
 
 
 @pytest.fixture(scope="module")
-def cornell():
-    return scenes.load("cornell")
+def cornell(scene):
+    return scene("cornell")
 
 
 def _run(scene, spec, viewers, frames, still=True, w=W, h=H, average=1):

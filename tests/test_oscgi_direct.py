@@ -9,7 +9,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import methods, references, scenes, views
+from slc import methods, references, views
 from slc.oscgi.secondary import MAX_LOD, cell_level
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -17,8 +17,8 @@ from test_oscgi import _run  # noqa: E402
 
 
 @pytest.fixture(scope="module")
-def cornell():
-    return scenes.load("cornell")
+def cornell(scene):
+    return scene("cornell")
 
 
 def test_per_pixel_direct_light_is_unbiased_and_leaves_the_cache_alone(cornell):

@@ -18,8 +18,8 @@ W, H = 64, 36
 
 
 @pytest.fixture(scope="module")
-def cornell():
-    return scenes.load("cornell")
+def cornell(scene):
+    return scene("cornell")
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ circle: 16 views at 0% used to measure 75%)."""
 import numpy as np
 import pytest
 
-from slc import scenes, views
+from slc import views
 from slc.pipeline import gbuffers_for
 
 W, H = 80, 45                  # same aspect as the calibration, other resolution
@@ -17,8 +17,8 @@ TOLERANCE = 10.0               # percentage points
 
 
 @pytest.fixture(scope="module")
-def atrium():
-    return scenes.load("atrium")
+def atrium(scene):
+    return scene("atrium")
 
 
 @pytest.mark.parametrize("n", [4, 16])
