@@ -165,6 +165,7 @@ def _plane_points(scene, n=64):
     return si
 
 
+@pytest.mark.slow
 def test_cone_pool_update_is_slc_update_bit_for_bit():
     """The adaptive cone pool runs slc's own update cycle (slc.cones.update.update_cycle
     through a SampleObserver): from the same records, keys, rays, policy state and seed
@@ -241,6 +242,7 @@ def _set_lights(scene, point, area):
     emitter_sampling.for_scene(scene.mi_scene)
 
 
+@pytest.mark.slow
 def test_point_to_area_switch_changes_the_choice_without_energy_jumps():
     scene = _point_then_area()
     _set_lights(scene, 2.0, 0.0)
@@ -268,6 +270,7 @@ def test_point_to_area_switch_changes_the_choice_without_energy_jumps():
     assert abs(means[-1] - gt[ok].mean()) / gt[ok].mean() < 0.05
 
 
+@pytest.mark.slow
 def test_still_camera_frame_to_frame_change_is_bounded():
     """Two emitters (a point light and a square light): mixed choices, still
     camera; after start-up the image mean moves by less than 2% a frame."""
