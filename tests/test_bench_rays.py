@@ -1,5 +1,7 @@
 """`slc bench rays`: the split of RT-N's time (a smoke test of the report: no
 timing is asserted, only that every part is measured and reported)."""
+import pytest
+
 from slc import bench
 
 
@@ -15,6 +17,7 @@ def test_bench_rays_reports_where_the_time_goes():
     assert r["load"] is None or len(r["load"]) == 3
 
 
+@pytest.mark.slow
 def test_bench_update_traces_the_records_before_the_update():
     """In the first frame every entry is new: its records before the update hold no
     cone, so the shrink test has nothing to test. Reading the records after the
@@ -24,6 +27,7 @@ def test_bench_update_traces_the_records_before_the_update():
     assert r["shrink_rays"] == 0
 
 
+@pytest.mark.slow
 def test_bench_update_reports_frame_and_rays():
     r = bench.bench_update("cornell", 24, 14, frames=6, warmup=3, repeats=1)
     assert 0 < r["shrink_rays"] <= 3 * r["entries"]
