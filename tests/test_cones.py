@@ -311,6 +311,7 @@ def _gt(scene, gb, spp=1024):
     return np.array(direct_mis(scene.mi_scene, gb, spp)).T.reshape(-1, 3)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("cache", ["pixel", "osc"])
 def test_small_light_diffuse_plane_converges(cache):
     """A 0.2 m square light 1 m above a diffuse plane, 24 frames (8 new + 16 settled
@@ -343,6 +344,7 @@ def test_small_light_diffuse_plane_converges(cache):
 BILINEAR_BOUND = 0.015
 
 
+@pytest.mark.slow
 def test_bilinear_fetch_taps_and_error():
     """Bilinear fetch on the OSC: every pixel's usable tap weights sum to 1, taps are
     entries of the pixel's own island, and on the small-light plane it is closer to
@@ -381,6 +383,7 @@ def test_bilinear_fetch_taps_and_error():
     assert errs["bilinear"] < errs["nearest"], errs
 
 
+@pytest.mark.slow
 def test_glossy_flip_below_rt16():
     sc = plane_under_rect_light(half=0.2, radiance=10.0, bsdf=rough_conductor(0.15, "Al"), name="glossy")
     m = _make(sc)
@@ -400,6 +403,7 @@ def _moving_scene(stop=12):
     return plane_under_rect_light(half=0.1, radiance=20.0, light_transform=T, name="moving")
 
 
+@pytest.mark.slow
 def test_moving_light_recovers_after_stop():
     """The light moves 4 cm (about 2.3 deg seen from below) per frame for 12 frames,
     then stops. Measured mean relative error (pixel cache, 40x30): about 0.21 right
@@ -423,6 +427,7 @@ def test_moving_light_recovers_after_stop():
     assert errs[22] < 0.14 and errs[32] < 0.10, errs
 
 
+@pytest.mark.slow
 def test_half_occluded_large_light_measured():
     """DESIGN.md asks that a half-occluded large light be measured, not assumed:
     a 1 m x 1 m light 1 m above a diffuse plane, with a thin horizontal blocker
@@ -564,6 +569,7 @@ def _storage_after(sc, frames=12, cache="pixel"):
     return m, gb, slot, ok, tf
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("bsdf", ["conductor", "plastic"])
 def test_mis_shading_unbiased_and_deterministic(bsdf):
     """The MIS estimator is unbiased for the cone model: the mean of 128 differently
@@ -601,6 +607,7 @@ def _moving_camera_plane():
     return b.build([cam])
 
 
+@pytest.mark.slow
 def test_shading_freeze_recordings_bounded():
     """issue 13: over a sequence that mimics one single-viewer experiment process
     (several scenes, static and animated, three settings each, a camera that makes the
@@ -761,6 +768,7 @@ def test_glossy_plane_no_fireflies(kind, alpha, light):
         assert r["slc"] / r["rt48"] <= 1.5 * GLOSSY_MISSES[kind, alpha, light], (r, r["slc"] / r["rt48"])
 
 
+@pytest.mark.slow
 def test_stratified_update_samples_lower_error():
     """Update samples from a per-entry R2 sequence that counts on across cycles
     (``samples=r2``, the default) against independent random numbers per cycle
@@ -797,6 +805,7 @@ def _switch_off_scene(off):
     return b.build([cam, cam, cam])
 
 
+@pytest.mark.slow
 def test_light_that_switches_off_fades():
     """Hard case "a light that switches off": after 24 frames (settled entries, C
     about 80) the larger of two lights leaves. Its cones are wider than 2 degrees,
@@ -826,6 +835,7 @@ def test_light_that_switches_off_fades():
     assert errs["off", 8] > 1.0, errs              # measured 2.7: the stale cone the axis test removes
 
 
+@pytest.mark.slow
 def test_stochastic_fetch_mean_and_determinism():
     """``fetch=stochastic`` shades one bilinear tap per pixel, drawn with its weight
     as probability: the image mean stays within 1 % of the closed form, the image is

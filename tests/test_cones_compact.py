@@ -55,6 +55,7 @@ def _sampled(call, **opts):
     return v[0] == 1e30
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("opts", [{}, {"principled": "sample"}, {"conductor": "sg", "principled": "sample"}, {"glossy": "half"},
                                   {"horizon": False}])
 def test_compact_equals_branch(captured, opts):

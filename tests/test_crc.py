@@ -114,6 +114,7 @@ def test_occupancy_is_exact_at_shaded_points(cornell, bounces):
     assert np.allclose(on, off, rtol=1e-4, atol=1e-6 * off.max())
 
 
+@pytest.mark.slow
 def test_against_indirect_reference():
     """1 and 2 bounces vs the indirect reference on an all-diffuse Cornell
     box (CRC models diffuse reflection only: on the real box's rough-metal

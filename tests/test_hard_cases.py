@@ -143,6 +143,7 @@ RESTIR_BOUNDS = {  # kind: (mean, per-pixel mean error), about 1.5x the measured
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", KINDS)
 def test_restir_hard_cases(kind):
     """ReSTIR (RTXDI defaults: temporal + spatial reuse, bias=basic, initial
