@@ -259,6 +259,7 @@ SLC_BOUNDS = {"point-like": (0.02, 0.21), "behind": (0.02, 0.15), "grazing-far":
 SLC_MISSES = {"switched-off": (1.65, 1.65)}
 
 
+@pytest.mark.slow
 def test_slc_point_like_sphere_light():
     """An emissive sphere of radius 4 mm (1e-3 of the 4 m scene) 0.7 m above
     the plane: a cone of about 0.3 degrees. Reference: the closed form of a
@@ -283,6 +284,7 @@ BEHIND = [("front", [0, 1.0, 0], [0.2, 0, 0], [0, 0, 0.2], 10.0),
           ("behind", [3.0, -0.7, 0], [0, 0, 0.5], [0, 0.3, 0], 50.0)]   # below the horizon, facing -x
 
 
+@pytest.mark.slow
 def test_slc_light_behind_the_surface():
     """A bright light below the plane's horizon (beyond its edge, so no shadow
     ray is blocked: only the cosine keeps it out) next to a small light in
@@ -299,6 +301,7 @@ def test_slc_light_behind_the_surface():
 GRAZING_FAR = [("light", [0, 0.25, -3.0], [1.0, 0, 0], [0, 0.1, 0], 40.0)]   # 3-7 degrees above the horizon
 
 
+@pytest.mark.slow
 def test_slc_grazing_incidence():
     """A light 3 m away, 3 to 7 degrees above the horizon, facing the plane
     (not touching it: the touching one is test_cones.py's ``grazing``):
@@ -312,6 +315,7 @@ def test_slc_grazing_incidence():
 HALF = [("light", [0, 1.0, 0], [0.5, 0, 0], [0, 0, 0.5], 8.0)]
 
 
+@pytest.mark.slow
 def test_slc_half_occluded_large_light_check_mode():
     """test_cones.py's half-occluded large light (1 m x 1 m at 1 m, a thin
     blocker at 0.5 m over the half x < 0), in check mode on the default slc,
@@ -326,6 +330,7 @@ MANY = [(f"l{i}", [1.2 * np.cos(a), 0.9 + 0.2 * (i % 2), 1.2 * np.sin(a) - 0.3],
          [0.08, 0, 0], [0, 0, 0.08], 60.0) for i, a in enumerate(np.linspace(0, 2 * np.pi, 8, endpoint=False))]
 
 
+@pytest.mark.slow
 def test_slc_more_lights_than_max_cones():
     """Eight small lights on a ring around the plane's centre, all visible
     from every plane point, with max_cones = 3: cones must merge (case D) and
@@ -410,6 +415,7 @@ def _switch_off_errors():
     return _SWITCH_OFF
 
 
+@pytest.mark.slow
 @pytest.mark.xfail(strict=True, raises=AssertionError,
                    reason=f"known miss, mean, per-pixel error {SLC_MISSES['switched-off']}")
 def test_slc_light_switches_off():
@@ -419,6 +425,7 @@ def test_slc_light_switches_off():
     _report("switched-off", img, ref, mask, SLC_BOUNDS["switched-off"])
 
 
+@pytest.mark.slow
 def test_slc_light_switches_off_no_worse():
     """The switch reaches the methods: rt16 is within 3% in the mean 2 frames after it;
     slc is within its bounds before the switch (one frame before), and 20 frames after

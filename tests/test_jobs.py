@@ -262,6 +262,7 @@ def test_killed_ray_worker_loses_no_row_and_the_run_completes(serial, tmp_path):
     assert_same_results(serial, out)
 
 
+@pytest.mark.slow
 def test_serial_runs_do_not_import_ray(tmp_path):
     code = ("import sys, slc\n"
             "from slc import jobs, scenes, views\n"

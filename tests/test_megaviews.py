@@ -34,6 +34,7 @@ def _leaf_points_under(sh, node):
     return sh.pos_np[a:][sel]
 
 
+@pytest.mark.slow
 def test_culling_is_conservative(setup):
     _, sh, vpls, vh = setup
     rng = np.random.default_rng(0)
@@ -60,6 +61,7 @@ def test_culling_is_conservative(setup):
         assert not np.any(cosang > 1e-6), f"pair ({S[i]}, {V[i]}) culled but visible"
 
 
+@pytest.mark.slow
 def test_traversal_visits_no_pair_twice_and_chunking_is_exact(setup):
     _, sh, _, vh = setup
     one = tv.Traversal(sh, vh, 16, record=True).run()
@@ -77,6 +79,7 @@ def test_traversal_visits_no_pair_twice_and_chunking_is_exact(setup):
     assert np.array_equal(np.array(small.depth), np.array(one.depth))
 
 
+@pytest.mark.slow
 def test_view_split_multipass(setup):
     """The paper's multi-pass (Sec. 4.2): passes from the view nodes of the
     multi-pass level. A fixed level 2 visits no pair twice, makes one pass
