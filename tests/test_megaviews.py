@@ -168,6 +168,7 @@ def _errors(gb, img, ref):
     return mean_err, float(np.median(e)), float(np.percentile(e, 90))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["megaviews", "manylods", "brute"])
 def test_against_the_indirect_reference(small_frame, name):
     """Each method (1024 VPLs, depth-5 hierarchies, 32x32) against the
@@ -189,6 +190,7 @@ def test_against_the_indirect_reference(small_frame, name):
     assert m.memory_bytes() > 0
 
 
+@pytest.mark.slow
 def test_bounds_fail_without_shadows(small_frame):
     """The bounds above can fail: the same gathering without the shadow-map
     test (every VPL visible) breaks them."""
@@ -204,6 +206,7 @@ def test_bounds_fail_without_shadows(small_frame):
     assert np.any(mean_err >= 0.10) or med >= 0.25 or p90 >= 0.7
 
 
+@pytest.mark.slow
 def test_multi_bounce_vpls_against_the_two_bounce_reference(small_frame):
     """2-bounce VPLs (512 light paths leaving up to 2 VPLs each) against the
     2-bounce indirect reference. Bounds (measured for seeds 0-2: mean error

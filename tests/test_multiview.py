@@ -1,5 +1,6 @@
 """One cache for all viewers: sharing is exact and viewers do not disturb each other."""
 import numpy as np
+import pytest
 
 from helpers import render_frames
 from slc import methods, scenes, views
@@ -14,6 +15,7 @@ def _run(scene, vs, frames=FRAMES):
     return m, imgs
 
 
+@pytest.mark.slow
 def test_identical_viewers_share_every_entry_exactly():
     s = scenes.load("cornell")
     one = views.overlap_rig(s, 1, 1.0)
@@ -35,6 +37,7 @@ def _still(rig):
     return [views.Viewer(v.name, (lambda f, c=v.camera(0): c), v.rig) for v in rig]
 
 
+@pytest.mark.slow
 def test_second_viewer_does_not_change_the_first():
     """Random numbers are keyed by texel (island, level, x, y) and frame, never by
     the physical slot a block landed in or the lane an entry runs in, so with still

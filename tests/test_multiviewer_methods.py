@@ -26,6 +26,7 @@ def _images(scene, spec, vs, frames=FRAMES):
     return imgs
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", ["rt8", "restir", "restir:spatial=4"])
 def test_second_viewer_leaves_first_unchanged(cornell, spec):
     """Per-viewer methods keep per-viewer state and random streams keyed by the
@@ -47,6 +48,7 @@ def test_identical_viewers_differ_by_noise_only(cornell, spec):
     assert abs(a.mean() / b.mean() - 1) < 0.02
 
 
+@pytest.mark.slow
 def test_sh_identical_viewers_identical_images(cornell):
     pytest.importorskip("slc.sh")
     one = _images(cornell, "sh", views.overlap_rig(cornell, 1, 1.0))
