@@ -57,6 +57,7 @@ def test_sh_identical_viewers_identical_images(cornell):
     assert np.array_equal(one[0], two[0])
 
 
+@pytest.mark.slow
 def test_sh_second_viewer(cornell):
     """Moving and still cameras: at most 5% of the first viewer's pixels change with a
     second viewer (40% of the screen away) and the mean change is below 1% of the image
