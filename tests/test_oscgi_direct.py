@@ -39,6 +39,7 @@ def test_per_pixel_direct_light_is_unbiased_and_leaves_the_cache_alone(cornell):
     assert abs(d[valid].mean() / gt[valid].mean() - 1.0) < 0.03, (d[valid].mean(), gt[valid].mean())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("direct", ["cache", "cones", "restir"])
 def test_other_direct_options_approach_the_full_reference(cornell, direct):
     """The cached direct light and the cones / ReSTIR run beside the cache: finite, and the full image
@@ -77,6 +78,7 @@ def test_cell_levels_grow_with_the_hit_distance():
     assert list(np.array(cell_level(t, h, 0.0) + mi.UInt32(0, 0, 0, 0, 0))) == [0] * 5
 
 
+@pytest.mark.slow
 def test_stratified_light_samples_are_unbiased_and_less_noisy(cornell):
     """``direct_lds`` (default): a pixel's n light samples are a Hammersley set shifted by a random
     offset per pixel and frame. Averaged over 64 frames (new offsets), RT-4's image converges to the

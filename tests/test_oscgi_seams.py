@@ -81,6 +81,7 @@ def _seam_ratio(s, spec):
     return _SEAMS[spec]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", [known_miss(x, SEAM_MISSES[x], "seam ratio") if x in SEAM_MISSES else x
                                   for x in SEAM_SPECS])
 def test_island_borders_show_no_seam(floor_scene, spec):
@@ -88,6 +89,7 @@ def test_island_borders_show_no_seam(floor_scene, spec):
     assert r["ratio"] <= SEAM_BOUND, r
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", SEAM_SPECS)
 def test_island_borders_finite_and_misses_no_worse(floor_scene, spec):
     """The floor has borders, image and reference are finite, and a known miss

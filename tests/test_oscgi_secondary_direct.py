@@ -45,6 +45,7 @@ def test_ris_matches_the_closed_form_under_a_rect_light():
         assert np.all(np.abs(Ed[:, 0] / E - 1.0) < 0.06), (m, np.abs(Ed[:, 0] / E - 1.0).max())
 
 
+@pytest.mark.slow
 def test_ris_is_unbiased_on_cornell_and_has_less_variance_than_one_plain_sample():
     """Cornell (one area light, occluders): at points on the floor, walls and ceiling, the mean
     over many RIS samples equals plain light sampling's within noise (3 standard errors of the

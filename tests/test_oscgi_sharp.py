@@ -5,6 +5,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+import pytest
 
 import slc.backend  # noqa: F401
 from slc import methods, references, views
@@ -71,6 +72,7 @@ def _indirect_error(s, spec, frames=10, w=48, h=32):
     return np.abs(img - ref).mean() / ref.mean(), img.mean() / ref.mean()
 
 
+@pytest.mark.slow
 def test_sharp_reflections_resolve_a_mirrored_wall():
     """The mirror floor reflects the striped wall: read from the entries' 8x8 texels the
     stripes blur (each texel spans ~11 degrees); BSDF rays into the wall's cells (``sharp``)
