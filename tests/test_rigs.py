@@ -21,6 +21,7 @@ def atrium(scene):
     return scene("atrium")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("n", [4, 16])
 @pytest.mark.parametrize("target", [0, 25, 50, 75, 100])
 def test_controlled_rig_reaches_its_target(atrium, n, target):
