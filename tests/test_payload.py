@@ -106,6 +106,7 @@ def test_settings_come_from_the_declaration(cornell):
     assert methods.create("slc:fetch=bilinear,bias=0.5", cornell).settings()["bias"] == 0.5
 
 
+@pytest.mark.slow
 def test_methods_are_discovered_and_a_missing_module_is_an_error(tmp_path):
     code = ("import sys; sys.path.insert(0, %r); import slc; from slc import methods; "
             "print(sorted(methods.available()))" % str(ROOT))

@@ -360,6 +360,7 @@ def plane():
     return sc, gbs, ref, mask
 
 
+@pytest.mark.slow
 def test_ground_truth_per_pixel_z_test_closed_form(plane):
     """direct_mis (64 samples per run, 32 runs, seeds 100..131) against the closed
     form at every plane pixel; variance from 128 other runs."""
@@ -392,6 +393,7 @@ def cornell_ref():
     return sc, gbs, g.mean(axis=0), g.var(axis=0, ddof=1) / len(g), mask
 
 
+@pytest.mark.slow
 def test_rt_per_pixel_z_test_cornell(cornell_ref):
     sc, gbs, ref, ref_var, mask = cornell_ref
     runs = independent_runs("rt16", sc, gbs, range(32))
