@@ -403,6 +403,7 @@ def test_rt_per_pixel_z_test_cornell(cornell_ref):
     assert _z(runs * 1.02, var_runs, ref, ref_var, mask)[0] < alpha
 
 
+@pytest.mark.slow
 def test_restir_bias_off_temporal_per_pixel_z_test(cornell_ref):
     """ReSTIR with bias=off and temporal reuse only (spatial=0, boost=0), 4 frames
     at a still camera: unbiased, passes. The default (bias=basic with RTXDI's

@@ -98,7 +98,7 @@ def test_paths_are_deterministic():
             assert np.array_equal(pa.at(f).target, pb.at(f).target)
 
 
-@pytest.mark.parametrize("name", BUILTIN)
+@pytest.mark.parametrize("name", [n if n == "cornell" else pytest.param(n, marks=pytest.mark.slow) for n in BUILTIN])
 def test_every_method_renders_finite_and_deterministic(name, monkeypatch):
     """Check mode on: every stage output finite, every returned image finite and
     >= 0 (raw values, nothing clamped), a lit image, the same images twice."""
