@@ -184,6 +184,7 @@ def test_analytic_shapes_have_islands_and_entries_on_the_real_surface(twins):
         assert np.median(cos) > 0.99 and cos.min() > 0.5, (name, np.median(cos), cos.min())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", ["slc", "sh"])
 def test_analytic_scene_renders_like_its_meshed_twin(twins, spec):
     """Sphere, disk and cylinder as Mitsuba analytic shapes and as fine meshes
@@ -228,6 +229,7 @@ def test_unsupported_shape_is_named_in_one_warning(tmp_path):
     assert len(msgs) == 1 and "copy" in msgs[0] and "Instance" in msgs[0], msgs
 
 
+@pytest.mark.slow
 def test_scene_of_only_analytic_shapes_does_not_crash(tmp_path):
     """Before: jit_var_gather(): attempted to gather from an empty array."""
     p = tmp_path / "only.xml"
