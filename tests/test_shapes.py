@@ -334,6 +334,7 @@ def _flip(scene, img, gt):
     return metrics.evaluate(gt, img, scene.exposure)["flip"]
 
 
+@pytest.mark.slow
 def test_bilinear_fetch_beats_nearest_in_a_closed_box(boxes):
     """Two-sided walls seen from their back miss the Lambertian closed form, so
     shading uses the direction quadrature; when the bilinear fetch split

@@ -57,6 +57,7 @@ MANY_LIGHTS_FLIP = {("rt4", 2): 0.2187, ("slc:max_cones=1", 2): 0.2113,
                     ("rt4", 4): 0.2958, ("slc:max_cones=1", 4): 0.2300}
 
 
+@pytest.mark.slow
 def test_many_lights_experiment_writes_rows(tmp_path):
     r = slc_cli(["run", "many-lights", "--quick", "--res", "32x18", "--frames", "3", "--lights", "2", "4",
                  "--methods", "rt4", "slc:max_cones=1", "--out", tmp_path])
