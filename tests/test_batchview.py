@@ -22,6 +22,7 @@ def _run(scene, spec, rig):
     return m, imgs
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fetch", ["nearest", "bilinear"])
 def test_batched_images_equal_per_viewer(atrium, fetch):
     """Three moving viewers at 60 % overlap (different entries per pixel and viewer),

@@ -106,6 +106,7 @@ def test_compact_frozen_one_recording(captured):
     assert sh.n_recordings == 1
 
 
+@pytest.mark.slow
 def test_method_images_unchanged():
     """The method's images with ``compact=on`` (default) and ``off``: bit for bit."""
     sc = scenes.load("atrium")

@@ -31,6 +31,7 @@ def _bitmap():
     return {"type": "bitmap", "bitmap": mi.Bitmap(rgb), "raw": True}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["diffuse", "principled", "principled_textured", "diffuse_textured", "conductor"])
 def test_bsdf_table_same_images(kind):
     """Shading with the table gives the images of the virtual calls bit for bit, for
