@@ -2,7 +2,7 @@
 
 One viewer per scene on the scene's first camera path, moving at 0.25x to
 4x walking speed (1x = 1.4 m/s with view turns up to 30 deg/s, at 60 Hz;
-``slc.scenes.WALK_SPEED`` / ``TURN_RATE``). A cache entry stays in view for
+``slc.scene.scenes.WALK_SPEED`` / ``TURN_RATE``). A cache entry stays in view for
 fewer frames the faster the camera moves, so it spends a larger share of
 its life in the 8-ray start-up and averages fewer samples; per-pixel
 methods (rt48) do not care, ReSTIR's temporal reuse does. Every speed runs
@@ -33,7 +33,7 @@ METHODS = ["slc", "rt48", "restir"]
 
 
 def add_arguments(p):
-    from slc.experiment import add_common_arguments
+    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
     p.add_argument("--speeds", type=float, nargs="+", help="camera speeds as multiples of walking speed")
 
@@ -41,9 +41,9 @@ def add_arguments(p):
 def run(opts):
     from tqdm import tqdm
 
-    from slc import experiment as ex
-    from slc import views
-    from slc.scenes import FPS, TURN_RATE, WALK_SPEED
+    from slc.run import experiment as ex
+    from slc.scene import views
+    from slc.scene.scenes import FPS, TURN_RATE, WALK_SPEED
 
     pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     if not opts.scene and len(names) < 2 and FALLBACK_SCENE not in names:
@@ -88,7 +88,7 @@ def run(opts):
 
 def _ratios(rows, names, speeds) -> str:
     """slc against rt48 and restir per speed: FLIP and time ratios."""
-    from slc import experiment as ex
+    from slc.run import experiment as ex
     lines = []
     for name in names:
         by = {(r["setting"], r["camera_speed"]): r for r in rows if r["scene"] == name}
@@ -105,5 +105,5 @@ def _ratios(rows, names, speeds) -> str:
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

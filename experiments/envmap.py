@@ -19,18 +19,18 @@ if __name__ == "__main__" and __package__ is None:
 NAME = "envmap"
 FULL = dict(scene="skylit", maps=["venice", "studio", "spots"], width=320, height=180, frames=120, warmup=10, eval_frames=[59, 119])
 QUICK = dict(scene="skylit", maps=["venice", "spots"], width=160, height=90, frames=24, warmup=10, eval_frames=[23])
-METHODS = ["rt48", "restir", "slc", "slc:max_cones=4", "sh", "adaptive"]
+METHODS = ["rt48", "restir", "regir", "slc", "slc:max_cones=4", "sh", "adaptive"]
 
 
 def add_arguments(p):
-    from slc.experiment import add_common_arguments
+    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
     p.add_argument("--maps", nargs="+", help="environment maps: venice, studio (../shared/envmaps), spots, constant")
 
 
 def run(opts):
-    from slc import experiment as ex
-    from slc.scenes import ENVMAPS_DIR
+    from slc.run import experiment as ex
+    from slc.scene.scenes import ENVMAPS_DIR
     pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
     scene = (opts.scene or [pr["scene"]])[0]
     maps = opts.maps or pr["maps"]
@@ -43,10 +43,10 @@ def run(opts):
     specs = opts.methods or ex.available_methods(METHODS)
     res = ex.variant_experiment(opts, NAME, pr, specs, variants, "envmap",
                                 f"{scene}: error and time per environment map")
-    from slc.adaptive.viz import add_choice_section
+    from slc.run.adaptive_viz import add_choice_section
     return add_choice_section(opts, NAME, res, "envmap")
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

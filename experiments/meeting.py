@@ -16,18 +16,18 @@ FULL = dict(scenes=["atrium", "cornell"], viewers=[1, 16], width=320, height=180
             eval_frames=[239], eval_viewers=2)
 QUICK = dict(scenes=["atrium"], viewers=[1, 16], width=96, height=54, frames=24, warmup=10, eval_frames=[23],
              eval_viewers=1)
-METHODS = ["slc", "rt48"]
+METHODS = ["slc", "rt48", "regir"]
 
 
 def add_arguments(p):
-    from slc.experiment import add_viewer_arguments
+    from slc.run.experiment import add_viewer_arguments
     add_viewer_arguments(p)
 
 
 def run(opts):
-    from slc import experiment as ex
-    from slc import views
-    from slc.timing import stage_table
+    from slc.run import experiment as ex
+    from slc.scene import views
+    from slc.core.timing import stage_table
 
     rows, names, specs, cfg, out, counts = ex.viewer_count_experiment(
         opts, NAME, QUICK, FULL, METHODS, "meeting", views.meeting, lambda name, cfg: f"{name}: meeting rig")
@@ -51,5 +51,5 @@ def run(opts):
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

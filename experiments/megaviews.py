@@ -8,7 +8,7 @@ timed run after a warm-up of the same method and size class; ``reps``
 timed runs, median), broken down by stage (Fig. 10b/c); memory is the
 pair-queue peak + all maps + hierarchies. Every row also gathers the VPLs
 at a G-buffer and compares the indirect light with the indirect reference
-(:func:`slc.references.reference_for`, the VPLs' own bounce count) at the
+(:func:`slc.reference.references.reference_for`, the VPLs' own bounce count) at the
 same points: PSNR/SSIM/FLIP and the relative error of the mean (``mean_err``,
 worst channel) and the median per-pixel relative luminance error
 (``med_err``), the measures of ``tests/test_megaviews.py``.
@@ -27,7 +27,7 @@ Sweeps (``sweep`` column):
 * ``gather``: gathering with culling down to level 0 / the paper's level 6
   and with a distance cut-off, at equal samples without the filter (Fig. 16);
 * ``particles``: omnidirectional views (Sec. 5.2), time only;
-* ``pipeline``: whole frames through :func:`slc.pipeline.run_sequence`.
+* ``pipeline``: whole frames through :func:`slc.run.pipeline.run_sequence`.
 
     python experiments/megaviews.py --quick
     slc run megaviews --quick [--scene cornell] [--scene sponza]
@@ -74,7 +74,7 @@ def _time_maps(m, vpls, reps, phi=math.pi / 2):
     """(median ms, stage medians, maps, octree view hierarchy) of the
     method's shadow-map rendering of ``vpls`` (one untimed warm-up run when
     this method and setting have not run yet: kernel compilation)."""
-    from slc.timing import StageTimer
+    from slc.core.timing import StageTimer
     key = (m.name, m.res, m.cull, m.scene_h, phi)   # sizes and depths build no new kernels
     timer = StageTimer()
     if key not in _WARM:
@@ -108,8 +108,8 @@ def _random_views(s, n, seed):
     looking along its normal (Fig. 11's random distribution)."""
     import numpy as np
 
-    from slc.megaviews import vpl as vp
-    from slc.megaviews.hierarchy import sample_surface
+    from slc.methods.megaviews import vpl as vp
+    from slc.methods.megaviews.hierarchy import sample_surface
     P, N, _, _ = sample_surface(s.mi_scene, n, seed=seed + 11)
     k = np.random.default_rng(seed).choice(len(P), n, replace=len(P) < n)
     return vp.VPLSet(None, None, P[k] + 1e-3 * N[k], N[k], np.zeros(n))
@@ -118,9 +118,17 @@ def _random_views(s, n, seed):
 def run(opts) -> dict:
     import numpy as np
 
-    from slc import experiment, io, methods, metrics, references, views
-    from slc.megaviews import vpl as vp
-    from slc.pipeline import RunConfig, gbuffers_for
+    from slc.run import experiment
+
+    from slc.core import io
+
+    from slc import methods
+
+    from slc.reference import metrics, references
+
+    from slc.scene import views
+    from slc.methods.megaviews import vpl as vp
+    from slc.run.pipeline import RunConfig, gbuffers_for, run_case
 
     preset = dict(QUICK if opts.quick else FULL)
     if opts.views:
@@ -268,7 +276,7 @@ def run(opts) -> dict:
             part = vp.VPLSet(None, None, P, np.tile([0.0, 1.0, 0.0], (n, 1)), np.zeros(n))
             for mode in [x for x in modes if x != "brute"]:
                 measure("particles", mode, part, "particles", gather=False, phi=math.pi)
-        # ------------- whole frames through the common pipeline (slc.pipeline) -------------
+        # ------------- whole frames through the common pipeline (slc.run.pipeline) -------------
         cfg = RunConfig(width=gres, height=gres, frames=preset["seq_frames"], warmup=1, seed=opts.seed,
                         eval_frames=[preset["seq_frames"] - 1], ref_spp=preset["ref_spp"], keep_images=False)
         for mode in [x for x in modes if x in preset["seq_methods"]]:
@@ -276,7 +284,7 @@ def run(opts) -> dict:
                 continue
             spec = (f"{mode}:views={preset['seq_views']},scene_depth={preset['scene_depth']},"
                     f"view_depth={preset['view_depth']}")
-            row = experiment.run_case(s, spec, views.single(s), cfg, seed=opts.seed, sweep="pipeline",
+            row = run_case(s, spec, views.single(s), cfg, seed=opts.seed, sweep="pipeline",
                                       distribution="vpl1", views=preset["seq_views"], resolution=16)
             row.pop("_result")
             rows.append(row)
@@ -305,11 +313,11 @@ def run(opts) -> dict:
     md = (f"# {NAME}\n\nShadow-map time ({preset['reps']} timed run(s) after a warm-up per method and setting: "
           f"view hierarchy (vh) + traversal (trav) + push + fusion, ms), pairs processed, multi-pass level (the "
           f"paper's view-root split), memory (pair-queue peak + maps + hierarchies), and indirect-light quality "
-          f"of the gathered image against the {preset['ref_spp']}-spp indirect reference (slc.references, the "
+          f"of the gathered image against the {preset['ref_spp']}-spp indirect reference (slc.reference.references, the "
           f"VPLs' bounce count) at {preset['gres']}^2 G-buffer points: PSNR, FLIP, relative error of the mean "
           f"(worst channel) and median per-pixel relative luminance error. Scene/view octree depth "
           f"{preset['scene_depth']} unless the depth column says otherwise. Sweeps: see experiments/megaviews.py. "
-          f"Rows of sweep 'pipeline': whole frames through slc.pipeline, {preset['seq_frames']} frames "
+          f"Rows of sweep 'pipeline': whole frames through slc.run.pipeline, {preset['seq_frames']} frames "
           f"(1 warm-up), quality of the last one.\n\n"
           + experiment.markdown_table(main_rows, cols)
           + ("\n\n## Gathering: culling level and distance cut-off (Fig. 16; no filter)\n\n"
@@ -383,9 +391,11 @@ def _plots(out: Path, rows: list) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from slc import io
+    from slc.core import io
+    from slc.run.experiment import place_labels
     for sweep, x, xl in [("views", "views", "views"), ("resolution", "resolution", "map resolution")]:
         fig, axs = plt.subplots(1, 2, figsize=(10, 4))
+        marks = []
         for scene in sorted({r["scene"] for r in rows}):
             for m in METHODS:
                 rs = sorted([r for r in rows if r["scene"] == scene and r["sweep"] == sweep and r["method"] == m],
@@ -395,9 +405,7 @@ def _plots(out: Path, rows: list) -> None:
                 for ax, y in zip(axs, ["time_ms", "memory_mb"]):
                     ax.plot([r[x] for r in rs], [r[y] for r in rs], "o-", label=f"{scene}/{m}")
                     if m == "megaviews" and y == "time_ms":
-                        for r in rs:
-                            ax.annotate(f"{r['views_per_render']:.1f}", (r[x], r[y]), fontsize=7,
-                                        textcoords="offset points", xytext=(3, 3))
+                        marks += [(r[x], r[y], f"{r['views_per_render']:.1f}") for r in rs]
         for ax, yl in zip(axs, ["shadow-map time [ms]", "memory [MB]"]):
             ax.set_xscale("log", base=2)
             ax.set_yscale("log")
@@ -407,10 +415,11 @@ def _plots(out: Path, rows: list) -> None:
             ax.legend(fontsize=7)
         axs[0].set_title("labels: views sharing a rendered node")
         fig.tight_layout()
+        place_labels(fig, axs[0], marks)
         io.write_figure(out / f"{sweep}.png", fig, dpi=110)
         plt.close(fig)
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

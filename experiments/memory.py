@@ -29,13 +29,13 @@ METHODS = ["slc", "rt16", "rt48", "restir"]
 
 
 def add_arguments(p):
-    from slc.experiment import add_viewer_arguments
+    from slc.run.experiment import add_viewer_arguments
     add_viewer_arguments(p)
 
 
 def run(opts):
-    from slc import experiment as ex
-    from slc import views
+    from slc.run import experiment as ex
+    from slc.scene import views
 
     pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     counts = opts.viewers or pr["viewers"]
@@ -71,13 +71,13 @@ def run(opts):
 
 
 def _run_cases(cases, cfg, desc, seed):
-    """Like ``slc.experiment.run_cases``, and for cache methods ``active_mb``
+    """Like ``slc.run.experiment.run_cases``, and for cache methods ``active_mb``
     = mean entries requested per timed frame x bytes per entry
     (:func:`entry_bytes_of`, read from the method after the run)."""
     from tqdm import tqdm
 
     from slc import methods
-    from slc.pipeline import run_sequence
+    from slc.run.pipeline import run_sequence
     rows = []
     with tqdm(total=len(cases) * cfg.frames, desc=desc, unit="frame", disable=None) as bar:
         for s, spec, vs, extra in cases:
@@ -109,5 +109,5 @@ def entry_bytes_of(m) -> float:
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

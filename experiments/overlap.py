@@ -4,7 +4,7 @@ All viewers share one position on one camera path and are turned about the
 up axis so that the share of visible surface cells seen by more than one
 viewer reaches a target (the rig calibrates its yaw step on that measure
 and narrows the views when 16 of them would wrap around the circle; see
-``slc.views.overlap_rig``); the overlap actually reached is measured again
+``slc.scene.views.overlap_rig``); the overlap actually reached is measured again
 in the run and reported next to the target. The cache is shared
 by all viewers; the per-viewer baselines do not depend on the overlap, so
 they are run at 0% and 100% only.
@@ -25,12 +25,12 @@ FULL = dict(scenes=["street", "atrium"], viewers=[1, 4, 16], overlaps=[0, 25, 50
             width=320, height=180, frames=240, warmup=10, eval_frames=[239], eval_viewers=2)
 QUICK = dict(scenes=["atrium"], viewers=[1, 4, 16], overlaps=[0, 50, 100],
              width=96, height=54, frames=24, warmup=10, eval_frames=[23], eval_viewers=1)
-METHODS = ["slc", "rt48", "restir"]
+METHODS = ["slc", "rt48", "restir", "regir"]
 CACHE_METHODS = ("slc", "sh")
 
 
 def add_arguments(p):
-    from slc.experiment import add_viewer_arguments
+    from slc.run.experiment import add_viewer_arguments
     add_viewer_arguments(p)
     p.add_argument("--overlaps", type=int, nargs="+", help="target overlaps in percent")
     p.add_argument("--retime", type=int, default=3,
@@ -40,10 +40,10 @@ def add_arguments(p):
 
 def run(opts):
 
-    from slc import experiment as ex
-    from slc import views
+    from slc.run import experiment as ex
+    from slc.scene import views
     from slc.methods import parse_spec
-    from slc.timing import stage_table
+    from slc.core.timing import stage_table
 
     pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     counts, overlaps = opts.viewers or pr["viewers"], opts.overlaps or pr["overlaps"]
@@ -137,5 +137,5 @@ def _reached(rows) -> str:
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

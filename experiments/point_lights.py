@@ -19,23 +19,23 @@ if __name__ == "__main__" and __package__ is None:
 NAME = "point-lights"
 FULL = dict(scene="lamps", lights=[16, 32, 64], width=320, height=180, frames=120, warmup=10, eval_frames=[59, 119])
 QUICK = dict(scene="lamps", lights=[16, 64], width=160, height=90, frames=24, warmup=10, eval_frames=[23])
-METHODS = ["rt48", "restir", "slc", "slc:max_cones=4", "sh", "adaptive"]
+METHODS = ["rt48", "restir", "regir", "slc", "slc:max_cones=4", "sh", "adaptive"]
 
 
 def add_arguments(p):
-    from slc.experiment import add_common_arguments
+    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
     p.add_argument("--lights", type=int, nargs="+", help="light counts")
 
 
 def run(opts):
-    from slc import experiment as ex
+    from slc.run import experiment as ex
     res = ex.scene_option_sweep(opts, NAME, QUICK, FULL, METHODS, "lights",
                                 "error and time against the number of point/spot lights")
-    from slc.adaptive.viz import add_choice_section
+    from slc.run.adaptive_viz import add_choice_section
     return add_choice_section(opts, NAME, res, "lights")
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

@@ -1,7 +1,7 @@
 """random-viewers: 1-16 viewers on uncorrelated paths (SLC paper, Figs. 12-13).
 
 Every viewer starts at its own point looking towards the scene's centre of
-interest and then walks its own random route (``slc.views.random_viewers``).
+interest and then walks its own random route (``slc.scene.views.random_viewers``).
 Each row reports the overlap at the start (``overlap_start``, frame 0), over
 the rig's first 4 s (``overlap_4s``, every 0.5 s) and over the timed frames
 (``measured_overlap``); the paper's regime is about 50% at the start and
@@ -23,19 +23,19 @@ FULL = dict(scenes=["atrium", "sponza"], viewers=[1, 4, 16], width=320, height=1
 QUICK = dict(scenes=["atrium"], viewers=[1, 4, 16], width=96, height=54, frames=24, warmup=10, eval_frames=[23],
              eval_viewers=2)
 OVERLAP_FRAMES = list(range(0, 241, 30))   # the rig's overlap over its first 4 s (60 Hz), every 0.5 s
-METHODS = ["slc", "rt48", "restir"]
+METHODS = ["slc", "rt48", "restir", "regir"]
 
 
 def add_arguments(p):
-    from slc.experiment import add_viewer_arguments
+    from slc.run.experiment import add_viewer_arguments
     add_viewer_arguments(p)
 
 
 def run(opts):
-    from slc import experiment as ex
-    from slc import views
+    from slc.run import experiment as ex
+    from slc.scene import views
 
-    from slc.pipeline import gbuffers_for
+    from slc.run.pipeline import gbuffers_for
 
     overlaps = {}
 
@@ -76,11 +76,11 @@ def run(opts):
 
 def opts_res(opts):
     """The run's resolution (the preset's unless --res)."""
-    from slc import experiment as ex
+    from slc.run import experiment as ex
     pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
     return pr["width"], pr["height"]
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

@@ -29,11 +29,11 @@ FULL = dict(scenes=["atrium", "street", "village", "garden", "sponza"], width=32
             sweep=["rt4", "rt8", "rt32", "slc:rays_settled=2", "slc:max_cones=2", "slc:bias=0.5", "slc:bias=2"])
 QUICK = dict(scenes=["atrium"], width=160, height=90, frames=24, warmup=10, eval_frames=[15, 23],
              sweep=["rt4"])
-BASE_METHODS = ["rt16", "rt48", "restir", "slc", "slc:fetch=bilinear"]
+BASE_METHODS = ["rt16", "rt48", "restir", "regir", "slc", "slc:fetch=bilinear"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from slc.experiment import add_common_arguments
+    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
     p.add_argument("--sweep", nargs="*", help="extra settings for the speed-against-error plot")
 
@@ -41,9 +41,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(opts) -> dict:
     from types import SimpleNamespace
 
-    from slc import experiment as ex
-    from slc import views
-    from slc.pipeline import RunConfig
+    from slc.run import experiment as ex
+    from slc.scene import views
+    from slc.run.pipeline import RunConfig
 
     preset = ex.apply_common(opts, QUICK if opts.quick else FULL)
     method_specs = opts.methods or ex.available_methods(BASE_METHODS)
@@ -122,5 +122,5 @@ def _targets(rows) -> str:
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

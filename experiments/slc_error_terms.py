@@ -5,7 +5,7 @@ against the 2048-sample ground truth at the same G-buffer points:
 
 - **cache resolution** (a): the converged cones (``rays_new = rays_settled =
   CONVERGED_RAYS``) on the on-surface cache against the same on a cache with one
-  entry per pixel (:class:`slc.cones.pixelcache.PixelSlotCache`, the pixel's own
+  entry per pixel (:class:`slc.methods.cones.pixelcache.PixelSlotCache`, the pixel's own
   surface point; still camera only, the stand-in keeps frame 0's pixels);
 - **cone representation** (b): the converged one-entry-per-pixel cache alone
   (what is left when every other term is gone: cones of uniform radiance and
@@ -37,7 +37,7 @@ QUICK = dict(scenes=["atrium"], width=160, height=90, frames=24, warmup=10, eval
 
 
 def add_arguments(p):
-    from slc.experiment import add_common_arguments
+    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
     p.add_argument("--settings", nargs="*", default=[],
                    help="extra slc settings to run on both cameras with the age histogram (e.g. "
@@ -68,8 +68,8 @@ def _age_histogram(method, gb, img, gt, exposure, acc):
     import mitsuba as mi
     import numpy as np
 
-    from slc.keys import INVALID
-    from slc.metrics import evaluate
+    from slc.core.keys import INVALID
+    from slc.reference.metrics import evaluate
     fmap = evaluate(gt, img, exposure, with_map=True)["flip_map"].reshape(-1)
     slot = mi.UInt32(method.requests.pixel_slot[0])
     ok = slot != INVALID
@@ -84,10 +84,12 @@ def _age_histogram(method, gb, img, gt, exposure, acc):
 def run(opts):
     from tqdm import tqdm
 
-    from slc import experiment as ex
-    from slc import methods, references, views
-    from slc.cones.pixelcache import PixelSlotCache
-    from slc.pipeline import RunConfig, run_sequence
+    from slc.run import experiment as ex
+    from slc import methods
+    from slc.reference import references
+    from slc.scene import views
+    from slc.methods.cones.pixelcache import PixelSlotCache
+    from slc.run.pipeline import RunConfig, run_sequence
 
     pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
     extra = list(opts.settings or [])
@@ -130,7 +132,7 @@ def run(opts):
 
 
 def _report(rows, cfg) -> str:
-    from slc import experiment as ex
+    from slc.run import experiment as ex
     md = ex.markdown_table(rows, [("scene", "scene"), ("camera", "camera"), ("case", "run"), ("time_ms", "t [ms]"),
                                   ("flip", "FLIP"), ("psnr", "PSNR"), ("ssim", "SSIM"), ("rel_mse", "relMSE")]) + "\n"
     md += "\n## Error terms (FLIP differences between the controlled runs)\n\n"
@@ -193,5 +195,5 @@ def _plot(out: Path, rows):
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

@@ -36,7 +36,7 @@ METHODS = ["rt48", "restir", "slc", "slc:rays_new=64,rays_settled=64,rays_moving
 
 
 def add_arguments(p):
-    from slc.experiment import add_common_arguments
+    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
     p.add_argument("--gt-spp", type=int, default=512, help="ground-truth samples per pixel of the per-frame curve")
 
@@ -47,7 +47,7 @@ def _cache_state(m) -> dict:
     import mitsuba as mi
     import numpy as np
 
-    from slc.cones.packing import gather_words, unpack
+    from slc.methods.cones.packing import gather_words, unpack
     fr = m.requests
     if fr is None or fr.n_active == 0:
         return {}
@@ -67,10 +67,12 @@ def _cache_state(m) -> dict:
 def run(opts):
     from tqdm import tqdm
 
-    from slc import experiment as ex
-    from slc import methods, references, views
-    from slc.metrics import evaluate
-    from slc.pipeline import RunConfig, run_sequence
+    from slc.run import experiment as ex
+    from slc import methods
+    from slc.reference import references
+    from slc.scene import views
+    from slc.reference.metrics import evaluate
+    from slc.run.pipeline import RunConfig, run_sequence
 
     pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
     specs = opts.methods or METHODS
@@ -136,5 +138,5 @@ def _plot(out: Path, rows):
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

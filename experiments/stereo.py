@@ -18,7 +18,7 @@ FULL = dict(scenes=["atrium"], singles=16, pairs=[8, 16], width=320, height=180,
             eval_frames=[239], eval_viewers=2)
 QUICK = dict(scenes=["atrium"], singles=16, pairs=[8, 16], width=64, height=36, frames=20, warmup=10,
              eval_frames=[19], eval_viewers=1)
-METHODS = ["slc", "rt48", "restir"]
+METHODS = ["slc", "rt48", "restir", "regir"]
 STEADY_COLUMNS = [("scene", "scene"), ("method", "method"), ("rig", "rig"), ("viewers", "viewers"),
                   ("measured_overlap", "measured overlap %"), ("time_ms", "t [ms]"),
                   ("startup_ms", "start-up t [ms]"), ("compiled_after_warmup", "kernels after warm-up"),
@@ -26,14 +26,14 @@ STEADY_COLUMNS = [("scene", "scene"), ("method", "method"), ("rig", "rig"), ("vi
 
 
 def add_arguments(p):
-    from slc.experiment import add_common_arguments
+    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
 
 
 def run(opts):
-    from slc import experiment as ex
-    from slc import views
-    from slc.timing import stage_table
+    from slc.run import experiment as ex
+    from slc.scene import views
+    from slc.core.timing import stage_table
 
     pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     def cases(s):
@@ -66,5 +66,5 @@ def run(opts):
 
 
 if __name__ == "__main__":
-    from slc.cli import run_experiment_standalone
+    from slc.run.cli import run_experiment_standalone
     sys.exit(run_experiment_standalone(__file__))

@@ -12,14 +12,14 @@ first N of one deterministic sequence of orbits; their radiance scaled by
 experiment (the paper's Fig. 17).
 
 Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
-1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scenes.CameraPath``).
+1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.scenes.CameraPath``).
 """
 import math
 
 import numpy as np
 import trimesh
 
-from slc.scenes import box_mesh, merge_meshes, CameraPath, SceneBuilder, diffuse, principled, rough_conductor, translate
+from slc.scene.scenes import box_mesh, merge_meshes, CameraPath, SceneBuilder, diffuse, principled, rough_conductor, translate
 
 HX, HZ, HH = 20.0, 12.0, 9.0
 LIGHT_RADIUS = 0.12

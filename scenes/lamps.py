@@ -10,11 +10,11 @@ Light Cones paper names as overkill for cones ("a simple visibility/occlusion
 caching approach may work significantly better").
 
 Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
-1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scenes.CameraPath``).
+1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.scenes.CameraPath``).
 """
 import numpy as np
 
-from slc.scenes import CameraPath, SceneBuilder, box_mesh, diffuse, merge_meshes, principled, rough_conductor
+from slc.scene.scenes import CameraPath, SceneBuilder, box_mesh, diffuse, merge_meshes, principled, rough_conductor
 
 HX, HZ, HH = 16.0, 5.0, 6.0
 N_LIGHTS = 32

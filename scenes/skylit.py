@@ -13,13 +13,13 @@ roof over the yard, so every point sees part of the sky. The environment:
 - ``constant``: a uniform sky (closed forms for tests).
 
 Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
-1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scenes.CameraPath``).
+1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.scenes.CameraPath``).
 """
 import math
 
 import numpy as np
 
-from slc.scenes import ENVMAPS_DIR, CameraPath, SceneBuilder, SceneError, box_mesh, diffuse, merge_meshes, \
+from slc.scene.scenes import ENVMAPS_DIR, CameraPath, SceneBuilder, SceneError, box_mesh, diffuse, merge_meshes, \
     principled, rough_conductor
 
 ENVMAPS = {"venice": "venice_sunset_1k.hdr", "studio": "studio_small_03_1k.hdr"}

@@ -15,11 +15,11 @@ y ~ 15.6 and the atrium is open to the sky.
 
 Unit: one scene unit is taken as one metre (``unit=1.0``; the model's own
 scale, give or take); the camera paths walk at 1.4 m/s with view turns up
-to 30 deg/s at 60 Hz (``slc.scenes.CameraPath``).
+to 30 deg/s at 60 Hz (``slc.scene.scenes.CameraPath``).
 """
 import numpy as np
 
-from slc.scenes import SHARED_DIR, CameraPath, Scene, SceneError, diffuse
+from slc.scene.scenes import SHARED_DIR, CameraPath, Scene, SceneError, diffuse
 
 SPONZA_XML = SHARED_DIR / "scenes" / "sponza" / "sponza.xml"
 

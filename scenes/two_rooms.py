@@ -11,7 +11,7 @@ room A looking at its floor.
 
 Unit: one scene unit is one metre (``unit=1.0``).
 """
-from slc.scenes import CameraPath, SceneBuilder, diffuse, rough_conductor
+from slc.scene.scenes import CameraPath, SceneBuilder, diffuse, rough_conductor
 
 ROOM_A = (-1.9, 0.1)
 ROOM_B = (0.2, 2.2)

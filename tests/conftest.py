@@ -24,7 +24,7 @@ def scene():
     """``scene(name)``: a built-in scene (or scene file) loaded once per test session
     and shared by every test that asks for it. Tests must not modify it (moving a light,
     mi.traverse updates); load a private copy with ``slc.scenes.load`` for that."""
-    from slc import scenes
+    from slc.scene import scenes
     loaded = {}
 
     def load(name: str):
@@ -41,7 +41,7 @@ def reference():
     the G-buffer, computed once per session and shared across tests and files (the
     session's reference cache on disk, SLC_CACHE, keys it by scene, camera, frame,
     resolution, samples and the G-buffer's content)."""
-    from slc import references
+    from slc.reference import references
 
     def ref(kind, scene, gb, frame, spp=None, bounces=1):
         return references.reference_for(kind, scene, gb, frame, gb.viewer, spp=spp, bounces=bounces)

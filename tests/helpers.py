@@ -1,10 +1,10 @@
 """Small scenes and loops shared by the tests."""
 import numpy as np
 
-from slc import gbuffer
+from slc.scene import gbuffer
 from slc.methods import FrameContext
-from slc.scenes import CameraPath, SceneBuilder, diffuse
-from slc.timing import NullTimer
+from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
+from slc.core.timing import NullTimer
 
 
 def plane_under_rect_light(half=0.25, height=1.0, radiance=10.0, albedo=0.5, plane_half=2.0,
@@ -33,8 +33,8 @@ def rect_irradiance(px, pz, x1, x2, z1, z2, h, L):
 def render_frames(scene, method, viewers, frames, width, height, seed=0, start=0):
     """Run ``frames`` frames; return the composed images of the last frame. In
     check mode (SLC_CHECK=1) stage outputs and returned images are checked."""
-    from slc import check
-    from slc.pipeline import gbuffers_for
+    from slc.core import check
+    from slc.run.pipeline import gbuffers_for
     out = None
     for f in range(start, start + frames):
         gbs = gbuffers_for(scene, viewers, f, width, height)
@@ -199,7 +199,7 @@ def known_miss(case, measured, what="measured"):
 
 
 def slc_cli(args, cwd=None):
-    """``slc ARGS`` run in this process (``slc.cli.main``, as the ``slc`` entry point
+    """``slc ARGS`` run in this process (``slc.run.cli.main``, as the ``slc`` entry point
     runs it) rather than in a fresh interpreter: a ``subprocess.CompletedProcess``
     with the exit status and what the command printed to stdout and stderr. Check
     mode (``--check``) is switched off again afterwards; an exception the command
@@ -210,7 +210,8 @@ def slc_cli(args, cwd=None):
     import subprocess
     from pathlib import Path
 
-    from slc import check, cli
+    from slc.core import check
+    from slc.run import cli
     args = [str(a) for a in args]
     out, err = io.StringIO(), io.StringIO()
     before = os.environ.get(check.ENV)

@@ -7,15 +7,17 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import emitter_sampling, methods
-from slc.adaptive import choice as ch
-from slc.adaptive import sh_rep
-from slc.adaptive.method import _tally
-from slc.adaptive.pool import Pool
-from slc.groundtruth import ground_truth
-from slc.keys import INVALID
-from slc.scenes import CameraPath, SceneBuilder, diffuse
-from slc.views import Viewer
+from slc.scene import emitter_sampling
+
+from slc import methods
+from slc.methods.adaptive import choice as ch
+from slc.methods.adaptive import sh_rep
+from slc.methods.adaptive.method import _tally
+from slc.methods.adaptive.pool import Pool
+from slc.reference.groundtruth import ground_truth
+from slc.core.keys import INVALID
+from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
+from slc.scene.views import Viewer
 
 from helpers import plane_under_rect_light, rect_irradiance, render_frames
 
@@ -102,7 +104,7 @@ def test_frozen_cones_update_matches_unfrozen_as_entries_change():
     trace) with a moving camera, so that the number of CONES entries changes
     from frame to frame, every frame equals the unfrozen update's bit for bit,
     and the update stays frozen with at most the warm-up's two recordings."""
-    from slc.adaptive import cones_rep
+    from slc.methods.adaptive import cones_rep
     b = SceneBuilder("adaptive_cones_frozen")
     b.add_quad([0, 0, 0], [2, 0, 0], [0, 0, -2], bsdf=diffuse([0.5] * 3), name="plane")
     b.add_quad([0, 1, 0], [0.5, 0, 0], [0, 0, 0.5], bsdf=diffuse([0, 0, 0]), emission=[4.0] * 3, name="light")
@@ -119,8 +121,8 @@ def _assert_frozen_matches_unfrozen(scene, spec, attr, make):
     entry count changes after the warm-up (replays at other widths), the frozen
     update stays frozen with 1-2 recordings, and every frame is equal bit for bit."""
     from slc.methods import FrameContext
-    from slc.pipeline import gbuffers_for
-    from slc.timing import NullTimer
+    from slc.run.pipeline import gbuffers_for
+    from slc.core.timing import NullTimer
     v = Viewer("v0", lambda f: scene.path(0).at(f))
     out = {}
     for frozen in (True, False):
@@ -167,16 +169,16 @@ def _plane_points(scene, n=64):
 
 @pytest.mark.slow
 def test_cone_pool_update_is_slc_update_bit_for_bit():
-    """The adaptive cone pool runs slc's own update cycle (slc.cones.update.update_cycle
+    """The adaptive cone pool runs slc's own update cycle (slc.methods.cones.update.update_cycle
     through a SampleObserver): from the same records, keys, rays, policy state and seed
     its new records equal those of slc's update_entries word for word, over cycles of
     the ray ramp (stratified samples from first_sample) and a moving cycle (C capped,
     a second sequence), and the observer's statistics are those of the samples."""
     import drjit as dr
 
-    from slc.adaptive import cones_rep
-    from slc.cones.packing import words_per_entry
-    from slc.cones.update import ConeParams, update_entries
+    from slc.methods.adaptive import cones_rep
+    from slc.methods.cones.packing import words_per_entry
+    from slc.methods.cones.update import ConeParams, update_entries
     from slc.osc.payload import RayPolicy
 
     scene = _plane("adaptive_cone_bits", lambda b: (b.add_quad([0, 1.0, 0], [0.3, 0, 0], [0, 0, 0.3],

@@ -1,5 +1,5 @@
 """Bright small regions of the environment as listed lights of the adaptive
-cache's VISIBILITY records (slc/adaptive/env_lights.py): detection, the
+cache's VISIBILITY records (slc/methods/adaptive/env_lights.py): detection, the
 closed form, accuracy against the project's ground truth and a card's
 shadow. 32x32 images, a diffuse plane (albedo 0.5) under a dim sky with one
 bright disc."""
@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from slc import methods
-from slc.adaptive.env_lights import EnvLights
-from slc.groundtruth import ground_truth
-from slc.scenes import CameraPath, SceneBuilder, diffuse
-from slc.views import Viewer
+from slc.methods.adaptive.env_lights import EnvLights
+from slc.reference.groundtruth import ground_truth
+from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
+from slc.scene.views import Viewer
 
 from helpers import render_frames
 
@@ -85,8 +85,8 @@ def test_plane_lists_the_disc_and_matches_ground_truth():
     measured a mean 41% low."""
     import drjit as dr
     import mitsuba as mi
-    from slc.adaptive import visibility
-    from slc.adaptive.choice import VIS
+    from slc.methods.adaptive import visibility
+    from slc.methods.adaptive.choice import VIS
     scene = _scene("env_plane")
     m = methods.create("adaptive:start=cones", scene, seed=1)
     imgs, gbs = render_frames(scene, m, [_still(scene)], 24, W, H)

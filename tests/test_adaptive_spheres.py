@@ -1,5 +1,5 @@
 """Small sphere lights in the adaptive cache's VISIBILITY records
-(slc/adaptive/sphere_lights.py): the choice, accuracy against the project's
+(slc/methods/adaptive/sphere_lights.py): the choice, accuracy against the project's
 ground truth, and a moving sphere followed without lag. 32x32 images."""
 import math
 
@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from slc import methods
-from slc.adaptive.sphere_lights import SphereLights
-from slc.groundtruth import ground_truth
-from slc.scenes import CameraPath, SceneBuilder, diffuse
-from slc.views import Viewer
+from slc.methods.adaptive.sphere_lights import SphereLights
+from slc.reference.groundtruth import ground_truth
+from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
+from slc.scene.views import Viewer
 
 from helpers import render_frames
 

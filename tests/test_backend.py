@@ -1,6 +1,6 @@
 import pytest
 
-from slc import backend
+from slc.core import backend
 
 
 def test_variant_override_and_errors(monkeypatch):

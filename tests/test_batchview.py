@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from helpers import render_frames
-from slc import methods, views
+from slc import methods
+from slc.scene import views
 
 W, H, FRAMES = 48, 27, 4
 

@@ -2,7 +2,7 @@
 timing is asserted, only that every part is measured and reported)."""
 import pytest
 
-from slc import bench
+from slc.run import bench
 
 
 def test_bench_rays_reports_where_the_time_goes():

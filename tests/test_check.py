@@ -1,14 +1,16 @@
-"""Check mode (slc.check, SLC_CHECK / --check): the first NaN/Inf or negative
+"""Check mode (slc.core.check, SLC_CHECK / --check): the first NaN/Inf or negative
 value raises with the method, stage and pixel; off, nothing is checked."""
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import check, gbuffer, views
+from slc.core import check
+
+from slc.scene import gbuffer, views
 from slc.methods import Method
-from slc.pipeline import RunConfig, run_sequence
-from slc.timing import StageTimer
+from slc.run.pipeline import RunConfig, run_sequence
+from slc.core.timing import StageTimer
 
 W, H = 24, 16
 BAD_X, BAD_Y = 13, 9
@@ -136,7 +138,7 @@ def test_env_values():
 
 def test_ground_truth_checked(cornell, check_on, monkeypatch, tmp_path):
     """In check mode the ground-truth image is checked as well (a cached copy included)."""
-    from slc import groundtruth
+    from slc.reference import groundtruth
     monkeypatch.setenv("SLC_CACHE", str(tmp_path))
     gb = gbuffer.render_gbuffer(cornell, views.single(cornell)[0].camera(0), W, H)
     groundtruth.ground_truth(cornell, gb, 0, "v", spp=16)                 # fine

@@ -1,5 +1,5 @@
 """Bad input gets one clear line and exit code 2, and no partial results. The commands run
-in this process (helpers.slc_cli); the entry point itself (``python -m slc.cli``, a fresh
+in this process (helpers.slc_cli); the entry point itself (``python -m slc.run.cli``, a fresh
 interpreter) runs in test_scenes_and_methods_listing and for one bad scene file."""
 import json
 import subprocess
@@ -11,7 +11,7 @@ import pytest
 from helpers import slc_cli
 
 ROOT = Path(__file__).resolve().parents[1]
-SLC = [sys.executable, "-m", "slc.cli"]
+SLC = [sys.executable, "-m", "slc.run.cli"]
 
 
 def subprocess_run(args, cwd=None):
@@ -54,7 +54,7 @@ CAMERA_FOV_XML = _camera_xml('<lookat origin="0,1,3" target="0,0,0" up="0,1,0"/>
 
 
 def _py_scene(paths, shapes=True):
-    return ("from slc.scenes import CameraPath, SceneBuilder, diffuse\n"
+    return ("from slc.scene.scenes import CameraPath, SceneBuilder, diffuse\n"
             "def build(**options):\n"
             "    b = SceneBuilder('py_bad')\n"
             + ("    b.add_quad([0, 0, 0], [1, 0, 0], [0, 0, -1], bsdf=diffuse([0.7] * 3), name='floor')\n" if shapes else "")
@@ -133,7 +133,7 @@ def test_good_xml_scene_renders(xmls, tmp_path):
     light (radius 0.2 m, radiance 20). The plane's brightest pixel is within 3% of the
     closed form right under the light, 0.5 / pi * pi * 20 * 0.2^2 / 2^2 = 0.1 (measured
     0.0999), and FLIP against the ground truth below 0.01 (measured 0.0020)."""
-    from slc.io import read_exr
+    from slc.core.io import read_exr
     r = run(["render", "--scene", str(xmls["good"]), "--method", "rt4", "--res", "32x18", "--frames", "2",
              "--gt", "--out", str(tmp_path)])
     assert r.returncode == 0, r.stderr
@@ -166,7 +166,7 @@ def test_check_mode_stops_at_first_inf(xmls, tmp_path):
     r = run(args + ["--out", str(tmp_path / "raw")])
     assert r.returncode == 0, r.stderr
     import numpy as np
-    from slc.io import read_exr
+    from slc.core.io import read_exr
     assert np.isinf(read_exr(next((tmp_path / "raw").glob("*.exr")))).any()
     r = run(["--check"] + args + ["--out", str(tmp_path / "chk")])
     _one_line_error(r, "check: rt4 frame 0 stage 'shade'", "+Inf", "pixel (")

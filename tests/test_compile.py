@@ -30,8 +30,9 @@ W, H, FRAMES, WARMUP = 64, 36, 9, 3
 _CASE = r"""
 import json, sys
 import slc
-from slc import methods, scenes, views
-from slc.pipeline import RunConfig, run_sequence
+from slc import methods
+from slc.scene import scenes, views
+from slc.run.pipeline import RunConfig, run_sequence
 spec, rig, n, W, H, F, WU = sys.argv[1], sys.argv[2], int(sys.argv[3]), *map(int, sys.argv[4:8])
 s = scenes.load("atrium")
 vs = views.make_rig(s, rig, n)
@@ -81,7 +82,7 @@ def test_counter_sees_a_kernel_with_a_per_frame_literal():
 import json
 import drjit as dr, mitsuba as mi
 import slc
-from slc.timing import KernelCounter
+from slc.core.timing import KernelCounter
 out = {}
 for name, lit in (("literal", lambda f: f), ("opaque", lambda f: dr.opaque(mi.UInt32, f))):
     counts = []
@@ -114,7 +115,7 @@ def test_stage_kernel_time_and_counter_share_the_history():
     import mitsuba as mi
 
     import slc  # noqa: F401  (sets the variant)
-    from slc.timing import KernelCounter, StageTimer
+    from slc.core.timing import KernelCounter, StageTimer
 
     def frame(timer, f):
         timer.begin_frame()
@@ -150,7 +151,7 @@ def _table_consistent(pool):
     """Block table invariants: mapped blocks counted once, page counts equal
     the mapped entries of each page, directory and pages point at each other."""
     import numpy as np
-    from slc.keys import INVALID
+    from slc.core.keys import INVALID
     blk_vb = np.array(pool.blk_vb)
     assert pool.n_blocks == int(np.count_nonzero(blk_vb != INVALID))
     pg_dir, pages, cnt = np.array(pool.pg_dir), np.array(pool.pages), np.array(pool.pg_count)
@@ -169,10 +170,10 @@ def test_single_element_lists_keep_the_block_table_exact():
     import drjit as dr
     import mitsuba as mi
     import numpy as np
-    from slc import scenes, views
-    from slc.keys import INVALID
+    from slc.scene import scenes, views
+    from slc.core.keys import INVALID
     from slc.osc import OnSurfaceCache
-    from slc.pipeline import gbuffers_for
+    from slc.run.pipeline import gbuffers_for
     s = scenes.load("cornell")
     cache = OnSurfaceCache(s)
     pool = cache.pool
@@ -199,7 +200,7 @@ def test_single_element_lists_keep_the_block_table_exact():
 
 
 def test_experiment_flags_rows_that_built_kernels(tmp_path, capsys):
-    from slc import experiment as ex
+    from slc.run import experiment as ex
     rows = [{"scene": "atrium", "method": "slc", "label": "slc", "viewers": 4, "time_ms": 12.5,
              "compiled_after_warmup": 2},
             {"scene": "atrium", "method": "rt48", "label": "rt48", "viewers": 4, "time_ms": 40.0,
@@ -228,7 +229,7 @@ EXP_ARGS = ["random-viewers", "--quick", "--res", "96x54", "--frames", "12", "--
 
 
 def _experiment(out: Path, home: Path) -> list[dict]:
-    p = subprocess.run([sys.executable, "-m", "slc.cli", "run", *EXP_ARGS, "--out", str(out)],
+    p = subprocess.run([sys.executable, "-m", "slc.run.cli", "run", *EXP_ARGS, "--out", str(out)],
                        capture_output=True, text=True, env=_env(HOME=str(home)), timeout=900, cwd=ROOT)
     assert p.returncode == 0, p.stderr[-3000:]
     assert "kernel(s) built after warm-up" not in p.stderr, p.stderr[-3000:]

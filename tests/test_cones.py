@@ -10,19 +10,19 @@ import numpy as np
 import pytest
 
 from helpers import known_miss, plane_under_rect_light, rect_irradiance
-from slc import gbuffer
-from slc.cones import packing as P
-from slc.cones.method import SurfaceLightCones
-from slc.cones.pixelcache import PixelSlotCache
-from slc.cones.update import (ConeParams, angle_between, c_reduction, end_cycle, insert_sample, merge_cones,
+from slc.scene import gbuffer
+from slc.methods.cones import packing as P
+from slc.methods.cones.method import SurfaceLightCones
+from slc.methods.cones.pixelcache import PixelSlotCache
+from slc.methods.cones.update import (ConeParams, angle_between, c_reduction, end_cycle, insert_sample, merge_cones,
                               shrink_cone, shrink_step)
-from slc.groundtruth import direct_mis
+from slc.reference.groundtruth import direct_mis
 from slc.methods import FrameContext, create
-from slc.metrics import evaluate
-from slc.pipeline import gbuffers_for
-from slc.scenes import FPS, CameraPath, SceneBuilder, diffuse, rough_conductor, translate
-from slc.timing import NullTimer
-from slc.views import single
+from slc.reference.metrics import evaluate
+from slc.run.pipeline import gbuffers_for
+from slc.scene.scenes import FPS, CameraPath, SceneBuilder, diffuse, rough_conductor, translate
+from slc.core.timing import NullTimer
+from slc.scene.views import single
 
 W, H = 40, 30
 
@@ -503,7 +503,7 @@ def _hard_case_errors(kind):
     if kind in _HARD_ERRORS:
         return _HARD_ERRORS[kind]
     from helpers import HARD_POINT, HARD_RECTS, quadrature_direct
-    from slc import check
+    from slc.core import check
     sc = _hard_scene(kind)
     m = _make(sc, max_cones=2 if kind == "hemisphere" else 3)
     with pytest.MonkeyPatch.context() as mp:
@@ -559,7 +559,7 @@ def test_hard_case_misses_no_worse(kind):
 
 def _storage_after(sc, frames=12, cache="pixel"):
     """A converged cone storage and the shading inputs of the last frame."""
-    from slc.cones.update import INVALID
+    from slc.methods.cones.update import INVALID
     m = SurfaceLightCones(sc, cache=PixelSlotCache(), fetch="nearest") if cache == "pixel" else create("slc", sc)
     gb, _ = _run(sc, m, frames)
     fr = m.cache.begin_frame(frames, [gb])
@@ -577,7 +577,7 @@ def test_mis_shading_unbiased_and_deterministic(bsdf):
     model's integral) to 1 % over the image and 3 % per pixel (L1; the two estimates'
     own noise is about 1-1.6 %), for a sharp (alpha 0.01) and a rough (0.3) lobe. The
     same key gives the same image, frozen or not."""
-    from slc.cones.shading import ConeShading
+    from slc.methods.cones.shading import ConeShading
     for alpha in (0.01, 0.3):
         b = rough_conductor(alpha, "Al") if bsdf == "conductor" else \
             {"type": "roughplastic", "distribution": "ggx", "alpha": alpha,
@@ -654,7 +654,7 @@ def test_shading_compiles_nothing_after_warmup(n_viewers):
     the disk cache) for 1 and 4 viewers: the frozen replay and the kernels around it are
     all in-memory cache hits."""
     from contextlib import contextmanager
-    from slc.timing import StageTimer
+    from slc.core.timing import StageTimer
     sc = plane_under_rect_light(half=0.1, radiance=20.0, bsdf=rough_conductor(0.05, "Al"), name="nocompile")
     m = _make(sc)
     missed = []
@@ -720,8 +720,8 @@ def _glossy_case(kind, alpha, light):
     if case in _GLOSSY:
         return _GLOSSY[case]
     from scipy.ndimage import maximum_filter, minimum_filter
-    from slc.groundtruth import ground_truth
-    from slc.metrics import rel_mse
+    from slc.reference.groundtruth import ground_truth
+    from slc.reference.metrics import rel_mse
     half, radiance = (0.1, 20.0) if light == "small" else (1.0, 1.0)
     sc = plane_under_rect_light(half=half, radiance=radiance, bsdf=_glossy_bsdf(kind, alpha),
                                 name=f"glossy_{kind}_{alpha}_{light}")

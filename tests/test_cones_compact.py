@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from helpers import render_frames
-from slc import methods, scenes, views
-from slc.cones import shading as shmod
-from slc.cones.shading import ConeShading
+from slc import methods
+from slc.scene import scenes, views
+from slc.methods.cones import shading as shmod
+from slc.methods.cones.shading import ConeShading
 
 W, H = 48, 27
 

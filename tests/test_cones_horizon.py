@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 
 from helpers import hard_scene, render_frames
-from slc import methods, scenes, views
-from slc.cones import packing as P
-from slc.cones.shading import ConeShading, _lambertian
+from slc import methods
+from slc.scene import scenes, views
+from slc.methods.cones import packing as P
+from slc.methods.cones.shading import ConeShading, _lambertian
 
 
 def _clipped_cap_integral(cos_d, alpha, n=400_000, seed=0):

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from helpers import plane_under_rect_light
-from slc.cones import shading as shmod
-from slc.cones import update as upmod
-from slc.cones.shading import ConeShading, bsdf_table
-from slc.scenes import diffuse, principled, rough_conductor
+from slc.methods.cones import shading as shmod
+from slc.methods.cones import update as upmod
+from slc.methods.cones.shading import ConeShading, bsdf_table
+from slc.scene.scenes import diffuse, principled, rough_conductor
 
 
 def _inputs(sc, frames=12):
@@ -50,7 +50,7 @@ def test_update_shortcuts_same_storage(monkeypatch):
     """The update's storage after 6 frames is the same bit for bit with the shrink
     test's emitter shortcut and with the emitter's virtual call, and with the insertion's
     cases C/D computed for every lane (the branch's condition always true)."""
-    from slc import scenes
+    from slc.scene import scenes
     from slc.methods import create
     from test_cones import _run
     sc = scenes.load("cornell")

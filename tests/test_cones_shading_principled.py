@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from helpers import hard_scene, plane_under_rect_light
-from slc.cones.shading import ConeShading
-from slc.scenes import principled
+from slc.methods.cones.shading import ConeShading
+from slc.scene.scenes import principled
 
 
 def _shade(sc, n_ref=4):

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from helpers import plane_under_rect_light
-from slc.cones.shading import KIND_DIFFUSE, KIND_NOT_PRINCIPLED, KIND_OTHER, KIND_PRINCIPLED, ConeShading, bsdf_table
-from slc.scenes import diffuse, principled, rough_conductor
+from slc.methods.cones.shading import KIND_DIFFUSE, KIND_NOT_PRINCIPLED, KIND_OTHER, KIND_PRINCIPLED, ConeShading, bsdf_table
+from slc.scene.scenes import diffuse, principled, rough_conductor
 
 
 def _inputs(sc):
@@ -23,7 +23,7 @@ def _kind(sc, m):
     for sh in sc.mi_scene.shapes():
         if sh.id() == "plane" or "plane" in sh.id():
             rid = dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(sh.bsdf()))
-    return int(dr.gather(mi.UInt32, t[1], rid)[0]), t
+    return int(dr.gather(mi.UInt32, t.kind, rid)[0]), t
 
 
 def _bitmap():
@@ -59,7 +59,7 @@ def test_bsdf_table_same_images(kind):
 def test_entry_frames_inside_the_launch():
     """Passing each pixel's entry index and the entries' frames (the gather inside the
     launch) gives the image of a frame gathered beforehand, bit for bit."""
-    from slc.cones.update import INVALID
+    from slc.methods.cones.update import INVALID
     sc = plane_under_rect_light(half=0.3, radiance=5.0, bsdf=principled([0.45, 0.36, 0.28], roughness=0.22),
                                 name="entry_frames")
     m, gb, slot, ok, tf = _inputs(sc)

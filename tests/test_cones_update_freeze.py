@@ -1,17 +1,17 @@
-"""issue 13: the cone update traced once and replayed (``slc.cones.update.ConeUpdate``,
+"""issue 13: the cone update traced once and replayed (``slc.methods.cones.update.ConeUpdate``,
 ``dr.freeze``): the same images bit for bit as the update traced every frame, and a
 bounded number of recordings over a run whose active entries and storage change size."""
 import numpy as np
 import pytest
 
 from helpers import plane_under_rect_light, run_case
-from slc.cones.update import ConeUpdate
+from slc.methods.cones.update import ConeUpdate
 from slc.methods import FrameContext, create
 from slc.osc import OnSurfaceCache
-from slc.pipeline import gbuffers_for
-from slc.scenes import CameraPath, SceneBuilder, diffuse, rough_conductor
-from slc.timing import NullTimer
-from slc.views import single
+from slc.run.pipeline import gbuffers_for
+from slc.scene.scenes import CameraPath, SceneBuilder, diffuse, rough_conductor
+from slc.core.timing import NullTimer
+from slc.scene.views import single
 from test_cones import _moving_scene
 
 pytestmark = pytest.mark.slow      # fresh interpreters counting kernels
@@ -49,11 +49,11 @@ def _run(sc, viewers, frames, freeze, grow=False):
 _RECORDINGS = """
 import json, sys
 sys.path.insert(0, "tests")
-import slc.backend  # noqa: F401
+import slc.core.backend  # noqa: F401
 import test_cones_update_freeze as F
 n_views, preload = int(sys.argv[1]), sys.argv[2]
 if preload:
-    from slc import scenes
+    from slc.scene import scenes
     scenes.load(preload)           # loaded and released before the run
 sc = F._growing_scene()
 m, _, widths, _ = F._run(sc, F.single(sc) * n_views, 24, freeze=True, grow=True)
@@ -94,7 +94,7 @@ def test_frozen_update_bounded_after_another_scene():
     recordings as in a fresh process. It recorded at every frame until dropped
     ([1, 2, 3, 4, 5]) while the released scene's emitters and emissive shapes stayed
     alive in the emitter-table cache, hence in Mitsuba's registry, which the frozen
-    function traverses (see slc/freeze.py and tests/test_freeze_scenes.py)."""
+    function traverses (see slc/core/freeze.py and tests/test_freeze_scenes.py)."""
     r = run_case(_RECORDINGS, 1, "atrium")
     fresh = run_case(_RECORDINGS, 1, "")
     assert r["frozen"] and r["recs"][-1] <= 2, r["recs"]

@@ -1,6 +1,6 @@
 """CRC grid cache as a method: voxelization, occupancy, ray marching, the
 occupancy optimization being exact at shaded points, agreement with the
-indirect reference (slc.references), its settings, and the pipeline
+indirect reference (slc.reference.references), its settings, and the pipeline
 comparing it with the indirect reference."""
 from pathlib import Path
 
@@ -9,16 +9,20 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import methods, references, views
-from slc.crc import CRCCache, Grid
-from slc.crc import volume
-from slc.crc.march import visible
-from slc.crc.quality import de76_fraction, delta_e76, pdiff
-from slc.crc.quality import _xyz_lab_yee
-from slc.gbuffer import to_image
+from slc import methods
+
+from slc.reference import references
+
+from slc.scene import views
+from slc.methods.crc import CRCCache, Grid
+from slc.methods.crc import volume
+from slc.methods.crc.march import visible
+from slc.methods.crc.quality import de76_fraction, delta_e76, pdiff
+from slc.methods.crc.quality import _xyz_lab_yee
+from slc.scene.gbuffer import to_image
 from slc.methods import FrameContext, MethodError
-from slc.pipeline import RunConfig, gbuffers_for, run_sequence
-from slc.timing import NullTimer
+from slc.run.pipeline import RunConfig, gbuffers_for, run_sequence
+from slc.core.timing import NullTimer
 
 from helpers import plane_under_rect_light, slc_cli
 
@@ -45,7 +49,7 @@ def diffuse_cornell():
     every surface is Lambertian, the case CRC models (it reconstructs
     rho E / pi)."""
     import importlib.util
-    from slc.scenes import SCENES_DIR, diffuse
+    from slc.scene.scenes import SCENES_DIR, diffuse
     spec = importlib.util.spec_from_file_location("cornell_diffuse", SCENES_DIR / "cornell.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -211,7 +215,7 @@ def test_rays_visibility_option():
     all-diffuse Cornell box against a 64-spp indirect reference: the image mean per
     channel within 15% and relMSE below 0.03. Measured: +7.6 / +2.8 / +10.3%, relMSE
     0.0199 (the march: +2.2 / +3.6 / +14.6%, 0.0187)."""
-    from slc.metrics import rel_mse
+    from slc.reference.metrics import rel_mse
     scene = diffuse_cornell()
     _, gbs, img = _render(scene, encoding="y3co1cg1", visibility="rays", vpls=1024, samples=16)
     ref = to_image(gbs[0], references.indirect_light(scene.mi_scene, gbs[0], spp=64, bounces=1))
@@ -276,7 +280,7 @@ def test_halton_rectangle_and_paper_stride(cornell):
     """The precomputed Halton points are the radical inverses (bases 2, 3);
     the default depth stride is the paper's 10 at 1 MPixel scaled by the
     frame's side (1 at 128x72, 2 at 320x180), a set stride is kept."""
-    from slc.crc.cache import halton
+    from slc.methods.crc.cache import halton
     assert np.allclose(halton(5, 2), [0, 1 / 2, 1 / 4, 3 / 4, 1 / 8])
     assert np.allclose(halton(5, 3), [0, 1 / 3, 2 / 3, 1 / 9, 4 / 9])
     c = CRCCache(cornell, samples=8)
@@ -289,7 +293,7 @@ def test_halton_rectangle_and_paper_stride(cornell):
 def test_stages_split_by_encoding_dependence(cornell):
     """Every timed stage is either one whose work scales with the
     coefficient count or one that does not depend on the encoding."""
-    from slc.timing import StageTimer
+    from slc.core.timing import StageTimer
     m = methods.create("crc:bounces=2,samples=8,secondary_rays=4,rsm_size=16", cornell)
     t = StageTimer()
     gbs = gbuffers_for(cornell, views.single(cornell), 0, 32, 18)

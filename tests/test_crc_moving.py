@@ -9,10 +9,12 @@ import drjit as dr
 import numpy as np
 import pytest
 
-from slc import methods, views
+from slc import methods
+
+from slc.scene import views
 from slc.methods import FrameContext
-from slc.pipeline import gbuffers_for
-from slc.timing import KernelCounter, NullTimer
+from slc.run.pipeline import gbuffers_for
+from slc.core.timing import KernelCounter, NullTimer
 
 W, H = 64, 36
 
@@ -130,7 +132,7 @@ def test_window_follows_camera_and_shades_nothing_outside(atrium):
         offs.append(m.offset.copy())
     assert m.moves >= 1 and len({tuple(o) for o in offs}) >= 2
     gb = gbs[0]
-    from slc.crc.cache import front_normal
+    from slc.methods.crc.cache import front_normal
     q = gb.si.p + front_normal(gb.si) * (0.5 * m.grid.h)
     outside = np.array(gb.valid & ~m.in_window(gb.si.p, q))
     img = np.array(out[0])

@@ -1,4 +1,4 @@
-"""The emitter table (slc.emitter_sampling) against Mitsuba's own
+"""The emitter table (slc.scene.emitter_sampling) against Mitsuba's own
 ``scene.sample_emitter_direction``: chi-square tests of the sampled
 directions, the weights' expectation, delta lights, moving lights, and RT-N
 with the table against the (Mitsuba-sampled) ground truth."""
@@ -9,8 +9,12 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import emitter_sampling, gbuffer, groundtruth, lights, methods, scenes, views
-from slc.pipeline import gbuffers_for
+from slc.scene import emitter_sampling, gbuffer, lights, scenes, views
+
+from slc.reference import groundtruth
+
+from slc import methods
+from slc.run.pipeline import gbuffers_for
 
 from helpers import plane_under_rect_light
 
@@ -280,7 +284,7 @@ def test_rt_with_table_matches_ground_truth_mean(name, choice, monkeypatch):
 def test_bench_rays_reports_both_samplers():
     """`slc bench rays` measures Mitsuba's sampler and the table side by side
     (a smoke test: no timing is asserted)."""
-    from slc import bench
+    from slc.run import bench
     r = bench.bench_rays("cornell", 16, 9, n=2, repeats=1)
     assert set(r["samplers"]) == {"mitsuba", "table"}
     for x in r["samplers"].values():

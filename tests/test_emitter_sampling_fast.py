@@ -1,6 +1,6 @@
 """The fast paths of light sampling and shading: the emitter table's packed
-rows and selected segments (slc.emitter_sampling) and the BSDF evaluation
-without the virtual call for diffuse BSDFs (slc.lights.SurfaceBSDF). Each is
+rows and selected segments (slc.scene.emitter_sampling) and the BSDF evaluation
+without the virtual call for diffuse BSDFs (slc.scene.lights.SurfaceBSDF). Each is
 checked against the plain path it replaces, bit for bit, or against closed
 forms (the triangle areas)."""
 import drjit as dr
@@ -8,9 +8,9 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import emitter_sampling, lights, scenes, views
-from slc.baselines.rt import RandomLightSampling
-from slc.pipeline import gbuffers_for
+from slc.scene import emitter_sampling, lights, scenes, views
+from slc.methods.rt.method import RandomLightSampling
+from slc.run.pipeline import gbuffers_for
 
 from test_emitter_sampling import _mixed_scene, _shading_point
 
@@ -167,3 +167,24 @@ def test_rt_with_surface_bsdf_equals_plain_eval():
     ref = _arr(L / 4.0)
     assert ref.max() > 0
     assert np.array_equal(got, ref)
+
+
+def test_one_bsdf_table_per_scene():
+    """The diffuse flags of SurfaceBSDF and the cone shading's BSDF kinds come from one
+    table, built once per scene (cached, dropped by ``forget``): smooth diffuse BSDFs are
+    flagged whatever their reflectance, only the constant one is KIND_DIFFUSE."""
+    from slc.scene import bsdf_table
+    from slc.methods.cones.shading import bsdf_table as cone_table
+    sc = _bsdf_scene()
+    t = bsdf_table.for_scene(sc)
+    assert cone_table(sc) is t and bsdf_table.for_scene(sc) is t
+    ids = [int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(s.bsdf()))[0]) for s in sc.shapes()
+           if s.bsdf() is not None]
+    diffuse, kind = _arr(t.diffuse), _arr(t.kind)
+    strips = [s.id() for s in sc.shapes()]
+    by_id = dict(zip(strips, ids))
+    assert diffuse[by_id["s0"]] and diffuse[by_id["s1"]] and not diffuse[by_id["s2"]]
+    assert kind[by_id["s0"]] == bsdf_table.KIND_DIFFUSE and kind[by_id["s1"]] == bsdf_table.KIND_NOT_PRINCIPLED
+    assert kind[by_id["s3"]] == bsdf_table.KIND_PRINCIPLED and not t.all_diffuse
+    bsdf_table.forget(id(sc))
+    assert bsdf_table.for_scene(sc) is not t

@@ -3,9 +3,13 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import gbuffer, groundtruth, methods, views
-from slc.pipeline import gbuffers_for
-from slc.scenes import SHARED_DIR, CameraPath, Scene
+from slc.scene import gbuffer, views
+
+from slc.reference import groundtruth
+
+from slc import methods
+from slc.run.pipeline import gbuffers_for
+from slc.scene.scenes import SHARED_DIR, CameraPath, Scene
 
 ENVMAP = SHARED_DIR / "envmaps" / "studio_small_03_1k.hdr"
 

@@ -1,4 +1,4 @@
-"""issue 13 §1: frozen functions (``slc.freeze.FrozenFunction``) record as often in a
+"""issue 13 §1: frozen functions (``slc.core.freeze.FrozenFunction``) record as often in a
 process that loaded another scene before as in a fresh one.
 
 Two causes were found and fixed: a released scene's emitters and emissive shapes
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from helpers import run_case
-from slc.freeze import FrozenFunction
+from slc.core.freeze import FrozenFunction
 
 pytestmark = pytest.mark.slow      # fresh interpreters counting kernels
 
@@ -23,13 +23,13 @@ pytestmark = pytest.mark.slow      # fresh interpreters counting kernels
 _RUN = """
 import gc, json, sys
 sys.path.insert(0, "tests")
-import slc.backend  # noqa: F401
-import slc.freeze as SF
+import slc.core.backend  # noqa: F401
+import slc.core.freeze as SF
 from slc.methods import FrameContext, create
-from slc.pipeline import gbuffers_for
-from slc.scenes import load
-from slc.timing import NullTimer
-from slc.views import single
+from slc.run.pipeline import gbuffers_for
+from slc.scene.scenes import load
+from slc.core.timing import NullTimer
+from slc.scene.views import single
 from test_cones_update_freeze import _growing_scene
 made = []
 _init = SF.FrozenFunction.__init__
@@ -61,7 +61,7 @@ def _by_fn(runs, scene):
 
 
 # osc-gi fails on the growing scene (an empty secondary-cell list in
-# slc/oscgi/secondary.py, also on main): it runs on the cornell box instead
+# slc/methods/oscgi/secondary.py, also on main): it runs on the cornell box instead
 @pytest.mark.parametrize("second,methods,n_fns", [("growing", "slc,adaptive,sh,pt", 12), ("cornell", "osc-gi", 10)],
                          ids=["growing-cache", "osc-gi"])
 def test_two_scenes_in_turn_record_as_in_fresh_processes(second, methods, n_fns):
@@ -92,8 +92,8 @@ import gc, json, sys
 sys.path.insert(0, "tests")
 import drjit as dr
 import mitsuba as mi
-import slc.backend  # noqa: F401
-from slc import scenes
+import slc.core.backend  # noqa: F401
+from slc.scene import scenes
 from helpers import plane_under_rect_light
 if sys.argv[1]:
     scenes.load(sys.argv[1])          # loaded and released
@@ -142,9 +142,9 @@ import json, sys
 sys.path.insert(0, "tests")
 import drjit as dr
 import mitsuba as mi
-import slc.backend  # noqa: F401
+import slc.core.backend  # noqa: F401
 import test_cones_update_freeze as F
-from slc import scenes
+from slc.scene import scenes
 keep = scenes.load("atrium") if sys.argv[1] else None      # alive during the run
 sizes = set()
 for sh in (keep.mi_scene.shapes() if keep else []):
@@ -163,7 +163,7 @@ print("RESULT " + json.dumps(dict(recs=m.recordings_per_frame, active=active, si
 
 
 def test_update_with_another_scene_alive_records_once_per_size_coincidence():
-    """What is left (see slc/freeze.py): with the atrium alive during the run, the
+    """What is left (see slc/core/freeze.py): with the atrium alive during the run, the
     frozen update's key also holds the size classes of the atrium's arrays, so a
     frame whose entry count equals one of their sizes (486: a lamp sphere's vertex
     coordinates) records once more; later frames with the same count replay it.

@@ -1,16 +1,19 @@
 """issue 13: a frozen function whose lane count happens to equal the width of
-another input (an array of the scene) is not recorded again (``slc.freeze``:
+another input (an array of the scene) is not recorded again (``slc.core.freeze``:
 such a call runs on a free width, its extra lanes copies of the last one).
 
 Dr.Jit keys a recording on which inputs share a width; the atrium's active
 entries once numbered 2,880, the length of one mesh's index buffer, and the
 cone update was recorded again in a timed frame."""
+from dataclasses import dataclass
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+import pytest
 
-import slc.backend  # noqa: F401
-from slc.freeze import FrozenFunction, _input_widths
+import slc.core.backend  # noqa: F401
+from slc.core.freeze import FrozenFunction, _input_widths
 
 
 def _scene():
@@ -96,11 +99,38 @@ def test_free_width_skips_every_taken_width():
 
 def test_cone_update_declares_its_lanes():
     """The cone update's per-lane arguments are exactly those of one width per
-    call (order .. strata), so that padding touches nothing else."""
+    call (the lane order and the batch of per-entry inputs), so that padding
+    touches nothing else."""
     import inspect
 
-    from slc.cones.update import ConeUpdate, _update_kernel
+    from slc.methods.cones.update import ConeUpdate, _update_kernel
     names = list(inspect.signature(_update_kernel).parameters)
     lanes = ConeUpdate().lanes
-    assert [names[i] for i in lanes] == ["order", "active", "keys", "si", "rays", "unsettled", "moving",
-                                         "is_new", "seed_slot", "first_sample", "strata"]
+    assert [names[i] for i in lanes] == ["order", "batch"]
+
+
+@dataclass
+class _Lanes:
+    x: mi.Float
+    k: mi.UInt32
+
+
+def _kernel_named(scene, table, lanes: _Lanes):
+    return _kernel(scene, table, lanes.x, lanes.k)
+
+
+def test_lanes_named_by_parameter_may_be_a_structure():
+    """Per-lane arguments are named by the function's parameters; a dataclass argument
+    is per lane in every field: a colliding lane count runs padded, values unchanged."""
+    scene = _scene()
+    w = 3 * 144                                              # the ball's index buffer
+    ff = FrozenFunction(_kernel_named, lanes=("lanes",))
+    assert ff.lanes == (2,)
+    table = dr.arange(mi.Float, 7) * 0.5
+    for n in (500, w):
+        x, k = dr.arange(mi.Float, n) * 0.25, dr.arange(mi.UInt32, n) * 3
+        got, ref = ff(scene, table, _Lanes(x, k)), _kernel(scene, table, x, k)
+        assert all(np.array_equal(np.array(u), np.array(v)) for u, v in zip(got, ref))
+    assert ff.padded_calls == 1
+    with pytest.raises(ValueError, match="no parameter nope"):
+        FrozenFunction(_kernel, lanes=("nope",))

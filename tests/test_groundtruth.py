@@ -2,9 +2,11 @@
 import numpy as np
 
 from helpers import plane_under_rect_light, rect_irradiance
-from slc import gbuffer, groundtruth, methods, scenes, views
-from slc.metrics import rel_mse
-from slc.pipeline import gbuffers_for
+from slc.scene import gbuffer, scenes, views
+from slc.reference import groundtruth
+from slc import methods
+from slc.reference.metrics import rel_mse
+from slc.run.pipeline import gbuffers_for
 
 
 def test_ground_truth_matches_closed_form_irradiance():

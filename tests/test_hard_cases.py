@@ -26,11 +26,13 @@ import numpy as np
 import pytest
 
 from helpers import HARD_POINT, HARD_RECTS, hard_scene, quadrature_direct, rect_irradiance, z_test
-from slc import check, methods, views
-from slc.groundtruth import direct_mis
+from slc.core import check
+from slc import methods
+from slc.scene import views
+from slc.reference.groundtruth import direct_mis
 from slc.methods import FrameContext
-from slc.pipeline import gbuffers_for
-from slc.timing import StageTimer
+from slc.run.pipeline import gbuffers_for
+from slc.core.timing import StageTimer
 
 W, H = 48, 32
 KINDS = ["grazing", "point", "hemisphere", "zero", "huge", "inside"]
@@ -180,7 +182,7 @@ def _plane_scene(name, rects=(), spheres=(), blocker=None, light_transform=None)
     rectangular lights ``(name, centre, u, v, radiance)`` (facing cross(u, v)),
     emissive spheres ``(centre, radius, radiance)`` and an optional blocker
     quad; the still camera of :func:`helpers.hard_scene`."""
-    from slc.scenes import CameraPath, SceneBuilder, diffuse
+    from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
     b = SceneBuilder(name)
     b.add_quad([0, 0, 0], [2, 0, 0], [0, 0, -2], bsdf=diffuse([0.5] * 3), name="plane")
     for k, c, u, v, L in rects:
@@ -345,7 +347,7 @@ STOP = 12
 
 
 def _moving(t):
-    from slc.scenes import translate
+    from slc.scene.scenes import translate
     return translate([0.04 * min(t * 60.0, STOP), 0.0, 0.0])
 
 
@@ -386,7 +388,7 @@ def _switch_off_errors():
         return _SWITCH_OFF
     import mitsuba as mi
 
-    from slc import emitter_sampling
+    from slc.scene import emitter_sampling
 
     def switching(spec, frames, at):
         sc = _plane_scene("hard_switch", rects=SWITCH)

@@ -1,6 +1,6 @@
 """Experiments as jobs: serial and Ray runs give the same rows and images,
 runs killed mid-way resume to the same results, failed jobs are retried
-and reported (slc.jobs, slc.cluster)."""
+and reported (slc.run.jobs, slc.run.cluster)."""
 import filecmp
 import importlib.util
 import json
@@ -14,11 +14,13 @@ from pathlib import Path
 import pytest
 
 from helpers import slc_cli
-from slc import jobs, views
-from slc.pipeline import RunConfig
+from slc.run import jobs, jobspec
+
+from slc.scene import views
+from slc.run.pipeline import RunConfig
 
 ROOT = Path(__file__).resolve().parents[1]
-SLC = [sys.executable, "-m", "slc.cli"]
+SLC = [sys.executable, "-m", "slc.run.cli"]
 SCENES = ["cornell", "garden", "hangar"]  # three jobs (one per scene), cheap to load
 TINY = ["run", "single-viewer", "--quick", "--res", "32x18", "--frames", "3", "--methods", "rt4", "slc",
         "--sweep"] + [a for s in SCENES for a in ("--scene", s)]
@@ -124,12 +126,12 @@ def serial(tmp_path_factory):
 # -----------------------------------------------------------------------------
 
 def test_rig_rebuilds_the_same_cameras_and_keys_follow_the_inputs():
-    from slc import scenes
+    from slc.scene import scenes
     s = scenes.load("cornell")
     s.source = "cornell"
     cfg = RunConfig(width=16, height=9, frames=3, warmup=1)
     live = views.independent(s, 2)
-    rig = jobs.Rig.from_viewers(live, cfg)
+    rig = jobspec.Rig.from_viewers(live, cfg)
     import pickle
     rebuilt = pickle.loads(pickle.dumps(rig)).build()
     for v, w in zip(live, rebuilt):
@@ -140,23 +142,23 @@ def test_rig_rebuilds_the_same_cameras_and_keys_follow_the_inputs():
     with pytest.raises(KeyError, match="outside"):
         rebuilt[0].camera(7)
     cases = [(s, spec, views.independent(s, n), {"rig": "single"}) for spec in ("rt4", "slc") for n in (1, 2)]
-    js = jobs.jobs_from_cases("t", cases, cfg)
+    js = jobspec.jobs_from_cases("t", cases, cfg)
     # one job per viewer set, every method of the comparison in it, in the given order
     assert [[c.spec for c in j.cases] for j in js] == [["rt4", "slc"], ["rt4", "slc"]]
     assert [[c.index for c in j.cases] for j in js] == [[0, 2], [1, 3]]
-    again = jobs.jobs_from_cases("t", cases, cfg)
+    again = jobspec.jobs_from_cases("t", cases, cfg)
     assert [j.key for j in js] == [j.key for j in again]
-    other = jobs.jobs_from_cases("t", cases, RunConfig(width=16, height=9, frames=3, warmup=1, seed=1))
+    other = jobspec.jobs_from_cases("t", cases, RunConfig(width=16, height=9, frames=3, warmup=1, seed=1))
     assert not {j.key for j in js} & {j.key for j in other}
 
 
 def test_failed_jobs_are_retried_reported_and_resumable(tmp_path):
-    from slc import scenes
+    from slc.scene import scenes
     s = scenes.load("cornell")
     s.source = "cornell"
     cfg = RunConfig(width=16, height=9, frames=2, warmup=1, eval_frames=[])
-    good = jobs.jobs_from_cases("t", [(s, "rt4", views.single(s), {})], cfg)[0]
-    bad = jobs.Job("t", "no-such-scene", good.cases, cfg)
+    good = jobspec.jobs_from_cases("t", [(s, "rt4", views.single(s), {})], cfg)[0]
+    bad = jobspec.Job("t", "no-such-scene", good.cases, cfg)
     sess = jobs.Session("t", tmp_path, retries=1)
     with pytest.raises(jobs.JobsFailed) as e:
         sess.run([bad, good])
@@ -218,7 +220,7 @@ def test_two_node_cluster_gives_the_serial_rows(serial, tmp_path):
     import ray
     from ray.cluster_utils import Cluster
 
-    from slc.cli import main
+    from slc.run.cli import main
     out = tmp_path / "cluster"
     cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1})
     try:
@@ -265,26 +267,27 @@ def test_killed_ray_worker_loses_no_row_and_the_run_completes(serial, tmp_path):
 @pytest.mark.slow
 def test_serial_runs_do_not_import_ray(tmp_path):
     code = ("import sys, slc\n"
-            "from slc import jobs, scenes, views\n"
-            "from slc.pipeline import RunConfig\n"
+            "from slc.run import jobs, jobspec\n"
+            "from slc.scene import scenes, views\n"
+            "from slc.run.pipeline import RunConfig\n"
             "s = scenes.load('cornell')\n"
             "cfg = RunConfig(width=8, height=6, frames=1, warmup=0, eval_frames=[])\n"
-            "js = jobs.jobs_from_cases('t', [(s, 'rt4', views.single(s), {})], cfg)\n"
+            "js = jobspec.jobs_from_cases('t', [(s, 'rt4', views.single(s), {})], cfg)\n"
             f"rows = jobs.run_jobs(js, {str(tmp_path)!r})\n"
             "assert len(rows) == 1 and rows[0]['threads'] >= 1 and rows[0]['backend']\n"
-            "print('ray' in sys.modules, 'slc.cluster' in sys.modules)\n")
+            "print('ray' in sys.modules, 'slc.run.cluster' in sys.modules)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.split() == ["False", "False"]
 
 
 def test_check_mode_error_stops_the_run_without_retries(tmp_path, monkeypatch):
-    from slc import scenes
-    from slc.check import CheckError
+    from slc.scene import scenes
+    from slc.core.check import CheckError
     s = scenes.load("cornell")
     s.source = "cornell"
     cfg = RunConfig(width=8, height=6, frames=1, warmup=0, eval_frames=[])
-    js = [jobs.jobs_from_cases("t", [(s, spec, views.single(s), {})], cfg)[0] for spec in ("rt4", "rt8")]
+    js = [jobspec.jobs_from_cases("t", [(s, spec, views.single(s), {})], cfg)[0] for spec in ("rt4", "rt8")]
     calls = []
 
     def bad(self, job, progress=None):

@@ -8,11 +8,11 @@ import pytest
 import drjit as dr
 import mitsuba as mi
 
-from slc import scenes
-from slc.megaviews import paraboloid as pb
-from slc.megaviews import traversal as tv
-from slc.megaviews import vpl as vp
-from slc.megaviews.hierarchy import SceneHierarchy, ViewHierarchy
+from slc.scene import scenes
+from slc.methods.megaviews import paraboloid as pb
+from slc.methods.megaviews import traversal as tv
+from slc.methods.megaviews import vpl as vp
+from slc.methods.megaviews.hierarchy import SceneHierarchy, ViewHierarchy
 
 
 @pytest.fixture(scope="module")
@@ -148,8 +148,9 @@ def test_fused_maps_match_brute_force(setup, kw):
 
 @pytest.fixture(scope="module")
 def small_frame():
-    from slc import references, views
-    from slc.pipeline import gbuffers_for
+    from slc.reference import references
+    from slc.scene import views
+    from slc.run.pipeline import gbuffers_for
     s = scenes.load("cornell")
     gb = gbuffers_for(s, views.single(s), 0, 32, 32)[0]
     ref = references.reference_for("indirect", s, gb, 0, gb.viewer, spp=512, bounces=1, use_cache=False)
@@ -177,7 +178,7 @@ def test_against_the_indirect_reference(small_frame, name):
     0.16-0.20, 90th percentile 0.53-0.58): mean within 10% per channel,
     median < 0.25, 90th percentile < 0.7. Outputs are raw (nothing masked)."""
     from slc.methods import FrameContext, create
-    from slc.timing import NullTimer
+    from slc.core.timing import NullTimer
     s, gb, ref = small_frame
     m = create(f"{name}:views=1024,scene_depth=5,view_depth=5", s, seed=0)
     assert m.output == "indirect"
@@ -214,9 +215,9 @@ def test_multi_bounce_vpls_against_the_two_bounce_reference(small_frame):
     mean within 15% per channel, median < 0.25, 90th percentile < 0.7 (seed
     0: 6.1/7.2/3.7%, 0.17, 0.54). The second bounce is really there: against
     the 1-bounce reference the same image is >= 20% too bright (31-46%)."""
-    from slc import references
+    from slc.reference import references
     from slc.methods import FrameContext, create
-    from slc.timing import NullTimer
+    from slc.core.timing import NullTimer
     s, gb, ref1 = small_frame
     ref2 = references.reference_for("indirect", s, gb, 0, gb.viewer, spp=512, bounces=2, use_cache=False)
     m = create("megaviews:views=1024,scene_depth=5,view_depth=5,bounces=2", s, seed=0)

@@ -1,9 +1,9 @@
 """MegaViews frames build no kernels after warm-up (``compiled_after_warmup``
-== 0 through :func:`slc.pipeline.run_sequence`), although the VPL count, the
+== 0 through :func:`slc.run.pipeline.run_sequence`), although the VPL count, the
 view hierarchy, the traversal's level widths and the gathering's walk change
 every frame; and the cause found for the kernels it used to build (numpy
 arrays mapped by Dr.Jit at unaligned addresses) is removed by
-:func:`slc.megaviews.hierarchy.aligned`.
+:func:`slc.methods.megaviews.hierarchy.aligned`.
 
 Each pipeline case runs in a fresh process (as ``tests/test_compile.py``):
 kernels an earlier case built would hide one a case builds anew.
@@ -19,8 +19,9 @@ FRAMES, WARMUP = 8, 2
 
 _CASE = r"""
 import json, sys
-from slc import methods, scenes, views
-from slc.pipeline import RunConfig, run_sequence
+from slc import methods
+from slc.scene import scenes, views
+from slc.run.pipeline import RunConfig, run_sequence
 spec, F, WU = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
 s = scenes.load("cornell")
 cfg = RunConfig(width=16, height=16, frames=F, warmup=WU, eval_frames=[], keep_images=False,
@@ -49,8 +50,8 @@ def test_aligned_numpy_input_gives_one_kernel():
     import mitsuba as mi
 
     import slc  # noqa: F401  (sets the variant)
-    from slc.megaviews.hierarchy import aligned
-    from slc.timing import KernelCounter
+    from slc.methods.megaviews.hierarchy import aligned
+    from slc.core.timing import KernelCounter
 
     src = dr.arange(mi.Float, 100) * 0.5 + 7.25
     dr.eval(src)

@@ -7,10 +7,12 @@ import drjit as dr
 import numpy as np
 import pytest
 
-from slc import methods, scenes, views
+from slc import methods
+
+from slc.scene import scenes, views
 from slc.methods import FrameContext
-from slc.pipeline import RunConfig, gbuffers_for
-from slc.timing import StageTimer
+from slc.run.pipeline import RunConfig, gbuffers_for
+from slc.core.timing import StageTimer
 
 ROOT = Path(__file__).resolve().parents[1]
 

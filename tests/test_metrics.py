@@ -2,7 +2,9 @@ import math
 
 import numpy as np
 
-from slc import io, metrics
+from slc.core import io
+
+from slc.reference import metrics
 
 
 def _img(seed=0, shape=(40, 56, 3)):

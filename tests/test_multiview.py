@@ -3,8 +3,9 @@ import numpy as np
 import pytest
 
 from helpers import render_frames
-from slc import methods, scenes, views
-from slc.pipeline import gbuffers_for
+from slc import methods
+from slc.scene import scenes, views
+from slc.run.pipeline import gbuffers_for
 
 W, H, FRAMES = 48, 27, 6
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from helpers import render_frames
-from slc import methods, views
+from slc import methods
+from slc.scene import views
 
 W, H, FRAMES = 48, 27, 5
 
@@ -50,7 +51,7 @@ def test_identical_viewers_differ_by_noise_only(cornell, spec):
 
 @pytest.mark.slow
 def test_sh_identical_viewers_identical_images(cornell):
-    pytest.importorskip("slc.sh")
+    pytest.importorskip("slc.methods.sh")
     one = _images(cornell, "sh", views.overlap_rig(cornell, 1, 1.0))
     two = _images(cornell, "sh", views.overlap_rig(cornell, 2, 1.0))
     assert np.array_equal(two[0], two[1])
@@ -64,7 +65,7 @@ def test_sh_second_viewer(cornell):
     mean (an entry the second viewer saw first has a longer history when the first
     reaches it, which is the point of sharing). Measured (48x27, 5 frames): moving
     2.2% of pixels, mean change 0.19%; still 0.85%, 0.08%."""
-    pytest.importorskip("slc.sh")
+    pytest.importorskip("slc.methods.sh")
     for still in (True, False):
         f = _still if still else (lambda rig: rig)
         one = _images(cornell, "sh", f(views.overlap_rig(cornell, 1, 0.6)))
@@ -77,10 +78,10 @@ def test_sh_second_viewer(cornell):
 def test_sh_second_viewer_still_cameras_exact(cornell):
     """With still cameras the first viewer's image is bit-exact, as for slc
     (tests/test_multiview.py): the SH update's random numbers are keyed by texel
-    (``FrameRequests.keys`` through ``slc.keys.keyed_rng``), not by the physical slot,
+    (``FrameRequests.keys`` through ``slc.core.keys.keyed_rng``), not by the physical slot,
     which depends on which viewers allocated blocks first (measured before that
     change: 0.85% of pixels differed)."""
-    pytest.importorskip("slc.sh")
+    pytest.importorskip("slc.methods.sh")
     one = _images(cornell, "sh", _still(views.overlap_rig(cornell, 1, 0.6)))
     two = _images(cornell, "sh", _still(views.overlap_rig(cornell, 2, 0.6)))
     assert np.array_equal(one[0], two[0])

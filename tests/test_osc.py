@@ -9,11 +9,11 @@ import pytest
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from slc.gbuffer import render_gbuffer
+from slc.scene.gbuffer import render_gbuffer
 from slc.osc import INVALID, OnSurfaceCache, build_mesh_islands, charts_overlap, island_deviation
 from slc.osc.islands import face_adjacency
-from slc.scenes import Camera, CameraPath, SceneBuilder, diffuse, load
-from slc.timing import StageTimer
+from slc.scene.scenes import Camera, CameraPath, SceneBuilder, diffuse, load
+from slc.core.timing import StageTimer
 
 W, H = 96, 64
 
@@ -414,9 +414,9 @@ def test_reused_slot_starts_from_reset_state(cornell):
     in a fresh cache; its texel keys are C's, not A's."""
     ga, gbk = gb(cornell, *VIEW_ALL), gb(cornell, *VIEW_BLOCK)
     gc = gb(cornell, [0, 1, 0.6], [0, 1, -1], fov=30)
-    from slc.cones.method import SurfaceLightCones
+    from slc.methods.cones.method import SurfaceLightCones
     from slc.methods import FrameContext
-    from slc.timing import NullTimer
+    from slc.core.timing import NullTimer
     c = OnSurfaceCache(cornell, evict_after=K_EVICT)
     m = SurfaceLightCones(cornell, cache=c)
     m.render(FrameContext(0), [ga], NullTimer())
@@ -488,7 +488,7 @@ def test_requested_blocks_build_no_kernel_for_one_page():
     rng = np.random.default_rng(1)
     for _ in range(2):   # warm-up: many pages
         run(rng.integers(0, n, 300))
-    from slc.timing import KernelCounter
+    from slc.core.timing import KernelCounter
     with KernelCounter() as kc:
         kc.take()
         got = run([640, 641, 700, 641, 650, 640] * 50)          # one page (10), four blocks

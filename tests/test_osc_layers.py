@@ -8,11 +8,11 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import gbuffer
-from slc.gbuffer import render_gbuffer
+from slc.scene import gbuffer
+from slc.scene.gbuffer import render_gbuffer
 from slc.osc import INVALID, OnSurfaceCache
 from slc.osc.surface import EntryInteractions
-from slc.scenes import Camera, load
+from slc.scene.scenes import Camera, load
 
 W, H = 64, 40
 

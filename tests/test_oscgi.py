@@ -10,13 +10,20 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import check, methods, references, scenes, views
-from slc.gbuffer import to_image
+from slc.core import check
+
+from slc import methods
+
+from slc.reference import references
+
+from slc.scene import scenes, views
+from slc.scene.gbuffer import to_image
 from slc.methods import FrameContext, MethodError
-from slc.oscgi import HemiGrid, SecondaryCache
-from slc.pipeline import RunConfig, gbuffers_for, run_sequence
-from slc.scenes import CameraPath, SceneBuilder, box_mesh, diffuse
-from slc.timing import NullTimer
+from slc.methods.oscgi import HemiGrid, SecondaryCache
+from slc.methods.oscgi.method import OSCGI
+from slc.run.pipeline import RunConfig, gbuffers_for, run_sequence
+from slc.scene.scenes import CameraPath, SceneBuilder, box_mesh, diffuse
+from slc.core.timing import NullTimer
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_crc import diffuse_cornell  # noqa: E402
@@ -24,8 +31,18 @@ from test_crc import diffuse_cornell  # noqa: E402
 W, H = 64, 36
 
 
-def _run(scene, spec, viewers, frames, w=W, h=H, seed=0):
-    m = methods.create(spec, scene, seed=seed)
+def create(spec, scene, seed=0, **fixed):
+    """``methods.create(spec)``, with osc-gi's fixed choices (class attributes) ``fixed`` switched
+    in a subclass: how the measured alternatives of those choices are run again."""
+    if not fixed:
+        return methods.create(spec, scene, seed=seed)
+    name, settings = methods.parse_spec(spec)
+    assert name == "osc-gi" and all(hasattr(OSCGI, k) for k in fixed), fixed
+    return type("OSCGIVariant", (OSCGI,), dict(fixed))(scene, seed=seed, **settings)
+
+
+def _run(scene, spec, viewers, frames, w=W, h=H, seed=0, **fixed):
+    m = create(spec, scene, seed, **fixed)
     for f in range(frames):
         gbs = gbuffers_for(scene, viewers, 0, w, h)       # a still camera: frame 0's view every frame
         with check.scope(spec, f, gbs):
@@ -195,8 +212,7 @@ def test_indirect_reference_matches_the_furnace_closed_form(bounces):
 def test_converges_to_the_indirect_reference(dcornell):
     """Diffuse Cornell box, still camera, 2 bounces: after 24 frames the mean indirect light is
     within 10% of the 256-path reference and the mean absolute pixel error within 25% of the mean
-    (measured: 0.961 of the reference, 0.151 with the defaults of session gi8; 0.968 and 0.151 with
-    those before it; 0.93 and 0.16 with 32 texels traced per update, before session gi6)."""
+    (measured: 0.961 of the reference, 0.151)."""
     m, gbs, imgs = _run(dcornell, "osc-gi:output=indirect", views.single(dcornell), 24)
     ref = references.reference_for("indirect", dcornell, gbs[0], 0, "test", spp=256,
                                    bounces=references.reference_bounces(m))
@@ -210,13 +226,13 @@ def test_converges_to_the_indirect_reference(dcornell):
 @pytest.mark.slow
 def test_glossy_hits_bring_the_light_reflected_by_metal():
     """The Cornell box with its rough-aluminium block, still camera, 12 frames at 32x18: cache rays
-    hitting the metal read its cell's diffuse radiance (0) without ``glossy_hits``; with it (NEE +
+    hitting the metal read its cell's diffuse radiance (0) without ``OSCGI.glossy_hits``; with it (NEE +
     one BSDF ray there) the mean indirect light is within 15% of the reference and closer to it
     than without (measured on the moving quick path: 0.97 vs 0.68 of the reference)."""
     s = scenes.load("cornell")
     ratio = {}
     for g in (1, 0):
-        m, gbs, imgs = _run(s, f"osc-gi:output=indirect,glossy_hits={g}", views.single(s), 12, 32, 18)
+        m, gbs, imgs = _run(s, "osc-gi:output=indirect", views.single(s), 12, 32, 18, glossy_hits=bool(g))
         ref = references.reference_for("indirect", s, gbs[0], 0, "test", spp=128, bounces=m.bounces)
         assert np.isfinite(imgs[0]).all()
         ratio[g] = imgs[0].mean() / ref.mean()
@@ -268,8 +284,8 @@ def test_no_light_leaks_into_the_closed_dark_room():
     assert ref_dark.max() == 0.0
     assert lit.mean() > 0.05
     assert dark.max() <= 1e-4 * lit.mean(), dark.max()             # measured: 0
-    # 30 cm cells (the default before session gi8): the wall is placed so that one straddles it
-    _, _, (lit2, dark2) = _run(s, "osc-gi:shape_key=0,secondary_cm=30", vs, 8, 48, 27)
+    # 30 cm cells: the wall is placed so that one straddles it
+    _, _, (lit2, dark2) = _run(s, "osc-gi:secondary_cm=30", vs, 8, 48, 27, shape_key=False)
     assert dark2.mean() > 1e-3 * lit2.mean()                          # the leak the shape key removes
 
 

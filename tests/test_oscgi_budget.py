@@ -1,4 +1,4 @@
-"""osc-gi's per-frame update budget (``update_budget``, session gi9): with many viewers the primary
+"""osc-gi's per-frame update budget (``update_budget``): with many viewers the primary
 update takes at most ``update_budget`` x (pixels of the largest viewer) / bias^2 entries a frame
 (every new entry, then the most due), every entry is still updated within ceil(N / limit) frames,
 and the images converge to those of the full update; one viewer is never budgeted."""
@@ -9,10 +9,12 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import methods, views
+from slc import methods
+
+from slc.scene import views
 from slc.methods import FrameContext
-from slc.pipeline import gbuffers_for
-from slc.timing import NullTimer
+from slc.run.pipeline import gbuffers_for
+from slc.core.timing import NullTimer
 
 W, H, FRAMES = 32, 18, 24
 

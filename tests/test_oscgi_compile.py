@@ -11,8 +11,9 @@ pytestmark = pytest.mark.slow      # fresh interpreters counting kernels
 
 _CASE = r"""
 import json, sys
-from slc import methods, scenes, views
-from slc.pipeline import RunConfig, run_sequence
+from slc import methods
+from slc.scene import scenes, views
+from slc.run.pipeline import RunConfig, run_sequence
 spec, frames, warmup = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
 n_views = int(sys.argv[4]) if len(sys.argv) > 4 else 1
 mode = sys.argv[5] if len(sys.argv) > 5 else ""   # "view0": the fan's first view alone; "after": one viewer
@@ -42,7 +43,7 @@ print("RESULT " + json.dumps({"compiled_after_warmup": res.compiled_after_warmup
 # Not here: osc-gi:bounces=1, which in some runs (not all) builds one kernel in a timed frame in the
 # on-surface cache's block allocation (slc/osc/blocks.py, BlockPool.allocate/_map with one new
 # block), not in osc-gi's code; left to the cache's owner (see docs/osc-gi.md).
-@pytest.mark.parametrize("spec", ["osc-gi", "osc-gi:output=indirect", "osc-gi:sharp=0.2,trilinear=1"])
+@pytest.mark.parametrize("spec", ["osc-gi", "osc-gi:output=indirect", "osc-gi:direct=cache"])
 def test_no_kernel_builds_after_warmup_including_the_first_eviction(spec):
     frames, warmup = 9, 3
     r = run_case(_CASE, spec, frames, warmup)
@@ -57,32 +58,31 @@ def test_no_kernel_builds_after_warmup_16_viewers():
     after its throwaway one-viewer run): the viewers' shading, fused into one kernel, built a new
     kernel in timed frame 5 when its viewers' slots came from the cache's per-viewer views, and the
     first frame without new entries built the update's kernels anew (the cache's seed slots a
-    literal) (session gi7)."""
+    literal)."""
     r = run_case(_CASE, "osc-gi", 6, 3, 16)
     assert r["compiled_after_warmup"] == 0, r
 
 
 def test_no_kernel_builds_after_warmup_16_viewers_budgeted():
     """The same rig over 16 frames with the update budget biting every frame after the first
-    (update_budget 0.5: ~410 entries, 72 a frame; session gi9): the selection's index list came from
+    (update_budget 0.5: ~410 entries, 72 a frame): the selection's index list came from
     numpy at an aligned or unaligned address, whichever the allocator gave, and a gather reading it
-    unaligned was another kernel (built in a timed frame in about 1 run of 3 before slc.backend.aligned)."""
+    unaligned was another kernel (built in a timed frame in about 1 run of 3 before slc.core.backend.aligned)."""
     r = run_case(_CASE, "osc-gi:update_budget=0.5", 16, 3, 16)
     assert r["compiled_after_warmup"] == 0, r
 
 
 # cornell: 5 frames (timed: 3 and 4); its frame 5 loads two 2-lane kernels (8 and 12 ops) from the disk
-# cache in a fresh process, on main too, not found in osc-gi's code (left; see docs/osc-gi.md, gi9)
+# cache in a fresh process, not from osc-gi's code (see docs/osc-gi.md)
 @pytest.mark.parametrize("scene,frames,mode", [("cornell", 5, "view0"), ("atrium", 16, "after")],
                          ids=["cornell-fan-view0", "atrium-one-viewer"])
 def test_no_kernel_builds_after_warmup_one_viewer_of_the_experiment(scene, frames, mode):
-    """One viewer as in the experiment's multi-viewer rows (session gi9; both built one kernel in a
-    timed frame before, on main too): the 16-viewer fan's first view alone (cornell 32x18) recorded
-    the frozen primary-ray kernel again in frame 4, when the sharing of the entries' unused literal
-    interaction fields (``dn_du``, ``dn_dv``) changed (now only position and normals are inputs);
-    the atrium's one viewer (64x36) recorded the representative-point kernel again in frame 14,
-    where its 2,880 winning lanes equal the size of a scene array (now run on a free width,
-    ``lanes``, with the scene declared as an input)."""
+    """One viewer as in the experiment's multi-viewer rows: the 16-viewer fan's first view alone
+    (cornell 32x18) would record the frozen primary-ray kernel again when the sharing of the
+    entries' unused literal interaction fields (``dn_du``, ``dn_dv``) changes (so only position
+    and normals are inputs); the atrium's one viewer (64x36) would record the representative-point
+    kernel again in frame 14, where its 2,880 winning lanes equal the size of a scene array (so it
+    runs on a free width, ``lanes``, with the scene declared as an input)."""
     n_views = 16 if mode == "view0" else 1
     r = run_case(_CASE, "osc-gi", frames, 3, n_views, mode, scene)
     assert r["compiled_after_warmup"] == 0, r

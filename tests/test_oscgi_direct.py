@@ -1,16 +1,18 @@
-"""osc-gi's direct light per pixel (``direct``), the footprint-sized secondary cells
-(``secondary_px``, ``secondary_max``) and the distance levels of cells (``secondary_lod``)."""
+"""osc-gi's direct light per pixel (``direct``), its stratified light samples, and the edge of the
+secondary cells (``secondary_cm``, ``secondary_scene``)."""
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import methods, references, views
-from slc.oscgi.secondary import MAX_LOD, cell_level
+from slc import methods
+
+from slc.reference import references
+
+from slc.scene import views
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_oscgi import _run  # noqa: E402
@@ -52,30 +54,18 @@ def test_other_direct_options_approach_the_full_reference(cornell, direct):
     assert (m._sub is not None) == (direct != "cache")
 
 
-def test_cell_edge_follows_the_scene_size_and_the_pixel_footprint(cornell):
-    """max(secondary_cm, secondary_scene x diagonal, min(secondary_px x median footprint,
-    secondary_max x diagonal)); the default: 15 cm (30 cm before session gi8) or 4% of the diagonal, whichever is larger."""
+def test_cell_edge_follows_the_scene_size(cornell):
+    """max(secondary_cm, secondary_scene x diagonal); the default: 15 cm or 4% of the diagonal,
+    whichever is larger."""
     diag = float(np.linalg.norm(np.array(cornell.mi_scene.bbox().max) - np.array(cornell.mi_scene.bbox().min)))
 
-    def edge(spec, fp, valid=None):
-        m = methods.create(spec, cornell)
-        valid = [True] * len(fp) if valid is None else valid
-        return m._cell_edge([SimpleNamespace(footprint=mi.Float(fp), valid=mi.Bool(valid))])
+    def edge(spec):
+        return methods.create(spec, cornell)._cell_edge()
 
-    assert edge("osc-gi", [1.0]) == pytest.approx(max(0.15, 0.04 * diag))                 # the default
-    assert edge("osc-gi:secondary_cm=1", [1.0]) == pytest.approx(0.04 * diag)             # scene fraction
-    px = "osc-gi:secondary_cm=1,secondary_scene=0,secondary_px=2"
-    assert edge(px, [0.01, 0.02, 0.03, 5.0], [True, True, True, False]) == pytest.approx(0.04)
-    assert edge(px, [1.0, 1.0]) == pytest.approx(0.05 * diag)                             # capped
-    assert edge(px.replace("cm=1", "cm=30"), [0.01, 0.02]) == pytest.approx(0.30)         # never below
-    assert edge("osc-gi:secondary_cm=1,secondary_scene=0", [1.0]) == pytest.approx(0.01)  # both off
-
-
-def test_cell_levels_grow_with_the_hit_distance():
-    h, lod = 0.3, 0.2
-    t = mi.Float([0.0, 1.0, h / lod * 2.0 ** 3.5, 1e9, dr.inf])
-    assert list(np.array(cell_level(t, h, lod))) == [0, 0, 3, MAX_LOD, 0]
-    assert list(np.array(cell_level(t, h, 0.0) + mi.UInt32(0, 0, 0, 0, 0))) == [0] * 5
+    assert edge("osc-gi") == pytest.approx(max(0.15, 0.04 * diag))                 # the default
+    assert edge("osc-gi:secondary_cm=1") == pytest.approx(0.04 * diag)             # scene fraction
+    assert edge("osc-gi:secondary_cm=30,secondary_scene=0") == pytest.approx(0.30)
+    assert edge("osc-gi:secondary_cm=1,secondary_scene=0") == pytest.approx(0.01)  # both off
 
 
 @pytest.mark.slow
@@ -86,11 +76,11 @@ def test_stratified_light_samples_are_unbiased_and_less_noisy(cornell):
     error no larger), and a single frame's error is smaller than with independent samples. Measured
     on Cornell at 32x18: mean 0.9999 (independent 0.9994), RMSE of one frame 0.73x, of the 64-frame
     average 0.66x that of independent samples."""
-    from slc.cones.update import light_inputs
-    from slc.keys import stream_key
-    from slc.lights import _diffuse_table
-    from slc.oscgi.method import STREAM_PIXEL_DIRECT, _pixel_direct_kernel
-    from slc.pipeline import gbuffers_for
+    from slc.methods.cones.update import light_inputs
+    from slc.core.keys import stream_key
+    from slc.scene.lights import diffuse_flags
+    from slc.methods.oscgi.kernels import STREAM_PIXEL_DIRECT, pixel_direct_kernel
+    from slc.run.pipeline import gbuffers_for
     gb = gbuffers_for(cornell, views.single(cornell), 0, 32, 18)[0]
     sc = cornell.mi_scene
     gt = references.reference_for("direct", cornell, gb, 0, "test")
@@ -98,8 +88,8 @@ def test_stratified_light_samples_are_unbiased_and_less_noisy(cornell):
     idx = dr.arange(mi.UInt32, dr.width(gb.valid))
     err1, err64, means = {}, {}, {}
     for lds in (True, False):
-        imgs = np.stack([references.image_of("full", gb, _pixel_direct_kernel(
-            sc, light_inputs(sc), _diffuse_table(sc)[0], gb.si, mi.Bool(gb.valid), idx,
+        imgs = np.stack([references.image_of("full", gb, pixel_direct_kernel(
+            sc, light_inputs(sc), diffuse_flags(sc), gb.si, mi.Bool(gb.valid), idx,
             stream_key(0, f, STREAM_PIXEL_DIRECT), dr.opaque(mi.UInt32, 4), lds)) for f in range(64)])
         assert np.isfinite(imgs).all()
         avg = imgs.mean(0)

@@ -1,5 +1,5 @@
 """New entries seeded from finer levels (at the end), and the spatial filter of osc-gi
-(slc/oscgi/spatial.py) on a field with a closed form: inside the
+(slc/methods/oscgi/spatial.py) on a field with a closed form: inside the
 furnace sphere (uniform emission E, albedo rho) the incoming radiance is the same in every
 direction at every point, so a correct filter (weights normalised, parallax-corrected directions
 mapped to the neighbour's texels, the irradiance re-summed) keeps the mean and adds no error."""
@@ -10,14 +10,10 @@ import drjit as dr
 import numpy as np
 import pytest
 
-from slc import methods, views
+from slc.scene import views
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_oscgi import _run, furnace  # noqa: E402
-
-
-def methods_create(scene, spec):
-    return methods.create(spec, scene, seed=0)
+from test_oscgi import _run, create, furnace  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +29,7 @@ def test_filter_keeps_a_uniform_field_and_lowers_its_noise(sphere, parallax):
     v = views.single(sphere)
     base = "osc-gi:output=indirect,bounces=1,texel_rays=16"
     _, _, raw = _run(sphere, base + ",filter_radius=0", v, 4, 32, 18)
-    m, _, filt = _run(sphere, base + f",filter_radius=3,parallax={parallax}", v, 4, 32, 18)
+    m, _, filt = _run(sphere, base + ",filter_radius=3", v, 4, 32, 18, parallax=bool(parallax))
     raw, filt = np.asarray(raw[0]).mean(-1), np.asarray(filt[0]).mean(-1)
     assert np.isfinite(filt).all()
     # the mean is kept (the filter is a normalised average of estimates of the same value) ...
@@ -49,18 +45,19 @@ def test_filter_keeps_a_uniform_field_and_lowers_its_noise(sphere, parallax):
 
 def test_new_coarser_entries_start_from_their_finer_entries():
     """Frames at 64x36, then one at 16x9 (coarser cache levels, new entries without a coarser
-    seed): with ``seed_finer`` the new entries start from the mean of the finer entries under
+    seed): with ``OSCGI.seed_finer`` the new entries start from the mean of the finer entries under
     them, so that first frame is closer to the reference than a start from nothing."""
-    from slc import check, references
+    from slc.core import check
+    from slc.reference import references
     from slc.methods import FrameContext
-    from slc.pipeline import gbuffers_for
-    from slc.timing import NullTimer
+    from slc.run.pipeline import gbuffers_for
+    from slc.core.timing import NullTimer
     from test_crc import diffuse_cornell
     s = diffuse_cornell()
     v = views.single(s)
     errs = {}
     for sf in (1, 0):
-        m = methods_create(s, f"osc-gi:output=indirect,seed_finer={sf}")
+        m = create("osc-gi:output=indirect", s, 0, seed_finer=bool(sf))
         for f in range(8):
             m.render(FrameContext(f), gbuffers_for(s, v, 0, 64, 36), NullTimer())
         gbs = gbuffers_for(s, v, 0, 16, 9)

@@ -4,11 +4,11 @@ sizes (0, 1)" in the secondary update); now it renders, finite, with the indirec
 light of the closed form (none)."""
 import numpy as np
 
-import slc.backend  # noqa: F401
+import slc.core.backend  # noqa: F401
 from slc.methods import FrameContext, create
-from slc.pipeline import gbuffers_for
-from slc.timing import NullTimer
-from slc.views import single
+from slc.run.pipeline import gbuffers_for
+from slc.core.timing import NullTimer
+from slc.scene.views import single
 from test_cones_update_freeze import _growing_scene
 
 

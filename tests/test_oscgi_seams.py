@@ -8,8 +8,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import references, views
-from slc.scenes import CameraPath, SceneBuilder, diffuse
+from slc.reference import references
+
+from slc.scene import views
+from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
 
 import sys
 from pathlib import Path

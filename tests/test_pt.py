@@ -3,10 +3,12 @@ numbers every frame (the frame's streams are inputs, not baked into the recordin
 after the first recordings."""
 import numpy as np
 
-from slc import methods, scenes, views
+from slc import methods
+
+from slc.scene import scenes, views
 from slc.methods import FrameContext
-from slc.pipeline import gbuffers_for
-from slc.timing import NullTimer
+from slc.run.pipeline import gbuffers_for
+from slc.core.timing import NullTimer
 
 
 def _frames(spec, scene, frames=4):

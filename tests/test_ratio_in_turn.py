@@ -1,9 +1,11 @@
-"""`slc.experiment.ratio_in_turn`: two rigs timed again in alternating order, the ratio
+"""`slc.run.experiment.ratio_in_turn`: two rigs timed again in alternating order, the ratio
 taken within each repetition (the overlap experiment's target figure)."""
 from types import SimpleNamespace
 
-from slc import experiment, methods, pipeline
-from slc.pipeline import RunConfig
+from slc.run import experiment, pipeline
+
+from slc import methods
+from slc.run.pipeline import RunConfig
 
 
 def test_ratio_in_turn_alternates_and_divides_within_each_repetition(monkeypatch):
@@ -24,3 +26,30 @@ def test_ratio_in_turn_alternates_and_divides_within_each_repetition(monkeypatch
     assert r["base_ms"] == [10.0, 20.0, 40.0] and r["top_ms"] == [15.0, 30.0, 60.0]
     assert r["ratios"] == [1.5, 1.5, 1.5] and r["ratio"] == 1.5
     assert r["compiled_after_warmup"] == 1
+
+
+def test_run_sequence_walks_the_camera_path_in_steps(monkeypatch):
+    """``frame_step``: frame i of a run is ``start_frame + i * frame_step`` (the crc
+    experiment's moving volume walks 20 path frames per rendered frame)."""
+    seen = []
+    monkeypatch.setattr(pipeline, "gbuffers_for", lambda scene, viewers, f, w, h: seen.append(f) or [])
+
+    class Fake:
+        name, label, output = "fake", None, "direct"
+
+        def reset(self):
+            pass
+
+        def render(self, ctx, gbs, timer):
+            assert ctx.frame == seen[-1]
+            return []
+
+        def stats(self):
+            return {}
+
+        def memory_bytes(self):
+            return 0
+    cfg = RunConfig(frames=3, warmup=0, start_frame=5, frame_step=20, eval_frames=[], keep_images=False,
+                    measure_overlap=False)
+    pipeline.run_sequence(None, Fake(), [], cfg)
+    assert seen == [5, 25, 45]

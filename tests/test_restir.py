@@ -1,18 +1,19 @@
-"""Tests of ReSTIR DI (slc.baselines.restir): convergence, temporal reuse,
+"""Tests of ReSTIR DI (slc.methods.restir.method): convergence, temporal reuse,
 disocclusion/stale samples, determinism, memory and settings."""
 import numpy as np
 import pytest
 
 import slc  # noqa: F401  (selects the Mitsuba variant)
 from helpers import independent_runs
-from slc import methods, scenes, views
-from slc.gbuffer import to_image
-from slc.groundtruth import direct_mis
+from slc import methods
+from slc.scene import scenes, views
+from slc.scene.gbuffer import to_image
+from slc.reference.groundtruth import direct_mis
 from slc.methods import FrameContext, MethodError
-from slc.pipeline import gbuffers_for
-from slc.scenes import Camera, SceneBuilder, diffuse, translate
-from slc.timing import NullTimer
-from slc.views import Viewer
+from slc.run.pipeline import gbuffers_for
+from slc.scene.scenes import Camera, SceneBuilder, diffuse, translate
+from slc.core.timing import NullTimer
+from slc.scene.views import Viewer
 
 W, H = 64, 36
 
@@ -192,7 +193,7 @@ def test_memory_reset_and_reallocation(cornell):
     run_frames(m, cornell, vs2, 2)
     mem2 = m.memory_bytes()
     # the stored reservoirs, measured from their arrays: RESERVOIR_BYTES per pixel and viewer
-    from slc.baselines.restir import RESERVOIR_BYTES
+    from slc.methods.restir.method import RESERVOIR_BYTES
     held = 0
     for r, _ in m.state.values():
         for k in ("y", "n", "light", "W", "M"):
@@ -296,12 +297,12 @@ def test_falcor_preset_candidates_and_check_mode(cornell, cornell_flat, monkeypa
     """The falcor preset runs with its 24/8/1 candidates in check mode (stage
     outputs and images finite, images >= 0) and its 16-seed average is within
     2% of the ground truth over the image (measured +0.1%)."""
-    from slc import check
+    from slc.core import check
     monkeypatch.setenv(check.ENV, "1")
     gbs, gt, v = cornell_flat
     m = methods.create("restir:preset=falcor", cornell)
     assert (m.n_local, m.n_env, m.n_bsdf) == (24, 8, 1)
-    from slc.pipeline import RunConfig, run_sequence
+    from slc.run.pipeline import RunConfig, run_sequence
     run_sequence(cornell, m, views.single(cornell), RunConfig(width=W, height=H, frames=3, warmup=0,
                                                              eval_frames=[], measure_overlap=False))
     avg = independent_runs("restir:preset=falcor,temporal=0,spatial=0", cornell, gbs, range(16)).mean(axis=0)

@@ -8,8 +8,8 @@ circle: 16 views at 0% used to measure 75%)."""
 import numpy as np
 import pytest
 
-from slc import views
-from slc.pipeline import gbuffers_for
+from slc.scene import views
+from slc.run.pipeline import gbuffers_for
 
 W, H = 80, 45                  # same aspect as the calibration, other resolution
 FRAMES = (30, 90)              # other frames than the calibration's (0, 60, 120)

@@ -3,11 +3,11 @@
 1. Chi-square tests (``mi.chi2.ChiSquareTest`` on a ``mi.chi2.SphericalDomain``
    with our own sample/pdf pair):
    a. the light sampling that RT-N, the ground truth and the cache updates use
-      (``slc.lights.sample_light``) from real shading points of built-in scenes,
+      (``slc.scene.lights.sample_light``) from real shading points of built-in scenes,
       against ``scene.pdf_emitter_direction`` summed over every emitter surface
       along the direction (occluders are ignored: the sampler does not test
       visibility) plus the environment where the direction escapes;
-   b. the cone-direction map of the cone shading (``slc.cones.shading.cone_samples``)
+   b. the cone-direction map of the cone shading (``slc.methods.cones.shading.cone_samples``)
       against the uniform pdf over the cone, 1 / (2 pi (1 - cos alpha)).
       The shading itself uses a fixed stratified (spherical-Fibonacci) pattern of
       16 directions, the same for every pixel and frame: a fixed point set has no
@@ -32,13 +32,14 @@ import numpy as np
 import pytest
 
 from helpers import independent_runs, plane_under_rect_light, rect_irradiance, z_test
-from slc import methods, scenes, views
-from slc.cones.shading import GOLDEN, cone_samples
-from slc.groundtruth import direct_mis
-from slc.lights import sample_light
+from slc import methods
+from slc.scene import scenes, views
+from slc.methods.cones.shading import GOLDEN, cone_samples
+from slc.reference.groundtruth import direct_mis
+from slc.scene.lights import sample_light
 from slc.methods import FrameContext
-from slc.pipeline import gbuffers_for
-from slc.timing import NullTimer
+from slc.run.pipeline import gbuffers_for
+from slc.core.timing import NullTimer
 
 W, H = 32, 24
 
@@ -212,7 +213,7 @@ LIGHT_CASES = [("cornell", (0.5, 0.8), 0), ("cornell", (0.15, 0.5), 0), ("atrium
 # 1st / 50th / 99th percentile, 0.9% of accepted samples with geometric pdf 0, and the
 # mean of p_geometric / p_sampler over samples 1.032: RT-N and the ground truth are
 # biased by about that much on such lamps (indicative). Chi-square: 44216 for 4880
-# d.o.f. (atrium lamp 0), 21587 for 3909 (garden lamp 2). Fix (slc/scenes.py, not done here): build emitter meshes without vertex
+# d.o.f. (atrium lamp 0), 21587 for 3909 (garden lamp 2). Fix (slc/scene/scenes.py, not done here): build emitter meshes without vertex
 # normals (flat), as the flat lights above are.
 SMOOTH_LAMP_CASES = [("atrium", (0.5, 0.7), 0), ("garden", (0.4, 0.6), 2)]
 

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from helpers import render_frames
-from slc import methods, scenes, views
+from slc import methods
+from slc.scene import scenes, views
 
 BUILTIN = scenes.builtin_names()
 
@@ -102,7 +103,7 @@ def test_paths_are_deterministic():
 def test_every_method_renders_finite_and_deterministic(name, monkeypatch):
     """Check mode on: every stage output finite, every returned image finite and
     >= 0 (raw values, nothing clamped), a lit image, the same images twice."""
-    from slc import check
+    from slc.core import check
     monkeypatch.setenv(check.ENV, "1")
     s = _load(name)
     vs = views.single(s)
@@ -169,7 +170,7 @@ def test_degenerate_cameras_raise_one_line_scene_errors():
     NaN rays); a zero or >= 180 degree field of view rendered garbage. Each
     is a SceneError with one line naming the problem; a view straight along
     the up axis (a legitimate pose of a path) gets a finite orthonormal basis."""
-    from slc.scenes import Camera, CameraPath, SceneError
+    from slc.scene.scenes import Camera, CameraPath, SceneError
     with pytest.raises(SceneError, match="degenerate camera.*no view direction") as e:
         Camera(np.array([0.0, 1.0, 3.0]), np.array([0.0, 1.0, 3.0])).basis()
     assert "\n" not in str(e.value)
@@ -188,7 +189,7 @@ def test_degenerate_cameras_raise_one_line_scene_errors():
 def test_scene_without_shapes_raises():
     """A scene with emitters only has nothing to shade: one-line SceneError
     from the Scene itself (XML and .py scenes alike)."""
-    from slc.scenes import CameraPath, SceneBuilder, SceneError
+    from slc.scene.scenes import CameraPath, SceneBuilder, SceneError
     b = SceneBuilder("emitters_only")
     b.add_point_light([0, 2, 0], [10.0] * 3)
     with pytest.raises(SceneError, match="no shapes"):
@@ -218,7 +219,7 @@ def _sponza_orders_in_three_processes() -> list[list[str]]:
         import sys
         from pathlib import Path
         xml = scenes.SHARED_DIR / "scenes" / "sponza" / "sponza.xml"
-        code = ("from slc import backend; backend.init(); from slc import scenes\n"
+        code = ("from slc.core import backend; backend.init(); from slc.scene import scenes\n"
                 "s = scenes.load('sponza'); print('ORDER', [(sh.id(), sh.face_count()) for sh in s.mi_scene.shapes()])\n"
                 f"s = scenes.load_xml({str(xml)!r})\n"
                 "print('ORDER', [(sh.id(), sh.primitive_count(), sh.class_name()) for sh in s.mi_scene.shapes()], "

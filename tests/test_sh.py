@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from slc.sh import (A_HAT, ENCODINGS, basis, clamped_cosine_zonal, encoding, irradiance, project, radiance,
+from slc.methods.sh import (A_HAT, ENCODINGS, basis, clamped_cosine_zonal, encoding, irradiance, project, radiance,
                     ringing_bound, rgb_to_ycocg, ycocg_to_rgb)
 
 
@@ -149,7 +149,9 @@ def _osc_available():
 def test_sh_method_diffuse_plane_matches_closed_form():
     from helpers import plane_under_rect_light, rect_irradiance, render_frames
 
-    from slc import methods, views
+    from slc import methods
+
+    from slc.scene import views
     s = plane_under_rect_light(half=1.0, height=1.0, radiance=1.0, albedo=0.5)
     m = methods.create("sh", s)
     imgs, gbs = render_frames(s, m, views.single(s), 6, 48, 27)
@@ -171,8 +173,9 @@ def test_sh_method_glossy_and_encodings_against_ground_truth(scene, reference):
     Y3Co1Cg1 -1.7 / +0.4 / +5.6%, relMSE 0.0173 (rt4: 0.0030)."""
     from helpers import render_frames
 
-    from slc import methods, views
-    from slc.metrics import rel_mse
+    from slc import methods
+    from slc.reference.metrics import rel_mse
+    from slc.scene import views
     s = scene("cornell")
     for enc, bound in (("rgb3", 0.03), ("y3co1cg1", 0.08)):
         m = methods.create(f"sh:encoding={enc}", s)
@@ -206,7 +209,7 @@ def _plane_si(bsdf, n=256):
     import drjit as dr
     import mitsuba as mi
 
-    from slc.scenes import CameraPath, SceneBuilder
+    from slc.scene.scenes import CameraPath, SceneBuilder
     b = SceneBuilder("shade_radiance_plane")
     b.add_quad([0, 0, 0], [2, 0, 0], [0, 0, -2], bsdf=bsdf, name="plane")
     b.add_point_light([0, 1, 0], [1.0] * 3)
@@ -225,9 +228,9 @@ def test_shade_radiance_diffuse_closed_form_and_masks():
     import drjit as dr
     import mitsuba as mi
 
-    from slc.keys import keyed_rng
-    from slc.scenes import diffuse
-    from slc.sh.shading import shade_radiance
+    from slc.core.keys import keyed_rng
+    from slc.scene.scenes import diffuse
+    from slc.methods.sh.shading import shade_radiance
     si, _scene = _plane_si(diffuse([0.25, 0.5, 0.75]))
     n = dr.width(si)
     active = mi.Bool(np.arange(n) % 3 != 0) & si.is_valid()
@@ -249,9 +252,9 @@ def test_shade_radiance_glossy_constant_field_and_radiance_mask():
     import drjit as dr
     import mitsuba as mi
 
-    from slc.keys import keyed_rng
-    from slc.scenes import rough_conductor
-    from slc.sh.shading import shade_radiance
+    from slc.core.keys import keyed_rng
+    from slc.scene.scenes import rough_conductor
+    from slc.methods.sh.shading import shade_radiance
     si, _scene = _plane_si(rough_conductor(0.1, rgb=[1.0, 1.0, 1.0]))
     n = dr.width(si)
     active = si.is_valid()
@@ -266,3 +269,20 @@ def test_shade_radiance_glossy_constant_field_and_radiance_mask():
     albedo = L[on] / np.array([0.5, 1.0, 2.0])
     assert np.allclose(albedo[:, 0], albedo[:, 1], rtol=1e-5) and np.allclose(albedo[:, 1], albedo[:, 2], rtol=1e-5)
     assert (albedo <= 1.0 + 1e-4).all() and albedo.mean() > 0.9
+
+
+def test_running_mean_counts_samples():
+    """The SH update's running mean (shared by ``sh`` and the adaptive cache) counts samples:
+    after an 8-sample cycle a 1-sample cycle weighs 1/9; once C reaches the cap, a cycle of n
+    samples weighs n / cap."""
+    import drjit as dr
+    import mitsuba as mi
+
+    import slc.core.backend  # noqa: F401
+    from slc.methods.sh.update import running_mean
+    c, C = running_mean([mi.Float(5.0)], mi.Float(0.0), [mi.Float(8 * 2.0)], mi.UInt32(8), 16)
+    assert dr.allclose(c[0], 2.0) and dr.allclose(C, 8.0)
+    c, C = running_mean(c, C, [mi.Float(11.0)], mi.UInt32(1), 16)
+    assert dr.allclose(c[0], 3.0) and dr.allclose(C, 9.0)
+    c, C = running_mean(c, mi.Float(16.0), [mi.Float(4 * 7.0)], mi.UInt32(4), 16)
+    assert dr.allclose(c[0], 3.0 + 0.25 * (7.0 - 3.0)) and dr.allclose(C, 16.0)

@@ -7,8 +7,12 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc import check, methods, scenes, views
-from slc.pipeline import RunConfig, run_sequence
+from slc.core import check
+
+from slc import methods
+
+from slc.scene import scenes, views
+from slc.run.pipeline import RunConfig, run_sequence
 
 W, H = 32, 18
 

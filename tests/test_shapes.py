@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from slc import methods
-from slc.groundtruth import ground_truth
-from slc.metrics import rel_mse
+from slc.reference.groundtruth import ground_truth
+from slc.reference.metrics import rel_mse
 from slc.osc import OnSurfaceCache
-from slc.scenes import SceneError, load_xml
-from slc.views import Viewer
+from slc.scene.scenes import SceneError, load_xml
+from slc.scene.views import Viewer
 
 from helpers import render_frames
 
@@ -144,7 +144,7 @@ def test_analytic_shapes_have_islands_and_entries_on_the_real_surface(twins):
     cache = OnSurfaceCache(sc)
     L = cache.layout
     assert sorted(L.grids) == sorted(k for k, s in enumerate(sc.mi_scene.shapes()) if not s.is_mesh())
-    from slc import gbuffer
+    from slc.scene import gbuffer
     gb = gbuffer.render_gbuffer(sc, sc.path(0).at(0), W, H)
     fr = cache.begin_frame(0, [gb])
     slot = np.array(fr.pixel_slot[0])
@@ -330,7 +330,7 @@ def boxes(tmp_path_factory):
 
 
 def _flip(scene, img, gt):
-    from slc import metrics
+    from slc.reference import metrics
     return metrics.evaluate(gt, img, scene.exposure)["flip"]
 
 

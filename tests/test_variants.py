@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from helpers import slc_cli
-from slc import scenes
-from slc.scenes import SceneError
+from slc.scene import scenes
+from slc.scene.scenes import SceneError
 
 ROOT = Path(__file__).resolve().parents[1]
 

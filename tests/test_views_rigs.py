@@ -4,11 +4,11 @@ look-at point (``pivot="auto"``), one inside (the atrium) about its eye; meeting
 viewers never stand inside geometry."""
 import numpy as np
 
-import slc.backend  # noqa: F401
+import slc.core.backend  # noqa: F401
 import mitsuba as mi
-from slc import views
-from slc.gbuffer import render_gbuffer
-from slc.scenes import load
+from slc.scene import views
+from slc.scene.gbuffer import render_gbuffer
+from slc.scene.scenes import load
 
 
 def _valid_per_viewer(sc, vs, w=48, h=27):

@@ -33,8 +33,10 @@ def main(argv=None) -> int:
     opts = p.parse_args(argv)
     w, h = (int(v) for v in opts.res.split("x"))
 
-    from slc import methods, scenes, views
-    from slc.pipeline import RunConfig, run_sequence
+    from slc import methods
+
+    from slc.scene import scenes, views
+    from slc.run.pipeline import RunConfig, run_sequence
     import numpy as np
 
     loaded = {}

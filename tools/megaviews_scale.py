@@ -32,8 +32,10 @@ def main() -> None:
 
     import drjit as dr
 
-    from slc import methods, scenes
-    from slc.timing import StageTimer
+    from slc import methods
+
+    from slc.scene import scenes
+    from slc.core.timing import StageTimer
 
     s = scenes.load(a.scene)
     s.set_frame(0)

@@ -4,7 +4,7 @@
 Modules, one concept each:
 
 - :mod:`.protocol`: the contract between a surface cache and its payload
-  (:class:`FrameRequests`, :class:`SurfaceCache`, declared capabilities);
+  (:class:`FrameRequests`, :class:`SurfaceCache`, declared capabilities, :class:`EntryTopology`);
 - :mod:`.payload`: :class:`PayloadMethod`, the base class of cache methods
   (it owns ``render()``: frame requests, the ray policy, update, shading);
 - :mod:`.islands`: islands, their texture spaces, the per-mesh atlas, analytic shapes' grids (numpy set-up);
@@ -20,10 +20,11 @@ warning names them). Not done: the back side of a triangle shares the front side
 seeded from coarser entries only (not from finer ones).
 Design and numbers: docs/osc.md.
 """
-from ..keys import INVALID
-from .cache import OnSurfaceCache
-from .islands import MeshIslands, build_mesh_islands, charts_overlap, cluster_faces, island_deviation
-from .protocol import BILINEAR_TAPS, ENTRY_TEXELS, FrameRequests, SurfaceCache
+from slc.core.keys import INVALID
+from slc.osc.cache import OnSurfaceCache
+from slc.osc.islands import MeshIslands, build_mesh_islands, charts_overlap, cluster_faces, island_deviation
+from slc.osc.protocol import BILINEAR_TAPS, ENTRY_TEXELS, ENTRY_TOPOLOGY, EntryTopology, FrameRequests, SurfaceCache
 
 __all__ = ["OnSurfaceCache", "FrameRequests", "SurfaceCache", "INVALID", "BILINEAR_TAPS", "ENTRY_TEXELS",
+           "ENTRY_TOPOLOGY", "EntryTopology",
            "MeshIslands", "build_mesh_islands", "charts_overlap", "cluster_faces", "island_deviation"]

@@ -23,8 +23,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..keys import INVALID
-from .layout import CacheLayout
+from slc.core.keys import INVALID
+from slc.osc.layout import CacheLayout
 
 PAGE_SHIFT = 6   # 64 virtual blocks per page: measured best on Sponza at 320x180 (docs/osc.md)
 
@@ -51,7 +51,8 @@ def lanes(width: int, n: int) -> mi.Bool:
     return dr.arange(mi.UInt32, width) < dr.opaque(mi.UInt32, n)
 
 
-def _extend(a, fill, size, tp):
+def extend_array(a, fill, size, tp):
+    """``a`` grown to ``size`` entries of type ``tp``, the new ones set to ``fill``."""
     out = dr.full(tp, fill, size)
     dr.scatter(out, a, dr.arange(mi.UInt32, dr.width(a)))
     return out
@@ -106,20 +107,20 @@ class BlockPool:
         old = self.max_pages
         npg = max(2 * old, old + need)
         self.max_pages = npg
-        self.pages = _extend(self.pages, INVALID, npg * self.page_span, mi.UInt32)
-        self.pg_dir = _extend(self.pg_dir, INVALID, npg, mi.UInt32)
-        self.pg_count = _extend(self.pg_count, 0, npg, mi.UInt32)
+        self.pages = extend_array(self.pages, INVALID, npg * self.page_span, mi.UInt32)
+        self.pg_dir = extend_array(self.pg_dir, INVALID, npg, mi.UInt32)
+        self.pg_count = extend_array(self.pg_count, 0, npg, mi.UInt32)
         dr.eval(self.pages, self.pg_dir, self.pg_count)
 
     def _grow_pool(self, need_blocks):
         old = self.max_blocks
         nb = max(2 * old, old + need_blocks)
-        self.blk_vb = _extend(self.blk_vb, INVALID, nb, mi.UInt32)
-        self.blk_last = _extend(self.blk_last, 0, nb, mi.UInt32)
-        self.blk_key = _extend(self.blk_key, 0, nb, mi.UInt32)
-        self.blk_xy = _extend(self.blk_xy, 0, nb, mi.UInt32)
+        self.blk_vb = extend_array(self.blk_vb, INVALID, nb, mi.UInt32)
+        self.blk_last = extend_array(self.blk_last, 0, nb, mi.UInt32)
+        self.blk_key = extend_array(self.blk_key, 0, nb, mi.UInt32)
+        self.blk_xy = extend_array(self.blk_xy, 0, nb, mi.UInt32)
         self.blk_rank = dr.zeros(mi.UInt32, nb)
-        self.slot_seen = _extend(self.slot_seen, 0, nb * self.B2, mi.UInt32)
+        self.slot_seen = extend_array(self.slot_seen, 0, nb * self.B2, mi.UInt32)
         self.max_blocks = nb
         dr.eval(self.blk_vb, self.blk_last, self.blk_key, self.blk_xy, self.slot_seen)
 

@@ -26,15 +26,15 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .. import gbuffer as gbuf
-from ..keys import INVALID
-from ..timing import NullTimer
-from .blocks import BlockPool, widen
-from .islands import DEFAULT_MAX_ANGLE, DEFAULT_MAX_TRIANGLES
-from .layout import CacheLayout
-from .protocol import BILINEAR_TAPS, ENTRY_TEXELS, FrameRequests
-from .requests import bilinear_taps, dedupe, lod_seeds, requested_blocks
-from .surface import EntryInteractions, TexelPoints
+from slc.scene import gbuffer as gbuf
+from slc.core.keys import INVALID
+from slc.core.timing import NullTimer
+from slc.osc.blocks import BlockPool, widen
+from slc.osc.islands import DEFAULT_MAX_ANGLE, DEFAULT_MAX_TRIANGLES
+from slc.osc.layout import CacheLayout
+from slc.osc.protocol import BILINEAR_TAPS, ENTRY_TEXELS, ENTRY_TOPOLOGY, FrameRequests
+from slc.osc.requests import bilinear_taps, dedupe, lod_seeds, requested_blocks
+from slc.osc.surface import EntryInteractions, TexelPoints
 
 DEFAULT_CAPACITY_ENTRIES = 2 ** 20   # default initial pool: 1M entries (16384 blocks of 8x8), at most the virtual size
 
@@ -44,7 +44,7 @@ class OnSurfaceCache:
 
     Parameters
     ----------
-    scene: :class:`slc.scenes.Scene` (its triangle meshes and analytic
+    scene: :class:`slc.scene.scenes.Scene` (its triangle meshes and analytic
         spheres, disks and cylinders get islands; other shapes are named in
         one warning, not cached, and their pixels get INVALID slots).
     block_size: texels per block edge (8 as in OSC, 2 as in the slides);
@@ -68,7 +68,7 @@ class OnSurfaceCache:
         of the cornell box from behind) then asks for no entries.
     """
 
-    capabilities = frozenset({BILINEAR_TAPS, ENTRY_TEXELS})
+    capabilities = frozenset({BILINEAR_TAPS, ENTRY_TEXELS, ENTRY_TOPOLOGY})
 
     def __init__(self, scene, block_size: int = 8, bias: float = 1.0, evict_after: int = 60,
                  texel_size: float | None = None, max_blocks: int | None = None,
@@ -223,6 +223,26 @@ class OnSurfaceCache:
         texel whatever physical block it landed in, so payload random numbers
         keyed by it do not depend on which viewers asked for what."""
         return self._keys(*self.pool.entry_texels(mi.UInt32(slots)))
+
+    # ------------------------------------------------------------------ entry topology (EntryTopology)
+    def entry_texels(self, slots) -> tuple:
+        """(island, level, tx, ty) of the entries ``slots``."""
+        return self.pool.entry_texels(mi.UInt32(slots))
+
+    def slot_at(self, island, level, tx, ty, active=True) -> mi.UInt32:
+        """The slot of texel (tx, ty) of ``island``'s ``level``; INVALID where inactive, outside
+        the level, not mapped or never requested before this frame."""
+        L = self.layout
+        key = island * L.levels + level
+        wl, hl = L.key_extent(key, active)
+        x, y = mi.Int32(tx), mi.Int32(ty)
+        inside = mi.Bool(active) & (x >= 0) & (y >= 0) & (x < wl) & (y < hl)
+        ux, uy = mi.UInt32(dr.maximum(x, 0)), mi.UInt32(dr.maximum(y, 0))
+        return self.pool.slot(L.vblock(key, ux, uy, inside), L.within(ux, uy), inside)
+
+    def entry_points(self, slots, island) -> mi.SurfaceInteraction3f:
+        """The entries' own surface points (their texel centres on their own triangles)."""
+        return self.points.interactions(slots, island)
 
     def entry_info(self, slots) -> dict:
         """numpy (island, level, tx, ty, texel_world) of slots: a viewer-independent key."""

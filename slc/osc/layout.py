@@ -25,8 +25,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..keys import INVALID
-from .islands import (ANALYTIC_KIND, DEFAULT_MAX_ANGLE, DEFAULT_MAX_TRIANGLES, MeshIslands, ParamGrid,
+from slc.core.keys import INVALID
+from slc.osc.islands import (ANALYTIC_KIND, analytic_point, DEFAULT_MAX_ANGLE, DEFAULT_MAX_TRIANGLES, MeshIslands, ParamGrid,
                       build_mesh_islands, shape_to_world, tessellate_analytic)
 
 DEFAULT_TARGET_TEXELS = 2 ** 24      # level-0 texels over the whole scene when texel_size is None
@@ -308,7 +308,6 @@ class CacheLayout:
     def analytic_point(self, sidx, uv, active=True):
         """World (p, dp_du, dp_dv) of parameter points of analytic shapes
         (closed forms, :func:`.islands.analytic_point`)."""
-        from .islands import analytic_point
         rows = [[dr.gather(mi.Float, self.d_shape_xform, sidx * 16 + (4 * r + c), active) for c in range(4)]
                 for r in range(3)]
         return analytic_point(dr.gather(mi.UInt32, self.d_shape_kind, sidx, active), rows, uv)

@@ -7,18 +7,25 @@ runs the frame and a subclass writes only the part that differs::
         name = "mine"
         params = PayloadMethod.cache_params + (Param(...), ...)
         words = 4                                     # 32-bit words per entry
-        def update(self, ctx, fr, rays, unsettled):   # write self.storage, return motion
+        def update(self, ctx, fr, policy):            # write self.storage, return motion
         def shade(self, ctx, fr, v, gb):              # one viewer's pixels from the entries
         def shade_all(self, ctx, fr, gbuffers):       # optional: all viewers at once
+        def make_cache(self):                         # optional: another surface cache
 
 :meth:`PayloadMethod.render` does, per frame: the cache's requests
 (:class:`slc.osc.protocol.FrameRequests`), storage growth to the cache's
 capacity, the ray policy of every active entry (from the payload's own
-per-entry state: new, moving or settled), the payload's ``update`` (stage
-"update"), the policy state's advance with the motion the update reports,
-and ``shade_all`` (stage "shade"): by default ``shade`` for every viewer; a
-subclass may shade all viewers' pixels in one launch instead. Memory is the cache's own
-structures plus the allocated entries times :meth:`payload_bytes`.
+per-entry state: new, moving or settled; one :class:`EntryPolicy`), the
+payload's ``update`` (stage "update"), the policy state's advance with the
+motion the update reports, and ``shade_all`` (stage "shade"): by default
+``shade`` for every viewer; a subclass may shade all viewers' pixels in one
+launch instead. Memory is the cache's own structures plus the allocated
+entries times :meth:`payload_bytes`.
+
+An entry's words are read and written through :meth:`PayloadMethod.read` /
+:meth:`PayloadMethod.write` (word ``k`` of slot ``s`` is ``storage[s * words + k]``),
+and where a new entry's previous value comes from (nothing, or its coarser LOD
+seed) is :func:`entry_start`'s rule, the same for every payload.
 """
 from __future__ import annotations
 
@@ -28,9 +35,9 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from ..methods import Method, MethodError, Param
-from .cache import OnSurfaceCache
-from .protocol import FrameRequests, SurfaceCache
+from slc.methods import Method, MethodError, Param
+from slc.osc.cache import OnSurfaceCache
+from slc.osc.protocol import EntryStart, FrameRequests, SurfaceCache, entry_start  # noqa: F401 (re-exported)
 
 _UPD_MASK = 0xFFFF
 
@@ -117,15 +124,51 @@ class RayPolicy:
         return upd | (mot << 16)
 
 
+@dataclass(frozen=True)
+class EntryPolicy:
+    """The ray policy of this frame's active entries, built once by
+    :meth:`PayloadMethod.render` and handed to :meth:`PayloadMethod.update`.
+
+    ``state``: each entry's policy state word before this update
+    (``updates | motion_left << 16``; 0 for a new entry); ``rays`` and
+    ``unsettled``: :meth:`RayPolicy.rays` of it; ``moving``: the entry is in a
+    motion phase; ``first_sample``: :meth:`RayPolicy.samples_before` (the
+    index of its first sample in a per-entry low-discrepancy sequence)."""
+    policy: RayPolicy
+    state: mi.UInt32
+    rays: mi.UInt32
+    unsettled: mi.Bool
+
+    @classmethod
+    def of(cls, policy: RayPolicy, state: mi.UInt32) -> "EntryPolicy":
+        rays, unsettled = policy.rays(state)
+        return cls(policy, state, rays, unsettled)
+
+    @property
+    def moving(self) -> mi.Bool:
+        return (self.state >> 16) > 0
+
+    @property
+    def first_sample(self) -> mi.UInt32:
+        return self.policy.samples_before(self.state)
+
+    def take(self, idx: mi.UInt32) -> "EntryPolicy":
+        """The policy of the entries ``idx`` (indices into this frame's active entries)."""
+        return EntryPolicy(self.policy, dr.gather(mi.UInt32, self.state, idx),
+                           dr.gather(mi.UInt32, self.rays, idx), dr.gather(mi.Bool, self.unsettled, idx))
+
+
 class PayloadMethod(Method):
     """Base class of methods that keep a payload per surface-cache entry.
 
     Subclasses set ``words`` (32-bit words per entry; ``storage_type`` is
     ``mi.UInt32`` or ``mi.Float``), ``needs`` (cache capabilities they
     require), and implement :meth:`update` and :meth:`shade`; they may
-    override :meth:`ray_policy`. ``cache`` (constructor keyword, not a
-    setting) replaces the default :class:`~slc.osc.OnSurfaceCache` by any
-    :class:`~slc.osc.protocol.SurfaceCache` (tests pass stand-ins)."""
+    override :meth:`ray_policy` and :meth:`make_cache`. ``cache``
+    (constructor keyword, not a setting) replaces the cache :meth:`make_cache`
+    builds by any :class:`~slc.osc.protocol.SurfaceCache` (tests pass
+    stand-ins); either way the cache must declare every capability in
+    ``needs`` (a one-line :class:`MethodError` otherwise)."""
 
     cache_params = (
         Param("bias", 1.0, "cache mip bias (1: about one entry per pixel; larger: coarser)", lo=1e-3, hi=1e3),
@@ -145,9 +188,15 @@ class PayloadMethod(Method):
     def ray_policy(self) -> RayPolicy:
         return RayPolicy()
 
+    def make_cache(self) -> SurfaceCache:
+        """The surface cache this method's entries live in, built at the first
+        frame. Default: an :class:`~slc.osc.OnSurfaceCache` with the settings
+        ``block``, ``bias`` and ``evict_after``."""
+        return OnSurfaceCache(self.scene, block_size=self.block, bias=self.bias, evict_after=self.evict_after)
+
     @abstractmethod
-    def update(self, ctx, fr: FrameRequests, rays: mi.UInt32, unsettled: mi.Bool) -> mi.Bool:
-        """Update every active entry (``rays`` samples each) in ``self.storage``;
+    def update(self, ctx, fr: FrameRequests, policy: EntryPolicy) -> mi.Bool:
+        """Update every active entry (``policy.rays`` samples each) in ``self.storage``;
         return the entries whose light moved (a mask over ``fr.active``)."""
 
     @abstractmethod
@@ -169,10 +218,25 @@ class PayloadMethod(Method):
         self.requests = None      # the last frame's FrameRequests (for notebooks and tests)
         self._last = {}
 
-    def _make_cache(self):
-        cache = self._cache_arg
-        if cache is None:
-            cache = OnSurfaceCache(self.scene, block_size=self.block, bias=self.bias, evict_after=self.evict_after)
+    # ------------------------------------------------------------------ entries
+    def read(self, slots, word: int, active=True, n: int = 1, storage=None):
+        """Word ``word`` of the entries ``slots`` (``n`` > 1: the ``n`` consecutive words from
+        there, a list); 0 where not ``active``. ``storage``: another array of the same layout
+        (a filtered copy) instead of ``self.storage``."""
+        st = self.storage if storage is None else storage
+        out = [dr.gather(self.storage_type, st, slots * self.words + (word + j), active) for j in range(n)]
+        return out[0] if n == 1 else out
+
+    def write(self, value, slots, word: int, active=True, storage=None) -> None:
+        """Word ``word`` of the entries ``slots`` set to ``value`` (a list: consecutive words);
+        ``storage``: another array of the same layout instead of ``self.storage``."""
+        st = self.storage if storage is None else storage
+        values = value if isinstance(value, (list, tuple)) else [value]
+        for j, v in enumerate(values):
+            dr.scatter(st, v, slots * self.words + (word + j), active)
+
+    def _set_up_cache(self):
+        cache = self._cache_arg if self._cache_arg is not None else self.make_cache()
         missing = set(self.needs) - set(cache.capabilities)
         if missing:
             raise MethodError(f"{self.name}: the cache {type(cache).__name__} lacks {', '.join(sorted(missing))}")
@@ -194,7 +258,7 @@ class PayloadMethod(Method):
     # ------------------------------------------------------------------ frame
     def render(self, ctx, gbuffers, timer):
         if self.cache is None:
-            self._make_cache()
+            self._set_up_cache()
         fr = self.requests = self.cache.begin_frame(ctx.frame, gbuffers, timer)
         self._grow()
         n_active = fr.n_active
@@ -203,11 +267,10 @@ class PayloadMethod(Method):
         # ------------------------------- update every requested entry once
         with timer.stage("update") as st:
             if n_active > 0:
-                policy = self.ray_policy()
                 state = dr.select(fr.is_new, 0, dr.gather(mi.UInt32, self.policy_state, fr.active))
-                rays, unsettled = policy.rays(state)
-                motion = self.update(ctx, fr, rays, unsettled)
-                dr.scatter(self.policy_state, policy.advance(state, motion), fr.active)
+                policy = EntryPolicy.of(self.ray_policy(), state)
+                motion = self.update(ctx, fr, policy)
+                dr.scatter(self.policy_state, policy.policy.advance(state, motion), fr.active)
                 st.outputs(self.storage, self.policy_state)
 
         # ------------------------------- shade every viewer from the entries

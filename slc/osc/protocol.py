@@ -21,7 +21,7 @@ What the cache gives a payload (:class:`FrameRequests`):
   G-buffer is invalid or nothing is cached) and ``pixel_index`` (the pixel's
   index into ``active``/``si``, INVALID likewise); optionally the same for all
   viewers' pixels in the order of the frame's layered G-buffer
-  (:class:`slc.gbuffer.Layers`): ``layer_slot``, ``layer_index`` (None when
+  (:class:`slc.scene.gbuffer.Layers`): ``layer_slot``, ``layer_index`` (None when
   the cache does not provide them).
 
 What the cache promises: slots index payload arrays of ``capacity`` entries
@@ -42,8 +42,11 @@ Optional capabilities are declared in ``capabilities``, never probed:
 ``"bilinear_taps"`` (:meth:`bilinear_taps`: the 4 entries around a pixel's
 cache coordinate with bilinear weights) and ``"entry_texels"``
 (``entry_info(slots)``: island, level, texel of entries, for tests and
-notebooks). A payload that needs a capability the cache lacks refuses at
-set-up with a one-line error.
+notebooks) and ``"entry_topology"`` (:class:`EntryTopology`: where entries
+sit on the surface, for payloads that read an entry's neighbours or its finer
+entries, as osc-gi's spatial filter and finer-level seeding do). A payload
+that needs a capability the cache lacks refuses at set-up with a one-line
+error. The reset / LOD-seeding rule of a new entry is :func:`entry_start`.
 """
 from __future__ import annotations
 
@@ -53,10 +56,11 @@ from typing import Protocol, runtime_checkable
 import drjit as dr
 import mitsuba as mi
 
-from ..keys import INVALID
+from slc.core.keys import INVALID
 
 BILINEAR_TAPS = "bilinear_taps"
 ENTRY_TEXELS = "entry_texels"
+ENTRY_TOPOLOGY = "entry_topology"
 
 
 @dataclass
@@ -71,7 +75,7 @@ class FrameRequests:
     pixel_slot: list = field(default_factory=list)
     pixel_index: list = field(default_factory=list)
     layer_slot: mi.UInt32 | None = None      # pixel_slot of all viewers laid out as the frame's layers
-    layer_index: mi.UInt32 | None = None     # pixel_index likewise (slc.gbuffer.Layers order)
+    layer_index: mi.UInt32 | None = None     # pixel_index likewise (slc.scene.gbuffer.Layers order)
 
     @property
     def n_active(self) -> int:
@@ -104,3 +108,43 @@ class SurfaceCache(Protocol):
     def stats(self) -> dict: ...
 
     def reset(self) -> None: ...
+
+
+@runtime_checkable
+class EntryTopology(Protocol):
+    """The ``"entry_topology"`` capability: what a payload may ask of where its entries sit.
+
+    Entries are texels ``(tx, ty)`` of a level of an island (a chart of the surface; level
+    l + 1 has half the texels per side of level l, so the 2 x 2 texels (2 tx + {0, 1}, 2 ty +
+    {0, 1}) of level l - 1 cover texel (tx, ty) of level l). All arguments and results are
+    Dr.Jit arrays, one lane per entry."""
+
+    def entry_texels(self, slots: mi.UInt32) -> tuple:
+        """(island, level, tx, ty) of the entries ``slots`` (``mi.UInt32`` each)."""
+
+    def entry_keys(self, slots: mi.UInt32) -> mi.UInt32:
+        """The entries' viewer-independent 32-bit keys (those of ``FrameRequests.keys``)."""
+
+    def slot_at(self, island: mi.UInt32, level: mi.UInt32, tx: mi.Int32, ty: mi.Int32,
+                active: mi.Bool = True) -> mi.UInt32:
+        """The slot of texel (tx, ty) of ``island``'s ``level``; INVALID where inactive, outside
+        the level's texels, not allocated, or not requested in an earlier frame yet."""
+
+    def entry_points(self, slots: mi.UInt32, island: mi.UInt32) -> mi.SurfaceInteraction3f:
+        """The entries' own surface points (``island``: theirs, from :meth:`entry_texels`)."""
+
+
+@dataclass(frozen=True)
+class EntryStart:
+    """Where each active entry's previous value comes from (:func:`entry_start`)."""
+    seeded: mi.Bool      # new, and a coarser entry covers it: start from that entry
+    keep: mi.Bool        # the previous value counts (the entry is not new, or it is seeded)
+    src: mi.UInt32       # the slot holding the previous value: the seed where seeded, else ``slots``
+
+
+def entry_start(is_new, seed_slot, slots) -> EntryStart:
+    """The reset / LOD-seeding rule of every payload: an entry that is not new continues
+    from its own value; a new entry starts from its coarser seed (``seed_slot``, see
+    :class:`slc.osc.protocol.FrameRequests`) when it has one, else from nothing."""
+    seeded = mi.Bool(is_new) & (mi.UInt32(seed_slot) != INVALID)
+    return EntryStart(seeded, ~mi.Bool(is_new) | seeded, dr.select(seeded, mi.UInt32(seed_slot), slots))

@@ -6,9 +6,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ..keys import INVALID
-from .blocks import PAGE_SHIFT, BlockPool, widen
-from .layout import CacheLayout
+from slc.core.keys import INVALID
+from slc.osc.blocks import PAGE_SHIFT, BlockPool, widen
+from slc.osc.layout import CacheLayout
 
 
 def requested_blocks(reqs, n_vblocks: int) -> mi.UInt32:

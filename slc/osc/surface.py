@@ -21,9 +21,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ..freeze import FrozenFunction
-from .blocks import _extend
-from .layout import CacheLayout
+from slc.core.freeze import FrozenFunction
+from slc.osc.blocks import extend_array
+from slc.osc.layout import CacheLayout
 
 # the layout tables that surface_interaction reads (passed to the frozen function as inputs)
 _SI_TABLES = ("d_isl_shape", "d_tri_base")
@@ -47,7 +47,7 @@ class TexelPoints:
         if dr.width(self.slot_tri) >= capacity:
             return
         n_old = dr.width(self.slot_tri)
-        self.slot_tri = _extend(self.slot_tri, 0, capacity, mi.UInt32)
+        self.slot_tri = extend_array(self.slot_tri, 0, capacity, mi.UInt32)
         sb = dr.zeros(mi.Point2f, capacity)
         dr.scatter(sb, self.slot_b, dr.arange(mi.UInt32, n_old))
         self.slot_b = sb
@@ -189,7 +189,7 @@ class EntryInteractions(FrozenFunction):
     reads, the per-slot surface points and the frame's active slots and islands
     (their number may change between calls without a new recording). The kernel
     is a module function without closure, so that nothing of the cache is held in
-    a reference cycle; the recording policy is :class:`slc.freeze.FrozenFunction`'s."""
+    a reference cycle; the recording policy is :class:`slc.core.freeze.FrozenFunction`'s."""
 
     def __init__(self, freeze: bool = True, animated: bool = False, max_recordings: int = 4):
         # per-lane: slots, isl (a pure function: padded lanes are cut from the output)

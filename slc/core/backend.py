@@ -1,0 +1,178 @@
+"""Backend selection, in one place.
+
+``cuda_ad_rgb`` is chosen when a CUDA device is present, ``llvm_ad_rgb``
+otherwise. ``SLC_VARIANT`` (or the CLI's ``--variant``) overrides the choice.
+
+Dr.Jit 1.5's LLVM backend needs libLLVM >= 16 (Debian's libLLVM 15 fails at
+kernel compilation with "Cannot select ... fminimum"). Before Dr.Jit is
+imported we look for a suitable libLLVM, point ``DRJIT_LIBLLVM_PATH`` at it,
+and fail with a one-line message otherwise.
+"""
+from __future__ import annotations
+
+import glob
+import os
+import re
+
+SUPPORTED_VARIANTS = ("cuda_ad_rgb", "llvm_ad_rgb")
+MIN_LLVM = 16
+_LLVM_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib",
+              "/usr/local/lib", "/usr/lib64", "/opt/homebrew/opt/llvm/lib",
+              "/usr/local/opt/llvm/lib")
+LLVM_HINT = ("install it with 'apt-get update && apt-get install -y libllvm19' "
+             "(or run 'make run'), or set DRJIT_LIBLLVM_PATH to a libLLVM >= 16")
+
+
+class BackendError(RuntimeError):
+    """The rendering backend cannot be set up (one-line reason)."""
+
+
+def _llvm_version(path: str) -> int | None:
+    m = re.search(r"libLLVM[-.](?:so\.)?(\d+)", os.path.basename(path))
+    if m:
+        return int(m.group(1))
+    m = re.search(r"libLLVM\.(\d+)", os.path.basename(path))  # macOS
+    return int(m.group(1)) if m else None
+
+
+def find_libllvm() -> str | None:
+    """Path of the newest libLLVM >= 16 on this machine, or None."""
+    best, best_v = None, -1
+    for d in _LLVM_DIRS:
+        for f in glob.glob(os.path.join(d, "libLLVM*")):
+            v = _llvm_version(f)
+            if v is not None and v >= MIN_LLVM and v > best_v:
+                best, best_v = f, v
+    return best
+
+
+def cuda_available() -> bool:
+    import drjit as dr
+    try:
+        return bool(dr.has_backend(dr.JitBackend.CUDA))
+    except Exception:
+        return False
+
+
+def prepare_llvm() -> None:
+    """Point Dr.Jit at libLLVM >= 16 or raise a one-line BackendError."""
+    env = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if env:
+        if not os.path.exists(env):
+            raise BackendError(f"DRJIT_LIBLLVM_PATH={env} does not exist; {LLVM_HINT}")
+        v = _llvm_version(env)
+        if v is not None and v < MIN_LLVM:
+            raise BackendError(f"DRJIT_LIBLLVM_PATH points at libLLVM {v}, Dr.Jit 1.5 needs >= {MIN_LLVM}; {LLVM_HINT}")
+        return
+    path = find_libllvm()
+    if path is None:
+        raise BackendError(f"no libLLVM >= {MIN_LLVM} found (Dr.Jit's CPU backend needs it); {LLVM_HINT}")
+    os.environ["DRJIT_LIBLLVM_PATH"] = path
+
+
+def choose_variant(override: str | None = None) -> str:
+    """The variant to use: override > $SLC_VARIANT > CUDA if present > LLVM."""
+    v = override or os.environ.get("SLC_VARIANT")
+    if v:
+        if v not in SUPPORTED_VARIANTS:
+            raise BackendError(f"unknown variant '{v}' (choose one of {', '.join(SUPPORTED_VARIANTS)})")
+        return v
+    return "cuda_ad_rgb" if cuda_available() else "llvm_ad_rgb"
+
+
+_variant: str | None = None
+
+
+def init(variant: str | None = None) -> str:
+    """Select the Mitsuba variant once per process and return its name.
+
+    Called on ``import slc``; calling it again with a different explicit
+    variant switches (only sensible before any scene is loaded)."""
+    global _variant
+    if _variant is not None and (variant is None or variant == _variant):
+        return _variant
+    want = variant or os.environ.get("SLC_VARIANT")
+    if want != "cuda_ad_rgb":
+        prepare_llvm()
+    import mitsuba as mi
+    v = choose_variant(variant)
+    if v == "cuda_ad_rgb" and not cuda_available():
+        raise BackendError("variant cuda_ad_rgb requested but no CUDA device is available")
+    if v == "llvm_ad_rgb":
+        prepare_llvm()
+    mi.set_variant(v)
+    _variant = v
+    return v
+
+
+def variant() -> str:
+    return init()
+
+
+def env_info() -> dict:
+    """Versions, CPU and variant: the ``env`` block of results.json."""
+    import platform
+    import drjit as dr
+    import mitsuba as mi
+    import numpy as np
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return {
+        "variant": variant(),
+        "mitsuba": mi.__version__,
+        "drjit": dr.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "libllvm": os.environ.get("DRJIT_LIBLLVM_PATH"),
+    }
+
+
+def code_version() -> str:
+    """``git describe --always --dirty`` of the checkout the package runs from, else the
+    installed package's version (``slc 0.1.0``)."""
+    global _CODE_VERSION
+    if _CODE_VERSION is None:
+        import subprocess
+        from pathlib import Path
+        try:
+            r = subprocess.run(["git", "describe", "--always", "--dirty", "--tags"], capture_output=True, text=True,
+                               cwd=Path(__file__).resolve().parents[1], timeout=10)
+            _CODE_VERSION = r.stdout.strip() if r.returncode == 0 and r.stdout.strip() else None
+        except (OSError, subprocess.SubprocessError):
+            _CODE_VERSION = None
+        if _CODE_VERSION is None:
+            from importlib import metadata
+            try:
+                _CODE_VERSION = f"slc {metadata.version('slc')}"
+            except metadata.PackageNotFoundError:
+                _CODE_VERSION = "unknown"
+    return _CODE_VERSION
+
+
+_CODE_VERSION: str | None = None
+
+
+def aligned(a, dtype):
+    """A contiguous copy of ``a`` in a 64-byte aligned numpy buffer.
+
+    Dr.Jit maps a numpy array without copying and marks it unaligned when its
+    address is not a multiple of the vector width; every kernel reading it then
+    differs (``align 1`` loads) from the one for an aligned array, so a kernel
+    fed per-frame numpy data would be built again in whichever frame numpy's
+    allocator returned the other kind of address."""
+    import numpy as np
+    a = np.ascontiguousarray(a, dtype)
+    buf = np.empty(a.nbytes + 64, np.uint8)
+    off = (-buf.ctypes.data) % 64
+    out = buf[off:off + a.nbytes].view(a.dtype).reshape(a.shape)
+    out[...] = a
+    return out

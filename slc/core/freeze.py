@@ -1,0 +1,356 @@
+r"""A function traced once and replayed (``dr.freeze``) under one recording
+policy, shared by every frozen kernel of the project (the cone update and
+shading, the cache's entry interactions, the adaptive cache's updates and
+shadings, osc-gi's kernels, the path tracer).
+
+Freezing pays only while its recordings are replayed. Each instance owns its
+frozen function, so recordings are freed with the method and never shared
+between scenes. What makes a call miss its recordings (``dr.set_log_level(
+dr.LogLevel.Info)`` and ``warn_after=1`` print the difference to the previous
+call):
+
+- Dr.Jit traverses, with the call's inputs, every object of Mitsuba's registry
+  in the domains the inputs reach (all shapes, emitters, BSDFs alive in the
+  process, of any scene), and the key holds an equivalence class of sizes over
+  all those arrays. Objects of a released scene must therefore be freed (the
+  per-scene tables of :mod:`slc.scene.emitter_sampling` and :mod:`slc.scene.lights` are
+  dropped with their :class:`slc.scene.scenes.Scene`); and a call whose number of
+  lanes equals the size of some registry array (a mesh's 486 vertex
+  coordinates) has a key of its own: one more recording, replayed whenever
+  that width comes back (sponza, 240 frames: 3 recordings of the cone update),
+  unless the function declares its lanes (below) and the array belongs to the
+  call's own scene.
+- When meshes move, the traversed state changes from frame to frame and the
+  function is recorded again on the frame's first call.
+
+So:
+
+- in a static scene, a function recorded more than ``max_recordings`` times is
+  dropped (traced on every call from then on);
+- in an animated scene, the function keeps at most 2 recordings (LRU) and is
+  dropped once 8 calls show that almost every call records (> 90%).
+
+Widths that coincide. Dr.Jit keys a recording on which of its inputs share a
+width (their "size equivalence class"), and the inputs include every array of
+the scene (vertex buffers, index buffers, textures). A per-frame lane count
+(the active entries) that happens to equal one of them (the atrium: 2,880 =
+one mesh's index buffer) makes a new key, so the function is recorded again in
+a timed frame, and after ``max_recordings`` such frames it is dropped. A
+function made with ``lanes`` (the positions of its per-lane arguments) runs
+such a call on a width that is free (:meth:`FrozenFunction.free_width`): its
+per-lane arguments get copies of their last lane appended, and its outputs of
+that width are cut back to the call's. Only for functions whose extra lanes
+change nothing: pure functions and plain scatters of equal values (a copy of
+the last lane computes and writes what the last lane does).
+
+Literal outputs take the call's width. A replayed recording returns an output
+that was a literal when recorded (e.g. the zero ``dn_du`` of a flat mesh's
+``SurfaceInteraction3f``) with the width it had *at the recording*, not the
+width of the call (Dr.Jit 1.5): 480 lanes while the other fields have 482.
+Passed on to a second frozen function, such a stale width changes that
+function's input key whenever the first one records anew (auto-opaque makes
+the literal an array, whose size class then differs from call to call), so the
+second one records again. :func:`fit_literals` gives every literal leaf of each
+output the width of its evaluated leaves (values unchanged: a literal has one
+value).
+"""
+from __future__ import annotations
+
+import dataclasses
+import gc
+import inspect
+
+import drjit as dr
+import mitsuba as mi
+
+
+class FrozenFunction:
+    """``fn`` frozen under the module's policy.
+
+    Parameters (defaults): ``fn``, ``freeze=True`` (False: ``fn`` traced on
+    every call), ``animated=False`` (the scene's meshes move),
+    ``max_recordings=4``, ``lanes=()`` (the per-lane arguments, by the names of
+    ``fn``'s parameters, or their positions: a call whose lane count collides with another input's
+    width runs on a free width, see the module; an argument named here may be a
+    structure, a Dr.Jit struct or a dataclass, whose every array is per lane), ``narrow=()``
+    (the arguments, by name or position, whose width decides whether a call is replayed: a call
+    where one of them has fewer than 2 lanes runs ``fn`` traced, since a width-1 input is loaded
+    as a scalar and would need a recording of its own). ``calls`` counts the calls made while frozen,
+    ``n_recordings`` the recordings made (including those of a dropped
+    function), ``frozen`` whether calls are still replayed."""
+
+    def __init__(self, fn, freeze: bool = True, animated: bool = False, max_recordings: int = 4,
+                 lanes: tuple = (), narrow: tuple = ()):
+        self.fn = fn
+        self.lanes, self.narrow = _positions(fn, lanes), _positions(fn, narrow)
+        self.padded_calls = 0           # calls run on a free width
+        self._scene_key, self._scene_ws = None, set()
+        self.animated, self.max_recordings = bool(animated), int(max_recordings)
+        self.frozen = bool(freeze)
+        if not freeze:
+            self.kernel = fn
+        elif self.animated:
+            self.kernel = dr.freeze(fn, limit=2, warn_after=1 << 30)
+        else:
+            self.kernel = dr.freeze(fn, warn_after=self.max_recordings + 1)
+        self.recordings = 0
+        self.calls = 0
+
+    def __call__(self, *args):
+        if self.narrow and any(_width(args[i]) < 2 for i in self.narrow):
+            return self.fn(*args)          # too narrow to replay (see the class)
+        # no garbage collection while a function records or replays: the collector freed
+        # cyclic garbage holding Dr.Jit state (an earlier test's objects) in the middle of
+        # a recording, and Dr.Jit aborted the process
+        n = w = None
+        if self.frozen and self.lanes:
+            # the inputs evaluated here, together, as the frozen function would: the
+            # per-leaf copies below then read evaluated arrays on every call
+            dr.eval(*[a for a in args if _is_tree(a)])
+            n = _width(args[self.lanes[0]])
+            w = self.free_width(n, args)
+            if self.calls == 0 or w != n:
+                # the first call also pads (by one lane, result unused), so that the
+                # copy kernels exist before a collision needs them in a timed frame
+                padded = self._pad(args, n, w if w != n else n + 1)
+                if w != n:
+                    args = padded
+                    self.padded_calls += 1
+                del padded
+        gc_on = gc.isenabled()
+        gc.disable()
+        try:
+            out = self.kernel(*args)
+        finally:
+            if gc_on:
+                gc.enable()
+        if n is not None and w != n:
+            out = _cut(out, w, n)
+        elif n is not None and self.calls == 0:
+            _cut(out, n, n)             # the cut's kernels made now (see above), result unused
+        if self.frozen:
+            self.calls += 1
+            recs = int(self.kernel.n_recordings)
+            if recs == self.recordings:     # a replay (a recording returns the traced outputs)
+                out = fit_literals(out)
+            self.recordings = recs
+            if self.animated:
+                drop = self.calls >= 8 and self.recordings > 0.9 * self.calls
+            else:
+                drop = self.recordings > self.max_recordings
+            if drop:
+                self.kernel.clear()
+                self.kernel, self.frozen = self.fn, False
+        return out
+
+    def free_width(self, n: int, args) -> int:
+        """``n`` if no other input of the call (the arguments not in ``lanes``,
+        the arrays of a Mitsuba scene among them) has width ``n``, else the
+        next width that is free. Widths 0 and 1 are never free (a width-1 array
+        is loaded as a scalar). A width this misses (an array of the scene that
+        is no parameter) records once: Dr.Jit keeps that recording for the
+        next call of the same width."""
+        if n == 0:
+            return n
+        taken = {0, 1}
+        for i, a in enumerate(args):
+            if i in self.lanes:
+                continue
+            if _is_scene(a):
+                # a scene's widths once per instance (a Mitsuba scene is not weakly
+                # referenceable, and a strong reference would keep a freed scene in
+                # the registry that every frozen function traverses)
+                if self._scene_key != id(a):
+                    self._scene_key, self._scene_ws = id(a), _input_widths(a)
+                taken |= self._scene_ws
+            else:
+                taken |= _input_widths(a)
+        w = n
+        while w in taken:
+            w += 1
+        return w
+
+    def _pad(self, args, n: int, w: int):
+        """``args`` with the per-lane ones widened from ``n`` to ``w`` lanes
+        (copies of lane ``n - 1``; the index opaque: one kernel for all widths)."""
+        idx = _lane_index(n, w)
+        return tuple(_map_leaves(a, lambda x: _gather_leaf(x, idx, n)) if i in self.lanes else a
+                     for i, a in enumerate(args))
+
+    @property
+    def n_recordings(self) -> int:
+        """Recordings made by this instance's frozen function (0 when never frozen)."""
+        return self.recordings
+
+    @property
+    def n_cached_recordings(self) -> int:
+        """Recordings the frozen function holds now (0 once dropped)."""
+        return int(self.kernel.n_cached_recordings) if self.frozen else 0
+
+
+def _positions(fn, lanes) -> tuple:
+    """The positions of ``fn``'s parameters named in ``lanes`` (an int: a position)."""
+    names = list(inspect.signature(fn).parameters)
+    unknown = [n for n in lanes if not isinstance(n, int) and n not in names]
+    if unknown:
+        raise ValueError(f"{getattr(fn, '__name__', fn)} has no parameter {', '.join(unknown)}")
+    return tuple(n if isinstance(n, int) else names.index(n) for n in lanes)
+
+
+# ----------------------------------------------------------------------------- widths
+
+def _leaves(x):
+    """The 1-D Dr.Jit arrays of a (nested) array, Dr.Jit struct, dataclass, or a
+    list / tuple of them."""
+    if isinstance(x, (list, tuple)):
+        for v in x:
+            yield from _leaves(v)
+    elif _is_dataclass(x):
+        for f in dataclasses.fields(x):
+            yield from _leaves(getattr(x, f.name))
+    elif dr.is_struct_v(x) and not dr.is_array_v(x):
+        for k in type(x).DRJIT_STRUCT:
+            yield from _leaves(getattr(x, k))
+    elif dr.is_array_v(x) and dr.depth_v(x) > 1:
+        for i in range(len(x)):
+            yield from _leaves(x[i])
+    elif dr.is_jit_v(x):
+        yield x
+
+
+def _map_leaves(x, f):
+    """``x`` (an array, a Dr.Jit struct, a dataclass, or a tuple / list of them)
+    with ``f`` applied to each 1-D leaf (structs and nested arrays rebuilt)."""
+    if isinstance(x, (list, tuple)):
+        return type(x)(_map_leaves(v, f) for v in x)
+    if _is_dataclass(x):
+        return dataclasses.replace(x, **{k.name: _map_leaves(getattr(x, k.name), f) for k in dataclasses.fields(x)
+                                         if k.init})
+    if dr.is_struct_v(x) and not dr.is_array_v(x):
+        out = type(x)()
+        for k in type(x).DRJIT_STRUCT:
+            setattr(out, k, _map_leaves(getattr(x, k), f))
+        return out
+    if dr.is_array_v(x) and dr.depth_v(x) > 1:
+        return type(x)(*[_map_leaves(x[i], f) for i in range(len(x))])
+    if dr.is_jit_v(x):
+        return f(x)
+    return x
+
+
+def _is_tree(x) -> bool:
+    """Whether ``x`` is a Dr.Jit array or struct, a dataclass, or a list / tuple of them."""
+    if isinstance(x, (list, tuple)):
+        return all(_is_tree(v) for v in x)
+    if _is_dataclass(x):
+        return True
+    return dr.is_array_v(x) or dr.is_struct_v(x)
+
+
+def _is_dataclass(x) -> bool:
+    return dataclasses.is_dataclass(x) and not isinstance(x, type)
+
+
+def _width(x) -> int:
+    return max((dr.width(v) for v in _leaves(x)), default=0)
+
+
+def _gather_leaf(x, idx, n: int):
+    """Leaf ``x`` of width ``n`` gathered at ``idx`` and evaluated on its own
+    (other widths: unchanged). One kernel per leaf: its code depends only on
+    the leaf's type, so the kernels made at a first call serve every later
+    call, whichever of its inputs happen to be literals."""
+    if dr.width(x) != n:
+        return x
+    y = dr.gather(type(x), x, idx)
+    dr.eval(y)
+    return y
+
+
+def _cut(out, w: int, n: int):
+    """A padded call's output with its leaves of width ``w`` cut to ``n``
+    lanes (each leaf on its own, as :func:`_gather_leaf`)."""
+    idx = _lane_index(n, n)
+    return _map_leaves(out, lambda x: _gather_leaf(x, idx, w))
+
+
+def _lane_index(n: int, w: int):
+    """Lanes 0 .. w-1 reading lane min(i, n - 1): the padding's and the cut's
+    index (``n`` opaque: the same kernel for every width)."""
+    return dr.minimum(dr.arange(mi.UInt32, w), dr.opaque(mi.UInt32, n - 1))
+
+
+def _is_scene(a) -> bool:
+    return isinstance(a, mi.Scene)
+
+
+def _input_widths(a) -> set:
+    """Widths of the Dr.Jit arrays an argument brings into a frozen function:
+    its leaves, or for a Mitsuba scene every traversed parameter and the
+    per-mesh arrays Mitsuba keeps beside them (face, vertex counts and their
+    multiples, area distributions)."""
+    return _scene_widths(a) if _is_scene(a) else {dr.width(v) for v in _leaves(a)}
+
+
+def _scene_widths(scene) -> set:
+    ws = set()
+    params = mi.traverse(scene)
+    for k in params.keys():
+        try:
+            v = params[k]
+        except Exception:        # pragma: no cover (a parameter that cannot be read)
+            continue
+        if dr.is_array_v(v) or dr.is_tensor_v(v):
+            ws.add(dr.width(v))
+            ws.add(len(dr.ravel(v)) if dr.is_array_v(v) else int(dr.prod(v.shape)))
+            if dr.is_tensor_v(v) and len(v.shape) >= 2:
+                h, w = int(v.shape[0]), int(v.shape[1])
+                ws |= {h, w, h * w, h + 1, w + 1, (h + 1) * w, h * (w + 1)}
+    for sh in scene.shapes():
+        if sh.is_mesh():
+            F, V = int(sh.face_count()), int(sh.vertex_count())
+            ws |= {F, V, F + 1, V + 1, 2 * F, 3 * F, 2 * V, 3 * V}
+    return ws
+
+
+# ----------------------------------------------------------------------------- literal outputs
+
+def _fit_one(out):
+    """``out`` with its literal leaves of a stale width (neither 0, 1 nor the one
+    width of its evaluated leaves) rebuilt at that width; ``out`` itself when
+    there is none (the usual case: nothing rebuilt)."""
+    lit = dr.VarState.Literal
+    leaves = list(_leaves(out))
+    widths = {dr.width(v) for v in leaves if v.state != lit}
+    if len(widths) != 1:
+        return out
+    (w,) = widths
+
+    def stale(v):
+        return v.state == lit and dr.width(v) not in (0, 1, w)
+
+    def refit(v):
+        if not stale(v):
+            return v
+        val = v[0]
+        if val is None:                             # a null pointer array (e.g. ``si.instance``)
+            return dr.zeros(type(v), w)
+        try:
+            return dr.full(type(v), val, w)
+        except TypeError:                           # a non-null literal pointer: left as it is
+            return v
+    return _map_leaves(out, refit) if any(stale(v) for v in leaves) else out
+
+
+def fit_literals(out):
+    """``out`` (a frozen function's output: an array, a Dr.Jit struct, or a
+    tuple / list / dict of them, each handled on its own) whose literal leaves
+    have the width of the evaluated leaves of the same element, where those all
+    have one width; anything else is returned as it is."""
+    if isinstance(out, tuple):
+        return tuple(fit_literals(o) for o in out)
+    if isinstance(out, list):
+        return [fit_literals(o) for o in out]
+    if isinstance(out, dict):
+        return {k: fit_literals(v) for k, v in out.items()}
+    return _fit_one(out)

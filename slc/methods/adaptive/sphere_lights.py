@@ -1,0 +1,166 @@
+r"""Small sphere lights as "point lights with a size" for VISIBILITY records
+(docs/adaptive.md, "Small sphere lights").
+
+A sphere of radius :math:`r` and constant radiance :math:`L`, whose centre is
+at distance :math:`d` in direction :math:`\omega_c` from a point :math:`x` with
+normal :math:`n`, subtends a cone of half-angle :math:`\alpha`,
+:math:`\sin\alpha = r/d`. While the whole sphere is above the horizon
+(:math:`n\cdot\omega_c \ge \sin\alpha`) its unoccluded irradiance is exactly
+
+.. math:: E = \pi L \sin^2\alpha \,(n\cdot\omega_c) = \pi L \frac{r^2}{d^2}\,(n\cdot\omega_c),
+
+the irradiance of a point light of intensity :math:`I = \pi r^2 L` at the
+centre. A VISIBILITY record therefore lists a small sphere light as it lists a
+point light: it keeps only the visible fraction :math:`v` (the running mean of
+shadow rays to sampled points on the sphere), and shading evaluates
+:math:`I/d^2` at the pixel and at the light's *current* centre, so the cache
+follows the light's motion without lag. Across the horizon the formula
+(clamped at :math:`n\cdot\omega_c = 0`) is an approximation; lights are only
+listed where :math:`\sin\alpha` is below ``max_sin`` (the sphere is small at
+the entry).
+
+Sphere lights: Mitsuba ``sphere`` area lights and triangle meshes whose
+vertices lie on a sphere (at least 12 vertices, a bounding box whose sides
+agree within 10%, all vertices within 10% of the largest distance from its
+centre: icospheres, UV spheres), with constant radiance. A
+mesh's radius is the area-equivalent :math:`r = \sqrt{A/4\pi}` (keeps the
+flux :math:`\pi L A` of the mesh). Rigidly animated meshes
+(:class:`slc.scene.scenes.Animated`) are followed by transforming the rest-pose
+centre with the scene's current transform (:meth:`SphereLights.refresh`, on
+the host, one small upload per frame).
+"""
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from slc.scene.emitter_sampling import _rgb   # a constant radiance value as RGB, or None
+
+SHELL = 0.9           # a mesh is a sphere when min / max vertex distance from its centre >= SHELL
+MIN_VERTICES = 12     # ... and its bounding box is a cube (within SHELL) with at least this many vertices
+
+
+class SphereLights:
+    """Per-emitter table (index into ``scene.emitters()``): sphere flag,
+    centre, radius and radiance. Parameters: ``scene`` (:class:`slc.scene.scenes.Scene`
+    or ``mi.Scene``), ``max_sin`` (0.3): largest :math:`r/d` at which a sphere
+    counts as small at a point."""
+
+    def __init__(self, scene, max_sin: float = 0.3):
+        self.scene = scene
+        sc = getattr(scene, "mi_scene", scene)
+        self.max_sin = float(max_sin)
+        ems = list(sc.emitters())
+        by_emitter = {}
+        for sh in sc.shapes():
+            if sh.is_emitter():
+                by_emitter[id(sh.emitter())] = sh
+        anim = {a.shape_id: a for a in getattr(scene, "animated", [])}
+        n = len(ems)
+        self.flag = np.zeros(n, np.uint32)
+        self.c0 = np.zeros((n, 3))
+        self.r = np.zeros(n)
+        self.L = np.zeros((n, 3))
+        self._anim = {}          # emitter index -> (Animated, rest centre)
+        for i, e in enumerate(ems):
+            if e.class_name() != "AreaLight":
+                continue
+            params = mi.traverse(e)
+            if "radiance.value" not in params.keys():
+                continue
+            L = _rgb(params["radiance.value"])
+            sh = e.get_shape()
+            sh = by_emitter.get(id(e), sh) if sh is not None else None
+            if L is None or sh is None:
+                continue
+            name = sh.class_name()
+            if name == "Sphere":
+                b = sh.bbox()
+                lo, hi = np.array(b.min, float).ravel(), np.array(b.max, float).ravel()
+                c, r = 0.5 * (lo + hi), 0.5 * float(np.min(hi - lo))
+            elif sh.is_mesh():
+                a = anim.get(sh.id())
+                V = np.asarray(a.rest_positions, float) if a is not None else \
+                    np.array(sh.vertex_positions_buffer(), float).reshape(-1, 3)
+                if len(V) < MIN_VERTICES:
+                    continue
+                ext = V.max(axis=0) - V.min(axis=0)
+                if ext.max() <= 0.0 or ext.min() < SHELL * ext.max():
+                    continue            # flat or elongated (a quad's corners are equidistant too)
+                c = 0.5 * (V.min(axis=0) + V.max(axis=0))
+                dist = np.linalg.norm(V - c, axis=1)
+                if dist.min() < SHELL * dist.max():
+                    continue
+                F = np.array(sh.faces_buffer(), np.int64).reshape(-1, 3)
+                A = 0.5 * float(np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),
+                                               axis=1).sum())
+                r = math.sqrt(A / (4.0 * math.pi))
+                if a is not None:
+                    self._anim[i] = (a, c)
+            else:
+                continue
+            if r <= 0.0:
+                continue
+            self.flag[i], self.c0[i], self.r[i], self.L[i] = 1, c, r, L
+        self.any = bool(self.flag.any())
+        # no delta emitter: listed lights are all spheres, and the emitters' own
+        # sample_direction (a virtual call traced in every listing loop) is never needed
+        self.has_delta = any(bool(int(e.flags()) & int(mi.EmitterFlags.Delta)) for e in ems)
+        # every emitter is a delta or a sphere light
+        self.listable_only = all(bool(int(e.flags()) & int(mi.EmitterFlags.Delta)) or bool(self.flag[i])
+                                 for i, e in enumerate(ems))
+        self._time = object()
+        self._upload(self.c0)
+        self.refresh()
+
+    def _upload(self, C):
+        # width >= 2: a width-1 array would enter kernels as a literal (recompiled when it changes)
+        pad = lambda a: np.concatenate([a, a[:1] * 0 if len(a) else np.zeros((1,) + a.shape[1:])])  # noqa: E731
+        f, C, r, L = pad(self.flag), pad(C), pad(self.r), pad(self.L)
+        self._flag = mi.UInt32(f.astype(np.uint32))
+        self._c = mi.Point3f(*[C[:, k].astype(np.float32) for k in range(3)])
+        self._r = mi.Float(r.astype(np.float32))
+        self._L = mi.Color3f(*[L[:, k].astype(np.float32) for k in range(3)])
+        dr.make_opaque(self._flag, self._c, self._r, self._L)
+
+    def refresh(self) -> None:
+        """Move the centres of animated sphere lights to the scene's current time."""
+        t = getattr(self.scene, "time", None)
+        if not self._anim or t is self._time or (t is not None and t == self._time):
+            self._time = t
+            return
+        C = self.c0.copy()
+        if t is not None:
+            for i, (a, c) in self._anim.items():
+                M = np.asarray(a.transform(t), float)
+                C[i] = M[:3, :3] @ c + M[:3, 3]
+        self._time = t
+        self._upload(C)
+
+    def centre(self, i: int) -> np.ndarray:
+        return np.array([self._c[k].numpy()[i] for k in range(3)])
+
+    def light(self, p: mi.Point3f, idx: mi.UInt32, active: mi.Bool):
+        """At points ``p``: (sphere mask, direction to the centre, r/d, the
+        point-light term pi L r^2 / d^2 (RGB)) of emitters ``idx``."""
+        active = mi.Bool(active)
+        is_s = active & (dr.gather(mi.UInt32, self._flag, idx, active) != 0)
+        c = dr.gather(mi.Point3f, self._c, idx, is_s)
+        r = dr.gather(mi.Float, self._r, idx, is_s)
+        L = dr.gather(mi.Color3f, self._L, idx, is_s)
+        v = c - p
+        d2 = dr.squared_norm(v)
+        inside = d2 <= r * r
+        inv_d = dr.rsqrt(dr.select(d2 > 0.0, d2, 1.0))
+        d = v * inv_d
+        sin_a = dr.select(inside, 1.0, r * inv_d)
+        E = dr.select(is_s & ~inside, L * (math.pi * r * r * inv_d * inv_d), 0.0)
+        return is_s, d, sin_a, E
+
+    def small(self, p: mi.Point3f, idx: mi.UInt32, active: mi.Bool) -> mi.Bool:
+        """Sphere lights ``idx`` small at ``p`` (r/d below ``max_sin``)."""
+        is_s, _, sin_a, _ = self.light(p, idx, active)
+        return is_s & (sin_a < self.max_sin)

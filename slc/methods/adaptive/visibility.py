@@ -1,0 +1,486 @@
+r"""VISIBILITY representation: per-light visibility of the few delta lights
+(point, spot, directional) that matter at an entry, plus a residual.
+
+Record (``K + 2`` words, ``K = vis_lights``, default 12)::
+
+    K x [ light index (16) | visibility v (unorm 8) | count (4) | spare (4) ]
+    residual irradiance E_r (3 x 18-bit e6m12) | its count C_r (8)
+    with environment regions: [ v_u (unorm 16) | its count n_u (8) | spare (8) ]
+
+Shading at a pixel x (no rays): the lights' unoccluded contribution is
+evaluated exactly at x (the emitter's own ``sample_direction``, which is
+deterministic for a delta light), the visibility comes from the entry:
+
+.. math:: L_o(x) = \sum_{i \le K} f_r(x, \omega_i, \omega_o) \frac{I_i(\omega_i)}{d_i^2}\, v_i
+          \;+\; f_r(x, n, \omega_o)\, E_r ,
+
+the residual (light of other emitters and of delta lights outside the list)
+treated as arriving along the normal (exact for a Lambertian BSDF).
+
+Update, per light sample of emitter j at the entry (visible V, cosine c):
+a delta light in the list updates its visibility,
+:math:`v_i \leftarrow v_i + (V - v_i)/\min(n_i + 1, 16)`; a delta light not in
+the list replaces the list's least important light when its unoccluded
+irradiance is larger (importance = luminance of
+:math:`I_i/d_i^2 \cos\theta_i`, exact, recomputed every update); the
+evicted light's estimate :math:`E_i v_i` moves into :math:`E_r` and the
+newcomer's :math:`E_j V` out of it (energy kept). All other samples feed
+the residual's running mean, :math:`E_r \leftarrow E_r + n(\hat E_r - E_r)/C_r` (:math:`C_r`
+the sample count, at most 255, or 4 cycles while the entry is moving)
+with :math:`\hat E_r = \frac1n\sum_k [k \text{ not in the list}]\, w_k V_k c_k`.
+
+Small sphere lights (:mod:`slc.methods.adaptive.sphere_lights`, ``sph``) are listed
+like delta lights where they are small at the entry (:math:`r/d` below
+``sph.max_sin``): their :math:`v_i` is the running mean of shadow rays to
+sampled points on the sphere and their unoccluded term is the closed form
+:math:`\pi L r^2/d^2` towards the current centre.
+
+Bright small regions of the environment map (:mod:`slc.methods.adaptive.env_lights`,
+``env``) are listed like delta lights where wholly above the entry's horizon
+(index ``env.base + j``, unoccluded term :math:`\Phi_j R_j` along
+:math:`\mathbf d_j`); samples of regions above the horizon but not listed
+update one shared visible fraction :math:`v_u` (running mean of their shadow
+rays, window ``ENV_WINDOW``) instead of :math:`E_r`, and shading adds
+:math:`v_u \sum_j f_r(x, \mathbf d_j, \omega_o)\,\Phi_j R_j` over those regions,
+each at its own direction.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+from slc.methods.cones.packing import _Reader, _Writer, decode_radiance, encode_radiance
+from slc.core.freeze import FrozenFunction
+from slc.core.keys import keyed_rng, mixed_rng
+from slc.methods.adaptive.sampling import LightStats, SampleStats, lum, sampler_of
+
+EMPTY = 0xFFFF
+STREAM_VIS = 0x3C6EF372
+VIS_WINDOW = 16
+ENV_WINDOW = 64             # samples in the running mean of the unlisted regions' visible fraction
+RES_MAX_COUNT = 255                 # as the cones' C (8 bits)
+UNSETTLED_COUNT = 4         # residual count cap of moving entries, in update cycles
+RESIDUAL_ALPHA = math.radians(60.0)     # the residual as a lobe (conversion): a 60-degree cone about n
+
+
+def words(K: int, env: bool = False) -> int:
+    """Record words: K lights, the residual (2), and with environment regions
+    the unlisted regions' visible fraction (1)."""
+    return K + 2 + (1 if env else 0)
+
+
+class Record:
+    """An unpacked VISIBILITY record: the K listed lights (index, visible
+    fraction, sample count), the residual irradiance ``E`` and its sample
+    count ``C``, and the unlisted environment regions' visible fraction ``vu``
+    and its sample count ``nu`` (0 without environment regions)."""
+
+    def __init__(self, idx, vis, cnt, E, C, vu, nu):
+        self.idx, self.vis, self.cnt, self.E, self.C, self.vu, self.nu = idx, vis, cnt, E, C, vu, nu
+
+
+@dataclass
+class ListLoop:
+    """The state of the update's sample loop (one lane per entry): ``k`` the samples
+    drawn; per listed light (lists of K) its emitter ``idx``, visible fraction ``vis``,
+    sample count ``cnt``, unoccluded irradiance ``wl`` and importance ``imp`` (its
+    irradiance's luminance, -1 for an empty slot); ``S`` the cycle's sum of the other
+    samples (the residual's estimate), ``adj`` the energy moved between the list and
+    the residual by replacements, ``vu`` and ``nu`` the unlisted environment regions'
+    visible fraction and sample count, ``stats`` the choice rule's sums
+    (:class:`~slc.methods.adaptive.sampling.SampleStats`) and ``rng`` the random numbers."""
+    k: mi.UInt32
+    idx: list
+    vis: list
+    cnt: list
+    wl: list
+    imp: list
+    S: mi.Color3f
+    adj: mi.Color3f
+    vu: mi.Float
+    nu: mi.UInt32
+    stats: SampleStats
+    rng: mi.PCG32
+
+
+def unpack(w, K: int, env: bool = False) -> Record:
+    idx = [w[i] & 0xFFFF for i in range(K)]
+    vis = [mi.Float((w[i] >> 16) & 0xFF) * (1.0 / 255.0) for i in range(K)]
+    cnt = [(w[i] >> 24) & 0xF for i in range(K)]
+    rd = _Reader([w[K], w[K + 1]])
+    E = mi.Color3f(*[decode_radiance(rd.get(18)) for _ in range(3)])
+    C = mi.Float(rd.get(8))
+    if env:
+        x = mi.UInt32(w[K + 2])
+        vu, nu = mi.Float(x & 0xFFFF) * (1.0 / 65535.0), mi.UInt32((x >> 16) & 0xFF)
+    else:
+        vu, nu = dr.zeros(mi.Float, dr.width(C)), dr.zeros(mi.UInt32, dr.width(C))
+    return Record(idx, vis, cnt, E, C, vu, nu)
+
+
+def pack(r: Record, K: int, env: bool = False):
+    out = []
+    for i in range(K):
+        v = mi.UInt32(dr.clip(dr.round(r.vis[i] * 255.0), 0.0, 255.0))
+        out.append((mi.UInt32(r.idx[i]) & 0xFFFF) | (v << 16) | (dr.minimum(mi.UInt32(r.cnt[i]), 15) << 24))
+    wr = _Writer(2)
+    for ch in range(3):
+        wr.put(encode_radiance(r.E[ch]), 18)
+    wr.put(mi.UInt32(dr.clip(dr.round(r.C), 0.0, 255.0)), 8)
+    out += wr.words
+    if env:
+        out.append(mi.UInt32(dr.clip(dr.round(r.vu * 65535.0), 0.0, 65535.0))
+                   | (dr.minimum(mi.UInt32(r.nu), 255) << 16))
+    return out
+
+
+def empty(n: int, K: int) -> Record:
+    return Record([dr.full(mi.UInt32, EMPTY, n) for _ in range(K)], [dr.zeros(mi.Float, n) for _ in range(K)],
+                  [dr.zeros(mi.UInt32, n) for _ in range(K)], dr.zeros(mi.Color3f, n), dr.zeros(mi.Float, n),
+                  dr.zeros(mi.Float, n), dr.zeros(mi.UInt32, n))
+
+
+def _slot(lst, i):
+    """Element ``i`` (a per-lane index) of a per-slot list."""
+    r = lst[0]
+    for j in range(1, len(lst)):
+        r = dr.select(i == j, lst[j], r)
+    return r
+
+
+def light_at(emitters_dr, si, idx, active, sph=None, env=None, delta=True):
+    """(direction, I/d^2 RGB) of emitter ``idx`` at ``si``: exact and
+    unoccluded for a delta light; for a sphere light of ``sph`` the point-light
+    term pi L r^2/d^2 towards its current centre; for a region of the
+    environment (``env``, index ``env.base + j``) its direction and
+    irradiance per unit cosine Phi_j R_j (0 where inactive or the index is
+    empty). ``delta``: the scene has delta emitters (else their
+    ``sample_direction``, a virtual call, is not traced)."""
+    active = mi.Bool(active) & (mi.UInt32(idx) != EMPTY)
+    ii = dr.select(active, idx, 0)
+    m_d = mi.Bool(active)
+    d = dr.zeros(mi.Vector3f, dr.width(active))
+    w = dr.zeros(mi.Color3f, dr.width(active))
+    if env is not None:
+        is_r, d_r, w_r, _ = env.light(ii, active)
+        m_d &= ~is_r
+        d, w = dr.select(is_r, d_r, d), dr.select(is_r, w_r, w)
+    if sph is not None:
+        is_s, d_s, _, E_s = sph.light(si.p, dr.select(m_d, ii, 0), m_d)
+        m_d &= ~is_s
+        d, w = dr.select(is_s, d_s, d), dr.select(is_s, E_s, w)
+    if not delta:      # only spheres and regions can be listed: no emitter call traced
+        return d, w
+    ptr = dr.gather(mi.EmitterPtr, emitters_dr, ii, m_d)
+    ds, wd = ptr.sample_direction(si, mi.Point2f(0.5, 0.5), m_d)
+    ok = m_d & (ds.pdf > 0.0)
+    d = dr.select(m_d, ds.d, d)
+    w = dr.select(m_d, dr.select(ok, mi.Color3f(wd), 0.0), w)
+    return d, w
+
+
+def has_delta(scene: mi.Scene) -> bool:
+    """Whether the scene has a delta emitter (point, spot, directional)."""
+    return any(bool(int(e.flags()) & int(mi.EmitterFlags.Delta)) for e in scene.emitters())
+
+
+# ----------------------------------------------------------------------------- update
+
+def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, seed: int, K: int, sph=None,
+           env=None, mix=None):
+    """One update cycle of VISIBILITY records ``rec`` (lists of words, one lane
+    per entry) at the entries' points ``si`` (``sph``: the scene's
+    :class:`~slc.methods.adaptive.sphere_lights.SphereLights`, or None). A listed light whose unoccluded
+    irradiance here is now 0 (switched off, turned or moved away) is dropped
+    and reported as motion. Moving entries (the ray policy's state; new
+    entries are not capped: their light did not move) cap the residual's
+    count at ``UNSETTLED_COUNT`` cycles. Returns (new words, motion,
+    stats values). ``env``: the environment's bright regions
+    (:class:`~slc.methods.adaptive.env_lights.EnvLights`), listed where wholly above
+    the entry's horizon. ``mix``: the random streams' (seed, frame) mix as an
+    opaque array (:func:`slc.core.keys.stream_key`; the frozen update's input),
+    else computed from ``seed`` and ``frame``."""
+    sc = scene
+    dl = has_delta(sc)
+    N = dr.width(key)
+    samp = sampler_of(sc)
+    em_dr = sc.emitters_dr()
+    valid = mi.Bool(on) & si.is_valid()
+    frame_l = si.sh_frame
+    nrm = frame_l.n
+
+    # ----------------------- unpack (fresh records start empty)
+    hx = env is not None
+    r0, e0 = unpack(rec, K, hx), empty(N, K)
+    fresh = mi.Bool(fresh)
+    idx = [dr.select(fresh, e0.idx[i], r0.idx[i]) for i in range(K)]
+    vis = [dr.select(fresh, e0.vis[i], r0.vis[i]) for i in range(K)]
+    cnt = [dr.select(fresh, e0.cnt[i], r0.cnt[i]) for i in range(K)]
+    E, C = dr.select(fresh, e0.E, r0.E), dr.select(fresh, e0.C, r0.C)
+    vu, nu = dr.select(fresh, e0.vu, r0.vu), dr.select(fresh, e0.nu, r0.nu)
+
+    # ----------------------- the listed lights' exact unoccluded irradiance here
+    # one emitter call site in a loop over the list: a call is traced once per emitter
+    # instance, so K call sites would trace K times as much
+    def lcond(i, wl):
+        return i < K
+
+    def lbody(i, wl):
+        d, w = light_at(em_dr, si, _slot(idx, i), valid, sph, env, dl)
+        wc = w * dr.maximum(dr.dot(d, nrm), 0.0)
+        return i + 1, [dr.select(i == j, wc, wl[j]) for j in range(K)]
+
+    _, wl = dr.while_loop(state=(mi.UInt32(0), [dr.zeros(mi.Color3f, N) for _ in range(K)]), cond=lcond, body=lbody)
+    imp = []
+    gone = mi.Bool(False)
+    for i in range(K):
+        dead = valid & (idx[i] != EMPTY) & ~(lum(wl[i]) > 0.0)
+        gone |= dead & (vis[i] > 0.0)
+        idx[i] = dr.select(dead, EMPTY, idx[i])
+        imp.append(dr.select(idx[i] != EMPTY, lum(wl[i]), -1.0))
+
+    if mix is None:
+        rng = keyed_rng(key, seed, frame, STREAM_VIS)
+    else:                              # keyed_rng with the mix given
+        rng = mixed_rng(key, mix)
+    stats = LightStats(sc, si, sph, env)
+    S = dr.zeros(mi.Color3f, N)
+    adj = dr.zeros(mi.Color3f, N)
+
+    # ----------------------- light samples, one at a time per entry
+    def cond(ls: ListLoop):
+        return ls.k < rays
+
+    def body(ls: ListLoop):
+        k, idx, vis, cnt, wl, imp, S, adj, vu, nu, rng = (ls.k, ls.idx, ls.vis, ls.cnt, ls.wl, ls.imp, ls.S, ls.adj,
+                                                          ls.vu, ls.nu, ls.rng)
+        u = mi.Point2f(rng.next_float32(), rng.next_float32())
+        act = valid & (k < rays)
+        ds, w, ok, em = samp.sample(si, u, act)
+        ok &= dr.all(dr.isfinite(w))
+        V = ok & ~sc.ray_test(si.spawn_ray_to(ds.p), ok)
+        cos = dr.maximum(dr.dot(ds.d, nrm), 0.0)
+        Vf = dr.select(V, 1.0, 0.0)
+        delta = ok & ds.delta
+        # the light's own unoccluded irradiance (w has the choice pmf ds.pdf in it)
+        w1 = w * ds.pdf * cos
+        if sph is not None:
+            # a small sphere light is listed as a delta light, with its closed-form term
+            is_s, d_s, sin_a, E_s = sph.light(si.p, em, ok & ~ds.delta)
+            small = is_s & (sin_a < sph.max_sin)
+            delta |= small
+            w1 = dr.select(small, E_s * dr.maximum(dr.dot(d_s, nrm), 0.0), w1)
+        region = mi.Bool(False)
+        if env is not None:
+            # a sample inside a bright region of the environment (wholly above the horizon)
+            # is that region's sample
+            region, li, _, E_j = env.sample_listable(ds.d, em, nrm, ok & ~delta)
+            delta |= region
+            em = dr.select(region, li, em)
+            w1 = dr.select(region, E_j, w1)
+        # the choice rule's statistics
+        ls.stats = stats.observe(ls.stats, ds, w, V, frame_l.to_local(ds.d))
+        i1 = lum(w1)
+        hit = mi.Bool(False)
+        for i in range(K):
+            h = delta & (idx[i] == em)
+            hit |= h
+            a = dr.rcp(mi.Float(dr.minimum(cnt[i] + 1, VIS_WINDOW)))
+            vis[i] = dr.select(h, dr.fma(a, Vf - vis[i], vis[i]), vis[i])
+            cnt[i] = dr.select(h, dr.minimum(cnt[i] + 1, 15), cnt[i])
+        # least important listed light
+        jmin, imin = mi.UInt32(0), mi.Float(imp[0])
+        for i in range(1, K):
+            b = imp[i] < imin
+            imin = dr.select(b, imp[i], imin)
+            jmin = dr.select(b, i, jmin)
+        rep = delta & ~hit & (i1 > imin) & (cos > 0.0)
+        for i in range(K):
+            r = rep & (jmin == i)
+            # energy moves between the list and E_r; a region's energy is never in E_r
+            # (unlisted regions are the closed form times vu)
+            out_r = env.is_region(idx[i]) if env is not None else mi.Bool(False)
+            adj += dr.select(r & (idx[i] != EMPTY) & ~out_r, wl[i] * vis[i], 0.0) \
+                - dr.select(r & ~region, w1 * Vf, 0.0)
+            idx[i] = dr.select(r, mi.UInt32(em), idx[i])
+            vis[i] = dr.select(r, Vf, vis[i])
+            cnt[i] = dr.select(r, 1, cnt[i])
+            wl[i] = dr.select(r, w1, wl[i])
+            imp[i] = dr.select(r, i1, imp[i])
+        handled = hit | rep
+        # an unlisted region's sample: the unlisted regions' visible fraction
+        unl = region & ~handled
+        au = dr.rcp(mi.Float(dr.minimum(nu + 1, ENV_WINDOW)))
+        vu = dr.select(unl, dr.fma(au, Vf - vu, vu), vu)
+        nu = dr.select(unl, dr.minimum(nu + 1, 255), nu)
+        S += dr.select(V & ~handled & ~unl, w * cos, 0.0)
+        ls.k, ls.idx, ls.vis, ls.cnt, ls.wl, ls.imp, ls.S, ls.adj, ls.vu, ls.nu, ls.rng = \
+            k + 1, idx, vis, cnt, wl, imp, S, adj, vu, nu, rng
+        return (ls,)
+
+    ls, = dr.while_loop(state=(ListLoop(mi.UInt32(0), idx, vis, cnt, wl, imp, S, adj, vu, nu, stats.init(N), rng),),
+                        cond=cond, body=body)
+    idx, vis, cnt, S, adj, vu, nu = ls.idx, ls.vis, ls.cnt, ls.S, ls.adj, ls.vu, ls.nu
+
+    # ----------------------- the residual's running mean (with the energy moved by swaps)
+    # the count is in samples (as the cones' C): a cycle of n samples weighs n / C
+    n = mi.Float(dr.maximum(mi.UInt32(rays), 1))
+    cap = dr.select(mi.Bool(moving) | gone, float(UNSETTLED_COUNT) * n, float(RES_MAX_COUNT))
+    C = dr.minimum(dr.minimum(C, cap - n) + n, cap)
+    E = dr.maximum(E + adj, 0.0)
+    E = E + (S / n - E) * dr.minimum(n * dr.rcp(dr.maximum(C, 1.0)), 1.0)
+    out = pack(Record(idx, vis, cnt, E, C, vu, nu), K, hx)
+    return out, gone, ls.stats.values()
+
+
+# ----------------------------------------------------------------------------- shading
+
+def residual(rec: Record, nrm, env, active) -> mi.Color3f:
+    """The record's irradiance not from listed lights at normal ``nrm``: the
+    residual E_r plus the unlisted environment regions' closed form times
+    their visible fraction."""
+    E = mi.Color3f(rec.E)
+    if env is not None:
+        E += env.unlisted_irradiance(nrm, rec.idx, active) * rec.vu
+    return E
+
+
+def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None, env=None) -> mi.Color3f:
+    """L_o of the pixels ``si`` from their VISIBILITY records (see the module)."""
+    em_dr, dl = scene.emitters_dr(), has_delta(scene)
+    r = unpack(rec, K, env is not None)
+    idx, vis = r.idx, r.vis
+    ctx = mi.BSDFContext()
+    active = mi.Bool(active)
+
+    def cond(i, L):
+        return (i < K) & active
+
+    def body(i, L):                      # one emitter and one BSDF call site (see update)
+        ii, vi = _slot(idx, i), _slot(vis, i)
+        m = active & (ii != EMPTY) & (vi > 0.0)
+        d, w = light_at(em_dr, si, ii, m, sph, env, dl)
+        f = bsdf.eval(ctx, si, si.to_local(d), m)
+        return i + 1, L + dr.select(m, mi.Color3f(f) * w * vi, 0.0)
+
+    _, L = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(active))), cond=cond, body=body)
+    fn = bsdf.eval(ctx, si, mi.Vector3f(0.0, 0.0, 1.0), active)
+    L += dr.select(active, mi.Color3f(fn) * r.E, 0.0)
+    if env is not None:        # the unlisted regions, each at its own direction
+        L += dr.select(active, env.unlisted_radiance(si, bsdf, idx, r.vu, active), 0.0)
+    return L
+
+
+# ----------------------------------------------------------------------------- conversion
+
+def lobes(scene: mi.Scene, rec, si, active, K: int, sph=None, env=None):
+    """The record as lobes (local direction, half-angle, integrated radiance RGB,
+    mask): one Dirac lobe per listed light (I/d^2 v at the entry) and the
+    residual (with the unlisted regions) as a 60-degree cone about the normal
+    (its irradiance / mean cosine)."""
+    em_dr, dl = scene.emitters_dr(), has_delta(scene)
+    r = unpack(rec, K, env is not None)
+    out = []
+    for i in range(K):
+        m = mi.Bool(active) & (r.idx[i] != EMPTY)
+        d, w = light_at(em_dr, si, r.idx[i], m, sph, env, dl)
+        out.append((si.sh_frame.to_local(d), mi.Float(0.0), w * r.vis[i], m & (dr.max(w * r.vis[i]) > 0.0)))
+    mean_cos = 0.5 * (1.0 + math.cos(RESIDUAL_ALPHA))
+    E = residual(r, si.sh_frame.n, env, active)
+    out.append((mi.Vector3f(0.0, 0.0, 1.0), mi.Float(RESIDUAL_ALPHA), E * (1.0 / mean_cos),
+                mi.Bool(active) & (dr.max(E) > 0.0)))
+    return out
+
+
+def from_irradiance(E, n: int, K: int, env: bool = False):
+    """A record with no listed light and residual ``E`` (the energy of another
+    representation at the normal); the lights come in with the next samples
+    (the unlisted regions' visible fraction starts with no sample)."""
+    r = empty(n, K)
+    r.E, r.C = mi.Color3f(E), dr.full(mi.Float, 4.0, n)
+    return pack(r, K, env)
+
+
+# ----------------------------------------------------------------------------- frozen shading
+
+class VisShading(FrozenFunction):
+    """:func:`shade` on the pixels' VISIBILITY records, traced once and replayed
+    (``dr.freeze``, as :class:`slc.methods.adaptive.sh_rep.SHShading`): tracing the
+    shading (a BSDF call site in the listed lights' loop and one in the
+    environment regions' loop) cost more host time than its kernel. The
+    records (gathered outside), mask, interactions and the scene are inputs;
+    the sphere and region tables are declared as inputs too (a frozen function
+    reads only arrays reachable from its inputs). ``K``, ``sph`` and ``env``
+    are fixed per instance. Unfrozen in animated scenes (``freeze=False``) and
+    after more than ``max_recordings`` recordings."""
+
+    def __init__(self, K: int, sph=None, env=None, freeze: bool = True, max_recordings: int = 4):
+        self.K, self.sph, self.env = int(K), sph, env
+        K = int(K)
+
+        # the closure holds no reference to self: a cycle through the frozen function would be
+        # freed by the garbage collector, which may run while another function records (abort)
+        def kernel(rec, active, si, bsdf, scene, tables):
+            return shade(scene, rec, si, bsdf, active, K, sph, env)
+        super().__init__(kernel, freeze, False, max_recordings)
+
+    def __call__(self, rec, active, si, scene) -> mi.Color3f:
+        return super().__call__([mi.UInt32(w) for w in rec], mi.Bool(active), si, si.bsdf(), scene,
+                                _tables(self.sph, self.env))
+
+
+def _tables(sph, env) -> list:
+    """The sphere and region tables' arrays (declared as inputs of a frozen function)."""
+    out = []
+    if env is not None:
+        out += [env._dir, env._w, env._sin, env._label, env._base, env._n, env._env]
+    if sph is not None:
+        out += [sph._flag, sph._c, sph._r, sph._L]
+    return out
+
+
+def _sampler_inputs(scene) -> list:
+    """Every Dr.Jit array of the scene's emitter table (:func:`sampling.sampler_of`,
+    which the update uses whatever ``SLC_EMITTER_SAMPLING`` says, with its
+    emitter index map): declared as inputs of the frozen update."""
+    def arrays(v):
+        if isinstance(v, dr.ArrayBase):
+            return [v]
+        if isinstance(v, (list, tuple)):
+            return [a for x in v for a in arrays(x)]
+        if isinstance(v, dict):
+            return [a for k in sorted(v, key=str) for a in arrays(v[k])]
+        return []
+    smp = sampler_of(scene)
+    return [a for k in sorted(vars(smp)) for a in arrays(vars(smp)[k])]
+
+
+class VisUpdate(FrozenFunction):
+    """:func:`update` traced once and replayed (``dr.freeze``, as ``slc``'s
+    :class:`slc.methods.cones.update.ConeUpdate`): tracing the update (the sample loop
+    with its K unrolled slots) cost more host time than its kernel. Inputs:
+    the scene, the emitter table's arrays (:func:`_sampler_inputs`),
+    the sphere and region tables, the entries' records and interactions, and
+    the random streams' mix (opaque: a new frame is no new recording). ``K``,
+    ``seed``, ``sph`` and ``env`` are fixed per instance. Unfrozen in animated
+    scenes and after more than ``max_recordings`` recordings."""
+
+    def __init__(self, K: int, seed: int, sph=None, env=None, freeze: bool = True, max_recordings: int = 4):
+        self.K, self.seed, self.sph, self.env = int(K), int(seed), sph, env
+        K, seed = int(K), int(seed)
+
+        def kernel(scene, lights, tables, rec, si, key, rays, moving, fresh, on, mix):     # no self (see VisShading)
+            out, gone, st = update(scene, rec, si, key, rays, moving, fresh, on, 0, seed, K, sph, env, mix=mix)
+            dr.eval(out, gone, st)
+            return out, gone, st
+        super().__init__(kernel, freeze, False, max_recordings,
+                         lanes=("rec", "si", "key", "rays", "moving", "fresh", "on"))     # per entry (slc.core.freeze)
+
+    def __call__(self, scene, rec, si, key, rays, moving, fresh, on, frame: int):
+        from slc.core.keys import stream_key
+        return super().__call__(scene, _sampler_inputs(scene), _tables(self.sph, self.env), [mi.UInt32(w) for w in rec],
+                                si, mi.UInt32(key), mi.UInt32(rays), mi.Bool(moving), mi.Bool(fresh), mi.Bool(on),
+                                stream_key(self.seed, frame, STREAM_VIS))

@@ -1,0 +1,1 @@
+"""Path tracing: the equal-time GI baseline."""

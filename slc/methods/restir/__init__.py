@@ -1,0 +1,1 @@
+"""ReSTIR DI: per-viewer reservoirs with temporal and spatial reuse."""

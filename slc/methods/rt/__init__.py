@@ -1,0 +1,1 @@
+"""rtN: N random light samples per pixel with shadow rays."""

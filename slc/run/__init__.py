@@ -1,0 +1,1 @@
+"""Running: the frame loop, experiments, jobs on Ray, the command line and benchmarks."""

@@ -1,0 +1,754 @@
+"""Shared plumbing of the experiment scripts in ``experiments/``.
+
+Why one long module: the plumbing every experiment script shares (options, presets, tables,
+plots, viewer-count and scene-variant sweeps); splitting it would make each script import
+from several places.
+
+An experiment script defines ``NAME``, ``add_arguments(parser)`` (optional)
+and ``run(opts) -> dict`` returning the ``results.json`` object; it is run
+alone (``python experiments/single_viewer.py --quick``) or through
+``slc run single-viewer --quick``. This module finds the scripts, writes
+``results.json`` / ``results.md`` atomically (a failed run leaves no partial
+results), renders the Markdown table and draws the speed-against-error
+plots. A row whose timed frames built kernels (``compiled_after_warmup`` >
+0) is flagged: a warning on stderr, a mark in its time cell and a note in
+``results.md``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import gc
+import importlib.util
+import math
+import statistics
+import sys
+import time
+from pathlib import Path
+
+from slc import methods
+from slc.core import io
+from slc.core.backend import code_version, env_info
+from slc.run import jobs, jobspec
+from slc.run.errors import ExperimentError
+from slc.run.pipeline import RunConfig, run_sequence
+from slc.scene import scenes, views
+from slc.scene.scenes import REPO_ROOT
+
+EXPERIMENTS_DIR = REPO_ROOT / "experiments"
+
+
+def names() -> list[str]:
+    if not EXPERIMENTS_DIR.is_dir():
+        return []
+    return sorted(p.stem.replace("_", "-") for p in EXPERIMENTS_DIR.glob("*.py") if not p.stem.startswith("_"))
+
+
+def load(name: str):
+    path = EXPERIMENTS_DIR / f"{name.replace('-', '_')}.py"
+    if not path.exists():
+        raise ExperimentError(f"unknown experiment '{name}' (available: {', '.join(names())})")
+    return _load_file(path)
+
+
+def load_part(name: str):
+    """A part of the experiments that is no experiment itself (``experiments/_NAME.py``,
+    e.g. an experiment's report), loaded once."""
+    return sys.modules.get(f"slc_experiment__{name}") or _load_file(EXPERIMENTS_DIR / f"_{name}.py")
+
+
+def _load_file(path: Path):
+    """The module at ``path``, registered in ``sys.modules`` as ``slc_experiment_STEM`` (so
+    that its parts can name it, e.g. ``sys.modules[__name__]``)."""
+    spec = importlib.util.spec_from_file_location(f"slc_experiment_{path.stem}", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def results_object(name: str, config: dict, rows: list[dict]) -> dict:
+    return {"experiment": name, "config": config, "env": env_info(),
+            "created": time.strftime("%Y-%m-%dT%H:%M:%S"), "rows": rows}
+
+
+def _fmt(v, nd=3):
+    if isinstance(v, float):
+        if math.isinf(v):
+            return "inf"
+        if math.isnan(v):
+            return "-"
+        return f"{v:.{nd}f}" if abs(v) < 1e4 else f"{v:.3g}"
+    return str(v)
+
+
+DEFAULT_COLUMNS = [("scene", "scene"), ("method", "method"), ("viewers", "viewers"),
+                   ("time_ms", "t [ms]"), ("flip", "FLIP"), ("psnr", "PSNR"), ("ssim", "SSIM"),
+                   ("memory_mb", "memory [MB]")]
+
+
+COMPILED_MARK = "⚠"   # marks a time cell whose timed frames built kernels
+
+
+def _cell(r: dict, k: str, nd: int) -> str:
+    text = _fmt(r.get(k, "-"), nd)
+    if k == "time_ms" and r.get("compiled_after_warmup"):
+        text += f" {COMPILED_MARK}{int(r['compiled_after_warmup'])}"
+    return text
+
+
+def markdown_table(rows: list[dict], columns=None) -> str:
+    """A Markdown table of ``rows``; a time whose timed frames built kernels is
+    followed by the mark and the number of kernels (``12.34 ⚠2``)."""
+    columns = columns or DEFAULT_COLUMNS
+    cols = [(k, h) for k, h in columns if any(k in r for r in rows)]
+    nd = {"time_ms": 2, "flip": 4, "psnr": 2, "ssim": 4, "memory_mb": 3}
+    out = ["| " + " | ".join(h for _, h in cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
+    for r in rows:
+        out.append("| " + " | ".join(_cell(r, k, nd.get(k, 3)) for k, _ in cols) + " |")
+    return "\n".join(out)
+
+
+def compiled_rows(rows: list[dict]) -> list[str]:
+    """One line per row whose timed frames built (compiled or loaded from
+    the disk cache) Dr.Jit kernels: its time is not steady state."""
+    out = []
+    for r in rows:
+        n = r.get("compiled_after_warmup")
+        if n:
+            where = ", ".join(f"{k}={r[k]}" for k in ("scene", "label", "rig", "viewers", "overlap") if k in r)
+            out.append(f"{where}: {int(n)} kernel(s) built after warm-up")
+    return out
+
+
+def flag_compiled(results: dict, markdown: str) -> str:
+    """Warn on stderr about every row with ``compiled_after_warmup`` > 0 and
+    return ``markdown`` with a note listing them (unchanged when none)."""
+    lines = compiled_rows(results.get("rows", []))
+    if not lines:
+        return markdown
+    for line in lines:
+        print(f"warning: {results.get('experiment', '?')}: {line}; its time depends on the kernel cache",
+              file=sys.stderr)
+    note = ("\n\n## Warning: kernels built in timed frames\n\n"
+            f"Times marked {COMPILED_MARK}N include N Dr.Jit kernels compiled or loaded from the disk cache "
+            "after the warm-up frames (`compiled_after_warmup`), so they depend on the state of the kernel "
+            "cache and are not steady-state figures:\n\n" + "\n".join(f"- {x}" for x in lines) + "\n")
+    return markdown.rstrip("\n") + note
+
+
+def write_results(out_dir: Path, results: dict, markdown: str) -> None:
+    """``results.json`` and ``results.md``, each written atomically; rows that
+    built kernels after warm-up are flagged (:func:`flag_compiled`)."""
+    markdown = flag_compiled(results, markdown)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    io.write_json(out_dir / "results.json", results)
+    io.write_text(out_dir / "results.md", markdown)
+
+
+SHORT_NAME = 16        # longest point label drawn on a plot; longer settings get a number and a key line
+KEY_WIDTH = 100        # characters per line of a plot's key (7 pt, the figure's width)
+
+
+def log_if_wide(ax, values, axis: str = "x", span: float = 10.0) -> None:
+    """A log scale on ``axis`` when the positive ``values`` span ``span`` (a decade) or more."""
+    v = [float(x) for x in values if x is not None and x > 0]
+    if v and max(v) >= span * min(v):
+        (ax.set_xscale if axis == "x" else ax.set_yscale)("log")
+
+
+def place_labels(fig, ax, points, fontsize: int = 7) -> list:
+    """Annotate ``points`` ((x, y, text) in data coordinates) without overlaps: each label takes
+    the first of rings of offsets around its point where it stays inside the axes and covers
+    no label placed before it, no other point and not the axes' legend (else the position
+    covering least); labels set further off get a thin leader line. The figure's layout is
+    computed first and then fixed, so the labels stay where they were checked."""
+    import numpy as np
+    from matplotlib.transforms import Bbox
+    fig.canvas.draw()
+    fig.set_layout_engine("none")
+    renderer = fig.canvas.get_renderer()
+    frame = ax.get_window_extent(renderer)
+    px = ax.transData.transform(np.array([(x, y) for x, y, _ in points], float).reshape(-1, 2))
+    marks = [Bbox.from_extents(u - 3, v - 3, u + 3, v + 3) for u, v in px]
+    fixed = [ax.get_legend().get_window_extent(renderer)] if ax.get_legend() is not None else []
+    offsets = [(d * dx, d * dy, ha, va) for d in (4, 10, 18, 28, 40, 55, 75)
+               for dx, dy, ha, va in ((1, 1, "left", "bottom"), (1, -1, "left", "top"),
+                                      (-1, 1, "right", "bottom"), (-1, -1, "right", "top"),
+                                      (0, 1.5, "center", "bottom"), (0, -1.5, "center", "top"),
+                                      (1.5, 0, "left", "center"), (-1.5, 0, "right", "center"))]
+
+    def covered(bb, boxes):
+        return sum(max(0.0, min(bb.x1, o.x1) - max(bb.x0, o.x0)) * max(0.0, min(bb.y1, o.y1) - max(bb.y0, o.y0))
+                   for o in boxes)
+    placed, texts = [], []
+    scale = fig.dpi / 72.0                          # points -> pixels
+    for i, (x, y, text) in enumerate(points):
+        others = fixed + [m for j, m in enumerate(marks) if j != i]
+        probe = ax.text(0, 0, text, fontsize=fontsize)
+        w, h = (lambda bb: (bb.width, bb.height))(probe.get_window_extent(renderer))
+        probe.remove()
+        u, v = px[i]
+        best = None
+        for dx, dy, ha, va in offsets:
+            x0 = u + dx * scale - {"left": 0.0, "center": w / 2, "right": w}[ha]
+            y0 = v + dy * scale - {"bottom": 0.0, "center": h / 2, "top": h}[va]
+            bb = Bbox.from_extents(x0 - 2, y0 - 2, x0 + w + 2, y0 + h + 2)      # a 2 px gap around the text
+            inside = frame.x0 <= bb.x0 and bb.x1 <= frame.x1 and frame.y0 <= bb.y0 and bb.y1 <= frame.y1
+            cost = 1e3 * covered(bb, placed) + covered(bb, others) + (0.0 if inside else 1e9)
+            if best is None or cost < best[0]:
+                best = (cost, bb, (dx, dy, ha, va))
+            if cost == 0.0:
+                break
+        _, bb, (dx, dy, ha, va) = best
+        far = abs(dx) > 4 or abs(dy) > 6          # a thin leader line to a label set further off
+        texts.append(ax.annotate(text, (x, y), xytext=(dx, dy), textcoords="offset points", ha=ha, va=va,
+                                 fontsize=fontsize, arrowprops=dict(arrowstyle="-", lw=0.4, color="0.5",
+                                                                    shrinkA=0, shrinkB=2) if far else None))
+        placed.append(bb)
+    return texts
+
+
+def _options(r: dict) -> list[str]:
+    """The ``key=value`` settings of a row's label (``method:key=value,...``)."""
+    return [o for o in r.get("label", r["method"]).partition(":")[2].split(",") if o]
+
+
+def shared_options(rows: list[dict]) -> list[str]:
+    """The settings every one of ``rows`` has (in the first row's order); none for one row."""
+    if len(rows) < 2:
+        return []
+    common = set.intersection(*(set(_options(r)) for r in rows))
+    return [o for o in _options(rows[0]) if o in common]
+
+
+def short_names(rows: list[dict], family_of) -> tuple[list[str], list[str]]:
+    """Per row a short name for its point: its settings without those its whole family shares
+    (those go in the legend, :func:`shared_options`), the family's name when none is left, a
+    number when still longer than :data:`SHORT_NAME`; and the key lines ``N  full label`` of
+    the numbered rows."""
+    import textwrap
+    shared = {}
+    for r in rows:
+        shared.setdefault(family_of(r), []).append(r)
+    shared = {f: set(shared_options(rs)) for f, rs in shared.items()}
+    names, key = [], []
+    for r in rows:
+        label, fam = r.get("label", r["method"]), family_of(r)
+        if label.startswith(fam + ":"):
+            short = ",".join(o for o in _options(r) if o not in shared[fam]) or fam
+        else:
+            short = label
+        if len(short) > SHORT_NAME:
+            n = str(len(key) + 1)
+            key.append(textwrap.fill(f"{n}  {label.replace(',', ', ')}", KEY_WIDTH, subsequent_indent="     ",
+                                     break_on_hyphens=False, break_long_words=False))
+            short = n
+        names.append(short)
+    return names, key
+
+
+def _one_sweep(rows: list[dict]) -> bool:
+    """Whether the rows' settings (``method:key=value,...``) all name the same keys: points of
+    one sweep, worth a line; ablations that each change something else are left unjoined."""
+    def keys(r):
+        _, _, opts = r.get("label", r["method"]).partition(":")
+        return frozenset(o.partition("=")[0] for o in opts.split(",") if o)
+    return len({keys(r) for r in rows}) == 1
+
+
+def speed_error_plot(path: Path, rows: list[dict], title: str, x="time_ms", y="flip") -> None:
+    """Time per frame against FLIP, one point per row; rows of one method family (``family``,
+    else the method) share a colour and are joined by a line in order of time. Points carry
+    short names (:func:`short_names`); the full settings of numbered points are listed under
+    the axes, whose width the key leaves alone. A family's points are joined by a line when
+    they are one sweep (:func:`_one_sweep`). The time axis is logarithmic when the times
+    span a decade or more."""
+    import textwrap
+
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    rows = [r for r in rows if r.get(x) is not None and r.get(y) is not None]
+    fam_of = lambda r: r.get("family", r["method"])  # noqa: E731
+    fams: dict[str, list] = {}
+    for r in rows:
+        fams.setdefault(fam_of(r), []).append(r)
+    ordered = [r for _, rs in sorted(fams.items()) for r in sorted(rs, key=lambda r: r[x])]
+    names, key = short_names(ordered, fam_of)
+    key_lines = sum(k.count("\n") + 1 for k in key)
+    fig = plt.figure(figsize=(6.4, 4.2 + 0.15 * key_lines), layout="constrained")
+    ax = fig.add_subplot()
+    for fam, rs in sorted(fams.items()):
+        rs = sorted(rs, key=lambda r: r[x])
+        common = shared_options(rs)
+        ax.plot([r[x] for r in rs], [r[y] for r in rs], "o-" if _one_sweep(rs) else "o", ms=4,
+                label=textwrap.fill(fam + (f" ({', '.join(common)})" if common else ""), 36))
+    log_if_wide(ax, [r[x] for r in rows])
+    ax.set_xlabel("time per frame [ms]" + (" (log)" if ax.get_xscale() == "log" else ""))
+    ax.set_ylabel("FLIP (lower is better)")
+    ax.set_title(title, fontsize=10, wrap=True)
+    ax.grid(alpha=0.3, which="both")
+    ax.margins(0.12)
+    if fams:
+        ax.legend(fontsize=7, title="method", title_fontsize=7)
+    if key:
+        from matplotlib.lines import Line2D
+        blank = [Line2D([], [], linestyle="none") for _ in key]
+        fig.legend(blank, key, loc="outside lower left", fontsize=7, frameon=False, handlelength=0,
+                   handletextpad=0, title="settings of the numbered points", title_fontsize=7,
+                   alignment="left")
+    place_labels(fig, ax, [(r[x], r[y], n) for r, n in zip(ordered, names)])
+    io.write_figure(path, fig, dpi=120)
+    plt.close(fig)
+
+
+# -----------------------------------------------------------------------------
+# Pieces shared by the experiment scripts
+# -----------------------------------------------------------------------------
+
+def add_common_arguments(p, default_out: str = "out") -> None:
+    p.add_argument("--quick", action="store_true", help="small preset (a few minutes on 2 cores)")
+    p.add_argument("--scene", action="append", help="scene name or .xml path (repeatable)")
+    p.add_argument("--methods", nargs="+", help="methods to compare (default: the experiment's)")
+    p.add_argument("--out", default=default_out, help="output folder (results go to OUT/EXPERIMENT)")
+    p.add_argument("--res", help="WxH")
+    p.add_argument("--frames", type=int, help="frames per sequence")
+    p.add_argument("--seed", type=int, default=0)
+    g = p.add_argument_group("jobs (docs/cluster.md)")
+    g.add_argument("--workers", type=int, help="run the jobs on N Ray workers (a local Ray instance unless --address)")
+    g.add_argument("--address", help="run the jobs on a running Ray cluster: 'auto' or HOST:PORT")
+    g.add_argument("--threads", type=int, help="Dr.Jit threads per worker (default: cores // workers locally, "
+                                                "the smallest node's CPUs on a cluster; serial: all cores)")
+    g.add_argument("--resume", action="store_true",
+                   help="keep the jobs already committed in OUT/EXPERIMENT/rows/ and run only the missing ones")
+    g.add_argument("--retries", type=int, default=2, help="attempts after a failed job before it is reported")
+
+
+def apply_common(opts, preset: dict) -> dict:
+    """Override a preset by --res/--frames; returns a new dict."""
+    preset = dict(preset)
+    if getattr(opts, "res", None):
+        w, _, h = opts.res.lower().partition("x")
+        try:
+            preset["width"], preset["height"] = int(w), int(h)
+        except ValueError:
+            raise ExperimentError(f"bad resolution '{opts.res}' (expected WxH, e.g. 320x180)") from None
+    if getattr(opts, "frames", None):
+        f = opts.frames
+        if f < 1:
+            raise ExperimentError("--frames must be at least 1")
+        preset["frames"] = f
+        preset["eval_frames"] = [x for x in preset.get("eval_frames", []) if x < f] or [f - 1]
+        preset["warmup"] = min(preset.get("warmup", 0), max(f - 1, 0))
+    return preset
+
+
+def available_methods(wanted: list[str]) -> list[str]:
+    """``wanted`` without the methods that are not implemented (yet)."""
+    return [spec for spec in wanted if methods.known(methods.parse_spec(spec)[0])]
+
+
+def load_and_validate(scene_names: list[str], method_specs: list[str], explicit_scenes: bool) -> list[str]:
+    """Load every scene and instantiate every method once before any work,
+    so bad input stops the run before anything is written; returns the names
+    to run. Sponza is skipped with a note when it was only in the default
+    list and is absent. The scenes are released again: see :func:`each_scene`."""
+    names = []
+    for name in scene_names:
+        try:
+            s = scenes.load(name)
+        except scenes.SceneError as e:
+            if name == "sponza" and not explicit_scenes:
+                print(f"note: skipping sponza ({e})", file=sys.stderr)
+                continue
+            raise
+        for spec in method_specs:
+            if methods.create(spec, s).output != "direct":
+                raise ExperimentError(f"method '{spec}' renders indirect light; this experiment compares direct "
+                                      f"light (use 'slc run megaviews')")
+        names.append(name)
+        del s
+    release_scenes()
+    return names
+
+
+def release_scenes() -> None:
+    """Free the scenes no longer referenced (see :func:`each_scene`)."""
+    gc.collect()
+    gc.collect()
+
+
+def each_scene(names: list[str]):
+    """Yield the scenes one at a time, releasing each before loading the next.
+
+    Timing depends on it: every live Mitsuba object joins Dr.Jit's virtual
+    call tables, so with all five Table-1 scenes alive at once every BSDF,
+    emitter and shape call is traced and dispatched over all of them; the
+    atrium's ``slc`` frame measured 110 ms instead of 49 ms, ``restir`` 142
+    instead of 44 (``rt48`` was barely affected)."""
+    for name in names:
+        s = scenes.load(name)
+        s.source = name  # what loads it again (jobs run elsewhere)
+        yield s
+        del s
+        release_scenes()
+
+
+def strip_private(rows: list[dict]) -> list[dict]:
+    return [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
+
+
+def time_vs_viewers_plot(path: Path, rows: list[dict], title: str, group=("method",), x="viewers",
+                         y="time_ms", ylabel="time per frame [ms]") -> None:
+    """One line per group (e.g. method and overlap), ``y`` against ``x`` (log 2), ``y`` on a log
+    axis when it spans a decade or more; points labelled with the measured overlap when rows
+    carry it (:func:`place_labels`); the legend under the axes."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    groups: dict[tuple, list] = {}
+    for r in rows:
+        groups.setdefault(tuple(r.get(g) for g in group), []).append(r)
+    fig = plt.figure(figsize=(6.4, 4.4 + 0.18 * ((len(groups) + 2) // 3)), layout="constrained")
+    ax = fig.add_subplot()
+    marks = []
+    for key, rs in sorted(groups.items(), key=lambda kv: str(kv[0])):
+        rs = sorted(rs, key=lambda r: r[x])
+        label = " ".join(f"{g}={k}" if g != "method" else str(k) for g, k in zip(group, key))
+        ax.plot([r[x] for r in rs], [r[y] for r in rs], "o-", label=label, ms=4)
+        marks += [(r[x], r[y], f"{r['measured_overlap']:.0f}%") for r in rs
+                  if r.get("measured_overlap") is not None and r.get(x, 1) > 1]
+    ax.set_xscale("log", base=2)
+    log_if_wide(ax, [r.get(y) for r in rows], "y")
+    ax.set_xlabel(x)
+    ax.set_ylabel(ylabel + (" (log)" if ax.get_yscale() == "log" else ""))
+    ax.set_title(title, fontsize=10, wrap=True)
+    ax.grid(alpha=0.3, which="both")
+    ax.margins(0.1)
+    if groups:
+        fig.legend(loc="outside lower center", ncol=min(3, len(groups)), fontsize=7, frameon=False)
+    place_labels(fig, ax, marks, fontsize=6)
+    io.write_figure(path, fig, dpi=120)
+    plt.close(fig)
+
+
+def _file_name(name: str) -> str:
+    return name.replace(':', '_').replace(',', '_')
+
+
+def save_strip(out: Path, scene, label: str, res) -> None:
+    """EXR/PNG of the first evaluated viewer and its comparison strip, and the image, its
+    reference and its FLIP map as layers of the scene's multi-layer EXR of that frame
+    (:func:`add_to_frame_exr`)."""
+    for vname, im in res.images.items():
+        stem = out / "images" / f"{scene.name}_{_file_name(label)}"
+        io.write_hdr_and_png(stem, im["img"], scene.exposure)
+        io.write_hdr_and_png(out / "images" / f"{scene.name}_gt", im["gt"], scene.exposure)
+        io.comparison_strip(stem.with_name(stem.name + "_strip.png"), im["gt"], im["img"], im["flip_map"],
+                            scene.exposure)
+        add_to_frame_exr(out, scene, label, im)
+        break
+
+
+_FRAME_EXRS: set = set()    # frame EXRs this process started: later methods add their layers
+
+
+def add_to_frame_exr(out: Path, scene, label: str, im: dict) -> Path:
+    """Add a method's evaluated image to ``OUT/images/SCENE_frameF.exr``, one multi-layer EXR
+    per experiment, scene and evaluated frame: a layer per method (named by its label, dots
+    as underscores), its FLIP error map (``LABEL_error``, one channel) and the reference
+    (``reference``; a method whose reference differs, e.g. another output kind, gets its own
+    ``LABEL_reference``). Header: ``slc:experiment`` (the folder's name), ``slc:scene``,
+    ``slc:frame``, ``slc:code_version`` (:func:`slc.core.backend.code_version`) and ``slc:layers``,
+    JSON: per method layer its full setting, its reference and error layers and the exposure
+    of its tone map (PNGs, FLIP). The first call of a run replaces a file left
+    by an earlier run; later calls read it back and add their layers."""
+    import json
+
+    import numpy as np
+
+    frame = int(im.get("frame", -1))
+    path = out / "images" / f"{_file_name(scene.name)}_frame{frame}.exr"
+    layers, meta = {}, {}
+    if path in _FRAME_EXRS and path.exists():
+        layers, header = io.read_layers(path)
+        meta = json.loads(header.get("slc:layers", "{}"))
+    _FRAME_EXRS.add(path)
+    name = io.layer_name(label)
+    gt = np.asarray(im["gt"], np.float32)
+    ref = "reference" if "reference" not in layers or np.array_equal(layers["reference"], gt) \
+        else f"{name}_reference"
+    layers[ref] = gt
+    layers[name] = im["img"]
+    layers[f"{name}_error"] = im["flip_map"]
+    meta[name] = {"setting": label, "reference": ref, "error": f"{name}_error",
+                  "exposure": float(im.get("exposure", scene.exposure))}
+    io.write_layers(path, layers, {"slc:experiment": out.name, "slc:scene": scene.name, "slc:frame": frame,
+                                   "slc:code_version": code_version(), "slc:layers": json.dumps(meta)})
+    return path
+
+
+def ratio(a, b):
+    """a / b, None when b is 0 or missing."""
+    try:
+        return a / b if b else None
+    except TypeError:
+        return None
+
+
+def runs_in_turn(scene, cases, cfg, repeats: int = 3, seed: int = 0, alternate: bool = True,
+                 first_cfg=None, before=None) -> list[list]:
+    """Run ``cases`` ((method spec, viewers) pairs) again, in turn: ``repeats``
+    repetitions of every case, each a whole :func:`slc.run.pipeline.run_sequence` of
+    ``cfg`` with a new method instance; with ``alternate`` every other repetition
+    runs the cases in reverse order (a load that drifts during the repetitions
+    then weighs on both ends alike). ``first_cfg`` (default ``cfg``): the first
+    repetition's config (e.g. with frames evaluated); ``before(i)`` is called
+    before each run of case i (a progress bar). Returns per case its results, one
+    per repetition. Rows of an experiment run minutes apart, under whatever load
+    the shared cores had then; ratios of runs side by side move less."""
+    out = [[] for _ in cases]
+    order = list(range(len(cases)))
+    for rep in range(repeats):
+        for i in (order if rep % 2 == 0 or not alternate else order[::-1]):
+            if before is not None:
+                before(i)
+            spec, viewers = cases[i]
+            c = first_cfg if rep == 0 and first_cfg is not None else cfg
+            out[i].append(run_sequence(scene, methods.create(spec, scene, seed=seed), viewers, c))
+    return out
+
+
+def ratio_in_turn(scene, spec: str, base, top, cfg, repeats: int = 3, seed: int = 0) -> dict:
+    """Time one method on two rigs again, in turn (:func:`runs_in_turn`: base, top; top,
+    base; ...; no evaluation), the ratio top / base taken within each repetition. Returns
+    the median ratio, every repetition's ratio and times, and the most kernels any run
+    built after its warm-up."""
+    c = dataclasses.replace(cfg, eval_frames=[], keep_images=False, measure_overlap=False)
+    b, t = runs_in_turn(scene, [(spec, base), (spec, top)], c, repeats, seed)
+    ratios = [x.time_ms / max(y.time_ms, 1e-9) for x, y in zip(t, b)]
+    return {"ratio": statistics.median(ratios) if ratios else float("nan"), "ratios": ratios,
+            "base_ms": [x.time_ms for x in b], "top_ms": [x.time_ms for x in t],
+            "compiled_after_warmup": max((x.compiled_after_warmup for x in b + t), default=0)}
+
+
+def setup(opts, quick: dict, full: dict, methods: list[str]):
+    """The common start of a multi-viewer experiment: the preset (with
+    --res/--frames applied), the method specs, the validated scenes and the
+    RunConfig. Returns (preset, specs, scene names, cfg)."""
+    pr = apply_common(opts, quick if opts.quick else full)
+    specs = opts.methods or available_methods(methods)
+    names = load_and_validate(opts.scene or pr["scenes"], specs, bool(opts.scene))
+    cfg = RunConfig(width=pr["width"], height=pr["height"], frames=pr["frames"], warmup=pr["warmup"],
+                    eval_frames=pr["eval_frames"], eval_viewers=pr.get("eval_viewers"), seed=opts.seed)
+    return pr, specs, names, cfg
+
+
+def add_viewer_arguments(p) -> None:
+    """Common options plus --viewers (viewer counts)."""
+    add_common_arguments(p)
+    p.add_argument("--viewers", type=int, nargs="+", help="viewer counts")
+
+
+def viewer_count_experiment(opts, name: str, quick: dict, full: dict, methods: list[str], rig: str,
+                            make_viewers, plot_title):
+    """Every method on ``make_viewers(scene, n)`` for each viewer count, one
+    time-against-viewers plot per scene. Returns (rows, scene names, cfg,
+    out folder, viewer counts)."""
+    pr, specs, names, cfg = setup(opts, quick, full, methods)
+    counts = opts.viewers or pr["viewers"]
+    rows = run_per_scene(names, lambda s: [(spec, make_viewers(s, n), {"rig": rig})
+                                           for spec in specs for n in counts], cfg, name, opts.seed)
+    out = Path(opts.out) / name
+    for scene in names:
+        time_vs_viewers_plot(out / f"time_vs_viewers_{scene}.png", [r for r in rows if r["scene"] == scene],
+                             plot_title(scene, cfg))
+    return rows, names, specs, cfg, out, counts
+
+
+def at_viewers(rows: list[dict], scene: str, n: int) -> dict:
+    """Rows of one scene at ``n`` viewers, keyed by setting."""
+    return {r["setting"]: r for r in rows if r["scene"] == scene and r["viewers"] == n}
+
+
+def run_per_scene(names, make_cases, cfg, desc: str, seed: int = 0, keep_images: bool = False,
+                  on_result=None) -> list[dict]:
+    """For each scene (one alive at a time), ``make_cases(scene)`` gives
+    (spec, viewers, extra-fields) tuples; returns all rows, in that order.
+
+    The cases of every scene become jobs first (:func:`slc.run.jobspec.jobs_from_cases`:
+    the viewers are frozen into cameras, so no live scene is kept), then all
+    jobs run under one progress bar, serially or on Ray (``--workers``,
+    ``--address``), resumable (``--resume``). ``keep_images``/``on_result``:
+    see :meth:`slc.run.jobs.Session.run`."""
+    session = jobs.current(desc.split()[0])
+    js, n, live = [], 0, {}
+    for i, s in enumerate(each_scene(names)):
+        cases = [(s, *c) for c in make_cases(s)]
+        js += jobspec.jobs_from_cases(session.experiment, cases, cfg, seed, keep_images, start=n)
+        n += len(cases)
+        del cases
+        if i == len(names) - 1 and not session.distributed:
+            live = {jobspec.scene_source(s): s}  # a serial run starts with the scene still loaded
+        del s
+    js.sort(key=lambda j: j.scene not in live)  # stable: that scene's jobs first
+    rows = session.run(js, desc, scenes=live, on_result=on_result)
+    live.clear()
+    return _in_case_order(js, rows)
+
+
+def run_cases(cases, cfg, desc: str, seed: int = 0, keep: bool = False) -> list[dict]:
+    """Run (scene, spec, viewers, extra-fields) cases as jobs (one per scene
+    and viewers, every method of a comparison in the same job) with one
+    progress bar; rows in the order of ``cases``. ``keep`` gives each row a
+    ``_result`` whose ``images`` are the evaluated images (for
+    :func:`save_strip`)."""
+    from types import SimpleNamespace
+
+    session = jobs.current(desc.split()[0])
+    js = jobspec.jobs_from_cases(session.experiment, cases, cfg, seed, keep_images=keep)
+    live = {jobspec.scene_source(s): s for s, *_ in cases}
+    rows = _in_case_order(js, session.run(js, desc, scenes=live))
+    if keep:  # from this run, or committed with the job by the run that --resume continues
+        images = {c.index: im for j in js for c, im in zip(j.cases, jobs.images_of(session, j))}
+        for r, i in zip(rows, sorted(images)):
+            r["_result"] = SimpleNamespace(images=images[i])
+    return rows
+
+
+def _in_case_order(js, rows: list[dict]) -> list[dict]:
+    """Rows of ``js`` (job order, each job's cases in order) back in the order
+    the cases were given."""
+    index = [c.index for j in js for c in j.cases]
+    return [r for _, r in sorted(zip(index, rows), key=lambda t: t[0])]
+
+
+def finish(name: str, out: Path, opts, cfg, names, specs, rows, md_body: str, extra_config=None) -> dict:
+    """Write results.json / results.md for a multi-viewer experiment and print the table."""
+    config = {"quick": bool(opts.quick), "methods": specs, "scenes": sorted({r["scene"] for r in rows}),
+              "width": cfg.width, "height": cfg.height, "frames": cfg.frames, "warmup": cfg.warmup,
+              "eval_frames": cfg.evaluated(), "eval_viewers": cfg.eval_viewers, "seed": cfg.seed,
+              **(extra_config or {})}
+    header = (f"# {name}\n\n{cfg.width}x{cfg.height}, {cfg.frames} frames ({cfg.warmup} warm-up); time = median DI ms "
+              f"per frame for all viewers together; quality of the first {cfg.eval_viewers} viewer(s) on frames "
+              f"{cfg.evaluated()} against 2048-sample ground truth; measured overlap = % of visible surface cells "
+              f"seen by more than one viewer.\n\n")
+    md = header + md_body
+    results = results_object(name, config, strip_private(rows))
+    write_results(out, results, md)
+    print(md)
+    return results
+
+
+MULTI_COLUMNS = [("scene", "scene"), ("method", "method"), ("rig", "rig"), ("viewers", "viewers"),
+                 ("measured_overlap", "measured overlap %"), ("time_ms", "t [ms]"), ("flip", "FLIP"),
+                 ("psnr", "PSNR"), ("ssim", "SSIM"), ("memory_mb", "memory [MB]")]
+
+
+# -----------------------------------------------------------------------------
+# Start-up against steady state
+# -----------------------------------------------------------------------------
+
+SETTLE_FRAMES = 8    # default update policy: an entry gets 8 rays for its first 8 updates, then 1
+STEADY_WARMUP = 10   # warm-up of every preset: kernel builds, then the first frame's entries settle
+
+
+def add_startup(rows: list[dict], settle: int = SETTLE_FRAMES) -> list[dict]:
+    """Add ``startup_ms`` to every row: the median DI time of frames 1 ..
+    ``settle - 1``, while the entries requested in frame 0 are still in
+    their 8-ray start-up (frame 0 and frames that built kernels, when the
+    row's ``frames_ms`` counts them, are left out). ``time_ms`` stays the
+    median after the warm-up, i.e. the steady state when the warm-up is at
+    least ``settle`` frames. Per-viewer methods have no start-up; their
+    figure shows the same frames for comparison."""
+    for r in rows:
+        fr = r.get("frames_ms") or []
+        ts = [f.get("total", 0.0) for i, f in enumerate(fr[:settle]) if i >= 1 and not f.get("compiled")]
+        r["startup_ms"] = statistics.median(ts) if ts else None
+    return rows
+
+
+# -----------------------------------------------------------------------------
+# Scene-variant sweeps (many-lights, envmap, point-lights)
+# -----------------------------------------------------------------------------
+
+def variant_experiment(opts, name: str, preset: dict, specs: list[str], variants: list[tuple], field: str,
+                       title: str) -> dict:
+    """Every method on every scene variant, one viewer on the scene's first
+    path. ``variants``: (value, scene spec) pairs, e.g. ``(24, "hangar:lights=24")``;
+    rows carry the value in ``field``. Writes results.json/results.md, a
+    FLIP-and-time-against-``field`` plot, a speed-against-error plot per
+    variant and an image strip per (variant, method)."""
+    out = Path(opts.out) / name
+    scene_specs = load_and_validate([v for _, v in variants], specs, True)
+    value_of = {s: v for v, s in variants}
+    cfg = RunConfig(width=preset["width"], height=preset["height"], frames=preset["frames"],
+                    warmup=preset["warmup"], eval_frames=preset["eval_frames"], seed=opts.seed)
+    rows = []
+    for s in each_scene(scene_specs):
+        case_rows = run_cases([(s, spec, views.single(s), {field: value_of[s.name], "rig": "single"})
+                               for spec in specs], cfg, f"{name} {s.name}", opts.seed, keep=True)
+        for r in case_rows:
+            r["family"] = r["method"].rstrip("0123456789") or r["method"]
+            save_strip(out, s, r["label"], r.pop("_result"))
+        speed_error_plot(out / f"speed_error_{s.name.replace(':', '_').replace('=', '')}.png", case_rows,
+                         f"{s.name}: time vs FLIP ({cfg.width}x{cfg.height})")
+        rows += case_rows
+    add_startup(rows)
+    metric_vs_value_plot(out / f"flip_time_vs_{field}.png", rows, field, title)
+    columns = DEFAULT_COLUMNS[:1] + [(field, field)] + [("setting", "method")] + DEFAULT_COLUMNS[3:4] + \
+        [("startup_ms", "start-up [ms]")] + DEFAULT_COLUMNS[4:]
+    md = (f"# {name}\n\n{cfg.width}x{cfg.height}, {cfg.frames} frames ({cfg.warmup} warm-up), one viewer; "
+          f"quality on frames {cfg.evaluated()} against {cfg.gt_spp}-sample ground truth; time = median DI ms "
+          f"per frame.\n\n" + markdown_table(rows, columns) + "\n")
+    config = {"quick": bool(opts.quick), "methods": specs, "variants": [list(v) for v in variants],
+              "width": cfg.width, "height": cfg.height, "frames": cfg.frames, "warmup": cfg.warmup,
+              "eval_frames": cfg.evaluated(), "seed": cfg.seed, "gt_spp": cfg.gt_spp}
+    results = results_object(name, config, strip_private(rows))
+    write_results(out, results, md)
+    print(md)
+    return results
+
+
+def scene_option_sweep(opts, name: str, quick: dict, full: dict, methods: list[str], option: str,
+                       title: str) -> dict:
+    """:func:`variant_experiment` over ``SCENE:option=value`` for the values
+    given on the command line (``opts.<option>``) or in the preset."""
+    pr = apply_common(opts, quick if opts.quick else full)
+    scene = (opts.scene or [pr["scene"]])[0]
+    variants = [(v, f"{scene}:{option}={v}") for v in (getattr(opts, option, None) or pr[option])]
+    specs = opts.methods or available_methods(methods)
+    return variant_experiment(opts, name, pr, specs, variants, option, title)
+
+
+def metric_vs_value_plot(path: Path, rows: list[dict], field: str, title: str) -> None:
+    """FLIP (left) and time (right, log when it spans a decade or more) against ``field``, one
+    line per method setting; the settings in one legend under both axes."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    groups: dict[str, list] = {}
+    for r in rows:
+        groups.setdefault(r.get("setting", r["method"]), []).append(r)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2 + 0.18 * ((len(groups) + 3) // 4)), layout="constrained")
+    numeric = all(isinstance(r[field], (int, float)) for r in rows)
+    order = sorted({r[field] for r in rows}, key=lambda v: (not numeric, v))
+    for label, rs in sorted(groups.items()):
+        rs = sorted(rs, key=lambda r: order.index(r[field]))
+        xs = [r[field] if numeric else order.index(r[field]) for r in rs]
+        for ax, key in zip(axes, ("flip", "time_ms")):
+            ax.plot(xs, [r.get(key) for r in rs], "o-", label=label, ms=4)
+    log_if_wide(axes[1], [r.get("time_ms") for r in rows], "y")
+    for ax, ylabel in zip(axes, ("FLIP (lower is better)", "time per frame [ms]"
+                                 + (" (log)" if axes[1].get_yscale() == "log" else ""))):
+        if not numeric:
+            ax.set_xticks(range(len(order)), [str(v) for v in order])
+        ax.set_xlabel(field)
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3, which="both")
+    if groups:
+        fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncol=min(4, len(groups)),
+                   fontsize=7, frameon=False)
+    fig.suptitle(title, fontsize=10)
+    io.write_figure(path, fig, dpi=120)
+    plt.close(fig)

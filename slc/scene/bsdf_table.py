@@ -1,0 +1,123 @@
+r"""One table of the scene's BSDFs, read once on the host, so that kernels gather a BSDF's
+kind and constants instead of making a virtual call per point and attribute.
+
+Indexed by the BSDF's registry id (``dr.reinterpret_array(mi.UInt32, bsdf)``). Per BSDF:
+
+- ``diffuse``: Mitsuba's smooth ``diffuse`` (any reflectance, textured or not), the BSDFs whose
+  value :class:`slc.scene.lights.SurfaceBSDF` evaluates without the virtual call;
+- ``kind``: ``KIND_DIFFUSE`` (``diffuse`` with a constant reflectance: ``colour`` holds it),
+  ``KIND_PRINCIPLED`` (``principled`` whose clearcoat, sheen, flatness, anisotropy and
+  specular transmission are constant 0 and whose base colour, roughness and metallic are
+  constant: ``colour``, ``roughness``, ``metallic`` hold those), ``KIND_NOT_PRINCIPLED``
+  (other BSDFs without the ``clearcoat`` or ``base_color`` attribute), else ``KIND_OTHER``
+  (textured parameters: the virtual calls). The constants are the BSDF's own
+  ``eval_attribute`` / ``eval_diffuse_reflectance`` values (a constant texture ignores the
+  point), so kernels reading them give the images of the virtual calls bit for bit.
+
+The table is built once per scene, outside symbolic loops (:func:`for_scene`), and dropped
+with the scene's last :class:`slc.scene.scenes.Scene` (a ``mi.Scene`` takes neither attributes nor
+weak references, so the table is found by the scene's address and its first shape, held
+alive by the entry: a new scene at a recycled address is never mistaken for an old one).
+Scenes with instances have no table (their BSDFs are not listed by ``scene.shapes()``).
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+KIND_OTHER, KIND_DIFFUSE, KIND_PRINCIPLED, KIND_NOT_PRINCIPLED = 0, 1, 2, 3
+ZERO_ATTRS = ("clearcoat", "sheen", "flatness", "anisotropic", "spec_trans")
+_DIFFUSE_CLASS = "SmoothDiffuse"
+
+
+class BSDFTable:
+    """The per-BSDF arrays (module docstring): ``width`` (the number of registry ids, an
+    opaque UInt32), ``diffuse`` (Bool), ``kind`` (UInt32), ``colour`` (Color3f),
+    ``roughness``, ``metallic`` (Float); on the host ``n`` (the width as an int) and
+    ``all_diffuse`` (every shape's BSDF is smooth diffuse)."""
+    DRJIT_STRUCT = {"width": mi.UInt32, "diffuse": mi.Bool, "kind": mi.UInt32, "colour": mi.Color3f,
+                    "roughness": mi.Float, "metallic": mi.Float}
+
+    def __init__(self, width=None, diffuse=None, kind=None, colour=None, roughness=None, metallic=None):
+        self.width, self.diffuse, self.kind = width, diffuse, kind
+        self.colour, self.roughness, self.metallic = colour, roughness, metallic
+        self.n, self.all_diffuse = 0, False
+
+
+_TABLES: dict[int, tuple] = {}
+
+
+def for_scene(scene) -> BSDFTable | None:
+    """The table of ``scene`` (a :class:`slc.scene.scenes.Scene` or a ``mi.Scene``), built on first
+    use (outside symbolic loops), None for scenes with instances or without BSDFs."""
+    ms = getattr(scene, "mi_scene", scene)
+    shapes = ms.shapes()
+    first = shapes[0] if shapes else None
+    hit = _TABLES.get(id(ms))
+    if hit is not None and hit[0] is first:
+        return hit[1]
+    if dr.flag(dr.JitFlag.SymbolicScope):
+        raise RuntimeError("build the BSDF table (slc.scene.bsdf_table.for_scene) outside symbolic loops")
+    table = _build(shapes)
+    _TABLES[id(ms)] = (first, table)
+    return table
+
+
+def forget(scene_id: int) -> None:
+    """Drop the table of the scene at address ``scene_id`` (its :class:`slc.scene.scenes.Scene`
+    was freed): the entry holds the scene's shapes, which would otherwise stay in
+    Mitsuba's registry, which every frozen function traverses."""
+    _TABLES.pop(scene_id, None)
+
+
+def _build(shapes) -> BSDFTable | None:
+    if any(sh.class_name() in ("Instance", "ShapeGroup") for sh in shapes):
+        return None
+    bsdfs = {}
+    for sh in shapes:
+        b = sh.bsdf()
+        if b is not None:
+            bsdfs[int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(b))[0])] = b
+    if not bsdfs:
+        return None
+    W = max(bsdfs) + 1
+    diffuse = np.zeros(W, bool)
+    kind = np.zeros(W, np.uint32)
+    col = np.zeros((3, W), np.float32)
+    rough = np.zeros(W, np.float32)
+    metal = np.zeros(W, np.float32)
+    si = dr.zeros(mi.SurfaceInteraction3f, 1)
+    si.wi = mi.Vector3f(0.0, 0.0, 1.0)
+    for rid, b in bsdfs.items():
+        keys = list(mi.traverse(b).keys())
+
+        def constant(name):
+            own = [k for k in keys if k == name or k.startswith(name + ".")]
+            return own == [name + ".value"]
+        diffuse[rid] = b.class_name() == _DIFFUSE_CLASS
+        if diffuse[rid] and constant("reflectance"):
+            kind[rid] = KIND_DIFFUSE
+            col[:, rid] = np.array(b.eval_diffuse_reflectance(si)).reshape(3)
+        elif b.class_name() == "Principled" and all(constant(a) for a in ZERO_ATTRS + ("base_color", "roughness",
+                                                                                      "metallic")) \
+                and all(float(b.eval_attribute_1(a, si)[0]) == 0.0 for a in ZERO_ATTRS) \
+                and _principled_flags(int(b.flags())):
+            kind[rid] = KIND_PRINCIPLED
+            col[:, rid] = np.array(b.eval_attribute_3("base_color", si)).reshape(3)
+            rough[rid] = float(b.eval_attribute_1("roughness", si)[0])
+            metal[rid] = float(b.eval_attribute_1("metallic", si)[0])
+        elif not (b.has_attribute("clearcoat") and b.has_attribute("base_color")):
+            kind[rid] = KIND_NOT_PRINCIPLED
+    t = BSDFTable(dr.opaque(mi.UInt32, W), mi.Bool(diffuse), mi.UInt32(kind), mi.Color3f(col), mi.Float(rough),
+                  mi.Float(metal))
+    t.n, t.all_diffuse = W, bool(all(diffuse[i] for i in bsdfs))
+    return t
+
+
+def _principled_flags(f: int) -> bool:
+    """Diffuse + glossy reflection, no transmission, no Dirac lobe (the flags the cones'
+    principled closed form asks for)."""
+    F = mi.BSDFFlags
+    return bool(f & int(F.DiffuseReflection)) and bool(f & int(F.GlossyReflection)) and \
+        not (f & int(F.Transmission)) and not (f & int(F.Delta))

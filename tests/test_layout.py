@@ -1,0 +1,201 @@
+"""The package's layers, checked: imports go one way, no cycles, modules of a readable size.
+
+Layers, bottom to top (a module may import from its own layer and the layers below):
+
+    core       backend, keys, freeze, timing, check, io
+    scene      scenes, views and rigs, the G-buffer, light sampling, the BSDF table
+    reference  the ground truth, path-traced references, metrics
+    methods    the method contract (slc.methods: Method, Param, the registry)
+    osc        the on-surface cache and its contract for cache methods
+    method     one folder per method under slc/methods/ (baselines included)
+    run        the frame loop, experiments, jobs, the command line, benchmarks
+
+Method folders do not import each other, except the representations named in ``SHARED`` below:
+``adaptive`` is built from the cone and SH representations, and the SH basis, projection, YCoCg
+encodings and shading of ``slc/methods/sh`` serve the other SH caches (``crc``, ``osc-gi``).
+"""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PKG = ROOT / "slc"
+
+RANK = {"core": 0, "scene": 1, "reference": 2, "methods": 3, "osc": 4, "method": 5, "run": 6}
+# method folders whose modules other methods may import (representations reused by a composite method)
+SHARED = {"adaptive": {"cones", "sh"}, "crc": {"sh"}, "oscgi": {"sh"}}
+MAX_LINES, MAX_LONG, LONG = 650, 5, 450
+
+
+def _modules() -> dict[str, Path]:
+    mods = {}
+    for p in PKG.rglob("*.py"):
+        parts = list(p.relative_to(ROOT).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        mods[".".join(parts)] = p
+    return mods
+
+
+MODULES = _modules()
+
+
+def _imports(name: str, path: Path):
+    """(imported slc module, imported names, line, function-level) for every import of ``name``."""
+    tree = ast.parse(path.read_text())
+    is_pkg = path.name == "__init__.py"
+    fn_nodes = set()
+    for fn in ast.walk(tree):
+        if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            fn_nodes.update(id(n) for n in ast.walk(fn) if isinstance(n, (ast.Import, ast.ImportFrom)))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.split(".")[0] == "slc":
+                    yield a.name, [], node.lineno, id(node) in fn_nodes
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = name.split(".") if is_pkg else name.split(".")[:-1]
+                base = base[:len(base) - (node.level - 1)]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            if mod.split(".")[0] != "slc":
+                continue
+            for a in node.names:
+                sub = f"{mod}.{a.name}"
+                yield (sub if sub in MODULES else mod), [a.name], node.lineno, id(node) in fn_nodes
+
+
+def _owner(mod: str) -> str:
+    while mod not in MODULES and "." in mod:
+        mod = mod.rsplit(".", 1)[0]
+    return mod
+
+
+def _layer(mod: str) -> tuple[str, str | None]:
+    """(layer, method folder or None) of a module name."""
+    parts = mod.split(".")
+    if len(parts) == 1:
+        return "run", None             # slc/__init__.py selects the variant: it may import core only
+    top = parts[1]
+    if top == "methods":
+        return ("method", parts[2]) if len(parts) > 2 else ("methods", None)
+    return top, None
+
+
+def _graph():
+    g = {}
+    for name, path in MODULES.items():
+        g[name] = {_owner(m) for m, _, _, _ in _imports(name, path)} - {name}
+        g[name] &= set(MODULES)
+    return g
+
+
+def test_every_module_belongs_to_a_layer():
+    bad = [m for m in MODULES if m != "slc" and _layer(m)[0] not in RANK]
+    assert not bad, f"modules outside the layers {sorted(RANK)}: {bad}"
+
+
+def test_imports_go_one_way():
+    bad = []
+    for name, deps in _graph().items():
+        if name == "slc":
+            continue
+        layer, folder = _layer(name)
+        for d in deps:
+            if d == "slc":
+                continue
+            dl, dfolder = _layer(d)
+            if RANK[dl] > RANK[layer]:
+                bad.append(f"{name} ({layer}) imports {d} ({dl})")
+            elif layer == dl == "method" and folder != dfolder and dfolder not in SHARED.get(folder, ()):
+                bad.append(f"{name} imports another method's module {d}")
+    assert not bad, "imports against the layers:\n" + "\n".join(sorted(bad))
+
+
+def test_no_import_cycle():
+    g = _graph()
+    index, low, stack, on, cycles, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in g[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                cycles.append(sorted(comp))
+
+    for v in g:
+        if v not in index:
+            visit(v)
+    # a package's __init__ importing its own modules is not a cycle of the layers
+    cycles = [c for c in cycles if not all(m.startswith(c[0] + ".") or m == c[0] for m in c)]
+    assert not cycles, f"import cycles: {cycles}"
+
+
+def test_no_private_name_imported_across_modules():
+    bad = [f"{name}:{line} imports {n} from {mod}"
+           for name, path in MODULES.items()
+           for mod, names, line, _ in _imports(name, path)
+           for n in names if n.startswith("_") and not n.startswith("__")]
+    assert not bad, "\n".join(bad)
+
+
+def test_function_level_imports_say_why():
+    """A function-level import of a project module is there for a reason stated beside it."""
+    def explained(lines, i):   # a comment on the import's line, or above its block of imports
+        if "#" in lines[i]:
+            return True
+        while i > 0 and lines[i - 1].strip().startswith(("import ", "from ")):
+            i -= 1
+        return lines[i - 1].strip().startswith("#")
+
+    bad = []
+    for name, path in MODULES.items():
+        lines = path.read_text().splitlines()
+        for mod, _, line, fn_level in _imports(name, path):
+            if fn_level and not explained(lines, line - 1):
+                bad.append(f"{path.relative_to(ROOT)}:{line}: {lines[line - 1].strip()}")
+    assert not bad, "function-level imports without a reason:\n" + "\n".join(sorted(set(bad)))
+
+
+def _sizes():
+    files = list(PKG.rglob("*.py")) + list((ROOT / "experiments").glob("*.py"))
+    return {p: len(p.read_text().splitlines()) for p in files}
+
+
+def test_module_sizes():
+    sizes = _sizes()
+    too_long = {str(p.relative_to(ROOT)): n for p, n in sizes.items() if n > MAX_LINES}
+    assert not too_long, f"modules over {MAX_LINES} lines: {too_long}"
+    long = {p: n for p, n in sizes.items() if n > LONG}
+    assert len(long) <= MAX_LONG, (f"{len(long)} modules over {LONG} lines (at most {MAX_LONG}): "
+                                   f"{sorted(str(p.relative_to(ROOT)) for p in long)}")
+    unexplained = [str(p.relative_to(ROOT)) for p in long
+                   if "why" not in p.read_text()[:1500].lower()]
+    assert not unexplained, f"long modules that do not say at their top why they are long: {unexplained}"
+
+
+@pytest.mark.parametrize("folder", sorted(p.name for p in (PKG / "methods").iterdir()
+                                           if p.is_dir() and not p.name.startswith("_")))
+def test_each_method_folder_registers_by_convention(folder):
+    assert (PKG / "methods" / folder / "method.py").is_file(), \
+        f"slc/methods/{folder}/ has no method.py (methods are found as slc/methods/<folder>/method.py)"
