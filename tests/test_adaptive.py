@@ -98,6 +98,7 @@ def test_frozen_sh_shading_matches_unfrozen_and_records_once():
     assert np.array_equal(out[True][0], out[False][0])
 
 
+@pytest.mark.slow
 def test_frozen_cones_update_matches_unfrozen_as_entries_change():
     """The CONES update is traced once and replayed (dr.freeze): under an area
     light (no delta light: the statistics' delta share is a literal zero in the
@@ -140,6 +141,7 @@ def _assert_frozen_matches_unfrozen(scene, spec, attr, make):
         assert np.array_equal(a, c)
 
 
+@pytest.mark.slow
 def test_frozen_sh_update_matches_unfrozen_as_entries_change():
     """The SH update is traced once and replayed (dr.freeze): under a constant
     sky (no delta light: the statistics' delta share is a literal zero in the

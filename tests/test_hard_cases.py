@@ -88,6 +88,7 @@ def rel_errors(img, ref, mask):
     return abs(a.mean() / r.mean() - 1.0), np.abs(a - r).mean() / r.mean()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", KINDS)
 def test_ground_truth_hard_cases(kind):
     """2048 MIS samples. Measured (48x32): grazing mean -0.3%, per-pixel mean
@@ -351,6 +352,7 @@ def _moving(t):
     return translate([0.04 * min(t * 60.0, STOP), 0.0, 0.0])
 
 
+@pytest.mark.slow
 def test_slc_light_moves_then_stops():
     """A 0.2 m light at 1 m moves 4 cm per frame for 12 frames, then stops
     (test_cones.py's moving light, here in check mode on the default slc):

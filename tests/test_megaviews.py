@@ -232,6 +232,7 @@ def test_multi_bounce_vpls_against_the_two_bounce_reference(small_frame):
     assert np.all(too_bright > 0.20), too_bright
 
 
+@pytest.mark.slow
 def test_distance_cutoff(small_frame):
     """A cut-off beyond the scene changes nothing (bit-identical); a cut-off
     of half the scene edge drops far VPLs (darker on average)."""

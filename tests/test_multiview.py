@@ -52,6 +52,7 @@ def test_second_viewer_does_not_change_the_first():
     assert np.array_equal(i1[0], i2[0])
 
 
+@pytest.mark.slow
 def test_second_viewer_bounded_change_when_moving():
     """With moving cameras it cannot be exact: an entry the second viewer saw
     first has a longer history (more samples, an earlier start) when the first
@@ -65,6 +66,7 @@ def test_second_viewer_bounded_change_when_moving():
     assert d.mean() < 0.01 * i1[0].mean()
 
 
+@pytest.mark.slow
 def test_measured_overlap_of_rigs():
     s = scenes.load("atrium")
     same = gbuffers_for(s, views.overlap_rig(s, 3, 1.0), 4, W, H)

@@ -100,6 +100,7 @@ def test_budget_converges_to_the_full_update(cornell):
     assert not np.array_equal(a[0], b[0])
 
 
+@pytest.mark.slow
 def test_one_viewer_is_not_budgeted(cornell):
     """One viewer (64x36: 1,152 entries allowed, ~300 requested): every entry every frame, the
     images those of update_budget=0 bit for bit."""

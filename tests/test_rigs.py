@@ -46,6 +46,7 @@ def test_controlled_rig_never_wraps(atrium):
         assert gaps.min() >= hfov - 1e-6, (n, gaps.min(), hfov)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_random_rig_overlap_start_and_average(atrium, seed):
     """16 random viewers, the paper's regime: about 50% overlap at the start
@@ -59,6 +60,7 @@ def test_random_rig_overlap_start_and_average(atrium, seed):
     assert np.mean(m[2:]) < m[0] - 20.0, "the viewers do not drift apart"
 
 
+@pytest.mark.slow
 def test_random_rig_keeps_clear_of_surfaces(atrium):
     """No viewer starts inside a closed mesh or within 0.3 m of a surface,
     and no step of a walk passes through a surface (checked on the keys

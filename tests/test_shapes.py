@@ -349,6 +349,7 @@ def test_bilinear_fetch_beats_nearest_in_a_closed_box(boxes):
     assert rel_mse(gt_b, img_b) <= rel_mse(gt, img_n)
 
 
+@pytest.mark.slow
 def test_no_dark_entries_in_room_corners(boxes):
     """Border texels are clamped onto their island's triangles; an entry exactly
     on the floor's edge had its shadow rays start on the back wall's plane and
