@@ -1,5 +1,5 @@
 # Commands for a fresh machine: `make run`, `make test` (the whole suite) and `make check` (its fast tier).
-# Both install what is missing (libLLVM >= 16, a .venv with the package) and are idempotent.
+# All three install what is missing (libLLVM >= 16, a .venv with the package) and are idempotent.
 # Python 3.11 unless PYTHON names another (3.11-3.13 install: make PYTHON=python3.12 ...).
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV   := .venv
