@@ -42,6 +42,7 @@ def run(opts):
     from tqdm import tqdm
 
     from slc.run import experiment as ex
+    from slc.run import plots
     from slc.scene import views
     from slc.scene.scenes import FPS, TURN_RATE, WALK_SPEED
 
@@ -67,10 +68,10 @@ def run(opts):
     ex.add_startup(rows)
     for name in names:
         rs = [r for r in rows if r["scene"] == name]
-        ex.time_vs_viewers_plot(out / f"flip_vs_speed_{name}.png", rs,
+        plots.time_vs_viewers_plot(out / f"flip_vs_speed_{name}.png", rs,
                                 f"{name}: FLIP against camera speed ({cfg.width}x{cfg.height}, 60 Hz)",
                                 x="camera_speed", y="flip", ylabel="FLIP (lower is better)")
-        ex.time_vs_viewers_plot(out / f"time_vs_speed_{name}.png", rs,
+        plots.time_vs_viewers_plot(out / f"time_vs_speed_{name}.png", rs,
                                 f"{name}: time against camera speed ({cfg.width}x{cfg.height}, 60 Hz)",
                                 x="camera_speed")
     cols = [("scene", "scene"), ("method", "method"), ("camera_speed", "speed [x walk]"),

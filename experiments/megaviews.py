@@ -392,7 +392,7 @@ def _plots(out: Path, rows: list) -> None:
     import matplotlib.pyplot as plt
 
     from slc.core import io
-    from slc.run.experiment import place_labels
+    from slc.run.plots import place_labels
     for sweep, x, xl in [("views", "views", "views"), ("resolution", "resolution", "map resolution")]:
         fig, axs = plt.subplots(1, 2, figsize=(10, 4))
         marks = []

@@ -35,6 +35,7 @@ def add_arguments(p):
 
 def run(opts):
     from slc.run import experiment as ex
+    from slc.run import plots
     from slc.scene import views
 
     pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
@@ -51,7 +52,7 @@ def run(opts):
     out = Path(opts.out) / NAME
     for name in names:
         for rig in ("overlap", "random"):
-            ex.time_vs_viewers_plot(out / f"memory_{name}_{rig}.png",
+            plots.time_vs_viewers_plot(out / f"memory_{name}_{rig}.png",
                                     [r for r in rows if r["scene"] == name and r["rig"] == rig],
                                     f"{name}: memory, {rig} rig", y="memory_mb", ylabel="memory [MB]")
     cols = [("scene", "scene"), ("method", "method"), ("rig", "rig"), ("viewers", "viewers"),

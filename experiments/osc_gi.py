@@ -266,6 +266,7 @@ def _memory_scaling(s, resolutions, seed) -> list:
 def _scene(s, preset, cfg, specs, opts, out, bar, res) -> None:
     """Every part of the experiment on one scene; rows appended to ``res`` (a dict of lists)."""
     from slc.run import experiment
+    from slc.run import plots
     from slc import methods
     from slc.scene import views
     from slc.run.pipeline import run_sequence
@@ -292,14 +293,14 @@ def _scene(s, preset, cfg, specs, opts, out, bar, res) -> None:
     if opts.retime > 0 and srows:
         _retime(s, views.single(s), cfg, srows, opts, bar)
     for grp, what in (("full", "full light"), ("indirect", "indirect light")) if srows else ():
-        experiment.speed_error_plot(out / f"speed_error{'' if grp == 'full' else '_indirect'}_{s.name}.png", [
+        plots.speed_error_plot(out / f"speed_error{'' if grp == 'full' else '_indirect'}_{s.name}.png", [
             r for r in srows if r["group"] == grp], f"{s.name}: {what}, time vs FLIP ({W}x{H})")
     res["rows"] += srows
     if not opts.no_multi:
         multi = _multi_viewer(s, preset, cfg, opts.seed)
         res["multi"] += multi
         mw, mh = preset["multi_res"]
-        experiment.time_vs_viewers_plot(out / f"time_vs_viewers_{s.name}.png",
+        plots.time_vs_viewers_plot(out / f"time_vs_viewers_{s.name}.png",
                                         [r for r in multi if r["setting"] == "osc-gi" and r["rig"] == "fan"],
                                         f"{s.name}: osc-gi, {mw}x{mh} per viewer, overlap {preset['overlap']:.0%}")
     if not opts.no_memory and not opts.only_multi:

@@ -41,6 +41,7 @@ def add_arguments(p):
 def run(opts):
 
     from slc.run import experiment as ex
+    from slc.run import plots
     from slc.scene import views
     from slc.methods import parse_spec
     from slc.core.timing import stage_table
@@ -76,7 +77,7 @@ def run(opts):
             if o != r["overlap"] and parse_spec(r["setting"])[0] in CACHE_METHODS:
                 rows.append({**r, "overlap": o, "derived": True})
     for name in sorted({r["scene"] for r in rows}):
-        ex.time_vs_viewers_plot(out / f"time_vs_viewers_{name}.png", [r for r in rows if r["scene"] == name],
+        plots.time_vs_viewers_plot(out / f"time_vs_viewers_{name}.png", [r for r in rows if r["scene"] == name],
                                 f"{name}: controlled overlap ({cfg.width}x{cfg.height})",
                                 group=("method", "overlap"))
     md = [f"# {NAME}\n", f"{cfg.width}x{cfg.height}, {cfg.frames} frames ({cfg.warmup} warm-up); time = median "

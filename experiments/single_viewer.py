@@ -42,6 +42,7 @@ def run(opts) -> dict:
     from types import SimpleNamespace
 
     from slc.run import experiment as ex
+    from slc.run import plots
     from slc.scene import views
     from slc.run.pipeline import RunConfig
 
@@ -68,7 +69,7 @@ def run(opts) -> dict:
         row["family"] = row["method"].rstrip("0123456789") or row["method"]
     ex.add_startup(rows)
     for scene in dict.fromkeys(r["scene"] for r in rows):
-        ex.speed_error_plot(out / f"speed_error_{scene}.png", [r for r in rows if r["scene"] == scene],
+        plots.speed_error_plot(out / f"speed_error_{scene}.png", [r for r in rows if r["scene"] == scene],
                             f"{scene}: time vs FLIP ({cfg.width}x{cfg.height})")
 
     config = {"quick": bool(opts.quick), "scenes": names, "methods": method_specs,

@@ -32,6 +32,7 @@ def add_arguments(p):
 
 def run(opts):
     from slc.run import experiment as ex
+    from slc.run import plots
     from slc.scene import views
     from slc.core.timing import stage_table
 
@@ -46,7 +47,7 @@ def run(opts):
     rows = ex.add_startup(ex.run_per_scene(names, cases, cfg, NAME, opts.seed))
     out = Path(opts.out) / NAME
     for name in names:
-        ex.time_vs_viewers_plot(out / f"time_{name}.png", [r for r in rows if r["scene"] == name],
+        plots.time_vs_viewers_plot(out / f"time_{name}.png", [r for r in rows if r["scene"] == name],
                                 f"{name}: single viewers vs stereo pairs", group=("method", "rig"))
     md = ex.markdown_table(rows, STEADY_COLUMNS) + "\n\n## Targets (ratios measured in this run)\n\n"
     for name in names:

@@ -12,6 +12,7 @@ import pytest  # noqa: E402
 from matplotlib.text import Annotation, Text  # noqa: E402
 
 from slc.run import experiment as ex  # noqa: E402
+from slc.run import plots  # noqa: E402
 
 LONG = "osc-gi:direct=cache,texel_rays=32,n_max=8,secondary_scene=0,glossy_samples=8,secondary_cm=30,secondary_rays=32"
 
@@ -70,14 +71,14 @@ def speed_rows():
 
 
 def test_speed_error_plot_reads(tmp_path, figures):
-    ex.speed_error_plot(tmp_path / "se.png", speed_rows(), "cornell: full light, time vs FLIP (160x90)")
+    plots.speed_error_plot(tmp_path / "se.png", speed_rows(), "cornell: full light, time vs FLIP (160x90)")
     (fig,) = figures()
     assert layout_problems(fig) == []
     ax = fig.axes[0]
     assert ax.get_xscale() == "log"                     # 20 .. 1280 ms
     assert ax.get_position().width > 0.75               # the key of long settings sits under the axes
     texts = [t.get_text() for t in ax.texts]
-    assert max(len(t) for t in texts) <= ex.SHORT_NAME and "spp=64" in texts
+    assert max(len(t) for t in texts) <= plots.SHORT_NAME and "spp=64" in texts
     assert (tmp_path / "se.png").stat().st_size > 0
 
 
@@ -85,7 +86,7 @@ def test_speed_error_plot_names_points_by_what_differs(tmp_path, figures):
     rows = [dict(method="pt", label=f"pt:spp={n},output=indirect", family="pt", time_ms=2.0 * n, flip=0.3 / n ** 0.5)
             for n in (1, 2, 4, 8, 16)] + [dict(method="osc-gi", label="osc-gi:output=indirect", family="osc-gi",
                                                time_ms=40.0, flip=0.1)]
-    ex.speed_error_plot(tmp_path / "se.png", rows, "cornell: indirect light, time vs FLIP (64x36)")
+    plots.speed_error_plot(tmp_path / "se.png", rows, "cornell: indirect light, time vs FLIP (64x36)")
     (fig,) = figures()
     assert layout_problems(fig) == []
     ax = fig.axes[0]
@@ -96,7 +97,7 @@ def test_speed_error_plot_names_points_by_what_differs(tmp_path, figures):
 def test_speed_error_plot_linear_when_times_are_close(tmp_path, figures):
     rows = [dict(method=m, label=m, time_ms=t, flip=f) for m, t, f in
             [("rt16", 10.0, 0.2), ("rt48", 28.0, 0.12), ("slc", 12.0, 0.1), ("restir", 15.0, 0.11)]]
-    ex.speed_error_plot(tmp_path / "se.png", rows, "atrium: time vs FLIP (160x90)")
+    plots.speed_error_plot(tmp_path / "se.png", rows, "atrium: time vs FLIP (160x90)")
     (fig,) = figures()
     assert layout_problems(fig) == [] and fig.axes[0].get_xscale() == "linear"
 
@@ -105,7 +106,7 @@ def test_time_vs_viewers_plot_reads(tmp_path, figures):
     rows = [dict(method=m, overlap=o, viewers=n, time_ms=(5 if m == "slc" else 20) * n ** (0.5 if o else 1.0),
                  measured_overlap=100.0 * o * (n > 1)) for m in ("slc", "rt48", "restir")
             for o in (0.0, 0.5, 1.0) for n in (1, 4, 16)]
-    ex.time_vs_viewers_plot(tmp_path / "t.png", rows, "atrium: time against viewers (96x54, 24 frames)",
+    plots.time_vs_viewers_plot(tmp_path / "t.png", rows, "atrium: time against viewers (96x54, 24 frames)",
                             group=("method", "overlap"))
     (fig,) = figures()
     assert layout_problems(fig) == []
@@ -116,7 +117,7 @@ def test_metric_vs_value_plot_reads(tmp_path, figures):
     specs = ["rt48", "restir", "slc:max_cones=1", "slc:max_cones=2", "slc:max_cones=3", "slc:max_cones=4", "adaptive"]
     rows = [dict(method=s.split(":")[0], setting=s, lights=n, flip=0.1 + 0.01 * i, time_ms=10.0 + i * n)
             for i, s in enumerate(specs) for n in (3, 12, 24)]
-    ex.metric_vs_value_plot(tmp_path / "m.png", rows, "lights", "hangar: FLIP and time against the light count")
+    plots.metric_vs_value_plot(tmp_path / "m.png", rows, "lights", "hangar: FLIP and time against the light count")
     (fig,) = figures()
     assert layout_problems(fig) == []
 

@@ -9,6 +9,7 @@ from slc import methods
 from slc.scene import scenes, views
 from slc.scene.gbuffer import to_image
 from slc.reference.groundtruth import direct_mis
+from slc.reference.metrics import rel_mse
 from slc.methods import FrameContext, MethodError
 from slc.run.pipeline import gbuffers_for
 from slc.scene.scenes import Camera, SceneBuilder, diffuse, translate
@@ -44,13 +45,14 @@ def run_frames(method, scene, viewers, frames, width=W, height=H, gbs=None):
 
 @pytest.mark.slow
 def test_converges_to_ground_truth(cornell, cornell_static):
-    """Static scene, bias=basic: the mean over pixels of the 16-frame average
+    """Static scene, bias=basic and pairwise (default): the mean over pixels of the 16-frame average
     is within 3% of the 2048-spp ground truth without initial visibility
     (where basic 1/Z weights are unbiased), within 5% with RTXDI's initial
     visibility (known slight darkening: occluded initial samples keep their
     M). The frame average is also closer per pixel than a single frame."""
     gbs, gt = cornell_static
-    for spec, tol in (("restir:bias=basic,visibility=0", 0.03), ("restir:bias=basic", 0.05)):
+    for spec, tol in (("restir:bias=basic,visibility=0", 0.03), ("restir:bias=basic", 0.05),
+                      ("restir:visibility=0", 0.03), ("restir", 0.05)):
         m = methods.create(spec, cornell, seed=3)
         imgs = run_frames(m, cornell, None, 16, gbs=gbs)
         assert all(np.isfinite(i).all() for i in imgs)
@@ -213,7 +215,7 @@ def test_settings_and_presets(cornell):
     f = methods.create("restir:preset=falcor", cornell)
     assert (f.n_local, f.n_env, f.n_bsdf) == (24, 8, 1)
     d = methods.create("restir", cornell)
-    assert (d.n_local, d.n_env, d.n_bsdf, d.spatial, d.mcap, d.bias) == (8, 1, 1, 1, 20.0, "basic")
+    assert (d.n_local, d.n_env, d.n_bsdf, d.spatial, d.mcap, d.bias) == (8, 1, 1, 1, 20.0, "pairwise")
     c = methods.create("restir:local=16,bsdf=1,spatial=5,bias=off", cornell)
     assert (c.n_local, c.spatial, c.bias) == (16, 5, "off")
     for bad in ("restir:bias=maybe", "restir:preset=nope", "restir:foo=1"):
@@ -366,3 +368,39 @@ def test_envmap_light_against_ground_truth():
     v = np.array(gbs[0].valid)
     avg = independent_runs("restir:temporal=0,spatial=0", sc, gbs, range(16)).mean(axis=0)
     assert abs(avg[v].mean() / gt[v].mean() - 1) < 0.03, (avg[v].mean(), gt[v].mean())
+
+
+# ---------------------------------------------------------------- glossy plates, lights of very different sizes
+
+SPHERES_FRAMES = 12
+
+
+@pytest.fixture(scope="module")
+def spheres_static():
+    """The spheres scene (four spherical lights, radii 0.03-1 m, radiances
+    1-1e4, over glossy plates), its first camera held still at 96x54, and
+    the 2048-sample direct-illumination reference."""
+    sc = scenes.load("spheres")
+    gbs = gbuffers_for(sc, views.single(sc), 0, 96, 54)
+    return sc, gbs, to_image(gbs[0], direct_mis(sc.mi_scene, gbs[0], 2048))
+
+
+def spheres_rel_mse(spec, spheres_static, seed=1):
+    """relMSE against the reference of the last of SPHERES_FRAMES frames."""
+    sc, gbs, gt = spheres_static
+    img = run_frames(methods.create(spec, sc, seed=seed), sc, None, SPHERES_FRAMES, gbs=gbs)[-1]
+    assert np.isfinite(img).all()
+    return rel_mse(gt, img)
+
+
+def test_glossy_plates_and_small_bright_lights(spheres_static):
+    """Reuse on glossy plates lit by small, very bright lights: a neighbour's
+    sample that its own target rates low must not get a large weight where
+    the current target is large (the 1/Z weights of bias=basic give such
+    samples p_c(y) W M and leave bright blotches). restir's relMSE after
+    12 frames is below 0.05 and below 0.8x rt-48's in the same run
+    (measured: restir 0.022, rt-48 0.036; bias=basic 0.147, bias=off 0.146)."""
+    rt = spheres_rel_mse("rt48", spheres_static)
+    rs = spheres_rel_mse("restir", spheres_static)
+    assert rs < 0.05, (rs, rt)
+    assert rs < 0.8 * rt, (rs, rt)

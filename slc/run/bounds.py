@@ -42,7 +42,7 @@ from slc.run.experiment import release_scenes
 from slc.run.pipeline import RunConfig, run_sequence
 from slc.scene import scenes, views
 
-TABLE = Path(__file__).resolve().parents[1] / "tests" / "data" / "error_bounds.json"
+TABLE = Path(__file__).resolve().parents[2] / "tests" / "data" / "error_bounds.json"
 TOLERANCE = 0.10
 FIGURES = ("flip", "rel_mse")
 
@@ -51,6 +51,7 @@ SCENES = {
     "cornell": "closed box, one square ceiling light, a glossy and a diffuse block",
     "atrium": "large court, three small round lamps and one large light, colonnades",
     "village": "glossy slate and iron under a 10 m moon far away and 8 cm torches close by",
+    "spheres": "dark room, four spherical lights (radii 0.03-1 m, radiances 1-1e4) over glossy plates",
 }
 
 # the VPL methods with 1024 VPLs and depth-5 hierarchies (the defaults, 4096 VPLs and depth 7,

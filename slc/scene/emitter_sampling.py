@@ -69,7 +69,7 @@ def alias_table(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.clip(q, 0.0, 1.0), alias
 
 
-def _rgb(value) -> np.ndarray | None:
+def constant_rgb(value) -> np.ndarray | None:
     """A constant texture value (Float or Color3f parameter) as RGB, or None."""
     try:
         a = np.array(value, np.float64).ravel()
@@ -165,7 +165,7 @@ class EmitterSampler:
         cls = e.class_name()
         params = mi.traverse(e)
         if cls == "AreaLight" and "radiance.value" in params.keys():
-            L = _rgb(params["radiance.value"])
+            L = constant_rgb(params["radiance.value"])
             sh = e.get_shape()
             sh = self._shapes.get(i, sh) if sh is not None else None
             if L is not None and sh is not None:
@@ -205,7 +205,7 @@ class EmitterSampler:
                     A = float(area.sum())
                     return MESH, L, dict(p0=p0, e0=e0, e1=e1, n=n, area=area, A=A), math.pi * _luminance(L) * A
         if cls == "PointLight" and "intensity.value" in params.keys():
-            I = _rgb(params["intensity.value"])
+            I = constant_rgb(params["intensity.value"])
             if I is not None:
                 pos = np.array(params["position"], np.float64).ravel()
                 return POINT, I, dict(p0=pos[None]), 4.0 * math.pi * _luminance(I)

@@ -19,6 +19,7 @@ from slc.methods.cones.update import (ConeParams, CycleEntries, empty_state, end
                             light_inputs, update_cycle)
 from slc.core.freeze import FrozenFunction
 from slc.methods.adaptive.sampling import LightStats, lum
+from slc.methods.adaptive.visibility import light_tables, sampler_inputs
 
 CONVERT_COUNT = 4.0     # C of a record converted from another representation: new samples take over fast
 
@@ -45,7 +46,7 @@ class ConesUpdate(FrozenFunction):
     packing, the light statistics) cost ~45 ms of Python per frame on the
     atrium whatever the number of entries. Inputs: the scene, the emitter
     tables' arrays (the light sampler's, :func:`slc.methods.cones.update.light_inputs`,
-    and the statistics' :func:`~slc.methods.adaptive.visibility._sampler_inputs`), the
+    and the statistics' :func:`~slc.methods.adaptive.visibility.sampler_inputs`), the
     sphere and region tables, the entries' records and interactions, and the
     frame as an opaque ``mi.UInt32`` (a new frame is no new recording). The
     cone parameters, ``seed``, ``sph`` and ``env`` are fixed per instance.
@@ -70,11 +71,10 @@ class ConesUpdate(FrozenFunction):
                                 "on"))     # per entry (slc.core.freeze)
 
     def __call__(self, scene, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame: int):
-        from slc.methods.adaptive.visibility import _sampler_inputs, _tables
         lights = light_inputs(scene)
         if self.sph is not None or self.env is not None:
-            lights = lights + _sampler_inputs(scene)
-        return super().__call__(scene, lights, _tables(self.sph, self.env), [mi.UInt32(w) for w in rec], si,
+            lights = lights + sampler_inputs(scene)
+        return super().__call__(scene, lights, light_tables(self.sph, self.env), [mi.UInt32(w) for w in rec], si,
                                 mi.UInt32(key), mi.UInt32(rays), mi.Bool(unsettled), mi.Bool(moving),
                                 mi.UInt32(first_sample), mi.Bool(fresh), mi.Bool(on), frame_u32(frame))
 

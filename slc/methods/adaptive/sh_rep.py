@@ -30,13 +30,14 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.core.freeze import FrozenFunction
-from slc.core.keys import STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng, mixed_rng
+from slc.core.keys import STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng, mixed_rng, stream_key
 from slc.methods.sh.basis import C1, band_of, basis
 from slc.methods.sh.project import irradiance, radiance
 from slc.methods.sh.shading import shade_radiance
 from slc.methods.sh.update import project_samples, running_mean
 from slc.methods.sh.ycocg import encoding as get_encoding
 from slc.methods.adaptive.sampling import LightStats
+from slc.methods.adaptive.visibility import light_tables, sampler_inputs
 
 CONVERT_COUNT = 4.0
 
@@ -81,7 +82,7 @@ class SHUpdate(FrozenFunction):
     :class:`~slc.methods.adaptive.cones_rep.ConesUpdate`): tracing the SH update (the
     sample loop, the projection on the encoding's basis) was Python work on
     every frame. Inputs: the scene, the emitter table's arrays
-    (:func:`~slc.methods.adaptive.visibility._sampler_inputs`), the sphere and region
+    (:func:`~slc.methods.adaptive.visibility.sampler_inputs`), the sphere and region
     tables, the entries' records and interactions, and the random streams' mix
     (opaque: a new frame is no new recording). The encoding, ``seed``,
     ``max_count``, ``sph`` and ``env`` are fixed per instance. Unfrozen in
@@ -105,9 +106,7 @@ class SHUpdate(FrozenFunction):
                          lanes=("rec", "si", "key", "rays", "fresh", "on"))     # per entry (slc.core.freeze)
 
     def __call__(self, scene, rec, si, key, rays, fresh, on, frame: int):
-        from slc.core.keys import stream_key
-        from slc.methods.adaptive.visibility import _sampler_inputs, _tables
-        return super().__call__(scene, _sampler_inputs(scene), _tables(self.sph, self.env),
+        return super().__call__(scene, sampler_inputs(scene), light_tables(self.sph, self.env),
                                 [mi.UInt32(w) for w in rec], si, mi.UInt32(key), mi.UInt32(rays), mi.Bool(fresh),
                                 mi.Bool(on), stream_key(self.seed, frame, STREAM_SH_UPDATE))
 

@@ -37,7 +37,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from slc.scene.emitter_sampling import _rgb   # a constant radiance value as RGB, or None
+from slc.scene.emitter_sampling import constant_rgb   # a constant radiance value as RGB, or None
 
 SHELL = 0.9           # a mesh is a sphere when min / max vertex distance from its centre >= SHELL
 MIN_VERTICES = 12     # ... and its bounding box is a cube (within SHELL) with at least this many vertices
@@ -71,7 +71,7 @@ class SphereLights:
             params = mi.traverse(e)
             if "radiance.value" not in params.keys():
                 continue
-            L = _rgb(params["radiance.value"])
+            L = constant_rgb(params["radiance.value"])
             sh = e.get_shape()
             sh = by_emitter.get(id(e), sh) if sh is not None else None
             if L is None or sh is None:

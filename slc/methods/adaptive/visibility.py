@@ -52,9 +52,9 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from slc.methods.cones.packing import _Reader, _Writer, decode_radiance, encode_radiance
+from slc.methods.cones.packing import WordReader, WordWriter, decode_radiance, encode_radiance
 from slc.core.freeze import FrozenFunction
-from slc.core.keys import keyed_rng, mixed_rng
+from slc.core.keys import keyed_rng, mixed_rng, stream_key
 from slc.methods.adaptive.sampling import LightStats, SampleStats, lum, sampler_of
 
 EMPTY = 0xFFFF
@@ -110,7 +110,7 @@ def unpack(w, K: int, env: bool = False) -> Record:
     idx = [w[i] & 0xFFFF for i in range(K)]
     vis = [mi.Float((w[i] >> 16) & 0xFF) * (1.0 / 255.0) for i in range(K)]
     cnt = [(w[i] >> 24) & 0xF for i in range(K)]
-    rd = _Reader([w[K], w[K + 1]])
+    rd = WordReader([w[K], w[K + 1]])
     E = mi.Color3f(*[decode_radiance(rd.get(18)) for _ in range(3)])
     C = mi.Float(rd.get(8))
     if env:
@@ -126,7 +126,7 @@ def pack(r: Record, K: int, env: bool = False):
     for i in range(K):
         v = mi.UInt32(dr.clip(dr.round(r.vis[i] * 255.0), 0.0, 255.0))
         out.append((mi.UInt32(r.idx[i]) & 0xFFFF) | (v << 16) | (dr.minimum(mi.UInt32(r.cnt[i]), 15) << 24))
-    wr = _Writer(2)
+    wr = WordWriter(2)
     for ch in range(3):
         wr.put(encode_radiance(r.E[ch]), 18)
     wr.put(mi.UInt32(dr.clip(dr.round(r.C), 0.0, 255.0)), 8)
@@ -429,10 +429,10 @@ class VisShading(FrozenFunction):
 
     def __call__(self, rec, active, si, scene) -> mi.Color3f:
         return super().__call__([mi.UInt32(w) for w in rec], mi.Bool(active), si, si.bsdf(), scene,
-                                _tables(self.sph, self.env))
+                                light_tables(self.sph, self.env))
 
 
-def _tables(sph, env) -> list:
+def light_tables(sph, env) -> list:
     """The sphere and region tables' arrays (declared as inputs of a frozen function)."""
     out = []
     if env is not None:
@@ -442,7 +442,7 @@ def _tables(sph, env) -> list:
     return out
 
 
-def _sampler_inputs(scene) -> list:
+def sampler_inputs(scene) -> list:
     """Every Dr.Jit array of the scene's emitter table (:func:`sampling.sampler_of`,
     which the update uses whatever ``SLC_EMITTER_SAMPLING`` says, with its
     emitter index map): declared as inputs of the frozen update."""
@@ -462,7 +462,7 @@ class VisUpdate(FrozenFunction):
     """:func:`update` traced once and replayed (``dr.freeze``, as ``slc``'s
     :class:`slc.methods.cones.update.ConeUpdate`): tracing the update (the sample loop
     with its K unrolled slots) cost more host time than its kernel. Inputs:
-    the scene, the emitter table's arrays (:func:`_sampler_inputs`),
+    the scene, the emitter table's arrays (:func:`sampler_inputs`),
     the sphere and region tables, the entries' records and interactions, and
     the random streams' mix (opaque: a new frame is no new recording). ``K``,
     ``seed``, ``sph`` and ``env`` are fixed per instance. Unfrozen in animated
@@ -480,7 +480,6 @@ class VisUpdate(FrozenFunction):
                          lanes=("rec", "si", "key", "rays", "moving", "fresh", "on"))     # per entry (slc.core.freeze)
 
     def __call__(self, scene, rec, si, key, rays, moving, fresh, on, frame: int):
-        from slc.core.keys import stream_key
-        return super().__call__(scene, _sampler_inputs(scene), _tables(self.sph, self.env), [mi.UInt32(w) for w in rec],
+        return super().__call__(scene, sampler_inputs(scene), light_tables(self.sph, self.env), [mi.UInt32(w) for w in rec],
                                 si, mi.UInt32(key), mi.UInt32(rays), mi.Bool(moving), mi.Bool(fresh), mi.Bool(on),
                                 stream_key(self.seed, frame, STREAM_VIS))

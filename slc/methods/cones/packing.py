@@ -151,7 +151,7 @@ RAD_REL_ERR = 2.0 ** -(RAD_MAN_BITS + 1)
 
 # ----------------------------------------------------------------------------- bit streams
 
-class _Writer:
+class WordWriter:
     def __init__(self, n_words: int):
         self.words = [mi.UInt32(0) for _ in range(n_words)]
         self.off = 0
@@ -165,7 +165,7 @@ class _Writer:
         self.off += width
 
 
-class _Reader:
+class WordReader:
     def __init__(self, words):
         self.words = words
         self.off = 0
@@ -183,7 +183,7 @@ def pack(D, alpha, L, C, count, max_cones: int):
     """Pack cone arrays (lists of length max_cones: mi.Vector3f local directions,
     mi.Float angles, mi.Color3f radiance), C (mi.Float) and count (mi.UInt32)
     into a list of ``words_per_entry(max_cones)`` mi.UInt32 arrays."""
-    wr = _Writer(words_per_entry(max_cones))
+    wr = WordWriter(words_per_entry(max_cones))
     for i in range(max_cones):
         th, ph = dir_to_sph(D[i])
         wr.put(f32_to_f16_bits(th), 16)
@@ -199,7 +199,7 @@ def pack(D, alpha, L, C, count, max_cones: int):
 
 def unpack(words, max_cones: int):
     """Inverse of :func:`pack`: (D, alpha, L, C, count)."""
-    rd = _Reader(words)
+    rd = WordReader(words)
     D, A, L = [], [], []
     for i in range(max_cones):
         th = f16_bits_to_f32(rd.get(16))

@@ -7,5 +7,5 @@ queries), :mod:`.vpl` (instant radiosity: VPLs, gathering, bilateral
 filter), :mod:`.method` (the registered methods). See ``docs/megaviews.md``.
 
 The methods are registered by :mod:`.method` (found by convention, like
-every ``slc/<package>/method.py``).
+every ``slc/methods/<folder>/method.py``).
 """

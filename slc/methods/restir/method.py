@@ -13,7 +13,6 @@ from neighbouring pixels, and final shading with one shadow ray.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
@@ -21,6 +20,8 @@ import numpy as np
 
 from slc.scene.lights import rng, sampler as light_table
 from slc.methods import Method, MethodError, Param, register
+from slc.methods.restir.pairwise import spatial_pairwise
+from slc.methods.restir.reservoir import Reservoir, Stream, share
 
 # Emitter kinds (the measure in which a stored sample lives)
 AREA, DELTA_POS, INFINITE = 0, 1, 2
@@ -37,56 +38,6 @@ PRESETS = {
     "rtxdi": dict(local=8, env=1, bsdf=1),
     "falcor": dict(local=24, env=8, bsdf=1),
 }
-
-
-@dataclass
-class Reservoir:
-    """Per-pixel reservoirs (structure of arrays).
-
-    ``y``: point on a local light (area or point/spot), or the world
-    direction towards an infinite light (environment, directional);
-    ``n``: light surface normal (area lights); ``light``: index into
-    ``scene.emitters()``; ``W``: unbiased contribution weight; ``M``:
-    confidence (number of candidates the reservoir stands for)."""
-    y: mi.Point3f = field(default_factory=mi.Point3f)
-    n: mi.Vector3f = field(default_factory=mi.Vector3f)
-    light: mi.UInt32 = field(default_factory=mi.UInt32)
-    W: mi.Float = field(default_factory=mi.Float)
-    M: mi.Float = field(default_factory=mi.Float)
-    DRJIT_STRUCT = {"y": mi.Point3f, "n": mi.Vector3f, "light": mi.UInt32, "W": mi.Float, "M": mi.Float}
-
-
-class _Stream:
-    """A reservoir being filled by weighted streaming selection: the
-    selected candidate sample (``y``, ``n``, ``light``), its target value
-    ``p_hat`` at the reservoir's own shading point and the running weight
-    sum ``w_sum`` (loop state of the candidate and resampling loops)."""
-    DRJIT_STRUCT = {"y": mi.Point3f, "n": mi.Vector3f, "light": mi.UInt32, "p_hat": mi.Float, "w_sum": mi.Float}
-
-    def __init__(self, n: int = 0):
-        self.y = dr.zeros(mi.Point3f, n)
-        self.n = dr.zeros(mi.Vector3f, n)
-        self.light = dr.zeros(mi.UInt32, n)
-        self.p_hat = dr.zeros(mi.Float, n)
-        self.w_sum = dr.zeros(mi.Float, n)
-
-    def update(self, y, n, light, p_hat, w, u, active):
-        """Add one candidate of resampling weight ``w`` (selection by ``u``)."""
-        w = dr.select(active & (w > 0.0) & dr.isfinite(w), w, 0.0)
-        self.w_sum += w
-        take = (w > 0.0) & (u * self.w_sum < w)
-        self.y = dr.select(take, y, self.y)
-        self.n = dr.select(take, n, self.n)
-        self.light = dr.select(take, light, self.light)
-        self.p_hat = dr.select(take, p_hat, self.p_hat)
-
-    def finalize(self, Z, M, valid) -> Reservoir:
-        """W = w_sum / (Z p_hat(y)), every division guarded."""
-        ok = valid & (self.p_hat > 0.0) & (Z > 0.0) & (self.w_sum > 0.0)
-        W = dr.select(ok, self.w_sum / dr.select(ok, Z * self.p_hat, 1.0), 0.0)
-        W = dr.select(dr.isfinite(W), W, 0.0)
-        return Reservoir(mi.Point3f(self.y), mi.Vector3f(self.n), mi.UInt32(self.light), W,
-                         dr.select(valid, M, 0.0))
 
 
 class ReSTIR(Method):
@@ -125,20 +76,26 @@ class ReSTIR(Method):
        in a disk of ``radius`` pixels at 1080p, scaled by height/1080 (at
        least 2 px), same depth/normal tests; pixels whose temporal reuse
        failed take ``max(spatial, boost)`` neighbours (RTXDI's disocclusion
-       boost). Two symbolic loops over the per-pixel count (at most 32):
-       resampling, then Z over the accepted neighbours (RTXDI's bit mask).
+       boost). Two symbolic loops over the per-pixel count (at most 32)
+       with the neighbours recorded in a bit mask (as RTXDI).
     4. *shade*: one shadow ray to the final sample.
 
-    Bias correction ``bias``: ``off`` (Z = sum of M, biased where
-    neighbours differ), ``basic`` (Z = sum of the M of reservoirs whose
-    surface has :math:`\hat p(y) > 0`, the 1/Z weights of Bitterli et al.,
-    no visibility). Pairwise MIS and ray-traced bias correction are not
+    Reuse weights ``bias``: ``pairwise`` (default; pairwise MIS, M-weighted,
+    see :func:`slc.methods.restir.pairwise.spatial_pairwise`; in the temporal pass the balance
+    heuristic of the two reservoirs), ``basic`` (1/Z with Z = sum of the M
+    of reservoirs whose surface has :math:`\hat p(y) > 0`, Bitterli et
+    al.'s weights, no visibility) or ``off`` (Z = sum of M, biased where
+    neighbours differ). ``pairwise`` and ``basic`` are unbiased for the
+    unshadowed target; ``basic`` weighs a neighbour's sample by
+    :math:`\hat p_c(y) W M`, which grows without bound where the current
+    target exceeds the neighbour's (glossy lobes, small bright lights: bright
+    blotches), pairwise MIS does not. Ray-traced bias correction is not
     implemented (a shadow-ray test in Z is inconsistent with the unshadowed
     target, see ``docs/restir.md``).
 
     The defaults are RTXDI's library defaults (``spatial=5`` is the other
-    usual setting); ``preset=falcor`` sets 24 local / 8 environment / 1 BSDF
-    candidates.
+    usual setting) except the reuse weights; ``preset=falcor`` sets 24
+    local / 8 environment / 1 BSDF candidates.
 
     Memory: per viewer and pixel two reservoir buffers (history and
     working, 36 bytes each) and the previous surface (28 bytes):
@@ -163,8 +120,9 @@ class ReSTIR(Method):
         Param("spatial", 1, "spatial neighbours", lo=0, hi=MAX_NEIGHBOURS),
         Param("radius", 32.0, "spatial radius in pixels at 1080p (scaled)", lo=0.0),
         Param("boost", 8, "spatial neighbours where history was rejected", lo=0, hi=MAX_NEIGHBOURS),
-        Param("bias", "basic", "bias correction (pairwise and ray-traced are not implemented)",
-              choices=("off", "basic")),
+        Param("bias", "pairwise", "reuse weights: pairwise (pairwise MIS), basic (1/Z over the reservoirs "
+              "whose target is non-zero) or off (1/sum M, biased); ray-traced is not implemented",
+              choices=("off", "basic", "pairwise")),
         Param("visibility", 1, "final visibility ray on/off", lo=0, hi=1),
     )
 
@@ -250,7 +208,7 @@ class ReSTIR(Method):
         d = dr.select(inf, mi.Vector3f(y), to / dr.select(dist > 0.0, dist, 1.0))
         return d, dist, kind
 
-    def _eval(self, si, bsdf, y, n, light, active, with_pdf: bool = False):
+    def evaluate(self, si, bsdf, y, n, light, active, with_pdf: bool = False):
         """Unshadowed contribution f_r L_e G of stored samples at ``si``:
         (colour, p_hat = luminance, world direction, distance, kind,
         DirectionSample3f), plus the BSDF's solid-angle pdf of the direction
@@ -344,12 +302,12 @@ class ReSTIR(Method):
         bsdf = si.bsdf()
         ctx = mi.BSDFContext()
         sampler = rng(n, seed, stream=11)
-        res = _Stream(n)
+        res = Stream(n)
         if self._table is not None:
             self._table.refresh()   # animated emissive meshes
 
-        def add(res, y, nrm, light, ok, u_sel, p_dir=None):
-            _, p_hat, d, dist, kind, ds, p_bsdf = self._eval(si, bsdf, y, nrm, light, ok, with_pdf=True)
+        def add(y, nrm, light, ok, u_sel, p_dir=None):
+            _, p_hat, d, dist, kind, ds, p_bsdf = self.evaluate(si, bsdf, y, nrm, light, ok, with_pdf=True)
             denom = self._pdf_sum(si, bsdf, light, kind, d, dist, nrm, ds, ok & (p_hat > 0.0),
                                   p_dir=p_dir, p_bsdf=p_bsdf)
             good = ok & (p_hat > 0.0) & (denom > 0.0)
@@ -359,27 +317,30 @@ class ReSTIR(Method):
         # ---------------- Local-light candidates (symbolic loop) ----------------
         if self._L and self.n_local:
             n_local = dr.opaque(mi.UInt32, self.n_local)
+            state = (mi.UInt32(0), res.y, res.n, res.light, res.p_hat, res.w_sum, sampler)
 
-            def cond(i, res, smp):
+            def cond(i, *_):
                 return i < n_local
 
-            def body(i, res, smp):
+            def body(i, y_, n_, l_, p_, w_, smp):
+                res.y, res.n, res.light, res.p_hat, res.w_sum = y_, n_, l_, p_, w_
                 if self._table is not None:
                     u = mi.Point2f(smp.next_float32(), smp.next_float32())
                     ds, _, ok, light = self._table.sample(si, u, active)
-                    add(res, mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32())
-                    return i + 1, res, smp
+                    add(mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32())
+                    return i + 1, res.y, res.n, res.light, res.p_hat, res.w_sum, smp
                 k = dr.minimum(mi.UInt32(smp.next_float32() * self._L), self._L - 1)
                 light = dr.gather(mi.UInt32, self._local, k, active)
                 em = dr.gather(mi.EmitterPtr, self._emitters, light, active)
                 u = mi.Point2f(smp.next_float32(), smp.next_float32())
                 ds, _ = em.sample_direction(si, u, active)
                 ok = active & (ds.pdf > 0.0)
-                add(res, mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32(), p_dir=ds.pdf)
-                return i + 1, res, smp
+                add(mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32(), p_dir=ds.pdf)
+                return i + 1, res.y, res.n, res.light, res.p_hat, res.w_sum, smp
 
-            _, res, sampler = dr.while_loop(state=(mi.UInt32(0), res, sampler), cond=cond, body=body,
-                                            labels=("i", "reservoir", "sampler"))
+            out = dr.while_loop(state=state, cond=cond, body=body,
+                                labels=("i", "y", "n", "light", "p_hat", "w_sum", "sampler"))
+            _, res.y, res.n, res.light, res.p_hat, res.w_sum, sampler = out
 
         # ---------------- Environment candidates ----------------
         if self._E and self.n_env:
@@ -390,7 +351,7 @@ class ReSTIR(Method):
                 u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
                 ds, _ = em.sample_direction(si, u, active)
                 ok = active & (ds.pdf > 0.0)
-                add(res, mi.Point3f(ds.d), dr.zeros(mi.Vector3f, n), light, ok, sampler.next_float32(), p_dir=ds.pdf)
+                add(mi.Point3f(ds.d), dr.zeros(mi.Vector3f, n), light, ok, sampler.next_float32(), p_dir=ds.pdf)
 
         # ---------------- BSDF candidates ----------------
         for _ in range(self.n_bsdf):
@@ -414,7 +375,7 @@ class ReSTIR(Method):
                 cand = hit_em | miss
             else:
                 cand = hit_em
-            add(res, y, nrm, light, cand, sampler.next_float32())
+            add(y, nrm, light, cand, sampler.next_float32())
 
         # ---------------- Finalize (M = 1) and initial visibility ----------------
         r = res.finalize(mi.Float(1.0), mi.Float(1.0), active)
@@ -460,11 +421,22 @@ class ReSTIR(Method):
         M_p = dr.select(ok, dr.minimum(rp.M, self.mcap), 0.0)
 
         # ---------------- Resampling: current + history ----------------
-        st = _Stream(n)
-        st.update(r.y, r.n, r.light, p_cur, p_cur * r.W * r.M, sampler.next_float32(), active)
-        _, p_here, _, _, _, _ = self._eval(si, bsdf, rp.y, rp.n, rp.light, ok & (rp.W > 0.0))
-        st.update(rp.y, rp.n, rp.light, p_here, p_here * rp.W * M_p, sampler.next_float32(), ok)
+        st = Stream(n)
         M = r.M + M_p
+        _, p_here, _, _, _, _ = self.evaluate(si, bsdf, rp.y, rp.n, rp.light, ok & (rp.W > 0.0))
+        if self.bias == "pairwise":
+            # balance heuristic over the two reservoirs' targets, weighted by their M:
+            # m_c(y) = M_c p_c(y) / (M_c p_c(y) + M_p p_p(y)), m_p(y) = 1 - m_c(y)
+            bsdf_p = si_p.bsdf()
+            _, p_pp, _, _, _, _ = self.evaluate(si_p, bsdf_p, rp.y, rp.n, rp.light, ok & (rp.W > 0.0))
+            _, p_pc, _, _, _, _ = self.evaluate(si_p, bsdf_p, r.y, r.n, r.light, ok & (r.W > 0.0))
+            m_c = share(r.M * p_cur, dr.select(ok, M_p * p_pc, 0.0))
+            m_p = share(M_p * p_pp, r.M * p_here)
+            st.update(r.y, r.n, r.light, p_cur, m_c * p_cur * r.W, sampler.next_float32(), active)
+            st.update(rp.y, rp.n, rp.light, p_here, m_p * p_here * rp.W, sampler.next_float32(), ok)
+            return st.finalize(mi.Float(1.0), M, active), ok, st.p_hat
+        st.update(r.y, r.n, r.light, p_cur, p_cur * r.W * r.M, sampler.next_float32(), active)
+        st.update(rp.y, rp.n, rp.light, p_here, p_here * rp.W * M_p, sampler.next_float32(), ok)
 
         # ---------------- Bias correction ----------------
         if self.bias == "off":
@@ -474,13 +446,13 @@ class ReSTIR(Method):
             bsdf_p = si_p.bsdf()
             # only where a sample was selected (W = 0 otherwise, whatever Z)
             sel = ok & (st.p_hat > 0.0) & (st.w_sum > 0.0)
-            _, p_prev, _, _, _, _ = self._eval(si_p, bsdf_p, st.y, st.n, st.light, sel)
+            _, p_prev, _, _, _, _ = self.evaluate(si_p, bsdf_p, st.y, st.n, st.light, sel)
             Z += dr.select(sel & (p_prev > 0.0), M_p, 0.0)
         return st.finalize(Z, M, active), ok, st.p_hat
 
     # ------------------------------ Stage 3: spatial ------------------------------
 
-    def _neighbour(self, smp, x0, y0, R: float, W_: int, H_: int):
+    def neighbour(self, smp, x0, y0, R: float, W_: int, H_: int):
         """Next neighbour of the sequence ``smp``: a pixel uniform in the disk
         of radius ``R`` around (x0, y0), rounded; (index, in-bounds mask).
         The pixel itself does not count as a neighbour."""
@@ -495,7 +467,8 @@ class ReSTIR(Method):
     def spatial_reuse(self, gb, r: Reservoir, p_cur, reused, seed: int):
         """Merge neighbours' reservoirs (read from the temporal output ``r``).
 
-        Two symbolic loops over a per-pixel neighbour count ``k``: the first
+        Two symbolic loops over a per-pixel neighbour count ``k``. With
+        ``bias=pairwise`` see :func:`slc.methods.restir.pairwise.spatial_pairwise`. Otherwise the first
         resamples and records the accepted neighbours in a bit mask, the
         second (``bias=basic``) replays the same neighbour sequence up to
         the last accepted one and sums Z over the accepted neighbours whose
@@ -505,9 +478,7 @@ class ReSTIR(Method):
         bsdf = si.bsdf()
         W_, H_ = gb.width, gb.height
         R = max(self.radius * H_ / 1080.0, 2.0)
-        idx = dr.arange(mi.UInt32, n)
-        x0, y0 = mi.Int32(idx % W_), mi.Int32(idx // W_)
-        depth0, n0 = gb.depth, mi.Vector3f(si.sh_frame.n)
+        x0, y0 = self.pixel_xy(n, W_)
 
         # ---------------- Per-pixel neighbour count ----------------
         # spatial everywhere; max(spatial, boost) where temporal history was
@@ -516,29 +487,30 @@ class ReSTIR(Method):
         if self.temporal and self.boost > self.spatial:
             k = dr.select(reused, k, self.boost)
         k = dr.select(active, k, 0)
+        if self.bias == "pairwise":
+            return spatial_pairwise(self, gb, r, p_cur, k, R, seed)
 
         # ---------------- Pass 1: resampling self + neighbours ----------------
         sel = rng(n, seed, stream=14)
-        st = _Stream(n)
+        st = Stream(n)
         st.update(r.y, r.n, r.light, p_cur, p_cur * r.W * r.M, sel.next_float32(), active)
         M = mi.Float(r.M)
-        state = (mi.UInt32(0), rng(n, seed, stream=13), sel, st, M, mi.UInt32(0))
+        state = (mi.UInt32(0), rng(n, seed, stream=13), sel, st.y, st.n, st.light, st.p_hat, st.w_sum,
+                 M, mi.UInt32(0))
 
-        def body(i, smp, sel, st, M, used):
-            q, ok = self._neighbour(smp, x0, y0, R, W_, H_)
-            ok &= dr.gather(mi.Bool, gb.valid, q, ok)
-            ok &= self._similar(n0, dr.gather(mi.Vector3f, n0, q, ok), depth0, dr.gather(mi.Float, gb.depth, q, ok))
-            rq = dr.gather(Reservoir, r, q, ok)
-            ok &= rq.M > 0.0
+        def body(i, smp, sel, y, nrm, light, p_hat, w_sum, M, used):
+            st.y, st.n, st.light, st.p_hat, st.w_sum = y, nrm, light, p_hat, w_sum
+            q, ok, rq = self.accepted_neighbour(smp, gb, r, R)
             # the target is only needed for a non-zero resampling weight; M counts regardless
-            _, p_here, _, _, _, _ = self._eval(si, bsdf, rq.y, rq.n, rq.light, ok & (rq.W > 0.0))
+            _, p_here, _, _, _, _ = self.evaluate(si, bsdf, rq.y, rq.n, rq.light, ok & (rq.W > 0.0))
             st.update(rq.y, rq.n, rq.light, p_here, p_here * rq.W * rq.M, sel.next_float32(), ok)
             M = M + dr.select(ok, rq.M, 0.0)
             used = used | dr.select(ok, mi.UInt32(1) << i, 0)
-            return i + 1, smp, sel, st, M, used
+            return i + 1, smp, sel, st.y, st.n, st.light, st.p_hat, st.w_sum, M, used
 
-        _, _, _, st, M, used = dr.while_loop(state=state, cond=lambda i, *_: i < k, body=body,
-                                             labels=("i", "smp", "sel", "reservoir", "M", "used"))
+        out = dr.while_loop(state=state, cond=lambda i, *_: i < k, body=body,
+                            labels=("i", "smp", "sel", "y", "n", "light", "p_hat", "w_sum", "M", "used"))
+        _, _, _, st.y, st.n, st.light, st.p_hat, st.w_sum, M, used = out
 
         # ---------------- Pass 2: bias correction (replay the neighbours) ----------------
         if self.bias == "off":
@@ -550,23 +522,41 @@ class ReSTIR(Method):
             y_s, n_s, l_s = mi.Point3f(st.y), mi.Vector3f(st.n), mi.UInt32(st.light)
 
             def body_z(i, smp, Z):
-                q, _ = self._neighbour(smp, x0, y0, R, W_, H_)
+                q, _ = self.neighbour(smp, x0, y0, R, W_, H_)
                 ok = ((used >> i) & 1) != 0
                 Mq = dr.gather(mi.Float, r.M, q, ok)
                 si_q = dr.gather(mi.SurfaceInteraction3f, si, q, ok)
-                _, p_q, _, _, _, _ = self._eval(si_q, si_q.bsdf(), y_s, n_s, l_s, ok)
+                _, p_q, _, _, _, _ = self.evaluate(si_q, si_q.bsdf(), y_s, n_s, l_s, ok)
                 return i + 1, smp, Z + dr.select(ok & (p_q > 0.0), Mq, 0.0)
 
             _, _, Z = dr.while_loop(state=(mi.UInt32(0), rng(n, seed, stream=13), Z),
                                     cond=lambda i, *_: i < k2, body=body_z, labels=("i", "smp", "Z"))
         return st.finalize(Z, M, active), st.p_hat
 
+    def accepted_neighbour(self, smp, gb, r: Reservoir, R: float):
+        """Next neighbour of the sequence ``smp`` (see :meth:`neighbour`) and
+        whether it is reused: valid, similar depth and normal, M > 0; (index,
+        mask, its reservoir)."""
+        W_, H_ = gb.width, gb.height
+        n0 = mi.Vector3f(gb.si.sh_frame.n)
+        q, ok = self.neighbour(smp, *self.pixel_xy(gb.size, W_), R, W_, H_)
+        ok &= dr.gather(mi.Bool, gb.valid, q, ok)
+        ok &= self._similar(n0, dr.gather(mi.Vector3f, n0, q, ok), gb.depth, dr.gather(mi.Float, gb.depth, q, ok))
+        rq = dr.gather(Reservoir, r, q, ok)
+        return q, ok & (rq.M > 0.0), rq
+
+    @staticmethod
+    def pixel_xy(n: int, width: int):
+        """Pixel coordinates (x, y) of the ``n`` pixels of a ``width``-wide image."""
+        idx = dr.arange(mi.UInt32, n)
+        return mi.Int32(idx % width), mi.Int32(idx // width)
+
     # ------------------------------ Stage 4: shade ------------------------------
 
     def shade(self, gb, r: Reservoir) -> mi.Color3f:
         si, active = gb.si, gb.valid
         ok = active & (r.W > 0.0)
-        c, _, d, dist, kind, _ = self._eval(si, si.bsdf(), r.y, r.n, r.light, ok)
+        c, _, d, dist, kind, _ = self.evaluate(si, si.bsdf(), r.y, r.n, r.light, ok)
         vis = self._visible(si, d, dist, kind, ok)
         return dr.select(vis, c * r.W, 0.0)
 
@@ -631,4 +621,5 @@ class ReSTIR(Method):
 
 register("restir", ReSTIR,
          help="ReSTIR DI (RTXDI defaults: 8 local/1 env/1 BSDF candidates, temporal M<=20, 1 spatial "
-              "neighbour in 32 px@1080p, bias=basic); restir:preset=falcor for 24/8/1")
+              "neighbour in 32 px@1080p; pairwise MIS reuse weights, bias=basic for RTXDI's 1/Z); "
+              "restir:preset=falcor for 24/8/1")
