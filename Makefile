@@ -1,12 +1,12 @@
-# Two commands for a fresh machine: `make run` and `make test`.
-# Both install what is missing (libLLVM >= 16, a .venv with the package) and are idempotent.
+# Commands for a fresh machine: `make run`, `make test` (the whole suite) and `make check` (its fast tier).
+# All three install what is missing (libLLVM >= 16, a .venv with the package) and are idempotent.
 # Python 3.11 unless PYTHON names another (3.11-3.13 install: make PYTHON=python3.12 ...).
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test install llvm bench clean
+.PHONY: run test check install llvm bench clean
 
 $(STAMP): pyproject.toml
 	bash tools/ensure_llvm.sh
@@ -33,8 +33,14 @@ run: install
 	@echo "after warm-up; FLIP / PSNR / SSIM against 2048-sample ground truth on frames 15 and 23."
 	$(BIN)/slc run single-viewer --quick --res 240x135 --methods rt16 rt48 slc --sweep --out out
 
+# The whole suite (what CI runs), with the 15 slowest tests listed at the end.
 test: install
-	$(BIN)/python -m pytest -q tests
+	$(BIN)/python -m pytest -q --durations=15 tests
+
+# The fast tier, before every commit: unit tests, closed forms and one small render per
+# method; the tests marked `slow` (see pyproject.toml) are left to `make test`.
+check: install
+	$(BIN)/python -m pytest -q -m "not slow" --durations=10 tests
 
 bench: install
 	$(BIN)/slc bench rays

@@ -185,3 +185,47 @@ def run_case(code: str, *args, timeout: int = 600) -> dict:
     assert p.returncode == 0, p.stderr[-3000:]
     line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")][-1]
     return json.loads(line[len("RESULT "):])
+
+
+def known_miss(case, measured, what="measured"):
+    """A parametrize case that misses its bound today: a strict xfail that only an
+    AssertionError satisfies (any other exception fails it, and a pass fails it too,
+    so a fix shows). ``case``: the parameter value, or a tuple of them; ``measured``:
+    the recorded figure, which a separate, non-xfail test holds to 1.5x."""
+    import pytest
+    values = case if isinstance(case, tuple) else (case,)
+    return pytest.param(*values, marks=pytest.mark.xfail(strict=True, raises=AssertionError,
+                                                         reason=f"known miss, {what} {measured}"))
+
+
+def slc_cli(args, cwd=None):
+    """``slc ARGS`` run in this process (``slc.run.cli.main``, as the ``slc`` entry point
+    runs it) rather than in a fresh interpreter: a ``subprocess.CompletedProcess``
+    with the exit status and what the command printed to stdout and stderr. Check
+    mode (``--check``) is switched off again afterwards; an exception the command
+    does not turn into an exit status propagates (a traceback, as in a subprocess)."""
+    import contextlib
+    import io
+    import os
+    import subprocess
+    from pathlib import Path
+
+    from slc.core import check
+    from slc.run import cli
+    args = [str(a) for a in args]
+    out, err = io.StringIO(), io.StringIO()
+    before = os.environ.get(check.ENV)
+    code = 0
+    try:
+        with contextlib.chdir(cwd or Path(__file__).resolve().parents[1]), \
+                contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                cli.main(args)
+            except SystemExit as e:
+                code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    finally:
+        if before is None:
+            os.environ.pop(check.ENV, None)
+        else:
+            os.environ[check.ENV] = before
+    return subprocess.CompletedProcess(["slc", *args], code, out.getvalue(), err.getvalue())

@@ -98,6 +98,7 @@ def test_frozen_sh_shading_matches_unfrozen_and_records_once():
     assert np.array_equal(out[True][0], out[False][0])
 
 
+@pytest.mark.slow
 def test_frozen_cones_update_matches_unfrozen_as_entries_change():
     """The CONES update is traced once and replayed (dr.freeze): under an area
     light (no delta light: the statistics' delta share is a literal zero in the
@@ -140,6 +141,7 @@ def _assert_frozen_matches_unfrozen(scene, spec, attr, make):
         assert np.array_equal(a, c)
 
 
+@pytest.mark.slow
 def test_frozen_sh_update_matches_unfrozen_as_entries_change():
     """The SH update is traced once and replayed (dr.freeze): under a constant
     sky (no delta light: the statistics' delta share is a literal zero in the
@@ -167,6 +169,7 @@ def _plane_points(scene, n=64):
     return si
 
 
+@pytest.mark.slow
 def test_cone_pool_update_is_slc_update_bit_for_bit():
     """The adaptive cone pool runs slc's own update cycle (slc.methods.cones.update.update_cycle
     through a SampleObserver): from the same records, keys, rays, policy state and seed
@@ -243,6 +246,7 @@ def _set_lights(scene, point, area):
     emitter_sampling.for_scene(scene.mi_scene)
 
 
+@pytest.mark.slow
 def test_point_to_area_switch_changes_the_choice_without_energy_jumps():
     scene = _point_then_area()
     _set_lights(scene, 2.0, 0.0)
@@ -270,6 +274,7 @@ def test_point_to_area_switch_changes_the_choice_without_energy_jumps():
     assert abs(means[-1] - gt[ok].mean()) / gt[ok].mean() < 0.05
 
 
+@pytest.mark.slow
 def test_still_camera_frame_to_frame_change_is_bounded():
     """Two emitters (a point light and a square light): mixed choices, still
     camera; after start-up the image mean moves by less than 2% a frame."""

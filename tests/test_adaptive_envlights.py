@@ -6,6 +6,7 @@ bright disc."""
 import math
 
 import numpy as np
+import pytest
 
 from slc import methods
 from slc.methods.adaptive.env_lights import EnvLights
@@ -72,6 +73,7 @@ def test_the_disc_is_found_with_its_closed_form():
     assert abs(e.share - SUN * om / (SUN * om + SKY * (4 * math.pi - om))) < 0.02, e.share
 
 
+@pytest.mark.slow
 def test_plane_lists_the_disc_and_matches_ground_truth():
     """Started as cones, every entry chooses VISIBILITY (the disc holds most of
     the light); every record lists the disc (light index base + 0) with
@@ -113,6 +115,7 @@ def test_plane_lists_the_disc_and_matches_ground_truth():
     assert m2.env is None and m2.stats()["share_visibility"] == 0.0
 
 
+@pytest.mark.slow
 def test_card_shadow_of_the_disc_is_captured():
     """A card between the disc and part of the plane: the shadowed entries'
     records hold the disc with a visible fraction near 0, so the shadow is in

@@ -4,6 +4,7 @@ ground truth, and a moving sphere followed without lag. 32x32 images."""
 import math
 
 import numpy as np
+import pytest
 
 from slc import methods
 from slc.methods.adaptive.sphere_lights import SphereLights
@@ -58,6 +59,7 @@ def test_table_finds_the_sphere_and_its_closed_form():
     assert not SphereLights(plane_under_rect_light(name="sph_rect")).any
 
 
+@pytest.mark.slow
 def test_small_sphere_chooses_visibility_and_matches_ground_truth():
     """Started as cones, the entries' listable share is 1 (the sphere is small:
     r/d <= 0.05), so they all switch to VISIBILITY. The image matches the
@@ -80,6 +82,7 @@ def test_small_sphere_chooses_visibility_and_matches_ground_truth():
     assert m2.stats()["share_cones"] == 1.0
 
 
+@pytest.mark.slow
 def test_small_sphere_soft_shadow_no_worse_than_cones():
     """A card casts a soft shadow of the sphere: the lit entries choose
     VISIBILITY (entries in the umbra have no energy and keep their tag), and
@@ -104,6 +107,7 @@ def _moving(t):
     return M
 
 
+@pytest.mark.slow
 def test_moving_sphere_is_followed_without_lag():
     """A sphere moving 0.6 m across the plane in 12 frames (3 m/s, then still):
     during the move (frame 7) and in the frame after it stops (frame 13) the

@@ -7,14 +7,14 @@ import pytest
 
 from helpers import render_frames
 from slc import methods
-from slc.scene import scenes, views
+from slc.scene import views
 
 W, H, FRAMES = 48, 27, 4
 
 
 @pytest.fixture(scope="module")
-def atrium():
-    return scenes.load("atrium")
+def atrium(scene):
+    return scene("atrium")
 
 
 def _run(scene, spec, rig):
@@ -23,6 +23,7 @@ def _run(scene, spec, rig):
     return m, imgs
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fetch", ["nearest", "bilinear"])
 def test_batched_images_equal_per_viewer(atrium, fetch):
     """Three moving viewers at 60 % overlap (different entries per pixel and viewer),
@@ -53,6 +54,7 @@ def test_single_viewer_unchanged_by_batch(atrium):
     assert np.array_equal(a[0], b[0])
 
 
+@pytest.mark.slow      # a fresh interpreter counting kernels
 def test_batched_no_kernel_built_after_warmup():
     from test_compile import _run_case
     r = _run_case("slc:batch=viewers", "random", 4)

@@ -7,7 +7,7 @@ import pytest
 
 from slc.core import check
 
-from slc.scene import gbuffer, scenes, views
+from slc.scene import gbuffer, views
 from slc.methods import Method
 from slc.run.pipeline import RunConfig, run_sequence
 from slc.core.timing import StageTimer
@@ -40,8 +40,8 @@ class Stub(Method):
 
 
 @pytest.fixture(scope="module")
-def cornell():
-    return scenes.load("cornell")
+def cornell(scene):
+    return scene("cornell")
 
 
 def _cfg(frames=2):

@@ -1,4 +1,6 @@
-"""Bad input gets one clear line and exit code 2, and no partial results."""
+"""Bad input gets one clear line and exit code 2, and no partial results. The commands run
+in this process (helpers.slc_cli); the entry point itself (``python -m slc.run.cli``, a fresh
+interpreter) runs in test_scenes_and_methods_listing and for one bad scene file."""
 import json
 import subprocess
 import sys
@@ -7,12 +9,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers import slc_cli
+
 ROOT = Path(__file__).resolve().parents[1]
 SLC = [sys.executable, "-m", "slc.run.cli"]
 
 
-def run(args, cwd=None):
+def subprocess_run(args, cwd=None):
     return subprocess.run(SLC + args, capture_output=True, text=True, cwd=cwd or ROOT, timeout=600)
+
+
+run = slc_cli
 
 
 NO_EMITTER_XML = """<scene version="3.0.0">
@@ -116,7 +123,8 @@ def _one_line_error(r, *words):
 def test_bad_scene_files(xmls, tmp_path, case, words):
     path = tmp_path / "missing.xml" if case == "missing" else xmls[case]
     out = tmp_path / "out"
-    r = run(["run", "single-viewer", "--quick", "--scene", str(path), "--out", str(out)])
+    runner = subprocess_run if case == "broken" else run
+    r = runner(["run", "single-viewer", "--quick", "--scene", str(path), "--out", str(out)])
     _one_line_error(r, *words)
     assert not (out / "single-viewer" / "results.json").exists()
     assert not any(out.rglob("*")) if out.exists() else True
@@ -135,16 +143,24 @@ def test_unknown_scene_method_experiment(tmp_path):
 
 
 def test_good_xml_scene_renders(xmls, tmp_path):
+    """A plain Mitsuba XML scene renders: a diffuse (0.5) 2 x 2 m plane 2 m under a sphere
+    light (radius 0.2 m, radiance 20). The plane's brightest pixel is within 3% of the
+    closed form right under the light, 0.5 / pi * pi * 20 * 0.2^2 / 2^2 = 0.1 (measured
+    0.0999), and FLIP against the ground truth below 0.01 (measured 0.0020)."""
+    from slc.core.io import read_exr
     r = run(["render", "--scene", str(xmls["good"]), "--method", "rt4", "--res", "32x18", "--frames", "2",
-             "--out", str(tmp_path)])
+             "--gt", "--out", str(tmp_path)])
     assert r.returncode == 0, r.stderr
     t = json.loads((tmp_path / "timings.json").read_text())
-    assert t["method"] == "rt4" and t["time_ms"] > 0
-    assert list(tmp_path.glob("*.exr")) and list(tmp_path.glob("*.png"))
+    assert t["method"] == "rt4" and t["time_ms"] > 0 and t["flip"] < 0.01, t
+    assert list(tmp_path.glob("*.png"))
+    img = read_exr(next(tmp_path.glob("*.exr")))
+    plane = img[img.max(-1) < 1.0]               # the light itself shows at its radiance, 20
+    assert abs(plane.max() / 0.1 - 1) < 0.03, plane.max()
 
 
 def test_scenes_and_methods_listing():
-    r = run(["scenes"])
+    r = subprocess_run(["scenes"])
     assert r.returncode == 0 and "cornell" in r.stdout and "atrium" in r.stdout
     r = run(["methods"])
     assert r.returncode == 0 and "rt" in r.stdout

@@ -21,6 +21,9 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow      # fresh interpreters counting kernels
+
+
 ROOT = Path(__file__).resolve().parents[1]
 
 W, H, FRAMES, WARMUP = 64, 36, 9, 3

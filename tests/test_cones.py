@@ -9,7 +9,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import plane_under_rect_light, rect_irradiance
+from helpers import known_miss, plane_under_rect_light, rect_irradiance
 from slc.scene import gbuffer
 from slc.methods.cones import packing as P
 from slc.methods.cones.method import SurfaceLightCones
@@ -311,6 +311,7 @@ def _gt(scene, gb, spp=1024):
     return np.array(direct_mis(scene.mi_scene, gb, spp)).T.reshape(-1, 3)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("cache", ["pixel", "osc"])
 def test_small_light_diffuse_plane_converges(cache):
     """A 0.2 m square light 1 m above a diffuse plane, 24 frames (8 new + 16 settled
@@ -343,6 +344,7 @@ def test_small_light_diffuse_plane_converges(cache):
 BILINEAR_BOUND = 0.015
 
 
+@pytest.mark.slow
 def test_bilinear_fetch_taps_and_error():
     """Bilinear fetch on the OSC: every pixel's usable tap weights sum to 1, taps are
     entries of the pixel's own island, and on the small-light plane it is closer to
@@ -381,6 +383,7 @@ def test_bilinear_fetch_taps_and_error():
     assert errs["bilinear"] < errs["nearest"], errs
 
 
+@pytest.mark.slow
 def test_glossy_flip_below_rt16():
     sc = plane_under_rect_light(half=0.2, radiance=10.0, bsdf=rough_conductor(0.15, "Al"), name="glossy")
     m = _make(sc)
@@ -400,6 +403,7 @@ def _moving_scene(stop=12):
     return plane_under_rect_light(half=0.1, radiance=20.0, light_transform=T, name="moving")
 
 
+@pytest.mark.slow
 def test_moving_light_recovers_after_stop():
     """The light moves 4 cm (about 2.3 deg seen from below) per frame for 12 frames,
     then stops. Measured mean relative error (pixel cache, 40x30): about 0.21 right
@@ -423,6 +427,7 @@ def test_moving_light_recovers_after_stop():
     assert errs[22] < 0.14 and errs[32] < 0.10, errs
 
 
+@pytest.mark.slow
 def test_half_occluded_large_light_measured():
     """DESIGN.md asks that a half-occluded large light be measured, not assumed:
     a 1 m x 1 m light 1 m above a diffuse plane, with a thin horizontal blocker
@@ -481,34 +486,35 @@ def _hard_scene(kind):
 
 # kind: (bound on |mean / reference - 1|, bound on the per-pixel mean error / mean).
 # Measured (40x30, 10 frames, check mode, plane pixels against helpers.quadrature_direct /
-# the closed form): point +0.2% / 4.8%, huge +0.06% / 4.6%, inside -0.3% / 6.1%;
-# grazing -38.7% / 49%, hemisphere (2 cones) -28% / 85%: known misses, xfail with the figure
-# while they miss (the assertion runs, so a fix turns them into passes).
+# the closed form): point +0.2% / 4.8%, huge +0.06% / 4.6%, inside -0.3% / 6.1%.
 HARD_BOUNDS = {"point": (0.01, 0.07), "huge": (0.01, 0.07), "inside": (0.02, 0.09),
                "grazing": (0.05, 0.10), "hemisphere": (0.05, 0.10)}
-HARD_MISSES = {"grazing": "a light standing on the horizon: measured mean -38.7%, per-pixel 49%",
-               "hemisphere": "a hemisphere-sized light with 2 cones: measured mean -28%, per-pixel 85%"}
+# Known misses (strict xfail while they miss; test_hard_case_misses_no_worse holds each to
+# 1.5x its measured (mean error, per-pixel error), same run as above):
+HARD_MISSES = {"grazing": (0.362, 0.489),      # a light standing on the horizon
+               "hemisphere": (0.358, 0.658)}   # a hemisphere-sized light with 2 cones
+_HARD_ERRORS = {}
 
 
-@pytest.mark.parametrize("kind", ["grazing", "point", "hemisphere", "zero", "huge", "inside"])
-def test_hard_cases_finite(kind, monkeypatch):
-    """Every hard case in check mode (SLC_CHECK=1: a NaN/Inf in any stage output or
-    a NaN/Inf/negative value in the returned image raises), and the raw image
-    against an independent reference on the plane's pixels: a quadrature over the
-    light with exact visibility (point, huge, inside, grazing) or the closed form
-    (hemisphere); zero radiance gives exactly 0. Bounds in HARD_BOUNDS."""
+def _hard_case_errors(kind):
+    """(mean error, per-pixel error) of slc on hard case ``kind`` against its independent
+    reference, rendered once per session in check mode (a NaN/Inf in any stage output or a
+    NaN/Inf/negative value in the returned image raises); ``zero``: the largest |value|."""
+    if kind in _HARD_ERRORS:
+        return _HARD_ERRORS[kind]
     from helpers import HARD_POINT, HARD_RECTS, quadrature_direct
     from slc.core import check
-    monkeypatch.setenv(check.ENV, "1")
     sc = _hard_scene(kind)
     m = _make(sc, max_cones=2 if kind == "hemisphere" else 3)
-    with check.scope("slc", None):
-        gb, d = _run(sc, m, 10)
-        check.images([d], [gb])
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv(check.ENV, "1")
+        with check.scope("slc", None):
+            gb, d = _run(sc, m, 10)
+            check.images([d], [gb])
     img = np.array(d).T.reshape(-1, 3)
     if kind == "zero":
-        assert np.all(img == 0)
-        return
+        _HARD_ERRORS[kind] = float(np.abs(img).max())
+        return _HARD_ERRORS[kind]
     p = np.array(gb.si.p).T.reshape(-1, 3)
     v = np.array(gb.valid) & (np.abs(p[:, 1]) < 1e-4)
     if kind == "hemisphere":
@@ -519,13 +525,34 @@ def test_hard_cases_finite(kind, monkeypatch):
         ref = quadrature_direct(sc, gb, rects, pts, n=64)
         coarse = quadrature_direct(sc, gb, rects, pts, n=32)       # converged pixels only
         v &= np.abs(ref - coarse).max(axis=1) <= 1e-3 * np.maximum(ref.max(axis=1), 1e-12)
+    assert v.sum() > 300, (kind, v.sum())
     a, r = img[v], ref[v]
-    mean_err, pix_err = abs(a.mean() / r.mean() - 1), np.abs(a - r).mean() / r.mean()
-    print(f"cones hard case {kind}: mean error {mean_err:.4f}, per-pixel {pix_err:.4f}")
+    _HARD_ERRORS[kind] = (abs(a.mean() / r.mean() - 1), np.abs(a - r).mean() / r.mean())
+    print(f"cones hard case {kind}: mean error {_HARD_ERRORS[kind][0]:.4f}, per-pixel {_HARD_ERRORS[kind][1]:.4f}")
+    return _HARD_ERRORS[kind]
+
+
+@pytest.mark.parametrize("kind", ["point", "zero", "huge", "inside"]
+                         + [known_miss(k, HARD_MISSES[k], "mean, per-pixel error") for k in HARD_MISSES])
+def test_hard_cases_finite(kind):
+    """Every hard case in check mode, and the raw image against an independent reference
+    on the plane's pixels: a quadrature over the light with exact visibility (point, huge,
+    inside, grazing) or the closed form (hemisphere); zero radiance gives exactly 0.
+    Bounds in HARD_BOUNDS."""
+    if kind == "zero":
+        assert _hard_case_errors(kind) == 0.0
+        return
+    mean_err, pix_err = _hard_case_errors(kind)
     bm, bp = HARD_BOUNDS[kind]
-    if kind in HARD_MISSES and not (mean_err < bm and pix_err < bp):
-        pytest.xfail(HARD_MISSES[kind])
     assert mean_err < bm and pix_err < bp, (kind, mean_err, pix_err)
+
+
+@pytest.mark.parametrize("kind", list(HARD_MISSES))
+def test_hard_case_misses_no_worse(kind):
+    """A known miss runs in check mode and stays within 1.5x its measured errors."""
+    mean_err, pix_err = _hard_case_errors(kind)
+    bm, bp = HARD_MISSES[kind]
+    assert mean_err <= 1.5 * bm and pix_err <= 1.5 * bp, (kind, mean_err, pix_err)
 
 
 # ----------------------------------------------------------------------------- MIS shading
@@ -542,6 +569,7 @@ def _storage_after(sc, frames=12, cache="pixel"):
     return m, gb, slot, ok, tf
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("bsdf", ["conductor", "plastic"])
 def test_mis_shading_unbiased_and_deterministic(bsdf):
     """The MIS estimator is unbiased for the cone model: the mean of 128 differently
@@ -579,6 +607,7 @@ def _moving_camera_plane():
     return b.build([cam])
 
 
+@pytest.mark.slow
 def test_shading_freeze_recordings_bounded():
     """issue 13: over a sequence that mimics one single-viewer experiment process
     (several scenes, static and animated, three settings each, a camera that makes the
@@ -654,16 +683,15 @@ def test_shading_compiles_nothing_after_warmup(n_viewers):
 
 
 # Cases that miss relMSE(slc) <= relMSE(rt48): the ratio measured (this test, 40x30, 48 frames,
-# OSC, llvm). With the cones' model integrated exactly (256 directions per cone) the ratios
-# stay: conductor small 131 / 18 / 2.5 / 3.6 (alpha 0.005 / 0.01 / 0.05 / 0.2), plastic small
-# 23 / 6.5 / 2.7 / 8.8, conductor large 0.05: 1.24 -- the cache (cone model of a square
-# light, texel vs pixel point, young L_c noise), not the shading, sets these figures.
+# OSC, llvm); test_glossy_plane_no_fireflies holds each to 1.5x. The cache (cone model of a
+# square light, texel vs pixel point, young L_c noise), not the shading, sets these figures: with
+# the cones' model integrated exactly (256 directions per cone) they stay of the same order.
 GLOSSY_MISSES = {
-    ("conductor", 0.005, "small"): 135.9, ("conductor", 0.01, "small"): 20.4,
-    ("conductor", 0.05, "small"): 2.69, ("conductor", 0.2, "small"): 3.79,
-    ("plastic", 0.005, "small"): 26.1, ("plastic", 0.01, "small"): 7.63,
-    ("plastic", 0.05, "small"): 2.87, ("plastic", 0.2, "small"): 9.25,
-}   # conductor 0.05 under the large light: 1.21 before the age ramp and stratified updates, 0.77 after
+    ("conductor", 0.005, "small"): 120.6, ("conductor", 0.01, "small"): 45.6,
+    ("conductor", 0.05, "small"): 3.68, ("conductor", 0.2, "small"): 6.63,
+    ("plastic", 0.005, "small"): 111.0, ("plastic", 0.01, "small"): 29.0,
+    ("plastic", 0.05, "small"): 4.47, ("plastic", 0.2, "small"): 17.9,
+}   # the large light passes: measured 0.15 / 0.29 / 0.85 / 0.83 (conductor), 0.03 / 0.07 / 0.61 / 0.43 (plastic)
 
 
 def _glossy_bsdf(kind, alpha):
@@ -676,24 +704,22 @@ def _glossy_bsdf(kind, alpha):
 GLOSSY_FRAMES = 48
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("light", ["small", "large"])
-@pytest.mark.parametrize("alpha", [0.005, 0.01, 0.05, 0.2])
-@pytest.mark.parametrize("kind", ["conductor", "plastic"])
-def test_glossy_plane_relmse_vs_rt48(kind, alpha, light, request):
-    """issue 12 item 1: a conductor / plastic plane of GGX roughness alpha under a small
+_GLOSSY = {}
+
+
+def _glossy_case(kind, alpha, light):
+    """slc and rt48 on a conductor / plastic plane of GGX roughness alpha under a small
     (0.2 m square, 1 m above) or a large (2 m square) light, still camera, 48 frames on the
-    on-surface cache: relMSE(slc) <= relMSE(rt48) against the 2048-sample ground truth,
-    and no pixel above 10x the ground truth where the ground truth is smooth (3x3
-    neighbourhood within a factor 2: no fireflies). Cases that miss are marked xfail
-    (strict) with the measured ratio: the cones' piecewise-uniform model of a small square
-    light, not the shading's sampling, is what a near-mirror lobe resolves there."""
+    on-surface cache, rendered once per session: whether slc's image is finite, its
+    fireflies (pixels above 10x the ground truth where the ground truth is smooth: 3x3
+    neighbourhood within a factor 2) and the relMSE of both against the 2048-sample
+    ground truth."""
+    case = (kind, alpha, light)
+    if case in _GLOSSY:
+        return _GLOSSY[case]
     from scipy.ndimage import maximum_filter, minimum_filter
     from slc.reference.groundtruth import ground_truth
     from slc.reference.metrics import rel_mse
-    case = (kind, alpha, light)
-    if case in GLOSSY_MISSES:
-        request.applymarker(pytest.mark.xfail(strict=True, reason=f"measured relMSE ratio {GLOSSY_MISSES[case]}"))
     half, radiance = (0.1, 20.0) if light == "small" else (1.0, 1.0)
     sc = plane_under_rect_light(half=half, radiance=radiance, bsdf=_glossy_bsdf(kind, alpha),
                                 name=f"glossy_{kind}_{alpha}_{light}")
@@ -703,17 +729,44 @@ def test_glossy_plane_relmse_vs_rt48(kind, alpha, light, request):
     gt = ground_truth(sc, gb, GLOSSY_FRAMES - 1)
     d_rt = create("rt48", sc).render(FrameContext(GLOSSY_FRAMES - 1), [gb], NullTimer())[0]
     img_rt = gbuffer.to_image(gb, gbuffer.compose(gb, d_rt))
-    assert np.all(np.isfinite(img))
-    r_slc, r_rt = rel_mse(gt, img), rel_mse(gt, img_rt)
     g = gt.mean(-1)
     smooth = (maximum_filter(g, 3) <= 2.0 * minimum_filter(g, 3)) & (g > 1e-3)
-    fireflies = int(((img.mean(-1) > 10.0 * g) & smooth).sum())
-    print(f"glossy {kind} alpha={alpha} {light}: relMSE slc {r_slc:.4g} rt48 {r_rt:.4g} "
-          f"ratio {r_slc / r_rt:.3f} fireflies {fireflies}")
-    assert fireflies == 0, fireflies
-    assert r_slc <= r_rt, (r_slc, r_rt, r_slc / r_rt)
+    r = dict(finite=bool(np.all(np.isfinite(img))), fireflies=int(((img.mean(-1) > 10.0 * g) & smooth).sum()),
+             slc=rel_mse(gt, img), rt48=rel_mse(gt, img_rt))
+    print(f"glossy {kind} alpha={alpha} {light}: relMSE slc {r['slc']:.4g} rt48 {r['rt48']:.4g} "
+          f"ratio {r['slc'] / r['rt48']:.3f} fireflies {r['fireflies']}")
+    _GLOSSY[case] = r
+    return r
 
 
+GLOSSY_CASES = [(k, a, li) for k in ("conductor", "plastic") for a in (0.005, 0.01, 0.05, 0.2)
+                for li in ("small", "large")]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind,alpha,light", [
+    known_miss(c, GLOSSY_MISSES[c], "relMSE slc / rt48") if c in GLOSSY_MISSES else c for c in GLOSSY_CASES])
+def test_glossy_plane_relmse_vs_rt48(kind, alpha, light):
+    """issue 12 item 1: relMSE(slc) <= relMSE(rt48) against the 2048-sample ground truth
+    (_glossy_case). Cases that miss are strict xfails with the measured ratio
+    (GLOSSY_MISSES): the cones' piecewise-uniform model of a small square light, not the
+    shading's sampling, is what a near-mirror lobe resolves there."""
+    r = _glossy_case(kind, alpha, light)
+    assert r["slc"] <= r["rt48"], (r, r["slc"] / r["rt48"])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind,alpha,light", GLOSSY_CASES)
+def test_glossy_plane_no_fireflies(kind, alpha, light):
+    """Every glossy case (_glossy_case): slc's image is finite with no firefly, and a
+    known miss (GLOSSY_MISSES) stays within 1.5x its measured relMSE ratio to rt48."""
+    r = _glossy_case(kind, alpha, light)
+    assert r["finite"] and r["fireflies"] == 0, r
+    if (kind, alpha, light) in GLOSSY_MISSES:
+        assert r["slc"] / r["rt48"] <= 1.5 * GLOSSY_MISSES[kind, alpha, light], (r, r["slc"] / r["rt48"])
+
+
+@pytest.mark.slow
 def test_stratified_update_samples_lower_error():
     """Update samples from a per-entry R2 sequence that counts on across cycles
     (``samples=r2``, the default) against independent random numbers per cycle
@@ -750,6 +803,7 @@ def _switch_off_scene(off):
     return b.build([cam, cam, cam])
 
 
+@pytest.mark.slow
 def test_light_that_switches_off_fades():
     """Hard case "a light that switches off": after 24 frames (settled entries, C
     about 80) the larger of two lights leaves. Its cones are wider than 2 degrees,
@@ -779,6 +833,7 @@ def test_light_that_switches_off_fades():
     assert errs["off", 8] > 1.0, errs              # measured 2.7: the stale cone the axis test removes
 
 
+@pytest.mark.slow
 def test_stochastic_fetch_mean_and_determinism():
     """``fetch=stochastic`` shades one bilinear tap per pixel, drawn with its weight
     as probability: the image mean stays within 1 % of the closed form, the image is

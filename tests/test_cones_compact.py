@@ -56,6 +56,7 @@ def _sampled(call, **opts):
     return v[0] == 1e30
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("opts", [{}, {"principled": "sample"}, {"conductor": "sg", "principled": "sample"}, {"glossy": "half"},
                                   {"horizon": False}])
 def test_compact_equals_branch(captured, opts):
@@ -106,6 +107,7 @@ def test_compact_frozen_one_recording(captured):
     assert sh.n_recordings == 1
 
 
+@pytest.mark.slow
 def test_method_images_unchanged():
     """The method's images with ``compact=on`` (default) and ``off``: bit for bit."""
     sc = scenes.load("atrium")

@@ -70,6 +70,7 @@ def test_horizon_clip_equals_converged_sampling():
     assert np.abs(b - ref).sum() > np.abs(a - ref).sum()
 
 
+@pytest.mark.slow
 def test_layered_gbuffer_batch_equals_per_viewer_and_concatenation():
     """Three moving viewers: shading from the frame's layered G-buffer, from G-buffers
     concatenated in the method (no layers attached) and per viewer give the same images."""

@@ -19,6 +19,7 @@ def _inputs(sc, frames=12):
     return _storage_after(sc, frames)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["principled", "conductor", "diffuse"])
 def test_backside_pixels_same_as_quadrature(kind, monkeypatch):
     """A plane seen from behind (w_i mirrored below the surface) with the cones of the
@@ -44,6 +45,7 @@ def test_backside_pixels_same_as_quadrature(kind, monkeypatch):
     assert np.array_equal(back, back_q) and np.all(back == 0.0)
 
 
+@pytest.mark.slow
 def test_update_shortcuts_same_storage(monkeypatch):
     """The update's storage after 6 frames is the same bit for bit with the shrink
     test's emitter shortcut and with the emitter's virtual call, and with the insertion's

@@ -23,6 +23,7 @@ def _shade(sc, n_ref=4):
     return a, a2, s16, ref
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rough,metal,half", [(0.22, 0.0, 0.3), (0.15, 0.0, 0.05), (0.5, 0.0, 0.3),
                                               (0.12, 0.6, 0.3)])
 def test_principled_sg_matches_model_integral(rough, metal, half):
@@ -40,6 +41,7 @@ def test_principled_sg_matches_model_integral(rough, metal, half):
     assert np.abs(a - ref).sum() / ref.sum() < 0.05, np.abs(a - ref).sum() / ref.sum()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["lambert", "clearcoat"])
 def test_other_pixels_unchanged(kind):
     """A diffuse plane (a light on its horizon: closed form and clipped caps) and a

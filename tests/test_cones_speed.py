@@ -31,6 +31,7 @@ def _bitmap():
     return {"type": "bitmap", "bitmap": mi.Bitmap(rgb), "raw": True}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["diffuse", "principled", "principled_textured", "diffuse_textured", "conductor"])
 def test_bsdf_table_same_images(kind):
     """Shading with the table gives the images of the virtual calls bit for bit, for
@@ -69,6 +70,7 @@ def test_entry_frames_inside_the_launch():
     assert np.abs(a).sum() > 0 and np.array_equal(a, b)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("alpha,half", [(0.12, 0.3), (0.12, 0.05), (0.3, 0.3)])
 def test_conductor_sg_matches_model_integral(alpha, half):
     """A GGX copper plane (alpha 0.12 as the atrium's bronze, and 0.3) under a 0.6 m or

@@ -14,6 +14,9 @@ from slc.core.timing import NullTimer
 from slc.scene.views import single
 from test_cones import _moving_scene
 
+pytestmark = pytest.mark.slow      # fresh interpreters counting kernels
+
+
 W, H = 40, 30
 
 

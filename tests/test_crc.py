@@ -2,8 +2,6 @@
 occupancy optimization being exact at shaded points, agreement with the
 indirect reference (slc.reference.references), its settings, and the pipeline
 comparing it with the indirect reference."""
-import subprocess
-import sys
 from pathlib import Path
 
 import drjit as dr
@@ -15,7 +13,7 @@ from slc import methods
 
 from slc.reference import references
 
-from slc.scene import scenes, views
+from slc.scene import views
 from slc.methods.crc import CRCCache, Grid
 from slc.methods.crc import volume
 from slc.methods.crc.march import visible
@@ -26,15 +24,15 @@ from slc.methods import FrameContext, MethodError
 from slc.run.pipeline import RunConfig, gbuffers_for, run_sequence
 from slc.core.timing import NullTimer
 
-from helpers import plane_under_rect_light
+from helpers import plane_under_rect_light, slc_cli
 
 W, H = 64, 36
 ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def cornell():
-    return scenes.load("cornell")
+def cornell(scene):
+    return scene("cornell")
 
 
 def _render(scene, frames=1, **kw):
@@ -120,6 +118,7 @@ def test_occupancy_is_exact_at_shaded_points(cornell, bounces):
     assert np.allclose(on, off, rtol=1e-4, atol=1e-6 * off.max())
 
 
+@pytest.mark.slow
 def test_against_indirect_reference():
     """1 and 2 bounces vs the indirect reference on an all-diffuse Cornell
     box (CRC models diffuse reflection only: on the real box's rough-metal
@@ -211,9 +210,17 @@ def test_reference_has_no_indirect_light_on_a_lone_plane():
     assert np.all(ind == 0.0)
 
 
-def test_rays_visibility_option(cornell):
-    _, _, img = _render(cornell, encoding="y3co1cg1", visibility="rays", vpls=1024, samples=16)
-    assert np.isfinite(img).all() and img.mean() > 0
+def test_rays_visibility_option():
+    """Visibility by Mitsuba rays instead of the voxel march, one frame on the
+    all-diffuse Cornell box against a 64-spp indirect reference: the image mean per
+    channel within 15% and relMSE below 0.03. Measured: +7.6 / +2.8 / +10.3%, relMSE
+    0.0199 (the march: +2.2 / +3.6 / +14.6%, 0.0187)."""
+    from slc.reference.metrics import rel_mse
+    scene = diffuse_cornell()
+    _, gbs, img = _render(scene, encoding="y3co1cg1", visibility="rays", vpls=1024, samples=16)
+    ref = to_image(gbs[0], references.indirect_light(scene.mi_scene, gbs[0], spp=64, bounces=1))
+    ratio = img.mean((0, 1)) / ref.mean((0, 1))
+    assert np.all(np.abs(ratio - 1) < 0.15) and rel_mse(ref, img) < 0.03, (ratio, rel_mse(ref, img))
 
 
 @pytest.mark.parametrize("spec,words", [
@@ -229,9 +236,7 @@ def test_bad_settings_are_refused(cornell, spec, words):
 
 def test_bad_setting_through_the_experiment_is_one_line(tmp_path):
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "slc.run.cli", "run", "crc", "--quick", "--scene", "cornell",
-                        "--methods", "crc:encoding=bogus", "--out", str(out)],
-                       capture_output=True, text=True, cwd=ROOT, timeout=600)
+    r = slc_cli(["run", "crc", "--quick", "--scene", "cornell", "--methods", "crc:encoding=bogus", "--out", out])
     assert r.returncode == 2, (r.stdout, r.stderr)
     lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
     assert len(lines) == 1 and "encoding" in lines[0] and "Traceback" not in r.stderr, r.stderr
@@ -256,16 +261,18 @@ def test_pipeline_compares_crc_with_the_indirect_reference(cornell):
 
 def test_render_gt_uses_the_reference_of_the_output_kind(tmp_path):
     """``slc render --gt`` with an indirect method compares it with the
-    indirect reference (and says so), not with the direct ground truth."""
+    indirect reference (and says so), not with the direct ground truth, and the
+    figures it writes are the measured ones."""
     out = tmp_path / "r"
-    r = subprocess.run([sys.executable, "-m", "slc.run.cli", "render", "--scene", "cornell", "--method",
-                        "crc:vpls=256,samples=4", "--res", "32x18", "--frames", "2", "--warmup", "1", "--gt",
-                        "--out", str(out)], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    r = slc_cli(["render", "--scene", "cornell", "--method", "crc:vpls=256,samples=4", "--res", "32x18",
+                 "--frames", "2", "--warmup", "1", "--gt", "--out", out])
     assert r.returncode == 0, r.stderr
     assert "vs the indirect reference" in r.stdout, r.stdout
     import json
     row = json.loads((out / "timings.json").read_text())
-    assert np.isfinite(row["flip"]) and row["psnr"] > 0
+    # measured FLIP 0.284, relMSE 0.410 (the Cornell box's rough-metal block: CRC's Lambertian
+    # reconstruction is too bright there); within 1.2x
+    assert row["flip"] < 0.34 and row["rel_mse"] < 0.49, row
     assert list(out.glob("*_strip.png"))
 
 

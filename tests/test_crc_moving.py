@@ -11,7 +11,7 @@ import pytest
 
 from slc import methods
 
-from slc.scene import scenes, views
+from slc.scene import views
 from slc.methods import FrameContext
 from slc.run.pipeline import gbuffers_for
 from slc.core.timing import KernelCounter, NullTimer
@@ -20,8 +20,8 @@ W, H = 64, 36
 
 
 @pytest.fixture(scope="module")
-def atrium():
-    return scenes.load("atrium")
+def atrium(scene):
+    return scene("atrium")
 
 
 def _pinned(scene, offset, **kw):

@@ -18,6 +18,9 @@ from slc.run.pipeline import gbuffers_for
 
 from helpers import plane_under_rect_light
 
+pytestmark = pytest.mark.slow      # chi-square tests of every emitter type (the fast subset: test_emitter_sampling_fast.py)
+
+
 ORIGIN = [0.1, 0.05, -0.1]   # the shading point (floating: nothing but emitters around it)
 
 

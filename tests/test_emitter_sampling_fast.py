@@ -57,6 +57,7 @@ def test_rows_hold_the_triangles_and_their_area_distribution():
     assert checked == 2   # the icosphere and the cube
 
 
+@pytest.mark.slow
 def test_selected_segments_equal_gathered_segments(monkeypatch):
     """Up to SEG_SELECT_MAX emitters, the segment is picked by selects over
     kernel parameters; above, gathered: both give the same samples, bit for bit."""

@@ -15,6 +15,8 @@ import pytest
 from helpers import run_case
 from slc.core.freeze import FrozenFunction
 
+pytestmark = pytest.mark.slow      # fresh interpreters counting kernels
+
 # One experiment-like process: scenes in turn (each released before the next, as the
 # experiment runner does), every method with frozen functions on each, the
 # recordings of every frozen function counted.

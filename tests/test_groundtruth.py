@@ -1,5 +1,6 @@
 """Ground truth and RT-N against closed forms and each other."""
 import numpy as np
+import pytest
 
 from helpers import plane_under_rect_light, rect_irradiance
 from slc.scene import gbuffer, scenes, views
@@ -27,6 +28,7 @@ def test_ground_truth_matches_closed_form_irradiance():
     assert np.median(per_pixel) < 0.02
 
 
+@pytest.mark.slow
 def test_rt16_vs_rt64_relative_mse_ratio():
     s = scenes.load("cornell")
     gb = gbuffers_for(s, views.single(s), 0, 64, 48)[0]

@@ -88,6 +88,7 @@ def rel_errors(img, ref, mask):
     return abs(a.mean() / r.mean() - 1.0), np.abs(a - r).mean() / r.mean()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", KINDS)
 def test_ground_truth_hard_cases(kind):
     """2048 MIS samples. Measured (48x32): grazing mean -0.3%, per-pixel mean
@@ -145,6 +146,7 @@ RESTIR_BOUNDS = {  # kind: (mean, per-pixel mean error), about 1.5x the measured
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", KINDS)
 def test_restir_hard_cases(kind):
     """ReSTIR (RTXDI defaults: temporal + spatial reuse, bias=basic, initial
@@ -239,8 +241,6 @@ def _report(name, img, ref, mask, bounds):
     print(f"slc hard case {name}: mean error {mean_err:+.4f}, per-pixel {pix_err:.4f} ({mask.sum()} px)")
     mean_err = abs(mean_err)
     bm, bp = bounds
-    if name in SLC_MISSES and not (mean_err < bm and pix_err < bp):
-        pytest.xfail(SLC_MISSES[name])
     assert mean_err < bm and pix_err < bp, (name, mean_err, pix_err)
 
 
@@ -249,16 +249,20 @@ def _report(name, img, ref, mask, bounds):
 # on-surface cache, check mode; mean error, per-pixel error):
 #   point-like +0.4%, 5.3%   behind -0.8%, 4.9%   grazing-far +0.9%, 12.1%
 #   half-occluded -0.5%, 6.9%   many-lights -3.4%, 6.5%   moving-stopped +2.2%, 9.1%
-#   switched-off +144%, 144% (fourth session's code; docs/hard-cases.md) (a known miss: xfail with the figure while it misses; the
-#   assertion runs, so a fix turns it into a pass)
+#   switched-off: a known miss, SLC_MISSES
 SLC_BOUNDS = {"point-like": (0.02, 0.21), "behind": (0.02, 0.15), "grazing-far": (0.02, 0.16),
               "half-occluded": (0.02, 0.12), "many-lights": (0.07, 0.16),
               "moving-stopped": (0.03, 0.13), "switched-off": (0.05, 0.15)}
-SLC_MISSES = {"switched-off": "a light switched off 20 frames ago: measured mean +144%, per-pixel 144% "
-                              "(+194% 2 frames after; rt16 follows at once): a cone whose light went dark "
-                              "only decays as a running mean, nothing detects the change"}
+# Known misses (strict xfail while they miss; a separate test holds each to 1.5x its measured
+# (mean error, per-pixel error), same setup as above):
+#   switched-off: a light switched off 20 frames ago; measured (48x32) slc before the switch
+#   +0.08%, 5.1%; 2 frames after +203%; 10 after +183%; 20 after +165%, 165% (rt16 2 frames
+#   after: +0.4% in the mean). A cone whose light went dark only decays as a running mean,
+#   nothing detects the change.
+SLC_MISSES = {"switched-off": (1.65, 1.65)}
 
 
+@pytest.mark.slow
 def test_slc_point_like_sphere_light():
     """An emissive sphere of radius 4 mm (1e-3 of the 4 m scene) 0.7 m above
     the plane: a cone of about 0.3 degrees. Reference: the closed form of a
@@ -283,6 +287,7 @@ BEHIND = [("front", [0, 1.0, 0], [0.2, 0, 0], [0, 0, 0.2], 10.0),
           ("behind", [3.0, -0.7, 0], [0, 0, 0.5], [0, 0.3, 0], 50.0)]   # below the horizon, facing -x
 
 
+@pytest.mark.slow
 def test_slc_light_behind_the_surface():
     """A bright light below the plane's horizon (beyond its edge, so no shadow
     ray is blocked: only the cosine keeps it out) next to a small light in
@@ -299,6 +304,7 @@ def test_slc_light_behind_the_surface():
 GRAZING_FAR = [("light", [0, 0.25, -3.0], [1.0, 0, 0], [0, 0.1, 0], 40.0)]   # 3-7 degrees above the horizon
 
 
+@pytest.mark.slow
 def test_slc_grazing_incidence():
     """A light 3 m away, 3 to 7 degrees above the horizon, facing the plane
     (not touching it: the touching one is test_cones.py's ``grazing``):
@@ -312,6 +318,7 @@ def test_slc_grazing_incidence():
 HALF = [("light", [0, 1.0, 0], [0.5, 0, 0], [0, 0, 0.5], 8.0)]
 
 
+@pytest.mark.slow
 def test_slc_half_occluded_large_light_check_mode():
     """test_cones.py's half-occluded large light (1 m x 1 m at 1 m, a thin
     blocker at 0.5 m over the half x < 0), in check mode on the default slc,
@@ -326,6 +333,7 @@ MANY = [(f"l{i}", [1.2 * np.cos(a), 0.9 + 0.2 * (i % 2), 1.2 * np.sin(a) - 0.3],
          [0.08, 0, 0], [0, 0, 0.08], 60.0) for i, a in enumerate(np.linspace(0, 2 * np.pi, 8, endpoint=False))]
 
 
+@pytest.mark.slow
 def test_slc_more_lights_than_max_cones():
     """Eight small lights on a ring around the plane's centre, all visible
     from every plane point, with max_cones = 3: cones must merge (case D) and
@@ -344,6 +352,7 @@ def _moving(t):
     return translate([0.04 * min(t * 60.0, STOP), 0.0, 0.0])
 
 
+@pytest.mark.slow
 def test_slc_light_moves_then_stops():
     """A 0.2 m light at 1 m moves 4 cm per frame for 12 frames, then stops
     (test_cones.py's moving light, here in check mode on the default slc):
@@ -369,14 +378,16 @@ SWITCH = [("stays", [-0.3, 1.0, 0], [0.1, 0, 0], [0, 0, 0.1], 20.0),
 OFF_AT = 16
 
 
-def test_slc_light_switches_off():
-    """Two lights; the brighter one switches off at frame 16 (radiance 0
-    through mi.traverse, the emitter table re-read). The error against the
-    quadrature of the light that stays on, 20 frames after. First, rt16 on
-    the same switch is right 2 frames after it (the switch reaches the
-    methods). Measured (mean, per-pixel): slc before the switch +0.4%, 6.6%;
-    2 frames after +194%; 10 after +152%; 20 after +133% (a known miss);
-    rt16 2 frames after the switch: asserted within 3% in the mean."""
+_SWITCH_OFF = {}
+
+
+def _switch_off_errors():
+    """Two lights; the brighter one switches off at frame 16 (radiance 0 through
+    mi.traverse, the emitter table re-read). Rendered once per session: rt16's
+    (mean, per-pixel) error 2 frames after the switch, and slc's at frames 15, 18,
+    26 and 36 (the switch + 20), against the quadrature of the lights that are on."""
+    if _SWITCH_OFF:
+        return _SWITCH_OFF
     import mitsuba as mi
 
     from slc.scene import emitter_sampling
@@ -397,16 +408,24 @@ def test_slc_light_switches_off():
     sc, rt = switching("rt16", OFF_AT + 3, ())
     gb, img = rt[OFF_AT + 2]
     ref, mask = _quad_ref(sc, gb, SWITCH[:1], _plane_mask(gb), n=32)
-    assert rel_errors(img, ref, mask)[0] < 0.03, rel_errors(img, ref, mask)
+    _SWITCH_OFF["rt16"] = rel_errors(img, ref, mask)
     sc, res = switching("slc", OFF_AT + 21, (OFF_AT - 1, OFF_AT + 2, OFF_AT + 10))
-    errs = {}
     for f, (gb, img) in res.items():
         on = SWITCH if f < OFF_AT else SWITCH[:1]
         ref, mask = _quad_ref(sc, gb, on, _plane_mask(gb), n=32)
-        errs[f] = rel_errors(img, ref, mask)
-    print("switched-off light, (mean, per-pixel) error by frame:", errs)
-    gb, img = res[OFF_AT + 20]
-    ref, mask = _quad_ref(sc, gb, SWITCH[:1], _plane_mask(gb), n=32)
+        _SWITCH_OFF[f] = (img, ref, mask) if f == OFF_AT + 20 else rel_errors(img, ref, mask)
+    print("switched-off light, (mean, per-pixel) error:",
+          {k: rel_errors(*v) if k == OFF_AT + 20 else v for k, v in _SWITCH_OFF.items()})
+    return _SWITCH_OFF
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason=f"known miss, mean, per-pixel error {SLC_MISSES['switched-off']}")
+def test_slc_light_switches_off():
+    """20 frames after the switch slc's image is within SLC_BOUNDS of the light that
+    stays on (a known miss, SLC_MISSES)."""
+    img, ref, mask = _switch_off_errors()[OFF_AT + 20]
     _report("switched-off", img, ref, mask, SLC_BOUNDS["switched-off"])
 
 
@@ -666,3 +685,16 @@ def test_slc_hemisphere_sized_light_default_settings_ceiling():
     mean_err, pix_err = _hemisphere_slc_errors()
     m, p = HEMISPHERE_SLC["measured"]
     assert mean_err < 1.5 * m and pix_err < 1.5 * p, (mean_err, pix_err)
+@pytest.mark.slow
+def test_slc_light_switches_off_no_worse():
+    """The switch reaches the methods: rt16 is within 3% in the mean 2 frames after it;
+    slc is within its bounds before the switch (one frame before), and 20 frames after
+    within 1.5x the measured miss (SLC_MISSES)."""
+    e = _switch_off_errors()
+    assert e["rt16"][0] < 0.03, e["rt16"]
+    assert e[OFF_AT - 1][0] < SLC_BOUNDS["switched-off"][0] and e[OFF_AT - 1][1] < SLC_BOUNDS["switched-off"][1], \
+        e[OFF_AT - 1]
+    img, ref, mask = e[OFF_AT + 20]
+    mean_err, pix_err = rel_errors(img, ref, mask)
+    bm, bp = SLC_MISSES["switched-off"]
+    assert mean_err <= 1.5 * bm and pix_err <= 1.5 * bp, (mean_err, pix_err)

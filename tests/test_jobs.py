@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from helpers import slc_cli
 from slc.run import jobs, jobspec
 
 from slc.scene import views
@@ -30,8 +31,12 @@ needs_ray = pytest.mark.skipif(importlib.util.find_spec("ray") is None,
 
 
 def slc_run(out, *extra, timeout=900):
-    r = subprocess.run(SLC + TINY + ["--out", str(out), *extra], capture_output=True, text=True, cwd=ROOT,
-                       timeout=timeout)
+    """The tiny preset, in this process (helpers.slc_cli) unless it starts Ray workers."""
+    if "--workers" in extra:
+        r = subprocess.run(SLC + TINY + ["--out", str(out), *extra], capture_output=True, text=True, cwd=ROOT,
+                           timeout=timeout)
+    else:
+        r = slc_cli(TINY + ["--out", out, *extra])
     assert r.returncode == 0, r.stderr[-3000:]
     return r
 
@@ -173,6 +178,7 @@ def test_failed_jobs_are_retried_reported_and_resumable(tmp_path):
 # Serial: killed mid-way, resumed
 # -----------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_serial_run_killed_then_resumed_equals_uninterrupted(serial, tmp_path):
     out = tmp_path / "killed"
     p = spawn(out)
@@ -197,6 +203,7 @@ def test_serial_run_killed_then_resumed_equals_uninterrupted(serial, tmp_path):
 # Ray
 # -----------------------------------------------------------------------------
 
+@pytest.mark.slow
 @needs_ray
 def test_ray_workers_give_the_serial_rows(serial, tmp_path):
     out = tmp_path / "ray"
@@ -207,6 +214,7 @@ def test_ray_workers_give_the_serial_rows(serial, tmp_path):
     assert all(r["host"] and r["job"] for r in rb)
 
 
+@pytest.mark.slow
 @needs_ray
 def test_two_node_cluster_gives_the_serial_rows(serial, tmp_path):
     import ray
@@ -228,6 +236,7 @@ def test_two_node_cluster_gives_the_serial_rows(serial, tmp_path):
     assert len({s["node"] for s in stats}) == 2  # both nodes ran jobs
 
 
+@pytest.mark.slow
 @needs_ray
 def test_killed_ray_worker_loses_no_row_and_the_run_completes(serial, tmp_path):
     out = tmp_path / "raykill"
@@ -255,6 +264,7 @@ def test_killed_ray_worker_loses_no_row_and_the_run_completes(serial, tmp_path):
     assert_same_results(serial, out)
 
 
+@pytest.mark.slow
 def test_serial_runs_do_not_import_ray(tmp_path):
     code = ("import sys, slc\n"
             "from slc.run import jobs, jobspec\n"

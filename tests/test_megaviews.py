@@ -34,6 +34,7 @@ def _leaf_points_under(sh, node):
     return sh.pos_np[a:][sel]
 
 
+@pytest.mark.slow
 def test_culling_is_conservative(setup):
     _, sh, vpls, vh = setup
     rng = np.random.default_rng(0)
@@ -60,6 +61,7 @@ def test_culling_is_conservative(setup):
         assert not np.any(cosang > 1e-6), f"pair ({S[i]}, {V[i]}) culled but visible"
 
 
+@pytest.mark.slow
 def test_traversal_visits_no_pair_twice_and_chunking_is_exact(setup):
     _, sh, _, vh = setup
     one = tv.Traversal(sh, vh, 16, record=True).run()
@@ -77,6 +79,7 @@ def test_traversal_visits_no_pair_twice_and_chunking_is_exact(setup):
     assert np.array_equal(np.array(small.depth), np.array(one.depth))
 
 
+@pytest.mark.slow
 def test_view_split_multipass(setup):
     """The paper's multi-pass (Sec. 4.2): passes from the view nodes of the
     multi-pass level. A fixed level 2 visits no pair twice, makes one pass
@@ -166,6 +169,7 @@ def _errors(gb, img, ref):
     return mean_err, float(np.median(e)), float(np.percentile(e, 90))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["megaviews", "manylods", "brute"])
 def test_against_the_indirect_reference(small_frame, name):
     """Each method (1024 VPLs, depth-5 hierarchies, 32x32) against the
@@ -187,6 +191,7 @@ def test_against_the_indirect_reference(small_frame, name):
     assert m.memory_bytes() > 0
 
 
+@pytest.mark.slow
 def test_bounds_fail_without_shadows(small_frame):
     """The bounds above can fail: the same gathering without the shadow-map
     test (every VPL visible) breaks them."""
@@ -202,6 +207,7 @@ def test_bounds_fail_without_shadows(small_frame):
     assert np.any(mean_err >= 0.10) or med >= 0.25 or p90 >= 0.7
 
 
+@pytest.mark.slow
 def test_multi_bounce_vpls_against_the_two_bounce_reference(small_frame):
     """2-bounce VPLs (512 light paths leaving up to 2 VPLs each) against the
     2-bounce indirect reference. Bounds (measured for seeds 0-2: mean error
@@ -226,6 +232,7 @@ def test_multi_bounce_vpls_against_the_two_bounce_reference(small_frame):
     assert np.all(too_bright > 0.20), too_bright
 
 
+@pytest.mark.slow
 def test_distance_cutoff(small_frame):
     """A cut-off beyond the scene changes nothing (bit-identical); a cut-off
     of half the scene edge drops far VPLs (darker on average)."""

@@ -12,6 +12,9 @@ import numpy as np
 import pytest
 
 from helpers import run_case
+
+pytestmark = pytest.mark.slow      # fresh interpreters counting kernels
+
 FRAMES, WARMUP = 8, 2
 
 _CASE = r"""

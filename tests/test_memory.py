@@ -24,6 +24,7 @@ def _memory_module():
     return mod
 
 
+@pytest.mark.slow
 def test_entry_bytes_match_the_arrays():
     """Bytes per entry from the method's memory report equal the bytes of its
     arrays per entry of capacity: payload words and policy state measured from
@@ -42,6 +43,7 @@ def test_entry_bytes_match_the_arrays():
     assert mem.entry_bytes_of(methods.create("rt16", sc)) == 0.0
 
 
+@pytest.mark.slow
 def test_active_column_is_computed():
     """On the cornell box (48x27, 6 frames): active < allocated for slc (blocks
     are partly filled and the table is not active), equal for 1 and 2 viewers

@@ -1,5 +1,6 @@
 """One cache for all viewers: sharing is exact and viewers do not disturb each other."""
 import numpy as np
+import pytest
 
 from helpers import render_frames
 from slc import methods
@@ -15,6 +16,7 @@ def _run(scene, vs, frames=FRAMES):
     return m, imgs
 
 
+@pytest.mark.slow
 def test_identical_viewers_share_every_entry_exactly():
     s = scenes.load("cornell")
     one = views.overlap_rig(s, 1, 1.0)
@@ -36,6 +38,7 @@ def _still(rig):
     return [views.Viewer(v.name, (lambda f, c=v.camera(0): c), v.rig) for v in rig]
 
 
+@pytest.mark.slow
 def test_second_viewer_does_not_change_the_first():
     """Random numbers are keyed by texel (island, level, x, y) and frame, never by
     the physical slot a block landed in or the lane an entry runs in, so with still
@@ -49,6 +52,7 @@ def test_second_viewer_does_not_change_the_first():
     assert np.array_equal(i1[0], i2[0])
 
 
+@pytest.mark.slow
 def test_second_viewer_bounded_change_when_moving():
     """With moving cameras it cannot be exact: an entry the second viewer saw
     first has a longer history (more samples, an earlier start) when the first
@@ -62,6 +66,7 @@ def test_second_viewer_bounded_change_when_moving():
     assert d.mean() < 0.01 * i1[0].mean()
 
 
+@pytest.mark.slow
 def test_measured_overlap_of_rigs():
     s = scenes.load("atrium")
     same = gbuffers_for(s, views.overlap_rig(s, 3, 1.0), 4, W, H)

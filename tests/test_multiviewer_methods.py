@@ -7,14 +7,14 @@ import pytest
 
 from helpers import render_frames
 from slc import methods
-from slc.scene import scenes, views
+from slc.scene import views
 
 W, H, FRAMES = 48, 27, 5
 
 
 @pytest.fixture(scope="module")
-def cornell():
-    return scenes.load("cornell")
+def cornell(scene):
+    return scene("cornell")
 
 
 def _still(rig):
@@ -27,6 +27,7 @@ def _images(scene, spec, vs, frames=FRAMES):
     return imgs
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", ["rt8", "restir", "restir:spatial=4"])
 def test_second_viewer_leaves_first_unchanged(cornell, spec):
     """Per-viewer methods keep per-viewer state and random streams keyed by the
@@ -48,6 +49,7 @@ def test_identical_viewers_differ_by_noise_only(cornell, spec):
     assert abs(a.mean() / b.mean() - 1) < 0.02
 
 
+@pytest.mark.slow
 def test_sh_identical_viewers_identical_images(cornell):
     pytest.importorskip("slc.methods.sh")
     one = _images(cornell, "sh", views.overlap_rig(cornell, 1, 1.0))
@@ -56,6 +58,7 @@ def test_sh_identical_viewers_identical_images(cornell):
     assert np.array_equal(one[0], two[0])
 
 
+@pytest.mark.slow
 def test_sh_second_viewer(cornell):
     """Moving and still cameras: at most 5% of the first viewer's pixels change with a
     second viewer (40% of the screen away) and the mean change is below 1% of the image

@@ -405,6 +405,7 @@ def test_block_in_use_survives(cornell):
     assert total_evicted > 0
 
 
+@pytest.mark.slow
 def test_reused_slot_starts_from_reset_state(cornell):
     """After view A's blocks are evicted, view C (the back wall up close: other
     texels) is allocated into the freed physical blocks (lowest free first). Every

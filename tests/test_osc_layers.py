@@ -91,6 +91,7 @@ def test_overlap_measure_equals_slot_sets(cornell):
     assert cache.stats()["pixels"] == sum(int(np.array(g.valid).sum()) for g in gbs)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scene_name", ["cornell", "sphere"])
 def test_frozen_interactions_equal_traced(scene_name, cornell, sphere_scene):
     """The frozen entry interactions are the traced ones bit for bit (meshes and

@@ -208,6 +208,7 @@ def test_indirect_reference_matches_the_furnace_closed_form(bounces):
 
 
 # ----------------------------------------------------------------------------- the method
+@pytest.mark.slow
 def test_converges_to_the_indirect_reference(dcornell):
     """Diffuse Cornell box, still camera, 2 bounces: after 24 frames the mean indirect light is
     within 10% of the 256-path reference and the mean absolute pixel error within 25% of the mean
@@ -222,6 +223,7 @@ def test_converges_to_the_indirect_reference(dcornell):
     assert m.secondary.overflow == 0 and m.secondary.used_cells() > 0
 
 
+@pytest.mark.slow
 def test_glossy_hits_bring_the_light_reflected_by_metal():
     """The Cornell box with its rough-aluminium block, still camera, 12 frames at 32x18: cache rays
     hitting the metal read its cell's diffuse radiance (0) without ``OSCGI.glossy_hits``; with it (NEE +
@@ -238,6 +240,7 @@ def test_glossy_hits_bring_the_light_reflected_by_metal():
     assert abs(ratio[1] - 1.0) < abs(ratio[0] - 1.0) - 0.05, ratio
 
 
+@pytest.mark.slow
 def test_frozen_kernels_give_the_traced_images():
     """``freeze`` (the kernels with shape/BSDF/emitter calls replayed) changes no pixel: a moving
     camera (the entry and ray counts change every frame) on the Cornell box with its metal block."""
@@ -268,6 +271,7 @@ def test_full_output_is_direct_plus_indirect(dcornell):
     assert np.abs(imgs[0] - ref)[valid].mean() < 0.25 * ref[valid].mean()
 
 
+@pytest.mark.slow
 def test_no_light_leaks_into_the_closed_dark_room():
     """two_rooms: one viewer in the lit room, one in the closed dark room beside it (its reference is
     exactly 0). With the cells keyed by shape the dark room stays exactly dark; without (cells of
@@ -285,6 +289,7 @@ def test_no_light_leaks_into_the_closed_dark_room():
     assert dark2.mean() > 1e-3 * lit2.mean()                          # the leak the shape key removes
 
 
+@pytest.mark.slow
 def test_entries_and_cells_are_shared_across_viewers(dcornell):
     v1 = views.single(dcornell)
     m1, _, (a,) = _run(dcornell, "osc-gi", v1, 4)
@@ -312,6 +317,7 @@ def test_check_mode_finite(dcornell, monkeypatch):
     assert np.isfinite(img).all() and img.min() >= 0.0
 
 
+@pytest.mark.slow
 def test_pipeline_compares_with_the_full_reference_and_reports_caches(dcornell):
     m = methods.create("osc-gi", dcornell)
     cfg = RunConfig(width=32, height=18, frames=3, warmup=1, ref_spp=16)
@@ -327,6 +333,7 @@ def test_pipeline_compares_with_the_full_reference_and_reports_caches(dcornell):
 
 
 # ----------------------------------------------------------------------------- pt baseline
+@pytest.mark.slow
 def test_pt_converges_to_the_reference(dcornell):
     gb = gbuffers_for(dcornell, views.single(dcornell), 0, 32, 18)[0]
     pt = methods.create("pt:spp=64,output=indirect", dcornell)

@@ -11,7 +11,7 @@ import pytest
 
 from slc import methods
 
-from slc.scene import scenes, views
+from slc.scene import views
 from slc.methods import FrameContext
 from slc.run.pipeline import gbuffers_for
 from slc.core.timing import NullTimer
@@ -20,8 +20,8 @@ W, H, FRAMES = 32, 18, 24
 
 
 @pytest.fixture(scope="module")
-def cornell():
-    return scenes.load("cornell")
+def cornell(scene):
+    return scene("cornell")
 
 
 def _run(scene, spec, viewers, frames, still=True, w=W, h=H, average=1):
@@ -48,6 +48,7 @@ def _run(scene, spec, viewers, frames, still=True, w=W, h=H, average=1):
     return rows, [a / average for a in acc]
 
 
+@pytest.mark.slow
 def test_budget_bounds_the_updated_entries_and_updates_every_entry_within_k_frames(cornell):
     """16 still viewers (the experiment's rig, 32x18) at update_budget 0.5: ~410 entries against a
     limit of 72. After the first frame (all new, all updated) every frame updates exactly the
@@ -65,6 +66,7 @@ def test_budget_bounds_the_updated_entries_and_updates_every_entry_within_k_fram
             assert r["stale"] <= math.ceil(r["n"] / r["limit"]) - 1, (f, r)
 
 
+@pytest.mark.slow
 def test_budget_moving_viewers_take_every_new_entry(cornell):
     """Moving viewers: every new entry is updated in its first frame, beyond the limit if need be
     (the rest of the limit goes to the most due), and entries stay within the same staleness bound."""
@@ -78,6 +80,7 @@ def test_budget_moving_viewers_take_every_new_entry(cornell):
     assert late and all(r["stale"] <= math.ceil(r["n"] / r["limit"]) for r in late), rows
 
 
+@pytest.mark.slow
 def test_budget_converges_to_the_full_update(cornell):
     """Still viewers: the budgeted images (update_budget 0.5: each entry updated about every 6th
     frame) converge to the full update's: after 64 frames each viewer's mean within 3%, the mean
@@ -97,6 +100,7 @@ def test_budget_converges_to_the_full_update(cornell):
     assert not np.array_equal(a[0], b[0])
 
 
+@pytest.mark.slow
 def test_one_viewer_is_not_budgeted(cornell):
     """One viewer (64x36: 1,152 entries allowed, ~300 requested): every entry every frame, the
     images those of update_budget=0 bit for bit."""

@@ -6,6 +6,9 @@ import pytest
 
 from helpers import run_case
 
+pytestmark = pytest.mark.slow      # fresh interpreters counting kernels
+
+
 _CASE = r"""
 import json, sys
 from slc import methods

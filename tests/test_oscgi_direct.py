@@ -12,15 +12,15 @@ from slc import methods
 
 from slc.reference import references
 
-from slc.scene import scenes, views
+from slc.scene import views
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_oscgi import _run  # noqa: E402
 
 
 @pytest.fixture(scope="module")
-def cornell():
-    return scenes.load("cornell")
+def cornell(scene):
+    return scene("cornell")
 
 
 def test_per_pixel_direct_light_is_unbiased_and_leaves_the_cache_alone(cornell):
@@ -41,6 +41,7 @@ def test_per_pixel_direct_light_is_unbiased_and_leaves_the_cache_alone(cornell):
     assert abs(d[valid].mean() / gt[valid].mean() - 1.0) < 0.03, (d[valid].mean(), gt[valid].mean())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("direct", ["cache", "cones", "restir"])
 def test_other_direct_options_approach_the_full_reference(cornell, direct):
     """The cached direct light and the cones / ReSTIR run beside the cache: finite, and the full image
@@ -67,6 +68,7 @@ def test_cell_edge_follows_the_scene_size(cornell):
     assert edge("osc-gi:secondary_cm=1,secondary_scene=0") == pytest.approx(0.01)  # both off
 
 
+@pytest.mark.slow
 def test_stratified_light_samples_are_unbiased_and_less_noisy(cornell):
     """``direct_lds`` (default): a pixel's n light samples are a Hammersley set shifted by a random
     offset per pixel and frame. Averaged over 64 frames (new offsets), RT-4's image converges to the

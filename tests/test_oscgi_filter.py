@@ -21,6 +21,7 @@ def sphere():
     return furnace(0.5, 1.0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("parallax", [1, 0])
 def test_filter_keeps_a_uniform_field_and_lowers_its_noise(sphere, parallax):
     rho, E = 0.5, 1.0

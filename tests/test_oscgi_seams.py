@@ -1,8 +1,8 @@
 """Island borders show no seam: on a flat floor split into several islands of the on-surface cache
 (a 16 x 16 grid of quads, 512 triangles, islands of at most 128), the jump of osc-gi's image
 between two neighbouring pixels on either side of an island border deviates from the reference's
-jump no more than 1.5x as much as between neighbouring pixels inside one island (measured 1.11
-without the spatial filter; 2.9 with it, a known failure marked as such)."""
+jump no more than 1.5x as much as between neighbouring pixels inside one island (measured figures
+and the known miss at SEAM_MISSES)."""
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -16,6 +16,7 @@ from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
 import sys
 from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from helpers import known_miss  # noqa: E402
 from test_oscgi import _run  # noqa: E402
 
 SEAM_BOUND = 1.5     # border-pair deviation / interior-pair deviation
@@ -43,15 +44,22 @@ def floor_scene():
     return grid_floor_scene()
 
 
-@pytest.mark.parametrize("spec", [
-    "osc-gi",     # measured 1.01 (0.84 with direct=cache)
-    # the filter smooths the cached indirect light only (direct light per pixel): measured 1.38
-    "osc-gi:filter_radius=3",
-    # the island-local spatial filter smooths inside islands, not across their borders: with the direct
-    # light cached in the entries (and filtered with them) the borders show: measured 3.0
-    pytest.param("osc-gi:direct=cache,filter_radius=3", marks=pytest.mark.xfail(strict=True, reason="filter seams: 3.0"))])
-def test_island_borders_show_no_seam(floor_scene, spec):
-    s = floor_scene
+# the filter now smooths the cached indirect light only (direct light per pixel). Measured ratios:
+#   osc-gi 1.01; osc-gi:filter_radius=3 1.38; osc-gi:direct=cache,filter_radius=3 3.0 (a known miss:
+#   the island-local spatial filter smooths inside islands, not across their borders, and with the
+#   direct light cached in the entries, and filtered with them, the borders show).
+SEAM_MISSES = {"osc-gi:direct=cache,filter_radius=3": 3.0}
+SEAM_SPECS = ["osc-gi", "osc-gi:filter_radius=3", *SEAM_MISSES]
+_SEAMS = {}
+
+
+def _seam_ratio(s, spec):
+    """osc-gi ``spec`` on the grid floor, 16 frames, against a 256-spp full reference
+    (once per session): the mean deviation of the image's jump from the reference's
+    between neighbouring floor pixels across an island border, over the same inside an
+    island; and whether image and reference are finite."""
+    if spec in _SEAMS:
+        return _SEAMS[spec]
     m, gbs, imgs = _run(s, spec, views.single(s), 16)
     gb, img = gbs[0], imgs[0]
     ref = references.reference_for("full", s, gb, 0, "seams", spp=256, use_cache=False)
@@ -69,7 +77,26 @@ def test_island_borders_show_no_seam(floor_scene, spec):
         dev_b.append(dev[both & (isl[a] != isl[b])])
         dev_i.append(dev[both & (isl[a] == isl[b])])
     dev_b, dev_i = np.concatenate(dev_b), np.concatenate(dev_i)
-    assert dev_b.size >= 20 and dev_i.size >= 200, (dev_b.size, dev_i.size)     # the floor has borders
-    assert np.isfinite(img).all() and np.isfinite(ref).all(), (np.isfinite(img).all(), np.isfinite(ref).all())
-    ratio = dev_b.mean() / dev_i.mean()
-    assert ratio <= SEAM_BOUND, ratio
+    _SEAMS[spec] = dict(borders=dev_b.size, interior=dev_i.size, ratio=dev_b.mean() / dev_i.mean(),
+                        finite=bool(np.isfinite(img).all() and np.isfinite(ref).all()))
+    print(f"seams {spec}: {_SEAMS[spec]}")
+    return _SEAMS[spec]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("spec", [known_miss(x, SEAM_MISSES[x], "seam ratio") if x in SEAM_MISSES else x
+                                  for x in SEAM_SPECS])
+def test_island_borders_show_no_seam(floor_scene, spec):
+    r = _seam_ratio(floor_scene, spec)
+    assert r["ratio"] <= SEAM_BOUND, r
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("spec", SEAM_SPECS)
+def test_island_borders_finite_and_misses_no_worse(floor_scene, spec):
+    """The floor has borders, image and reference are finite, and a known miss
+    (SEAM_MISSES) stays within 1.5x its measured ratio."""
+    r = _seam_ratio(floor_scene, spec)
+    assert r["borders"] >= 20 and r["interior"] >= 200 and r["finite"], r
+    if spec in SEAM_MISSES:
+        assert r["ratio"] <= 1.5 * SEAM_MISSES[spec], r

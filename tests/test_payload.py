@@ -10,6 +10,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from helpers import slc_cli
 from slc import methods
 from slc.reference.groundtruth import ground_truth
 from slc.methods import MethodError
@@ -134,8 +135,7 @@ def test_bad_settings_are_one_line_errors(spec, cornell):
 
 @pytest.mark.parametrize("spec", ["slc:bias=abc", "restir:temporal=abc"])
 def test_bad_settings_exit_2_from_the_command_line(spec, tmp_path):
-    r = subprocess.run([sys.executable, "-m", "slc.run.cli", "render", "--scene", "cornell", "--method", spec,
-                        "--out", str(tmp_path)], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    r = slc_cli(["render", "--scene", "cornell", "--method", spec, "--out", tmp_path])
     lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
     assert r.returncode == 2 and len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
 
@@ -149,6 +149,7 @@ def test_settings_come_from_the_declaration(cornell):
     assert methods.create("slc:fetch=bilinear,bias=0.5", cornell).settings()["bias"] == 0.5
 
 
+@pytest.mark.slow
 def test_methods_are_discovered_and_a_missing_module_is_an_error(tmp_path):
     code = ("import sys; sys.path.insert(0, %r); import slc; from slc import methods; "
             "print(sorted(methods.available()))" % str(ROOT))

@@ -39,6 +39,7 @@ def _z(spec, ref_data, frames=1, runs=32, var_runs=96, scale=1.02):
     return t, biased
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec,frames", [("regir", 4), ("regir:temporal=0", 1), ("regir:cells=32,cell=0.25", 1),
                                          ("regir:defensive=0.3,taps=2,table=2", 1)])
 def test_regir_per_pixel_z_test(cornell_ref, spec, frames):
@@ -104,6 +105,7 @@ print("RESULT " + json.dumps(out))
 """
 
 
+@pytest.mark.slow
 def test_no_kernels_after_warmup():
     """A fresh process renders a moving camera: no kernel is built after the warm-up frames,
     with and without temporal merge."""

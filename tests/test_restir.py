@@ -20,8 +20,8 @@ W, H = 64, 36
 
 
 @pytest.fixture(scope="module")
-def cornell():
-    return scenes.load("cornell")
+def cornell(scene):
+    return scene("cornell")
 
 
 @pytest.fixture(scope="module")
@@ -43,6 +43,7 @@ def run_frames(method, scene, viewers, frames, width=W, height=H, gbs=None):
     return out
 
 
+@pytest.mark.slow
 def test_converges_to_ground_truth(cornell, cornell_static):
     """Static scene, bias=basic and pairwise (default): the mean over pixels of the 16-frame average
     is within 3% of the 2048-spp ground truth without initial visibility
@@ -271,6 +272,7 @@ def _pix_err(imgs, gt, v):
     return float(np.mean([np.abs(i[v] - gt[v]).mean() for i in imgs]) / gt[v].mean())
 
 
+@pytest.mark.slow
 def test_per_pixel_error_spatial_and_falcor(cornell, cornell_flat):
     """Per-pixel error against the ground truth (one frame, no temporal reuse, 4
     seeds). Measured (64x36): 1 spatial neighbour 10.2%, 5 neighbours 7.9%, none

@@ -8,7 +8,7 @@ circle: 16 views at 0% used to measure 75%)."""
 import numpy as np
 import pytest
 
-from slc.scene import scenes, views
+from slc.scene import views
 from slc.run.pipeline import gbuffers_for
 
 W, H = 80, 45                  # same aspect as the calibration, other resolution
@@ -17,10 +17,11 @@ TOLERANCE = 10.0               # percentage points
 
 
 @pytest.fixture(scope="module")
-def atrium():
-    return scenes.load("atrium")
+def atrium(scene):
+    return scene("atrium")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("n", [4, 16])
 @pytest.mark.parametrize("target", [0, 25, 50, 75, 100])
 def test_controlled_rig_reaches_its_target(atrium, n, target):
@@ -45,6 +46,7 @@ def test_controlled_rig_never_wraps(atrium):
         assert gaps.min() >= hfov - 1e-6, (n, gaps.min(), hfov)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_random_rig_overlap_start_and_average(atrium, seed):
     """16 random viewers, the paper's regime: about 50% overlap at the start
@@ -58,6 +60,7 @@ def test_random_rig_overlap_start_and_average(atrium, seed):
     assert np.mean(m[2:]) < m[0] - 20.0, "the viewers do not drift apart"
 
 
+@pytest.mark.slow
 def test_random_rig_keeps_clear_of_surfaces(atrium):
     """No viewer starts inside a closed mesh or within 0.3 m of a surface,
     and no step of a walk passes through a surface (checked on the keys

@@ -420,6 +420,7 @@ def plane():
     return sc, gbs, ref, mask
 
 
+@pytest.mark.slow
 def test_ground_truth_per_pixel_z_test_closed_form(plane):
     """direct_mis (64 samples per run, 32 runs, seeds 100..131) against the closed
     form at every plane pixel; variance from 128 other runs."""
@@ -452,6 +453,7 @@ def cornell_ref():
     return sc, gbs, g.mean(axis=0), g.var(axis=0, ddof=1) / len(g), mask
 
 
+@pytest.mark.slow
 def test_rt_per_pixel_z_test_cornell(cornell_ref):
     sc, gbs, ref, ref_var, mask = cornell_ref
     runs = independent_runs("rt16", sc, gbs, range(32))
@@ -461,6 +463,7 @@ def test_rt_per_pixel_z_test_cornell(cornell_ref):
     assert _z(runs * 1.02, var_runs, ref, ref_var, mask)[0] < alpha
 
 
+@pytest.mark.slow
 def test_restir_bias_off_temporal_per_pixel_z_test(cornell_ref):
     """ReSTIR with bias=off and temporal reuse only (spatial=0, boost=0), 4 frames
     at a still camera: unbiased, passes. The default (bias=basic with RTXDI's

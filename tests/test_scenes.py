@@ -100,7 +100,7 @@ def test_paths_are_deterministic():
             assert np.array_equal(pa.at(f).target, pb.at(f).target)
 
 
-@pytest.mark.parametrize("name", BUILTIN)
+@pytest.mark.parametrize("name", [n if n == "cornell" else pytest.param(n, marks=pytest.mark.slow) for n in BUILTIN])
 def test_every_method_renders_finite_and_deterministic(name, monkeypatch):
     """Check mode on: every stage output finite, every returned image finite and
     >= 0 (raw values, nothing clamped), a lit image, the same images twice."""
@@ -204,21 +204,33 @@ def test_sponza_shape_order_is_the_same_in_every_process():
     see the same shapes in the same order (it differed before the fix)."""
     if not (scenes.SHARED_DIR / "scenes" / "sponza" / "sponza.xml").exists():
         pytest.skip("sponza needs ../shared/scenes/sponza")
-    outs = _last_lines_of_three_processes(
-        "s = scenes.load('sponza'); print([(sh.id(), sh.face_count()) for sh in s.mi_scene.shapes()])")
+    outs = [o[0] for o in _sponza_orders_in_three_processes()]
     assert outs[0] == outs[1] == outs[2]
 
 
-def _last_lines_of_three_processes(code: str) -> list[str]:
-    """The last printed line of ``code`` run in three fresh processes (after
-    ``backend.init()`` and ``from slc import scenes``)."""
-    import subprocess
-    import sys
-    from pathlib import Path
-    code = "from slc.core import backend; backend.init(); from slc.scene import scenes; " + code
-    root = Path(__file__).resolve().parents[1]
-    return [subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, check=True)
-            .stdout.strip().splitlines()[-1] for _ in range(3)]
+_SPONZA_ORDERS = []
+
+
+def _sponza_orders_in_three_processes() -> list[list[str]]:
+    """In three fresh processes (run once per session, shared by the two tests below):
+    the shapes of the built-in sponza in order, and those of its XML file loaded with
+    ``load_xml``, as two printed lines per process."""
+    if not _SPONZA_ORDERS:
+        import subprocess
+        import sys
+        from pathlib import Path
+        xml = scenes.SHARED_DIR / "scenes" / "sponza" / "sponza.xml"
+        code = ("from slc.core import backend; backend.init(); from slc.scene import scenes\n"
+                "s = scenes.load('sponza'); print('ORDER', [(sh.id(), sh.face_count()) for sh in s.mi_scene.shapes()])\n"
+                f"s = scenes.load_xml({str(xml)!r})\n"
+                "print('ORDER', [(sh.id(), sh.primitive_count(), sh.class_name()) for sh in s.mi_scene.shapes()], "
+                "len(s.mi_scene.emitters()), len(s.mi_scene.sensors()))\n")
+        root = Path(__file__).resolve().parents[1]
+        for _ in range(3):
+            out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, check=True)
+            _SPONZA_ORDERS.append([ln for ln in out.stdout.splitlines() if ln.startswith("ORDER ")])
+            assert len(_SPONZA_ORDERS[-1]) == 2, out.stdout[-2000:]
+    return _SPONZA_ORDERS
 
 
 def test_xml_scene_shape_order_is_the_same_in_every_process():
@@ -230,10 +242,7 @@ def test_xml_scene_shape_order_is_the_same_in_every_process():
     xml = scenes.SHARED_DIR / "scenes" / "sponza" / "sponza.xml"
     if not xml.exists():
         pytest.skip("needs ../shared/scenes/sponza")
-    outs = _last_lines_of_three_processes(
-        f"s = scenes.load_xml({str(xml)!r}); "
-        "print([(sh.id(), sh.primitive_count(), sh.class_name()) for sh in s.mi_scene.shapes()], "
-        "len(s.mi_scene.emitters()), len(s.mi_scene.sensors()))")
+    outs = [o[1] for o in _sponza_orders_in_three_processes()]
     assert outs[0] == outs[1] == outs[2]
 
 

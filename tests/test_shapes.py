@@ -184,6 +184,7 @@ def test_analytic_shapes_have_islands_and_entries_on_the_real_surface(twins):
         assert np.median(cos) > 0.99 and cos.min() > 0.5, (name, np.median(cos), cos.min())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", ["slc", "sh"])
 def test_analytic_scene_renders_like_its_meshed_twin(twins, spec):
     """Sphere, disk and cylinder as Mitsuba analytic shapes and as fine meshes
@@ -228,6 +229,7 @@ def test_unsupported_shape_is_named_in_one_warning(tmp_path):
     assert len(msgs) == 1 and "copy" in msgs[0] and "Instance" in msgs[0], msgs
 
 
+@pytest.mark.slow
 def test_scene_of_only_analytic_shapes_does_not_crash(tmp_path):
     """Before: jit_var_gather(): attempted to gather from an empty array."""
     p = tmp_path / "only.xml"
@@ -332,6 +334,7 @@ def _flip(scene, img, gt):
     return metrics.evaluate(gt, img, scene.exposure)["flip"]
 
 
+@pytest.mark.slow
 def test_bilinear_fetch_beats_nearest_in_a_closed_box(boxes):
     """Two-sided walls seen from their back miss the Lambertian closed form, so
     shading uses the direction quadrature; when the bilinear fetch split
@@ -346,6 +349,7 @@ def test_bilinear_fetch_beats_nearest_in_a_closed_box(boxes):
     assert rel_mse(gt_b, img_b) <= rel_mse(gt, img_n)
 
 
+@pytest.mark.slow
 def test_no_dark_entries_in_room_corners(boxes):
     """Border texels are clamped onto their island's triangles; an entry exactly
     on the floor's edge had its shadow rays start on the back wall's plane and

@@ -3,6 +3,7 @@ bounding box (the cornell box, seen through its open side) is fanned about its
 look-at point (``pivot="auto"``), one inside (the atrium) about its eye; meeting
 viewers never stand inside geometry."""
 import numpy as np
+import pytest
 
 import slc.core.backend  # noqa: F401
 import mitsuba as mi
@@ -30,6 +31,7 @@ def test_pivot_follows_where_the_camera_is():
     assert views.fan_pivot(load("atrium")) == "eye"
 
 
+@pytest.mark.slow
 def test_cornell_fan_about_the_target_sees_the_box_in_every_view():
     sc = load("cornell")
     eye = _valid_per_viewer(sc, views.overlap_rig(sc, 16, 0.75, pivot="eye"))
