@@ -559,7 +559,7 @@ def test_hard_case_misses_no_worse(kind):
 
 def _storage_after(sc, frames=12, cache="pixel"):
     """A converged cone storage and the shading inputs of the last frame."""
-    from slc.methods.cones.update import INVALID
+    from slc.core.keys import INVALID
     m = SurfaceLightCones(sc, cache=PixelSlotCache(), fetch="nearest") if cache == "pixel" else create("slc", sc)
     gb, _ = _run(sc, m, frames)
     fr = m.cache.begin_frame(frames, [gb])

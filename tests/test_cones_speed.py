@@ -59,7 +59,7 @@ def test_bsdf_table_same_images(kind):
 def test_entry_frames_inside_the_launch():
     """Passing each pixel's entry index and the entries' frames (the gather inside the
     launch) gives the image of a frame gathered beforehand, bit for bit."""
-    from slc.methods.cones.update import INVALID
+    from slc.core.keys import INVALID
     sc = plane_under_rect_light(half=0.3, radiance=5.0, bsdf=principled([0.45, 0.36, 0.28], roughness=0.22),
                                 name="entry_frames")
     m, gb, slot, ok, tf = _inputs(sc)
