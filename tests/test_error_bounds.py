@@ -11,7 +11,7 @@ import warnings
 
 import pytest
 
-from slc.reference import bounds
+from slc.run import bounds
 
 TABLE = bounds.load_table()
 RECORDED = TABLE.get("scenes", {})
