@@ -24,7 +24,7 @@ install: llvm $(STAMP)
 # The first run: one viewer on the atrium, slc against 16 and 48 light samples per pixel.
 # 240x135 rather than the quick preset's 160x90: slc's per-frame host time (Python tracing,
 # syncs) does not grow with the pixels and weighs less there. A first run on an empty kernel
-# cache, quiet machine (seventh session): slc/rt48 time 0.32x, FLIP 0.83x rt48's, 24 s
+# cache, quiet machine: slc/rt48 time 0.32x, FLIP 0.83x rt48's, 24 s
 # (docs/results/make-run.md). Three methods keep it under a minute on 2 idle cores (ground
 # truth and kernel compilation included).
 run: install

@@ -423,7 +423,7 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     # the last pixel always taken, masked off unless it is one: no launch of width 0), gathers
     # their inputs, recomputes their cone state from them (the same operations: the same
     # values), and its values are scattered back. Same images bit for bit
-    # (tests/test_cones_compact.py); measured in docs/cones.md, "Session ovl7".
+    # (tests/test_cones_compact.py); measured in docs/cones.md (packed quadrature pixels).
     out = dr.select(lambert, closed, dr.select(pfast, prin, 0.0))
     dr.eval(out, sampled)
     N = dr.width(slot)
