@@ -47,12 +47,12 @@ def _shade(call, active=None, freeze=False, **opts):
 def _sampled(call, **opts):
     """Which pixels take the quadrature: those where a quadrature returning a marker
     (1e30) shows it."""
-    orig = shmod._quadrature
-    shmod._quadrature = lambda bsdf, si, ctx, sampled, *rest: mi.Color3f(dr.select(sampled, 1e30, 0.0))
+    orig = shmod.quadrature
+    shmod.quadrature = lambda bsdf, si, ctx, sampled, *rest: mi.Color3f(dr.select(sampled, 1e30, 0.0))
     try:
         v = np.array(_shade(call, compact=False, **opts)[1])
     finally:
-        shmod._quadrature = orig
+        shmod.quadrature = orig
     return v[0] == 1e30
 
 

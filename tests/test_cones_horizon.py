@@ -13,7 +13,8 @@ from helpers import hard_scene, render_frames
 from slc import methods
 from slc.scene import scenes, views
 from slc.methods.cones import packing as P
-from slc.methods.cones.shading import ConeShading, _lambertian
+from slc.methods.cones.closedforms import lambertian
+from slc.methods.cones.shading import ConeShading
 
 
 def _clipped_cap_integral(cos_d, alpha, n=400_000, seed=0):
@@ -61,7 +62,7 @@ def test_horizon_clip_equals_converged_sampling():
         cd = np.array(dr.dot(gb.si.sh_frame.n, d))
         ang = np.arccos(np.clip(cd, -1, 1))
         across |= np.array(ok & (n > i)) & (ang + np.array(A[i]) >= math.pi / 2)
-    lam = np.array(_lambertian(gb.si.bsdf(), gb.si, ok))
+    lam = np.array(lambertian(gb.si.bsdf(), gb.si, ok))
     assert (across & lam).sum() > 50
     assert np.array_equal(a[:, ~across], b[:, ~across])
     assert abs(a.sum() / ref.sum() - 1) < 0.005, a.sum() / ref.sum()

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from helpers import plane_under_rect_light
-from slc.methods.cones import shading as shmod
+from slc.methods.cones import closedforms as cfmod
 from slc.methods.cones import update as upmod
 from slc.methods.cones.shading import ConeShading, bsdf_table
 from slc.scene.scenes import diffuse, principled, rough_conductor
@@ -38,7 +38,7 @@ def test_backside_pixels_same_as_quadrature(kind, monkeypatch):
     def shade(si):
         return np.array(ConeShading(3, freeze=False, table=table)(m.storage, slot, ok, si, tf, 16, 5))
     front, back = shade(gb.si), shade(si_back)
-    monkeypatch.setattr(shmod, "BACK_MARGIN", float("inf"))      # no cone is ever "clear": the quadrature
+    monkeypatch.setattr(cfmod, "BACK_MARGIN", float("inf"))      # no cone is ever "clear": the quadrature
     front_q, back_q = shade(gb.si), shade(si_back)
     assert np.abs(front).sum() > 0 and np.all(np.isfinite(front))
     assert np.array_equal(front, front_q)
