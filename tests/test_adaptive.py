@@ -171,7 +171,7 @@ def _plane_points(scene, n=64):
 
 @pytest.mark.slow
 def test_cone_pool_update_is_slc_update_bit_for_bit():
-    """The adaptive cone pool runs slc's own update cycle (slc.methods.cones.update.update_cycle
+    """The adaptive cone pool runs slc's own update cycle (slc.methods.cones.cycle.update_cycle
     through a SampleObserver): from the same records, keys, rays, policy state and seed
     its new records equal those of slc's update_entries word for word, over cycles of
     the ray ramp (stratified samples from first_sample) and a moving cycle (C capped,
@@ -180,7 +180,8 @@ def test_cone_pool_update_is_slc_update_bit_for_bit():
 
     from slc.methods.adaptive import cones_rep
     from slc.methods.cones.packing import words_per_entry
-    from slc.methods.cones.update import ConeParams, update_entries
+    from slc.methods.cones.update import ConeParams
+    from slc.methods.cones.update_kernel import update_entries
     from slc.osc.payload import RayPolicy
 
     scene = _plane("adaptive_cone_bits", lambda b: (b.add_quad([0, 1.0, 0], [0.3, 0, 0], [0, 0, 0.3],

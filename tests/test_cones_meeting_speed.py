@@ -9,7 +9,7 @@ import pytest
 
 from helpers import plane_under_rect_light
 from slc.methods.cones import closedforms as cfmod
-from slc.methods.cones import update as upmod
+from slc.methods.cones import update_kernel as upmod
 from slc.methods.cones.shading import ConeShading, bsdf_table
 from slc.scene.scenes import diffuse, principled, rough_conductor
 

@@ -1,11 +1,11 @@
-"""issue 13: the cone update traced once and replayed (``slc.methods.cones.update.ConeUpdate``,
+"""issue 13: the cone update traced once and replayed (``slc.methods.cones.update_kernel.ConeUpdate``,
 ``dr.freeze``): the same images bit for bit as the update traced every frame, and a
 bounded number of recordings over a run whose active entries and storage change size."""
 import numpy as np
 import pytest
 
 from helpers import plane_under_rect_light, run_case
-from slc.methods.cones.update import ConeUpdate
+from slc.methods.cones.update_kernel import ConeUpdate
 from slc.methods import FrameContext, create
 from slc.osc import OnSurfaceCache
 from slc.run.pipeline import gbuffers_for

@@ -103,7 +103,7 @@ def test_cone_update_declares_its_lanes():
     touches nothing else."""
     import inspect
 
-    from slc.methods.cones.update import ConeUpdate, _update_kernel
+    from slc.methods.cones.update_kernel import ConeUpdate, _update_kernel
     names = list(inspect.signature(_update_kernel).parameters)
     lanes = ConeUpdate().lanes
     assert [names[i] for i in lanes] == ["order", "batch"]

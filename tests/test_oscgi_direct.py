@@ -76,7 +76,7 @@ def test_stratified_light_samples_are_unbiased_and_less_noisy(cornell):
     error no larger), and a single frame's error is smaller than with independent samples. Measured
     on Cornell at 32x18: mean 0.9999 (independent 0.9994), RMSE of one frame 0.73x, of the 64-frame
     average 0.66x that of independent samples."""
-    from slc.methods.cones.update import light_inputs
+    from slc.scene.lights import light_inputs
     from slc.core.keys import stream_key
     from slc.scene.lights import diffuse_flags
     from slc.methods.oscgi.kernels import STREAM_PIXEL_DIRECT, pixel_direct_kernel

@@ -3,7 +3,7 @@ r"""CONES representation: the Surface Light Cones record of :mod:`slc.methods.co
 cones) in a pool of its own.
 
 :func:`update` is the ``slc`` method's own update cycle
-(:func:`slc.methods.cones.update.update_cycle`: same light sampler, same per-entry
+(:func:`slc.methods.cones.cycle.update_cycle`: same light sampler, same per-entry
 R2 samples, same ray ramp through the shared ray policy), on records of the
 pool, with the :class:`~slc.methods.adaptive.sampling.LightStats` observer that
 gathers the cycle's light statistics for the choice rule. Shading is
@@ -15,8 +15,9 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.methods.cones.packing import pack, unpack
-from slc.methods.cones.update import (ConeParams, CycleEntries, empty_state, end_cycle, frame_u32, insert_sample,
-                            light_inputs, update_cycle)
+from slc.methods.cones.cycle import CycleEntries, update_cycle
+from slc.methods.cones.update import ConeParams, empty_state, end_cycle, frame_u32, insert_sample
+from slc.scene.lights import light_inputs
 from slc.core.freeze import FrozenFunction
 from slc.methods.adaptive.sampling import LightStats, lum
 from slc.methods.adaptive.visibility import light_tables, sampler_inputs
@@ -27,7 +28,7 @@ CONVERT_COUNT = 4.0     # C of a record converted from another representation: n
 def update(scene: mi.Scene, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame: int, seed: int,
            p: ConeParams, sph=None, env=None):
     """One update cycle of cone records ``rec`` (packed words, one lane per
-    entry): :func:`slc.methods.cones.update.update_cycle`, the ``slc`` method's update
+    entry): :func:`slc.methods.cones.cycle.update_cycle`, the ``slc`` method's update
     (its light sampler, per-entry R2 samples from ``first_sample`` where not
     ``moving``, C capped for ``moving`` entries), with ``fresh`` records
     restarting empty (no LOD seed) and the choice rule's statistics gathered
@@ -41,11 +42,11 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, moving, first_sample,
 
 class ConesUpdate(FrozenFunction):
     """:func:`update` traced once and replayed (``dr.freeze``, as ``slc``'s
-    :class:`slc.methods.cones.update.ConeUpdate` and :class:`~slc.methods.adaptive.visibility.VisUpdate`):
+    :class:`slc.methods.cones.update_kernel.ConeUpdate` and :class:`~slc.methods.adaptive.visibility.VisUpdate`):
     tracing the cone update cycle (the sample loop, cases A-D, the shrink test,
     packing, the light statistics) cost ~45 ms of Python per frame on the
     atrium whatever the number of entries. Inputs: the scene, the emitter
-    tables' arrays (the light sampler's, :func:`slc.methods.cones.update.light_inputs`,
+    tables' arrays (the light sampler's, :func:`slc.scene.lights.light_inputs`,
     and the statistics' :func:`~slc.methods.adaptive.visibility.sampler_inputs`), the
     sphere and region tables, the entries' records and interactions, and the
     frame as an opaque ``mi.UInt32`` (a new frame is no new recording). The

@@ -6,7 +6,7 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.scene import emitter_sampling
-from slc.methods.cones.update import SampleObserver
+from slc.methods.cones.cycle import SampleObserver
 
 
 def lum(c):

@@ -460,7 +460,7 @@ def sampler_inputs(scene) -> list:
 
 class VisUpdate(FrozenFunction):
     """:func:`update` traced once and replayed (``dr.freeze``, as ``slc``'s
-    :class:`slc.methods.cones.update.ConeUpdate`): tracing the update (the sample loop
+    :class:`slc.methods.cones.update_kernel.ConeUpdate`): tracing the update (the sample loop
     with its K unrolled slots) cost more host time than its kernel. Inputs:
     the scene, the emitter table's arrays (:func:`sampler_inputs`),
     the sphere and region tables, the entries' records and interactions, and

@@ -11,7 +11,8 @@ from slc.osc.payload import PayloadMethod, RayPolicy
 from slc.osc.protocol import BILINEAR_TAPS
 from slc.methods.cones.packing import words_per_entry
 from slc.methods.cones.shading import shade_key, shader_for
-from slc.methods.cones.update import ConeParams, update_entries, updater_for
+from slc.methods.cones.update import ConeParams
+from slc.methods.cones.update_kernel import update_entries, updater_for
 
 
 class SurfaceLightCones(PayloadMethod):

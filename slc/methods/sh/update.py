@@ -50,7 +50,7 @@ def project_samples(scene: mi.Scene, si: mi.SurfaceInteraction3f, frame: mi.Fram
     """The sums over ``rays`` light samples per entry (points ``si``, lanes ``valid``) of
     their projections onto ``enc``'s basis, directions in ``frame``: (list of ``enc.n``
     arrays, the observer's state). ``observer`` (a
-    :class:`slc.methods.cones.update.SampleObserver`, optional) sees every sample with its
+    :class:`slc.methods.cones.cycle.SampleObserver`, optional) sees every sample with its
     direction in ``frame``."""
     N = dr.width(valid)
     ng = mi.Vector3f(si.n)
