@@ -81,7 +81,8 @@ def _update_kernel(scene, lights, storage, order, batch: UpdateBatch, frame, see
     of entries. ``lights`` (:func:`light_inputs`) is not read here: it declares
     the emitter table's arrays, which :func:`slc.scene.lights.sample_light` reads, as
     inputs of the frozen function. ``area_only`` (a Python bool, part of the recording's
-    key) see :func:`shrink_test`. Returns (storage, motion, shrunk, dropped), the masks in lane order."""
+    key) see :func:`slc.methods.cones.cycle.shrink_test`. Returns (storage, motion, shrunk,
+    dropped), the masks in lane order."""
     act = dr.gather(mi.UInt32, batch.slot, order)
     e = batch.entries
     entries = CycleEntries(
