@@ -14,7 +14,7 @@ from slc.methods import Param, register
 from slc.osc.payload import PayloadMethod, RayPolicy
 from slc.methods.sh.ycocg import ENCODINGS, encoding as get_encoding
 from slc.methods.adaptive import choice as ch
-from slc.methods.adaptive import cones_rep, sh_rep, visibility
+from slc.methods.adaptive import cones_rep, sh_rep, vis_frozen, visibility
 from slc.methods.adaptive.choice import CONES, NONE, SH, VIS, ChoiceParams, Header
 from slc.methods.adaptive.pool import Pool
 from slc.methods.adaptive.env_lights import EnvLights
@@ -427,9 +427,9 @@ class AdaptiveCache(PayloadMethod):
             setattr(self, attr, f)
         return f
 
-    def _vis_update(self) -> visibility.VisUpdate:
+    def _vis_update(self) -> vis_frozen.VisUpdate:
         """The VISIBILITY update."""
-        return self._frozen("_vis_up", lambda fz: visibility.VisUpdate(
+        return self._frozen("_vis_up", lambda fz: vis_frozen.VisUpdate(
             self.vis_k, self.seed, self.sph, self.env, freeze=fz))
 
     def _cones_update(self) -> cones_rep.ConesUpdate:
@@ -442,9 +442,9 @@ class AdaptiveCache(PayloadMethod):
         return self._frozen("_sh_up", lambda fz: sh_rep.SHUpdate(
             self.encoding, self.seed, self.sh_count, self.sph, self.env, freeze=fz))
 
-    def _vis_shading(self) -> visibility.VisShading:
+    def _vis_shading(self) -> vis_frozen.VisShading:
         """The VISIBILITY pool's shading."""
-        return self._frozen("_vis_shade", lambda fz: visibility.VisShading(
+        return self._frozen("_vis_shade", lambda fz: vis_frozen.VisShading(
             self.vis_k, self.sph, self.env, freeze=fz))
 
     def _sh_shading(self) -> sh_rep.SHShading:
