@@ -265,8 +265,8 @@ def _memory_scaling(s, resolutions, seed) -> list:
 
 def _scene(s, preset, cfg, specs, opts, out, bar, res) -> None:
     """Every part of the experiment on one scene; rows appended to ``res`` (a dict of lists)."""
-    from slc.run import experiment
     from slc.run import plots
+    from slc.run.images import save_strip
     from slc import methods
     from slc.scene import views
     from slc.run.pipeline import run_sequence
@@ -277,7 +277,7 @@ def _scene(s, preset, cfg, specs, opts, out, bar, res) -> None:
             row, r, m = _row(s, spec, group, cfg, bar, opts.seed)
             srows.append(row)
             if spec in ("osc-gi", "osc-gi:output=indirect", "pt:spp=1"):
-                experiment.save_strip(out, s, row["label"], r)
+                save_strip(out, s, row["label"], r)
             if spec == "osc-gi":
                 res["hists"][s.name] = row["reuse_histogram"] = m.secondary.reuse_histogram()
                 _reuse_plot(out / f"reuse_{s.name}.png", row["reuse_histogram"],
