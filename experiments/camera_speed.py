@@ -43,6 +43,7 @@ def run(opts):
 
     from slc.run import experiment as ex
     from slc.run import plots
+    from slc.run.images import save_strip
     from slc.scene import views
     from slc.scene.scenes import FPS, TURN_RATE, WALK_SPEED
 
@@ -63,7 +64,7 @@ def run(opts):
                     row = ex.run_case(s, spec, vs, cfg, bar, seed=opts.seed, rig="single", camera_speed=k,
                                       speed_mps=round(WALK_SPEED * k, 3), turn_rate_dps=TURN_RATE * k,
                                       path=vs[0].name)
-                    ex.save_strip(out, s, f"{row['label']}_x{k:g}", row.pop("_result"))
+                    save_strip(out, s, f"{row['label']}_x{k:g}", row.pop("_result"))
                     rows.append(row)
     ex.add_startup(rows)
     for name in names:

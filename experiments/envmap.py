@@ -30,6 +30,7 @@ def add_arguments(p):
 
 def run(opts):
     from slc.run import experiment as ex
+    from slc.run.sweeps import variant_experiment
     from slc.scene.scenes import ENVMAPS_DIR
     pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
     scene = (opts.scene or [pr["scene"]])[0]
@@ -41,8 +42,8 @@ def run(opts):
         maps = [m for m in maps if m not in missing]
     variants = [(m, f"{scene}:env={m}") for m in maps]
     specs = opts.methods or ex.available_methods(METHODS)
-    res = ex.variant_experiment(opts, NAME, pr, specs, variants, "envmap",
-                                f"{scene}: error and time per environment map")
+    res = variant_experiment(opts, NAME, pr, specs, variants, "envmap",
+                             f"{scene}: error and time per environment map")
     from slc.run.adaptive_viz import add_choice_section
     return add_choice_section(opts, NAME, res, "envmap")
 

@@ -30,9 +30,9 @@ def add_arguments(p):
 
 
 def run(opts):
-    from slc.run import experiment as ex
-    res = ex.scene_option_sweep(opts, NAME, QUICK, FULL, METHODS, "lights",
-                                "error and time against the number of moving lights")
+    from slc.run.sweeps import scene_option_sweep
+    res = scene_option_sweep(opts, NAME, QUICK, FULL, METHODS, "lights",
+                             "error and time against the number of moving lights")
     from slc.run.adaptive_viz import add_choice_section
     return add_choice_section(opts, NAME, res, "lights")
 

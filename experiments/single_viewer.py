@@ -43,6 +43,7 @@ def run(opts) -> dict:
 
     from slc.run import experiment as ex
     from slc.run import plots
+    from slc.run.images import save_strip
     from slc.scene import views
     from slc.run.pipeline import RunConfig
 
@@ -59,7 +60,7 @@ def run(opts) -> dict:
     def save_images(job, rows, res):  # on the driver, before the job is committed
         scene = SimpleNamespace(name=res["scene_name"], exposure=res["exposure"])
         for row, images in zip(rows, res["images"]):
-            ex.save_strip(out, scene, row["label"], SimpleNamespace(images=images))
+            save_strip(out, scene, row["label"], SimpleNamespace(images=images))
 
     # one job per scene: every method of the comparison in the same process (docs/experiments.md)
     rows = ex.run_per_scene(names, lambda s: [(spec, views.single(s), {"rig": "single", "sweep": spec in sweep})

@@ -12,7 +12,7 @@ from slc.scene import emitter_sampling
 from slc import methods
 from slc.methods.adaptive import choice as ch
 from slc.methods.adaptive import sh_rep
-from slc.methods.adaptive.method import _tally
+from slc.methods.adaptive.lanes import tally
 from slc.methods.adaptive.pool import Pool
 from slc.reference.groundtruth import ground_truth
 from slc.core.keys import INVALID
@@ -307,8 +307,8 @@ def test_pool_allocates_unique_slots_and_reuses_freed_ones():
 
 def test_tally_counts_every_mask_with_one_read_back():
     a, b = mi.Bool([True, False, True, True]), mi.Bool([False] * 4)
-    assert _tally([a, b, ~b]) == [3, 0, 4]
-    assert _tally([mi.Bool([True])]) == [1]
+    assert tally([a, b, ~b]) == [3, 0, 4]
+    assert tally([mi.Bool([True])]) == [1]
 
 
 def test_header_round_trip():

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import OpenEXR
 
-from slc.run import experiment
+from slc.run.images import _FRAME_EXRS, save_strip
 
 from slc.core import io
 
@@ -27,7 +27,7 @@ def test_frame_exr_layers_and_header(tmp_path):
     runs = {"rt16": _images(rng, gt), "osc-gi:sharp=0.2": _images(rng, gt), "osc-gi:output=indirect":
             _images(rng, other_gt)}
     for label, images in runs.items():
-        experiment.save_strip(out, scene, label, SimpleNamespace(images=images))
+        save_strip(out, scene, label, SimpleNamespace(images=images))
     path = out / "images" / "cornell_frame5.exr"
 
     with OpenEXR.File(str(path), separate_channels=True) as f:
@@ -51,8 +51,8 @@ def test_frame_exr_layers_and_header(tmp_path):
     np.testing.assert_array_equal(layers["rt16_error"], runs["rt16"]["v0"]["flip_map"])
 
     # a new run (a new process) starts the file again: no layer of the old one is kept
-    experiment._FRAME_EXRS.clear()
-    experiment.save_strip(out, scene, "rt16", SimpleNamespace(images=runs["rt16"]))
+    _FRAME_EXRS.clear()
+    save_strip(out, scene, "rt16", SimpleNamespace(images=runs["rt16"]))
     layers, header = io.read_layers(path)
     assert set(layers) == {"rt16", "rt16_error", "reference"}
     assert set(json.loads(header["slc:layers"])) == {"rt16"}

@@ -7,7 +7,8 @@ Modules, one concept each:
   (:class:`FrameRequests`, :class:`SurfaceCache`, declared capabilities, :class:`EntryTopology`);
 - :mod:`.payload`: :class:`PayloadMethod`, the base class of cache methods
   (it owns ``render()``: frame requests, the ray policy, update, shading);
-- :mod:`.islands`: islands, their texture spaces, the per-mesh atlas, analytic shapes' grids (numpy set-up);
+- :mod:`.islands`: islands, their texture spaces, the per-mesh atlas (numpy set-up);
+- :mod:`.analytic`: analytic shapes' (u, v) grids, from which their islands are built (numpy set-up);
 - :mod:`.layout`: islands and levels as Dr.Jit tables, the virtual block space;
 - :mod:`.blocks`: the two-level block table and the physical block pool (allocation, eviction);
 - :mod:`.surface`: each entry's own surface point (triangle lookup, analytic (u, v));

@@ -10,7 +10,7 @@ memory is :mod:`.blocks`.
 
 Meshes map a hit to its texel by barycentrics (``gb.prim_index``,
 ``gb.prim_uv``). Analytic shapes (sphere, disk, cylinder) get islands built
-on a tessellation of their (u, v) square (:func:`.islands.tessellate_analytic`):
+on a tessellation of their (u, v) square (:func:`.analytic.tessellate_analytic`):
 a hit's grid triangle comes from its ``si.uv`` directly (no 3D search), its
 island is that triangle's, and its texel coordinates are the orthographic
 projection of ``si.p`` on the island's plane (the same projection that made
@@ -26,8 +26,8 @@ import mitsuba as mi
 import numpy as np
 
 from slc.core.keys import INVALID
-from slc.osc.islands import (ANALYTIC_KIND, analytic_point, DEFAULT_MAX_ANGLE, DEFAULT_MAX_TRIANGLES, MeshIslands, ParamGrid,
-                      build_mesh_islands, shape_to_world, tessellate_analytic)
+from slc.osc.analytic import ANALYTIC_KIND, ParamGrid, analytic_point, shape_to_world, tessellate_analytic
+from slc.osc.islands import DEFAULT_MAX_ANGLE, DEFAULT_MAX_TRIANGLES, MeshIslands, build_mesh_islands
 
 DEFAULT_TARGET_TEXELS = 2 ** 24      # level-0 texels over the whole scene when texel_size is None
 MAX_LEVELS = 20
@@ -307,7 +307,7 @@ class CacheLayout:
 
     def analytic_point(self, sidx, uv, active=True):
         """World (p, dp_du, dp_dv) of parameter points of analytic shapes
-        (closed forms, :func:`.islands.analytic_point`)."""
+        (closed forms, :func:`.analytic.analytic_point`)."""
         rows = [[dr.gather(mi.Float, self.d_shape_xform, sidx * 16 + (4 * r + c), active) for c in range(4)]
                 for r in range(3)]
         return analytic_point(dr.gather(mi.UInt32, self.d_shape_kind, sidx, active), rows, uv)

@@ -1,18 +1,16 @@
 """Shared plumbing of the experiment scripts in ``experiments/``.
 
-Why one long module: the plumbing every experiment script shares (options, presets, tables,
-plots, viewer-count and scene-variant sweeps); splitting it would make each script import
-from several places.
-
 An experiment script defines ``NAME``, ``add_arguments(parser)`` (optional)
 and ``run(opts) -> dict`` returning the ``results.json`` object; it is run
 alone (``python experiments/single_viewer.py --quick``) or through
 ``slc run single-viewer --quick``. This module finds the scripts, writes
 ``results.json`` / ``results.md`` atomically (a failed run leaves no partial
-results), renders the Markdown table and draws the speed-against-error
-plots. A row whose timed frames built kernels (``compiled_after_warmup`` >
-0) is flagged: a warning on stderr, a mark in its time cell and a note in
-``results.md``.
+results), renders the Markdown table, and holds the options, presets, scene
+loops, job runs and viewer-count experiments the scripts share. A row whose
+timed frames built kernels (``compiled_after_warmup`` > 0) is flagged: a
+warning on stderr, a mark in its time cell and a note in ``results.md``.
+An experiment's images are written by :mod:`slc.run.images`, the
+scene-variant sweeps run by :mod:`slc.run.sweeps`.
 """
 from __future__ import annotations
 
@@ -27,12 +25,12 @@ from pathlib import Path
 
 from slc import methods
 from slc.core import io
-from slc.core.backend import code_version, env_info
+from slc.core.backend import env_info
 from slc.run import jobs, jobspec
 from slc.run.errors import ExperimentError
 from slc.run.pipeline import RunConfig, run_sequence
-from slc.run.plots import metric_vs_value_plot, speed_error_plot, time_vs_viewers_plot
-from slc.scene import scenes, views
+from slc.run.plots import time_vs_viewers_plot
+from slc.scene import scenes
 from slc.scene.scenes import REPO_ROOT
 
 EXPERIMENTS_DIR = REPO_ROOT / "experiments"
@@ -242,62 +240,6 @@ def strip_private(rows: list[dict]) -> list[dict]:
     return [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
 
 
-def _file_name(name: str) -> str:
-    return name.replace(':', '_').replace(',', '_')
-
-
-def save_strip(out: Path, scene, label: str, res) -> None:
-    """EXR/PNG of the first evaluated viewer and its comparison strip, and the image, its
-    reference and its FLIP map as layers of the scene's multi-layer EXR of that frame
-    (:func:`add_to_frame_exr`)."""
-    for vname, im in res.images.items():
-        stem = out / "images" / f"{scene.name}_{_file_name(label)}"
-        io.write_hdr_and_png(stem, im["img"], scene.exposure)
-        io.write_hdr_and_png(out / "images" / f"{scene.name}_gt", im["gt"], scene.exposure)
-        io.comparison_strip(stem.with_name(stem.name + "_strip.png"), im["gt"], im["img"], im["flip_map"],
-                            scene.exposure)
-        add_to_frame_exr(out, scene, label, im)
-        break
-
-
-_FRAME_EXRS: set = set()    # frame EXRs this process started: later methods add their layers
-
-
-def add_to_frame_exr(out: Path, scene, label: str, im: dict) -> Path:
-    """Add a method's evaluated image to ``OUT/images/SCENE_frameF.exr``, one multi-layer EXR
-    per experiment, scene and evaluated frame: a layer per method (named by its label, dots
-    as underscores), its FLIP error map (``LABEL_error``, one channel) and the reference
-    (``reference``; a method whose reference differs, e.g. another output kind, gets its own
-    ``LABEL_reference``). Header: ``slc:experiment`` (the folder's name), ``slc:scene``,
-    ``slc:frame``, ``slc:code_version`` (:func:`slc.core.backend.code_version`) and ``slc:layers``,
-    JSON: per method layer its full setting, its reference and error layers and the exposure
-    of its tone map (PNGs, FLIP). The first call of a run replaces a file left
-    by an earlier run; later calls read it back and add their layers."""
-    import json
-
-    import numpy as np
-
-    frame = int(im.get("frame", -1))
-    path = out / "images" / f"{_file_name(scene.name)}_frame{frame}.exr"
-    layers, meta = {}, {}
-    if path in _FRAME_EXRS and path.exists():
-        layers, header = io.read_layers(path)
-        meta = json.loads(header.get("slc:layers", "{}"))
-    _FRAME_EXRS.add(path)
-    name = io.layer_name(label)
-    gt = np.asarray(im["gt"], np.float32)
-    ref = "reference" if "reference" not in layers or np.array_equal(layers["reference"], gt) \
-        else f"{name}_reference"
-    layers[ref] = gt
-    layers[name] = im["img"]
-    layers[f"{name}_error"] = im["flip_map"]
-    meta[name] = {"setting": label, "reference": ref, "error": f"{name}_error",
-                  "exposure": float(im.get("exposure", scene.exposure))}
-    io.write_layers(path, layers, {"slc:experiment": out.name, "slc:scene": scene.name, "slc:frame": frame,
-                                   "slc:code_version": code_version(), "slc:layers": json.dumps(meta)})
-    return path
-
-
 def ratio(a, b):
     """a / b, None when b is 0 or missing."""
     try:
@@ -412,7 +354,7 @@ def run_cases(cases, cfg, desc: str, seed: int = 0, keep: bool = False) -> list[
     and viewers, every method of a comparison in the same job) with one
     progress bar; rows in the order of ``cases``. ``keep`` gives each row a
     ``_result`` whose ``images`` are the evaluated images (for
-    :func:`save_strip`)."""
+    :func:`slc.run.images.save_strip`)."""
     from types import SimpleNamespace
 
     session = jobs.current(desc.split()[0])
@@ -476,56 +418,3 @@ def add_startup(rows: list[dict], settle: int = SETTLE_FRAMES) -> list[dict]:
         ts = [f.get("total", 0.0) for i, f in enumerate(fr[:settle]) if i >= 1 and not f.get("compiled")]
         r["startup_ms"] = statistics.median(ts) if ts else None
     return rows
-
-
-# -----------------------------------------------------------------------------
-# Scene-variant sweeps (many-lights, envmap, point-lights)
-# -----------------------------------------------------------------------------
-
-def variant_experiment(opts, name: str, preset: dict, specs: list[str], variants: list[tuple], field: str,
-                       title: str) -> dict:
-    """Every method on every scene variant, one viewer on the scene's first
-    path. ``variants``: (value, scene spec) pairs, e.g. ``(24, "hangar:lights=24")``;
-    rows carry the value in ``field``. Writes results.json/results.md, a
-    FLIP-and-time-against-``field`` plot, a speed-against-error plot per
-    variant and an image strip per (variant, method)."""
-    out = Path(opts.out) / name
-    scene_specs = load_and_validate([v for _, v in variants], specs, True)
-    value_of = {s: v for v, s in variants}
-    cfg = RunConfig(width=preset["width"], height=preset["height"], frames=preset["frames"],
-                    warmup=preset["warmup"], eval_frames=preset["eval_frames"], seed=opts.seed)
-    rows = []
-    for s in each_scene(scene_specs):
-        case_rows = run_cases([(s, spec, views.single(s), {field: value_of[s.name], "rig": "single"})
-                               for spec in specs], cfg, f"{name} {s.name}", opts.seed, keep=True)
-        for r in case_rows:
-            r["family"] = r["method"].rstrip("0123456789") or r["method"]
-            save_strip(out, s, r["label"], r.pop("_result"))
-        speed_error_plot(out / f"speed_error_{s.name.replace(':', '_').replace('=', '')}.png", case_rows,
-                         f"{s.name}: time vs FLIP ({cfg.width}x{cfg.height})")
-        rows += case_rows
-    add_startup(rows)
-    metric_vs_value_plot(out / f"flip_time_vs_{field}.png", rows, field, title)
-    columns = DEFAULT_COLUMNS[:1] + [(field, field)] + [("setting", "method")] + DEFAULT_COLUMNS[3:4] + \
-        [("startup_ms", "start-up [ms]")] + DEFAULT_COLUMNS[4:]
-    md = (f"# {name}\n\n{cfg.width}x{cfg.height}, {cfg.frames} frames ({cfg.warmup} warm-up), one viewer; "
-          f"quality on frames {cfg.evaluated()} against {cfg.gt_spp}-sample ground truth; time = median DI ms "
-          f"per frame.\n\n" + markdown_table(rows, columns) + "\n")
-    config = {"quick": bool(opts.quick), "methods": specs, "variants": [list(v) for v in variants],
-              "width": cfg.width, "height": cfg.height, "frames": cfg.frames, "warmup": cfg.warmup,
-              "eval_frames": cfg.evaluated(), "seed": cfg.seed, "gt_spp": cfg.gt_spp}
-    results = results_object(name, config, strip_private(rows))
-    write_results(out, results, md)
-    print(md)
-    return results
-
-
-def scene_option_sweep(opts, name: str, quick: dict, full: dict, methods: list[str], option: str,
-                       title: str) -> dict:
-    """:func:`variant_experiment` over ``SCENE:option=value`` for the values
-    given on the command line (``opts.<option>``) or in the preset."""
-    pr = apply_common(opts, quick if opts.quick else full)
-    scene = (opts.scene or [pr["scene"]])[0]
-    variants = [(v, f"{scene}:{option}={v}") for v in (getattr(opts, option, None) or pr[option])]
-    specs = opts.methods or available_methods(methods)
-    return variant_experiment(opts, name, pr, specs, variants, option, title)

@@ -20,7 +20,7 @@ from slc.methods.cones.update import ConeParams, empty_state, end_cycle, frame_u
 from slc.scene.lights import light_inputs
 from slc.core.freeze import FrozenFunction
 from slc.methods.adaptive.sampling import LightStats, lum
-from slc.methods.adaptive.visibility import light_tables, sampler_inputs
+from slc.methods.adaptive.frozen_inputs import light_tables, sampler_inputs
 
 CONVERT_COUNT = 4.0     # C of a record converted from another representation: new samples take over fast
 
@@ -42,12 +42,12 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, moving, first_sample,
 
 class ConesUpdate(FrozenFunction):
     """:func:`update` traced once and replayed (``dr.freeze``, as ``slc``'s
-    :class:`slc.methods.cones.update_kernel.ConeUpdate` and :class:`~slc.methods.adaptive.visibility.VisUpdate`):
+    :class:`slc.methods.cones.update_kernel.ConeUpdate` and :class:`~slc.methods.adaptive.vis_frozen.VisUpdate`):
     tracing the cone update cycle (the sample loop, cases A-D, the shrink test,
     packing, the light statistics) cost ~45 ms of Python per frame on the
     atrium whatever the number of entries. Inputs: the scene, the emitter
     tables' arrays (the light sampler's, :func:`slc.scene.lights.light_inputs`,
-    and the statistics' :func:`~slc.methods.adaptive.visibility.sampler_inputs`), the
+    and the statistics' :func:`~slc.methods.adaptive.frozen_inputs.sampler_inputs`), the
     sphere and region tables, the entries' records and interactions, and the
     frame as an opaque ``mi.UInt32`` (a new frame is no new recording). The
     cone parameters, ``seed``, ``sph`` and ``env`` are fixed per instance.
@@ -59,7 +59,7 @@ class ConesUpdate(FrozenFunction):
         seed = int(seed)
 
         def kernel(scene, lights, tables, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame):
-            # no reference to the method (see visibility.VisShading)
+            # no reference to the method (see vis_frozen.VisShading)
             out, motion, st = update(scene, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame,
                                      seed, p, sph, env)
             # a statistic the samples never touch (e_delta without delta lights) is a literal zero,

@@ -10,33 +10,21 @@ from slc.methods.cones.packing import words_per_entry
 from slc.methods.cones.shading import shade_key, shader_for
 from slc.methods.cones.update import ConeParams
 from slc.core.keys import INVALID
-from slc.methods import Param, register
+from slc.methods import register
 from slc.osc.payload import PayloadMethod, RayPolicy
-from slc.methods.sh.ycocg import ENCODINGS, encoding as get_encoding
+from slc.methods.sh.ycocg import encoding as get_encoding
 from slc.methods.adaptive import choice as ch
-from slc.methods.adaptive import cones_rep, sh_rep, visibility
+from slc.methods.adaptive import cones_rep, sh_rep, vis_frozen, visibility
 from slc.methods.adaptive.choice import CONES, NONE, SH, VIS, ChoiceParams, Header
 from slc.methods.adaptive.pool import Pool
 from slc.methods.adaptive.env_lights import EnvLights
+from slc.methods.adaptive.lanes import count_hist, means, opaque_header, subset, tally
+from slc.methods.adaptive.params import PARAMS
 from slc.methods.adaptive.sphere_lights import SphereLights
 
 REPS = (VIS, CONES, SH)
 RESTART_COUNT = 4
 WARM_FRAMES = 2            # frames that run every kernel (see reset)
-
-
-def _subset(mask: mi.Bool):
-    """Lanes of ``mask`` as an index list of width >= 2 (a repeated lane, or two
-    masked lanes when there is none: every kernel runs, with the same IR, in
-    every frame, so none is first built after warm-up), and its lane mask."""
-    idx = dr.compress(mask)
-    n = dr.width(idx)
-    if n >= 2:
-        return idx, dr.opaque(mi.Bool, True, n), n
-    if n == 1:
-        i0 = int(idx[0])          # a width-1 array would enter kernels as a scalar: another IR
-        return mi.UInt32([i0, i0]), dr.opaque(mi.Bool, True, 2), 1
-    return dr.opaque(mi.UInt32, 0, 2), dr.opaque(mi.Bool, False, 2), 0
 
 
 class AdaptiveCache(PayloadMethod):
@@ -70,45 +58,7 @@ class AdaptiveCache(PayloadMethod):
     """
 
     name = "adaptive"
-    params = (
-        Param("vis_lights", 12, "delta or small sphere lights with their own visibility per VISIBILITY entry", lo=1, hi=16),
-        Param("sphere_lights", "auto", "small sphere lights are listed in VISIBILITY records like delta lights "
-              "(small: where r/d < sphere_sin; auto: so, in scenes whose every emitter is a delta or sphere "
-              "light; off: never)", choices=("auto", "small", "off")),
-        Param("sphere_sin", 0.3, "largest r/d (sine of the half-angle) of a sphere light listed at an entry",
-              lo=0.0, hi=1.0),
-        Param("env_lights", "auto", "bright small regions of the environment map are listed in VISIBILITY "
-              "records as directional lights (auto: in scenes with an environment emitter whose map has such "
-              "regions; off: never)", choices=("auto", "off")),
-        Param("env_ratio", 10.0, "a pixel of the environment is bright above this multiple of the map's mean "
-              "radiance", lo=1.0, hi=1e6),
-        Param("env_max_sr", 0.05, "largest solid angle (sr) of a bright region listed as a light", lo=0.0, hi=12.6),
-        Param("max_cones", 3, "cones per CONES entry", lo=1, hi=4),
-        Param("encoding", "y3co1cg1", "SH encoding of SH entries", choices=tuple(ENCODINGS)),
-        Param("sh_count", 128, "SH running-mean count cap (samples)", lo=1, hi=1e6),
-        Param("shade_samples", 16, "cone shading directions per cone", lo=1, hi=1024),
-        Param("glossy_samples", 8, "BSDF samples of the SH radiance per glossy pixel", lo=1, hi=1024),
-        Param("rays_new", 32, "update rays of a new entry (its first update; see halve_every)", lo=1, hi=1024),
-        Param("new_updates", 20, "updates for which an entry counts as new", lo=1, hi=4096),
-        Param("halve_every", 4, "a new entry's rays halve every this many updates (0: rays_new throughout)",
-              lo=0, hi=4096),
-        Param("rays_moving", 8, "update rays of entries after detected motion", lo=1, hi=1024),
-        Param("rays_settled", 1, "update rays of settled entries", lo=1, hi=1024),
-        Param("window", 32, "light statistics' running-mean window (updates)", lo=1, hi=63),
-        Param("switch_after", 3, "updates in a row asking for another representation before a switch", lo=1, hi=63),
-        Param("switch_period", 4, "switches are carried out in every k-th frame only (their conversion "
-              "kernels are traced in those frames)", lo=1, hi=64),
-        Param("theta_delta", 0.5, "delta-light energy share above which VISIBILITY is chosen", lo=0.0, hi=1.0),
-        Param("theta_r", 0.75, "mean resultant length below which SH is chosen", lo=0.0, hi=1.0),
-        Param("sh_when", "environment", "SH is a candidate of the choice only in scenes with an environment "
-              "(infinite, non-delta) emitter, or always", choices=("environment", "always")),
-        Param("min_share", 0.02, "a representation fewer than this share of the active entries ask for "
-              "is not used (its entries take the scene's prior; 0: no limit)", lo=0.0, hi=1.0),
-        Param("start", "prior", "representation of new entries (prior: from the scene's emitters)",
-              choices=("prior", "visibility", "cones", "sh")),
-        Param("force", "auto", "representation of every entry (auto: the choice rule)",
-              choices=("auto", "visibility", "cones", "sh")),
-    ) + PayloadMethod.cache_params
+    params = PARAMS + PayloadMethod.cache_params
     words, storage_type = ch.HEADER_WORDS, mi.UInt32
 
     def __init__(self, scene, **kw):
@@ -211,7 +161,7 @@ class AdaptiveCache(PayloadMethod):
         slot = dr.select(fresh, mi.UInt32(INVALID), h.slot)
         rel = [is_new & (h.tag == r) for r in REPS]
         acq = [fresh & (tag == r) for r in REPS]
-        n_rel_acq = _tally([m & (h.slot != INVALID) for m in rel] + acq)
+        n_rel_acq = tally([m & (h.slot != INVALID) for m in rel] + acq)
         for r, m, n in zip(REPS, rel, n_rel_acq[:3]):
             if n or not self._warm:
                 self.pools[r].release(h.slot, m, n)
@@ -222,7 +172,7 @@ class AdaptiveCache(PayloadMethod):
         h = Header(tag=tag, streak=dr.select(fresh, 0, h.streak), count=dr.select(fresh, 0, h.count),
                    e=dr.select(fresh, 0.0, h.e), slot=slot, s_delta=dr.select(fresh, 0.0, h.s_delta),
                    m=dr.select(fresh, mi.Vector3f(z, z, z), h.m))
-        _opaque_header(h)
+        opaque_header(h)
 
         # ------------------------------- every representation updates its own entries
         ed, en, mv = dr.zeros(mi.Float, N), dr.zeros(mi.Float, N), dr.zeros(mi.Vector3f, N)
@@ -233,7 +183,7 @@ class AdaptiveCache(PayloadMethod):
         dr.make_opaque(ed, en, mv, motion, vis_motion)
         # every representation's lanes before the first update kernel: a compression waits for
         # the kernels queued before it, and the host traces the next update while one runs
-        subsets = {r: _subset(tag == r) for r in REPS}
+        subsets = {r: subset(tag == r) for r in REPS}
         for r in REPS:
             idx, on, n_r = subsets[r]
             if n_r == 0 and self._warm:
@@ -275,13 +225,13 @@ class AdaptiveCache(PayloadMethod):
         h.count = dr.select(vis_motion, dr.minimum(h.count, RESTART_COUNT), h.count)
 
         # ------------------------------- statistics and the choice
-        e_d, e_n, m_hat = _means(ed, en, mv, rays)
+        e_d, e_n, m_hat = means(ed, en, mv, rays)
         h = ch.update_stats(h, e_d, e_n, m_hat, self.choice)
         allowed = ctx.frame % self.switch_period == 0
         h, switch, target = ch.decide(h, self.choice, allowed=allowed)
         if forced is not None:
             switch = dr.zeros(mi.Bool, N)
-        _opaque_header(h)
+        opaque_header(h)
         if allowed or not self._warm:
             if forced is None and self.min_share > 0.0:
                 switch, target = self._sparse(h, switch, target, start, allowed, N)
@@ -296,7 +246,7 @@ class AdaptiveCache(PayloadMethod):
         # shade (a read-back here waited for this update's kernels before the host could
         # trace the policy update that follows)
         self._counts = None
-        self._count_hist = _hist([h.tag == r for r in REPS])
+        self._count_hist = count_hist([h.tag == r for r in REPS])
         dr.eval(self.storage, self._tags, self._count_hist)
         return motion
 
@@ -309,7 +259,7 @@ class AdaptiveCache(PayloadMethod):
         cost 40 ms a frame). One read-back of the demand per switch frame; the
         blocked set enters the kernels as an opaque table (same IR whatever
         is blocked)."""
-        demand = _tally([target == r for r in REPS])
+        demand = tally([target == r for r in REPS])
         blocked = [False] * 4
         for r, d in zip(REPS, demand):
             blocked[r] = bool(r != fallback and d < self.min_share * N)
@@ -340,7 +290,7 @@ class AdaptiveCache(PayloadMethod):
             for dst in REPS:
                 if dst == src:
                     continue
-                idx, on, n = _subset(switch & (h.tag == src) & (target == dst))
+                idx, on, n = subset(switch & (h.tag == src) & (target == dst))
                 if n == 0 and self._warm:
                     continue
                 old = dr.gather(mi.UInt32, h.slot, idx)
@@ -395,7 +345,7 @@ class AdaptiveCache(PayloadMethod):
         m_v, m_c, m_s = ok & (tag == VIS), ok & (tag == CONES), ok & (tag == SH)
         # a representation no active entry uses is not traced (no pixel can need it)
         if self._counts is None and getattr(self, "_count_hist", None) is not None:
-            self._counts = dict(zip(REPS, _tally(REPS, self._count_hist)))
+            self._counts = dict(zip(REPS, tally(REPS, self._count_hist)))
         used = (self._counts or {}) if self._warm else {}
         # each representation's shading is its own kernel, added into an evaluated sum (the same
         # kernels whichever representations are present)
@@ -427,9 +377,9 @@ class AdaptiveCache(PayloadMethod):
             setattr(self, attr, f)
         return f
 
-    def _vis_update(self) -> visibility.VisUpdate:
+    def _vis_update(self) -> vis_frozen.VisUpdate:
         """The VISIBILITY update."""
-        return self._frozen("_vis_up", lambda fz: visibility.VisUpdate(
+        return self._frozen("_vis_up", lambda fz: vis_frozen.VisUpdate(
             self.vis_k, self.seed, self.sph, self.env, freeze=fz))
 
     def _cones_update(self) -> cones_rep.ConesUpdate:
@@ -442,9 +392,9 @@ class AdaptiveCache(PayloadMethod):
         return self._frozen("_sh_up", lambda fz: sh_rep.SHUpdate(
             self.encoding, self.seed, self.sh_count, self.sph, self.env, freeze=fz))
 
-    def _vis_shading(self) -> visibility.VisShading:
+    def _vis_shading(self) -> vis_frozen.VisShading:
         """The VISIBILITY pool's shading."""
-        return self._frozen("_vis_shade", lambda fz: visibility.VisShading(
+        return self._frozen("_vis_shade", lambda fz: vis_frozen.VisShading(
             self.vis_k, self.sph, self.env, freeze=fz))
 
     def _sh_shading(self) -> sh_rep.SHShading:
@@ -481,33 +431,6 @@ class AdaptiveCache(PayloadMethod):
         out["payload_bytes"] = out.get("payload_bytes", 0.0) + sum(float(p.bytes_allocated())
                                                                    for p in self.pools.values())
         return out
-
-
-def _hist(masks) -> mi.UInt32:
-    """The number of true lanes of each mask (same width) as a queued array
-    (read back by :func:`_tally`)."""
-    hist = dr.zeros(mi.UInt32, max(len(masks), 2))     # width >= 2: never loaded as a scalar
-    for i, m in enumerate(masks):
-        dr.scatter_reduce(dr.ReduceOp.Add, hist, mi.UInt32(1), mi.UInt32(i), mi.Bool(m))
-    return hist
-
-
-def _tally(masks, hist=None) -> list:
-    """The number of true lanes of each mask, read back together: one wait for
-    the queued kernels instead of one per mask (``hist``: :func:`_hist` of
-    ``masks`` queued earlier)."""
-    hist = _hist(masks) if hist is None else hist
-    return [int(x) for x in hist.numpy()[:len(masks)]]
-
-
-def _opaque_header(h: Header) -> None:
-    """Evaluate every header field to memory (literals too: see ``update``)."""
-    dr.make_opaque(h.tag, h.streak, h.count, h.e, h.slot, h.s_delta, h.m)
-
-
-def _means(ed, en, mv, rays):
-    inv = dr.rcp(mi.Float(dr.maximum(mi.UInt32(rays), 1)))
-    return ed * inv, en * inv, mv * inv
 
 
 register("adaptive", AdaptiveCache,

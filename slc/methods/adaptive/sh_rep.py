@@ -37,7 +37,7 @@ from slc.methods.sh.shading import shade_radiance
 from slc.methods.sh.update import project_samples, running_mean
 from slc.methods.sh.ycocg import encoding as get_encoding
 from slc.methods.adaptive.sampling import LightStats
-from slc.methods.adaptive.visibility import light_tables, sampler_inputs
+from slc.methods.adaptive.frozen_inputs import light_tables, sampler_inputs
 
 CONVERT_COUNT = 4.0
 
@@ -78,11 +78,11 @@ def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int
 
 class SHUpdate(FrozenFunction):
     """:func:`update` traced once and replayed (``dr.freeze``, as
-    :class:`~slc.methods.adaptive.visibility.VisUpdate` and
+    :class:`~slc.methods.adaptive.vis_frozen.VisUpdate` and
     :class:`~slc.methods.adaptive.cones_rep.ConesUpdate`): tracing the SH update (the
     sample loop, the projection on the encoding's basis) was Python work on
     every frame. Inputs: the scene, the emitter table's arrays
-    (:func:`~slc.methods.adaptive.visibility.sampler_inputs`), the sphere and region
+    (:func:`~slc.methods.adaptive.frozen_inputs.sampler_inputs`), the sphere and region
     tables, the entries' records and interactions, and the random streams' mix
     (opaque: a new frame is no new recording). The encoding, ``seed``,
     ``max_count``, ``sph`` and ``env`` are fixed per instance. Unfrozen in

@@ -53,8 +53,7 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.methods.cones.packing import WordReader, WordWriter, decode_radiance, encode_radiance
-from slc.core.freeze import FrozenFunction
-from slc.core.keys import keyed_rng, mixed_rng, stream_key
+from slc.core.keys import keyed_rng, mixed_rng
 from slc.methods.adaptive.sampling import LightStats, SampleStats, lum, sampler_of
 
 EMPTY = 0xFFFF
@@ -402,84 +401,3 @@ def from_irradiance(E, n: int, K: int, env: bool = False):
     r = empty(n, K)
     r.E, r.C = mi.Color3f(E), dr.full(mi.Float, 4.0, n)
     return pack(r, K, env)
-
-
-# ----------------------------------------------------------------------------- frozen shading
-
-class VisShading(FrozenFunction):
-    """:func:`shade` on the pixels' VISIBILITY records, traced once and replayed
-    (``dr.freeze``, as :class:`slc.methods.adaptive.sh_rep.SHShading`): tracing the
-    shading (a BSDF call site in the listed lights' loop and one in the
-    environment regions' loop) cost more host time than its kernel. The
-    records (gathered outside), mask, interactions and the scene are inputs;
-    the sphere and region tables are declared as inputs too (a frozen function
-    reads only arrays reachable from its inputs). ``K``, ``sph`` and ``env``
-    are fixed per instance. Unfrozen in animated scenes (``freeze=False``) and
-    after more than ``max_recordings`` recordings."""
-
-    def __init__(self, K: int, sph=None, env=None, freeze: bool = True, max_recordings: int = 4):
-        self.K, self.sph, self.env = int(K), sph, env
-        K = int(K)
-
-        # the closure holds no reference to self: a cycle through the frozen function would be
-        # freed by the garbage collector, which may run while another function records (abort)
-        def kernel(rec, active, si, bsdf, scene, tables):
-            return shade(scene, rec, si, bsdf, active, K, sph, env)
-        super().__init__(kernel, freeze, False, max_recordings)
-
-    def __call__(self, rec, active, si, scene) -> mi.Color3f:
-        return super().__call__([mi.UInt32(w) for w in rec], mi.Bool(active), si, si.bsdf(), scene,
-                                light_tables(self.sph, self.env))
-
-
-def light_tables(sph, env) -> list:
-    """The sphere and region tables' arrays (declared as inputs of a frozen function)."""
-    out = []
-    if env is not None:
-        out += [env._dir, env._w, env._sin, env._label, env._base, env._n, env._env]
-    if sph is not None:
-        out += [sph._flag, sph._c, sph._r, sph._L]
-    return out
-
-
-def sampler_inputs(scene) -> list:
-    """Every Dr.Jit array of the scene's emitter table (:func:`sampling.sampler_of`,
-    which the update uses whatever ``SLC_EMITTER_SAMPLING`` says, with its
-    emitter index map): declared as inputs of the frozen update."""
-    def arrays(v):
-        if isinstance(v, dr.ArrayBase):
-            return [v]
-        if isinstance(v, (list, tuple)):
-            return [a for x in v for a in arrays(x)]
-        if isinstance(v, dict):
-            return [a for k in sorted(v, key=str) for a in arrays(v[k])]
-        return []
-    smp = sampler_of(scene)
-    return [a for k in sorted(vars(smp)) for a in arrays(vars(smp)[k])]
-
-
-class VisUpdate(FrozenFunction):
-    """:func:`update` traced once and replayed (``dr.freeze``, as ``slc``'s
-    :class:`slc.methods.cones.update_kernel.ConeUpdate`): tracing the update (the sample loop
-    with its K unrolled slots) cost more host time than its kernel. Inputs:
-    the scene, the emitter table's arrays (:func:`sampler_inputs`),
-    the sphere and region tables, the entries' records and interactions, and
-    the random streams' mix (opaque: a new frame is no new recording). ``K``,
-    ``seed``, ``sph`` and ``env`` are fixed per instance. Unfrozen in animated
-    scenes and after more than ``max_recordings`` recordings."""
-
-    def __init__(self, K: int, seed: int, sph=None, env=None, freeze: bool = True, max_recordings: int = 4):
-        self.K, self.seed, self.sph, self.env = int(K), int(seed), sph, env
-        K, seed = int(K), int(seed)
-
-        def kernel(scene, lights, tables, rec, si, key, rays, moving, fresh, on, mix):     # no self (see VisShading)
-            out, gone, st = update(scene, rec, si, key, rays, moving, fresh, on, 0, seed, K, sph, env, mix=mix)
-            dr.eval(out, gone, st)
-            return out, gone, st
-        super().__init__(kernel, freeze, False, max_recordings,
-                         lanes=("rec", "si", "key", "rays", "moving", "fresh", "on"))     # per entry (slc.core.freeze)
-
-    def __call__(self, scene, rec, si, key, rays, moving, fresh, on, frame: int):
-        return super().__call__(scene, sampler_inputs(scene), light_tables(self.sph, self.env), [mi.UInt32(w) for w in rec],
-                                si, mi.UInt32(key), mi.UInt32(rays), mi.Bool(moving), mi.Bool(fresh), mi.Bool(on),
-                                stream_key(self.seed, frame, STREAM_VIS))

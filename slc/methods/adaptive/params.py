@@ -1,0 +1,48 @@
+"""The settings of the ``adaptive`` method (:class:`slc.methods.adaptive.method.AdaptiveCache`):
+the lights listed in VISIBILITY records, the cone and SH representations, the ray policy, the
+light statistics and the choice rule's thresholds, and the representation of new entries.
+"""
+from __future__ import annotations
+
+from slc.methods import Param
+from slc.methods.sh.ycocg import ENCODINGS
+
+PARAMS = (
+    Param("vis_lights", 12, "delta or small sphere lights with their own visibility per VISIBILITY entry", lo=1, hi=16),
+    Param("sphere_lights", "auto", "small sphere lights are listed in VISIBILITY records like delta lights "
+          "(small: where r/d < sphere_sin; auto: so, in scenes whose every emitter is a delta or sphere "
+          "light; off: never)", choices=("auto", "small", "off")),
+    Param("sphere_sin", 0.3, "largest r/d (sine of the half-angle) of a sphere light listed at an entry",
+          lo=0.0, hi=1.0),
+    Param("env_lights", "auto", "bright small regions of the environment map are listed in VISIBILITY "
+          "records as directional lights (auto: in scenes with an environment emitter whose map has such "
+          "regions; off: never)", choices=("auto", "off")),
+    Param("env_ratio", 10.0, "a pixel of the environment is bright above this multiple of the map's mean "
+          "radiance", lo=1.0, hi=1e6),
+    Param("env_max_sr", 0.05, "largest solid angle (sr) of a bright region listed as a light", lo=0.0, hi=12.6),
+    Param("max_cones", 3, "cones per CONES entry", lo=1, hi=4),
+    Param("encoding", "y3co1cg1", "SH encoding of SH entries", choices=tuple(ENCODINGS)),
+    Param("sh_count", 128, "SH running-mean count cap (samples)", lo=1, hi=1e6),
+    Param("shade_samples", 16, "cone shading directions per cone", lo=1, hi=1024),
+    Param("glossy_samples", 8, "BSDF samples of the SH radiance per glossy pixel", lo=1, hi=1024),
+    Param("rays_new", 32, "update rays of a new entry (its first update; see halve_every)", lo=1, hi=1024),
+    Param("new_updates", 20, "updates for which an entry counts as new", lo=1, hi=4096),
+    Param("halve_every", 4, "a new entry's rays halve every this many updates (0: rays_new throughout)",
+          lo=0, hi=4096),
+    Param("rays_moving", 8, "update rays of entries after detected motion", lo=1, hi=1024),
+    Param("rays_settled", 1, "update rays of settled entries", lo=1, hi=1024),
+    Param("window", 32, "light statistics' running-mean window (updates)", lo=1, hi=63),
+    Param("switch_after", 3, "updates in a row asking for another representation before a switch", lo=1, hi=63),
+    Param("switch_period", 4, "switches are carried out in every k-th frame only (their conversion "
+          "kernels are traced in those frames)", lo=1, hi=64),
+    Param("theta_delta", 0.5, "delta-light energy share above which VISIBILITY is chosen", lo=0.0, hi=1.0),
+    Param("theta_r", 0.75, "mean resultant length below which SH is chosen", lo=0.0, hi=1.0),
+    Param("sh_when", "environment", "SH is a candidate of the choice only in scenes with an environment "
+          "(infinite, non-delta) emitter, or always", choices=("environment", "always")),
+    Param("min_share", 0.02, "a representation fewer than this share of the active entries ask for "
+          "is not used (its entries take the scene's prior; 0: no limit)", lo=0.0, hi=1.0),
+    Param("start", "prior", "representation of new entries (prior: from the scene's emitters)",
+          choices=("prior", "visibility", "cones", "sh")),
+    Param("force", "auto", "representation of every entry (auto: the choice rule)",
+          choices=("auto", "visibility", "cones", "sh")),
+)

@@ -1,0 +1,67 @@
+"""The VISIBILITY representation's update and shading as frozen functions, traced once and
+replayed (``dr.freeze``): :class:`VisUpdate` runs :func:`~slc.methods.adaptive.visibility.update`,
+:class:`VisShading` runs :func:`~slc.methods.adaptive.visibility.shade`, with the emitter, sphere
+and region tables declared as inputs (:mod:`slc.methods.adaptive.frozen_inputs`).
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from slc.core.freeze import FrozenFunction
+from slc.core.keys import stream_key
+from slc.methods.adaptive.frozen_inputs import light_tables, sampler_inputs
+from slc.methods.adaptive.visibility import STREAM_VIS, shade, update
+
+
+class VisShading(FrozenFunction):
+    """:func:`shade` on the pixels' VISIBILITY records, traced once and replayed
+    (``dr.freeze``, as :class:`slc.methods.adaptive.sh_rep.SHShading`): tracing the
+    shading (a BSDF call site in the listed lights' loop and one in the
+    environment regions' loop) cost more host time than its kernel. The
+    records (gathered outside), mask, interactions and the scene are inputs;
+    the sphere and region tables are declared as inputs too (a frozen function
+    reads only arrays reachable from its inputs). ``K``, ``sph`` and ``env``
+    are fixed per instance. Unfrozen in animated scenes (``freeze=False``) and
+    after more than ``max_recordings`` recordings."""
+
+    def __init__(self, K: int, sph=None, env=None, freeze: bool = True, max_recordings: int = 4):
+        self.K, self.sph, self.env = int(K), sph, env
+        K = int(K)
+
+        # the closure holds no reference to self: a cycle through the frozen function would be
+        # freed by the garbage collector, which may run while another function records (abort)
+        def kernel(rec, active, si, bsdf, scene, tables):
+            return shade(scene, rec, si, bsdf, active, K, sph, env)
+        super().__init__(kernel, freeze, False, max_recordings)
+
+    def __call__(self, rec, active, si, scene) -> mi.Color3f:
+        return super().__call__([mi.UInt32(w) for w in rec], mi.Bool(active), si, si.bsdf(), scene,
+                                light_tables(self.sph, self.env))
+
+
+class VisUpdate(FrozenFunction):
+    """:func:`update` traced once and replayed (``dr.freeze``, as ``slc``'s
+    :class:`slc.methods.cones.update_kernel.ConeUpdate`): tracing the update (the sample loop
+    with its K unrolled slots) cost more host time than its kernel. Inputs:
+    the scene, the emitter table's arrays (:func:`sampler_inputs`),
+    the sphere and region tables, the entries' records and interactions, and
+    the random streams' mix (opaque: a new frame is no new recording). ``K``,
+    ``seed``, ``sph`` and ``env`` are fixed per instance. Unfrozen in animated
+    scenes and after more than ``max_recordings`` recordings."""
+
+    def __init__(self, K: int, seed: int, sph=None, env=None, freeze: bool = True, max_recordings: int = 4):
+        self.K, self.seed, self.sph, self.env = int(K), int(seed), sph, env
+        K, seed = int(K), int(seed)
+
+        def kernel(scene, lights, tables, rec, si, key, rays, moving, fresh, on, mix):     # no self (see VisShading)
+            out, gone, st = update(scene, rec, si, key, rays, moving, fresh, on, 0, seed, K, sph, env, mix=mix)
+            dr.eval(out, gone, st)
+            return out, gone, st
+        super().__init__(kernel, freeze, False, max_recordings,
+                         lanes=("rec", "si", "key", "rays", "moving", "fresh", "on"))     # per entry (slc.core.freeze)
+
+    def __call__(self, scene, rec, si, key, rays, moving, fresh, on, frame: int):
+        return super().__call__(scene, sampler_inputs(scene), light_tables(self.sph, self.env), [mi.UInt32(w) for w in rec],
+                                si, mi.UInt32(key), mi.UInt32(rays), mi.Bool(moving), mi.Bool(fresh), mi.Bool(on),
+                                stream_key(self.seed, frame, STREAM_VIS))
