@@ -44,6 +44,7 @@ def run(opts):
     from slc.run import experiment as ex
     from slc.run import plots
     from slc.run.images import save_strip
+    from slc.run.pipeline import run_case
     from slc.scene import views
     from slc.scene.scenes import FPS, TURN_RATE, WALK_SPEED
 
@@ -61,9 +62,9 @@ def run(opts):
             for spec in specs:
                 for k in speeds:
                     vs = views.at_speed(views.single(s), k)
-                    row = ex.run_case(s, spec, vs, cfg, bar, seed=opts.seed, rig="single", camera_speed=k,
-                                      speed_mps=round(WALK_SPEED * k, 3), turn_rate_dps=TURN_RATE * k,
-                                      path=vs[0].name)
+                    row = run_case(s, spec, vs, cfg, bar, seed=opts.seed, rig="single", camera_speed=k,
+                                   speed_mps=round(WALK_SPEED * k, 3), turn_rate_dps=TURN_RATE * k,
+                                   path=vs[0].name)
                     save_strip(out, s, f"{row['label']}_x{k:g}", row.pop("_result"))
                     rows.append(row)
     ex.add_startup(rows)

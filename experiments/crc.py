@@ -7,7 +7,7 @@ ones, depth-occupancy stride 10 at 1 MPixel), per scene and bounce count
 (1 bounce: depth occupancy; 2 bounces: geometry occupancy):
 
 - *Table 1* (each configuration is the registered method ``crc`` through
-  the common pipeline, :func:`slc.run.experiment.run_case`): occupancy off
+  the common pipeline, :func:`slc.run.pipeline.run_case`): occupancy off
   (RGB3, the "unoptimized" Radiance Hints) and on with RGB3 (27
   coefficients), Y3Co2Cg2 (17) and Y3Co1Cg1 (11), Y3Co1Cg1 with the
   "ratio" chroma decoding, and our earlier choices as named variants (``first_bounce=paths``: light-traced VPLs
@@ -44,7 +44,7 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:  # runnable alone
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from slc import experiment  # noqa: E402 (after the path of a standalone run)
+from slc.run import experiment, pipeline  # noqa: E402 (after the path of a standalone run)
 
 NAME = "crc"
 
@@ -243,7 +243,7 @@ def _base_for(r: dict, group: list[dict]):
 
 
 def _table1_row(s, c: dict, m, viewers, cfg, preset, bar, seed: int):
-    """One configuration through the common pipeline (:func:`slc.run.experiment.run_case`): its row
+    """One configuration through the common pipeline (:func:`slc.run.pipeline.run_case`): its row
     and its composited images (ground-truth direct + indirect: {frame: (image, reference)})."""
     import dataclasses
 
@@ -260,7 +260,7 @@ def _table1_row(s, c: dict, m, viewers, cfg, preset, bar, seed: int):
         direct = reference_for("direct", s, gb, f, gb.viewer, spp=preset["direct_spp"])
         composed[f] = (direct + img, direct + ref)
 
-    row = experiment.run_case(s, spec_of(c), viewers, dataclasses.replace(cfg, on_eval=on_eval), bar, seed=seed)
+    row = pipeline.run_case(s, spec_of(c), viewers, dataclasses.replace(cfg, on_eval=on_eval), bar, seed=seed)
     res, st = row.pop("_result"), m.settings()
     for k in res.metrics:   # the pipeline's comparison: indirect light alone
         row["indirect_" + k] = row.pop(k)
