@@ -18,7 +18,7 @@ def test_ratio_in_turn_alternates_and_divides_within_each_repetition(monkeypatch
         calls.append((viewers, cfg.eval_frames, cfg.keep_images))
         return SimpleNamespace(time_ms=next(times), compiled_after_warmup=int(len(calls) == 4))
 
-    monkeypatch.setattr(pipeline, "run_sequence", fake_run)
+    monkeypatch.setattr(experiment, "run_sequence", fake_run)
     monkeypatch.setattr(methods, "create", lambda spec, scene, seed=0: object())
     r = experiment.ratio_in_turn(None, "slc", "one", "many", RunConfig(frames=4, warmup=1), repeats=3)
     assert [c[0] for c in calls] == ["one", "many", "many", "one", "one", "many"]
