@@ -12,6 +12,8 @@ spatial reuse (:mod:`slc.methods.restir.reuse`).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -34,6 +36,16 @@ PRESETS = {
     "rtxdi": dict(local=8, env=1, bsdf=1),
     "falcor": dict(local=24, env=8, bsdf=1),
 }
+
+
+@dataclass
+class CandidateLoop:
+    """The state of the local-light candidate loop (one lane per pixel): ``i`` the candidates
+    drawn, ``res`` the reservoir being filled, ``smp`` the random numbers."""
+    i: mi.UInt32 = field(default_factory=mi.UInt32)
+    res: Stream = field(default_factory=Stream)
+    smp: mi.PCG32 = field(default_factory=mi.PCG32)
+    DRJIT_STRUCT = {"i": mi.UInt32, "res": Stream, "smp": mi.PCG32}
 
 
 class ReSTIR(LightTarget, Reuse, Method):
@@ -154,41 +166,41 @@ class ReSTIR(LightTarget, Reuse, Method):
         if self._table is not None:
             self._table.refresh()   # animated emissive meshes
 
-        def add(y, nrm, light, ok, u_sel, p_dir=None):
+        def add(into, y, nrm, light, ok, u_sel, p_dir=None):
             _, p_hat, d, dist, kind, ds, p_bsdf = self.evaluate(si, bsdf, y, nrm, light, ok, with_pdf=True)
             denom = self._pdf_sum(si, bsdf, light, kind, d, dist, nrm, ds, ok & (p_hat > 0.0),
                                   p_dir=p_dir, p_bsdf=p_bsdf)
             good = ok & (p_hat > 0.0) & (denom > 0.0)
             w = dr.select(good, p_hat / dr.select(good, denom, 1.0), 0.0)
-            res.update(y, nrm, light, p_hat, w, u_sel, good)
+            into.update(y, nrm, light, p_hat, w, u_sel, good)
 
         # ---------------- Local-light candidates (symbolic loop) ----------------
         if self._L and self.n_local:
             n_local = dr.opaque(mi.UInt32, self.n_local)
-            state = (mi.UInt32(0), res.y, res.n, res.light, res.p_hat, res.w_sum, sampler)
 
-            def cond(i, *_):
-                return i < n_local
+            def cond(s: CandidateLoop):
+                return s.i < n_local
 
-            def body(i, y_, n_, l_, p_, w_, smp):
-                res.y, res.n, res.light, res.p_hat, res.w_sum = y_, n_, l_, p_, w_
+            def body(s: CandidateLoop):
+                smp = s.smp
                 if self._table is not None:
                     u = mi.Point2f(smp.next_float32(), smp.next_float32())
                     ds, _, ok, light = self._table.sample(si, u, active)
-                    add(mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32())
-                    return i + 1, res.y, res.n, res.light, res.p_hat, res.w_sum, smp
-                k = dr.minimum(mi.UInt32(smp.next_float32() * self._L), self._L - 1)
-                light = dr.gather(mi.UInt32, self._local, k, active)
-                em = dr.gather(mi.EmitterPtr, self._emitters, light, active)
-                u = mi.Point2f(smp.next_float32(), smp.next_float32())
-                ds, _ = em.sample_direction(si, u, active)
-                ok = active & (ds.pdf > 0.0)
-                add(mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32(), p_dir=ds.pdf)
-                return i + 1, res.y, res.n, res.light, res.p_hat, res.w_sum, smp
+                    add(s.res, mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32())
+                else:
+                    k = dr.minimum(mi.UInt32(smp.next_float32() * self._L), self._L - 1)
+                    light = dr.gather(mi.UInt32, self._local, k, active)
+                    em = dr.gather(mi.EmitterPtr, self._emitters, light, active)
+                    u = mi.Point2f(smp.next_float32(), smp.next_float32())
+                    ds, _ = em.sample_direction(si, u, active)
+                    ok = active & (ds.pdf > 0.0)
+                    add(s.res, mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32(), p_dir=ds.pdf)
+                s.i = s.i + 1
+                return (s,)
 
-            out = dr.while_loop(state=state, cond=cond, body=body,
-                                labels=("i", "y", "n", "light", "p_hat", "w_sum", "sampler"))
-            _, res.y, res.n, res.light, res.p_hat, res.w_sum, sampler = out
+            s, = dr.while_loop(state=(CandidateLoop(mi.UInt32(0), res, sampler),), cond=cond, body=body,
+                               labels=("candidates",))
+            res, sampler = s.res, s.smp
 
         # ---------------- Environment candidates ----------------
         if self._E and self.n_env:
@@ -199,7 +211,7 @@ class ReSTIR(LightTarget, Reuse, Method):
                 u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
                 ds, _ = em.sample_direction(si, u, active)
                 ok = active & (ds.pdf > 0.0)
-                add(mi.Point3f(ds.d), dr.zeros(mi.Vector3f, n), light, ok, sampler.next_float32(), p_dir=ds.pdf)
+                add(res, mi.Point3f(ds.d), dr.zeros(mi.Vector3f, n), light, ok, sampler.next_float32(), p_dir=ds.pdf)
 
         # ---------------- BSDF candidates ----------------
         for _ in range(self.n_bsdf):
@@ -223,7 +235,7 @@ class ReSTIR(LightTarget, Reuse, Method):
                 cand = hit_em | miss
             else:
                 cand = hit_em
-            add(y, nrm, light, cand, sampler.next_float32())
+            add(res, y, nrm, light, cand, sampler.next_float32())
 
         # ---------------- Finalize (M = 1) and initial visibility ----------------
         r = res.finalize(mi.Float(1.0), mi.Float(1.0), active)

@@ -6,6 +6,7 @@ neighbour sequence and similarity test both stages share."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
@@ -14,6 +15,22 @@ from slc.scene.lights import rng
 from slc.methods.restir.pairwise import spatial_pairwise
 from slc.methods.restir.reservoir import Reservoir, Stream, share
 from slc.methods.restir.target import AREA
+
+
+@dataclass
+class NeighbourLoop:
+    """The state of the spatial resampling loop (one lane per pixel): ``i`` the neighbours
+    drawn, ``smp`` and ``sel`` the random numbers of the neighbour sequence and of the
+    selection, ``st`` the reservoir being filled, ``M`` the sum of the reused confidences and
+    ``used`` the bit mask of the accepted neighbours."""
+    i: mi.UInt32 = field(default_factory=mi.UInt32)
+    smp: mi.PCG32 = field(default_factory=mi.PCG32)
+    sel: mi.PCG32 = field(default_factory=mi.PCG32)
+    st: Stream = field(default_factory=Stream)
+    M: mi.Float = field(default_factory=mi.Float)
+    used: mi.UInt32 = field(default_factory=mi.UInt32)
+    DRJIT_STRUCT = {"i": mi.UInt32, "smp": mi.PCG32, "sel": mi.PCG32, "st": Stream, "M": mi.Float,
+                    "used": mi.UInt32}
 
 
 class Reuse:
@@ -130,22 +147,20 @@ class Reuse:
         st = Stream(n)
         st.update(r.y, r.n, r.light, p_cur, p_cur * r.W * r.M, sel.next_float32(), active)
         M = mi.Float(r.M)
-        state = (mi.UInt32(0), rng(n, seed, stream=13), sel, st.y, st.n, st.light, st.p_hat, st.w_sum,
-                 M, mi.UInt32(0))
 
-        def body(i, smp, sel, y, nrm, light, p_hat, w_sum, M, used):
-            st.y, st.n, st.light, st.p_hat, st.w_sum = y, nrm, light, p_hat, w_sum
-            q, ok, rq = self.accepted_neighbour(smp, gb, r, R)
+        def body(s: NeighbourLoop):
+            q, ok, rq = self.accepted_neighbour(s.smp, gb, r, R)
             # the target is only needed for a non-zero resampling weight; M counts regardless
             _, p_here, _, _, _, _ = self.evaluate(si, bsdf, rq.y, rq.n, rq.light, ok & (rq.W > 0.0))
-            st.update(rq.y, rq.n, rq.light, p_here, p_here * rq.W * rq.M, sel.next_float32(), ok)
-            M = M + dr.select(ok, rq.M, 0.0)
-            used = used | dr.select(ok, mi.UInt32(1) << i, 0)
-            return i + 1, smp, sel, st.y, st.n, st.light, st.p_hat, st.w_sum, M, used
+            s.st.update(rq.y, rq.n, rq.light, p_here, p_here * rq.W * rq.M, s.sel.next_float32(), ok)
+            s.M = s.M + dr.select(ok, rq.M, 0.0)
+            s.used = s.used | dr.select(ok, mi.UInt32(1) << s.i, 0)
+            s.i = s.i + 1
+            return (s,)
 
-        out = dr.while_loop(state=state, cond=lambda i, *_: i < k, body=body,
-                            labels=("i", "smp", "sel", "y", "n", "light", "p_hat", "w_sum", "M", "used"))
-        _, _, _, st.y, st.n, st.light, st.p_hat, st.w_sum, M, used = out
+        s, = dr.while_loop(state=(NeighbourLoop(mi.UInt32(0), rng(n, seed, stream=13), sel, st, M, mi.UInt32(0)),),
+                           cond=lambda s: s.i < k, body=body, labels=("neighbours",))
+        st, M, used = s.st, s.M, s.used
 
         # ---------------- Pass 2: bias correction (replay the neighbours) ----------------
         if self.bias == "off":
