@@ -102,7 +102,7 @@ def moving(c, scene, viewers, nb: int, common: dict, W: int, H: int, frames: int
     import numpy as np
 
     from slc import methods
-    from slc.methods.crc.cache import front_normal
+    from slc.methods.crc.bounces import front_normal
     from slc.reference.metrics import lab_rmse
     from slc.run.pipeline import gbuffers_for, run_sequence
     from slc.reference.references import reference_for

@@ -132,7 +132,7 @@ def test_window_follows_camera_and_shades_nothing_outside(atrium):
         offs.append(m.offset.copy())
     assert m.moves >= 1 and len({tuple(o) for o in offs}) >= 2
     gb = gbs[0]
-    from slc.methods.crc.cache import front_normal
+    from slc.methods.crc.bounces import front_normal
     q = gb.si.p + front_normal(gb.si) * (0.5 * m.grid.h)
     outside = np.array(gb.valid & ~m.in_window(gb.si.p, q))
     img = np.array(out[0])

@@ -1,6 +1,10 @@
 """Compressed Radiance Caching (Vardis, Papaioannou and Gkaravelis 2014) on
 a uniform grid: diffuse indirect illumination from an SH radiance field
-stored in YCoCg with fewer bands for chrominance."""
+stored in YCoCg with fewer bands for chrominance.
+
+This module holds the cache, its state, occupancy, temporal blend, frame and reconstruction; its
+bases hold light injection and the bounces (:mod:`slc.methods.crc.bounces`) and the moving volume
+(:mod:`slc.methods.crc.window`)."""
 from __future__ import annotations
 
 import math
@@ -10,27 +14,17 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from slc.core.backend import aligned
-from slc.core.keys import STREAM_CRC, keyed_rng
 from slc.methods import Method, Param
-from slc.methods.sh.project import irradiance, project
+from slc.methods.sh.project import irradiance
 from slc.methods.sh.ycocg import ENCODINGS
 from slc.methods.sh.ycocg import encoding as get_encoding
 from slc.methods.crc import volume
+from slc.methods.crc.bounces import Bounces, front_normal
 from slc.methods.crc.grid import GEOMETRY_FACTOR, Grid
-from slc.methods.crc.march import march, visible
+from slc.methods.crc.window import MovingWindow
 
-# Random streams of the stages (offsets of STREAM_CRC; keys: light path, RSM
-# frame, (cell, sample) pair or cell index)
-_LIGHTS, _FIRST_BOUNCE, _ROTATION, _RSM, _SECONDARY = 11, 12, 13, 14, 20
 #: the paper's depth-occupancy stride s, at a 1 MPixel frame buffer
 PAPER_STRIDE = 10
-
-
-def front_normal(si: mi.SurfaceInteraction3f) -> mi.Vector3f:
-    """Shading normal (the side ``si.wi`` comes from)."""
-    n = mi.Vector3f(si.sh_frame.n)
-    return dr.select(si.wi.z < 0.0, -n, n)
 
 
 def halton(n: int, base: int) -> np.ndarray:
@@ -45,7 +39,7 @@ def halton(n: int, base: int) -> np.ndarray:
     return out
 
 
-class CRCCache(Method):
+class CRCCache(Bounces, MovingWindow, Method):
     r"""Grid radiance cache with chrominance-compressed SH (CRC).
 
     Per frame (each step one timed stage; ``*_march`` stages do not depend
@@ -211,81 +205,6 @@ class CRCCache(Method):
         self.voxelize_ms = (time.perf_counter() - t0) * 1e3
         self._voxel_time = t
 
-    # ------------------------------------------------------- moving volume
-    def _window_offset(self, gbuffers) -> np.ndarray:
-        """World-cell corner of the window whose centre cell holds the first
-        viewer's camera (moved ``ahead`` cells along its view)."""
-        cam = gbuffers[0].camera
-        f, _, _ = cam.basis()
-        c = np.asarray(cam.origin, float) + f * (self.ahead * self.world.h)
-        return np.floor((c - self.world.lo) / self.world.h).astype(np.int64) - self.window // 2
-
-    def in_window(self, p: mi.Point3f, q: mi.Point3f) -> mi.Bool:
-        """Shaded points the window serves: the lookup point q's trilinear
-        stencil lies in the window and so does the point p's own cell (whose
-        depth occupancy, dilated by one cell, marks that stencil)."""
-        return self.grid.stencil_inside(q) & self.grid.cell_of(p)[1]
-
-    def _cell_offset(self) -> mi.Vector3i:
-        return mi.Vector3i(*(dr.opaque(mi.Int32, int(x)) for x in self.offset))
-
-    def _key(self, cell: mi.UInt32) -> mi.UInt32:
-        """Random-stream key of a cache cell: its flat index; in a moving
-        window, the flat index of its world cell (the same key as with
-        volume=scene), or for a cell outside the scene's grid ``n_world`` +
-        its index on the world lattice padded by the window. So a cell draws
-        the same numbers wherever the window is, and as the scene grid's."""
-        if not self.moving:
-            return cell
-        P = self.window
-        nx, ny, _ = self.world.dims
-        i = self.grid.unflat(cell) + self._cell_offset()
-        ip = i + P
-        outside = mi.UInt32(self.world.n_cells) + mi.UInt32((ip.z * (ny + 2 * P) + ip.y) * (nx + 2 * P) + ip.x)
-        return dr.select(self.world.inside(i), self.world.flat(i), outside)
-
-    def _world_occupancy(self) -> mi.UInt32:
-        """The (dilated) geometry occupancy of the window's cells, read from
-        the world's."""
-        if not self.moving:
-            return self.geo_occ
-        j = self.grid.unflat(dr.arange(mi.UInt32, self.grid.n_cells)) + self._cell_offset()
-        ok = self.world.inside(j)
-        return dr.gather(mi.UInt32, self.geo_occ, dr.select(ok, self.world.flat(j), 0), ok)
-
-    def _scroll(self, delta: np.ndarray) -> None:
-        """Move the window by ``delta`` whole cells: every coefficient (and
-        the blend history) is copied from the cell that held the same world
-        position; cells entering the window start empty. Gathers only (no
-        recomputation), the shift an opaque input (no kernel build per move)."""
-        n, nc = self.grid.n_cells, self.enc.n
-        d = mi.Vector3i(*(dr.opaque(mi.Int32, int(x)) for x in delta))
-        lane = dr.arange(mi.UInt32, nc * n)
-        c, idx = lane // n, lane % n
-        j = self.grid.unflat(idx) + d
-        ok = self.grid.inside(j)
-        src = dr.select(ok, self.grid.flat(j), 0)
-        self.cache = dr.gather(mi.Float, self.cache, src + c * n, ok)
-        jh = self.grid.unflat(dr.arange(mi.UInt32, n)) + d
-        okh = self.grid.inside(jh)
-        self.hist = dr.gather(mi.UInt32, self.hist, dr.select(okh, self.grid.flat(jh), 0), okh)
-
-    def place(self, offset) -> None:
-        """Put the window's corner at world cell ``offset``, scrolling the
-        coefficients when the cache holds any."""
-        offset = np.asarray(offset, dtype=np.int64)
-        delta = offset - self.offset
-        if not np.any(delta):
-            return
-        self.offset = offset
-        if self._placed:
-            self._scroll(delta)
-            self.moves += 1
-        self.grid = self._window_grid()
-
-    def _window_grid(self) -> Grid:
-        return Grid(lo=self.world.lo + self.offset * self.world.h, h=self.world.h, dims=(self.window,) * 3)
-
     # ----------------------------------------------------------- coefficients
     def _lookup(self, vol: mi.Float, q: mi.Point3f, active: mi.Bool) -> list:
         """Trilinearly interpolated coefficients of ``vol`` at points q."""
@@ -323,162 +242,6 @@ class CRCCache(Method):
         if self.depth_stride > 0:
             return self.depth_stride
         return max(1, int(round(PAPER_STRIDE * math.sqrt(width * height / 1e6))))
-
-    def _vpl(self, si: mi.SurfaceInteraction3f, w):
-        ok = si.is_valid() & (si.wi.z > 0.0)
-        rho = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, ok))
-        phi = dr.select(ok, mi.Color3f(w) * rho, 0.0)
-        return dr.select(ok, si.p, 0.0), front_normal(si), phi
-
-    def _lights(self, frame: int):
-        """Virtual point lights (X, N, Phi rho) and the estimator's factor n_e."""
-        sc = self.scene.mi_scene
-        if self.first_bounce == "paths":
-            s = keyed_rng(dr.arange(mi.UInt32, self.vpls), self.seed, frame, STREAM_CRC + _LIGHTS)
-            u1 = s.next_float32()
-            u2 = mi.Point2f(s.next_float32(), s.next_float32())
-            u3 = mi.Point2f(s.next_float32(), s.next_float32())
-            ray, w, _ = sc.sample_emitter_ray(0.0, u1, u2, u3, True)
-            return (*self._vpl(sc.ray_intersect(ray), w), 1)
-        # ---------------- one RSM per emitter, texels on a regular grid ----------------
-        emitters = sc.emitters_dr()
-        n_e, R = dr.width(emitters), self.rsm_size
-        rot = np.random.default_rng([self.seed, frame, _RSM]).random(2)  # Cranley-Patterson, per frame
-        u2 = np.tile((self._halton_rsm + rot) % 1.0, (max(n_e, 1), 1)).astype(np.float32)
-        t = dr.arange(mi.UInt32, n_e * R * R)
-        e, tex = t // (R * R), t % (R * R)
-        u3 = (mi.Point2f(mi.Float(tex % R), mi.Float(tex // R)) + 0.5) * (1.0 / R)
-        ep = dr.gather(mi.EmitterPtr, emitters, e)
-        # aligned copies: a numpy column is mapped with whatever alignment numpy's allocator gave it,
-        # and an unaligned input is another kernel (built in a timed frame in about 1 run of 4)
-        ray, w = ep.sample_ray(0.0, 0.5, mi.Point2f(mi.Float(aligned(u2[:, 0], np.float32)),
-                                                    mi.Float(aligned(u2[:, 1], np.float32))), u3, True)
-        return (*self._vpl(sc.ray_intersect(ray), w), n_e)
-
-    def _lanes(self, cells: mi.UInt32, count: int):
-        """(cell, sample index) of the n_cells x count lanes, cell-major."""
-        lane = dr.arange(mi.UInt32, dr.width(cells) * count)
-        return dr.gather(mi.UInt32, cells, lane // count), lane % count
-
-    def _sum(self, omega: mi.Vector3f, L: mi.Color3f, n_cells: int, count: int, scale: float) -> list:
-        """``scale`` x the sum over each cell's ``count`` lanes of
-        ``project(enc, omega, L)`` (in registers, one cell per lane)."""
-        enc = self.enc
-        base = dr.arange(mi.UInt32, n_cells) * count
-        n = dr.opaque(mi.UInt32, count)
-
-        def cond(i, acc):
-            return i < n
-
-        def body(i, acc):
-            w = dr.gather(mi.Vector3f, omega, base + i)
-            x = dr.gather(mi.Color3f, L, base + i)
-            return i + 1, [a + b for a, b in zip(acc, project(enc, w, x))]
-
-        acc0 = [mi.Float(0.0) for _ in range(enc.n)]
-        _, acc = dr.while_loop(state=(mi.UInt32(0), acc0), cond=cond, body=body, labels=("i", "acc"))
-        return [a * scale for a in acc]
-
-    def _jittered(self, Pc: mi.Point3f, sampler: mi.PCG32) -> mi.Point3f:
-        off = mi.Vector3f(sampler.next_float32(), sampler.next_float32(), sampler.next_float32()) - 0.5
-        return Pc + off * (self.jitter * self.grid.h)
-
-    def _first_bounce_samples(self, frame: int, cells: mi.UInt32, X, N, phi, n_e: int, points=None):
-        """(omega_k, L_k) of every (cell, sample) lane: VPL choice and visibility.
-        ``points`` (diagnostic): receive at these points (one per entry of
-        ``cells``, no jitter) instead of the jittered cell centres."""
-        geo, ns = self.geo, self.samples
-        d2min = (self.min_distance * self.grid.h) ** 2
-        cell, i = self._lanes(cells, ns)
-        key = self._key(cell)
-        sampler = keyed_rng(key * ns + i, self.seed, frame, STREAM_CRC + _FIRST_BOUNCE)
-        # ------------------------------- VPL choice -------------------------------
-        if self.first_bounce == "rsm":
-            R = self.rsm_size
-            rot = keyed_rng(key, self.seed, frame, STREAM_CRC + _ROTATION)   # one per cell
-            h = dr.gather(mi.Point2f, self._halton_cells, i)
-            ux = h.x + rot.next_float32()
-            uy = h.y + rot.next_float32()
-            ux, uy = ux - dr.floor(ux), uy - dr.floor(uy)
-            x = dr.minimum(mi.UInt32(ux * float(n_e * R)), n_e * R - 1)
-            y = dr.minimum(mi.UInt32(uy * float(R)), R - 1)
-            e = x // R
-            j = e * (R * R) + y * R + (x - e * R)
-        else:
-            j = dr.minimum(mi.UInt32(sampler.next_float32() * self.vpls), self.vpls - 1)
-        if points is None:
-            P = self._jittered(self.grid.center(cell), sampler)
-        else:
-            P = mi.Vector3f(dr.gather(mi.Point3f, points, cell))   # the type _jittered() gives
-        Xk = dr.gather(mi.Point3f, X, j)
-        Nk = dr.gather(mi.Vector3f, N, j)
-        Pk = dr.gather(mi.Color3f, phi, j)
-        v = Xk - P
-        d2 = dr.squared_norm(v)
-        w_dir = v * dr.rsqrt(dr.maximum(d2, 1e-20))
-        cos_k = -dr.dot(Nk, w_dir)
-        ok = (cos_k > 0.0) & (dr.max(Pk) > 0.0) & (d2 > 0.0)
-        # -------------------------------- visibility --------------------------------
-        if self.visibility == "march":
-            ok = visible(self.geometry, geo, P, Xk, sampler.next_float32(), ok,
-                         start_offset=geo.h, end_offset=2.0 * geo.h, samples=self.march_samples)
-        else:
-            ray = mi.Ray3f(P, w_dir)
-            ray.maxt = dr.sqrt(d2) * (1.0 - 1e-3)
-            ok &= ~self.scene.mi_scene.ray_test(ray, ok)
-        return w_dir, Pk * dr.select(ok, cos_k / (math.pi * dr.maximum(d2, d2min)), 0.0)
-
-    def _secondary_samples(self, frame: int, bounce: int, cells: mi.UInt32):
-        """(omega, lookup point, normal, albedo, hit) of every (cell, ray) lane."""
-        geo, h, nr = self.geo, self.grid.h, self.secondary_rays
-        cell, i = self._lanes(cells, nr)
-        sampler = keyed_rng(self._key(cell) * nr + i, self.seed, frame, STREAM_CRC + _SECONDARY + bounce)
-        d = mi.warp.square_to_uniform_sphere(mi.Point2f(sampler.next_float32(), sampler.next_float32()))
-        P = self._jittered(self.grid.center(cell), sampler)
-        # ----------------------- nearest visible surface point -----------------------
-        if self.visibility == "march":
-            hit, t = march(self.geometry, geo, P, d, geo.h, self.secondary_distance * h, sampler.next_float32(),
-                           mi.Bool(True), samples=self.secondary_march_samples)
-            X = P + dr.select(hit, t, 0.0) * d
-            n = -d
-            rho = mi.Color3f(self.albedo)
-        else:
-            si = self.scene.mi_scene.ray_intersect(mi.Ray3f(P, d))
-            hit = si.is_valid() & (si.wi.z > 0.0)
-            X = dr.select(hit, si.p, P)
-            n = front_normal(si)
-            rho = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, hit))
-        return d, mi.Point3f(X + n * (0.5 * h)), n, dr.select(hit, rho, 0.0), hit
-
-    def _secondary_sum(self, n_cells: int, samples, vin: mi.Float) -> list:
-        """Bounce i from the lanes of :meth:`_secondary_samples` and the
-        previous bounce's volume ``vin`` (lookup, irradiance, projection)."""
-        enc, nr = self.enc, self.secondary_rays
-        d_all, q_all, n_all, rho_all, hit_all = samples
-        base = dr.arange(mi.UInt32, n_cells) * nr
-        n = dr.opaque(mi.UInt32, nr)
-
-        def cond(i, acc):
-            return i < n
-
-        def body(i, acc):
-            k = base + i
-            hit = dr.gather(mi.Bool, hit_all, k)
-            d = dr.gather(mi.Vector3f, d_all, k)
-            nrm = dr.gather(mi.Vector3f, n_all, k)
-            q = dr.gather(mi.Point3f, q_all, k, hit)
-            if self.moving:     # a hit whose stencil leaves the window reads nothing
-                hit &= self.grid.stencil_inside(q)
-            rho = dr.gather(mi.Color3f, rho_all, k, hit)
-            coeffs = self._lookup(vin, q, hit)
-            E = irradiance(enc, coeffs, nrm, clamp=True, chroma=self.chroma)
-            L = dr.select(hit, rho * mi.Color3f(*E) * (1.0 / math.pi), 0.0)
-            return i + 1, [a + b for a, b in zip(acc, project(enc, d, L))]
-
-        acc0 = [mi.Float(0.0) for _ in range(enc.n)]
-        _, acc = dr.while_loop(state=(mi.UInt32(0), acc0), cond=cond, body=body, labels=("i", "acc"))
-        w = 4.0 * math.pi / float(nr)
-        return [a * w for a in acc]
 
     def _blend(self, cells: mi.UInt32, coeffs: list) -> None:
         n = self.grid.n_cells

@@ -18,6 +18,7 @@ import math
 
 from slc.methods import Method, MethodError, Param, register
 from slc.methods.megaviews import traversal as tv
+from slc.methods.megaviews.maps import PAIR_BYTES
 from slc.methods.megaviews import vpl as vp
 from slc.methods.megaviews.hierarchy import SCENE_DEPTH, VIEW_DEPTH, SceneHierarchy, ViewHierarchy
 
@@ -146,7 +147,7 @@ class ManyViewIR(Method):
         if self._maps is not None:
             out["maps"] = self._maps.memory_bytes()
             out["view_hierarchy"] = self._maps.view_h.memory_bytes()
-            out["pair_queue"] = self._maps.stats.peak_pairs * tv.PAIR_BYTES
+            out["pair_queue"] = self._maps.stats.peak_pairs * PAIR_BYTES
         return out
 
     def memory_bytes(self) -> int:

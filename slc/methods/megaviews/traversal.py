@@ -1,8 +1,5 @@
 r"""Concurrent scene-view hierarchy traversal (Sec. 3.2), and the baselines.
 
-Why one long module: the concurrent traversal and its two baselines (ManyLoDs, brute force)
-share the pair queue and the map rendering, so that the three are compared on the same code.
-
 ``render_maps(scene_h, view_h, R)`` renders one dual-paraboloid depth map
 per view node. The pair queue ``(s_i, v_j)`` starts at the roots and is
 processed breadth-first, one Dr.Jit kernel set per level; every pair is,
@@ -51,7 +48,8 @@ Multi-pass (Sec. 4.2), ``split``:
 Fusion (Sec. 3.2, Image Queries): top-down over the view levels every
 child map takes the minimum of its own depth and its parent's, whose depth
 is re-measured from the child's centre (the paper's rectification).
-Direct queries without fusion walk the leaf's ancestors instead.
+Direct queries without fusion walk the leaf's ancestors instead. The maps, push, fusion and the
+queries are in :mod:`slc.methods.megaviews.maps`.
 
 Baselines on the same kernels: **ManyLoDs** [HREB11] is the same traversal
 with a flat view set (every view its own leaf, radius 0), so it only ever
@@ -62,7 +60,6 @@ filling for leaves larger than a texel), chunked by the budget.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
@@ -70,61 +67,10 @@ import numpy as np
 
 from slc.methods.megaviews import paraboloid as pb
 from slc.methods.megaviews.hierarchy import SceneHierarchy, ViewHierarchy, as_u32
+from slc.methods.megaviews.maps import Maps, TraversalStats, fuse, push
 
 INV_SQRT3 = 1.0 / math.sqrt(3.0)  # sphere radius -> half edge of the cubic voxel
-PAIR_BYTES = 8          # two 32-bit node ids, as in the paper (64 bits per pair)
 DEFAULT_BUDGET = 1 << 25  # pairs (256 MB of pair queue at 8 bytes per pair; ~2 GB of Dr.Jit work arrays)
-
-
-@dataclass
-class TraversalStats:
-    pairs: int = 0            # pairs processed (all levels, all passes)
-    culled: int = 0
-    rendered: int = 0
-    multi_pixel: int = 0      # leaf pairs splatted into a coarser mip level
-    shared_views: int = 0     # sum over rendered pairs of the views in v_j
-    peak_pairs: int = 0       # pair-queue peak (live pairs, all pending chunks)
-    passes: int = 1           # passes/chunks processed (1 = no multi-pass split)
-    levels: int = 0
-    split_level: int = 0      # deepest view level a pass started from (paper's multi-pass level)
-    wasted_pairs: int = 0     # pairs of passes stopped for exceeding the budget (view split)
-
-    @property
-    def views_per_render(self) -> float:
-        return self.shared_views / max(self.rendered, 1)
-
-    def as_dict(self) -> dict:
-        d = dict(self.__dict__)
-        d["views_per_render"] = self.views_per_render
-        d["pair_queue_mb"] = self.peak_pairs * PAIR_BYTES / 2 ** 20
-        return d
-
-
-@dataclass
-class Maps:
-    """Depth maps (dual paraboloid, mip pyramid per map) of ``slots`` view
-    nodes. ``slot_of_view``/``centre_of_view``: where view ``k`` reads."""
-    layout: pb.Layout
-    depth: mi.Float
-    slots: int
-    view_h: ViewHierarchy
-    fused: bool = False
-    stats: TraversalStats = field(default_factory=TraversalStats)
-    record: list | None = None
-
-    def memory_bytes(self) -> int:
-        return 4 * self.slots * self.layout.texels
-
-    def leaf_maps_bytes(self) -> int:
-        """Fused single-level maps of the leaf view nodes (paper's figure)."""
-        n_leaf = int(np.sum(self.view_h.child_count_np == 0))
-        return 4 * n_leaf * self.layout.base
-
-    def level0(self) -> np.ndarray:
-        """(slots, 2, R, R) numpy copy of level 0 (tests, figures)."""
-        R = self.layout.R
-        d = np.array(self.depth, np.float32).reshape(self.slots, self.layout.texels)
-        return d[:, :2 * R * R].reshape(self.slots, 2, R, R)
 
 
 # -----------------------------------------------------------------------------
@@ -399,93 +345,6 @@ def brute_force(scene_h: SceneHierarchy, view_h: ViewHierarchy, R: int = 16, cul
     st.shared_views = st.rendered
     st.levels = 1
     return Maps(lay, depth, V.size, V, stats=st)
-
-
-# -----------------------------------------------------------------------------
-# Push (mipmap hole filling) and fusion
-# -----------------------------------------------------------------------------
-
-def push(maps: Maps) -> None:
-    """Push-only pyramid pass: every texel of level m-1 takes the minimum of
-    itself and its parent texel of level m (coarse to fine)."""
-    lay, n = maps.layout, maps.slots
-    for m in range(lay.levels - 1, 0, -1):
-        Rf = lay.res[m - 1]
-        per = 2 * Rf * Rf
-        j = dr.arange(mi.UInt32, n * per)
-        slot, t = j // per, j % per
-        face, rem = t // (Rf * Rf), t % (Rf * Rf)
-        ty, tx = rem // Rf, rem % Rf
-        Rc = lay.res[m]
-        fine = slot * lay.texels + lay.offset[m - 1] + t
-        coarse = slot * lay.texels + lay.offset[m] + (face * Rc + (ty >> 1)) * Rc + (tx >> 1)
-        v = dr.minimum(dr.gather(mi.Float, maps.depth, fine), dr.gather(mi.Float, maps.depth, coarse))
-        dr.scatter(maps.depth, v, fine)
-        dr.eval(maps.depth)
-
-
-def fuse(maps: Maps) -> None:
-    """Top-down fusion of the level-0 maps along the view hierarchy, with the
-    parent's depth re-measured from the child's centre of projection."""
-    V, lay = maps.view_h, maps.layout
-    if V.flat:
-        maps.fused = True
-        return
-    R, base = lay.R, lay.base
-    for l in range(1, V.depth + 1):
-        a, b = int(V.level_start[l]), int(V.level_start[l + 1])
-        j = dr.arange(mi.UInt32, (b - a) * base)
-        node = dr.opaque(mi.UInt32, a) + j // base   # opaque: one kernel whatever the level sizes
-        t = j % base
-        par = dr.gather(mi.UInt32, V.parent, node)
-        dp = dr.gather(mi.Float, maps.depth, par * lay.texels + t)
-        dc_i = node * lay.texels + t
-        dc = dr.gather(mi.Float, maps.depth, dc_i)
-        has = dp < 0.5 * pb.EMPTY
-        face, rem = t // (R * R), t % (R * R)
-        d = pb.direction(face, rem % R, rem // R, R)
-        q = dr.gather(mi.Point3f, V.centre, par) + d * dp
-        corrected = dr.norm(q - dr.gather(mi.Point3f, V.centre, node))
-        dr.scatter(maps.depth, dr.minimum(dc, corrected), dc_i, has)
-        dr.eval(maps.depth)
-    maps.fused = True
-
-
-# -----------------------------------------------------------------------------
-# Queries
-# -----------------------------------------------------------------------------
-
-def lookup(maps: Maps, view: mi.UInt32, x: mi.Point3f, active, bias: mi.Float, fused: bool = True):
-    """Visibility of points ``x`` from views ``view`` through the maps:
-    ``|x - p| <= depth(texel) + bias``. With ``fused`` one lookup in the
-    leaf map; otherwise every ancestor's map is read (no fusion needed)."""
-    V, lay = maps.view_h, maps.layout
-    node = dr.gather(mi.UInt32, V.leaf_of_view, view, active)
-    if fused or V.flat:
-        p = dr.gather(mi.Point3f, V.centre, node, active)
-        vs = x - p
-        face, tx, ty = pb.texel(vs, lay.R)
-        d = dr.gather(mi.Float, maps.depth, node * lay.texels + (face * lay.R + ty) * lay.R + tx, active)
-        return active & (dr.norm(vs) <= d + bias)
-    vis = mi.Bool(active)
-    alive = mi.Bool(active)
-    steps = dr.opaque(mi.UInt32, V.depth + 1)
-
-    def cond(i, node, vis, alive):
-        return alive & (i < steps)
-
-    def body(i, node, vis, alive):
-        p = dr.gather(mi.Point3f, V.centre, node, alive)
-        vs = x - p
-        face, tx, ty = pb.texel(vs, lay.R)
-        d = dr.gather(mi.Float, maps.depth, node * lay.texels + (face * lay.R + ty) * lay.R + tx, alive)
-        vis &= ~alive | (dr.norm(vs) <= d + bias)
-        alive &= node != 0
-        node = dr.gather(mi.UInt32, V.parent, node, alive)
-        return i + 1, node, vis, alive
-
-    _, _, vis, _ = dr.while_loop(state=(mi.UInt32(0), node, vis, alive), cond=cond, body=body)
-    return vis
 
 
 def render_maps(scene_h: SceneHierarchy, view_h: ViewHierarchy, R: int = 16, mode: str = "megaviews",

@@ -21,7 +21,7 @@ Gathering (per pixel, subsampled, hierarchical culling)
     the ``S`` samples are drawn systematically (one random offset per
     pixel) from them, so the estimate is unbiased over the VPLs that can
     contribute. ``V_k(x)`` is the depth test in VPL ``k``'s dual-paraboloid
-    map (:func:`.traversal.lookup`) with a bias of
+    map (:func:`.maps.lookup`) with a bias of
     ``bias_leaf * r_leaf + bias_slope * |x - p_k| * 2 / R``.
 
 Filtering
@@ -46,6 +46,7 @@ from slc.scene.gbuffer import to_image  # noqa: F401  (callers use vpl.to_image)
 from slc.scene.lights import rng
 from slc.methods.megaviews import traversal as tv
 from slc.methods.megaviews.hierarchy import ViewHierarchy, as_bool, as_u32, to_np3
+from slc.methods.megaviews.maps import lookup
 
 
 @dataclass
@@ -254,7 +255,7 @@ def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cu
             ok &= dist <= cut
         if shadows:
             bias = bias_leaf * eps + bias_slope * dist * (2.0 / R)
-            ok = tv.lookup(maps, k, x, ok, bias, fused)
+            ok = lookup(maps, k, x, ok, bias, fused)
         L += dr.select(ok, contrib, 0.0)
         s = dr.select(inside, s + 1, s)
         cum = dr.select(inside, cum, cum + n_i)

@@ -1,30 +1,28 @@
 """ReSTIR DI (RTXDI-style), per viewer: reservoir-based spatiotemporal
 importance resampling of direct lighting [Bitterli et al. 2020].
 
-Why one long module: the four stages (initial candidates, temporal and spatial reuse, shading)
-share the reservoir type, the target function and the per-viewer state; kept together so that
-the estimator reads top to bottom as in the paper.
-
 One reservoir per pixel and viewer. Per frame: resampled importance sampling
 of initial candidates (local lights, environment, BSDF), temporal reuse from
 the previous frame's reservoirs through the motion vectors, spatial reuse
 from neighbouring pixels, and final shading with one shadow ray.
+
+This module holds the method, its initial candidates, shading and frame; its bases hold the
+light set-up and target function (:mod:`slc.methods.restir.target`) and the temporal and
+spatial reuse (:mod:`slc.methods.restir.reuse`).
 """
 from __future__ import annotations
 
-import math
+from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from slc.scene.lights import rng, sampler as light_table
+from slc.scene.lights import rng
 from slc.methods import Method, MethodError, Param, register
-from slc.methods.restir.pairwise import spatial_pairwise
-from slc.methods.restir.reservoir import Reservoir, Stream, share
-
-# Emitter kinds (the measure in which a stored sample lives)
-AREA, DELTA_POS, INFINITE = 0, 1, 2
+from slc.methods.restir.reservoir import Reservoir, Stream
+from slc.methods.restir.reuse import Reuse
+from slc.methods.restir.target import LightTarget
 
 # Neighbours per pixel are recorded in a 32-bit mask between the two spatial passes
 MAX_NEIGHBOURS = 32
@@ -40,7 +38,17 @@ PRESETS = {
 }
 
 
-class ReSTIR(Method):
+@dataclass
+class CandidateLoop:
+    """The state of the local-light candidate loop (one lane per pixel): ``i`` the candidates
+    drawn, ``res`` the reservoir being filled, ``smp`` the random numbers."""
+    i: mi.UInt32 = field(default_factory=mi.UInt32)
+    res: Stream = field(default_factory=Stream)
+    smp: mi.PCG32 = field(default_factory=mi.PCG32)
+    DRJIT_STRUCT = {"i": mi.UInt32, "res": Stream, "smp": mi.PCG32}
+
+
+class ReSTIR(LightTarget, Reuse, Method):
     r"""ReSTIR DI with temporal and spatial reuse, one set of reservoirs per viewer.
 
     Estimator (per pixel x, one sample y selected by resampling):
@@ -139,159 +147,11 @@ class ReSTIR(Method):
         if self.preset is None and self.local + self.env + self.bsdf == 0:
             raise MethodError("restir: at least one candidate is needed (local + env + bsdf > 0)")
 
-    # ------------------------------ Set-up ------------------------------
-
-    def _setup_lights(self):
-        sc = self.scene.mi_scene
-        ems = sc.emitters()
-        self._emitters = sc.emitters_dr()
-        kinds, delta, local, inf = [], [], [], []
-        for i, e in enumerate(ems):
-            fl = int(e.flags())
-            if fl & int(mi.EmitterFlags.Infinite):
-                kinds.append(INFINITE)
-                inf.append(i)
-            elif fl & int(mi.EmitterFlags.DeltaPosition):
-                kinds.append(DELTA_POS)
-                local.append(i)
-            else:
-                kinds.append(AREA)
-                local.append(i)
-            delta.append(bool(fl & (int(mi.EmitterFlags.DeltaPosition) | int(mi.EmitterFlags.DeltaDirection))))
-        env = sc.environment()
-        self._env_index = next((i for i, e in enumerate(ems) if env is not None and e is env), -1)
-        self._kind = mi.UInt32(kinds)
-        self._delta = mi.Bool(delta)
-        self._local = mi.UInt32(local or [0])
-        self._inf = mi.UInt32(inf or [0])
-        self._L, self._E = len(local), len(inf)
-        # registry id of an EmitterPtr -> index in scene.emitters()
-        ids = np.array(dr.reinterpret_array(mi.UInt32, self._emitters), dtype=np.int64)
-        table = np.zeros(int(ids.max()) + 1 if len(ids) else 1, dtype=np.uint32)
-        table[ids] = np.arange(len(ids), dtype=np.uint32)
-        self._id_to_index = mi.UInt32(table)
-        self._shaped = [(i, e.get_shape()) for i, e in enumerate(ems) if kinds[i] == AREA and e.get_shape()]
-        # local-light candidates from the shared emitter table (None: Mitsuba, uniform choice)
-        self._table = light_table(sc, subset=local) if local else None
-        self._bboxes = None
-
     def reset(self):
         self.state: dict[int, tuple] = {}   # viewer -> (Reservoir, previous GBuffer)
         self._shape = None                  # (width, height, viewers) of the allocation
         self._bboxes = None
         self._stats = {}
-
-    def _light_moved(self) -> mi.Bool:
-        """Per emitter: its shape moved since the previous frame."""
-        n = len(self.scene.mi_scene.emitters())
-        moved = np.zeros(max(n, 1), dtype=bool)
-        if self.scene.dynamic:
-            cur = {}
-            for i, s in self._shaped:
-                b = s.bbox()
-                cur[i] = np.array([*b.min, *b.max], float)
-            if self._bboxes is not None:
-                for i, b in cur.items():
-                    moved[i] = not np.allclose(b, self._bboxes.get(i, b), rtol=0, atol=1e-6)
-            self._bboxes = cur
-        return mi.Bool(moved)
-
-    # --------------------------- Target function ---------------------------
-
-    def _direction(self, si, y, light, active):
-        """Unit direction from ``si`` to a stored sample, its distance (inf
-        for infinite lights) and the emitter kind."""
-        kind = dr.gather(mi.UInt32, self._kind, light, active)
-        inf = kind == INFINITE
-        to = mi.Vector3f(y) - si.p
-        dist = dr.norm(to)
-        d = dr.select(inf, mi.Vector3f(y), to / dr.select(dist > 0.0, dist, 1.0))
-        return d, dist, kind
-
-    def evaluate(self, si, bsdf, y, n, light, active, with_pdf: bool = False):
-        """Unshadowed contribution f_r L_e G of stored samples at ``si``:
-        (colour, p_hat = luminance, world direction, distance, kind,
-        DirectionSample3f), plus the BSDF's solid-angle pdf of the direction
-        when ``with_pdf`` (one ``eval_pdf`` call instead of two)."""
-        ctx = mi.BSDFContext()
-        d, dist, kind = self._direction(si, y, light, active)
-        em = dr.gather(mi.EmitterPtr, self._emitters, light, active)
-        inf = kind == INFINITE
-        ok = active & (inf | (dist > 0.0))
-        ds = dr.zeros(mi.DirectionSample3f)
-        ds.p = dr.select(inf, si.p + d, mi.Point3f(y))
-        ds.n = mi.Normal3f(n)
-        ds.d = d
-        ds.dist = dr.select(inf, dr.inf, dist)
-        ds.emitter = em
-        ds.delta = dr.gather(mi.Bool, self._delta, light, active)
-        Le = mi.Color3f(em.eval_direction(si, ds, ok))
-        if self._E:
-            # Mitsuba's envmap reads eval_direction's texel from ds.uv (set by its own
-            # sampler), not from ds.d: a stored direction is looked up with eval(), wi = -d
-            env = ok & inf & ~ds.delta
-            se = dr.zeros(mi.SurfaceInteraction3f, dr.width(d))
-            se.wi = -d
-            se.wavelengths = si.wavelengths
-            Le = dr.select(env, mi.Color3f(em.eval(se, env)), Le)
-        G = dr.select(kind == AREA, dr.abs(dr.dot(mi.Vector3f(n), d)) / dr.select(ok & ~inf, dr.square(dist), 1.0), 1.0)
-        if with_pdf:
-            f, p_bsdf = bsdf.eval_pdf(ctx, si, si.to_local(d), ok)
-        else:
-            f, p_bsdf = bsdf.eval(ctx, si, si.to_local(d), ok), None
-        c = dr.select(ok, mi.Color3f(f) * Le * G, 0.0)
-        p_hat = dr.maximum(mi.luminance(c), 0.0)
-        if with_pdf:
-            return c, p_hat, d, dist, kind, ds, dr.select(ok, p_bsdf, 0.0)
-        return c, p_hat, d, dist, kind, ds
-
-    def _visible(self, si, d, dist, kind, active):
-        """Shadow ray towards a stored sample (to the point, or to infinity)."""
-        inf = kind == INFINITE
-        ray = si.spawn_ray(d)
-        ray_to = si.spawn_ray_to(si.p + d * dist)
-        ray.maxt = dr.select(inf, ray.maxt, ray_to.maxt)
-        ray.o = dr.select(inf, ray.o, ray_to.o)
-        ray.d = dr.select(inf, ray.d, ray_to.d)
-        return active & ~self.scene.mi_scene.ray_test(ray, active)
-
-    def _pdf_sum(self, si, bsdf, light, kind, d, dist, n, ds, active, p_dir=None, p_bsdf=None):
-        """sum_t N_t p_t(y): candidate densities of the three techniques in the
-        sample's measure (area / solid angle / discrete). ``p_dir`` (the
-        light's solid-angle pdf, e.g. ``ds.pdf`` of the sampling call) and
-        ``p_bsdf`` (from ``eval_pdf``) are computed here when not given."""
-        ctx = mi.BSDFContext()
-        em = ds.emitter
-        delta = ds.delta
-        cos_y = dr.abs(dr.dot(mi.Vector3f(n), d))
-        to_area = dr.select(kind == AREA, cos_y / dr.select(dist > 0.0, dr.square(dist), 1.0), 1.0)
-        if p_dir is None:
-            need = active & ~delta
-            if self._table is not None:   # only the infinite lights still need Mitsuba's density
-                need &= kind == INFINITE
-            p_dir = em.pdf_direction(si, ds, need)
-        p_dir = dr.select(delta, 0.0, p_dir)
-        total = dr.zeros(mi.Float, dr.width(light))
-        if self._L and self.n_local:
-            if self._table is not None:
-                loc = active & (kind != INFINITE)
-                p_l = dr.select(delta, self._table.choice_pmf(light, loc),
-                                self._table.pdf(si, ds, loc & ~delta, index=light) * to_area)
-            else:
-                p_l = dr.select(delta, 1.0, p_dir * to_area) / self._L
-            total += dr.select(kind != INFINITE, float(self.n_local) * p_l, 0.0)
-        if self._E and self.n_env:
-            p_e = dr.select(delta, 1.0, p_dir) / self._E
-            total += dr.select(kind == INFINITE, float(self.n_env) * p_e, 0.0)
-        if self.n_bsdf:
-            if p_bsdf is None:
-                p_bsdf = bsdf.pdf(ctx, si, si.to_local(d), active & ~delta)
-            p_b = p_bsdf * to_area
-            hit_able = ~delta & (kind == AREA)
-            if self._env_index >= 0:
-                hit_able |= ~delta & (light == self._env_index)
-            total += dr.select(hit_able, float(self.n_bsdf) * p_b, 0.0)
-        return dr.select(active, total, 0.0)
 
     # ------------------------------ Stage 1: initial ------------------------------
 
@@ -306,41 +166,41 @@ class ReSTIR(Method):
         if self._table is not None:
             self._table.refresh()   # animated emissive meshes
 
-        def add(y, nrm, light, ok, u_sel, p_dir=None):
+        def add(into, y, nrm, light, ok, u_sel, p_dir=None):
             _, p_hat, d, dist, kind, ds, p_bsdf = self.evaluate(si, bsdf, y, nrm, light, ok, with_pdf=True)
             denom = self._pdf_sum(si, bsdf, light, kind, d, dist, nrm, ds, ok & (p_hat > 0.0),
                                   p_dir=p_dir, p_bsdf=p_bsdf)
             good = ok & (p_hat > 0.0) & (denom > 0.0)
             w = dr.select(good, p_hat / dr.select(good, denom, 1.0), 0.0)
-            res.update(y, nrm, light, p_hat, w, u_sel, good)
+            into.update(y, nrm, light, p_hat, w, u_sel, good)
 
         # ---------------- Local-light candidates (symbolic loop) ----------------
         if self._L and self.n_local:
             n_local = dr.opaque(mi.UInt32, self.n_local)
-            state = (mi.UInt32(0), res.y, res.n, res.light, res.p_hat, res.w_sum, sampler)
 
-            def cond(i, *_):
-                return i < n_local
+            def cond(s: CandidateLoop):
+                return s.i < n_local
 
-            def body(i, y_, n_, l_, p_, w_, smp):
-                res.y, res.n, res.light, res.p_hat, res.w_sum = y_, n_, l_, p_, w_
+            def body(s: CandidateLoop):
+                smp = s.smp
                 if self._table is not None:
                     u = mi.Point2f(smp.next_float32(), smp.next_float32())
                     ds, _, ok, light = self._table.sample(si, u, active)
-                    add(mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32())
-                    return i + 1, res.y, res.n, res.light, res.p_hat, res.w_sum, smp
-                k = dr.minimum(mi.UInt32(smp.next_float32() * self._L), self._L - 1)
-                light = dr.gather(mi.UInt32, self._local, k, active)
-                em = dr.gather(mi.EmitterPtr, self._emitters, light, active)
-                u = mi.Point2f(smp.next_float32(), smp.next_float32())
-                ds, _ = em.sample_direction(si, u, active)
-                ok = active & (ds.pdf > 0.0)
-                add(mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32(), p_dir=ds.pdf)
-                return i + 1, res.y, res.n, res.light, res.p_hat, res.w_sum, smp
+                    add(s.res, mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32())
+                else:
+                    k = dr.minimum(mi.UInt32(smp.next_float32() * self._L), self._L - 1)
+                    light = dr.gather(mi.UInt32, self._local, k, active)
+                    em = dr.gather(mi.EmitterPtr, self._emitters, light, active)
+                    u = mi.Point2f(smp.next_float32(), smp.next_float32())
+                    ds, _ = em.sample_direction(si, u, active)
+                    ok = active & (ds.pdf > 0.0)
+                    add(s.res, mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32(), p_dir=ds.pdf)
+                s.i = s.i + 1
+                return (s,)
 
-            out = dr.while_loop(state=state, cond=cond, body=body,
-                                labels=("i", "y", "n", "light", "p_hat", "w_sum", "sampler"))
-            _, res.y, res.n, res.light, res.p_hat, res.w_sum, sampler = out
+            s, = dr.while_loop(state=(CandidateLoop(mi.UInt32(0), res, sampler),), cond=cond, body=body,
+                               labels=("candidates",))
+            res, sampler = s.res, s.smp
 
         # ---------------- Environment candidates ----------------
         if self._E and self.n_env:
@@ -351,7 +211,7 @@ class ReSTIR(Method):
                 u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
                 ds, _ = em.sample_direction(si, u, active)
                 ok = active & (ds.pdf > 0.0)
-                add(mi.Point3f(ds.d), dr.zeros(mi.Vector3f, n), light, ok, sampler.next_float32(), p_dir=ds.pdf)
+                add(res, mi.Point3f(ds.d), dr.zeros(mi.Vector3f, n), light, ok, sampler.next_float32(), p_dir=ds.pdf)
 
         # ---------------- BSDF candidates ----------------
         for _ in range(self.n_bsdf):
@@ -375,7 +235,7 @@ class ReSTIR(Method):
                 cand = hit_em | miss
             else:
                 cand = hit_em
-            add(y, nrm, light, cand, sampler.next_float32())
+            add(res, y, nrm, light, cand, sampler.next_float32())
 
         # ---------------- Finalize (M = 1) and initial visibility ----------------
         r = res.finalize(mi.Float(1.0), mi.Float(1.0), active)
@@ -385,171 +245,6 @@ class ReSTIR(Method):
             r.W = dr.select(vis, r.W, 0.0)
         return r, res.p_hat
 
-    # ------------------------------ Stage 2: temporal ------------------------------
-
-    def _similar(self, n_a, n_b, depth_a, depth_b):
-        """RTXDI's neighbour test: relative depth and normal thresholds."""
-        depth_ok = dr.abs(depth_b - depth_a) <= self.depth_thr * dr.maximum(depth_a, 1e-6)
-        return depth_ok & (dr.dot(n_a, n_b) >= self.normal_thr)
-
-    def temporal_reuse(self, gb, r: Reservoir, p_cur, prev, moved, seed: int):
-        """Merge the previous frame's reservoir; returns (reservoir, reused mask)."""
-        n = gb.size
-        si, active = gb.si, gb.valid
-        bsdf = si.bsdf()
-        if prev is None:
-            return r, dr.zeros(mi.Bool, n), p_cur
-        r_prev_all, gb_prev = prev
-        W_, H_ = gb.width, gb.height
-        sampler = rng(n, seed, stream=12)
-
-        # ---------------- Reprojection (nearest pixel) ----------------
-        idx = dr.arange(mi.UInt32, n)
-        px = mi.Float(idx % W_) + 0.5 + gb.motion.x
-        py = mi.Float(idx // W_) + 0.5 + gb.motion.y
-        qx, qy = mi.Int32(dr.floor(px)), mi.Int32(dr.floor(py))
-        inb = (qx >= 0) & (qy >= 0) & (qx < W_) & (qy < H_)
-        q = mi.UInt32(dr.select(inb, qy * W_ + qx, 0))
-        ok = active & inb & dr.gather(mi.Bool, gb_prev.valid, q, active & inb)
-        si_p = dr.gather(mi.SurfaceInteraction3f, gb_prev.si, q, ok)
-        cam_o = mi.Point3f(*[dr.opaque(mi.Float, float(c)) for c in gb_prev.camera.origin])
-        expected = dr.norm(si.p - cam_o)
-        ok &= self._similar(si.sh_frame.n, si_p.sh_frame.n, expected, dr.gather(mi.Float, gb_prev.depth, q, ok))
-        rp = dr.gather(Reservoir, r_prev_all, q, ok)
-        ok &= ~(dr.gather(mi.Bool, moved, rp.light, ok) & (dr.gather(mi.UInt32, self._kind, rp.light, ok) == AREA))
-        ok &= rp.M > 0.0
-        M_p = dr.select(ok, dr.minimum(rp.M, self.mcap), 0.0)
-
-        # ---------------- Resampling: current + history ----------------
-        st = Stream(n)
-        M = r.M + M_p
-        _, p_here, _, _, _, _ = self.evaluate(si, bsdf, rp.y, rp.n, rp.light, ok & (rp.W > 0.0))
-        if self.bias == "pairwise":
-            # balance heuristic over the two reservoirs' targets, weighted by their M:
-            # m_c(y) = M_c p_c(y) / (M_c p_c(y) + M_p p_p(y)), m_p(y) = 1 - m_c(y)
-            bsdf_p = si_p.bsdf()
-            _, p_pp, _, _, _, _ = self.evaluate(si_p, bsdf_p, rp.y, rp.n, rp.light, ok & (rp.W > 0.0))
-            _, p_pc, _, _, _, _ = self.evaluate(si_p, bsdf_p, r.y, r.n, r.light, ok & (r.W > 0.0))
-            m_c = share(r.M * p_cur, dr.select(ok, M_p * p_pc, 0.0))
-            m_p = share(M_p * p_pp, r.M * p_here)
-            st.update(r.y, r.n, r.light, p_cur, m_c * p_cur * r.W, sampler.next_float32(), active)
-            st.update(rp.y, rp.n, rp.light, p_here, m_p * p_here * rp.W, sampler.next_float32(), ok)
-            return st.finalize(mi.Float(1.0), M, active), ok, st.p_hat
-        st.update(r.y, r.n, r.light, p_cur, p_cur * r.W * r.M, sampler.next_float32(), active)
-        st.update(rp.y, rp.n, rp.light, p_here, p_here * rp.W * M_p, sampler.next_float32(), ok)
-
-        # ---------------- Bias correction ----------------
-        if self.bias == "off":
-            Z = M
-        else:
-            Z = dr.select(st.p_hat > 0.0, r.M, 0.0)
-            bsdf_p = si_p.bsdf()
-            # only where a sample was selected (W = 0 otherwise, whatever Z)
-            sel = ok & (st.p_hat > 0.0) & (st.w_sum > 0.0)
-            _, p_prev, _, _, _, _ = self.evaluate(si_p, bsdf_p, st.y, st.n, st.light, sel)
-            Z += dr.select(sel & (p_prev > 0.0), M_p, 0.0)
-        return st.finalize(Z, M, active), ok, st.p_hat
-
-    # ------------------------------ Stage 3: spatial ------------------------------
-
-    def neighbour(self, smp, x0, y0, R: float, W_: int, H_: int):
-        """Next neighbour of the sequence ``smp``: a pixel uniform in the disk
-        of radius ``R`` around (x0, y0), rounded; (index, in-bounds mask).
-        The pixel itself does not count as a neighbour."""
-        u1, u2 = smp.next_float32(), smp.next_float32()
-        rad = R * dr.sqrt(u1)
-        phi = 2.0 * math.pi * u2
-        qx = x0 + mi.Int32(dr.round(rad * dr.cos(phi)))
-        qy = y0 + mi.Int32(dr.round(rad * dr.sin(phi)))
-        inb = (qx >= 0) & (qy >= 0) & (qx < W_) & (qy < H_) & ((qx != x0) | (qy != y0))
-        return mi.UInt32(dr.select(inb, qy * W_ + qx, 0)), inb
-
-    def spatial_reuse(self, gb, r: Reservoir, p_cur, reused, seed: int):
-        """Merge neighbours' reservoirs (read from the temporal output ``r``).
-
-        Two symbolic loops over a per-pixel neighbour count ``k``. With
-        ``bias=pairwise`` see :func:`slc.methods.restir.pairwise.spatial_pairwise`. Otherwise the first
-        resamples and records the accepted neighbours in a bit mask, the
-        second (``bias=basic``) replays the same neighbour sequence up to
-        the last accepted one and sums Z over the accepted neighbours whose
-        surface has p_hat(y) > 0 for the selected y."""
-        n = gb.size
-        si, active = gb.si, gb.valid
-        bsdf = si.bsdf()
-        W_, H_ = gb.width, gb.height
-        R = max(self.radius * H_ / 1080.0, 2.0)
-        x0, y0 = self.pixel_xy(n, W_)
-
-        # ---------------- Per-pixel neighbour count ----------------
-        # spatial everywhere; max(spatial, boost) where temporal history was
-        # rejected (disocclusion boost); none on invalid pixels.
-        k = dr.full(mi.UInt32, self.spatial, n)
-        if self.temporal and self.boost > self.spatial:
-            k = dr.select(reused, k, self.boost)
-        k = dr.select(active, k, 0)
-        if self.bias == "pairwise":
-            return spatial_pairwise(self, gb, r, p_cur, k, R, seed)
-
-        # ---------------- Pass 1: resampling self + neighbours ----------------
-        sel = rng(n, seed, stream=14)
-        st = Stream(n)
-        st.update(r.y, r.n, r.light, p_cur, p_cur * r.W * r.M, sel.next_float32(), active)
-        M = mi.Float(r.M)
-        state = (mi.UInt32(0), rng(n, seed, stream=13), sel, st.y, st.n, st.light, st.p_hat, st.w_sum,
-                 M, mi.UInt32(0))
-
-        def body(i, smp, sel, y, nrm, light, p_hat, w_sum, M, used):
-            st.y, st.n, st.light, st.p_hat, st.w_sum = y, nrm, light, p_hat, w_sum
-            q, ok, rq = self.accepted_neighbour(smp, gb, r, R)
-            # the target is only needed for a non-zero resampling weight; M counts regardless
-            _, p_here, _, _, _, _ = self.evaluate(si, bsdf, rq.y, rq.n, rq.light, ok & (rq.W > 0.0))
-            st.update(rq.y, rq.n, rq.light, p_here, p_here * rq.W * rq.M, sel.next_float32(), ok)
-            M = M + dr.select(ok, rq.M, 0.0)
-            used = used | dr.select(ok, mi.UInt32(1) << i, 0)
-            return i + 1, smp, sel, st.y, st.n, st.light, st.p_hat, st.w_sum, M, used
-
-        out = dr.while_loop(state=state, cond=lambda i, *_: i < k, body=body,
-                            labels=("i", "smp", "sel", "y", "n", "light", "p_hat", "w_sum", "M", "used"))
-        _, _, _, st.y, st.n, st.light, st.p_hat, st.w_sum, M, used = out
-
-        # ---------------- Pass 2: bias correction (replay the neighbours) ----------------
-        if self.bias == "off":
-            Z = M
-        else:
-            Z = dr.select(st.p_hat > 0.0, r.M, 0.0)
-            # Only up to the last accepted neighbour, only where a sample was selected
-            k2 = dr.select(active & (st.p_hat > 0.0) & (st.w_sum > 0.0), 32 - dr.lzcnt(used), 0)
-            y_s, n_s, l_s = mi.Point3f(st.y), mi.Vector3f(st.n), mi.UInt32(st.light)
-
-            def body_z(i, smp, Z):
-                q, _ = self.neighbour(smp, x0, y0, R, W_, H_)
-                ok = ((used >> i) & 1) != 0
-                Mq = dr.gather(mi.Float, r.M, q, ok)
-                si_q = dr.gather(mi.SurfaceInteraction3f, si, q, ok)
-                _, p_q, _, _, _, _ = self.evaluate(si_q, si_q.bsdf(), y_s, n_s, l_s, ok)
-                return i + 1, smp, Z + dr.select(ok & (p_q > 0.0), Mq, 0.0)
-
-            _, _, Z = dr.while_loop(state=(mi.UInt32(0), rng(n, seed, stream=13), Z),
-                                    cond=lambda i, *_: i < k2, body=body_z, labels=("i", "smp", "Z"))
-        return st.finalize(Z, M, active), st.p_hat
-
-    def accepted_neighbour(self, smp, gb, r: Reservoir, R: float):
-        """Next neighbour of the sequence ``smp`` (see :meth:`neighbour`) and
-        whether it is reused: valid, similar depth and normal, M > 0; (index,
-        mask, its reservoir)."""
-        W_, H_ = gb.width, gb.height
-        n0 = mi.Vector3f(gb.si.sh_frame.n)
-        q, ok = self.neighbour(smp, *self.pixel_xy(gb.size, W_), R, W_, H_)
-        ok &= dr.gather(mi.Bool, gb.valid, q, ok)
-        ok &= self._similar(n0, dr.gather(mi.Vector3f, n0, q, ok), gb.depth, dr.gather(mi.Float, gb.depth, q, ok))
-        rq = dr.gather(Reservoir, r, q, ok)
-        return q, ok & (rq.M > 0.0), rq
-
-    @staticmethod
-    def pixel_xy(n: int, width: int):
-        """Pixel coordinates (x, y) of the ``n`` pixels of a ``width``-wide image."""
-        idx = dr.arange(mi.UInt32, n)
-        return mi.Int32(idx % width), mi.Int32(idx // width)
 
     # ------------------------------ Stage 4: shade ------------------------------
 

@@ -2,11 +2,39 @@
 the default): the resampling weights and the two neighbour passes."""
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import drjit as dr
 import mitsuba as mi
 
 from slc.methods.restir.reservoir import Reservoir, Stream, share
 from slc.scene.lights import rng
+
+
+@dataclass
+class AcceptLoop:
+    """The state of pass 1 (one lane per pixel): ``i`` the neighbours drawn, ``smp`` the
+    random numbers of the neighbour sequence, ``K`` the number and ``M_n`` the summed
+    confidence of the accepted neighbours, ``used`` their bit mask."""
+    i: mi.UInt32 = field(default_factory=mi.UInt32)
+    smp: mi.PCG32 = field(default_factory=mi.PCG32)
+    K: mi.Float = field(default_factory=mi.Float)
+    M_n: mi.Float = field(default_factory=mi.Float)
+    used: mi.UInt32 = field(default_factory=mi.UInt32)
+    DRJIT_STRUCT = {"i": mi.UInt32, "smp": mi.PCG32, "K": mi.Float, "M_n": mi.Float, "used": mi.UInt32}
+
+
+@dataclass
+class PairwiseLoop:
+    """The state of pass 2 (one lane per pixel): ``i`` the neighbours replayed, ``smp`` and
+    ``sel`` the random numbers of the neighbour sequence and of the selection, ``st`` the
+    reservoir being filled, ``m_c`` the canonical reservoir's MIS weight summed over the pairs."""
+    i: mi.UInt32 = field(default_factory=mi.UInt32)
+    smp: mi.PCG32 = field(default_factory=mi.PCG32)
+    sel: mi.PCG32 = field(default_factory=mi.PCG32)
+    st: Stream = field(default_factory=Stream)
+    m_c: mi.Float = field(default_factory=mi.Float)
+    DRJIT_STRUCT = {"i": mi.UInt32, "smp": mi.PCG32, "sel": mi.PCG32, "st": Stream, "m_c": mi.Float}
 
 
 def spatial_pairwise(m, gb, r: Reservoir, p_cur, k, R: float, seed: int):
@@ -33,14 +61,18 @@ def spatial_pairwise(m, gb, r: Reservoir, p_cur, k, R: float, seed: int):
     bsdf = si.bsdf()
 
     # ---------------- Pass 1: accepted neighbours ----------------
-    def body(i, smp, K, M_n, used):
-        _, ok, rq = m.accepted_neighbour(smp, gb, r, R)
-        used = used | dr.select(ok, mi.UInt32(1) << i, 0)
-        return i + 1, smp, K + dr.select(ok, 1.0, 0.0), M_n + dr.select(ok, rq.M, 0.0), used
+    def body(s: AcceptLoop):
+        _, ok, rq = m.accepted_neighbour(s.smp, gb, r, R)
+        s.used = s.used | dr.select(ok, mi.UInt32(1) << s.i, 0)
+        s.K = s.K + dr.select(ok, 1.0, 0.0)
+        s.M_n = s.M_n + dr.select(ok, rq.M, 0.0)
+        s.i = s.i + 1
+        return (s,)
 
-    _, _, K, M_n, used = dr.while_loop(
-        state=(mi.UInt32(0), rng(n, seed, stream=13), mi.Float(0.0), mi.Float(0.0), mi.UInt32(0)),
-        cond=lambda i, *_: i < k, body=body, labels=("i", "smp", "K", "M_n", "used"))
+    s, = dr.while_loop(
+        state=(AcceptLoop(mi.UInt32(0), rng(n, seed, stream=13), mi.Float(0.0), mi.Float(0.0), mi.UInt32(0)),),
+        cond=lambda s: s.i < k, body=body, labels=("accepted",))
+    K, M_n, used = s.K, s.M_n, s.used
     M = r.M + M_n
     Mc_K = r.M / dr.select(K > 0.0, K, 1.0)
     inv_total = dr.select(M > 0.0, dr.rcp(dr.select(M > 0.0, M, 1.0)), 0.0)
@@ -50,10 +82,9 @@ def spatial_pairwise(m, gb, r: Reservoir, p_cur, k, R: float, seed: int):
     k2 = dr.select(active, 32 - dr.lzcnt(used), 0)
     c_ok = active & (r.W > 0.0)
 
-    def body2(i, smp, sel, y, nrm, light, p_hat, w_sum, m_c):
-        st.y, st.n, st.light, st.p_hat, st.w_sum = y, nrm, light, p_hat, w_sum
-        q, _ = m.neighbour(smp, *m.pixel_xy(n, gb.width), R, gb.width, gb.height)
-        ok = ((used >> i) & 1) != 0
+    def body2(s: PairwiseLoop):
+        q, _ = m.neighbour(s.smp, *m.pixel_xy(n, gb.width), R, gb.width, gb.height)
+        ok = ((used >> s.i) & 1) != 0
         rq = dr.gather(Reservoir, r, q, ok)
         si_q = dr.gather(mi.SurfaceInteraction3f, si, q, ok)
         bsdf_q = si_q.bsdf()
@@ -63,15 +94,15 @@ def spatial_pairwise(m, gb, r: Reservoir, p_cur, k, R: float, seed: int):
         _, p_i_c, _, _, _, _ = m.evaluate(si_q, bsdf_q, r.y, r.n, r.light, ok & c_ok)
         f = (rq.M + Mc_K) * inv_total
         m_i = f * share(rq.M * p_i_i, Mc_K * p_c_i)
-        st.update(rq.y, rq.n, rq.light, p_c_i, m_i * p_c_i * rq.W, sel.next_float32(), has)
-        m_c = m_c + dr.select(ok, f * share(Mc_K * p_cur, rq.M * p_i_c), 0.0)
-        return i + 1, smp, sel, st.y, st.n, st.light, st.p_hat, st.w_sum, m_c
+        s.st.update(rq.y, rq.n, rq.light, p_c_i, m_i * p_c_i * rq.W, s.sel.next_float32(), has)
+        s.m_c = s.m_c + dr.select(ok, f * share(Mc_K * p_cur, rq.M * p_i_c), 0.0)
+        s.i = s.i + 1
+        return (s,)
 
-    state = (mi.UInt32(0), rng(n, seed, stream=13), rng(n, seed, stream=14), st.y, st.n, st.light,
-             st.p_hat, st.w_sum, mi.Float(0.0))
-    out = dr.while_loop(state=state, cond=lambda i, *_: i < k2, body=body2,
-                        labels=("i", "smp", "sel", "y", "n", "light", "p_hat", "w_sum", "m_c"))
-    _, _, sel, st.y, st.n, st.light, st.p_hat, st.w_sum, m_c = out
+    s, = dr.while_loop(
+        state=(PairwiseLoop(mi.UInt32(0), rng(n, seed, stream=13), rng(n, seed, stream=14), st, mi.Float(0.0)),),
+        cond=lambda s: s.i < k2, body=body2, labels=("pairwise",))
+    sel, st, m_c = s.sel, s.st, s.m_c
     m_c = dr.select(K > 0.0, m_c, 1.0)
     st.update(r.y, r.n, r.light, p_cur, m_c * p_cur * r.W, sel.next_float32(), c_ok)
     return st.finalize(mi.Float(1.0), M, active), st.p_hat

@@ -29,9 +29,11 @@ class Reservoir:
 class Stream:
     """A reservoir being filled by weighted streaming selection:
     candidate sample (y, n, light), its target value ``p_hat`` at the
-    reservoir's own shading point, running weight sum and confidence."""
+    reservoir's own shading point, running weight sum and confidence.
+    A Dr.Jit struct of the fields a symbolic loop carries (all but ``M``)."""
+    DRJIT_STRUCT = {"y": mi.Point3f, "n": mi.Vector3f, "light": mi.UInt32, "p_hat": mi.Float, "w_sum": mi.Float}
 
-    def __init__(self, n: int):
+    def __init__(self, n: int = 0):
         self.y = dr.zeros(mi.Point3f, n)
         self.n = dr.zeros(mi.Vector3f, n)
         self.light = dr.zeros(mi.UInt32, n)
