@@ -446,6 +446,8 @@ def flatten_emitter_meshes(mi_scene: mi.Scene) -> set[str]:
     for sh in mi_scene.shapes():
         if sh.is_emitter() and sh.is_mesh() and sh.has_vertex_normals():
             p = mi.traverse(sh)
+            if "vertex_normals" not in p:
+                continue        # a Rectangle: a Mesh to Mitsuba, flat, with no normals to drop
             p["vertex_normals"] = mi.Float()
             p.update()
             flat.add(sh.id())
