@@ -8,7 +8,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from slc.scene import emitter_sampling as es
+from slc.scene import emitter_table as es
 from slc.scene.gbuffer import per_viewer
 from slc.core.keys import INVALID, mixed_rng, stream_key
 from slc.scene.lights import SurfaceBSDF, rng, sample_light_reference, sampler as light_table
