@@ -9,7 +9,7 @@ import pytest
 
 from helpers import plane_under_rect_light
 from slc.methods.cones.shading import KIND_DIFFUSE, KIND_NOT_PRINCIPLED, KIND_OTHER, KIND_PRINCIPLED, ConeShading, bsdf_table
-from slc.scene.scenes import diffuse, principled, rough_conductor
+from slc.scene.builder import diffuse, principled, rough_conductor
 
 
 def _inputs(sc):
