@@ -2,7 +2,7 @@
 
 One viewer per scene on the scene's first camera path, moving at 0.25x to
 4x walking speed (1x = 1.4 m/s with view turns up to 30 deg/s, at 60 Hz;
-``slc.scene.scenes.WALK_SPEED`` / ``TURN_RATE``). A cache entry stays in view for
+``slc.scene.camera.WALK_SPEED`` / ``TURN_RATE``). A cache entry stays in view for
 fewer frames the faster the camera moves, so it spends a larger share of
 its life in the 8-ray start-up and averages fewer samples; per-pixel
 methods (rt48) do not care, ReSTIR's temporal reuse does. Every speed runs
@@ -46,7 +46,7 @@ def run(opts):
     from slc.run.images import save_strip
     from slc.run.pipeline import run_case
     from slc.scene import views
-    from slc.scene.scenes import FPS, TURN_RATE, WALK_SPEED
+    from slc.scene.camera import FPS, TURN_RATE, WALK_SPEED
 
     pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     if not opts.scene and len(names) < 2 and FALLBACK_SCENE not in names:

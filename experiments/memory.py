@@ -36,14 +36,14 @@ def add_arguments(p):
 def run(opts):
     from slc.run import experiment as ex
     from slc.run import plots
-    from slc.scene import views
+    from slc.scene import random_walks, views
 
     pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     counts = opts.viewers or pr["viewers"]
     def cases(s):
         return [c for spec in specs for n in counts for c in (
             (spec, views.overlap_rig(s, n, 1.0), {"rig": "overlap", "overlap": 100}),
-            (spec, views.random_viewers(s, n), {"rig": "random"}))]
+            (spec, random_walks.random_viewers(s, n), {"rig": "random"}))]
 
     rows = []
     for s in ex.each_scene(names):

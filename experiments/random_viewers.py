@@ -1,7 +1,7 @@
 """random-viewers: 1-16 viewers on uncorrelated paths (SLC paper, Figs. 12-13).
 
 Every viewer starts at its own point looking towards the scene's centre of
-interest and then walks its own random route (``slc.scene.views.random_viewers``).
+interest and then walks its own random route (``slc.scene.random_walks.random_viewers``).
 Each row reports the overlap at the start (``overlap_start``, frame 0), over
 the rig's first 4 s (``overlap_4s``, every 0.5 s) and over the timed frames
 (``measured_overlap``); the paper's regime is about 50% at the start and
@@ -33,14 +33,14 @@ def add_arguments(p):
 
 def run(opts):
     from slc.run import experiment as ex
-    from slc.scene import views
+    from slc.scene import random_walks, views
 
     from slc.run.pipeline import gbuffers_for
 
     overlaps = {}
 
     def make(s, n):
-        vs = views.random_viewers(s, n, seed=opts.seed)
+        vs = random_walks.random_viewers(s, n, seed=opts.seed)
         if n > 1 and (s.name, n) not in overlaps:
             w, h = opts_res(opts)
             m = [views.measure_overlap(gbuffers_for(s, vs, f, w, h)) for f in OVERLAP_FRAMES]

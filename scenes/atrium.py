@@ -9,12 +9,13 @@ quad at y = 13.6 facing down; the three lamps are emissive icospheres
 (radius 0.15 m) hanging in the hallways.
 
 Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
-1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.scenes.CameraPath``).
+1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.camera.CameraPath``).
 """
 import numpy as np
 import trimesh
 
-from slc.scene.scenes import box_mesh, merge_meshes, CameraPath, SceneBuilder, diffuse, principled, rough_conductor
+from slc.scene.builder import SceneBuilder, box_mesh, diffuse, merge_meshes, principled, rough_conductor
+from slc.scene.camera import CameraPath
 
 W_X, W_Z, H = 12.0, 8.0, 14.0          # outer half extents and wall height
 C_X, C_Z = 8.4, 3.6                    # court half extents (column line)

@@ -1,10 +1,11 @@
 """cornell: a Cornell box (2 m) with a square ceiling light, one glossy and one diffuse block; sanity scene with an analytic check.
 
 Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
-1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.scenes.CameraPath``).
+1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.camera.CameraPath``).
 """
 
-from slc.scene.scenes import CameraPath, SceneBuilder, diffuse, rough_conductor
+from slc.scene.builder import SceneBuilder, diffuse, rough_conductor
+from slc.scene.camera import CameraPath
 
 LIGHT_HALF = 0.25       # the ceiling light is a 0.5 m x 0.5 m square
 LIGHT_HEIGHT = 1.98     # just below the ceiling (y = 2)

@@ -11,12 +11,14 @@ posts, and two emissive lantern boxes. The sky is
 dusk-blue environment.
 
 Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
-1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.scenes.CameraPath``).
+1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.camera.CameraPath``).
 """
 import numpy as np
 import trimesh
 
-from slc.scene.scenes import box_mesh, merge_meshes, SHARED_DIR, CameraPath, SceneBuilder, diffuse, principled, rough_conductor
+from slc.scene.builder import SceneBuilder, box_mesh, diffuse, merge_meshes, principled, rough_conductor
+from slc.scene.camera import CameraPath
+from slc.scene.scenes import SHARED_DIR
 
 HALF, WALL_H = 10.0, 4.5
 ARCADE_D, ARCADE_H = 3.0, 3.6            # arcade depth and ceiling height

@@ -12,14 +12,16 @@ first N of one deterministic sequence of orbits; their radiance scaled by
 experiment (the paper's Fig. 17).
 
 Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
-1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.scenes.CameraPath``).
+1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.camera.CameraPath``).
 """
 import math
 
 import numpy as np
 import trimesh
 
-from slc.scene.scenes import box_mesh, merge_meshes, CameraPath, SceneBuilder, diffuse, principled, rough_conductor, translate
+from slc.scene.builder import (SceneBuilder, box_mesh, diffuse, merge_meshes, principled, rough_conductor,
+                               translate)
+from slc.scene.camera import CameraPath
 
 HX, HZ, HH = 20.0, 12.0, 9.0
 LIGHT_RADIUS = 0.12

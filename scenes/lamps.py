@@ -10,11 +10,12 @@ Light Cones paper names as overkill for cones ("a simple visibility/occlusion
 caching approach may work significantly better").
 
 Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
-1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.scenes.CameraPath``).
+1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.camera.CameraPath``).
 """
 import numpy as np
 
-from slc.scene.scenes import CameraPath, SceneBuilder, box_mesh, diffuse, merge_meshes, principled, rough_conductor
+from slc.scene.builder import SceneBuilder, box_mesh, diffuse, merge_meshes, principled, rough_conductor
+from slc.scene.camera import CameraPath
 
 HX, HZ, HH = 16.0, 5.0, 6.0
 N_LIGHTS = 32

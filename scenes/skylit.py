@@ -13,14 +13,16 @@ roof over the yard, so every point sees part of the sky. The environment:
 - ``constant``: a uniform sky (closed forms for tests).
 
 Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
-1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.scenes.CameraPath``).
+1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.camera.CameraPath``).
 """
 import math
 
 import numpy as np
 
-from slc.scene.scenes import ENVMAPS_DIR, CameraPath, SceneBuilder, SceneError, box_mesh, diffuse, merge_meshes, \
-    principled, rough_conductor
+from slc.scene.builder import SceneBuilder, box_mesh, diffuse, merge_meshes, principled, rough_conductor
+from slc.scene.camera import CameraPath
+from slc.scene.checks import SceneError
+from slc.scene.scenes import ENVMAPS_DIR
 
 ENVMAPS = {"venice": "venice_sunset_1k.hdr", "studio": "studio_small_03_1k.hdr"}
 

@@ -11,11 +11,12 @@ plastic (principled, roughness 0.3). The lights are flat-shaded triangle
 meshes (icospheres), so the emitter's area density is exact.
 
 Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
-1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scenes.CameraPath``).
+1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.camera.CameraPath``).
 """
 import numpy as np
 
-from slc.scene.scenes import CameraPath, SceneBuilder, diffuse, principled, rough_conductor
+from slc.scene.builder import SceneBuilder, diffuse, principled, rough_conductor
+from slc.scene.camera import CameraPath
 
 HX, Z0, Z1, HH = 5.0, -4.0, 7.0, 4.5
 # (centre, radius, RGB radiance) of the four lights: radii 0.03-1 m, radiances 1-1e4

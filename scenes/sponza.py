@@ -15,11 +15,14 @@ y ~ 15.6 and the atrium is open to the sky.
 
 Unit: one scene unit is taken as one metre (``unit=1.0``; the model's own
 scale, give or take); the camera paths walk at 1.4 m/s with view turns up
-to 30 deg/s at 60 Hz (``slc.scene.scenes.CameraPath``).
+to 30 deg/s at 60 Hz (``slc.scene.camera.CameraPath``).
 """
 import numpy as np
 
-from slc.scene.scenes import SHARED_DIR, CameraPath, Scene, SceneError, diffuse
+from slc.scene.builder import diffuse
+from slc.scene.camera import CameraPath
+from slc.scene.checks import SceneError
+from slc.scene.scenes import SHARED_DIR, Scene
 
 SPONZA_XML = SHARED_DIR / "scenes" / "sponza" / "sponza.xml"
 

@@ -15,15 +15,16 @@ a small triangle mesh animated rigidly (``transform(t)``, t in seconds):
 The only lights are the three moving ones (night scene).
 
 Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
-1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.scenes.CameraPath``).
+1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.camera.CameraPath``).
 """
 import math
 
 import numpy as np
 import trimesh
 
-from slc.scene.scenes import (box_mesh, merge_meshes, CameraPath, SceneBuilder, about, diffuse, principled, rotate, rough_conductor,
-                        translate)
+from slc.scene.builder import (SceneBuilder, about, box_mesh, diffuse, merge_meshes, principled, rotate,
+                               rough_conductor, translate)
+from slc.scene.camera import CameraPath
 
 HALF_LEN = 24.0
 ROAD_Z, WALK_Z = 4.0, 6.5

@@ -11,7 +11,8 @@ room A looking at its floor.
 
 Unit: one scene unit is one metre (``unit=1.0``).
 """
-from slc.scene.scenes import CameraPath, SceneBuilder, diffuse, rough_conductor
+from slc.scene.builder import SceneBuilder, diffuse, rough_conductor
+from slc.scene.camera import CameraPath
 
 ROOM_A = (-1.9, 0.1)
 ROOM_B = (0.2, 2.2)

@@ -9,14 +9,15 @@ above the horizon; the torches are emissive spheres of radius 0.08 m on
 2.2 m poles.
 
 Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
-1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.scenes.CameraPath``).
+1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.camera.CameraPath``).
 """
 import math
 
 import numpy as np
 import trimesh
 
-from slc.scene.scenes import box_mesh, merge_meshes, CameraPath, SceneBuilder, diffuse, principled, rough_conductor
+from slc.scene.builder import SceneBuilder, box_mesh, diffuse, merge_meshes, principled, rough_conductor
+from slc.scene.camera import CameraPath
 
 EXTENT, GRID = 30.0, 64
 MOON_DIR = np.array([-0.55, 0.57, -0.61])

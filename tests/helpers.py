@@ -3,7 +3,8 @@ import numpy as np
 
 from slc.scene import gbuffer
 from slc.methods import FrameContext
-from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
+from slc.scene.builder import SceneBuilder, diffuse
+from slc.scene.camera import CameraPath
 from slc.core.timing import NullTimer
 
 

@@ -16,8 +16,8 @@ from slc.methods.adaptive.lanes import tally
 from slc.methods.adaptive.pool import Pool
 from slc.reference.groundtruth import ground_truth
 from slc.core.keys import INVALID
-from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
-from slc.scene.views import Viewer
+from slc.scene.builder import SceneBuilder, diffuse
+from slc.scene.camera import CameraPath, Viewer
 
 from helpers import plane_under_rect_light, rect_irradiance, render_frames
 

@@ -11,8 +11,8 @@ import pytest
 from slc import methods
 from slc.methods.adaptive.env_lights import EnvLights
 from slc.reference.groundtruth import ground_truth
-from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
-from slc.scene.views import Viewer
+from slc.scene.builder import SceneBuilder, diffuse
+from slc.scene.camera import CameraPath, Viewer
 
 from helpers import render_frames
 

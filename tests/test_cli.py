@@ -55,7 +55,8 @@ CAMERA_FOV_XML = _camera_xml('<lookat origin="0,1,3" target="0,0,0" up="0,1,0"/>
 
 
 def _py_scene(paths, shapes=True):
-    return ("from slc.scene.scenes import CameraPath, SceneBuilder, diffuse\n"
+    return ("from slc.scene.builder import SceneBuilder, diffuse\n"
+            "from slc.scene.camera import CameraPath\n"
             "def build(**options):\n"
             "    b = SceneBuilder('py_bad')\n"
             + ("    b.add_quad([0, 0, 0], [1, 0, 0], [0, 0, -1], bsdf=diffuse([0.7] * 3), name='floor')\n" if shapes else "")

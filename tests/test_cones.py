@@ -20,7 +20,8 @@ from slc.reference.groundtruth import direct_mis
 from slc.methods import FrameContext, create
 from slc.reference.metrics import evaluate
 from slc.run.pipeline import gbuffers_for
-from slc.scene.scenes import FPS, CameraPath, SceneBuilder, diffuse, rough_conductor, translate
+from slc.scene.builder import SceneBuilder, diffuse, rough_conductor, translate
+from slc.scene.camera import FPS, CameraPath
 from slc.core.timing import NullTimer
 from slc.scene.views import single
 

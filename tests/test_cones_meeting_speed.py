@@ -11,7 +11,7 @@ from helpers import plane_under_rect_light
 from slc.methods.cones import closedforms as cfmod
 from slc.methods.cones import update_kernel as upmod
 from slc.methods.cones.shading import ConeShading, bsdf_table
-from slc.scene.scenes import diffuse, principled, rough_conductor
+from slc.scene.builder import diffuse, principled, rough_conductor
 
 
 def _inputs(sc, frames=12):

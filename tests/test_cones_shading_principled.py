@@ -9,7 +9,7 @@ import pytest
 
 from helpers import hard_scene, plane_under_rect_light
 from slc.methods.cones.shading import ConeShading
-from slc.scene.scenes import principled
+from slc.scene.builder import principled
 
 
 def _shade(sc, n_ref=4):

@@ -10,7 +10,7 @@ import pytest
 from helpers import plane_under_rect_light
 from slc.methods.cones.shading import ConeShading, bsdf_table
 from slc.scene.bsdf_table import KIND_DIFFUSE, KIND_NOT_PRINCIPLED, KIND_OTHER, KIND_PRINCIPLED
-from slc.scene.scenes import diffuse, principled, rough_conductor
+from slc.scene.builder import diffuse, principled, rough_conductor
 
 
 def _inputs(sc):

@@ -9,7 +9,8 @@ from slc.methods.cones.update_kernel import ConeUpdate
 from slc.methods import FrameContext, create
 from slc.osc import OnSurfaceCache
 from slc.run.pipeline import gbuffers_for
-from slc.scene.scenes import CameraPath, SceneBuilder, diffuse, rough_conductor
+from slc.scene.builder import SceneBuilder, diffuse, rough_conductor
+from slc.scene.camera import CameraPath
 from slc.core.timing import NullTimer
 from slc.scene.views import single
 from test_cones import _moving_scene

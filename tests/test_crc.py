@@ -49,7 +49,8 @@ def diffuse_cornell():
     every surface is Lambertian, the case CRC models (it reconstructs
     rho E / pi)."""
     import importlib.util
-    from slc.scene.scenes import SCENES_DIR, diffuse
+    from slc.scene.builder import diffuse
+    from slc.scene.scenes import SCENES_DIR
     spec = importlib.util.spec_from_file_location("cornell_diffuse", SCENES_DIR / "cornell.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)

@@ -8,7 +8,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc.scene import emitter_sampling, lights, scenes, views
+from slc.scene import emitter_sampling, emitter_table, lights, scenes, views
 from slc.methods.rt.method import RandomLightSampling
 from slc.run.pipeline import gbuffers_for
 
@@ -24,7 +24,7 @@ def test_rows_hold_the_triangles_and_their_area_distribution():
     emitter; the alias cells of a mesh reproduce P(t|e) = A_t / A_e exactly."""
     sc = _mixed_scene(point=False, env=False)
     t = emitter_sampling.EmitterSampler(sc)
-    rows = _arr(t._rows).reshape(-1, emitter_sampling.ROW)
+    rows = _arr(t._rows).reshape(-1, emitter_table.ROW)
     seg = _arr(t._seg).reshape(-1, 2)
     assert rows.shape[0] == t.size
     ems = list(sc.emitters())
@@ -40,12 +40,12 @@ def test_rows_hold_the_triangles_and_their_area_distribution():
             continue   # a mesh the table sees as a sphere/rectangle
         p0, e0, e1 = V[F[:, 0]], V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]
         r = rows[o:o + c]
-        assert np.allclose(r[:, emitter_sampling.ROW_P0:emitter_sampling.ROW_P0 + 3], p0, atol=1e-6)
-        assert np.allclose(r[:, emitter_sampling.ROW_E0:emitter_sampling.ROW_E0 + 3], e0, atol=1e-6)
-        assert np.allclose(r[:, emitter_sampling.ROW_E1:emitter_sampling.ROW_E1 + 3], e1, atol=1e-6)
-        assert (r[:, emitter_sampling.ROW_EM] == i).all()
+        assert np.allclose(r[:, emitter_table.ROW_P0:emitter_table.ROW_P0 + 3], p0, atol=1e-6)
+        assert np.allclose(r[:, emitter_table.ROW_E0:emitter_table.ROW_E0 + 3], e0, atol=1e-6)
+        assert np.allclose(r[:, emitter_table.ROW_E1:emitter_table.ROW_E1 + 3], e1, atol=1e-6)
+        assert (r[:, emitter_table.ROW_EM] == i).all()
         area = 0.5 * np.linalg.norm(np.cross(e0, e1), axis=1)
-        assert np.allclose(r[:, emitter_sampling.ROW_PA] * area.sum(), t.pmf[i], rtol=1e-5)
+        assert np.allclose(r[:, emitter_table.ROW_PA] * area.sum(), t.pmf[i], rtol=1e-5)
         # probability of each entry implied by the alias cells: (q_j + sum of (1 - q) of cells aliasing to it) / c
         cells = _arr(t._cells).reshape(-1, 2)[o:o + c]
         q, alias = cells[:, 0].astype(np.float64), cells[:, 1].astype(int)
@@ -69,7 +69,7 @@ def test_selected_segments_equal_gathered_segments(monkeypatch):
     for choice in ("uniform", "power"):
         a = emitter_sampling.EmitterSampler(sc, choice=choice)
         assert a._seg_params is not None and len(a._seg_params) == len(sc.emitters()) > 1
-        monkeypatch.setattr(emitter_sampling, "SEG_SELECT_MAX", 0)
+        monkeypatch.setattr(emitter_table, "SEG_SELECT_MAX", 0)
         b = emitter_sampling.EmitterSampler(sc, choice=choice)
         monkeypatch.undo()
         assert b._seg_params is None

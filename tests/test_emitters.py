@@ -9,7 +9,8 @@ from slc.reference import groundtruth
 
 from slc import methods
 from slc.run.pipeline import gbuffers_for
-from slc.scene.scenes import SHARED_DIR, CameraPath, Scene
+from slc.scene.camera import CameraPath
+from slc.scene.scenes import SHARED_DIR, Scene
 
 ENVMAP = SHARED_DIR / "envmaps" / "studio_small_03_1k.hdr"
 

@@ -183,7 +183,8 @@ def _plane_scene(name, rects=(), spheres=(), blocker=None, light_transform=None)
     rectangular lights ``(name, centre, u, v, radiance)`` (facing cross(u, v)),
     emissive spheres ``(centre, radius, radiance)`` and an optional blocker
     quad; the still camera of :func:`helpers.hard_scene`."""
-    from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
+    from slc.scene.builder import SceneBuilder, diffuse
+    from slc.scene.camera import CameraPath
     b = SceneBuilder(name)
     b.add_quad([0, 0, 0], [2, 0, 0], [0, 0, -2], bsdf=diffuse([0.5] * 3), name="plane")
     for k, c, u, v, L in rects:
@@ -348,7 +349,7 @@ STOP = 12
 
 
 def _moving(t):
-    from slc.scene.scenes import translate
+    from slc.scene.builder import translate
     return translate([0.04 * min(t * 60.0, STOP), 0.0, 0.0])
 
 
@@ -465,7 +466,8 @@ def _lit_plane(name, scale=1.0, origin=(0.0, 0.0, 0.0)):
     """The plane (4 x 4 m, albedo 0.5) under a 0.5 x 0.5 m light of radiance 10 at 1 m,
     all lengths times ``scale`` and moved to ``origin`` (unit 1: nothing tells the
     methods the scene's size)."""
-    from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
+    from slc.scene.builder import SceneBuilder, diffuse
+    from slc.scene.camera import CameraPath
     o = np.asarray(origin, float)
     b = SceneBuilder(name)
     b.add_quad(o, [2 * scale, 0, 0], [0, 0, -2 * scale], bsdf=diffuse([0.5] * 3), name="plane")
@@ -510,7 +512,8 @@ def _degenerate_scene():
     """The lit plane built with zero-area triangles in both meshes (a repeated corner,
     three equal corners, three collinear corners) and a second emitter whose every
     triangle has zero area (radiance 50)."""
-    from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
+    from slc.scene.builder import SceneBuilder, diffuse
+    from slc.scene.camera import CameraPath
     b = SceneBuilder("hard_degenerate")
     V = np.array([[-2, 0, 2], [2, 0, 2], [2, 0, -2], [-2, 0, -2], [0, 0, 0], [1, 0, 0]], float)
     b.add_mesh(V, np.array([[0, 1, 2], [0, 2, 3], [4, 4, 4], [4, 5, 4], [0, 4, 2]]), bsdf=diffuse([0.5] * 3),
@@ -560,7 +563,8 @@ INSIDE_METHODS = ["rt16", "restir", "slc", "adaptive", "osc-gi"]
 def camera_in_box():
     """The lit plane with the camera inside a closed box (0.6 m cube around it): every
     pixel sees the inside of the box, the back of its faces."""
-    from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
+    from slc.scene.builder import SceneBuilder, diffuse
+    from slc.scene.camera import CameraPath
     b = SceneBuilder("hard_camera_inside")
     b.add_quad([0, 0, 0], [2, 0, 0], [0, 0, -2], bsdf=diffuse([0.5] * 3), name="plane")
     b.add_quad([0, 1, 0], [0.25, 0, 0], [0, 0, 0.25], bsdf=diffuse([0] * 3), emission=[10.0] * 3, name="light")
@@ -585,7 +589,8 @@ def _sun_scene():
     """The plane (albedo 0.5) alone under an environment map of 128 x 64 texels: radiance
     0.05 everywhere but one texel of 1e5 at 35 degrees from the zenith (about 2.8 degrees
     across, 700 times the irradiance of the rest of the sky)."""
-    from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
+    from slc.scene.builder import SceneBuilder, diffuse
+    from slc.scene.camera import CameraPath
     sky = np.full((64, 128, 3), 0.05, np.float32)
     sky[12, 40] = 1e5
     b = SceneBuilder("hard_sun")

@@ -9,7 +9,7 @@ import pytest
 
 from slc import methods
 
-from slc.scene import scenes, views
+from slc.scene import random_walks, scenes, views
 from slc.methods import FrameContext
 from slc.run.pipeline import RunConfig, gbuffers_for
 from slc.core.timing import StageTimer
@@ -55,7 +55,7 @@ def test_active_column_is_computed():
     cfg = RunConfig(width=48, height=27, frames=6, warmup=2, eval_frames=[], keep_images=False)
     cases = [(sc, "slc", views.overlap_rig(sc, 1, 1.0), {"rig": "overlap"}),
              (sc, "slc", views.overlap_rig(sc, 2, 1.0), {"rig": "overlap"}),
-             (sc, "slc", views.random_viewers(sc, 2), {"rig": "random"}),
+             (sc, "slc", random_walks.random_viewers(sc, 2), {"rig": "random"}),
              (sc, "rt16", views.overlap_rig(sc, 1, 1.0), {"rig": "overlap"})]
     rows = mem._run_cases(cases, cfg, "memory test", 0)
     one, two, rnd, rt = rows

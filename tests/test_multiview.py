@@ -4,7 +4,7 @@ import pytest
 
 from helpers import render_frames
 from slc import methods
-from slc.scene import scenes, views
+from slc.scene import camera, scenes, views
 from slc.run.pipeline import gbuffers_for
 
 W, H, FRAMES = 48, 27, 6
@@ -35,7 +35,7 @@ def test_identical_viewers_share_every_entry_exactly():
 
 def _still(rig):
     """The rig's viewers held at their frame-0 pose."""
-    return [views.Viewer(v.name, (lambda f, c=v.camera(0): c), v.rig) for v in rig]
+    return [camera.Viewer(v.name, (lambda f, c=v.camera(0): c), v.rig) for v in rig]
 
 
 @pytest.mark.slow

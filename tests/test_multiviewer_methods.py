@@ -7,7 +7,7 @@ import pytest
 
 from helpers import render_frames
 from slc import methods
-from slc.scene import views
+from slc.scene import camera, views
 
 W, H, FRAMES = 48, 27, 5
 
@@ -18,7 +18,7 @@ def cornell(scene):
 
 
 def _still(rig):
-    return [views.Viewer(v.name, (lambda f, c=v.camera(0): c), v.rig) for v in rig]
+    return [camera.Viewer(v.name, (lambda f, c=v.camera(0): c), v.rig) for v in rig]
 
 
 def _images(scene, spec, vs, frames=FRAMES):

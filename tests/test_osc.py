@@ -12,7 +12,9 @@ from scipy.sparse.csgraph import connected_components
 from slc.scene.gbuffer import render_gbuffer
 from slc.osc import INVALID, OnSurfaceCache, build_mesh_islands, charts_overlap, island_deviation
 from slc.osc.islands import face_adjacency
-from slc.scene.scenes import Camera, CameraPath, SceneBuilder, diffuse, load
+from slc.scene.builder import SceneBuilder, diffuse
+from slc.scene.camera import Camera, CameraPath
+from slc.scene.scenes import load
 from slc.core.timing import StageTimer
 
 W, H = 96, 64

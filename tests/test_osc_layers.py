@@ -12,7 +12,8 @@ from slc.scene import gbuffer
 from slc.scene.gbuffer import render_gbuffer
 from slc.osc import INVALID, OnSurfaceCache
 from slc.osc.surface import EntryInteractions
-from slc.scene.scenes import Camera, load
+from slc.scene.camera import Camera
+from slc.scene.scenes import load
 
 W, H = 64, 40
 

@@ -22,7 +22,8 @@ from slc.methods import FrameContext, MethodError
 from slc.methods.oscgi import HemiGrid, SecondaryCache
 from slc.methods.oscgi.method import OSCGI
 from slc.run.pipeline import RunConfig, gbuffers_for, run_sequence
-from slc.scene.scenes import CameraPath, SceneBuilder, box_mesh, diffuse
+from slc.scene.builder import SceneBuilder, box_mesh, diffuse
+from slc.scene.camera import CameraPath
 from slc.core.timing import NullTimer
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

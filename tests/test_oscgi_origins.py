@@ -8,7 +8,8 @@ import pytest
 from slc import methods
 
 from slc.scene import views
-from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
+from slc.scene.builder import SceneBuilder, diffuse
+from slc.scene.camera import CameraPath
 
 import sys
 from pathlib import Path

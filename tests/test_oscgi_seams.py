@@ -11,7 +11,8 @@ import pytest
 from slc.reference import references
 
 from slc.scene import views
-from slc.scene.scenes import CameraPath, SceneBuilder, diffuse
+from slc.scene.builder import SceneBuilder, diffuse
+from slc.scene.camera import CameraPath
 
 import sys
 from pathlib import Path

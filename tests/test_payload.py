@@ -47,7 +47,7 @@ def test_worked_example_runs_and_matches_ground_truth(tmp_path):
     scene = plane_under_rect_light()          # a diffuse plane under a square light
     m = methods.create("irradiance:max_count=64", scene, seed=1)
     assert m.settings()["max_count"] == 64 and m.label == "irradiance:max_count=64"
-    from slc.scene.views import Viewer
+    from slc.scene.camera import Viewer
     cam = scene.path(0).at(0)
     viewer = Viewer("v0", lambda f: cam)                    # a still camera
     imgs, gbs = render_frames(scene, m, [viewer], 48, 64, 48)
@@ -71,7 +71,7 @@ def test_second_worked_example_reads_neighbours_through_the_entry_topology(tmp_p
     keeps the ground truth's mean, is smoother from pixel to pixel than the first example's
     (the same entries, blurred), and a cache without the capability is refused in one line."""
     _import(_doc_example(tmp_path, "IrradianceCache", "NeighbourIrradiance"))
-    from slc.scene.views import Viewer
+    from slc.scene.camera import Viewer
     scene = plane_under_rect_light()
     cam = scene.path(0).at(0)
     viewer = Viewer("v0", lambda f: cam)

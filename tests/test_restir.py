@@ -12,9 +12,9 @@ from slc.reference.groundtruth import direct_mis
 from slc.reference.metrics import rel_mse
 from slc.methods import FrameContext, MethodError
 from slc.run.pipeline import gbuffers_for
-from slc.scene.scenes import Camera, SceneBuilder, diffuse, translate
+from slc.scene.builder import SceneBuilder, diffuse, translate
 from slc.core.timing import NullTimer
-from slc.scene.views import Viewer
+from slc.scene.camera import FPS, Camera, Viewer
 
 W, H = 64, 36
 
@@ -138,7 +138,7 @@ def test_moving_light_no_stale_samples():
     b = SceneBuilder("jump")
     _slab(b, [-3, -0.1, -2], [3, 0, 2])
     lid = b.add_quad([0.0, 1.5, 0], [0.4, 0, 0], [0, 0, 0.4], bsdf=diffuse([0, 0, 0]), emission=[8, 8, 8],
-                     name="light", transform=lambda t: translate([0.0 if t < 2.5 / scenes.FPS else 1.0, 0, 0]))
+                     name="light", transform=lambda t: translate([0.0 if t < 2.5 / FPS else 1.0, 0, 0]))
     sc = b.build([])
     idx = [i for i, e in enumerate(sc.mi_scene.emitters()) if e.get_shape().id() == lid][0]
     cam = Camera(np.array([0.0, 2.5, 3.0]), np.array([0.3, 0.0, 0.0]), fov=60)

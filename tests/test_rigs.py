@@ -8,7 +8,7 @@ circle: 16 views at 0% used to measure 75%)."""
 import numpy as np
 import pytest
 
-from slc.scene import views
+from slc.scene import random_walks, views
 from slc.run.pipeline import gbuffers_for
 
 W, H = 80, 45                  # same aspect as the calibration, other resolution
@@ -53,7 +53,7 @@ def test_random_rig_overlap_start_and_average(atrium, seed):
     (band 40-60%) and about 20% on average over the first 4 s (band
     15-25%), measured every 0.5 s at 64x36 (measured: seed 0 48% and 20%,
     seed 1 43% and 22%; the rig before the fix: 52% and 30%)."""
-    rig = views.random_viewers(atrium, 16, seed=seed)
+    rig = random_walks.random_viewers(atrium, 16, seed=seed)
     m = [views.measure_overlap(gbuffers_for(atrium, rig, f, 64, 36)) for f in range(0, 241, 30)]
     assert 40.0 <= m[0] <= 60.0, m
     assert 15.0 <= np.mean(m) <= 25.0, m
@@ -66,12 +66,12 @@ def test_random_rig_keeps_clear_of_surfaces(atrium):
     and no step of a walk passes through a surface (checked on the keys
     with the rig's own ray query, and on the poses between keys by a
     G-buffer with no hit nearer than 0.1 m)."""
-    rig = views.random_viewers(atrium, 16)
+    rig = random_walks.random_viewers(atrium, 16)
     for v in rig:
         keys = v.pose.__self__._k
         o = np.array([k[0] for k in keys])
-        assert views._clear(atrium, o[:-1], o[1:], 0.0).all(), v.name
-        assert views._clear(atrium, o[:1], o[:1] + [0.0, 1e-3, 0.0], 0.3).all(), v.name
+        assert random_walks._clear(atrium, o[:-1], o[1:], 0.0).all(), v.name
+        assert random_walks._clear(atrium, o[:1], o[:1] + [0.0, 1e-3, 0.0], 0.3).all(), v.name
     for f in (0, 45, 150, 239):
         for v, gb in zip(rig, gbuffers_for(atrium, rig, f, 32, 18)):
             valid = np.array(gb.valid, bool)
@@ -85,7 +85,7 @@ def test_random_rig_keeps_clear_of_surfaces(atrium):
 
 
 def test_random_rig_paths_are_uncorrelated_and_deterministic(atrium):
-    a, b = views.random_viewers(atrium, 16), views.random_viewers(atrium, 16)
+    a, b = random_walks.random_viewers(atrium, 16), random_walks.random_viewers(atrium, 16)
     starts = np.array([v.camera(0).origin for v in a])
     assert np.array_equal(starts, np.array([v.camera(0).origin for v in b]))
     # different start points, at least 1 m apart

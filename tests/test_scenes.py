@@ -6,7 +6,7 @@ import pytest
 
 from helpers import render_frames
 from slc import methods
-from slc.scene import scenes, views
+from slc.scene import camera, checks, scenes, views
 
 BUILTIN = scenes.builtin_names()
 
@@ -14,7 +14,7 @@ BUILTIN = scenes.builtin_names()
 def _load(name):
     try:
         return scenes.load(name)
-    except scenes.SceneError as e:  # sponza without ../shared
+    except checks.SceneError as e:  # sponza without ../shared
         pytest.skip(str(e))
 
 
@@ -45,7 +45,7 @@ def test_scene_has_paths_and_materials(name):
 
 def _motion(path, frames, speed=1.0):
     """Per frame: distance moved (scene units) and view turn (degrees)."""
-    v = views.Viewer("v", path.at, speed=speed)
+    v = camera.Viewer("v", path.at, speed=speed)
     cams = [v.camera(f) for f in frames]
     dist, turn = [], []
     for a, b in zip(cams, cams[1:]):
@@ -61,8 +61,8 @@ def test_paths_move_at_walking_speed(name):
     60 Hz in every frame, walking speed (within 10%) wherever the view does
     not turn near its limit, also past the path's end (it runs back)."""
     s = _load(name)
-    step = scenes.WALK_SPEED * s.unit / scenes.FPS
-    max_turn = scenes.TURN_RATE / scenes.FPS
+    step = camera.WALK_SPEED * s.unit / camera.FPS
+    max_turn = camera.TURN_RATE / camera.FPS
     for p in s.camera_paths:
         frames = list(range(0, p.n_frames + 120, 3))
         d, t = _motion(p, [f + k for f in frames for k in (0, 1)][::1])
@@ -89,7 +89,7 @@ def test_camera_speed_multiplier():
         views.at_speed([v1], 0.0)
     # the scene's own animation keeps its clock
     s.set_frame(30)
-    assert s.time == 30 / scenes.FPS
+    assert s.time == 30 / camera.FPS
 
 
 def test_paths_are_deterministic():
@@ -171,7 +171,8 @@ def test_degenerate_cameras_raise_one_line_scene_errors():
     NaN rays); a zero or >= 180 degree field of view rendered garbage. Each
     is a SceneError with one line naming the problem; a view straight along
     the up axis (a legitimate pose of a path) gets a finite orthonormal basis."""
-    from slc.scene.scenes import Camera, CameraPath, SceneError
+    from slc.scene.camera import Camera, CameraPath
+    from slc.scene.checks import SceneError
     with pytest.raises(SceneError, match="degenerate camera.*no view direction") as e:
         Camera(np.array([0.0, 1.0, 3.0]), np.array([0.0, 1.0, 3.0])).basis()
     assert "\n" not in str(e.value)
@@ -190,7 +191,9 @@ def test_degenerate_cameras_raise_one_line_scene_errors():
 def test_scene_without_shapes_raises():
     """A scene with emitters only has nothing to shade: one-line SceneError
     from the Scene itself (XML and .py scenes alike)."""
-    from slc.scene.scenes import CameraPath, SceneBuilder, SceneError
+    from slc.scene.builder import SceneBuilder
+    from slc.scene.camera import CameraPath
+    from slc.scene.checks import SceneError
     b = SceneBuilder("emitters_only")
     b.add_point_light([0, 2, 0], [10.0] * 3)
     with pytest.raises(SceneError, match="no shapes"):
@@ -278,7 +281,7 @@ def test_bad_light_and_material_values_refused_at_load(tmp_path, case, words):
     mi.Bitmap(texels).write(str(tmp_path / "nan.exr"))
     xml = tmp_path / "bad.xml"
     xml.write_text(_VALUE_XML.format(**{"bsdf": '<bsdf type="diffuse"/>', "radiance": "5", "emitter": "", **case}))
-    with pytest.raises(scenes.SceneError) as e:
+    with pytest.raises(checks.SceneError) as e:
         scenes.load(str(xml))
     msg = str(e.value)
     assert "\n" not in msg and msg.startswith("scene 'bad'"), msg

@@ -209,7 +209,8 @@ def _plane_si(bsdf, n=256):
     import drjit as dr
     import mitsuba as mi
 
-    from slc.scene.scenes import CameraPath, SceneBuilder
+    from slc.scene.builder import SceneBuilder
+    from slc.scene.camera import CameraPath
     b = SceneBuilder("shade_radiance_plane")
     b.add_quad([0, 0, 0], [2, 0, 0], [0, 0, -2], bsdf=bsdf, name="plane")
     b.add_point_light([0, 1, 0], [1.0] * 3)
@@ -229,7 +230,7 @@ def test_shade_radiance_diffuse_closed_form_and_masks():
     import mitsuba as mi
 
     from slc.core.keys import keyed_rng
-    from slc.scene.scenes import diffuse
+    from slc.scene.builder import diffuse
     from slc.methods.sh.shading import shade_radiance
     si, _scene = _plane_si(diffuse([0.25, 0.5, 0.75]))
     n = dr.width(si)
@@ -253,7 +254,7 @@ def test_shade_radiance_glossy_constant_field_and_radiance_mask():
     import mitsuba as mi
 
     from slc.core.keys import keyed_rng
-    from slc.scene.scenes import rough_conductor
+    from slc.scene.builder import rough_conductor
     from slc.methods.sh.shading import shade_radiance
     si, _scene = _plane_si(rough_conductor(0.1, rgb=[1.0, 1.0, 1.0]))
     n = dr.width(si)

@@ -15,8 +15,9 @@ from slc import methods
 from slc.reference.groundtruth import ground_truth
 from slc.reference.metrics import rel_mse
 from slc.osc import OnSurfaceCache
-from slc.scene.scenes import SceneError, load_xml
-from slc.scene.views import Viewer
+from slc.scene.camera import Viewer
+from slc.scene.checks import SceneError
+from slc.scene.scenes import load_xml
 
 from helpers import render_frames
 

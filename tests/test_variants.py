@@ -9,7 +9,7 @@ import pytest
 
 from helpers import slc_cli
 from slc.scene import scenes
-from slc.scene.scenes import SceneError
+from slc.scene.checks import SceneError
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -32,7 +32,7 @@ def main(argv=None) -> int:
     import slc  # noqa: F401  (selects the variant)
     from slc.run import bounds
     from slc.methods import MethodError
-    from slc.scene.scenes import SceneError
+    from slc.scene.checks import SceneError
 
     table_path = Path(opts.table) if opts.table else bounds.TABLE
     names = opts.scene or list(bounds.SCENES)

@@ -30,7 +30,7 @@ def _errors():
     # after --variant (the module builds Mitsuba types on import)
     from slc.run.experiment import ExperimentError
     from slc.methods import MethodError
-    from slc.scene.scenes import SceneError
+    from slc.scene.checks import SceneError
     from slc.core.check import CheckError
     return (SceneError, MethodError, ExperimentError, backend.BackendError, FileNotFoundError, CheckError)
 

@@ -30,7 +30,7 @@ from slc.run import jobs, jobspec
 from slc.run.errors import ExperimentError
 from slc.run.pipeline import RunConfig, run_sequence
 from slc.run.plots import time_vs_viewers_plot
-from slc.scene import scenes
+from slc.scene import checks, scenes
 from slc.scene.scenes import REPO_ROOT
 
 EXPERIMENTS_DIR = REPO_ROOT / "experiments"
@@ -199,7 +199,7 @@ def load_and_validate(scene_names: list[str], method_specs: list[str], explicit_
     for name in scene_names:
         try:
             s = scenes.load(name)
-        except scenes.SceneError as e:
+        except checks.SceneError as e:
             if name == "sponza" and not explicit_scenes:
                 print(f"note: skipping sponza ({e})", file=sys.stderr)
                 continue

@@ -11,11 +11,11 @@ from pathlib import Path
 
 import numpy as np
 
-from slc.scene.views import Viewer
+from slc.scene.camera import Viewer
 
 class FrozenPose:
     """A viewer's camera at a fixed set of frames (picklable stand-in for a
-    :class:`~slc.scene.views.Viewer` pose function)."""
+    :class:`~slc.scene.camera.Viewer` pose function)."""
 
     def __init__(self, cameras: dict):
         self.cameras = cameras

@@ -27,7 +27,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from slc.scene.scenes import Camera, Scene
+from slc.scene.camera import Camera
+from slc.scene.scenes import Scene
 
 
 @dataclass

@@ -37,7 +37,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from slc.scene.emitter_sampling import constant_rgb   # a constant radiance value as RGB, or None
+from slc.scene.emitter_table import constant_rgb   # a constant radiance value as RGB, or None
 
 SHELL = 0.9           # a mesh is a sphere when min / max vertex distance from its centre >= SHELL
 MIN_VERTICES = 12     # ... and its bounding box is a cube (within SHELL) with at least this many vertices

@@ -8,7 +8,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from slc.scene import emitter_sampling as es
+from slc.scene import emitter_table as et
 from slc.scene.gbuffer import per_viewer
 from slc.core.keys import INVALID, mixed_rng, stream_key
 from slc.scene.lights import SurfaceBSDF, rng, sample_light_reference, sampler as light_table
@@ -16,7 +16,7 @@ from slc.methods import Method, MethodError, Param, register
 from slc.core.hashgrid import HashGrid, cell_key, key_hash
 
 STREAM_BUILD = 0x6E61B001
-LOCAL_KINDS = (es.MESH, es.RECT, es.SPHERE, es.POINT)
+LOCAL_KINDS = (et.MESH, et.RECT, et.SPHERE, et.POINT)
 SLOT_BYTES = 4 * 11              # y (3), n (3), L_e (3), W, M
 REP_BYTES = 4 * 6                # a cell's representative point and normal
 
@@ -226,8 +226,8 @@ class ReGIR(Method):
             u = mi.Point2f(smp.next_float32(), smp.next_float32())
             ds, w, ok, em = self._table.sample(si, u, active)
             kind = self._table.kind(em, ok)
-            ok &= (kind == es.MESH) | (kind == es.RECT) | (kind == es.SPHERE) | (kind == es.POINT)
-            point = ok & (kind == es.POINT)
+            ok &= (kind == et.MESH) | (kind == et.RECT) | (kind == et.SPHERE) | (kind == et.POINT)
+            point = ok & (kind == et.POINT)
             Le_c = w * ds.pdf * dr.select(point, dr.square(ds.dist), 1.0)     # radiance, or intensity
             nc = dr.select(point, 0.0, mi.Vector3f(ds.n))
             p_hat = cell_target(c, cn, ds.p, nc, Le_c, floor, ok)
@@ -284,8 +284,8 @@ class ReGIR(Method):
             return ds, w, ok, mi.Bool(False), mi.Bool(False)
         ds, w, ok, em = self._table.sample(si, u, active)
         kind = self._table.kind(em, ok)
-        local = (kind == es.MESH) | (kind == es.RECT) | (kind == es.SPHERE) | (kind == es.POINT)
-        return ds, w, ok, local, kind == es.POINT
+        local = (kind == et.MESH) | (kind == et.RECT) | (kind == et.SPHERE) | (kind == et.POINT)
+        return ds, w, ok, local, kind == et.POINT
 
     def _shadowed(self, si, y, p_hat):
         """The build target times ``occluded`` where the segment from the cell's representative

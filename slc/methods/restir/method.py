@@ -111,7 +111,7 @@ class ReSTIR(LightTarget, Reuse, Method):
     index; a change of resolution or viewer count reallocates it.
     Limitations: textured area-light radiance is evaluated at uv = 0;
     point/spot lights are assumed not to move (they cannot in
-    :class:`~slc.scene.scenes.SceneBuilder` scenes).
+    :class:`~slc.scene.builder.SceneBuilder` scenes).
     """
 
     name = "restir"

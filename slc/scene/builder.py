@@ -1,0 +1,189 @@
+"""Building procedural scenes: :class:`SceneBuilder` collects triangle meshes
+and lights into a :class:`slc.scene.scenes.Scene`.
+
+With it come the pieces the scene definitions of ``scenes/`` are made of
+(``docs/adding-a-scene.md``): material dictionaries (:func:`diffuse`,
+:func:`rough_conductor`, :func:`principled`), meshes (:func:`box_mesh`,
+:func:`merge_meshes`) and rigid transforms for animation (:func:`translate`,
+:func:`rotate`, :func:`about`).
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import mitsuba as mi
+import numpy as np
+
+from slc.scene.scenes import Animated, Scene
+
+
+def diffuse(rgb):
+    return {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(map(float, rgb))}}
+
+
+def rough_conductor(roughness=0.15, material="Al", rgb=None):
+    d = {"type": "roughconductor", "distribution": "ggx", "alpha": float(roughness)}
+    if rgb is None:
+        d["material"] = material
+    else:
+        d["material"] = "none"
+        d["specular_reflectance"] = {"type": "rgb", "value": list(map(float, rgb))}
+    return d
+
+
+def principled(rgb, roughness=0.2, metallic=0.0, specular=0.5):
+    return {"type": "principled", "base_color": {"type": "rgb", "value": list(map(float, rgb))},
+            "roughness": float(roughness), "metallic": float(metallic), "specular": float(specular)}
+
+
+class SceneBuilder:
+    """Collects triangle meshes (numpy or trimesh) and lights into a scene.
+
+    Every shape is a ``mi.Mesh`` so that it can be moved without recompiling
+    kernels and re-parameterised by the on-surface cache."""
+
+    def __init__(self, name: str):
+        self.name = name
+        self.shapes: dict[str, dict | mi.Mesh] = {}
+        self.animated: list[Animated] = []
+        self.extra: dict[str, dict] = {}
+        self._n = 0
+
+    def _id(self, prefix):
+        self._n += 1
+        return f"{prefix}_{self._n:03d}"
+
+    def add_mesh(self, vertices, faces, bsdf=None, emission=None, name="mesh",
+                 smooth=False, transform: Callable[[float], np.ndarray] | None = None) -> str:
+        """Add a triangle mesh. ``emission`` (RGB radiance) makes it an area
+        light; ``transform(t)`` animates it rigidly. Returns its shape id."""
+        V = np.ascontiguousarray(vertices, dtype=np.float32)
+        F = np.ascontiguousarray(faces, dtype=np.uint32)
+        sid = self._id(name)
+        normals = None
+        if smooth:
+            normals = _vertex_normals(V, F)
+        props = mi.Properties()
+        props["bsdf"] = mi.load_dict(bsdf if bsdf is not None else diffuse([0.5, 0.5, 0.5]))
+        if emission is not None:
+            props["emitter"] = mi.load_dict({"type": "area", "radiance": {
+                "type": "rgb", "value": list(map(float, emission))}})
+        mesh = mi.Mesh(sid, len(V), len(F), props, has_vertex_normals=smooth, has_vertex_texcoords=False)
+        p = mi.traverse(mesh)
+        p["vertex_positions"] = mi.Float(V.ravel())
+        p["faces"] = mi.UInt32(F.ravel())
+        if smooth:
+            p["vertex_normals"] = mi.Float(normals.ravel())
+        p.update()
+        self.shapes[sid] = mesh
+        if transform is not None:
+            self.animated.append(Animated(sid, V.astype(np.float64), transform,
+                                          normals.astype(np.float64) if normals is not None else None))
+        return sid
+
+    def add_trimesh(self, tm, **kw) -> str:
+        return self.add_mesh(np.asarray(tm.vertices), np.asarray(tm.faces), **kw)
+
+    def add_box(self, lo, hi, **kw) -> str:
+        return self.add_trimesh(box_mesh(lo, hi), **kw)
+
+    def add_quad(self, center, u, v, **kw) -> str:
+        """A rectangle ``center +- u +- v`` facing ``cross(u, v)``."""
+        c, u, v = (np.asarray(a, float) for a in (center, u, v))
+        V = np.array([c - u - v, c + u - v, c + u + v, c - u + v])
+        return self.add_mesh(V, np.array([[0, 1, 2], [0, 2, 3]]), **kw)
+
+    def add_sphere(self, center, radius, subdivisions=2, **kw) -> str:
+        import trimesh
+        tm = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+        tm.apply_translation(np.asarray(center, float))
+        kw.setdefault("smooth", True)
+        return self.add_trimesh(tm, **kw)
+
+    def add_cylinder(self, p0, p1, radius, sections=12, **kw) -> str:
+        import trimesh
+        tm = trimesh.creation.cylinder(radius=radius, segment=np.array([p0, p1], float), sections=sections)
+        return self.add_trimesh(tm, **kw)
+
+    def add_point_light(self, position, intensity, name="point"):
+        self.extra[self._id(name)] = {"type": "point", "position": list(map(float, position)),
+                                      "intensity": {"type": "rgb", "value": list(map(float, intensity))}}
+
+    def add_spot_light(self, position, target, intensity, cutoff_deg=30.0, name="spot"):
+        T = mi.ScalarTransform4f().look_at(origin=list(map(float, position)), target=list(map(float, target)),
+                                           up=[0, 1, 0] if abs(np.subtract(target, position)[1]) < 0.99 *
+                                           np.linalg.norm(np.subtract(target, position)) else [1, 0, 0])
+        self.extra[self._id(name)] = {"type": "spot", "to_world": T, "cutoff_angle": float(cutoff_deg),
+                                      "beam_width": 0.75 * float(cutoff_deg),
+                                      "intensity": {"type": "rgb", "value": list(map(float, intensity))}}
+
+    def add_envmap(self, filename=None, scale=1.0, rgb=None, to_world=None, bitmap=None):
+        if bitmap is not None:
+            d = {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(bitmap, np.float32)),
+                 "scale": float(scale)}
+            if to_world is not None:
+                d["to_world"] = to_world
+        elif filename is not None:
+            d = {"type": "envmap", "filename": str(filename), "scale": float(scale)}
+            if to_world is not None:
+                d["to_world"] = to_world
+        else:
+            d = {"type": "constant", "radiance": {"type": "rgb", "value": list(map(float, rgb))}}
+        self.extra["envmap"] = d
+
+    def build(self, camera_paths, exposure=1.0, unit=1.0, description="", meeting_center=None) -> Scene:
+        d = {"type": "scene", "integrator": {"type": "direct"}}
+        d.update(self.shapes)
+        d.update(self.extra)
+        sc = mi.load_dict(d)
+        scene = Scene(self.name, sc, camera_paths, self.animated, exposure=exposure, unit=unit,
+                      description=description, meeting_center=meeting_center)
+        scene.set_time(0.0)
+        scene._update_bbox()  # animated meshes are now in their t = 0 pose
+        return scene
+
+
+def box_mesh(lo, hi):
+    """A trimesh box spanning the corners ``lo`` and ``hi``."""
+    import trimesh
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    tm = trimesh.creation.box(extents=hi - lo)
+    tm.apply_translation(0.5 * (lo + hi))
+    return tm
+
+
+def merge_meshes(parts):
+    """One trimesh from several (fewer shapes make a faster scene)."""
+    import trimesh
+    return trimesh.util.concatenate(parts)
+
+
+def _vertex_normals(V, F):
+    n = np.zeros_like(V, dtype=np.float64)
+    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    for k in range(3):
+        np.add.at(n, F[:, k], fn)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    return n.astype(np.float32)
+
+
+def translate(t):
+    M = np.eye(4)
+    M[:3, 3] = t
+    return M
+
+
+def rotate(axis, degrees):
+    a = np.asarray(axis, float)
+    a /= np.linalg.norm(a)
+    th = math.radians(degrees)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    M = np.eye(4)
+    M[:3, :3] = np.eye(3) + math.sin(th) * K + (1 - math.cos(th)) * K @ K
+    return M
+
+
+def about(center, M):
+    """The transform ``M`` applied about the point ``center``."""
+    return translate(center) @ M @ translate(-np.asarray(center, float))
