@@ -37,8 +37,8 @@ def scene():
 @pytest.fixture(scope="session")
 def reference():
     """``reference(kind, scene, gb, frame, spp=None, bounces=1)``: the reference image
-    (slc.references.reference_for: ``direct`` ground truth, ``indirect`` or ``full``) of
-    the G-buffer, computed once per session and shared across tests and files (the
+    (slc.reference.references.reference_for: ``direct`` ground truth, ``indirect`` or ``full``) of
+    the G-buffer, computed once per pytest session and shared across tests and files (the
     session's reference cache on disk, SLC_CACHE, keys it by scene, camera, frame,
     resolution, samples and the G-buffer's content)."""
     from slc.reference import references

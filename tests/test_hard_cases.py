@@ -383,7 +383,7 @@ _SWITCH_OFF = {}
 
 def _switch_off_errors():
     """Two lights; the brighter one switches off at frame 16 (radiance 0 through
-    mi.traverse, the emitter table re-read). Rendered once per session: rt16's
+    mi.traverse, the emitter table re-read). Rendered once per pytest session: rt16's
     (mean, per-pixel) error 2 frames after the switch, and slc's at frames 15, 18,
     26 and 36 (the switch + 20), against the quadrature of the lights that are on."""
     if _SWITCH_OFF:
