@@ -21,7 +21,7 @@ def root():
 
 @pytest.fixture(scope="session")
 def scene():
-    """``scene(name)``: a built-in scene (or scene file) loaded once per test session
+    """``scene(name)``: a built-in scene (or scene file) loaded once per pytest session
     and shared by every test that asks for it. Tests must not modify it (moving a light,
     mi.traverse updates); load a private copy with ``slc.scenes.load`` for that."""
     from slc.scene import scenes
@@ -37,9 +37,9 @@ def scene():
 @pytest.fixture(scope="session")
 def reference():
     """``reference(kind, scene, gb, frame, spp=None, bounces=1)``: the reference image
-    (slc.references.reference_for: ``direct`` ground truth, ``indirect`` or ``full``) of
-    the G-buffer, computed once per session and shared across tests and files (the
-    session's reference cache on disk, SLC_CACHE, keys it by scene, camera, frame,
+    (slc.reference.references.reference_for: ``direct`` ground truth, ``indirect`` or ``full``) of
+    the G-buffer, computed once per pytest session and shared across tests and files (the
+    reference cache on disk, SLC_CACHE, keys it by scene, camera, frame,
     resolution, samples and the G-buffer's content)."""
     from slc.reference import references
 

@@ -499,7 +499,7 @@ _HARD_ERRORS = {}
 
 def _hard_case_errors(kind):
     """(mean error, per-pixel error) of slc on hard case ``kind`` against its independent
-    reference, rendered once per session in check mode (a NaN/Inf in any stage output or a
+    reference, rendered once per pytest session in check mode (a NaN/Inf in any stage output or a
     NaN/Inf/negative value in the returned image raises); ``zero``: the largest |value|."""
     if kind in _HARD_ERRORS:
         return _HARD_ERRORS[kind]
@@ -711,7 +711,7 @@ _GLOSSY = {}
 def _glossy_case(kind, alpha, light):
     """slc and rt48 on a conductor / plastic plane of GGX roughness alpha under a small
     (0.2 m square, 1 m above) or a large (2 m square) light, still camera, 48 frames on the
-    on-surface cache, rendered once per session: whether slc's image is finite, its
+    on-surface cache, rendered once per pytest session: whether slc's image is finite, its
     fireflies (pixels above 10x the ground truth where the ground truth is smooth: 3x3
     neighbourhood within a factor 2) and the relMSE of both against the 2048-sample
     ground truth."""

@@ -1,5 +1,5 @@
 """The quadrature's pixels packed into a launch of their own (``ConeShading(compact=True)``,
-the default; docs/cones.md, "Session ovl7"): the same values bit for bit as the quadrature
+the default; docs/cones.md): the same values bit for bit as the quadrature
 in a branch of the launch of all pixels, whatever share of the pixels takes it (none, some,
 all), frozen and not, with the shading options that send other pixels to the quadrature;
 one recording for calls whose packed widths differ; the method's images unchanged."""

@@ -1,5 +1,5 @@
-"""Speed work of the sixth session for the meeting rig (issue 13, docs/cones.md "Sixth
-pass"): shortcuts that change no image. Pixels seen from behind whose cones are all in
+"""Shortcuts of the cone update and shading for the meeting rig (docs/cones.md) that change
+no image. Pixels seen from behind whose cones are all in
 front skip the quadrature (it sums zeros); the insertion's cases C/D run in a symbolic
 branch; the shrink test reads constant area emitters without the emitter's virtual call."""
 import drjit as dr

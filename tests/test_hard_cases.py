@@ -1,4 +1,4 @@
-"""The hard cases of DESIGN.md for the ground truth, RT-N and ReSTIR, run in
+"""The hard cases (docs/hard-cases.md) for the ground truth, RT-N and ReSTIR, run in
 check mode (SLC_CHECK=1: the first NaN/Inf or negative value in any stage
 output or returned image raises), with error bounds against an independent
 reference instead of finiteness alone:
@@ -15,8 +15,8 @@ reference instead of finiteness alone:
 Plane pixels only (y = 0; the box top for ``inside`` is excluded with the
 light seen directly). Measured figures are in each test's docstring.
 
-The second part runs ``slc`` (default settings) on the hard cases of issue
-#12 that tests/test_cones.py does not cover: a point-like sphere light, a
+The second part runs ``slc`` (default settings) on the hard cases
+that tests/test_cones.py does not cover: a point-like sphere light, a
 light behind the surface, grazing incidence, a half-occluded large light and
 a light that moves and stops (both in check mode here), more lights than
 ``max_cones``, a light that switches off. The table of all cases and bounds:
@@ -384,7 +384,7 @@ _SWITCH_OFF = {}
 
 def _switch_off_errors():
     """Two lights; the brighter one switches off at frame 16 (radiance 0 through
-    mi.traverse, the emitter table re-read). Rendered once per session: rt16's
+    mi.traverse, the emitter table re-read). Rendered once per pytest session: rt16's
     (mean, per-pixel) error 2 frames after the switch, and slc's at frames 15, 18,
     26 and 36 (the switch + 20), against the quadrature of the lights that are on."""
     if _SWITCH_OFF:

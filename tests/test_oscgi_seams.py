@@ -56,7 +56,7 @@ _SEAMS = {}
 
 def _seam_ratio(s, spec):
     """osc-gi ``spec`` on the grid floor, 16 frames, against a 256-spp full reference
-    (once per session): the mean deviation of the image's jump from the reference's
+    (once per pytest session): the mean deviation of the image's jump from the reference's
     between neighbouring floor pixels across an island border, over the same inside an
     island; and whether image and reference are finite."""
     if spec in _SEAMS:

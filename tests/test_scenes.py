@@ -215,7 +215,7 @@ _SPONZA_ORDERS = []
 
 
 def _sponza_orders_in_three_processes() -> list[list[str]]:
-    """In three fresh processes (run once per session, shared by the two tests below):
+    """In three fresh processes (run once per pytest session, shared by the two tests below):
     the shapes of the built-in sponza in order, and those of its XML file loaded with
     ``load_xml``, as two printed lines per process."""
     if not _SPONZA_ORDERS:
