@@ -1,4 +1,4 @@
-"""slc-error-terms: where Surface Light Cones' error comes from (issue #12, section 2).
+"""slc-error-terms: where Surface Light Cones' error comes from.
 
 Controlled runs of ``slc`` on one viewer, each removing one error term, all
 against the 2048-sample ground truth at the same G-buffer points:

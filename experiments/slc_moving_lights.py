@@ -1,4 +1,4 @@
-"""slc-moving-lights: where Surface Light Cones' error sits under moving lights (issue #12, section 3).
+"""slc-moving-lights: where Surface Light Cones' error sits under moving lights.
 
 One viewer on ``street`` (two emissive spheres drifting along the street at up
 to 7.7 m/s, a tumbling emissive cube, cars): every frame is compared with the

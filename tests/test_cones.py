@@ -610,7 +610,7 @@ def _moving_camera_plane():
 
 @pytest.mark.slow
 def test_shading_freeze_recordings_bounded():
-    """issue 13: over a sequence that mimics one single-viewer experiment process
+    """Over a sequence that mimics one single-viewer experiment process
     (several scenes, static and animated, three settings each, a camera that makes the
     storage grow), every method instance's shading is recorded at most twice in a static
     scene; in the animated one (whose registry state changes every frame) it is traced,
@@ -748,7 +748,7 @@ GLOSSY_CASES = [(k, a, li) for k in ("conductor", "plastic") for a in (0.005, 0.
 @pytest.mark.parametrize("kind,alpha,light", [
     known_miss(c, GLOSSY_MISSES[c], "relMSE slc / rt48") if c in GLOSSY_MISSES else c for c in GLOSSY_CASES])
 def test_glossy_plane_relmse_vs_rt48(kind, alpha, light):
-    """issue 12 item 1: relMSE(slc) <= relMSE(rt48) against the 2048-sample ground truth
+    """relMSE(slc) <= relMSE(rt48) against the 2048-sample ground truth
     (_glossy_case). Cases that miss are strict xfails with the measured ratio
     (GLOSSY_MISSES): the cones' piecewise-uniform model of a small square light, not the
     shading's sampling, is what a near-mirror lobe resolves there."""

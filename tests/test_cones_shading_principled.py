@@ -3,7 +3,7 @@
 closed form with its angular factor at each cone's axis, the GGX lobe as a Gaussian of
 which each cone's cap holds a fraction. Checked against the model's integral (the mean
 of four 1024-direction MIS shadings of the same cones, ``principled=sample``); pixels it
-does not apply to (Lambertian, clearcoat) are shaded bit for bit as before."""
+does not apply to (Lambertian, clearcoat) are shaded bit for bit as with ``principled=sample``."""
 import numpy as np
 import pytest
 

@@ -1,5 +1,4 @@
-"""The meeting rig's shading speed work (issue 13, docs/cones.md "Speed work for the
-meeting rig"): the per-scene BSDF table (``shading.bsdf_table``) and the entry frames
+"""The meeting rig's shading speed-ups (docs/cones.md, "Per-viewer cost"): the per-scene BSDF table (``shading.bsdf_table``) and the entry frames
 gathered inside the launch change no image; ``slc:conductor=sg`` (an option) shades GGX
 conductor pixels in closed form within a measured error of the model's integral."""
 import drjit as dr

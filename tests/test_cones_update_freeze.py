@@ -1,4 +1,4 @@
-"""issue 13: the cone update traced once and replayed (``slc.methods.cones.update_kernel.ConeUpdate``,
+"""The cone update traced once and replayed (``slc.methods.cones.update_kernel.ConeUpdate``,
 ``dr.freeze``): the same images bit for bit as the update traced every frame, and a
 bounded number of recordings over a run whose active entries and storage change size."""
 import numpy as np

@@ -90,7 +90,7 @@ def test_moving_window_builds_no_kernels(atrium):
     """After warm-up, frames whose window moves to corners never seen
     before build no kernel (none compiled, none loaded from disk: the
     window's origin and shift are opaque inputs). Would fail if the origin
-    were baked into the kernels as a literal, as before this change."""
+    were baked into the kernels as a literal."""
     # Free what earlier tests left: their scenes' emitters, once collected, change the set of instances
     # a virtual call (the RSM's sample_ray) dispatches over, hence its kernel; and flush queued work
     gc.collect()

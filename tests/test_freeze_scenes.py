@@ -1,4 +1,4 @@
-"""issue 13 §1: frozen functions (``slc.core.freeze.FrozenFunction``) record as often in a
+"""Frozen functions (``slc.core.freeze.FrozenFunction``) record as often in a
 process that loaded another scene before as in a fresh one.
 
 Two causes were found and fixed: a released scene's emitters and emissive shapes

@@ -1,4 +1,4 @@
-"""issue 13: a frozen function whose lane count happens to equal the width of
+"""A frozen function whose lane count happens to equal the width of
 another input (an array of the scene) is not recorded again (``slc.core.freeze``:
 such a call runs on a free width, its extra lanes copies of the last one).
 

@@ -170,7 +170,7 @@ def test_restir_hard_cases(kind):
 
 # =============================================================================
 # Surface Light Cones (slc, default settings on the on-surface cache): the hard
-# cases of issue #12 that tests/test_cones.py does not cover, in check mode,
+# cases that tests/test_cones.py does not cover, in check mode,
 # raw outputs against an independent reference on the plane's pixels. The full
 # table (these and the ones in test_cones.py) is docs/hard-cases.md.
 # =============================================================================

@@ -142,7 +142,7 @@ def bench_rays(scene_name: str = "atrium", width: int = 320, height: int = 180, 
                                  "ours_host_ms": statistics.median(host[(mode, "ours")])}
     out["stages"] = {st: med[("table", "loop:" + st)] for st in STAGES}
     out["load"] = _loadavg()
-    # the default sampler's figures at the top level (as before)
+    # the default sampler's figures at the top level
     out.update({k: out["samplers"]["table"][k] for k in ("raw_ms", "ours_ms", "raw_mrays", "ours_mrays", "ratio")})
     return out
 
@@ -230,7 +230,7 @@ def bench_update(scene_name: str = "atrium", width: int = 320, height: int = 180
     ``scene.ray_test`` on the shadow rays and ``scene.ray_intersect_preliminary``
     on the shrink test's rays (Mitsuba's raw traversal, no surface interaction).
     The ratios frame / rays and update / rays say how much the method adds on top
-    of the rays it must cast (issue 13's target: frame <= 1.5x its update's rays)."""
+    of the rays it must cast (the target: frame <= 1.5x its update's rays)."""
     s = scenes.load(scene_name)
     m = methods.create(method, s, seed=0)
     if not hasattr(m, "cone_params"):

@@ -196,10 +196,10 @@ class ConeShading(FrozenFunction):
     the same pattern everywhere), ``freeze=True`` (record the kernel launches once and
     replay them), ``animated=False`` (the scene's meshes move), ``max_recordings=4``,
     ``horizon=True`` (Lambertian pixels whose cones cross the horizon use the exact
-    clipped-cap integral; False: they are sampled, as before December 2026),
+    clipped-cap integral; False: they are sampled by the MIS quadrature),
     ``principled="sg"`` (pixels with Mitsuba's ``principled`` BSDF: diffuse part in
     closed form, specular lobe as a spherical Gaussian, see :func:`slc.methods.cones.closedforms._principled_cones`;
-    ``"sample"``: the MIS quadrature, as before), ``conductor="sample"`` (pixels with an
+    ``"sample"``: the MIS quadrature), ``conductor="sample"`` (pixels with an
     isotropic GGX ``roughconductor``: the MIS quadrature; ``"sg"``: the lobe as a spherical
     Gaussian over each cone, see :func:`slc.methods.cones.closedforms._conductor_cones`; only for scenes whose
     roughconductors all use GGX, :func:`shader_for` checks), ``glossy="full"`` (``"half"``:

@@ -230,7 +230,7 @@ class PrimaryUpdate:
         viewers the update always reads the entries through the selection (all of them when
         under the limit), so that its kernels are the same whether or not the budget bites in
         a frame (a first frame under the limit after the warm-up would build kernels); one viewer
-        under the limit reads the cache's arrays as before (the same kernels and images)."""
+        under the limit reads the cache's arrays directly (the same kernels and images)."""
         import numpy as np
         N, B = fr.n_active, self.update_limit(fr)
         cap = dr.width(self.storage) // self.words
