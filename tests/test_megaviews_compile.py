@@ -1,8 +1,8 @@
 """MegaViews frames build no kernels after warm-up (``compiled_after_warmup``
 == 0 through :func:`slc.run.pipeline.run_sequence`), although the VPL count, the
 view hierarchy, the traversal's level widths and the gathering's walk change
-every frame; and the cause found for the kernels it used to build (numpy
-arrays mapped by Dr.Jit at unaligned addresses) is removed by
+every frame; numpy arrays that Dr.Jit would map at unaligned addresses (new
+kernels) are aligned by
 :func:`slc.methods.megaviews.hierarchy.aligned`.
 
 Each pipeline case runs in a fresh process (as ``tests/test_compile.py``):

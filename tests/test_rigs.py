@@ -4,7 +4,7 @@ The controlled rig calibrates its yaw step at views.CALIBRATION_RES on
 views.CALIBRATION_FRAMES; these tests measure it again at another
 resolution and on other frames, so they check that the calibration holds
 beyond the images it was fitted on (and that no fan wraps around the
-circle: 16 views at 0% used to measure 75%)."""
+circle, which would measure 75% for 16 views at 0%)."""
 import numpy as np
 import pytest
 

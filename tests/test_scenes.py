@@ -167,8 +167,8 @@ def test_rigs():
 # ----------------------------------------------------------------------------- bad input: degenerate cameras
 
 def test_degenerate_cameras_raise_one_line_scene_errors():
-    """target == origin used to give NaN in Camera.basis (and an image of
-    NaN rays); a zero or >= 180 degree field of view rendered garbage. Each
+    """target == origin would give NaN in Camera.basis (and an image of
+    NaN rays); a zero or >= 180 degree field of view would render garbage. Each
     is a SceneError with one line naming the problem; a view straight along
     the up axis (a legitimate pose of a path) gets a finite orthonormal basis."""
     from slc.scene.camera import Camera, CameraPath

@@ -76,9 +76,9 @@ def random_viewers(scene: Scene, n: int, seed: int = 0) -> list[Viewer]:
     Calibrated on the atrium (16 viewers, 64x36, :func:`slc.scene.views.measure_overlap`
     every 0.5 s over the first 4 s): 48% at the start and 20% on average
     (seed 0; seeds 1 and 2: 43/22% and 54/23%), the paper's regime (about
-    50% and 20%). The rig before (eye heights up to half the box, views a
-    little down, 60 deg/s turns, starts 0.1 of the box from its sides, no
-    clearance test) measured 52% and 30%; eye heights all at 1.5 m give
+    50% and 20%). A rig with eye heights up to half the box, views a
+    little down, 60 deg/s turns, starts 0.1 of the box from its sides and no
+    clearance test measures 52% and 30%; eye heights all at 1.5 m give
     64% and 45% (the views share the ground floor). Figures per scene in
     ``docs/experiments.md``; the experiments report ``overlap_start`` and
     ``overlap_4s`` per run."""
