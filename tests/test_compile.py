@@ -95,6 +95,49 @@ def test_no_kernel_built_after_warmup_in_animated_scenes(scene, spec):
     assert r["compiled_after_warmup"] == 0, f"{scene} {spec}: kernels built per frame {per} (warm-up {warmup})"
 
 
+_GROWING = r"""
+import json, sys
+sys.path.insert(0, "tests")
+from test_cones_update_freeze import _growing_scene
+from slc import methods
+from slc.osc import OnSurfaceCache
+from slc.run.pipeline import RunConfig, run_sequence
+from slc.scene.views import single
+sc = _growing_scene()
+cache = OnSurfaceCache(sc, block_size=1, max_blocks=800)
+sizes = []
+
+
+class Sizes:                 # the pool's and the page table's sizes after every frame
+    def update(self, n):
+        sizes.append((cache.pool.max_blocks, cache.pool.max_pages))
+
+
+cfg = RunConfig(width=40, height=30, frames=8, warmup=3, eval_frames=[], keep_images=False,
+                measure_overlap=False)
+res = run_sequence(sc, methods.create("slc", sc, cache=cache), single(sc), cfg, progress=Sizes())
+print("RESULT " + json.dumps({"per_frame": [f["compiled"] for f in res.frames_ms], "sizes": sizes}))
+"""
+
+
+def test_no_kernel_built_when_the_pool_and_page_table_first_grow_after_warmup():
+    """A camera sliding over a plane asks for new blocks every frame: a pool
+    of 800 one-texel blocks is full, and doubles, in a timed frame, and its
+    page table first grows in another; the copies of the block table, the
+    entries' surface points and the payload storage build no kernel then
+    (their kernels are built when the cache is set up). 40x30, 8 frames."""
+    p = subprocess.run([sys.executable, "-c", _GROWING], capture_output=True, text=True, env=_env(),
+                       timeout=600, cwd=ROOT)
+    assert p.returncode == 0, p.stderr[-3000:]
+    r = json.loads([x for x in p.stdout.splitlines() if x.startswith("RESULT ")][-1][7:])
+    blocks, pages = zip(*r["sizes"])
+    warmup = 3
+    # the first growth of each comes in a timed frame
+    assert blocks[warmup - 1] == blocks[0] < blocks[-1], blocks
+    assert pages[warmup - 1] == pages[0] < pages[-1], pages
+    assert sum(r["per_frame"][warmup:]) == 0, f"kernels built per frame {r['per_frame']} (sizes {r['sizes']})"
+
+
 def test_counter_sees_a_kernel_with_a_per_frame_literal():
     """The counter is not blind: a kernel that bakes the frame number as a
     literal is built in every frame; made opaque, it is built once."""

@@ -52,10 +52,27 @@ def lanes(width: int, n: int) -> mi.Bool:
 
 
 def extend_array(a, fill, size, tp):
-    """``a`` grown to ``size`` entries of type ``tp``, the new ones set to ``fill``."""
+    """``a`` (evaluated, of type ``tp``: ``mi.UInt32`` or ``mi.Float``) grown
+    to ``size`` entries, the new ones set to ``fill``.
+
+    The copy is evaluated alone, so that it is one kernel per element type
+    whatever else grows in the same frame (copies of equal width evaluated
+    together would fuse into a kernel of their own); :func:`build_copy_kernels`
+    builds these kernels ahead, as a growth may first happen in any frame."""
     out = dr.full(tp, fill, size)
     dr.scatter(out, a, dr.arange(mi.UInt32, dr.width(a)))
+    dr.eval(out)
     return out
+
+
+def build_copy_kernels() -> None:
+    """Build the kernels of :func:`extend_array` for both element types of
+    the arrays that grow (block table, pool, surface points, payloads), with
+    copies of two elements (a width-1 array would be read as a scalar: another
+    kernel). Called when a pool or a payload is set up, so that one that grows
+    in a timed frame builds no kernel."""
+    for tp in (mi.UInt32, mi.Float):
+        extend_array(tp([0, 0]), 0, 4, tp)
 
 
 class BlockPool:
@@ -72,6 +89,7 @@ class BlockPool:
         self.page_span = 1 << PAGE_SHIFT
         self.grow = bool(grow)
         self.initial_blocks = int(max_blocks)
+        build_copy_kernels()
         self.reset()
 
     # ------------------------------------------------------------------ state

@@ -36,6 +36,7 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.methods import Method, MethodError, Param
+from slc.osc.blocks import build_copy_kernels, extend_array
 from slc.osc.cache import OnSurfaceCache
 from slc.osc.protocol import EntryStart, FrameRequests, SurfaceCache, entry_start  # noqa: F401 (re-exported)
 
@@ -241,19 +242,20 @@ class PayloadMethod(Method):
         if missing:
             raise MethodError(f"{self.name}: the cache {type(cache).__name__} lacks {', '.join(sorted(missing))}")
         self.cache = cache
+        build_copy_kernels()     # the storage may grow in any frame: its copy kernels are built here
 
     def _grow(self):
         """Storage and policy state sized to the cache's capacity (old contents kept)."""
         cap = max(int(self.cache.capacity), 1)
         if self.storage is not None and dr.width(self.policy_state) >= cap:
             return
-        storage = dr.zeros(self.storage_type, cap * self.words)
-        state = dr.zeros(mi.UInt32, cap)
-        if self.storage is not None:
-            dr.scatter(storage, self.storage, dr.arange(mi.UInt32, dr.width(self.storage)))
-            dr.scatter(state, self.policy_state, dr.arange(mi.UInt32, dr.width(self.policy_state)))
-        self.storage, self.policy_state = storage, state
-        dr.eval(self.storage, self.policy_state)
+        if self.storage is None:
+            self.storage = dr.zeros(self.storage_type, cap * self.words)
+            self.policy_state = dr.zeros(mi.UInt32, cap)
+            dr.eval(self.storage, self.policy_state)
+            return
+        self.storage = extend_array(self.storage, 0, cap * self.words, self.storage_type)
+        self.policy_state = extend_array(self.policy_state, 0, cap, mi.UInt32)
 
     # ------------------------------------------------------------------ frame
     def render(self, ctx, gbuffers, timer):

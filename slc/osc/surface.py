@@ -46,12 +46,9 @@ class TexelPoints:
     def resize(self, capacity: int) -> None:
         if dr.width(self.slot_tri) >= capacity:
             return
-        n_old = dr.width(self.slot_tri)
         self.slot_tri = extend_array(self.slot_tri, 0, capacity, mi.UInt32)
-        sb = dr.zeros(mi.Point2f, capacity)
-        dr.scatter(sb, self.slot_b, dr.arange(mi.UInt32, n_old))
-        self.slot_b = sb
-        dr.eval(self.slot_tri, self.slot_b)
+        self.slot_b = mi.Point2f(extend_array(self.slot_b.x, 0, capacity, mi.Float),
+                                 extend_array(self.slot_b.y, 0, capacity, mi.Float))
 
     def place(self, slots, isl, lvl, tx, ty) -> None:
         """Find and keep the surface point of new entries (texel centres)."""
