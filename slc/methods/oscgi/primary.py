@@ -13,6 +13,7 @@ import mitsuba as mi
 from slc.core.backend import aligned
 from slc.scene.lights import light_inputs
 from slc.core.keys import INVALID, stream_key
+from slc.osc.blocks import extend_array
 from slc.osc.protocol import EntryStart, entry_start
 from slc.methods.oscgi.kernels import STREAM_GLOSSY, STREAM_PRIMARY, STREAM_PRIMARY_DIRECT
 from slc.methods.oscgi.origins import backface_share
@@ -235,10 +236,8 @@ class PrimaryUpdate:
         N, B = fr.n_active, self.update_limit(fr)
         cap = dr.width(self.storage) // self.words
         if B > 0 and (self._upd_frame is None or dr.width(self._upd_frame) < cap):
-            grown = dr.zeros(mi.UInt32, cap)
-            if self._upd_frame is not None:
-                dr.scatter(grown, self._upd_frame, dr.arange(mi.UInt32, dr.width(self._upd_frame)))
-            self._upd_frame = grown
+            self._upd_frame = (dr.zeros(mi.UInt32, cap) if self._upd_frame is None
+                               else extend_array(self._upd_frame, 0, cap, mi.UInt32))
         self.entries_updated = N
         if B <= 0:
             return fr, policy
