@@ -250,17 +250,10 @@ def _report(name, img, ref, mask, bounds):
 # on-surface cache, check mode; mean error, per-pixel error):
 #   point-like +0.4%, 5.3%   behind -0.8%, 4.9%   grazing-far +0.9%, 12.1%
 #   half-occluded -0.5%, 6.9%   many-lights -3.4%, 6.5%   moving-stopped +2.2%, 9.1%
-#   switched-off: a known miss, SLC_MISSES
+#   switched-off (20 frames after the switch) -0.5%, 6.7%; before it +0.08%, 5.1%
 SLC_BOUNDS = {"point-like": (0.02, 0.21), "behind": (0.02, 0.15), "grazing-far": (0.02, 0.16),
               "half-occluded": (0.02, 0.12), "many-lights": (0.07, 0.16),
               "moving-stopped": (0.03, 0.13), "switched-off": (0.05, 0.15)}
-# Known misses (strict xfail while they miss; a separate test holds each to 1.5x its measured
-# (mean error, per-pixel error), same setup as above):
-#   switched-off: a light switched off 20 frames ago; measured (48x32) slc before the switch
-#   +0.08%, 5.1%; 2 frames after +203%; 10 after +183%; 20 after +165%, 165% (rt16 2 frames
-#   after: +0.4% in the mean). A cone whose light went dark only decays as a running mean,
-#   nothing detects the change.
-SLC_MISSES = {"switched-off": (1.65, 1.65)}
 
 
 @pytest.mark.slow
@@ -421,11 +414,11 @@ def _switch_off_errors():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, raises=AssertionError,
-                   reason=f"known miss, mean, per-pixel error {SLC_MISSES['switched-off']}")
 def test_slc_light_switches_off():
     """20 frames after the switch slc's image is within SLC_BOUNDS of the light that
-    stays on (a known miss, SLC_MISSES)."""
+    stays on: a shrink-test ray that hits the dark light's front side counts as a
+    light that left (C / 3, motion reported). Measured -0.5%, 6.7% (2 frames after the
+    switch 53%, 10 after 0.4%)."""
     img, ref, mask = _switch_off_errors()[OFF_AT + 20]
     _report("switched-off", img, ref, mask, SLC_BOUNDS["switched-off"])
 
@@ -691,15 +684,10 @@ def test_slc_hemisphere_sized_light_default_settings_ceiling():
     m, p = HEMISPHERE_SLC["measured"]
     assert mean_err < 1.5 * m and pix_err < 1.5 * p, (mean_err, pix_err)
 @pytest.mark.slow
-def test_slc_light_switches_off_no_worse():
+def test_slc_light_switches_off_before_the_switch():
     """The switch reaches the methods: rt16 is within 3% in the mean 2 frames after it;
-    slc is within its bounds before the switch (one frame before), and 20 frames after
-    within 1.5x the measured miss (SLC_MISSES)."""
+    slc is within its bounds before the switch (one frame before)."""
     e = _switch_off_errors()
     assert e["rt16"][0] < 0.03, e["rt16"]
     assert e[OFF_AT - 1][0] < SLC_BOUNDS["switched-off"][0] and e[OFF_AT - 1][1] < SLC_BOUNDS["switched-off"][1], \
         e[OFF_AT - 1]
-    img, ref, mask = e[OFF_AT + 20]
-    mean_err, pix_err = rel_errors(img, ref, mask)
-    bm, bp = SLC_MISSES["switched-off"]
-    assert mean_err <= 1.5 * bm and pix_err <= 1.5 * bp, (mean_err, pix_err)

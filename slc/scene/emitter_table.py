@@ -92,6 +92,7 @@ class EmitterTable:
         by_emitter = {_ptr(sh.emitter()): sh for sh in scene.shapes() if sh.is_emitter()}
         self._shapes = {i: by_emitter.get(_ptr(e), e.get_shape()) for i, e in enumerate(self.emitters)
                         if e.get_shape() is not None}
+        self.builds = 0
         self._build()
 
     # ------------------------------------------------------------------ set-up
@@ -149,6 +150,10 @@ class EmitterTable:
         return OTHER, np.zeros(3), {}, None
 
     def _build(self):
+        # ``builds`` counts the reads of the emitters (construction and :meth:`rebuild`): a
+        # reader of the scene's emitters on the host (e.g. slc's constant-emitter flag) keyed on
+        # it follows a change of their radiance
+        self.builds += 1
         rows = [(i, *self._classify(i)) for i in self.subset]
         N = len(rows)
         self.kinds_present = sorted({r[1] for r in rows})

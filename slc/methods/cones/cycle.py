@@ -60,9 +60,12 @@ def shrink_test(scene: mi.Scene, si: mi.SurfaceInteraction3f, D, A, n, key: mi.U
     ``shrink_period``-th frame (staggered by ``key``). ``area_only``
     (:func:`constant_area_emitters`, read by the caller outside any frozen
     function) tests a hit without the emitter's virtual call. Returns
-    (directions, tested masks, hit-a-light masks) per cone."""
+    (directions, tested masks, hit-a-light masks, dark masks) per cone: a dark
+    ray hit the front side of an emitter's shape that emits nothing there (a
+    light switched off, its shape in place); ``dark`` is None with ``area_only``,
+    where every emitter emits."""
     dirs, tested = shrink_test_plan(D, A, n, key, valid, unsettled, sampler, frame, p)
-    hits = []
+    hits, dark = [], None if area_only else []
     for i in range(p.max_cones):
         si2 = scene.ray_intersect(si.spawn_ray(si.sh_frame.to_world(dirs[i])), tested[i])
         if area_only:
@@ -70,10 +73,22 @@ def shrink_test(scene: mi.Scene, si: mi.SurfaceInteraction3f, D, A, n, key: mi.U
             # with constant radiance > 0 that is the hit test, without the virtual call
             hit = (si2.emitter(scene, tested[i]) != None) & (mi.Frame3f.cos_theta(si2.wi) > 0.0)  # noqa: E711
         else:
-            Le = mi.Color3f(si2.emitter(scene, tested[i]).eval(si2, tested[i]))
-            hit = dr.max(Le) > 0.0
+            hit, off = emitter_hit(scene, si2, tested[i])
+            dark.append(tested[i] & off)
         hits.append(tested[i] & hit)
-    return dirs, tested, hits
+    return dirs, tested, hits, dark
+
+
+def emitter_hit(scene: mi.Scene, si2: mi.SurfaceInteraction3f, active: mi.Bool):
+    """(lit, dark) of a shrink-test ray's intersection ``si2``: lit where the hit
+    emits towards the ray (``L_e > 0``, the environment on a miss), dark where it
+    is the front side of an emitter's shape that emits nothing there (a light
+    switched off; a light that moved away is not hit at all)."""
+    em = si2.emitter(scene, active)
+    Le = mi.Color3f(em.eval(si2, active))
+    lit = dr.max(Le) > 0.0
+    front = si2.is_valid() & (em != None) & (mi.Frame3f.cos_theta(si2.wi) > 0.0)  # noqa: E711
+    return lit, front & ~lit
 
 
 def constant_area_emitters(scene) -> bool:
@@ -251,23 +266,32 @@ def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams
     D, A, L, S, n, beta, sampler, extra = st.D, st.A, st.L, st.S, st.n, st.beta, st.sampler, st.extra
 
     # ----------------------------------------------- shrink test: one ray per cone
-    dirs, tested, hits = shrink_test(scene, si, D, A, n, key, valid, mi.Bool(unsettled), sampler, frame, p,
-                                     area_only)
+    dirs, tested, hits, dark = shrink_test(scene, si, D, A, n, key, valid, mi.Bool(unsettled), sampler, frame, p,
+                                           area_only)
     # A light that left (switched off, moved away) leaves a cone whose rim tests
     # miss but which only shrinks by epsilon alpha per test, with its L_c and C
     # kept: it would fade as (1 - n/C) per cycle, 255 cycles for a settled entry.
-    # So a large cone whose rim test missed and that got no sample this cycle
-    # is tested once more on its axis; if that misses too, the cycle counts as a
-    # turn of ``gone_turn`` (C divided by 3, motion reported: 8 cycles of memory
-    # and rays_moving rays until it stops). A cone that still gets samples holds
-    # a light that moves within reach, which widening and shrinking follow.
+    # A light switched off shows itself: a shrink-test ray that hits the front
+    # side of an emitter's shape emitting nothing there (a light that moved is
+    # not hit at all). A large cone whose rim test missed (a rim ray falls off a
+    # square light most of the time) and that got no sample this cycle is tested
+    # once more on its axis; a dark rim or axis hit counts the cycle as a turn of
+    # ``gone_turn`` (C divided by 3, motion reported: 8 cycles of memory and
+    # rays_moving rays until it stops). With ``gone_test`` any axis miss counts
+    # so (a light that moved away too). A cone that still gets samples holds a
+    # light that moves within reach, which widening and shrinking follow. With
+    # ``area_only`` no emitter is dark: no test.
     gone = mi.Bool(False)
-    if p.gone_test:
+    for d in dark or []:
+        gone |= d
+    if p.gone_test or dark is not None:
         for i in range(K):
             m = tested[i] & ~hits[i] & (A[i] >= p.alpha_small) & (dr.max(S[i]) <= 0.0)
+            if dark is not None:
+                m &= ~dark[i]
             si2 = scene.ray_intersect(si.spawn_ray(frame_l.to_world(D[i])), m)
-            Le = mi.Color3f(si2.emitter(scene, m).eval(si2, m))
-            gone |= m & ~(dr.max(Le) > 0.0)
+            lit, off = emitter_hit(scene, si2, m)
+            gone |= m & (~lit if p.gone_test else off)
         beta = dr.select(gone, dr.maximum(beta, p.gone_turn), beta)
     D, A, L, S, n, beta, dropped, shrunk = shrink_step(D, A, L, S, n, beta, dirs, hits, tested, p)
 

@@ -51,10 +51,12 @@ class SurfaceLightCones(PayloadMethod):
     ``rays_moving`` rays for 8 updates after detected motion; ``rays_settled``
     otherwise; ``ray_budget`` (> 0) caps a frame's rays per active entry (the
     rays above the settled ones scaled down together; off by default). Update samples
-    (``samples=r2``) follow a per-entry R2 sequence over the entry's life. With
-    ``gone_test=axis`` (an option; off by default) a missed shrink test on a wide
-    cone that got no sample is followed by one on its axis: both missed, the
-    light left, and the entry forgets fast.
+    (``samples=r2``) follow a per-entry R2 sequence over the entry's life. A
+    shrink-test ray that hits the front side of an emitter emitting nothing there
+    (a light switched off) means the light left, and the entry forgets fast (a
+    missed rim test on a wide cone that got no sample is followed by a ray on its
+    axis, which finds such a light). With ``gone_test=axis`` (an option; off by
+    default) any miss on the axis counts so.
     """
 
     name = "slc"
@@ -75,7 +77,8 @@ class SurfaceLightCones(PayloadMethod):
         Param("shrink_keeps", "energy", "a cone shrunk by a missed test keeps its integral L_c (the paper) or its "
               "density L_c / Omega_c", choices=("energy", "density")),
         Param("gone_test", "off", "axis: a cone whose rim test missed (and that got no sample) is tested on its axis, "
-              "and a miss there too counts as a light that left (C / 3, motion); off: the paper's test only",
+              "and a miss there too counts as a light that left (C / 3, motion); off: only a hit on a dark "
+              "emitter does",
               choices=("off", "axis")),
         Param("samples", "r2", "update samples: a per-entry R2 sequence stratified over the entry's life, or "
               "independent random numbers per cycle", choices=("r2", "random")),

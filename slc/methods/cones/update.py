@@ -48,7 +48,7 @@ class ConeParams:
     multi_cycles: float = 8.0       # cycles of moving entries cap C at this many cycles
     stratified: bool = True         # light samples from a per-entry R2 sequence (False: independent PCG32)
     shrink_keeps: str = "energy"    # a shrunk cone keeps its L_c ("energy", the paper) or its density L_c / Omega_c
-    gone_test: bool = False         # a missed rim test is followed by one on the axis; both missed: the light left
+    gone_test: bool = False         # a missed axis test after a missed rim test: the light left (else a dark hit only)
     gone_turn: float = math.radians(40.0)   # rad; the turn a left light counts as (40 deg: the largest C reduction, /3)
 
 

@@ -14,7 +14,7 @@ from slc.methods.cones.cycle import CycleEntries, constant_area_emitters, update
 from slc.methods.cones.packing import gather_words, scatter_words, unpack
 from slc.methods.cones.update import ConeParams, frame_u32
 from slc.osc.protocol import entry_start
-from slc.scene.lights import light_inputs
+from slc.scene.lights import light_inputs, sampler
 
 
 @dataclass
@@ -139,11 +139,17 @@ class ConeUpdate(FrozenFunction):
         # per-lane: the order and the batch (a lane count equal to a scene array's width runs
         # on a free width; the extra lanes repeat the last one: same words, same slot)
         super().__init__(_update_kernel, freeze, animated, max_recordings, lanes=("order", "batch"))
-        self._area_only = None      # (id of the scene, constant_area_emitters): one scene per instance
+        self._area_only = None      # ((id of the scene, table builds), constant_area_emitters)
 
     def area_only(self, scene) -> bool:
-        """:func:`constant_area_emitters` of ``scene``, read once (no reference to the scene kept)."""
-        key = id(getattr(scene, "mi_scene", scene))
+        """:func:`constant_area_emitters` of ``scene``, read again when its emitter table is
+        read again (:meth:`slc.scene.emitter_table.EmitterTable.rebuild`, e.g. after a light's
+        radiance changed: a light switched off makes it false, so that the shrink test sees
+        the dark light); no reference to the scene kept. A change of the flag costs the
+        frozen update one new recording."""
+        ms = getattr(scene, "mi_scene", scene)
+        table = sampler(ms)
+        key = (id(ms), None if table is None else table.builds)
         if self._area_only is None or self._area_only[0] != key:
             self._area_only = (key, constant_area_emitters(scene))
         return self._area_only[1]
