@@ -194,9 +194,12 @@ def about(center, M):
 def diffuse_cornell():
     """The Cornell box with its rough-metal block made diffuse (white 0.73):
     every surface is Lambertian, the case CRC models (it reconstructs
-    rho E / pi)."""
+    rho E / pi). Named ``cornell_diffuse``: cached references are keyed by the scene's
+    name and the G-buffer's points, which it shares with ``cornell``."""
     spec = importlib.util.spec_from_file_location("cornell_diffuse", SCENES_DIR / "cornell.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     mod.rough_conductor = lambda *a, **k: diffuse([0.73, 0.73, 0.73])
-    return mod.build()
+    scene = mod.build()
+    scene.name = "cornell_diffuse"
+    return scene
