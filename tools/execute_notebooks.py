@@ -12,6 +12,7 @@ written and the tool exits with status 1.
 
 The stored outputs are made reproducible, so that running unchanged code again gives a small diff:
 execution counts numbered 1..n over the code cells, no per-cell ``metadata.execution`` timestamps,
+consecutive prints to one stream kept as one output (however the kernel flushed them),
 the kernel's ``language_info`` reduced to its name, file extension and MIME type, progress-bar
 output on stderr (tqdm's carriage-return lines) dropped, and this machine's absolute paths (the
 checkout, the home folder, the temp folder, the interpreter's prefix) in text outputs replaced by
@@ -69,6 +70,10 @@ def normalize(nb, pairs) -> None:
                 if out.name == "stderr" and PROGRESS.search(out.text):
                     continue
                 out.text = scrub_text(out.text, pairs)
+                last = outputs[-1] if outputs else None
+                if last is not None and last.output_type == "stream" and last.name == out.name:
+                    last.text += out.text          # one output per run of prints (flushes split them)
+                    continue
             elif out.output_type in ("execute_result", "display_data"):
                 if "execution_count" in out:
                     out.execution_count = count
