@@ -19,6 +19,7 @@ from slc.methods.crc import volume
 from slc.methods.crc.march import visible
 from slc.methods.crc.quality import de76_fraction, delta_e76, pdiff
 from slc.methods.crc.quality import _xyz_lab_yee
+from slc.scene.builder import diffuse_cornell
 from slc.scene.gbuffer import to_image
 from slc.methods import FrameContext, MethodError
 from slc.run.pipeline import RunConfig, gbuffers_for, run_sequence
@@ -42,20 +43,6 @@ def _render(scene, frames=1, **kw):
         gbs = gbuffers_for(scene, v, f, W, H)
         out = c.render(FrameContext(f), gbs, NullTimer())
     return c, gbs, to_image(gbs[0], out[0])
-
-
-def diffuse_cornell():
-    """The Cornell box with its rough-metal block made diffuse (white 0.73):
-    every surface is Lambertian, the case CRC models (it reconstructs
-    rho E / pi)."""
-    import importlib.util
-    from slc.scene.builder import diffuse
-    from slc.scene.scenes import SCENES_DIR
-    spec = importlib.util.spec_from_file_location("cornell_diffuse", SCENES_DIR / "cornell.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    mod.rough_conductor = lambda *a, **k: diffuse([0.73, 0.73, 0.73])
-    return mod.build()
 
 
 def test_voxelization_covers_plane_and_nothing_else():

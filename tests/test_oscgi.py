@@ -2,8 +2,6 @@
 multi-bound reference, light leaking between two rooms, sharing across viewers, determinism and
 check mode; the multi-bounce reference against the closed form of a furnace box; the pt baseline."""
 import math
-import sys
-from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
@@ -22,12 +20,10 @@ from slc.methods import FrameContext, MethodError
 from slc.methods.oscgi import HemiGrid, SecondaryCache
 from slc.methods.oscgi.method import OSCGI
 from slc.run.pipeline import RunConfig, gbuffers_for, run_sequence
-from slc.scene.builder import SceneBuilder, box_mesh, diffuse
+from slc.scene.builder import SceneBuilder, box_mesh, diffuse, diffuse_cornell
 from slc.scene.camera import CameraPath
 from slc.core.timing import NullTimer
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_crc import diffuse_cornell  # noqa: E402
 
 W, H = 64, 36
 

@@ -52,7 +52,7 @@ def test_new_coarser_entries_start_from_their_finer_entries():
     from slc.methods import FrameContext
     from slc.run.pipeline import gbuffers_for
     from slc.core.timing import NullTimer
-    from test_crc import diffuse_cornell
+    from slc.scene.builder import diffuse_cornell
     s = diffuse_cornell()
     v = views.single(s)
     errs = {}

@@ -5,17 +5,19 @@ With it come the pieces the scene definitions of ``scenes/`` are made of
 (``docs/adding-a-scene.md``): material dictionaries (:func:`diffuse`,
 :func:`rough_conductor`, :func:`principled`), meshes (:func:`box_mesh`,
 :func:`merge_meshes`) and rigid transforms for animation (:func:`translate`,
-:func:`rotate`, :func:`about`).
+:func:`rotate`, :func:`about`). :func:`diffuse_cornell` builds the built-in
+Cornell box with every surface Lambertian.
 """
 from __future__ import annotations
 
+import importlib.util
 import math
 from typing import Callable
 
 import mitsuba as mi
 import numpy as np
 
-from slc.scene.scenes import Animated, Scene
+from slc.scene.scenes import SCENES_DIR, Animated, Scene
 
 
 def diffuse(rgb):
@@ -187,3 +189,17 @@ def rotate(axis, degrees):
 def about(center, M):
     """The transform ``M`` applied about the point ``center``."""
     return translate(center) @ M @ translate(-np.asarray(center, float))
+
+
+def diffuse_cornell():
+    """The Cornell box with its rough-metal block made diffuse (white 0.73):
+    every surface is Lambertian, the case CRC models (it reconstructs
+    rho E / pi). Named ``cornell_diffuse``: cached references are keyed by the scene's
+    name and the G-buffer's points, which it shares with ``cornell``."""
+    spec = importlib.util.spec_from_file_location("cornell_diffuse", SCENES_DIR / "cornell.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    mod.rough_conductor = lambda *a, **k: diffuse([0.73, 0.73, 0.73])
+    scene = mod.build()
+    scene.name = "cornell_diffuse"
+    return scene
