@@ -33,14 +33,17 @@ run: install
 	@echo "after warm-up; FLIP / PSNR / SSIM against 2048-sample ground truth on frames 15 and 23."
 	$(BIN)/slc run single-viewer --quick --res 240x135 --methods rt16 rt48 slc --sweep --out out
 
-# The whole suite (what CI runs), with the 15 slowest tests listed at the end.
+# The whole suite (what CI runs), with the 15 slowest tests listed at the end. Two worker
+# processes (pytest-xdist; a test file stays on one worker, so its module fixtures are
+# built once); TEST_WORKERS=0 runs everything in this process.
+TEST_WORKERS ?= 2
 test: install
-	$(BIN)/python -m pytest -q --durations=15 tests
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=15 tests
 
 # The fast tier, before every commit: unit tests, closed forms and one small render per
 # method; the tests marked `slow` (see pyproject.toml) are left to `make test`.
 check: install
-	$(BIN)/python -m pytest -q -m "not slow" --durations=10 tests
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not slow" --durations=10 tests
 
 bench: install
 	$(BIN)/slc bench rays

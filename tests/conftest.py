@@ -1,13 +1,14 @@
 import os
 import sys
-import tempfile
 from pathlib import Path
 
 import pytest
 
-# Ground-truth images are cached on disk; tests use a private cache so a
-# stale reference from an older run can never satisfy a test.
-os.environ.setdefault("SLC_CACHE", tempfile.mkdtemp(prefix="slc-test-cache-"))
+# References are cached on disk under a key that holds everything they depend on
+# (slc.reference.cache: estimator version, the reference and scene code, the scene's
+# content, camera, time, G-buffer), so a cached reference is the one a test would
+# compute; the tests keep theirs apart from the experiments' cache.
+os.environ.setdefault("SLC_CACHE", str(Path.home() / ".cache" / "slc-tests"))
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 

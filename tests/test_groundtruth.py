@@ -71,3 +71,31 @@ def test_reference_of_an_older_scene_build_is_not_served(tmp_path, monkeypatch):
     assert before.exists() and after != before and not after.exists()
     groundtruth.ground_truth(s, gb, 0, "v", spp=16)
     assert after.exists() and len(list((tmp_path / "gt").glob("*.npy"))) == 2
+
+
+def test_reference_of_another_light_or_material_is_not_served(tmp_path, monkeypatch):
+    """Two scenes of one name seen through the same G-buffer, one with a brighter light,
+    one with a darker wall: three cache keys, each served its own ground truth; a change
+    of the reference code's source is a new key too."""
+    import mitsuba as mi
+    from slc.reference import cache
+    monkeypatch.setenv("SLC_CACHE", str(tmp_path))
+    s = scenes.load("cornell")
+    gb = gbuffers_for(s, views.single(s), 0, 8, 8)[0]
+    a = groundtruth.ground_truth(s, gb, 0, "v", spp=16)
+    paths = {cache.cache_path("gt", groundtruth._VERSION, s, gb, 0, "v", 16)}
+    params = mi.traverse(s.mi_scene)
+    light = next(k for k in params.keys() if k.endswith("radiance.value"))
+    params[light] = params[light] * 2.0
+    params.update()
+    b = groundtruth.ground_truth(s, gb, 0, "v", spp=16)
+    paths.add(cache.cache_path("gt", groundtruth._VERSION, s, gb, 0, "v", 16))
+    wall = next(k for k in params.keys() if k.endswith("reflectance.value"))
+    params[wall] = params[wall] * 0.5
+    params.update()
+    groundtruth.ground_truth(s, gb, 0, "v", spp=16)
+    paths.add(cache.cache_path("gt", groundtruth._VERSION, s, gb, 0, "v", 16))
+    assert len(paths) == 3 and len(list((tmp_path / "gt").glob("*.npy"))) == 3
+    assert b.sum() > 1.5 * a.sum()
+    monkeypatch.setattr(cache, "CODE_HASH", "0" * 16)
+    assert cache.cache_path("gt", groundtruth._VERSION, s, gb, 0, "v", 16) not in paths

@@ -31,9 +31,10 @@ sum of the direct and the indirect reference counts every path of up to
 Every reference is cached on disk (``$SLC_CACHE`` or ``~/.cache/slc``), in
 one folder per kind, under one key (:func:`slc.reference.cache.cache_path`): scene, frame,
 viewer, resolution, sample count, bounces, estimator version, the version
-of scene loading (:data:`slc.scene.scenes.LOAD_VERSION`), camera, scene time and
-a hash of the G-buffer points themselves, so a changed scene file, loader
-or G-buffer never reuses a stale reference.
+of scene loading (:data:`slc.scene.scenes.LOAD_VERSION`), the source of the
+reference and scene layers, the scene's content (every Mitsuba parameter),
+camera, scene time and a hash of the G-buffer points themselves, so a changed
+scene, light, material, loader, estimator or G-buffer never reuses a stale reference.
 """
 from __future__ import annotations
 
