@@ -243,7 +243,7 @@ def _set_lights(scene, point, area):
         elif k.endswith("emitter.radiance.value"):
             params[k] = mi.Color3f(area)
     params.update()
-    emitter_sampling.clear_cache()
+    emitter_sampling.forget(id(scene.mi_scene))   # this scene's table only (others are shared)
     emitter_sampling.for_scene(scene.mi_scene)
 
 

@@ -42,34 +42,47 @@ def test_no_kernel_built_after_warmup(spec):
     assert r["compiled_after_warmup"] == sum(per[WARMUP:]) == 0, f"{spec}: kernels built per frame {per}"
 
 
+_ALIGN = r"""
+import json
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import slc  # noqa: F401  (sets the variant)
+from slc.methods.megaviews.hierarchy import aligned
+from slc.core.timing import KernelCounter
+
+src = dr.arange(mi.Float, 100) * 0.5 + 7.25
+dr.eval(src)
+base = np.zeros(64 + 16, dtype=np.uint32)        # buf starts on a 64-byte boundary, so the views
+off = ((-base.ctypes.data) % 64) // 4            # below start aligned and misaligned whatever the
+buf = base[off:off + 64]                         # allocator returned
+buf[:] = np.arange(64, dtype=np.uint32)
+
+
+def run(make):
+    counts = []
+    with KernelCounter() as kc:
+        for k in range(8):          # views starting at 8 consecutive 4-byte offsets
+            kc.take()
+            idx = make(buf[k:k + 17])
+            r = dr.gather(mi.Float, src, idx) * 3.0 + 1.0
+            dr.eval(r)
+            assert np.allclose(np.array(r), (buf[k:k + 17] * 0.5 + 7.25) * 3.0 + 1.0)
+            counts.append(kc.take())
+    return counts
+
+
+raw = run(lambda a: mi.UInt32(a))
+fixed = run(lambda a: mi.UInt32(aligned(a, np.uint32)))
+print("RESULT " + json.dumps({"raw": raw, "fixed": fixed}))
+"""
+
+
 def test_aligned_numpy_input_gives_one_kernel():
-    """A gather indexed by numpy data: mapped from numpy views at shifted
-    addresses it is built once per alignment class (the counter sees it);
-    through ``aligned`` it is built once for all."""
-    import drjit as dr
-    import mitsuba as mi
-
-    import slc  # noqa: F401  (sets the variant)
-    from slc.methods.megaviews.hierarchy import aligned
-    from slc.core.timing import KernelCounter
-
-    src = dr.arange(mi.Float, 100) * 0.5 + 7.25
-    dr.eval(src)
-    buf = np.arange(64, dtype=np.uint32)
-
-    def run(make):
-        counts = []
-        with KernelCounter() as kc:
-            for k in range(8):          # views starting at 8 consecutive 4-byte offsets
-                kc.take()
-                idx = make(buf[k:k + 17])
-                r = dr.gather(mi.Float, src, idx) * 3.0 + 1.0
-                dr.eval(r)
-                assert np.allclose(np.array(r), (buf[k:k + 17] * 0.5 + 7.25) * 3.0 + 1.0)
-                counts.append(kc.take())
-        return counts
-
-    raw = run(lambda a: mi.UInt32(a))
-    assert sum(raw) >= 2, raw            # misaligned and aligned views: different kernels (what the fix removes)
-    fixed = run(lambda a: mi.UInt32(aligned(a, np.uint32)))
-    assert sum(fixed[1:]) == 0, fixed
+    """A gather indexed by numpy data, in a fresh process (kernels an earlier test
+    built would hide the ones this one builds): mapped from numpy views at shifted
+    addresses it is built once per alignment class (the counter sees it); through
+    ``aligned`` it is built once for all."""
+    r = run_case(_ALIGN)
+    assert sum(r["raw"]) >= 2, r["raw"]          # misaligned and aligned views: different kernels
+    assert sum(r["fixed"][1:]) == 0, r["fixed"]
