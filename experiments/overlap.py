@@ -19,6 +19,12 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from slc.core.timing import stage_table  # noqa: E402 (after the path of a standalone run)
+from slc.methods import parse_spec  # noqa: E402
+from slc.run import experiment as ex  # noqa: E402
+from slc.run import plots  # noqa: E402
+from slc.scene import views  # noqa: E402
+
 NAME = "overlap"
 # warm-up 10 frames: kernel builds and the 8-ray start-up of the first frame's entries (startup_ms)
 FULL = dict(scenes=["street", "atrium"], viewers=[1, 4, 16], overlaps=[0, 25, 50, 75, 100],
@@ -30,8 +36,7 @@ CACHE_METHODS = ("slc", "sh")
 
 
 def add_arguments(p):
-    from slc.run.experiment import add_viewer_arguments
-    add_viewer_arguments(p)
+    ex.add_viewer_arguments(p)
     p.add_argument("--overlaps", type=int, nargs="+", help="target overlaps in percent")
     p.add_argument("--retime", type=int, default=3,
                    help="after the rows, time one viewer and the most viewers at the largest overlap again in "
@@ -39,47 +44,77 @@ def add_arguments(p):
 
 
 def run(opts):
-
-    from slc.run import experiment as ex
-    from slc.run import plots
-    from slc.scene import views
-    from slc.methods import parse_spec
-    from slc.core.timing import stage_table
-
     pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     counts, overlaps = opts.viewers or pr["viewers"], opts.overlaps or pr["overlaps"]
     out = Path(opts.out) / NAME
     rows, retimed = [], []
     for s in ex.each_scene(names):
-        cases = []
-        for spec in specs:
-            cache = parse_spec(spec)[0] in CACHE_METHODS
-            for o in (overlaps if cache else sorted({min(overlaps), max(overlaps)})):
-                for n in counts:
-                    if n == 1 and o != max(overlaps):
-                        continue  # one viewer has no overlap: run it once
-                    cases.append((s, spec, views.overlap_rig(s, n, o / 100.0, aspect=cfg.width / cfg.height),
-                                  {"rig": "overlap", "overlap": o}))
-        rows += ex.run_cases(cases, cfg, f"{NAME} {s.name}", opts.seed)
-        # ------------------- the target's ratio, timed again in turn -------------------
-        top_n, top_o = max(counts), max(overlaps)
-        if opts.retime > 0 and top_n > 1:
-            aspect = cfg.width / cfg.height
-            for spec in [sp for sp in specs if parse_spec(sp)[0] in CACHE_METHODS]:
-                turn = ex.ratio_in_turn(s, spec, views.overlap_rig(s, 1, top_o / 100.0, aspect=aspect),
-                                        views.overlap_rig(s, top_n, top_o / 100.0, aspect=aspect), cfg,
-                                        opts.retime, opts.seed)
-                retimed.append({"scene": s.name, "setting": spec, "viewers": top_n, "overlap": top_o, **turn})
+        rows += ex.run_cases(_cases(s, specs, counts, overlaps, cfg), cfg, f"{NAME} {s.name}", opts.seed)
+        retimed += _retime(s, specs, counts, overlaps, cfg, opts)
     ex.add_startup(rows)
-    # one viewer belongs to every overlap curve
+    _extend_one_viewer(rows, overlaps)
+    _plots(out, rows, cfg)
+    md = _markdown(rows, retimed, specs, counts, overlaps, cfg)
+    config = {"quick": bool(opts.quick), "viewers": counts, "overlaps": overlaps, "methods": specs,
+              "scenes": names, "width": cfg.width, "height": cfg.height,
+              "frames": cfg.frames, "warmup": cfg.warmup, "eval_frames": cfg.evaluated(),
+              "eval_viewers": cfg.eval_viewers, "seed": cfg.seed, "retime": opts.retime}
+    results = ex.results_object(NAME, config, [r for r in ex.strip_private(rows)])
+    results["ratio_in_turn"] = retimed
+    ex.write_results(out, results, md)
+    print(md)
+    return results
+
+
+def _cases(s, specs, counts, overlaps, cfg) -> list:
+    """The runs of scene ``s``: every setting at every viewer count and target overlap (the
+    per-viewer baselines at the smallest and largest overlap only, one viewer once)."""
+    cases = []
+    for spec in specs:
+        cache = parse_spec(spec)[0] in CACHE_METHODS
+        for o in (overlaps if cache else sorted({min(overlaps), max(overlaps)})):
+            for n in counts:
+                if n == 1 and o != max(overlaps):
+                    continue  # one viewer has no overlap: run it once
+                cases.append((s, spec, views.overlap_rig(s, n, o / 100.0, aspect=cfg.width / cfg.height),
+                              {"rig": "overlap", "overlap": o}))
+    return cases
+
+
+def _retime(s, specs, counts, overlaps, cfg, opts) -> list:
+    """The target's ratio, timed again in turn: one viewer and the most viewers at the largest
+    overlap, per cache method (``--retime`` times; none when 0)."""
+    retimed = []
+    top_n, top_o = max(counts), max(overlaps)
+    if opts.retime > 0 and top_n > 1:
+        aspect = cfg.width / cfg.height
+        for spec in [sp for sp in specs if parse_spec(sp)[0] in CACHE_METHODS]:
+            turn = ex.ratio_in_turn(s, spec, views.overlap_rig(s, 1, top_o / 100.0, aspect=aspect),
+                                    views.overlap_rig(s, top_n, top_o / 100.0, aspect=aspect), cfg,
+                                    opts.retime, opts.seed)
+            retimed.append({"scene": s.name, "setting": spec, "viewers": top_n, "overlap": top_o, **turn})
+    return retimed
+
+
+def _extend_one_viewer(rows, overlaps) -> None:
+    """One viewer belongs to every overlap curve: its cache methods' rows are added at every
+    other overlap, marked ``derived``."""
     for r in [r for r in rows if r["viewers"] == 1]:
         for o in overlaps:
             if o != r["overlap"] and parse_spec(r["setting"])[0] in CACHE_METHODS:
                 rows.append({**r, "overlap": o, "derived": True})
+
+
+def _plots(out, rows, cfg) -> None:
+    """Time against viewers per scene, one curve per method and overlap."""
     for name in sorted({r["scene"] for r in rows}):
         plots.time_vs_viewers_plot(out / f"time_vs_viewers_{name}.png", [r for r in rows if r["scene"] == name],
                                 f"{name}: controlled overlap ({cfg.width}x{cfg.height})",
                                 group=("method", "overlap"))
+
+
+def _markdown(rows, retimed, specs, counts, overlaps, cfg) -> str:
+    """results.md: the rows, the overlap reached, the stage times and the targets."""
     md = [f"# {NAME}\n", f"{cfg.width}x{cfg.height}, {cfg.frames} frames ({cfg.warmup} warm-up); time = median "
           f"DI ms per frame for all viewers; quality of the first {cfg.eval_viewers} viewer(s) on frames "
           f"{cfg.evaluated()}; measured overlap = % of visible surface cells seen by more than one viewer.\n",
@@ -91,6 +126,14 @@ def run(opts):
           "\n## Where the time goes (median ms per stage; kernel execution in brackets, the rest is host time)\n",
           stage_table(rows, ("scene", "label", "viewers", "overlap")),
           "\n## Targets (ratios measured in this run)\n"]
+    md += _targets(rows, retimed, specs, counts, overlaps)
+    return "\n".join(md) + "\n"
+
+
+def _targets(rows, retimed, specs, counts, overlaps) -> list:
+    """One line per scene and setting: the most viewers at the largest overlap against one
+    viewer, from the rows and as timed again in turn."""
+    lines = []
     for name in sorted({r["scene"] for r in rows}):
         for spec in specs:
             one = [r for r in rows if r["scene"] == name and r["setting"] == spec and r["viewers"] == 1]
@@ -109,17 +152,8 @@ def run(opts):
                              + f" ms; kernels after warm-up {t['compiled_after_warmup']})")
                 if parse_spec(spec)[0] in CACHE_METHODS:
                     line += " (target <= 1.5x" + (", on the median in turn)" if turn else ")")
-                md.append(line)
-    md = "\n".join(md) + "\n"
-    config = {"quick": bool(opts.quick), "viewers": counts, "overlaps": overlaps, "methods": specs,
-              "scenes": names, "width": cfg.width, "height": cfg.height,
-              "frames": cfg.frames, "warmup": cfg.warmup, "eval_frames": cfg.evaluated(),
-              "eval_viewers": cfg.eval_viewers, "seed": cfg.seed, "retime": opts.retime}
-    results = ex.results_object(NAME, config, [r for r in ex.strip_private(rows)])
-    results["ratio_in_turn"] = retimed
-    ex.write_results(out, results, md)
-    print(md)
-    return results
+                lines.append(line)
+    return lines
 
 
 def _reached(rows) -> str:

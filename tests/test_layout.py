@@ -1,4 +1,5 @@
-"""The package's layers, checked: imports go one way, no cycles, modules of a readable size.
+"""The package's layers, checked: imports go one way, no cycles, modules of a readable size,
+long functions that say why they are one function.
 
 Layers, bottom to top (a module may import from its own layer and the layers below):
 
@@ -28,6 +29,8 @@ RANK = {"core": 0, "scene": 1, "reference": 2, "methods": 3, "osc": 4, "method":
 # method folders whose modules other methods may import (representations reused by a composite method)
 SHARED = {"adaptive": {"cones", "sh"}, "crc": {"sh"}, "oscgi": {"sh"}}
 MAX_LINES, MAX_LONG, LONG = 650, 5, 450
+# a function over LONG_FN lines starts its docstring with the reason it is one function
+LONG_FN, ONE_FUNCTION = 80, "one function because"
 
 
 def _modules() -> dict[str, Path]:
@@ -177,9 +180,12 @@ def test_function_level_imports_say_why():
     assert not bad, "function-level imports without a reason:\n" + "\n".join(sorted(set(bad)))
 
 
+def _sources() -> list[Path]:
+    return list(PKG.rglob("*.py")) + list((ROOT / "experiments").glob("*.py"))
+
+
 def _sizes():
-    files = list(PKG.rglob("*.py")) + list((ROOT / "experiments").glob("*.py"))
-    return {p: len(p.read_text().splitlines()) for p in files}
+    return {p: len(p.read_text().splitlines()) for p in _sources()}
 
 
 def test_module_sizes():
@@ -192,6 +198,23 @@ def test_module_sizes():
     unexplained = [str(p.relative_to(ROOT)) for p in long
                    if "why" not in p.read_text()[:1500].lower()]
     assert not unexplained, f"long modules that do not say at their top why they are long: {unexplained}"
+
+
+def test_long_functions_say_why():
+    """A function of over ``LONG_FN`` lines in slc/ or experiments/ (a traced kernel whose stages
+    share many locals, say) states in the first paragraph of its docstring why it is one function,
+    in a sentence with ``ONE_FUNCTION`` ("One function because ...")."""
+    bad = []
+    for p in sorted(_sources()):
+        for fn in ast.walk(ast.parse(p.read_text())):
+            if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            n = fn.end_lineno - fn.lineno + 1
+            top = " ".join((ast.get_docstring(fn) or "").split("\n\n")[0].split()).lower()
+            if n > LONG_FN and ONE_FUNCTION not in top:
+                bad.append(f"{p.relative_to(ROOT)}:{fn.lineno} {fn.name} ({n} lines)")
+    assert not bad, (f"functions over {LONG_FN} lines whose docstring does not start with why they are one "
+                     f"function ('{ONE_FUNCTION.capitalize()} ...'):\n" + "\n".join(bad))
 
 
 @pytest.mark.parametrize("folder", sorted(p.name for p in (PKG / "methods").iterdir()

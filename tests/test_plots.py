@@ -143,14 +143,14 @@ def test_experiment_stage_plots_read(tmp_path, figures):
 
 
 def test_megaviews_plots_read(tmp_path, figures):
-    mv = ex.load("megaviews")
+    mv, report = ex.load("megaviews"), ex.load_part("megaviews_report")
     rows = [dict(scene=s, sweep=sw, method=m, views=v, resolution=res, time_ms=(1 + i) * v / 64 * res / 16,
                  memory_mb=(1 + i) * v / 256, views_per_render=v / 64)
             for s in ("cornell", "atrium") for i, m in enumerate(mv.METHODS)
             for sw, pts in (("views", [(v, 16) for v in (256, 1024, 4096, 16384)]),
                             ("resolution", [(1024, r) for r in (16, 32, 64, 128)]))
             for v, res in pts]
-    mv._plots(tmp_path, rows)
+    report.plots(mv, tmp_path, rows)
     figs = figures()
     assert len(figs) == 2
     for fig in figs:

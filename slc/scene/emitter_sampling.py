@@ -91,7 +91,11 @@ class EmitterSampler(EmitterTable):
     # ------------------------------------------------------------------ sampling
 
     def sample(self, si: mi.SurfaceInteraction3f, u: mi.Point2f, active: mi.Bool):
-        """One light sample from ``si``: (DirectionSample3f, L_e/pdf as
+        """One function because it is one traced sample whose stages (emitter, entry, one branch
+        per kind, the weight) write the same point, normal, density and radiance lanes; its
+        stages are marked by banner comments.
+
+        One light sample from ``si``: (DirectionSample3f, L_e/pdf as
         Color3f, mask, emitter index). ``ds.pdf`` is the solid-angle density
         with the emitter choice in it (the choice probability alone for
         point lights, ``ds.delta``); the mask is false where no sample exists

@@ -149,15 +149,11 @@ class EmitterTable:
                 return POINT, I, dict(p0=pos[None]), 4.0 * math.pi * _luminance(I)
         return OTHER, np.zeros(3), {}, None
 
-    def _build(self):
-        # ``builds`` counts the reads of the emitters (construction and :meth:`rebuild`): a
-        # reader of the scene's emitters on the host (e.g. slc's constant-emitter flag) keyed on
-        # it follows a change of their radiance
-        self.builds += 1
-        rows = [(i, *self._classify(i)) for i in self.subset]
+    def _choice_pmf(self, rows) -> np.ndarray:
+        """The emitter choice P(e) over the table's emitters ``rows`` (as :meth:`_classify` gives
+        them, after the emitter's index): uniform, or by power (emitters of unknown power and
+        infinite ones keep the uniform share)."""
         N = len(rows)
-        self.kinds_present = sorted({r[1] for r in rows})
-        # ---------------- emitter choice P(e) ----------------
         pmf = np.full(N, 1.0 / max(N, 1))
         if self.choice == "power" and N:
             inf = int(mi.EmitterFlags.Infinite)
@@ -167,6 +163,18 @@ class EmitterTable:
             if known and power.sum() > 0.0:
                 share = len(known) / N
                 pmf[known] = share * power / power.sum()
+        return pmf
+
+    def _build(self):
+        # ``builds`` counts the reads of the emitters (construction and :meth:`rebuild`): a
+        # reader of the scene's emitters on the host (e.g. slc's constant-emitter flag) keyed on
+        # it follows a change of their radiance
+        self.builds += 1
+        rows = [(i, *self._classify(i)) for i in self.subset]
+        N = len(rows)
+        self.kinds_present = sorted({r[1] for r in rows})
+        # ---------------- emitter choice P(e) ----------------
+        pmf = self._choice_pmf(rows)
         # ---------------- alias entries ----------------
         ent_p, ent_em, ent_kind, ent_pa, ent_L = [], [], [], [], []
         P0, E0, E1 = [], [], []
@@ -199,13 +207,7 @@ class EmitterTable:
         # two levels: the emitter (by u.x: uniform as Mitsuba, or an alias table over P(e)),
         # then the entry within it (by u.y: an alias table over its triangles' areas)
         self.size = sum(len(x) for x in ent_p)
-        counts = np.array([len(x) for x in ent_p], np.int64)
-        offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-        q = np.ones(self.size)
-        alias = np.zeros(self.size, np.int64)
-        for o, c, x in zip(offsets, counts, ent_p):
-            tot = x.sum()
-            q[o:o + c], alias[o:o + c] = alias_table(x / tot if tot > 0 else np.full(c, 1.0 / c))
+        counts, offsets, q, alias = _segment_alias(ent_p, self.size)
         eq, ealias = alias_table(pmf / pmf.sum() if pmf.sum() > 0 else np.full(N, 1.0 / N))
         self._uniform = self.choice == "uniform" or bool(np.allclose(pmf, 1.0 / N, rtol=0, atol=0))
         self._seg = mi.Float(np.stack([offsets, counts], axis=1).astype(np.float32).ravel())
@@ -287,6 +289,20 @@ class EmitterTable:
 
     def _kind_of(self, i: int) -> int:
         return int(np.array(dr.gather(mi.UInt32, self._e_kind, mi.UInt32(i)))[0])
+
+
+def _segment_alias(ent_p: list, size: int):
+    """(counts, offsets, q, alias) of the emitters' segments of the table: each segment
+    (one emitter's entries, probabilities ``ent_p[e]``) holds the alias table of its entries,
+    normalised within it (local indices)."""
+    counts = np.array([len(x) for x in ent_p], np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    q = np.ones(size)
+    alias = np.zeros(size, np.int64)
+    for o, c, x in zip(offsets, counts, ent_p):
+        tot = x.sum()
+        q[o:o + c], alias[o:o + c] = alias_table(x / tot if tot > 0 else np.full(c, 1.0 / c))
+    return counts, offsets, q, alias
 
 
 def _ptr(emitter) -> int:

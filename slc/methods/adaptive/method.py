@@ -132,10 +132,18 @@ class AdaptiveCache(PayloadMethod):
 
     # ------------------------------------------------------------------ update
     def update(self, ctx, fr, policy):
+        """One function because its stages (slot hand-over, the representations' updates, the
+        choice) share the frame's header fields, lane masks and pool slots; its stages are marked
+        by banner comments.
+
+        One update of the active entries ``fr.active``: reused slots give back their records and
+        new ones get one, every representation updates its own entries, then the statistics
+        choose each entry's representation. Returns the entries' motion mask."""
         if self.pools is None:
             self._make_pools()
         if self.sph is not None:
             self.sph.refresh()          # sphere lights' centres at the scene's current time
+        # ------------------------------- the entries' headers and ray policy (opaque values)
         sc, W = self.scene.mi_scene, self.words
         N = fr.n_active
         base = fr.active * W

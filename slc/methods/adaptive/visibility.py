@@ -190,7 +190,11 @@ def has_delta(scene: mi.Scene) -> bool:
 
 def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, seed: int, K: int, sph=None,
            env=None, mix=None):
-    """One update cycle of VISIBILITY records ``rec`` (lists of words, one lane
+    """One function because it is one traced update whose stages (unpack, the listed lights'
+    irradiance, the sample loop, the residual) share the light list's state; its stages are
+    marked by banner comments.
+
+    One update cycle of VISIBILITY records ``rec`` (lists of words, one lane
     per entry) at the entries' points ``si`` (``sph``: the scene's
     :class:`~slc.methods.adaptive.sphere_lights.SphereLights`, or None). A listed light whose unoccluded
     irradiance here is now 0 (switched off, turned or moved away) is dropped

@@ -32,7 +32,11 @@ def _schlick_weight(c):
 
 
 def _principled_cones(bsdf, si, ctx, active, cones: ConeState, term, below, consts=None):
-    r"""Cone shading of pixels with Mitsuba's ``principled`` BSDF, no quadrature
+    r"""One function because it is one traced branch whose stages (the pixels' parameters, the
+    specular lobe, the per-cone sum) share the per-pixel BSDF parameters; its stages are marked
+    by banner comments.
+
+    Cone shading of pixels with Mitsuba's ``principled`` BSDF, no quadrature
     (``principled="sg"``, the default). Returns (value, mask of the pixels it applies to).
 
     It applies to pixels whose BSDF is ``principled`` (has the ``clearcoat`` and

@@ -175,7 +175,11 @@ class SampleObserver:
 
 def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams, seeds=None, has_seed=None,
                  valid=None, observer: SampleObserver | None = None, area_only: bool = False):
-    """One update cycle of unpacked cone records ``state = (D, A, L, C, n)``
+    """One function because it is one traced cycle whose stages (reset, the sample loop, the
+    shrink test, the end of the cycle) share the cone state; its stages are marked by banner
+    comments.
+
+    One update cycle of unpacked cone records ``state = (D, A, L, C, n)``
     (one lane per entry, as :func:`slc.methods.cones.packing.unpack` returns it) with
     the per-entry inputs ``entries`` (:class:`CycleEntries`):
     fresh entries restart empty, or from their LOD seed's unpacked

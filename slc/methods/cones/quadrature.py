@@ -59,11 +59,17 @@ def samples_px(bsdf, n_total, glossy_half):
 
 
 def quadrature(bsdf, si, ctx, sampled, cones: ConeState, n_total, key, pid, opts: ShadeOptions):
-    """The MIS quadrature of the pixels ``sampled`` (the module docstring): returns
+    """One function because it is one traced branch whose stages (the allocation, the cone
+    samples, the BSDF samples) share the allocation and the cones' density; its stages are
+    marked by banner comments.
+
+    The MIS quadrature of the pixels ``sampled`` (the module docstring): returns
     the sum over their cone and BSDF samples."""
     K, A, L, Dw, live, delta, area, h = cones.K, cones.alpha, cones.L, cones.axis, cones.live, cones.dirac, \
         cones.dense, cones.h
     inv_om, zero = cones.inv_omega, cones.zero
+
+    # ------------------- the cones' density at a direction, the balance heuristic -------------------
     def density(w, own=None):
         """(sum over cones holding w of L_c/Omega_c, of 1/Omega_c); cone ``own`` holds w."""
         Lt, dt = mi.Color3f(zero), mi.Float(zero)
@@ -113,7 +119,7 @@ def quadrature(bsdf, si, ctx, sampled, cones: ConeState, n_total, key, pid, opts
     nc_f, nb_f = mi.Float(n_c), mi.Float(n_b)                             # per cone / per pixel
     nc_rcp = dr.rcp(dr.maximum(nc_f, 1.0))
 
-    # per-pixel rotations of the two patterns
+    # ------------------- per-pixel rotations of the two patterns -------------------
     if opts.rotate:
         rot = [(_hash_float(pid, key, 2 * i), _hash_float(pid, key, 2 * i + 1)) for i in range(K)]
     else:

@@ -70,7 +70,11 @@ from slc.methods.cones.quadrature import quadrature, samples_px
 def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.SurfaceInteraction3f,
                  bsdf: mi.BSDFPtr, texel_frame: mi.Frame3f, n_total: mi.UInt32, key: mi.UInt32,
                  pid: mi.UInt32 | None, table, entry_frames, opts: ShadeOptions) -> mi.Color3f:
-    """Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
+    """One function because it is one traced kernel whose branches (Lambertian, principled,
+    quadrature, the compacted quadrature) share the cone state and the pixel masks; its stages
+    are marked by banner comments.
+
+    Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
     ``slot``; ``texel_frame`` is the local frame of each pixel's entry (the frame its
     cone directions are stored in). ``n_total`` directions per live cone and ``key``
     are opaque scalars; ``opts`` the shading's choices (:class:`ShadeOptions`, see
@@ -81,6 +85,7 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     ``entry_frames`` (the entries' frames), ``texel_frame`` is instead each pixel's index
     into them (the gather then runs inside this kernel, not as a kernel of its own).
     Entries without cones and inactive pixels give 0."""
+    # ------------------- the entries' cones, the pixels' BSDF kinds -------------------
     K = opts.max_cones
     tf_in = texel_frame
     cones = cone_state(storage, slot, active, texel_frame, entry_frames, K)

@@ -167,7 +167,10 @@ def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cu
            cull_tree: ViewHierarchy | None = None, fused: bool = True, bias_leaf: float = 2.0,
            bias_slope: float = 2.0, d_min: float | None = None, shadows: bool = True,
            cutoff: float = 0.0) -> mi.Color3f:
-    """Subsampled VPL gathering at the G-buffer points (see module docstring).
+    """One function because it is one traced kernel whose two passes walk the same culled view
+    nodes (``visit``); its stages are marked by banner comments.
+
+    Subsampled VPL gathering at the G-buffer points (see module docstring).
 
     ``cull_level``: the view hierarchy is walked depth first down to this
     level (the paper: 6), skipping the subtree of every node culled for
@@ -176,6 +179,7 @@ def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cu
     sphere lies farther than ``cutoff`` from ``x`` are culled in the same
     walk and sampled VPLs farther than ``cutoff`` contribute nothing (the
     estimate is then of the VPLs within ``cutoff``: a bias, as in [OBS*15])."""
+    # ----------------- the view nodes of the culling walk, on the device -----------------
     V = cull_tree if cull_tree is not None else maps.view_h
     if V.flat:
         raise ValueError("gathering needs an octree view hierarchy for culling")

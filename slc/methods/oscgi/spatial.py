@@ -44,7 +44,11 @@ class SpatialFilter:
         self.cos_max = math.cos(math.radians(self.angle))
 
     def apply(self, m, fr) -> mi.Float:
-        """The osc-gi method ``m``'s storage with the texels and irradiance of the active entries
+        """One function because its stages (neighbour pairs, texel gathers, the filtered copy)
+        hand each other the pair arrays of one filter pass; its stages are marked by banner
+        comments.
+
+        The osc-gi method ``m``'s storage with the texels and irradiance of the active entries
         ``fr.active`` replaced by their filtered values (a copy: ``m.storage`` is left as it is);
         neighbours from the cache's entry topology (:class:`slc.osc.protocol.EntryTopology`)."""
         topo, storage, G = m.cache, m.storage, m.grid

@@ -156,6 +156,12 @@ class ReSTIR(LightTarget, Reuse, Method):
     # ------------------------------ Stage 1: initial ------------------------------
 
     def initial(self, gb, seed: int) -> tuple[Reservoir, mi.Float]:
+        """One function because its candidate stages (local lights, environment, BSDF) feed one
+        reservoir stream through the shared ``add``; its stages are marked by banner comments.
+
+        The initial candidates of the G-buffer ``gb``'s pixels resampled into one reservoir per
+        pixel (M = 1), with initial visibility: (reservoir, target value of the kept candidate)."""
+        # ---------------- Set-up; ``add``: a candidate's resampling weight into a stream ----------------
         sc = self.scene.mi_scene
         n = gb.size
         si, active = gb.si, gb.valid
