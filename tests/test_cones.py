@@ -491,9 +491,12 @@ def _hard_scene(kind):
 HARD_BOUNDS = {"point": (0.01, 0.07), "huge": (0.01, 0.07), "inside": (0.02, 0.09),
                "grazing": (0.05, 0.10), "hemisphere": (0.05, 0.10)}
 # Known misses (strict xfail while they miss; test_hard_case_misses_no_worse holds each to
-# 1.5x its measured (mean error, per-pixel error), same run as above):
-HARD_MISSES = {"grazing": (0.362, 0.489),      # a light standing on the horizon
-               "hemisphere": (0.358, 0.658)}   # a hemisphere-sized light with 2 cones
+# 1.5x the (mean error, per-pixel error) recorded here). Measured, same run as above: grazing
+# 31.5% / 49.6% (the 20 pixels within 0.1 m of the light's foot hold 62% of the reference and
+# get 37% of it: their entries' points lie up to a texel from the pixels'), hemisphere 0.9% /
+# 68.6% (area samples of the 120 m light: about 150 times the squared mean as variance per sample).
+HARD_MISSES = {"grazing": (0.315, 0.489),      # a light standing on the horizon
+               "hemisphere": (0.0085, 0.658)}  # a hemisphere-sized light with 2 cones
 _HARD_ERRORS = {}
 
 

@@ -34,15 +34,16 @@ _DIFFUSE_CLASS = "SmoothDiffuse"
 class BSDFTable:
     """The per-BSDF arrays (module docstring): ``width`` (the number of registry ids, an
     opaque UInt32), ``diffuse`` (Bool), ``kind`` (UInt32), ``colour`` (Color3f),
-    ``roughness``, ``metallic`` (Float); on the host ``n`` (the width as an int) and
-    ``all_diffuse`` (every shape's BSDF is smooth diffuse)."""
+    ``roughness``, ``metallic`` (Float); on the host ``n`` (the width as an int),
+    ``all_diffuse`` (every shape's BSDF is smooth diffuse) and ``front_only`` (every shape's
+    BSDF reflects light from its front side only, :func:`front_side_only`)."""
     DRJIT_STRUCT = {"width": mi.UInt32, "diffuse": mi.Bool, "kind": mi.UInt32, "colour": mi.Color3f,
                     "roughness": mi.Float, "metallic": mi.Float}
 
     def __init__(self, width=None, diffuse=None, kind=None, colour=None, roughness=None, metallic=None):
         self.width, self.diffuse, self.kind = width, diffuse, kind
         self.colour, self.roughness, self.metallic = colour, roughness, metallic
-        self.n, self.all_diffuse = 0, False
+        self.n, self.all_diffuse, self.front_only = 0, False, False
 
 
 _TABLES: dict[int, tuple] = {}
@@ -112,7 +113,25 @@ def _build(shapes) -> BSDFTable | None:
     t = BSDFTable(dr.opaque(mi.UInt32, W), mi.Bool(diffuse), mi.UInt32(kind), mi.Color3f(col), mi.Float(rough),
                   mi.Float(metal))
     t.n, t.all_diffuse = W, bool(all(diffuse[i] for i in bsdfs))
+    t.front_only = all(_front_side(b) for b in bsdfs.values())
     return t
+
+
+def front_side_only(scene) -> bool:
+    """Whether every BSDF of ``scene`` reflects light that arrives on its front side only (no
+    transmission, no null lobe, no back side; Mitsuba's ``principled`` without transmission
+    reflects nothing from behind although its flags name a back side): then light from below
+    a surface point's horizon never reaches its pixels. False for scenes without a table
+    (instances)."""
+    t = for_scene(scene)
+    return bool(t is not None and t.front_only)
+
+
+def _front_side(b) -> bool:
+    F, f = mi.BSDFFlags, int(b.flags())
+    if f & (int(F.Transmission) | int(F.Null)):
+        return False
+    return not (f & int(F.BackSide)) or b.class_name() == "Principled"
 
 
 def _principled_flags(f: int) -> bool:

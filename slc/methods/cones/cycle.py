@@ -32,12 +32,15 @@ R2_STEP = (int((1.0 / _G2) * 2 ** 32) & 0xFFFFFFFF, int((1.0 / _G2 ** 2) * 2 ** 
 def shrink_test_dirs(D, A, n, u, p: ConeParams):
     """Per cone: (test direction, tested mask). Cones narrower than alpha_delta are not
     tested; cones below alpha_small are tested on the axis; others at (1 - epsilon) alpha
-    with azimuth ``2 pi u[i]``."""
+    with azimuth ``2 pi u[i]``. With ``p.front_only`` a direction below the horizon is not
+    tested (a cone holds no light there)."""
     dirs, tested = [], []
     for i in range(p.max_cones):
         th = dr.select(A[i] < p.alpha_small, 0.0, (1.0 - p.epsilon) * A[i])
         dirs.append(cone_direction(D[i], th, 2.0 * math.pi * u[i]))
         tested.append((n > i) & (A[i] >= p.alpha_delta))
+        if p.front_only:
+            tested[i] &= dirs[i].z > 0.0
     return dirs, tested
 
 
@@ -257,8 +260,11 @@ def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams
             u = mi.Point2f(st.sampler.next_float32(), st.sampler.next_float32())
         ds, w, ok = sample_light(scene, si, u, valid)
         ok &= dr.all(dr.isfinite(w))
-        ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), ok)
         s = dr.normalize(frame_l.to_local(ds.d))
+        if p.front_only:
+            # below the horizon: no light reaches the entry's pixels; a zero of the cycle
+            ok &= s.z > 0.0
+        ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), ok)
         if observer is not None:
             st.extra = observer.observe(st.extra, ds, w, ok, s)
         st.D, st.A, st.L, st.S, st.n, st.beta, _ = insert_sample(st.D, st.A, st.L, st.S, st.n, st.beta, s, w, ok, p)

@@ -4,6 +4,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from slc.scene.bsdf_table import front_side_only
 from slc.scene.gbuffer import viewer_lanes
 from slc.core.keys import INVALID
 from slc.methods import Param, register
@@ -107,7 +108,7 @@ class SurfaceLightCones(PayloadMethod):
         self.cone_params = ConeParams(max_cones=self.max_cones, epsilon=self.epsilon,
                                       shrink_period=self.shrink_period, beta_min_deg=self.beta_min,
                                       stratified=self.samples == "r2", shrink_keeps=self.shrink_keeps,
-                                      gone_test=self.gone_test == "axis")
+                                      gone_test=self.gone_test == "axis", front_only=front_side_only(scene))
         self.words = words_per_entry(self.max_cones)
         self.needs = frozenset({BILINEAR_TAPS}) if self.fetch in ("bilinear", "stochastic") else frozenset()
 

@@ -88,7 +88,7 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     # ------------------- the entries' cones, the pixels' BSDF kinds -------------------
     K = opts.max_cones
     tf_in = texel_frame
-    cones = cone_state(storage, slot, active, texel_frame, entry_frames, K)
+    cones = cone_state(storage, slot, active, texel_frame, entry_frames, K, opts.front_only)
     n = cones.n
     ctx = mi.BSDFContext()
     if pid is None:
@@ -162,7 +162,7 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     on = dr.gather(mi.Bool, sampled, idx)
     si_c, bsdf_c = dr.gather(type(si), si, idx), dr.gather(mi.BSDFPtr, bsdf, idx)
     cones_c = cone_state(storage, dr.gather(mi.UInt32, slot, idx), on, dr.gather(type(tf_in), tf_in, idx),
-                          entry_frames, K)
+                          entry_frames, K, opts.front_only)
     acc = quadrature(bsdf_c, si_c, ctx, on, cones_c, samples_px(bsdf_c, n_total, opts.glossy_half), key,
                       dr.gather(mi.UInt32, pid, idx), opts)
     dr.scatter(out, acc, idx, on)
@@ -212,7 +212,9 @@ class ConeShading(FrozenFunction):
     on the quadrature: faster, noisier, see docs/cones.md), ``compact=True`` (the pixels that
     take the MIS quadrature packed into a launch of their own, so that SIMD packets of
     closed-form pixels do not run its loops; False: in a branch of the launch of all pixels;
-    the same images bit for bit).
+    the same images bit for bit), ``front_only=False`` (the update took light from above each
+    entry's horizon only, ``ConeParams.front_only``: a cone across the horizon spreads its
+    ``L_c`` over its part above it, :func:`slc.methods.cones.conestate.cone_state`).
 
     Freezing pays only while its recordings are replayed. Each instance owns its frozen
     function, so recordings are freed with the method and never shared between scenes.
@@ -228,7 +230,7 @@ class ConeShading(FrozenFunction):
     def __init__(self, max_cones: int, adaptive: bool = True, rotate: bool = True, freeze: bool = True,
                  animated: bool = False, max_recordings: int = 4, horizon: bool = True,
                  principled: str = "sg", conductor: str = "sample", table=None, glossy: str = "full",
-                 compact: bool = True):
+                 compact: bool = True, front_only: bool = False):
         self.table = table
         self.compact = bool(compact)
         if glossy not in ("half", "full"):
@@ -244,7 +246,7 @@ class ConeShading(FrozenFunction):
         self.principled = principled
         self.opts = ShadeOptions(self.max_cones, adaptive=bool(adaptive), rotate=bool(rotate), horizon=bool(horizon),
                                  principled=principled == "sg", conductor=conductor == "sg",
-                                 glossy_half=glossy == "half", compact=bool(compact))
+                                 glossy_half=glossy == "half", compact=bool(compact), front_only=bool(front_only))
         super().__init__(shade_kernel, freeze, animated, max_recordings)
 
     def __call__(self, storage, slot, active, si, texel_frame, n_samples: int = 16, key: int = 0,
@@ -273,6 +275,7 @@ def shader_for(owner, max_cones: int) -> ConeShading:
                          horizon=getattr(owner, "horizon", "clip") == "clip",
                          principled=getattr(owner, "principled", "sg"), conductor=conductor,
                          glossy=getattr(owner, "glossy", "full"), compact=getattr(owner, "compact", "on") == "on",
+                         front_only=getattr(getattr(owner, "cone_params", None), "front_only", False),
                          table=bsdf_table(scene) if scene is not None else None)
         owner._cone_shading = sh
     return sh

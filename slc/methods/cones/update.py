@@ -50,6 +50,8 @@ class ConeParams:
     shrink_keeps: str = "energy"    # a shrunk cone keeps its L_c ("energy", the paper) or its density L_c / Omega_c
     gone_test: bool = False         # a missed axis test after a missed rim test: the light left (else a dark hit only)
     gone_turn: float = math.radians(40.0)   # rad; the turn a left light counts as (40 deg: the largest C reduction, /3)
+    front_only: bool = False        # only light above an entry's horizon reaches its pixels (every BSDF reflects on
+                                    # its front side only): samples below it are dropped, shrink tests below it skipped
 
 
 
