@@ -145,6 +145,14 @@ class FrozenFunction:
                 self.kernel, self.frozen = self.fn, False
         return out
 
+    def restart(self) -> None:
+        """Drop the recordings of a frozen function: the next call records anew. For a
+        host-side input whose change must reach the kernels for certain (a Python value
+        that selects code), rather than through the recording's key alone."""
+        if self.frozen:
+            self.kernel = dr.freeze(self.fn, warn_after=self.max_recordings + 1)
+            self.recordings = 0
+
     def free_width(self, n: int, args) -> int:
         """``n`` if no other input of the call (the arguments not in ``lanes``,
         the arrays of a Mitsuba scene among them) has width ``n``, else the

@@ -151,7 +151,10 @@ class ConeUpdate(FrozenFunction):
         table = sampler(ms)
         key = (id(ms), None if table is None else table.builds)
         if self._area_only is None or self._area_only[0] != key:
-            self._area_only = (key, constant_area_emitters(scene))
+            flag = constant_area_emitters(scene)
+            if self._area_only is not None and self._area_only[1] != flag:
+                self.restart()       # the shrink test's code changes: record it anew
+            self._area_only = (key, flag)
         return self._area_only[1]
 
 
