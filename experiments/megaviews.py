@@ -172,13 +172,13 @@ class _SceneRun:
         for m in self.first.values():
             for sp in specs:
                 m.variant(**sp)
-        sh = next(iter(self.first.values())).scene_hierarchy()
+        self.base_method = next(iter(self.first.values()))    # the first method: VPL sets and hierarchies
+        sh = self.base_method.scene_hierarchy()
         for m in self.first.values():
             m.use_scene_hierarchy(sh)
         self.n_leaves = int(sh.size - sh.tree.level_start[sh.depth])
         self.gb = gbuffers_for(s, views.single(s), 0, preset["gres"], preset["gres"])[0]
         self.refs = {}
-        self.lead = next(iter(self.first.values()))
 
     def run(self) -> None:
         """Every sweep, in the order the warm-ups of :func:`_time_maps` assume."""
@@ -252,15 +252,15 @@ class _SceneRun:
     def views_sweep(self) -> None:
         """Views sweep (Fig. 10a)."""
         for n in self.preset["views"]:
-            vpls = self.lead.variant(views=n).lights(self.opts.seed)
+            vpls = self.base_method.variant(views=n).lights(self.opts.seed)
             for mode in self.modes:
                 self.measure("views", mode, vpls)
 
     def distributions(self) -> dict:
         """View distributions (Figs. 10a, 11); returns the VPL sets by distribution."""
         nd, seed = self.preset["dist_views"], self.opts.seed
-        sets = {"vpl1": self.lead.variant(views=nd).lights(seed),
-                "vpl4": self.lead.variant(views=nd, bounces=4).lights(seed),
+        sets = {"vpl1": self.base_method.variant(views=nd).lights(seed),
+                "vpl4": self.base_method.variant(views=nd, bounces=4).lights(seed),
                 "random": _random_views(self.s, nd, seed)}
         for dist in ("vpl4", "random"):
             for mode in [x for x in self.modes if x != "brute"]:
@@ -272,16 +272,16 @@ class _SceneRun:
         depth with the view-root multi-pass (Fig. 13)."""
         self.measure("culling", "megaviews", vpl1, cull=False)
         for n in self.preset["viewonly"]:
-            vpls = self.lead.variant(views=n).lights(self.opts.seed)
+            vpls = self.base_method.variant(views=n).lights(self.opts.seed)
             self.measure("view-only", "megaviews", vpls, scene_h=False)
             self.measure("view-only", "megaviews", vpls)
-        vpls = self.lead.variant(views=self.preset["depth_views"]).lights(self.opts.seed)
+        vpls = self.base_method.variant(views=self.preset["depth_views"]).lights(self.opts.seed)
         for d in self.preset["depths"]:
             self.measure("depth", "megaviews", vpls, scene_depth=d, view_depth=d)
 
     def resolution_sweep(self) -> None:
         """Map resolution (Figs. 12, 14)."""
-        vpls = self.lead.variant(views=self.preset["res_views"]).lights(self.opts.seed)
+        vpls = self.base_method.variant(views=self.preset["res_views"]).lights(self.opts.seed)
         for res in self.preset["res"]:
             for mode in self.modes:
                 self.measure("resolution", mode, vpls, res=res)

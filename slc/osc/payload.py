@@ -176,6 +176,16 @@ class PayloadMethod(Method):
         Param("block", 8, "cache block edge in texels", choices=(1, 2, 4, 8, 16, 32)),
         Param("evict_after", 60, "frames a block may stay unused before it is freed", lo=1),
     )
+    # the settings of an entry's update rays by age and motion (:class:`RayPolicy`), for
+    # payloads that follow it: :meth:`settings_ray_policy` reads them
+    ray_policy_params = (
+        Param("rays_new", 32, "update rays of a new entry (its first update; see halve_every)", lo=1, hi=1024),
+        Param("new_updates", 20, "updates for which an entry counts as new", lo=1, hi=4096),
+        Param("halve_every", 4, "a new entry's rays halve every this many updates (0: rays_new throughout)",
+              lo=0, hi=4096),
+        Param("rays_moving", 8, "update rays of entries after detected motion", lo=1, hi=1024),
+        Param("rays_settled", 1, "update rays of settled entries", lo=1, hi=1024),
+    )
     words = 1
     storage_type = mi.UInt32
     needs: frozenset = frozenset()
@@ -188,6 +198,11 @@ class PayloadMethod(Method):
     # ------------------------------------------------------------------ hooks
     def ray_policy(self) -> RayPolicy:
         return RayPolicy()
+
+    def settings_ray_policy(self, budget: float = 0.0) -> RayPolicy:
+        """The :class:`RayPolicy` of the ``ray_policy_params`` settings, capped at ``budget``."""
+        return RayPolicy(new=self.rays_new, new_updates=self.new_updates, halve_every=self.halve_every,
+                         settled=self.rays_settled, moving=self.rays_moving, budget=budget)
 
     def make_cache(self) -> SurfaceCache:
         """The surface cache this method's entries live in, built at the first

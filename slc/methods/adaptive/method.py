@@ -127,8 +127,7 @@ class AdaptiveCache(PayloadMethod):
                       SH: Pool("sh", sh_rep.words(self.enc))}
 
     def ray_policy(self) -> RayPolicy:
-        return RayPolicy(new=self.rays_new, new_updates=self.new_updates, halve_every=self.halve_every,
-                         settled=self.rays_settled, moving=self.rays_moving)
+        return self.settings_ray_policy()
 
     # ------------------------------------------------------------------ update
     def update(self, ctx, fr, policy):

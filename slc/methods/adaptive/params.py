@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from slc.methods import Param
 from slc.methods.sh.ycocg import ENCODINGS
+from slc.osc.payload import PayloadMethod
 
 PARAMS = (
     Param("vis_lights", 12, "delta or small sphere lights with their own visibility per VISIBILITY entry", lo=1, hi=16),
@@ -25,12 +26,7 @@ PARAMS = (
     Param("sh_count", 128, "SH running-mean count cap (samples)", lo=1, hi=1e6),
     Param("shade_samples", 16, "cone shading directions per cone", lo=1, hi=1024),
     Param("glossy_samples", 8, "BSDF samples of the SH radiance per glossy pixel", lo=1, hi=1024),
-    Param("rays_new", 32, "update rays of a new entry (its first update; see halve_every)", lo=1, hi=1024),
-    Param("new_updates", 20, "updates for which an entry counts as new", lo=1, hi=4096),
-    Param("halve_every", 4, "a new entry's rays halve every this many updates (0: rays_new throughout)",
-          lo=0, hi=4096),
-    Param("rays_moving", 8, "update rays of entries after detected motion", lo=1, hi=1024),
-    Param("rays_settled", 1, "update rays of settled entries", lo=1, hi=1024),
+    *PayloadMethod.ray_policy_params,
     Param("window", 32, "light statistics' running-mean window (updates)", lo=1, hi=63),
     Param("switch_after", 3, "updates in a row asking for another representation before a switch", lo=1, hi=63),
     Param("switch_period", 4, "switches are carried out in every k-th frame only (their conversion "

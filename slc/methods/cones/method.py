@@ -64,12 +64,7 @@ class SurfaceLightCones(PayloadMethod):
     params = (
         Param("max_cones", 3, "cones per entry", lo=1, hi=4),
         Param("shade_samples", 16, "shading directions per cone", lo=1, hi=1024),
-        Param("rays_new", 32, "update rays of a new entry (its first update; see halve_every)", lo=1, hi=1024),
-        Param("new_updates", 20, "updates for which an entry counts as new", lo=1, hi=4096),
-        Param("halve_every", 4, "a new entry's rays halve every this many updates (0: rays_new throughout)",
-              lo=0, hi=4096),
-        Param("rays_moving", 8, "update rays of entries after detected motion", lo=1, hi=1024),
-        Param("rays_settled", 1, "update rays of settled entries", lo=1, hi=1024),
+        *PayloadMethod.ray_policy_params,
         Param("ray_budget", 0.0, "mean update rays per active entry and frame that new and moving entries may "
               "take (0: no cap)", lo=0.0, hi=1024.0),
         Param("epsilon", 0.1, "shrink test at (1 - epsilon) alpha", lo=1e-6, hi=1 - 1e-6),
@@ -113,8 +108,7 @@ class SurfaceLightCones(PayloadMethod):
         self.needs = frozenset({BILINEAR_TAPS}) if self.fetch in ("bilinear", "stochastic") else frozenset()
 
     def ray_policy(self) -> RayPolicy:
-        return RayPolicy(new=self.rays_new, new_updates=self.new_updates, halve_every=self.halve_every,
-                         settled=self.rays_settled, moving=self.rays_moving, budget=self.ray_budget)
+        return self.settings_ray_policy(budget=self.ray_budget)
 
     # ------------------------------------------------------------------ update
     def update(self, ctx, fr, policy):
