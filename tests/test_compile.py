@@ -37,7 +37,7 @@ from slc.run.pipeline import RunConfig, run_sequence
 spec, rig, n, W, H, F, WU = sys.argv[1], sys.argv[2], int(sys.argv[3]), *map(int, sys.argv[4:8])
 s = scenes.load(sys.argv[8])
 vs = views.make_rig(s, rig, n)
-cfg = RunConfig(width=W, height=H, frames=F, warmup=WU, eval_frames=[], keep_images=False,
+cfg = RunConfig(width=W, height=H, frames=F, warmup=WU, eval_frames=json.loads(sys.argv[9]), keep_images=False,
                 measure_overlap=False)
 res = run_sequence(s, methods.create(spec, s), vs, cfg)
 print("RESULT " + json.dumps({"compiled_after_warmup": res.compiled_after_warmup,
@@ -54,9 +54,9 @@ def _env(**extra):
 
 
 def _run_case(spec: str, rig: str, n: int, frames: int = FRAMES, warmup: int = WARMUP, scene: str = "atrium",
-              size: tuple = (W, H)) -> dict:
+              size: tuple = (W, H), eval_frames: tuple = ()) -> dict:
     p = subprocess.run([sys.executable, "-c", _CASE, spec, rig, str(n), str(size[0]), str(size[1]), str(frames),
-                        str(warmup), scene],
+                        str(warmup), scene, json.dumps(list(eval_frames))],
                        capture_output=True, text=True, env=_env(), timeout=600, cwd=ROOT)
     assert p.returncode == 0, p.stderr[-3000:]
     line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")][-1]
@@ -93,6 +93,20 @@ def test_no_kernel_built_after_warmup_in_animated_scenes(scene, spec):
     assert len(per) == frames and sum(per[:warmup]) > 0
     assert r["compiled_after_warmup"] == sum(per[warmup:]) == r["row"]
     assert r["compiled_after_warmup"] == 0, f"{scene} {spec}: kernels built per frame {per} (warm-up {warmup})"
+
+
+@pytest.mark.parametrize("spec", ["rt16", "slc"])
+def test_no_kernel_built_after_an_evaluated_frame(spec):
+    """A frame evaluated against the ground truth inside the timed frames (its reference
+    looked up, keyed by the scene's parameters) builds no kernel in the frames after it,
+    in a scene with an environment map (an emitter whose scale is a literal that a
+    kernel bakes). skylit, 32x18, frame 6 of 10 evaluated (slc's ray policy steps down
+    in frame 4, inside the 5 warm-up frames)."""
+    frames, warmup = 10, 5
+    r = _run_case(spec, "single", 1, frames=frames, warmup=warmup, scene="skylit", size=(32, 18), eval_frames=(6,))
+    per = r["per_frame"]
+    assert len(per) == frames and sum(per[:warmup]) > 0
+    assert r["compiled_after_warmup"] == 0, f"skylit {spec}: kernels built per frame {per} (warm-up {warmup})"
 
 
 _GROWING = r"""

@@ -34,9 +34,10 @@ export SLC_CACHE=${SLC_CACHE:-$HOME/.cache/slc}
 #       jsonl = the JSON lines the command prints become a Markdown table NAME.md
 #       md   = the command writes the Markdown file {md} itself
 RUNS=(
-  "single-viewer-quick|run|1|slc run single-viewer --quick"
+  "single-viewer-quick|run|2|slc run single-viewer --quick --scene atrium --scene sponza"
   "make-run|run|1|slc run single-viewer --quick --res 240x135 --methods rt16 rt48 slc --sweep"
   "adaptive-atrium|run|1|slc run single-viewer --quick --methods slc adaptive"
+  "single-viewer-320x180|run|14|slc run single-viewer --quick --res 320x180 --scene atrium --scene cornell --scene garden --scene hangar --scene lamps --scene skylit --scene spheres --scene sponza --scene street --scene two_rooms --scene village --methods rt48 restir slc slc:fetch=bilinear adaptive --sweep"
   "overlap|run|8|slc run overlap --quick"
   "random-viewers|run|5|slc run random-viewers --quick"
   "memory|run|4|slc run memory --quick"

@@ -12,6 +12,7 @@ import json
 import os
 from pathlib import Path
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 
@@ -47,7 +48,9 @@ def scene_hash(mi_scene: mi.Scene) -> str:
         v = params[k]
         h.update(k.encode())
         try:
-            a = np.asarray(v.matrix if hasattr(v, "matrix") else v)
+            # a copy: converting a literal (an emitter's scale) evaluates it in place, and a
+            # kernel that baked the literal would be compiled again in the next frame
+            a = np.asarray(dr.copy(v.matrix if hasattr(v, "matrix") else v))
         except (TypeError, ValueError):
             h.update(repr(v).encode())
             continue
