@@ -25,7 +25,8 @@ Per frame, for each node ``n`` and strategy:
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import time
+from dataclasses import dataclass, field, replace
 
 import drjit as dr
 import mitsuba as mi
@@ -56,6 +57,7 @@ class Traffic:
     request_bytes: int = 0
     record_bytes: int = 0
     records: int = 0
+    node_ms: dict = field(default_factory=dict)    # node -> ms of its exchange and shading
 
     @property
     def total(self) -> int:
@@ -109,7 +111,8 @@ class SharedCacheNodes:
     # ------------------------------------------------------------------ frame
     def step(self, ctx, gbuffers, timer) -> dict:
         """One frame (see the class). Returns ``single`` (all viewers' images from the owners'
-        values), ``rays`` (update rays of the frame, summed), ``owned_rays`` (per live node), and
+        values), ``rays`` (update rays of the frame, summed), ``owned_rays`` (per live node),
+        ``update_ms`` and ``shade_ms`` (the owners' update and the single-process shading), and
         per strategy label ``images`` (viewer -> image of the live nodes' viewers) and
         ``traffic`` (:class:`Traffic`)."""
         m = self.method
@@ -121,19 +124,25 @@ class SharedCacheNodes:
 
         # ------------------------------- owners: every requested entry updated once
         rays = mi.UInt32()
+        t0 = time.perf_counter()
         with timer.stage("update"):
             if n_active:
                 m.update_requested(ctx, fr)
                 rays = m.update_rays
                 dr.eval(m.storage, m.policy_state)
+                dr.sync_thread()
+        update_ms = 1e3 * (time.perf_counter() - t0)
         owner = owners(fr.keys, self.live) if n_active else mi.UInt32()
-        out = {"rays": int(dr.sum(rays)[0]) if n_active else 0,
+        out = {"rays": int(dr.sum(rays)[0]) if n_active else 0, "update_ms": update_ms,
                "owned_rays": {n: int(dr.sum(dr.select(owner == n, rays, 0))[0]) if n_active else 0
                               for n in self.live}}
 
         # ------------------------------- the single-process shared cache's images
+        t0 = time.perf_counter()
         with timer.stage("shade"):
             out["single"] = self._shade(ctx, fr, gbuffers, m.entry_state())
+            dr.sync_thread()
+        out["shade_ms"] = 1e3 * (time.perf_counter() - t0)
         if not n_active:
             return out
         rec = m.pack_records(fr.active)
@@ -149,11 +158,16 @@ class SharedCacheNodes:
                 traffic.record_bytes = owned_bytes * (len(self.live) - 1)
                 traffic.records = n_active * (len(self.live) - 1)
             for n in self.live:
+                t0 = time.perf_counter()
                 c = self._copy(s, n, auth, len(rec))
                 self._exchange(s, n, c, ctx.frame, fr, owner, rec, rec_bytes, traffic)
-                with timer.stage(f"node{n}"):
-                    nf = node_requests(fr, self.viewers[n])
+                nf = node_requests(fr, self.viewers[n])
+                # traced, not replayed: a node's arrays give recordings whose widths coincide with
+                # other inputs' differently from frame to frame, and Dr.Jit's replay can fail on them
+                with dr.scoped_set_flag(dr.JitFlag.KernelFreezing, False):
                     imgs = self._shade(ctx, nf, [gbuffers[v] for v in self.viewers[n]], c.state)
+                dr.sync_thread()
+                traffic.node_ms[n] = 1e3 * (time.perf_counter() - t0)
                 images.update(zip(self.viewers[n], imgs))
             m.set_entry_state(auth)
             out[s.label] = {"images": images, "traffic": traffic}

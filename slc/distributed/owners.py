@@ -62,6 +62,8 @@ class NodeCopy:
     def blank(cls, template: dict, capacity: int, words: int) -> "NodeCopy":
         """An empty copy shaped as ``template`` (the owner's entry state)."""
         state = {k: dr.zeros(type(v), dr.width(v)) for k, v in template.items()}
+        for v in state.values():
+            dr.make_opaque(v)      # in memory: frozen shading kernels take it as an input
         return cls(state, dr.zeros(mi.Bool, capacity), dr.zeros(mi.Bool, capacity),
                    [dr.zeros(mi.UInt32, capacity) for _ in range(words)])
 
