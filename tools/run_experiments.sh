@@ -36,5 +36,6 @@ run() {
 run single-viewer
 for e in overlap random-viewers memory stereo meeting; do run $e $MULTI; done
 for e in camera-speed many-lights point-lights envmap crc megaviews; do run $e --quick; done
+run distributed --quick
 "$SLC" bench rays > "$OUT/bench-rays.txt" 2>&1
 "$SLC" bench rays --scene sponza >> "$OUT/bench-rays.txt" 2>&1 || true
