@@ -9,6 +9,7 @@ Layers, bottom to top (a module may import from its own layer and the layers bel
     methods    the method contract (slc.methods: Method, Param, the registry)
     osc        the on-surface cache and its contract for cache methods
     method     one folder per method under slc/methods/ (baselines included)
+    distributed  render nodes sharing one surface cache (owners, records, the Ray actors)
     run        the frame loop, experiments, jobs, the command line, benchmarks
 
 Method folders do not import each other, except the representations named in ``SHARED`` below:
@@ -25,7 +26,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "slc"
 
-RANK = {"core": 0, "scene": 1, "reference": 2, "methods": 3, "osc": 4, "method": 5, "run": 6}
+RANK = {"core": 0, "scene": 1, "reference": 2, "methods": 3, "osc": 4, "method": 5, "distributed": 6, "run": 7}
 # method folders whose modules other methods may import (representations reused by a composite method)
 SHARED = {"adaptive": {"cones", "sh"}, "crc": {"sh"}, "oscgi": {"sh"}}
 MAX_LINES, MAX_LONG, LONG = 650, 5, 450

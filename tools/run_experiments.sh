@@ -53,6 +53,7 @@ RUNS=(
   "osc-gi|run|4|slc run osc-gi --quick"
   "osc-gi-160x90|run|12|slc run osc-gi --no-ablations --no-multi --no-memory --retime 3"
   "megaviews|run|4|slc run megaviews --quick"
+  "distributed-quick|run|5|slc run distributed --quick"
   "megaviews-scale|jsonl|6|python tools/megaviews_scale.py 65536 262144"
   "regir-sweep|md|6|python tools/regir_sweep.py --scenes atrium sponza --md {md}"
   "bench-rays|text|2|slc bench rays ; slc bench rays --scene sponza"

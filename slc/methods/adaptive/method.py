@@ -14,7 +14,7 @@ from slc.methods import register
 from slc.osc.payload import PayloadMethod, RayPolicy
 from slc.methods.sh.ycocg import encoding as get_encoding
 from slc.methods.adaptive import choice as ch
-from slc.methods.adaptive import cones_rep, sh_rep, vis_frozen, visibility
+from slc.methods.adaptive import cones_rep, records, sh_rep, vis_frozen, visibility
 from slc.methods.adaptive.choice import CONES, NONE, SH, VIS, ChoiceParams, Header
 from slc.methods.adaptive.pool import Pool
 from slc.methods.adaptive.env_lights import EnvLights
@@ -336,6 +336,11 @@ class AdaptiveCache(PayloadMethod):
             self._frames_seen += 1
             self._warm = self._frames_seen >= WARM_FRAMES
         return out
+
+    # ------------------------------------------------------------------ records (slc.methods.adaptive.records)
+    entry_state, set_entry_state, record_bytes = records.entry_state, records.set_entry_state, records.record_bytes
+
+    pack_records, unpack_records = records.pack_records, records.unpack_records
 
     # ------------------------------------------------------------------ shade
     def shade(self, ctx, fr, v, gb):

@@ -10,7 +10,7 @@ from slc.core.keys import INVALID
 from slc.methods import Param, register
 from slc.osc.payload import PayloadMethod, RayPolicy
 from slc.osc.protocol import BILINEAR_TAPS
-from slc.methods.cones.packing import words_per_entry
+from slc.methods.cones.packing import unpack, words_per_entry
 from slc.methods.cones.shading import shade_key, shader_for
 from slc.methods.cones.update import ConeParams
 from slc.methods.cones.update_kernel import update_entries, updater_for
@@ -239,6 +239,27 @@ class SurfaceLightCones(PayloadMethod):
             chosen = dr.select(take, s_j, chosen)
             done |= take
         return chosen
+
+    # ------------------------------------------------------------------ records
+    def record_change(self, old, new):
+        r"""How much an entry's cones changed between two records: the largest over its cones of
+        the radiance change :math:`\lvert L_c' - L_c \rvert` (luminance) relative to the entry's
+        total radiance, and of the axis turn in radians weighted by the cone's share of that
+        radiance; infinite when the number of cones changed (every lane: a new record)."""
+        K = self.max_cones
+        D0, _, L0, _, n0 = unpack(old, K)
+        D1, _, L1, _, n1 = unpack(new, K)
+        total = mi.Float(0.0)
+        for i in range(K):
+            total += dr.maximum(mi.luminance(L0[i]), mi.luminance(L1[i]))
+        inv = dr.select(total > 0.0, dr.rcp(dr.maximum(total, 1e-30)), 0.0)
+        change = mi.Float(0.0)
+        for i in range(K):
+            d_energy = dr.abs(mi.luminance(L1[i]) - mi.luminance(L0[i])) * inv
+            turn = dr.safe_acos(dr.clip(dr.dot(D0[i], D1[i]), -1.0, 1.0))
+            share = dr.maximum(mi.luminance(L0[i]), mi.luminance(L1[i])) * inv
+            change = dr.maximum(change, dr.maximum(d_energy, turn * share))
+        return dr.select(n0 != n1, dr.inf, change)
 
     def stats(self) -> dict:
         out = super().stats()

@@ -1,0 +1,119 @@
+"""Render nodes sharing one cache (slc.distributed): the owner protocol in one process and on a
+2-node local Ray cluster."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from slc import methods
+from slc.core.timing import NullTimer
+from slc.distributed.nodes import SharedCacheNodes, Strategy
+from slc.distributed.owners import owners
+from slc.distributed.run import gbuffers
+from slc.methods import FrameContext
+from slc.scene import views
+
+W, H, FRAMES = 64, 36, 3
+
+
+def _plain(scene, spec, vs, frames):
+    """The single-process shared cache's images of the last frame (the pipeline's method)."""
+    m = methods.create(spec, scene, seed=0)
+    for f in range(frames):
+        outs = m.render(FrameContext(frame=f), gbuffers(scene, vs, f, W, H), NullTimer())
+    return [np.array(o) for o in outs]
+
+
+@pytest.mark.parametrize("spec", ["slc", pytest.param("adaptive", marks=pytest.mark.slow)])
+def test_owner_protocol_with_delay_0_and_threshold_0_gives_the_shared_cache_images(scene, spec):
+    s = scene("atrium")
+    vs = views.overlap_rig(s, 4, 0.5, aspect=W / H)
+    strategies = [Strategy("full"), Strategy("sparse", 0, 0.0), Strategy("sparse", 2, 0.0)]
+    nodes = SharedCacheNodes(methods.create(spec, s, seed=0), 2, len(vs), strategies)
+    for f in range(FRAMES):
+        out = nodes.step(FrameContext(frame=f), gbuffers(s, vs, f, W, H), NullTimer())
+    plain = _plain(s, spec, vs, FRAMES)
+    for v, img in enumerate(out["single"]):
+        assert np.array_equal(np.array(img), plain[v])
+    for st in strategies[:2]:
+        imgs = out[st.label]["images"]
+        assert sorted(imgs) == list(range(len(vs)))
+        for v, img in imgs.items():
+            assert np.array_equal(np.array(img), plain[v]), (st.label, v)
+    # a delay of 2 frames: the images differ while records are on their way
+    assert any(not np.array_equal(np.array(i), plain[v]) for v, i in out[strategies[2].label]["images"].items())
+    # sparse sends fewer bytes than full replication
+    assert out[strategies[1].label]["traffic"].total < out[strategies[0].label]["traffic"].total
+
+
+def test_rendezvous_owners_move_only_the_entries_of_a_node_that_left():
+    keys = dr.arange(mi.UInt32, 4096) * 2654435761
+    before, after = np.array(owners(keys, [0, 1, 2])), np.array(owners(keys, [0, 2]))
+    assert set(np.unique(before)) == {0, 1, 2}
+    moved = before != after
+    assert np.all(before[moved] == 1) and np.all(after[before == 1] != 1)
+
+
+def test_a_killed_node_in_process_leaves_no_entry_missing(scene):
+    s = scene("atrium")
+    vs = views.overlap_rig(s, 4, 0.5, aspect=W / H)
+    nodes = SharedCacheNodes(methods.create("slc", s, seed=0), 2, len(vs), [Strategy("sparse", 0, 0.0)])
+    for f in range(FRAMES):
+        if f == 1:
+            nodes.kill(1)
+        out = nodes.step(FrameContext(frame=f), gbuffers(s, vs, f, W, H), NullTimer())
+    imgs = out["sparse-d0-t0"]["images"]
+    assert sorted(imgs) == [0, 2]          # node 0's viewers go on
+    plain = _plain(s, "slc", vs, FRAMES)
+    assert any(not np.array_equal(np.array(imgs[v]), plain[v]) for v in imgs)   # re-owned entries start anew
+
+
+# ---------------------------------------------------------------------------------------------
+# a 2-node local Ray cluster
+# ---------------------------------------------------------------------------------------------
+
+@pytest.fixture
+def ray_cluster():
+    ray = pytest.importorskip("ray")
+    from ray.cluster_utils import Cluster
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1})
+    try:
+        cluster.add_node(num_cpus=1)
+        cluster.wait_for_nodes()
+        ray.init(address=cluster.address, include_dashboard=False, log_to_driver=False)
+        yield cluster
+    finally:
+        if ray.is_initialized():
+            ray.shutdown()
+        cluster.shutdown()
+
+
+def _env() -> dict:
+    from slc.core import backend
+    root = str(Path(__file__).resolve().parents[1])
+    return {"PYTHONPATH": root, "SLC_VARIANT": backend.variant(), "SLC_CACHE": os.environ["SLC_CACHE"]}
+
+
+@pytest.mark.slow
+def test_ray_nodes_give_the_shared_cache_images_and_survive_a_killed_node(ray_cluster, scene):
+    from slc.distributed.actors import NodeCluster, rig_viewers
+    rig = ("overlap", 2, 0.5, True)
+    nodes = NodeCluster(2, "atrium", "slc", rig, W, H, threshold=0.0, env=_env())
+    for f in range(FRAMES):
+        out = nodes.step(f)
+    s = scene("atrium")
+    plain = _plain(s, "slc", rig_viewers(s, *rig), FRAMES)
+    assert sorted(out["images"]) == [0, 1]
+    for v, img in out["images"].items():
+        assert np.array_equal(img, plain[v])
+    assert out["foreign"] == 0 and out["missing"] == 0     # no owner got its own entries; none missing
+    assert nodes.bytes[-1] > 0
+    nodes.kill(1)
+    for f in range(FRAMES, FRAMES + 2):
+        out = nodes.step(f)
+    assert sorted(out["images"]) == [0] and out["missing"] == 0
