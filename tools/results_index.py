@@ -8,7 +8,7 @@ Usage (from the repository root):
     python tools/results_index.py fill-readme README.md RESULTS.md [--marker single-viewer]
 
 ``stamp`` writes a provenance line at the top of a result file: the command, the date (UTC), the
-machine (CPU model and cores), the code version (``git describe --always --dirty``), the wall time
+machine (CPU model and cores), the code version (:func:`code_version`), the wall time
 and the load average at the end of the run. Markdown files get it as an italic line, text files as a
 ``#`` comment; both read ``key: value`` fields split by `` · ``.
 
@@ -56,11 +56,16 @@ def machine() -> str:
 
 
 def code_version(repo: Path = REPO) -> str:
-    """``git describe --always --dirty`` of the checkout, or ``unknown`` outside git."""
+    """The checkout's commit (``git describe --always --tags``), ``-dirty`` when a file outside
+    the published results (``docs/results``, ``README.md``: what the run itself writes) differs
+    from it; ``unknown`` outside git."""
     try:
-        out = subprocess.run(["git", "-C", str(repo), "describe", "--always", "--dirty", "--tags"],
+        out = subprocess.run(["git", "-C", str(repo), "describe", "--always", "--tags"],
                              capture_output=True, text=True, check=True)
-        return out.stdout.strip() or "unknown"
+        changed = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--untracked-files=no", "--",
+                                  ".", ":!docs/results", ":!README.md"], capture_output=True, text=True, check=True)
+        version = out.stdout.strip() or "unknown"
+        return version + ("-dirty" if changed.stdout.strip() else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 
