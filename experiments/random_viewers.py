@@ -36,6 +36,7 @@ def run(opts):
     from slc.scene import random_walks, views
 
     from slc.run.pipeline import gbuffers_for
+    from slc.core.timing import stage_table
 
     overlaps = {}
 
@@ -71,6 +72,8 @@ def run(opts):
         if "slc" in get and "restir" in get:
             md += (f"- {name}, {n} viewers: slc is {ex.ratio(get['restir']['time_ms'], get['slc']['time_ms']):.2f}x "
                    f"faster than restir; FLIP slc {get['slc']['flip']:.4f} vs restir {get['restir']['flip']:.4f}\n")
+    md += ("\n## Where the time goes (median ms per stage; kernel execution in brackets, the rest is host time)\n\n"
+           + stage_table(rows, ("scene", "label", "viewers")))
     return ex.finish(NAME, out, opts, cfg, names, specs, rows, md, {"viewers": counts})
 
 

@@ -43,6 +43,7 @@ def run(opts) -> dict:
 
     from slc.run import experiment as ex
     from slc.run import plots
+    from slc.core.timing import stage_table
     from slc.run.images import save_strip
     from slc.scene import views
     from slc.run.pipeline import RunConfig
@@ -87,6 +88,8 @@ def run(opts) -> dict:
               + [("startup_ms", "start-up t [ms]"), ("compiled_after_warmup", "kernels after warm-up")]
               + ex.DEFAULT_COLUMNS[4:]) + "\n")
     md += _targets(rows)
+    md += ("\n## Where the time goes (median ms per stage; kernel execution in brackets, the rest is host time)\n\n"
+           + stage_table([r for r in rows if not r["sweep"]], ("scene", "setting")))
     sweep_rows = [r for r in rows if r["sweep"]]
     if sweep_rows:
         md += "\n## Speed-against-error sweep\n\n" + ex.markdown_table(

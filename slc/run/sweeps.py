@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from slc.core.timing import stage_table
 from slc.run.experiment import (DEFAULT_COLUMNS, add_startup, apply_common, available_methods, each_scene,
                                 load_and_validate, markdown_table, results_object, run_cases, strip_private,
                                 write_results)
@@ -43,7 +44,9 @@ def variant_experiment(opts, name: str, preset: dict, specs: list[str], variants
         [("startup_ms", "start-up [ms]"), ("compiled_after_warmup", "kernels after warm-up")] + DEFAULT_COLUMNS[4:]
     md = (f"# {name}\n\n{cfg.width}x{cfg.height}, {cfg.frames} frames ({cfg.warmup} warm-up), one viewer; "
           f"quality on frames {cfg.evaluated()} against {cfg.gt_spp}-sample ground truth; time = median DI ms "
-          f"per frame.\n\n" + markdown_table(rows, columns) + "\n")
+          f"per frame.\n\n" + markdown_table(rows, columns) + "\n"
+          + "\n## Where the time goes (median ms per stage; kernel execution in brackets, the rest is host time)\n\n"
+          + stage_table(rows, ("scene", "setting")))
     config = {"quick": bool(opts.quick), "methods": specs, "variants": [list(v) for v in variants],
               "width": cfg.width, "height": cfg.height, "frames": cfg.frames, "warmup": cfg.warmup,
               "eval_frames": cfg.evaluated(), "seed": cfg.seed, "gt_spp": cfg.gt_spp}
