@@ -123,7 +123,7 @@ Every file here is written by one command, each experiment a first run on an emp
 cache (`HOME` pointed at a new empty folder; the reference cache `SLC_CACHE` kept):
 
 ```sh
-tools/run_experiments.sh docs/results            # all of them, quick presets (about 90 minutes on 2 cores)
+tools/run_experiments.sh docs/results            # all of them, quick presets (about 30 minutes on 2 cores)
 tools/run_experiments.sh docs/results --only crc # a subset, by the names in the first column
 ```
 
@@ -157,6 +157,11 @@ def index_markdown(rows: list[dict[str, str]]) -> str:
         cmd = f"`{r['command']}`" if r["command"] != "-" else "-"
         lines.append(f"| {r['experiment']} | {cmd} | {r['date']} | {r['machine']} | {r['code']} "
                      f"| {r['wall time']} | [{r['file']}]({r['file']}) |")
+    walls = [float(r["wall time"].split()[0]) for r in rows if r["wall time"].endswith(" s")]
+    dates = sorted(r["date"] for r in rows if r["date"] != "-")
+    if walls:
+        lines.append(f"\nThe whole run: {sum(walls) / 60:.0f} min of wall time over {len(walls)} files"
+                     + (f", {dates[0]} to {dates[-1]}" if dates else "") + ".")
     return "\n".join(lines) + "\n"
 
 

@@ -19,9 +19,9 @@
 # Every experiment runs its --quick preset (or the small form listed). The full presets (slc run
 # NAME without --quick: 320x180, 240 frames, several scenes) take hours each on 2 cores and are
 # not run here. The estimates are minutes on 2 idle cores with an empty kernel cache (kernel
-# compilation included), from the recorded runs of the same presets; the whole list: about 90
-# minutes. Left out as too long: megaviews_scale.py at 1M views (ManyLoDs alone about 18 min) and
-# the osc-gi multi-viewer full preset.
+# compilation included), from a run of the whole list: about 30 minutes. Left out as too long:
+# megaviews_scale.py at 1M views (ManyLoDs alone about 18 min) and the osc-gi multi-viewer full
+# preset.
 # The interpreter is .venv/bin/python (or $PYTHON_BIN) running this checkout's slc.
 set -uo pipefail
 REPO=$(cd "$(dirname "$0")/.." && pwd)
@@ -34,30 +34,30 @@ export SLC_CACHE=${SLC_CACHE:-$HOME/.cache/slc}
 #       jsonl = the JSON lines the command prints become a Markdown table NAME.md
 #       md   = the command writes the Markdown file {md} itself
 RUNS=(
-  "single-viewer-quick|run|2|slc run single-viewer --quick --scene atrium --scene sponza"
+  "single-viewer-quick|run|1|slc run single-viewer --quick --scene atrium --scene sponza"
   "make-run|run|1|slc run single-viewer --quick --res 240x135 --methods rt16 rt48 slc --sweep"
   "adaptive-atrium|run|1|slc run single-viewer --quick --methods slc adaptive"
-  "single-viewer-320x180|run|14|slc run single-viewer --quick --res 320x180 --scene atrium --scene cornell --scene garden --scene hangar --scene lamps --scene skylit --scene spheres --scene sponza --scene street --scene two_rooms --scene village --methods rt48 restir slc slc:fetch=bilinear adaptive --sweep"
-  "overlap|run|8|slc run overlap --quick"
-  "random-viewers|run|5|slc run random-viewers --quick"
-  "memory|run|4|slc run memory --quick"
-  "stereo|run|3|slc run stereo --quick"
-  "meeting-320x180|run|6|slc run meeting --quick --res 320x180"
-  "camera-speed|run|5|slc run camera-speed --quick"
-  "many-lights|run|5|slc run many-lights --quick"
-  "point-lights|run|3|slc run point-lights --quick"
-  "envmap|run|3|slc run envmap --quick"
-  "slc-error-terms|run|3|slc run slc-error-terms --quick"
-  "slc-moving-lights|run|3|slc run slc-moving-lights --quick"
-  "crc|run|4|slc run crc --quick"
-  "osc-gi|run|4|slc run osc-gi --quick"
-  "osc-gi-160x90|run|12|slc run osc-gi --no-ablations --no-multi --no-memory --retime 3"
-  "megaviews|run|4|slc run megaviews --quick"
-  "distributed-quick|run|5|slc run distributed --quick"
-  "megaviews-scale|jsonl|6|python tools/megaviews_scale.py 65536 262144"
-  "regir-sweep|md|6|python tools/regir_sweep.py --scenes atrium sponza --md {md}"
-  "bench-rays|text|2|slc bench rays ; slc bench rays --scene sponza"
-  "bench-update|text|2|slc bench update --scene atrium ; slc bench update --scene sponza"
+  "single-viewer-320x180|run|7|slc run single-viewer --quick --res 320x180 --scene atrium --scene cornell --scene garden --scene hangar --scene lamps --scene skylit --scene spheres --scene sponza --scene street --scene two_rooms --scene village --methods rt48 restir slc slc:fetch=bilinear adaptive --sweep"
+  "overlap|run|2|slc run overlap --quick"
+  "random-viewers|run|1|slc run random-viewers --quick"
+  "memory|run|2|slc run memory --quick"
+  "stereo|run|2|slc run stereo --quick"
+  "meeting-320x180|run|2|slc run meeting --quick --res 320x180"
+  "camera-speed|run|1|slc run camera-speed --quick"
+  "many-lights|run|2|slc run many-lights --quick"
+  "point-lights|run|1|slc run point-lights --quick"
+  "envmap|run|1|slc run envmap --quick"
+  "slc-error-terms|run|1|slc run slc-error-terms --quick"
+  "slc-moving-lights|run|1|slc run slc-moving-lights --quick"
+  "crc|run|1|slc run crc --quick"
+  "osc-gi|run|1|slc run osc-gi --quick"
+  "osc-gi-160x90|run|2|slc run osc-gi --no-ablations --no-multi --no-memory --retime 3"
+  "megaviews|run|1|slc run megaviews --quick"
+  "distributed-quick|run|2|slc run distributed --quick"
+  "megaviews-scale|jsonl|1|python tools/megaviews_scale.py 65536 262144"
+  "regir-sweep|md|1|python tools/regir_sweep.py --scenes atrium sponza --md {md}"
+  "bench-rays|text|1|slc bench rays ; slc bench rays --scene sponza"
+  "bench-update|text|1|slc bench update --scene atrium ; slc bench update --scene sponza"
 )
 
 OUT=out/results
