@@ -152,6 +152,7 @@ class OSCGI(PrimaryUpdate, PayloadMethod):
     glossy_hits = True        # primary rays hitting glossy/metal surfaces: NEE + one BSDF ray into a cell
     direct_lds = True         # direct=rt: a pixel's light samples are a randomly shifted Hammersley set
     parallax = True           # spatial filter: parallax-corrected directions
+    filter_symmetric = True   # spatial filter: point-symmetric support (no bias along island borders)
     filter_angle = 25.0       # spatial filter: largest normal difference and parallax turn [deg]
     secondary_slots = 17      # log2 of the secondary hash table's size
     secondary_evict = 4       # secondary cells unused for this many frames are freed
@@ -165,7 +166,7 @@ class OSCGI(PrimaryUpdate, PayloadMethod):
         # an entry's words: 3 per texel (radiance), then the irradiance (3), the update count, the mean 1/t
         D = self.grid.n
         self.words, self.irr_word, self.count_word, self.inv_t_word = 3 * D + 5, 3 * D, 3 * D + 3, 3 * D + 4
-        self.filter = SpatialFilter(self.filter_radius, self.filter_angle, self.parallax)
+        self.filter = SpatialFilter(self.filter_radius, self.filter_angle, self.parallax, self.filter_symmetric)
         self.label = None if self.output == "full" else "osc-gi:output=indirect"
         # traced once and replayed (FrozenFunction): a new width of the inputs needs no recording;
         # a call narrower than 2 lanes is traced (narrow: the argument whose width decides)

@@ -3,7 +3,11 @@ angle-error detection, parallax-corrected directions").
 
 For an active entry x at texel (t_x, t_y) of its island and level, the neighbours are the entries
 y at (t_x + dx, t_y + dy), |dx|, |dy| <= ``radius``, of the **same island and level** (never across
-an island border), whose block is mapped and which hold a value (update count > 0). Texel k of x
+an island border), whose block is mapped and which hold a value (update count > 0), and whose
+mirror offset (-dx, -dy) is such a neighbour too (**point-symmetric support**: where an island
+border or an unmapped block truncates the kernel on one side, the other side is truncated alike,
+so the kernel stays centred and a linear gradient across the texels is reproduced, not pulled
+towards the island's inside; ``symmetric``). Texel k of x
 (direction :math:`\omega_k`, the texel's centre in x's frame) is filtered as
 
 .. math:: \tilde L_k(x) = \frac{\sum_y w_y\, a_{y,k}\, L_{k'(y)}(y)}{\sum_y w_y\, a_{y,k}},
@@ -39,8 +43,8 @@ class SpatialFilter:
     """Radius-``radius`` island-local blur of primary cache entries (see the module);
     ``angle`` (degrees) bounds the normal difference and the parallax correction."""
 
-    def __init__(self, radius: int = 3, angle: float = 25.0, parallax: bool = True):
-        self.r, self.angle, self.parallax = int(radius), float(angle), bool(parallax)
+    def __init__(self, radius: int = 3, angle: float = 25.0, parallax: bool = True, symmetric: bool = True):
+        self.r, self.angle, self.parallax, self.symmetric = int(radius), float(angle), bool(parallax), bool(symmetric)
         self.cos_max = math.cos(math.radians(self.angle))
 
     def apply(self, m, fr) -> mi.Float:
@@ -70,6 +74,11 @@ class SpatialFilter:
         ok = sy != INVALID
         ok &= m.read(sy, m.count_word, ok) > 0.0       # holds a value
         dr.eval(sy, ok)
+        if self.symmetric:
+            # point-symmetric support: offset (dx, dy) counts only with (-dx, -dy), index M-1-j
+            ok_mirror = dr.gather(mi.Bool, ok, e * M + (M - 1 - j))
+            ok &= ok_mirror
+            dr.eval(ok)
         # neighbours' points and normals (the cache's own surface points), valid pairs only
         pv = dr.compress(ok)
         siy = topo.entry_points(dr.gather(mi.UInt32, sy, pv), dr.gather(mi.UInt32, isl, dr.gather(mi.UInt32, e, pv)))
