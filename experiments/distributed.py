@@ -32,7 +32,7 @@ FULL = dict(scenes=["atrium"], nodes=4, viewers=16, overlaps=[25, 50, 100], rigs
             delays=[0, 1, 2, 4], cameras=["static", "moving"], width=96, height=54, frames=60, warmup=30)
 QUICK = dict(scenes=["atrium"], nodes=4, viewers=16, overlaps=[50], rigs=["overlap", "random"],
              delays=[0, 2], cameras=["static", "moving"], width=64, height=36, frames=40, warmup=20)
-DEFAULT_THRESHOLD = 0.1
+DEFAULT_THRESHOLD = 0.07
 
 
 def add_arguments(p):
