@@ -20,7 +20,7 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from slc.distributed.run import LINKS, RigRun, run_rig, strategies_for  # noqa: E402
+from slc.distributed.run import DEFAULT_THRESHOLD, LINKS, RigRun, run_rig, strategies_for  # noqa: E402
 from slc.run import experiment as ex  # noqa: E402
 from slc.run.errors import ExperimentError  # noqa: E402
 from slc.scene import views  # noqa: E402
@@ -32,7 +32,6 @@ FULL = dict(scenes=["atrium"], nodes=4, viewers=16, overlaps=[25, 50, 100], rigs
             delays=[0, 1, 2, 4], cameras=["static", "moving"], width=96, height=54, frames=60, warmup=30)
 QUICK = dict(scenes=["atrium"], nodes=4, viewers=16, overlaps=[50], rigs=["overlap", "random"],
              delays=[0, 2], cameras=["static", "moving"], width=64, height=36, frames=40, warmup=20)
-DEFAULT_THRESHOLD = 0.07
 
 
 def add_arguments(p):

@@ -27,8 +27,10 @@ import ray
 from slc import methods
 from slc.core.keys import INVALID
 from slc.distributed.owners import count, mask_of, owners
+from slc.distributed.run import gbuffers
 from slc.methods import FrameContext
 from slc.core.timing import NullTimer
+from slc.reference.references import image_of
 from slc.scene import gbuffer as gbuf
 from slc.scene import scenes, views
 from slc.scene.camera import Viewer
@@ -209,3 +211,41 @@ class NodeCluster:
             images.update(r["images"])
         return {"images": images, "missing": sum(r["missing"] for r in res),
                 "foreign": sum(r["foreign"] for r in res)}
+
+
+def render_on_nodes(scene: str, spec: str, n_nodes: int, rig: tuple, width: int, height: int, frames: int,
+                    threshold: float, seed: int = 0, address: str | None = None, output: str = "direct") -> dict:
+    """Render ``frames`` frames of ``rig`` ((name, viewers, overlap, static)) on ``n_nodes``
+    :class:`RenderNode` actors with sparse owner updates at ``threshold`` (``slc render
+    --nodes``): on a local Ray instance of ``n_nodes`` CPUs, or on the cluster at ``address``.
+    Returns the last frame's images (viewer index -> HxWx3, composed as the pipeline composes
+    the method's ``output``) and the bytes sent per frame.
+    Ray is shut down afterwards if this call started it."""
+    import os
+
+    from slc.core import backend
+    own = not ray.is_initialized()
+    if own:
+        if address:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False)
+        else:
+            ray.init(num_cpus=n_nodes, include_dashboard=False, log_to_driver=False)
+    try:
+        env = {"SLC_VARIANT": backend.variant()}
+        if "SLC_CACHE" in os.environ:
+            env["SLC_CACHE"] = os.environ["SLC_CACHE"]
+        nodes = NodeCluster(n_nodes, scene, spec, rig, width, height, threshold=threshold, seed=seed, env=env)
+        out = {}
+        for f in range(frames):
+            out = nodes.step(f)
+        # composed with the emission seen directly, as the pipeline's images (the driver's own
+        # G-buffers of the last frame; the arrays Ray hands over are read-only, these are copies)
+        s = scenes.load(scene)
+        vs = rig_viewers(s, *rig)
+        gbs = gbuffers(s, vs, frames - 1, width, height)
+        images = {v: image_of(output, gbs[v], mi.Color3f(np.array(img, np.float32)))
+                  for v, img in out.get("images", {}).items()}
+        return {"images": images, "bytes_per_frame": nodes.bytes, "missing": out.get("missing", 0)}
+    finally:
+        if own:
+            ray.shutdown()

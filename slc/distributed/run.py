@@ -26,6 +26,9 @@ from slc.scene import gbuffer as gbuf
 
 # the links of the model column: (name, Gbit/s, one-way latency in ms)
 LINKS = (("10g_1ms", 10.0, 1.0), ("100g_0.1ms", 100.0, 0.1))
+# sparse updates: a record is sent again when its entry changed by more than this
+# (PayloadMethod.record_change); chosen by measurement in docs/distributed.md, "The threshold"
+DEFAULT_THRESHOLD = 0.07
 
 
 @dataclass

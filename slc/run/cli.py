@@ -105,7 +105,15 @@ def methods_cmd():
               help="compare the last frame with the reference of the method's output kind "
                    "(direct: ground truth; indirect: indirect reference; full: both)")
 @click.option("--out", default="out/render", show_default=True)
-def render_cmd(scene_name, method, viewers, rig, overlap, res, frames, warmup, seed, gt, out):
+@click.option("--nodes", default=0, show_default=True, type=int,
+              help="render nodes (Ray actors) sharing one cache by owner-based sparse updates; viewers go "
+                   "to nodes round-robin (0: one process, no Ray; a cache method with records: slc, sh, adaptive)")
+@click.option("--threshold", default=None, type=float,
+              help="with --nodes: an owner resends an entry's record when it changed by more than this "
+                   "(the payload's own measure; default 0.07, docs/distributed.md)")
+@click.option("--address", default=None, help="with --nodes: a running Ray cluster (HOST:PORT); default a local instance")
+def render_cmd(scene_name, method, viewers, rig, overlap, res, frames, warmup, seed, gt, out, nodes, threshold,
+               address):
     """Render a sequence with one method; write images and timings."""
     # after --variant (the module builds Mitsuba types on import)
     from slc.core import io
@@ -121,6 +129,10 @@ def render_cmd(scene_name, method, viewers, rig, overlap, res, frames, warmup, s
         vs = views.make_rig(s, rig, viewers, overlap)
     except ValueError as e:
         _fail(str(e))
+    if nodes:
+        _render_on_nodes(scene_name, method, s, m, vs, nodes, threshold, address, (rig, viewers, overlap),
+                         (w, h), frames, seed, gt, out)
+        return
     cfg = RunConfig(width=w, height=h, frames=frames, warmup=min(warmup, frames - 1), seed=seed,
                     eval_frames=[frames - 1] if gt else [])
     from tqdm import tqdm
@@ -137,6 +149,37 @@ def render_cmd(scene_name, method, viewers, rig, overlap, res, frames, warmup, s
     click.echo(f"{s.name} {m.name} ({m.output} light) viewers={len(vs)}: {r.time_ms:.2f} ms/frame (median after "
                f"{cfg.warmup} warm-up)" + "".join(f", {k} {v:.4f}" for k, v in r.metrics.items())
                + (f" vs the {m.output} reference" if r.metrics else ""))
+    click.echo(f"wrote {outd}")
+
+
+def _render_on_nodes(scene_name, spec, s, m, vs, nodes, threshold, address, rig, size, frames, seed, gt, out):
+    """``slc render --nodes K``: the viewers of ``rig`` ((name, viewers, overlap)) on K Ray render
+    nodes (:func:`slc.distributed.actors.render_on_nodes`); ``s``, ``m``, ``vs``: the scene,
+    method and viewers loaded here to check the input before Ray starts."""
+    from slc.core import io
+    from slc.osc.payload import PayloadMethod
+    if nodes < 1 or nodes > len(vs):
+        _fail(f"--nodes must be between 1 and the number of viewers ({len(vs)}), got {nodes}")
+    if not isinstance(m, PayloadMethod):
+        _fail(f"--nodes needs a cache method whose entries are records (slc, sh, adaptive); '{m.name}' has none")
+    if gt:
+        _fail("--gt is not available with --nodes (slc run distributed compares the nodes' images)")
+    # Ray and the actors only when nodes are asked for
+    from slc.distributed.actors import render_on_nodes
+    from slc.distributed.run import DEFAULT_THRESHOLD
+    t = DEFAULT_THRESHOLD if threshold is None else threshold
+    if t < 0:
+        _fail(f"--threshold must be >= 0, got {t}")
+    res = render_on_nodes(scene_name, spec, nodes, (*rig, False), *size, frames, t, seed=seed, address=address,
+                          output=m.output)
+    outd = Path(out)
+    for v, img in sorted(res["images"].items()):
+        io.write_hdr_and_png(outd / f"{s.name}_{m.name}_node{v % nodes}_{vs[v].name}", img, s.exposure)
+    sent = res["bytes_per_frame"]
+    io.write_json(outd / "nodes.json", {"scene": s.name, "method": spec, "nodes": nodes, "threshold": t,
+                                        "bytes_per_frame": sent, "missing": res["missing"]})
+    click.echo(f"{s.name} {m.name} on {nodes} nodes, viewers={len(vs)}: {sum(sent) / max(len(sent), 1):.0f} bytes "
+               f"per frame sent (mean over {len(sent)} frames), threshold {t:g}")
     click.echo(f"wrote {outd}")
 
 
