@@ -17,6 +17,7 @@ entries are re-owned by the survivors and start anew there.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import replace
 
 import drjit as dr
@@ -25,6 +26,7 @@ import numpy as np
 import ray
 
 from slc import methods
+from slc.core import backend
 from slc.core.keys import INVALID
 from slc.distributed.owners import count, mask_of, owners
 from slc.distributed.run import gbuffers
@@ -221,9 +223,6 @@ def render_on_nodes(scene: str, spec: str, n_nodes: int, rig: tuple, width: int,
     Returns the last frame's images (viewer index -> HxWx3, composed as the pipeline composes
     the method's ``output``) and the bytes sent per frame.
     Ray is shut down afterwards if this call started it."""
-    import os
-
-    from slc.core import backend
     own = not ray.is_initialized()
     if own:
         if address:

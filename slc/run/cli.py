@@ -156,6 +156,7 @@ def _render_on_nodes(scene_name, spec, s, m, vs, nodes, threshold, address, rig,
     """``slc render --nodes K``: the viewers of ``rig`` ((name, viewers, overlap)) on K Ray render
     nodes (:func:`slc.distributed.actors.render_on_nodes`); ``s``, ``m``, ``vs``: the scene,
     method and viewers loaded here to check the input before Ray starts."""
+    # after --variant (the modules build Mitsuba types on import)
     from slc.core import io
     from slc.osc.payload import PayloadMethod
     if nodes < 1 or nodes > len(vs):
