@@ -648,11 +648,12 @@ SUN_BOUNDS = {"rt16": (0.02, 0.0102), "restir": (0.02, 0.0137), "slc": (0.02, 0.
 
 
 # slc at its default settings under the hemisphere-sized light (a 120 m square 2 m above the
-# plane, closed form): measured mean -16.6%, per-pixel 73.4% at 32x24 after 10 frames (the
-# cones' energy is right, but three cones gather round the horizon, where most area samples
-# land, and spread the zenith's light over low elevations; per pixel, the area samples' variance;
-# docs/hard-cases.md). Target (5%, 10%); the ceiling test holds the miss to 1.5x its measured size.
-HEMISPHERE_SLC = {"measured": (0.166, 0.734), "target": (0.05, 0.10)}
+# plane, closed form): measured mean +6.6%, per-pixel 6.9% at 32x24 after 10 frames. The update's
+# light samples are uniform in the triangles' solid angle, so the per-pixel error is within its
+# target; the mean is not: a cone spreads L_c uniformly over its whole cap, while its samples
+# are those nearest its axis among overlapping cones (docs/hard-cases.md). Target (5%, 10%); the
+# ceiling test holds the miss to 1.5x its measured size.
+HEMISPHERE_SLC = {"measured": (0.0657, 0.0693), "target": (0.05, 0.10)}
 
 
 def _hemisphere_slc_errors():
@@ -670,7 +671,7 @@ def _hemisphere_slc_errors():
 
 
 @pytest.mark.xfail(strict=True, raises=AssertionError,
-                   reason="slc's default 3 cones under a hemisphere-sized light: mean -16.6%, per-pixel 73.4%")
+                   reason="slc's default 3 cones under a hemisphere-sized light: mean +6.6%, per-pixel 6.9%")
 def test_slc_hemisphere_sized_light_default_settings():
     """slc with its default settings under the hemisphere-sized light, in check mode,
     against the closed form of the rectangle: within (5%, 10%)."""

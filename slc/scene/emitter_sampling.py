@@ -27,6 +27,7 @@ import os
 import drjit as dr
 import mitsuba as mi
 
+from slc.scene import spherical
 from slc.scene.emitter_table import (MESH, OTHER, POINT, RECT, ROW, ROW_E0, ROW_E1, ROW_EM, ROW_L, ROW_P0, ROW_PA,
                                      SPHERE, EmitterTable, outside_symbolic)
 
@@ -90,8 +91,8 @@ class EmitterSampler(EmitterTable):
 
     # ------------------------------------------------------------------ sampling
 
-    def sample(self, si: mi.SurfaceInteraction3f, u: mi.Point2f, active: mi.Bool):
-        """One function because it is one traced sample whose stages (emitter, entry, one branch
+    def sample(self, si: mi.SurfaceInteraction3f, u: mi.Point2f, active: mi.Bool, solid_angle: bool = False):
+        r"""One function because it is one traced sample whose stages (emitter, entry, one branch
         per kind, the weight) write the same point, normal, density and radiance lanes; its
         stages are marked by banner comments.
 
@@ -99,7 +100,13 @@ class EmitterSampler(EmitterTable):
         Color3f, mask, emitter index). ``ds.pdf`` is the solid-angle density
         with the emitter choice in it (the choice probability alone for
         point lights, ``ds.delta``); the mask is false where no sample exists
-        (pdf 0, back side of a one-sided emitter, zero radiance)."""
+        (pdf 0, back side of a one-sided emitter, zero radiance).
+
+        ``solid_angle``: a mesh triangle is sampled uniformly in the solid angle
+        it subtends (:func:`slc.scene.spherical.sample_triangle`; by area where
+        that is small or nearly a hemisphere), density
+        :math:`P(e) P(t|e) / \Omega_t`. :meth:`pdf` knows only area sampling:
+        use it for estimators without MIS (the cache updates)."""
         active = mi.Bool(active)
 
         # ------------------------ emitter: by u.x ------------------------
@@ -156,13 +163,23 @@ class EmitterSampler(EmitterTable):
             b = mi.warp.square_to_uniform_triangle(u2)
             b = dr.select(kind == MESH, mi.Vector2f(b), mi.Vector2f(u2))
             pf = p0 + e0 * b.x + e1 * b.y
+            sa = None
+            if solid_angle and MESH in present:
+                ps, omega, sa, ok_sa = spherical.sample_triangle(si.p, p0, e0, e1, u2, flat & (kind == MESH))
+                pf = dr.select(sa, ps, pf)
             to = pf - si.p
             d2 = dr.squared_norm(to)
             cos_y = -dr.dot(to, nf) * dr.rsqrt(dr.select(d2 > 0.0, d2, 1.0))
             ok_f = flat & (cos_y > 0.0) & (d2 > 0.0)
             p = dr.select(flat, pf, p)
             n = dr.select(flat, nf, n)
-            pdf = dr.select(ok_f, pa * d2 / dr.select(ok_f, cos_y, 1.0), pdf)
+            pdf_f = pa * d2 / dr.select(ok_f, cos_y, 1.0)
+            if sa is not None:
+                # P(e) P(t|e) / Omega_t, with P(e) P(t|e) = pa A_t
+                ok_f &= ~sa | ok_sa
+                a_t = 0.5 * dr.norm(dr.cross(e0, e1))
+                pdf_f = dr.select(sa, pa * a_t / dr.select(sa & (omega > 0.0), omega, 1.0), pdf_f)
+            pdf = dr.select(ok_f, pdf_f, pdf)
 
         # ------------------ spheres: uniform in the subtended cone ------------------
         if SPHERE in present:

@@ -84,16 +84,20 @@ def rng(n: int, seed: int, stream: int = 0) -> mi.PCG32:
     return mi.PCG32(size=n, initstate=stream_state(seed, stream), initseq=dr.arange(mi.UInt64, n))
 
 
-def sample_light(scene: mi.Scene, si: mi.SurfaceInteraction3f, u: mi.Point2f, active: mi.Bool):
+def sample_light(scene: mi.Scene, si: mi.SurfaceInteraction3f, u: mi.Point2f, active: mi.Bool,
+                 solid_angle: bool = False):
     """One light sample from ``si``: (DirectionSample3f, L_e/pdf as Color3f, mask),
     from the sampler in use (see the module docstring).
 
     The mask is false where no sample exists (pdf 0, or the light is behind
-    the geometric surface)."""
+    the geometric surface). ``solid_angle``: the table samples mesh triangles
+    in the solid angle they subtend (``EmitterSampler.sample``; no
+    :func:`light_pdf` for such samples, so not for MIS); Mitsuba's sampler
+    ignores it."""
     s = sampler(scene)
     if s is None:
         return sample_light_reference(scene, si, u, active)
-    ds, w, ok, _ = s.sample(si, u, active)
+    ds, w, ok, _ = s.sample(si, u, active, solid_angle=solid_angle)
     return ds, w, ok
 
 

@@ -258,7 +258,9 @@ def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams
             st.q0, st.q1 = st.q0 + R2_STEP[0], st.q1 + R2_STEP[1]
         else:
             u = mi.Point2f(st.sampler.next_float32(), st.sampler.next_float32())
-        ds, w, ok = sample_light(scene, si, u, valid)
+        # mesh triangles in the solid angle they subtend: no d^2/cos factor in w (a large or close light
+        # sampled by area has a per-sample variance of up to 150x the squared mean)
+        ds, w, ok = sample_light(scene, si, u, valid, solid_angle=True)
         ok &= dr.all(dr.isfinite(w))
         s = dr.normalize(frame_l.to_local(ds.d))
         if p.front_only:
