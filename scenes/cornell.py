@@ -4,7 +4,7 @@ Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
 1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.camera.CameraPath``).
 """
 
-from slc.scene.builder import SceneBuilder, diffuse, rough_conductor
+from slc.scene.builder import SceneBuilder, cornell_walls, diffuse, rough_conductor
 from slc.scene.camera import CameraPath
 
 LIGHT_HALF = 0.25       # the ceiling light is a 0.5 m x 0.5 m square
@@ -14,13 +14,7 @@ LIGHT_RADIANCE = (12.0, 11.0, 9.0)
 
 def build(**options):
     b = SceneBuilder("cornell")
-    white, red, green = diffuse([0.73, 0.73, 0.73]), diffuse([0.65, 0.05, 0.05]), diffuse([0.12, 0.45, 0.15])
-    # walls of the box [-1, 1] x [0, 2] x [-1, 1], open at +z (the camera side)
-    b.add_quad([0, 0, 0], [1, 0, 0], [0, 0, -1], bsdf=white, name="floor")
-    b.add_quad([0, 2, 0], [1, 0, 0], [0, 0, 1], bsdf=white, name="ceiling")
-    b.add_quad([0, 1, -1], [1, 0, 0], [0, 1, 0], bsdf=white, name="back")
-    b.add_quad([-1, 1, 0], [0, 1, 0], [0, 0, 1], bsdf=red, name="left")
-    b.add_quad([1, 1, 0], [0, 0, 1], [0, 1, 0], bsdf=green, name="right")
+    cornell_walls(b)      # walls of the box [-1, 1] x [0, 2] x [-1, 1], open at +z (the camera side)
     b.add_box([-0.65, 0, -0.6], [-0.05, 1.2, 0.0], bsdf=rough_conductor(0.15, "Al"), name="tall_block")
     b.add_box([0.1, 0, 0.05], [0.7, 0.6, 0.65], bsdf=diffuse([0.7, 0.7, 0.6]), name="short_block")
     # the light faces down: cross(u, v) = cross(x, z) = -y

@@ -17,6 +17,7 @@ from typing import Callable
 import mitsuba as mi
 import numpy as np
 
+from slc.scene.camera import CameraPath
 from slc.scene.scenes import SCENES_DIR, Animated, Scene
 
 
@@ -203,3 +204,35 @@ def diffuse_cornell():
     scene = mod.build()
     scene.name = "cornell_diffuse"
     return scene
+
+
+def cornell_walls(b: SceneBuilder) -> dict:
+    """The walls of a 2 m Cornell box, [-1, 1] x [0, 2] x [-1, 1] open at +z: white floor,
+    ceiling and back, red left and green right wall (Lambertian). Returns the white BSDF."""
+    white, red, green = diffuse([0.73, 0.73, 0.73]), diffuse([0.65, 0.05, 0.05]), diffuse([0.12, 0.45, 0.15])
+    b.add_quad([0, 0, 0], [1, 0, 0], [0, 0, -1], bsdf=white, name="floor")
+    b.add_quad([0, 2, 0], [1, 0, 0], [0, 0, 1], bsdf=white, name="ceiling")
+    b.add_quad([0, 1, -1], [1, 0, 0], [0, 1, 0], bsdf=white, name="back")
+    b.add_quad([-1, 1, 0], [0, 1, 0], [0, 0, 1], bsdf=red, name="left")
+    b.add_quad([1, 1, 0], [0, 0, 1], [0, 1, 0], bsdf=green, name="right")
+    return white
+
+
+def classic_cornell():
+    """The classic Cornell box, all Lambertian: a 2 m box (white, red and green walls), a
+    tall and a short white block turned as in the original, and a small warm light
+    (0.47 m x 0.38 m, radiance (17, 12, 4)) 1 cm below the ceiling; seen from 6.8 m with a
+    20 degree field of view, the camera drifting slowly. Named ``cornell_classic``."""
+    b = SceneBuilder("cornell_classic")
+    white = cornell_walls(b)
+    for name, lo, hi, deg in (("tall_block", [-0.62, 0, -0.62], [-0.02, 1.2, -0.02], 17.0),
+                              ("short_block", [0.05, 0, -0.05], [0.65, 0.6, 0.55], -17.0)):
+        tm = box_mesh(lo, hi)
+        tm.apply_transform(about(0.5 * (np.asarray(lo, float) + np.asarray(hi, float)), rotate([0, 1, 0], deg)))
+        b.add_trimesh(tm, bsdf=white, name=name)
+    b.add_quad([0, 1.99, 0], [0.235, 0, 0], [0, 0, 0.19], bsdf=diffuse([0, 0, 0]), emission=[17.0, 12.0, 4.0],
+               name="light")
+    path = CameraPath([([0.0, 1.0, 6.8], [0.0, 1.0, 0.0]), ([0.15, 1.05, 6.8], [0.0, 1.0, 0.0]),
+                       ([-0.1, 0.95, 6.9], [0.0, 1.0, 0.0])], fov=20, name="far")
+    return b.build([path, path, path], exposure=1.0, unit=1.0, meeting_center=[0, 1.0, 0],
+                   description="the classic Cornell box, all Lambertian, a small warm light, seen from far")

@@ -16,7 +16,7 @@ def light_tables(sph, env) -> list:
     if env is not None:
         out += [env._dir, env._w, env._sin, env._label, env._base, env._n, env._env]
     if sph is not None:
-        out += [sph._flag, sph._c, sph._r, sph._L]
+        out += sph.arrays()
     return out
 
 

@@ -68,9 +68,10 @@ class AdaptiveCache(PayloadMethod):
         self.choice = ChoiceParams(window=self.window, theta_delta=self.theta_delta, theta_r=self.theta_r,
                                    switch_after=self.switch_after,
                                    allow_sh=self.sh_when == "always" or self._has_environment(scene))
-        sph = SphereLights(scene, self.sphere_sin) if self.sphere_lights != "off" else None
-        if sph is not None and self.sphere_lights == "auto" and not sph.listable_only:
-            sph = None          # mixed with area lights: two representations' kernels every frame (see docs)
+        poly, spheres = self.polygon_lights == "on", self.sphere_lights != "off"
+        sph = SphereLights(scene, self.sphere_sin, spheres, poly) if spheres or poly else None
+        if sph is not None and self.sphere_lights == "auto" and not sph.listable_only:   # spheres among other lights:
+            sph = SphereLights(scene, self.sphere_sin, False, True) if poly else None   # not listed (see docs)
         self.sph = sph if sph is not None and sph.any else None
         env = EnvLights(scene, self.env_ratio, self.env_max_sr) if self.env_lights == "auto" else None
         self.env = env if env is not None and env.any else None

@@ -37,19 +37,28 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from slc.methods.adaptive.polygon_lights import PolygonLights
+from slc.scene import emitter_sampling
 from slc.scene.emitter_table import constant_rgb   # a constant radiance value as RGB, or None
 
 SHELL = 0.9           # a mesh is a sphere when min / max vertex distance from its centre >= SHELL
 MIN_VERTICES = 12     # ... and its bounding box is a cube (within SHELL) with at least this many vertices
 
 
-class SphereLights:
-    """Per-emitter table (index into ``scene.emitters()``): sphere flag,
-    centre, radius and radiance. Parameters: ``scene`` (:class:`slc.scene.scenes.Scene`
-    or ``mi.Scene``), ``max_sin`` (0.3): largest :math:`r/d` at which a sphere
-    counts as small at a point."""
+SPHERE_FLAG, POLYGON_FLAG = 1, 2
 
-    def __init__(self, scene, max_sin: float = 0.3):
+
+class SphereLights:
+    """Per-emitter table (index into ``scene.emitters()``) of the area lights a VISIBILITY
+    record lists: flag (1 a sphere, 2 a polygon light), centre, radius and radiance of
+    the spheres. Parameters: ``scene`` (:class:`slc.scene.scenes.Scene` or ``mi.Scene``),
+    ``max_sin`` (0.3): largest :math:`r/d` at which a sphere counts as small at a point;
+    ``spheres`` (True): list sphere lights; ``polygons`` (False): list the rectangles and
+    small emitter meshes that are not spheres as polygon lights
+    (:class:`~slc.methods.adaptive.polygon_lights.PolygonLights`, listed at any size: their
+    irradiance is exact)."""
+
+    def __init__(self, scene, max_sin: float = 0.3, spheres: bool = True, polygons: bool = False):
         self.scene = scene
         sc = getattr(scene, "mi_scene", scene)
         self.max_sin = float(max_sin)
@@ -104,7 +113,9 @@ class SphereLights:
                 continue
             if r <= 0.0:
                 continue
-            self.flag[i], self.c0[i], self.r[i], self.L[i] = 1, c, r, L
+            if spheres:
+                self.flag[i], self.c0[i], self.r[i], self.L[i] = SPHERE_FLAG, c, r, L
+        self._list_polygons(sc, polygons)
         self.any = bool(self.flag.any())
         # no delta emitter: listed lights are all spheres, and the emitters' own
         # sample_direction (a virtual call traced in every listing loop) is never needed
@@ -113,7 +124,9 @@ class SphereLights:
         self.listable_only = all(bool(int(e.flags()) & int(mi.EmitterFlags.Delta)) or bool(self.flag[i])
                                  for i, e in enumerate(ems))
         self._time = object()
+        self._C = self.c0.copy()
         self._upload(self.c0)
+        self._set_moved(np.zeros(n, bool))
         self.refresh()
 
     def _upload(self, C):
@@ -126,28 +139,70 @@ class SphereLights:
         self._L = mi.Color3f(*[L[:, k].astype(np.float32) for k in range(3)])
         dr.make_opaque(self._flag, self._c, self._r, self._L)
 
-    def refresh(self) -> None:
-        """Move the centres of animated sphere lights to the scene's current time."""
-        t = getattr(self.scene, "time", None)
-        if not self._anim or t is self._time or (t is not None and t == self._time):
-            self._time = t
+    def _list_polygons(self, sc, polygons: bool) -> None:
+        """The polygon lights (emitters not listed as spheres) and, for those on meshes, their
+        vertex buffers, whose replacement is a move."""
+        self.poly, self.table, self._poly_shapes = None, None, {}
+        if not polygons:
             return
-        C = self.c0.copy()
-        if t is not None:
-            for i, (a, c) in self._anim.items():
-                M = np.asarray(a.transform(t), float)
-                C[i] = M[:3, :3] @ c + M[:3, 3]
+        self.table = emitter_sampling.for_scene(sc)
+        poly = PolygonLights(self.table, exclude=set(np.flatnonzero(self.flag).tolist()))
+        if not poly.any:
+            return
+        self.poly = poly
+        self.flag[poly.flag] = POLYGON_FLAG
+        ems = list(sc.emitters())
+        for i in np.flatnonzero(poly.flag):
+            sh = ems[i].get_shape()
+            if sh is not None and sh.is_mesh():
+                self._poly_shapes[int(i)] = [sh, sh.vertex_positions_buffer().index]
+
+    def _set_moved(self, moved: np.ndarray) -> None:
+        self.moved = moved
+        self._moved = mi.UInt32(np.concatenate([moved, [False]]).astype(np.uint32))
+        dr.make_opaque(self._moved)
+
+    def refresh(self) -> None:
+        """Move the centres of animated sphere lights to the scene's current time, and mark
+        the listed lights that moved since the last call (:meth:`moved_at`: spheres whose
+        centre changed, polygon lights whose mesh's vertex buffer was replaced)."""
+        t = getattr(self.scene, "time", None)
+        if t is self._time or (t is not None and t == self._time):
+            return
+        moved = np.zeros(len(self.flag), bool)
+        if self._anim:
+            C = self.c0.copy()
+            if t is not None:
+                for i, (a, c) in self._anim.items():
+                    M = np.asarray(a.transform(t), float)
+                    C[i] = M[:3, :3] @ c + M[:3, 3]
+            moved |= (self.flag == SPHERE_FLAG) & np.any(C != self._C, axis=1)
+            self._C = C
+            self._upload(C)
+        for i, rec in self._poly_shapes.items():
+            ix = rec[0].vertex_positions_buffer().index
+            moved[i] |= ix != rec[1]
+            rec[1] = ix
         self._time = t
-        self._upload(C)
+        if moved.any() or self.moved.any():
+            self._set_moved(moved)
+
+    def moved_at(self, idx: mi.UInt32, active: mi.Bool) -> mi.Bool:
+        """Listed lights ``idx`` that moved in this frame (see :meth:`refresh`)."""
+        return mi.Bool(active) & (dr.gather(mi.UInt32, self._moved, idx, active) != 0)
 
     def centre(self, i: int) -> np.ndarray:
         return np.array([self._c[k].numpy()[i] for k in range(3)])
 
-    def light(self, p: mi.Point3f, idx: mi.UInt32, active: mi.Bool):
-        """At points ``p``: (sphere mask, direction to the centre, r/d, the
-        point-light term pi L r^2 / d^2 (RGB)) of emitters ``idx``."""
+    def light(self, p: mi.Point3f, idx: mi.UInt32, active: mi.Bool, n: mi.Vector3f | None = None):
+        """At points ``p``: (listed-light mask, direction, r/d, irradiance per unit cosine
+        along the direction, RGB) of emitters ``idx``: for a sphere the direction to its
+        centre and the point-light term pi L r^2 / d^2; for a polygon light (with the
+        normals ``n``; r/d is 0) the direction of its vector irradiance and its exact term
+        (:meth:`PolygonLights.light`)."""
         active = mi.Bool(active)
-        is_s = active & (dr.gather(mi.UInt32, self._flag, idx, active) != 0)
+        fl = dr.gather(mi.UInt32, self._flag, idx, active)
+        is_s = active & (fl == SPHERE_FLAG)
         c = dr.gather(mi.Point3f, self._c, idx, is_s)
         r = dr.gather(mi.Float, self._r, idx, is_s)
         L = dr.gather(mi.Color3f, self._L, idx, is_s)
@@ -158,9 +213,31 @@ class SphereLights:
         d = v * inv_d
         sin_a = dr.select(inside, 1.0, r * inv_d)
         E = dr.select(is_s & ~inside, L * (math.pi * r * r * inv_d * inv_d), 0.0)
+        if self.poly is not None and n is not None:
+            is_p, d_p, E_p = self.poly.light(self.table, p, n, idx, active & (fl == POLYGON_FLAG))
+            is_s |= is_p
+            d, sin_a, E = dr.select(is_p, d_p, d), dr.select(is_p, 0.0, sin_a), dr.select(is_p, E_p, E)
         return is_s, d, sin_a, E
 
     def small(self, p: mi.Point3f, idx: mi.UInt32, active: mi.Bool) -> mi.Bool:
-        """Sphere lights ``idx`` small at ``p`` (r/d below ``max_sin``)."""
+        """Lights ``idx`` a record lists at ``p``: spheres small there (r/d below
+        ``max_sin``) and polygon lights."""
         is_s, _, sin_a, _ = self.light(p, idx, active)
-        return is_s & (sin_a < self.max_sin)
+        small = is_s & (sin_a < self.max_sin)
+        if self.poly is not None:
+            small |= mi.Bool(active) & (dr.gather(mi.UInt32, self._flag, idx, active) == POLYGON_FLAG)
+        return small
+
+    def polygon(self, idx: mi.UInt32, active: mi.Bool) -> mi.Bool:
+        """Emitters ``idx`` that are polygon lights."""
+        if self.poly is None:
+            return dr.zeros(mi.Bool, dr.width(active))
+        return mi.Bool(active) & (dr.gather(mi.UInt32, self._flag, idx, active) == POLYGON_FLAG)
+
+    def arrays(self) -> list:
+        """The arrays the lookups read (inputs of a frozen function)."""
+        out = [self._flag, self._c, self._r, self._L, self._moved]
+        if self.poly is not None:
+            t = self.table
+            out += [self.poly._flag, t._rows, t._seg, t._e_kind]
+        return out

@@ -61,6 +61,7 @@ STREAM_VIS = 0x3C6EF372
 VIS_WINDOW = 16
 ENV_WINDOW = 64             # samples in the running mean of the unlisted regions' visible fraction
 RES_MAX_COUNT = 255                 # as the cones' C (8 bits)
+MOVED_COUNT = 1             # visibility count of a listed light that moved (its next sample weighs 1/2)
 UNSETTLED_COUNT = 4         # residual count cap of moving entries, in update cycles
 RESIDUAL_ALPHA = math.radians(60.0)     # the residual as a lobe (conversion): a 60-degree cone about n
 
@@ -168,7 +169,7 @@ def light_at(emitters_dr, si, idx, active, sph=None, env=None, delta=True):
         m_d &= ~is_r
         d, w = dr.select(is_r, d_r, d), dr.select(is_r, w_r, w)
     if sph is not None:
-        is_s, d_s, _, E_s = sph.light(si.p, dr.select(m_d, ii, 0), m_d)
+        is_s, d_s, _, E_s = sph.light(si.p, dr.select(m_d, ii, 0), m_d, si.sh_frame.n)
         m_d &= ~is_s
         d, w = dr.select(is_s, d_s, d), dr.select(is_s, E_s, w)
     if not delta:      # only spheres and regions can be listed: no emitter call traced
@@ -208,6 +209,7 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
     else computed from ``seed`` and ``frame``."""
     sc = scene
     dl = has_delta(sc)
+    poly = sph is not None and sph.poly is not None     # polygon lights listed: samples in solid angle
     N = dr.width(key)
     samp = sampler_of(sc)
     em_dr = sc.emitters_dr()
@@ -239,6 +241,14 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
     _, wl = dr.while_loop(state=(mi.UInt32(0), [dr.zeros(mi.Color3f, N) for _ in range(K)]), cond=lcond, body=lbody)
     imp = []
     gone = mi.Bool(False)
+    if sph is not None:
+        # a listed light that moved: its visible fraction starts again from its next samples
+        # (count MOVED_COUNT) and the entry reports motion (more rays for its next updates);
+        # its unoccluded term follows the light at once
+        for i in range(K):
+            mv = sph.moved_at(dr.select(idx[i] != EMPTY, idx[i], 0), valid & (idx[i] != EMPTY))
+            cnt[i] = dr.select(mv, dr.minimum(cnt[i], MOVED_COUNT), cnt[i])
+            gone |= mv
     for i in range(K):
         dead = valid & (idx[i] != EMPTY) & ~(lum(wl[i]) > 0.0)
         gone |= dead & (vis[i] > 0.0)
@@ -262,7 +272,7 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
                                                           ls.vu, ls.nu, ls.rng)
         u = mi.Point2f(rng.next_float32(), rng.next_float32())
         act = valid & (k < rays)
-        ds, w, ok, em = samp.sample(si, u, act)
+        ds, w, ok, em = samp.sample(si, u, act, solid_angle=poly)
         ok &= dr.all(dr.isfinite(w))
         V = ok & ~sc.ray_test(si.spawn_ray_to(ds.p), ok)
         cos = dr.maximum(dr.dot(ds.d, nrm), 0.0)
@@ -272,10 +282,18 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
         w1 = w * ds.pdf * cos
         if sph is not None:
             # a small sphere light is listed as a delta light, with its closed-form term
-            is_s, d_s, sin_a, E_s = sph.light(si.p, em, ok & ~ds.delta)
-            small = is_s & (sin_a < sph.max_sin)
+            is_s, d_s, sin_a, E_s = sph.light(si.p, em, ok & ~ds.delta, nrm)
+            small = is_s & ((sin_a < sph.max_sin) | sph.polygon(em, is_s))
             delta |= small
             w1 = dr.select(small, E_s * dr.maximum(dr.dot(d_s, nrm), 0.0), w1)
+        if poly:
+            # a polygon light's visible fraction is the ratio of its visible to its unoccluded
+            # irradiance: the sample's step is weighted by its share r of the light's exact term
+            # (E[r] = 1), so that v settles where E[r (V - v)] = 0, v = E[r V] / E[r]
+            on_p = sph.polygon(em, ok & ~ds.delta)
+            i_exact = lum(w1)
+            r_k = lum(w * cos) * samp.choice_pmf(em, on_p) / dr.select(i_exact > 0.0, i_exact, 1.0)
+            step = dr.select(on_p, dr.select(i_exact > 0.0, r_k, 0.0), 1.0)
         region = mi.Bool(False)
         if env is not None:
             # a sample inside a bright region of the environment (wholly above the horizon)
@@ -292,6 +310,8 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
             h = delta & (idx[i] == em)
             hit |= h
             a = dr.rcp(mi.Float(dr.minimum(cnt[i] + 1, VIS_WINDOW)))
+            if poly:
+                a = dr.minimum(a * step, 1.0)
             vis[i] = dr.select(h, dr.fma(a, Vf - vis[i], vis[i]), vis[i])
             cnt[i] = dr.select(h, dr.minimum(cnt[i] + 1, 15), cnt[i])
         # least important listed light
