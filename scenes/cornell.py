@@ -4,7 +4,7 @@ Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
 1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.camera.CameraPath``).
 """
 
-from slc.scene.builder import SceneBuilder, cornell_walls, diffuse, rough_conductor
+from slc.scene.builder import SceneBuilder, classic_cornell, cornell_walls, diffuse, rough_conductor
 from slc.scene.camera import CameraPath
 
 LIGHT_HALF = 0.25       # the ceiling light is a 0.5 m x 0.5 m square
@@ -12,7 +12,14 @@ LIGHT_HEIGHT = 1.98     # just below the ceiling (y = 2)
 LIGHT_RADIANCE = (12.0, 11.0, 9.0)
 
 
-def build(**options):
+def build(variant="glossy", **options):
+    """``variant``: ``glossy`` (this scene) or ``classic`` (the classic all-Lambertian box with
+    a small warm light, seen from far: :func:`slc.scene.builder.classic_cornell`), e.g.
+    ``slc run single-viewer --scene cornell:variant=classic``."""
+    if variant == "classic":
+        return classic_cornell()
+    if variant != "glossy":
+        raise ValueError(f"variant must be 'glossy' or 'classic', not '{variant}'")
     b = SceneBuilder("cornell")
     cornell_walls(b)      # walls of the box [-1, 1] x [0, 2] x [-1, 1], open at +z (the camera side)
     b.add_box([-0.65, 0, -0.6], [-0.05, 1.2, 0.0], bsdf=rough_conductor(0.15, "Al"), name="tall_block")

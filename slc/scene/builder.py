@@ -222,7 +222,7 @@ def classic_cornell():
     """The classic Cornell box, all Lambertian: a 2 m box (white, red and green walls), a
     tall and a short white block turned as in the original, and a small warm light
     (0.47 m x 0.38 m, radiance (17, 12, 4)) 1 cm below the ceiling; seen from 6.8 m with a
-    20 degree field of view, the camera drifting slowly. Named ``cornell_classic``."""
+    20 degree field of view, the camera drifting slowly (``cornell:variant=classic``)."""
     b = SceneBuilder("cornell_classic")
     white = cornell_walls(b)
     for name, lo, hi, deg in (("tall_block", [-0.62, 0, -0.62], [-0.02, 1.2, -0.02], 17.0),
