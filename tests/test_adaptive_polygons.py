@@ -19,12 +19,13 @@ from test_cones import GLOSSY_FRAMES, _glossy_bsdf, _run
 from test_hard_cases import HALF, STOP, _moving, _plane_mask, _plane_scene, _quad_ref, _slc_frames, rel_errors
 
 BLOCKER = ([-0.4, 0.5, 0], [0.4, 0, 0], [0, 0, -0.6])     # a thin quad at 0.5 m over x in [-0.8, 0]
+SPEC = "adaptive:polygon_lights=on"
 
 
 def _errors(sc, frames, rects, at=(), **kw):
-    """{frame: (mean error, per-pixel error)} of default adaptive against the quadrature of
+    """{frame: (mean error, per-pixel error)} of adaptive with polygon lights against the quadrature of
     ``rects(frame)`` (exact visibility) on the plane's pixels, in check mode."""
-    res = _slc_frames(sc, frames, at=at, spec="adaptive", **kw)
+    res = _slc_frames(sc, frames, at=at, spec=SPEC, **kw)
     out = {}
     for f, (gb, img) in res.items():
         ref, mask = _quad_ref(sc, gb, rects(f), _plane_mask(gb), n=32)
@@ -125,7 +126,7 @@ def test_glossy_small_light(kind, alpha):
     from scipy.ndimage import maximum_filter, minimum_filter
     sc = plane_under_rect_light(half=0.1, radiance=20.0, bsdf=_glossy_bsdf(kind, alpha),
                                 name=f"glossy_{kind}_{alpha}_small")
-    gb, d = _run(sc, methods.create("adaptive", sc), GLOSSY_FRAMES)
+    gb, d = _run(sc, methods.create(SPEC, sc), GLOSSY_FRAMES)
     img = gbuffer.to_image(gb, gbuffer.compose(gb, d))
     gt = ground_truth(sc, gb, GLOSSY_FRAMES - 1)
     d_rt = methods.create("rt48", sc).render(FrameContext(GLOSSY_FRAMES - 1), [gb], NullTimer())[0]

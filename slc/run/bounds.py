@@ -59,8 +59,8 @@ SCENES = {
 _VPL = ":views=1024,scene_depth=5,view_depth=5"
 
 # the method families, each with its settings as run (defaults but for the VPL methods)
-METHODS = ("rt16", "rt48", "restir", "slc", "slc:fetch=bilinear", "sh", "adaptive",
-           "crc", "megaviews" + _VPL, "manylods" + _VPL, "brute" + _VPL, "osc-gi", "pt", "pt:output=indirect")
+METHODS = ("rt16", "rt48", "restir", "regir", "slc", "slc:fetch=bilinear", "sh", "adaptive", "adaptive:polygon_lights=on",
+           "crc", "megaviews" + _VPL, "manylods" + _VPL, "brute" + _VPL, "osc-gi", "sharc", "pt", "pt:output=indirect")
 
 # methods whose frame depends on nothing carried from earlier frames: only the evaluated
 # (last) frame is rendered, the very image a run of every frame ends with
