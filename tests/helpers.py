@@ -230,3 +230,14 @@ def slc_cli(args, cwd=None):
         else:
             os.environ[check.ENV] = before
     return subprocess.CompletedProcess(["slc", *args], code, out.getvalue(), err.getvalue())
+
+
+def first_emitter_hit(scene, si, wo):
+    """The first surface hit from ``si.p`` along the directions ``wo`` (normalised): (directions,
+    its SurfaceInteraction, hit mask, its emitter pointer)."""
+    import drjit as dr
+    import mitsuba as mi
+    wo = dr.normalize(mi.Vector3f(wo))
+    si2 = scene.ray_intersect(mi.Ray3f(si.p, wo))
+    hit = si2.is_valid()
+    return wo, si2, hit, si2.emitter(scene, hit)

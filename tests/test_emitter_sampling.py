@@ -16,7 +16,7 @@ from slc.reference import groundtruth
 from slc import methods
 from slc.run.pipeline import gbuffers_for
 
-from helpers import plane_under_rect_light
+from helpers import first_emitter_hit, plane_under_rect_light
 
 pytestmark = pytest.mark.slow      # chi-square tests of every emitter type (the fast subset: test_emitter_sampling_fast.py)
 
@@ -80,10 +80,7 @@ def _pdf_of_direction(scene, table):
     def pdf(wo):
         n = dr.width(wo)
         si = _shading_point(n)
-        wo = dr.normalize(mi.Vector3f(wo))
-        si2 = scene.ray_intersect(mi.Ray3f(si.p, wo))
-        hit = si2.is_valid()
-        em = si2.emitter(scene, hit)
+        wo, si2, hit, em = first_emitter_hit(scene, si, wo)
         p = dr.select(hit & (em != None), table.pdf_hit(scene, si, si2, hit), 0.0)  # noqa: E711
         for i in env:
             ds = dr.zeros(mi.DirectionSample3f, n)

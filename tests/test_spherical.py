@@ -14,7 +14,7 @@ from slc.scene import emitter_sampling, spherical
 from slc.scene.builder import SceneBuilder, diffuse
 from slc.scene.camera import CameraPath
 
-from helpers import rect_irradiance
+from helpers import first_emitter_hit, rect_irradiance
 
 X = [0.1, 0.0, -0.2]   # the shading point, on the plane y = 0
 
@@ -91,11 +91,7 @@ def test_chi2_solid_angle_samples_follow_their_density():
 
     def pdf(wo):
         n = dr.width(wo)
-        si = _point(n)
-        wo = dr.normalize(mi.Vector3f(wo))
-        si2 = sc.ray_intersect(mi.Ray3f(si.p, wo))
-        hit = si2.is_valid()
-        em = si2.emitter(sc, hit)
+        wo, si2, hit, em = first_emitter_hit(sc, _point(n), wo)
         cos_y = dr.abs(dr.dot(si2.n, wo))
         out = dr.zeros(mi.Float, n)
         for i, k, v in table:
