@@ -109,6 +109,20 @@ def test_no_kernel_built_after_an_evaluated_frame(spec):
     assert r["compiled_after_warmup"] == 0, f"skylit {spec}: kernels built per frame {per} (warm-up {warmup})"
 
 
+@pytest.mark.parametrize("spec", ["slc", "adaptive"])
+def test_no_kernel_built_after_warmup_with_a_camera_that_barely_moves(spec):
+    """The classic Cornell box seen from far on a slow path: timed frames where no block,
+    no entry or no directory page is new follow frames where some were (the first frame
+    with no new entry, frame 8; the first new block after frame 0, frame 5): the cache's
+    kernels and the frozen updates' recordings do not depend on which happens. 64x36,
+    warm-up 3 of 10 frames."""
+    frames, warmup = 10, 3
+    r = _run_case(spec, "single", 1, frames=frames, warmup=warmup, scene="cornell:variant=classic", size=(64, 36))
+    per = r["per_frame"]
+    assert len(per) == frames and sum(per[:warmup]) > 0
+    assert r["compiled_after_warmup"] == 0, f"classic Cornell {spec}: kernels built per frame {per}"
+
+
 _GROWING = r"""
 import json, sys
 sys.path.insert(0, "tests")

@@ -134,3 +134,33 @@ def test_lanes_named_by_parameter_may_be_a_structure():
     assert ff.padded_calls == 1
     with pytest.raises(ValueError, match="no parameter nope"):
         FrozenFunction(_kernel, lanes=("nope",))
+
+
+def _kernel_pair(scene, table, x, y):
+    return dr.gather(mi.Float, table, mi.UInt32(y) % 7) + x * y
+
+
+def test_literal_and_shared_lane_inputs_record_once():
+    """Per-lane inputs that are literals in some calls (a field of the entries' interactions
+    that is constant), or the same variable as another input in some calls and not in others,
+    record once when their lanes are declared (each leaf made an array of its own); without,
+    Dr.Jit records again as the pattern changes. Values as traced."""
+    scene = _scene()
+    table = dr.arange(mi.Float, 7) * 0.5
+
+    def calls(ff):
+        out = []
+        for n, shared, literal in ((500, False, False), (503, True, False), (506, False, True), (509, True, True),
+                                   (512, False, False)):
+            x = dr.arange(mi.Float, n) * 0.25
+            y = dr.full(mi.Float, 2.0, n) if literal else (x if shared else dr.arange(mi.Float, n) * 0.5)
+            out.append(np.array(ff(scene, table, x, y)))
+        return out
+
+    plain, guarded = FrozenFunction(_kernel_pair), FrozenFunction(_kernel_pair, lanes=(2, 3))
+    calls(plain)
+    outs = calls(guarded)
+    assert guarded.n_recordings == 1 and guarded.frozen, guarded.n_recordings
+    assert plain.n_recordings > 1, plain.n_recordings
+    for a, b in zip(outs, calls(FrozenFunction(_kernel_pair, freeze=False))):
+        assert np.array_equal(a, b)

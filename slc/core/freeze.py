@@ -114,6 +114,7 @@ class FrozenFunction:
             # per-leaf copies below then read evaluated arrays on every call
             dr.eval(*[a for a in args if _is_tree(a)])
             n = _width(args[self.lanes[0]])
+            args = self._distinct(args, n)
             w = self.free_width(n, args)
             if self.calls == 0 or w != n:
                 # the first call also pads (by one lane, result unused), so that the
@@ -179,6 +180,28 @@ class FrozenFunction:
         while w in taken:
             w += 1
         return w
+
+    def _distinct(self, args, n: int):
+        """``args`` with every per-lane leaf an evaluated variable of its own: a literal
+        leaf is evaluated, a leaf that refers to the same variable as an earlier one is
+        replaced by a copy. Dr.Jit keys a recording on which inputs are literals and which
+        share a variable, and both vary from call to call (a literal field of the entries'
+        interactions whose width changes is made opaque by the frozen function, so the next
+        call has another key: a recording in a timed frame)."""
+        seen = set()
+        lit = dr.VarState.Literal
+
+        def own(x):
+            if x.index == 0:
+                return x
+            if x.state == lit:
+                x = type(x)(x)
+                dr.make_opaque(x)
+            elif x.index in seen:
+                x = _gather_leaf(x, _lane_index(dr.width(x), dr.width(x)), dr.width(x))
+            seen.add(x.index)
+            return x
+        return tuple(_map_leaves(a, own) if i in self.lanes else a for i, a in enumerate(args))
 
     def _pad(self, args, n: int, w: int):
         """``args`` with the per-lane ones widened from ``n`` to ``w`` lanes

@@ -111,6 +111,9 @@ class BlockPool:
         self.blk_xy = dr.zeros(mi.UInt32, nb)               # bx | by << 16
         self.blk_rank = dr.zeros(mi.UInt32, nb)             # scratch: rank among this frame's blocks
         self.slot_seen = dr.zeros(mi.UInt32, n)             # 0 until the slot's first frame
+        # arrays, not literals: the first frame's allocation then runs the kernels of any later one
+        dr.make_opaque(self.dir, self.blk_vb, self.blk_last, self.blk_key, self.blk_xy, self.blk_rank,
+                       self.slot_seen)
         self.n_blocks = 0
         self.evicted_early = 0
 
@@ -250,7 +253,8 @@ class BlockPool:
         n_alloc = min(n_new, dr.width(free))
         if n_alloc:
             sel = dr.arange(mi.UInt32, n_alloc)
-            self._map(dr.gather(mi.UInt32, new_vb, sel), dr.gather(mi.UInt32, free, sel))
+            # one free block is a width-1 list, loaded as a scalar (widen): widened, as new_vb
+            self._map(dr.gather(mi.UInt32, new_vb, sel), dr.gather(mi.UInt32, widen(free), sel))
         self.n_blocks += n_alloc
         return n_alloc, n_new - n_alloc, grown
 
@@ -263,6 +267,7 @@ class BlockPool:
         k, bx, by = self.layout.block_of(vb)
         # pages of the block table for directory entries seen for the first time
         d = vb >> self.page_shift
+        dr.eval(k, bx, by, d)           # whether or not a page is added below: the same kernels after it
         need = dr.zeros(mi.Bool, self.n_dir)
         dr.scatter(need, True, d, dr.gather(mi.UInt32, self.dir, d) == INVALID)
         new_d = dr.compress(need)
@@ -274,7 +279,7 @@ class BlockPool:
                 self._grow_pages(nd - dr.width(free))
                 free = dr.compress(self.pg_dir == INVALID)
             # a repeated directory entry (widened list) gets the same page
-            new_pg = dr.gather(mi.UInt32, free, dr.minimum(dr.arange(mi.UInt32, dr.width(new_d)),
+            new_pg = dr.gather(mi.UInt32, widen(free), dr.minimum(dr.arange(mi.UInt32, dr.width(new_d)),
                                                            dr.opaque(mi.UInt32, nd - 1)))
             dr.scatter(self.dir, new_pg, new_d)
             dr.scatter(self.pg_dir, new_d, new_pg)

@@ -171,6 +171,10 @@ class OnSurfaceCache:
             is_new = dr.gather(mi.UInt32, pool.slot_seen, active) == 0
             isl, lvl, tx, ty = pool.entry_texels(active)
             seed = dr.full(mi.UInt32, INVALID, n_active)
+            # evaluated here whether or not there are new entries: a frame without any (a still
+            # camera) would otherwise fuse them into other kernels than a frame with some
+            dr.make_opaque(seed)
+            dr.eval(is_new, isl, lvl, tx, ty)
             new_idx = dr.compress(is_new)
             n_new = dr.width(new_idx)
             if n_new:

@@ -167,6 +167,7 @@ class AdaptiveCache(PayloadMethod):
         fresh = is_new | (h.tag == NONE)
         tag = dr.select(fresh, mi.UInt32(prior), h.tag)
         slot = dr.select(fresh, mi.UInt32(INVALID), h.slot)
+        dr.eval(fresh, tag, slot)     # and after the hand-over: the same kernels in a frame without one
         rel = [is_new & (h.tag == r) for r in REPS]
         acq = [fresh & (tag == r) for r in REPS]
         n_rel_acq = tally([m & (h.slot != INVALID) for m in rel] + acq)
@@ -176,6 +177,7 @@ class AdaptiveCache(PayloadMethod):
         for r, m, n in zip(REPS, acq, n_rel_acq[3:]):
             if n or not self._warm:
                 slot = dr.select(m, self.pools[r].acquire(m, n), slot)
+        dr.eval(slot)
         z = dr.zeros(mi.Float, N)
         h = Header(tag=tag, streak=dr.select(fresh, 0, h.streak), count=dr.select(fresh, 0, h.count),
                    e=dr.select(fresh, 0.0, h.e), slot=slot, s_delta=dr.select(fresh, 0.0, h.s_delta),
@@ -250,9 +252,8 @@ class AdaptiveCache(PayloadMethod):
         for k, w in enumerate(ch.pack_header(h)):
             dr.scatter(self.storage, w, base + k)
         self._tags = h.tag
-        # the tags' counts are queued with the frame's last kernels and read back only in
-        # shade (a read-back here waited for this update's kernels before the host could
-        # trace the policy update that follows)
+        # the tags' counts are read back only in shade (a read-back here waited for this
+        # update's kernels before the host could trace the policy update that follows)
         self._counts = None
         self._count_hist = count_hist([h.tag == r for r in REPS])
         dr.eval(self.storage, self._tags, self._count_hist)
@@ -340,7 +341,6 @@ class AdaptiveCache(PayloadMethod):
 
     # ------------------------------------------------------------------ records (slc.methods.adaptive.records)
     entry_state, set_entry_state, record_bytes = records.entry_state, records.set_entry_state, records.record_bytes
-
     pack_records, unpack_records = records.pack_records, records.unpack_records
 
     # ------------------------------------------------------------------ shade
