@@ -350,3 +350,19 @@ def test_bad_settings():
     for spec in ("adaptive:vis_lights=0", "adaptive:start=foo", "adaptive:theta_r=2"):
         with pytest.raises(methods.MethodError):
             methods.create(spec, scene)
+
+
+def test_visibility_entries_whose_lights_are_listed_trace_a_share_of_the_rays():
+    """traced_rays: an entry whose listed lights bring >= 95% of its light (or a new one, in a
+    scene whose every light can be listed) traces vis_rays of the policy's rays, at least one;
+    any other keeps them all."""
+    import drjit as dr
+    import mitsuba as mi
+    from slc.methods.adaptive.visibility import traced_rays
+    rays = mi.UInt32([32, 32, 32, 1, 8, 8])
+    s = mi.Float([0.99, 0.5, 0.0, 0.99, 0.95, 0.94])
+    fresh = mi.Bool([False, False, True, False, False, False])
+    assert traced_rays(rays, s, fresh, True, 0.5).numpy().tolist() == [16, 32, 16, 1, 4, 8]
+    assert traced_rays(rays, s, fresh, False, 0.5).numpy().tolist() == [16, 32, 32, 1, 4, 8]
+    assert traced_rays(rays, s, fresh, True, 1.0).numpy().tolist() == [32, 32, 32, 1, 8, 8]
+    dr.eval()

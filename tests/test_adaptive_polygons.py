@@ -19,7 +19,7 @@ from test_cones import GLOSSY_FRAMES, _glossy_bsdf, _run
 from test_hard_cases import HALF, STOP, _moving, _plane_mask, _plane_scene, _quad_ref, _slc_frames, rel_errors
 
 BLOCKER = ([-0.4, 0.5, 0], [0.4, 0, 0], [0, 0, -0.6])     # a thin quad at 0.5 m over x in [-0.8, 0]
-SPEC = "adaptive:polygon_lights=on"
+SPEC = "adaptive"
 
 
 def _errors(sc, frames, rects, at=(), **kw):

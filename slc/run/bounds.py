@@ -59,7 +59,7 @@ SCENES = {
 _VPL = ":views=1024,scene_depth=5,view_depth=5"
 
 # the method families, each with its settings as run (defaults but for the VPL methods)
-METHODS = ("rt16", "rt48", "restir", "regir", "slc", "slc:fetch=bilinear", "sh", "adaptive", "adaptive:polygon_lights=on",
+METHODS = ("rt16", "rt48", "restir", "regir", "slc", "slc:fetch=bilinear", "sh", "adaptive", "adaptive:polygon_lights=off",
            "crc", "megaviews" + _VPL, "manylods" + _VPL, "brute" + _VPL, "osc-gi", "sharc", "pt", "pt:output=indirect")
 
 # methods whose frame depends on nothing carried from earlier frames: only the evaluated

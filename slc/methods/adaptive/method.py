@@ -186,11 +186,10 @@ class AdaptiveCache(PayloadMethod):
 
         # ------------------------------- every representation updates its own entries
         ed, en, mv = dr.zeros(mi.Float, N), dr.zeros(mi.Float, N), dr.zeros(mi.Vector3f, N)
-        motion = dr.zeros(mi.Bool, N)
-        vis_motion = dr.zeros(mi.Bool, N)
-        # evaluated before the loop: otherwise their initialisation fuses into the first
-        # representation's kernel, a different kernel for each set of representations present
-        dr.make_opaque(ed, en, mv, motion, vis_motion)
+        motion, vis_motion = dr.zeros(mi.Bool, N), dr.zeros(mi.Bool, N)
+        # evaluated before the loop (else fused into the first representation's kernel: one per set)
+        traced = mi.UInt32(rays)        # the rays each entry traces (VISIBILITY: its share of them)
+        dr.make_opaque(ed, en, mv, motion, vis_motion, traced)
         # every representation's lanes before the first update kernel: a compression waits for
         # the kernels queued before it, and the host traces the next update while one runs
         subsets = {r: subset(tag == r) for r in REPS}
@@ -210,9 +209,10 @@ class AdaptiveCache(PayloadMethod):
             ry = dr.gather(mi.UInt32, rays, idx)
             fr_r = dr.gather(mi.Bool, fresh, idx)
             if r == VIS:
-                # the residual's memory is cut for moving entries only (as the cones' C): a new
-                # entry's light did not move, and a cap of 4 cycles of its 1-2-ray updates left
-                # its residual a mean of 4-8 samples
+                ry = visibility.traced_rays(ry, dr.gather(mi.Float, h.s_delta, idx), fr_r, self.prior == VIS,
+                                            self.vis_rays)
+                dr.scatter(traced, ry, idx, on)
+                # the residual's memory is cut for moving entries only (a new entry's light did not move)
                 out, mo, st = self._vis_update()(sc, rec, si, key, ry, dr.gather(mi.Bool, moving, idx), fr_r, on,
                                                  ctx.frame)
                 dr.scatter(motion, mo, idx, on)
@@ -235,7 +235,7 @@ class AdaptiveCache(PayloadMethod):
         h.count = dr.select(vis_motion, dr.minimum(h.count, RESTART_COUNT), h.count)
 
         # ------------------------------- statistics and the choice
-        e_d, e_n, m_hat = means(ed, en, mv, rays)
+        e_d, e_n, m_hat = means(ed, en, mv, traced)
         h = ch.update_stats(h, e_d, e_n, m_hat, self.choice)
         allowed = ctx.frame % self.switch_period == 0
         h, switch, target = ch.decide(h, self.choice, allowed=allowed)

@@ -62,6 +62,7 @@ VIS_WINDOW = 16
 ENV_WINDOW = 64             # samples in the running mean of the unlisted regions' visible fraction
 RES_MAX_COUNT = 255                 # as the cones' C (8 bits)
 MOVED_COUNT = 1             # visibility count of a listed light that moved (its next sample weighs 1/2)
+LISTED_SHARE = 0.95         # listed share of an entry's light above which it traces vis_rays of its rays
 UNSETTLED_COUNT = 4         # residual count cap of moving entries, in update cycles
 RESIDUAL_ALPHA = math.radians(60.0)     # the residual as a lobe (conversion): a 60-degree cone about n
 
@@ -180,6 +181,15 @@ def light_at(emitters_dr, si, idx, active, sph=None, env=None, delta=True):
     d = dr.select(m_d, ds.d, d)
     w = dr.select(m_d, dr.select(ok, mi.Color3f(wd), 0.0), w)
     return d, w
+
+
+def traced_rays(rays, s_delta, fresh, all_listable: bool, share: float) -> mi.UInt32:
+    """The update rays of VISIBILITY entries given the ray policy's ``rays``: ``share`` of them
+    (at least one) where the listed lights bring at least ``LISTED_SHARE`` of the entry's light
+    (its statistics' ``s_delta``; a new entry, with no statistics yet, where every light of the
+    scene can be listed): their unoccluded light is exact, only visible fractions are learnt."""
+    listed = (mi.Float(s_delta) >= LISTED_SHARE) | (mi.Bool(fresh) & all_listable)
+    return dr.select(listed, dr.maximum(mi.UInt32(mi.Float(rays) * share), 1), mi.UInt32(rays))
 
 
 def has_delta(scene: mi.Scene) -> bool:
