@@ -9,14 +9,17 @@ from slc.core.timing import NullTimer
 
 
 def plane_under_rect_light(half=0.25, height=1.0, radiance=10.0, albedo=0.5, plane_half=2.0,
-                           name="plane_light", bsdf=None, light_transform=None):
+                           name="plane_light", bsdf=None, light_transform=None, blocker=None):
     """A horizontal plane y = 0 (facing up) under a rectangular light of size
-    2*half x 2*half at ``height`` facing down; camera looking down at it."""
+    2*half x 2*half at ``height`` facing down; camera looking down at it. ``blocker``:
+    (centre, u, v) of a grey quad between them."""
     b = SceneBuilder(name)
     b.add_quad([0, 0, 0], [plane_half, 0, 0], [0, 0, -plane_half],
                bsdf=bsdf if bsdf is not None else diffuse([albedo] * 3), name="plane")
     b.add_quad([0, height, 0], [half, 0, 0], [0, 0, half], bsdf=diffuse([0, 0, 0]),
                emission=[radiance] * 3, name="light", transform=light_transform)
+    if blocker is not None:
+        b.add_quad(*blocker, bsdf=diffuse([0.2] * 3), name="blocker")
     cam = CameraPath([([0.0, 0.8 * height, 1.2], [0.0, 0.0, 0.0])], frames=64, fov=60)
     return b.build([cam, cam, cam])
 

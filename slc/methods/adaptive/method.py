@@ -366,7 +366,7 @@ class AdaptiveCache(PayloadMethod):
         dr.eval(L)
         parts = []
         if used.get(VIS, 1):
-            parts.append(lambda: self._vis_shading()(self.pools[VIS].gather(ps, m_v), m_v, si, sc))
+            parts.append(lambda: self._vis_shading()(self.pools[VIS].gather(ps, m_v), m_v, si, sc, ctx.frame, v))
         if used.get(CONES, 1):
             parts.append(lambda: shader_for(self, self.max_cones)(
                 self.pools[CONES].data, dr.select(m_c, ps, 0), m_c, si, tf, self.shade_samples,
@@ -392,8 +392,7 @@ class AdaptiveCache(PayloadMethod):
 
     def _vis_update(self) -> vis_frozen.VisUpdate:
         """The VISIBILITY update."""
-        return self._frozen("_vis_up", lambda fz: vis_frozen.VisUpdate(
-            self.vis_k, self.seed, self.sph, self.env, freeze=fz))
+        return self._frozen("_vis_up", lambda fz: vis_frozen.VisUpdate(self.vis_k, self.seed, self.sph, self.env, fz))
 
     def _cones_update(self) -> cones_rep.ConesUpdate:
         """The CONES update."""
@@ -406,9 +405,10 @@ class AdaptiveCache(PayloadMethod):
             self.encoding, self.seed, self.sh_count, self.sph, self.env, freeze=fz))
 
     def _vis_shading(self) -> vis_frozen.VisShading:
-        """The VISIBILITY pool's shading."""
-        return self._frozen("_vis_shade", lambda fz: vis_frozen.VisShading(
-            self.vis_k, self.sph, self.env, freeze=fz))
+        """The VISIBILITY pool's shading (glossy pixels may sample their polygon lights)."""
+        S = self.polygon_samples if self.polygon_glossy == "sample" else 0
+        make = lambda fz: vis_frozen.VisShading(self.vis_k, self.sph, self.env, fz, S=S, seed=self.seed)  # noqa: E731
+        return self._frozen("_vis_shade", make)
 
     def _sh_shading(self) -> sh_rep.SHShading:
         """The SH pool's shading."""

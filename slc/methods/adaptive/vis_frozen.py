@@ -9,9 +9,12 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.core.freeze import FrozenFunction
-from slc.core.keys import stream_key
+from slc.core.keys import mixed_rng, stream_key
 from slc.methods.adaptive.frozen_inputs import light_tables, sampler_inputs
+from slc.methods.adaptive.polygon_glossy import has_glossy
 from slc.methods.adaptive.visibility import STREAM_VIS, shade, update
+
+STREAM_GLOSSY = 0x5BD1E995         # the glossy pixels' light samples (plus the viewer's index)
 
 
 class VisShading(FrozenFunction):
@@ -25,19 +28,26 @@ class VisShading(FrozenFunction):
     are fixed per instance. Unfrozen in animated scenes (``freeze=False``) and
     after more than ``max_recordings`` recordings."""
 
-    def __init__(self, K: int, sph=None, env=None, freeze: bool = True, max_recordings: int = 4):
-        self.K, self.sph, self.env = int(K), sph, env
-        K = int(K)
+    def __init__(self, K: int, sph=None, env=None, freeze: bool = True, max_recordings: int = 4,
+                 S: int = 0, seed: int = 0):
+        if sph is None or sph.poly is None or not has_glossy(getattr(sph.scene, "mi_scene", sph.scene)):
+            S = 0                       # no polygon light or no glossy BSDF: nothing to sample
+        self.K, self.sph, self.env, self.S, self.seed = int(K), sph, env, int(S), int(seed)
+        K, S = int(K), int(S)
 
         # the closure holds no reference to self: a cycle through the frozen function would be
         # freed by the garbage collector, which may run while another function records (abort)
-        def kernel(rec, active, si, bsdf, scene, tables):
-            return shade(scene, rec, si, bsdf, active, K, sph, env)
+        def kernel(rec, active, si, bsdf, scene, tables, mix):
+            rng = mixed_rng(dr.arange(mi.UInt32, dr.width(active)), mix) if S > 0 else None
+            return shade(scene, rec, si, bsdf, active, K, sph, env, rng, S)
         super().__init__(kernel, freeze, False, max_recordings)
 
-    def __call__(self, rec, active, si, scene) -> mi.Color3f:
+    def __call__(self, rec, active, si, scene, frame: int = 0, viewer: int = 0) -> mi.Color3f:
+        """``S`` > 0: a glossy pixel's polygon lights are sampled (``S`` pairs; random numbers
+        keyed by the pixel, ``seed``, ``frame`` and ``viewer``)."""
+        mix = stream_key(self.seed, frame, STREAM_GLOSSY + int(viewer))
         return super().__call__([mi.UInt32(w) for w in rec], mi.Bool(active), si, si.bsdf(), scene,
-                                light_tables(self.sph, self.env))
+                                light_tables(self.sph, self.env), mix)
 
 
 class VisUpdate(FrozenFunction):

@@ -54,6 +54,7 @@ import mitsuba as mi
 
 from slc.methods.cones.packing import WordReader, WordWriter, decode_radiance, encode_radiance
 from slc.core.keys import keyed_rng, mixed_rng
+from slc.methods.adaptive.polygon_glossy import GLOSSY, polygon_term
 from slc.methods.adaptive.sampling import LightStats, SampleStats, lum, sampler_of
 
 EMPTY = 0xFFFF
@@ -381,25 +382,34 @@ def residual(rec: Record, nrm, env, active) -> mi.Color3f:
     return E
 
 
-def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None, env=None) -> mi.Color3f:
-    """L_o of the pixels ``si`` from their VISIBILITY records (see the module)."""
+def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None, env=None, rng=None, S: int = 0) -> mi.Color3f:
+    """L_o of the pixels ``si`` from their VISIBILITY records (see the module). With ``rng``
+    (and polygon lights), a glossy pixel's polygon lights get ``S`` sample pairs of their
+    unshadowed term each (:func:`slc.methods.adaptive.polygon_glossy.glossy_term`)."""
     em_dr, dl = scene.emitters_dr(), has_delta(scene)
     r = unpack(rec, K, env is not None)
     idx, vis = r.idx, r.vis
     ctx = mi.BSDFContext()
     active = mi.Bool(active)
+    glossy = rng is not None and S > 0 and sph is not None and sph.poly is not None
+    gl_px = active & ((mi.UInt32(bsdf.flags()) & GLOSSY) != 0) if glossy else None
 
-    def cond(i, L):
+    def cond(i, L, *g):
         return (i < K) & active
 
-    def body(i, L):                      # one emitter and one BSDF call site (see update)
+    def body(i, L, *g):                  # one emitter and one BSDF call site (see update)
         ii, vi = _slot(idx, i), _slot(vis, i)
         m = active & (ii != EMPTY) & (vi > 0.0)
         d, w = light_at(em_dr, si, ii, m, sph, env, dl)
-        f = bsdf.eval(ctx, si, si.to_local(d), m)
-        return i + 1, L + dr.select(m, mi.Color3f(f) * w * vi, 0.0)
+        t = mi.Color3f(bsdf.eval(ctx, si, si.to_local(d), m)) * w * vi
+        if glossy:                       # a lobe narrow against the light: sampled (polygon_glossy)
+            t_s, used, rng_ = polygon_term(sph.table, scene, si, bsdf, ii, sph.polygon(ii, m & gl_px), d, w, vi,
+                                           g[0], S)
+            t, g = dr.select(used, t_s, t), (rng_,)
+        return (i + 1, L + dr.select(m, t, 0.0)) + tuple(g)
 
-    _, L = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(active))), cond=cond, body=body)
+    state = (mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(active))) + ((rng,) if glossy else ())
+    _, L, *_ = dr.while_loop(state=state, cond=cond, body=body)
     fn = bsdf.eval(ctx, si, mi.Vector3f(0.0, 0.0, 1.0), active)
     L += dr.select(active, mi.Color3f(fn) * r.E, 0.0)
     if env is not None:        # the unlisted regions, each at its own direction
