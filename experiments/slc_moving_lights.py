@@ -15,7 +15,10 @@ one mechanism at a time:
   (stale cones of a light that left are found 4x sooner);
 - ``multi_cycles``-like forgetting via ``rays_moving``: moving entries' memory is 8 cycles of
   ``rays_moving`` samples;
-- ``beta_min``: the smallest cone turn (degrees) that counts as motion.
+- ``beta_min``: the smallest cone turn (degrees) that counts as motion;
+- ``adaptive``: the lights listed per entry (spheres and the cube as polygon lights), their
+  unoccluded light exact at the pixel in every frame, only visibility learnt: its per-frame
+  curve is the lag of the visible fractions alone.
 
     slc run slc-moving-lights --quick [--methods slc slc:shrink_period=1 ...]
 """
@@ -32,7 +35,7 @@ NAME = "slc-moving-lights"
 FULL = dict(scenes=["street"], width=320, height=180, frames=64, warmup=10)
 QUICK = dict(scenes=["street"], width=160, height=90, frames=32, warmup=10)
 METHODS = ["rt48", "restir", "slc", "slc:rays_new=64,rays_settled=64,rays_moving=64", "slc:shrink_period=1",
-           "slc:beta_min=0.25"]
+           "slc:beta_min=0.25", "adaptive"]
 
 
 def add_arguments(p):
