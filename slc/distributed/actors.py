@@ -228,7 +228,8 @@ def render_on_nodes(scene: str, spec: str, n_nodes: int, rig: tuple, width: int,
         if address:
             ray.init(address=address, include_dashboard=False, log_to_driver=False)
         else:
-            ray.init(num_cpus=n_nodes, include_dashboard=False, log_to_driver=False)
+            # a new local instance, never another process's cluster on this machine
+            ray.init(address="local", num_cpus=n_nodes, include_dashboard=False, log_to_driver=False)
     try:
         env = {"SLC_VARIANT": backend.variant()}
         if "SLC_CACHE" in os.environ:
