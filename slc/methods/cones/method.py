@@ -242,14 +242,14 @@ class SurfaceLightCones(PayloadMethod):
 
     # ------------------------------------------------------------------ records
     def record_change(self, old, new):
-        r"""How much an entry's cones changed between two records, in units of the newer record's
-        own noise: the largest over its cones of the radiance change :math:`\lvert L_c' - L_c
-        \rvert` (luminance; a cone missing from one record counts with radiance 0) relative to the
-        entry's total radiance, and of the axis turn in radians weighted by the cone's share of
-        that radiance (cones in both records), times :math:`\sqrt{C' / 255}`: an estimate of
-        :math:`C'` samples is noisy by :math:`\propto 1/\sqrt{C'}`, so a change that is within
-        a young or moving entry's noise counts as small as it is against the noise of an entry
-        with the full 255 samples of memory."""
+        r"""How much an entry's cones changed between two records: the largest over its cones of
+        the radiance change :math:`\lvert L_c' - L_c \rvert` (luminance; a cone missing from one
+        record counts with radiance 0) relative to the entry's total radiance, and of the axis turn
+        in radians weighted by the cone's share of that radiance (cones in both records), times
+        :math:`\sqrt{C' / 255}` for the newer record's :math:`C'` samples: an estimate of
+        :math:`C'` samples is noisy by about :math:`1/\sqrt{C'}` of its value, so the change is
+        counted in units of that noise, scaled so that an entry with the full 255 samples of
+        memory keeps the plain change."""
         K = self.max_cones
         D0, _, L0, _, n0 = unpack(old, K)
         D1, _, L1, C1, n1 = unpack(new, K)
