@@ -4,8 +4,9 @@ Viewers go to nodes round-robin; every node shades its viewers from its own copy
 Strategies, all from one run of the frames per rig: the single-process shared cache
 (``single``), independent caches per node (``independent``), full replication (``full``:
 every record updated in the frame sent to the other nodes) and owner-based sparse updates
-(``sparse``: an entry's owner updates it and sends a node its record when the node asked for
-it or it changed by more than the threshold, ``delay`` frames late). Rigs: the overlap rig at
+(``sparse``: an entry's owner updates it and sends a subscribed node its record when the node
+holds none of it or it changed by more than the threshold since the one it holds, ``delay``
+frames late; a node stays subscribed ``--lease`` frames after it last needed the entry). Rigs: the overlap rig at
 the target overlaps and the random rig, each with a static and a moving camera. Bytes and rays
 are means, times medians, over the frames after the warm-up; FLIP on the last frame over all
 viewers. ``model_ms_*``: a model of the frame time per node at scale (see the table's note).
@@ -20,7 +21,8 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from slc.distributed.run import DEFAULT_THRESHOLD, LINKS, RigRun, run_rig, strategies_for  # noqa: E402
+from slc.distributed.nodes import KINDS  # noqa: E402
+from slc.distributed.run import DEFAULT_LEASE, DEFAULT_THRESHOLD, LINKS, RigRun, run_rig, strategies_for  # noqa: E402
 from slc.run import experiment as ex  # noqa: E402
 from slc.run.errors import ExperimentError  # noqa: E402
 from slc.scene import views  # noqa: E402
@@ -39,9 +41,13 @@ def add_arguments(p):
     p.add_argument("--nodes", type=int, help="render nodes (default 4)")
     p.add_argument("--viewers", type=int, help="viewers over all nodes, round-robin (default 16)")
     p.add_argument("--threshold", type=float, default=DEFAULT_THRESHOLD,
-                   help="sparse updates: an owner resends a record when the entry changed by more than this "
-                        "(slc: the largest relative change of a cone's radiance or its radian turn weighted by "
-                        f"its share; default {DEFAULT_THRESHOLD})")
+                   help="sparse updates: an owner sends a record again when the entry changed by more than this "
+                        "since the record the node holds (slc: the largest change of a cone's radiance relative to "
+                        "the entry's, or its turn in radians weighted by its share, times sqrt(C/255) for an "
+                        f"entry of C samples; unitless; default {DEFAULT_THRESHOLD})")
+    p.add_argument("--lease", type=int, default=DEFAULT_LEASE,
+                   help="sparse updates: frames a node stays subscribed to an entry after its viewers last "
+                        f"needed it (0: it cancels in the first frame it does not; default {DEFAULT_LEASE})")
     p.add_argument("--delays", type=int, nargs="+", help="frames a record takes to arrive (default 0 1 2 4)")
 
 
@@ -57,12 +63,14 @@ def run(opts):
         raise ExperimentError(f"--nodes must be at least 1 and at most --viewers (got {n_nodes} and {n_view})")
     if opts.threshold < 0:
         raise ExperimentError(f"--threshold must be >= 0 (got {opts.threshold})")
+    if opts.lease < 0:
+        raise ExperimentError(f"--lease must be >= 0 (got {opts.lease})")
     delays = opts.delays or pr["delays"]
     if any(d < 0 for d in delays):
         raise ExperimentError(f"--delays must be >= 0 (got {delays})")
     specs = opts.methods or ["slc"]
     names = ex.load_and_validate(opts.scene or pr["scenes"], specs, bool(opts.scene))
-    strategies = strategies_for(delays, opts.threshold)
+    strategies = strategies_for(delays, opts.threshold, opts.lease)
     rows = []
     for s in ex.each_scene(names):
         for spec in specs:
@@ -75,9 +83,10 @@ def run(opts):
                     print(f"{NAME}: {s.name} {spec} {rig} {overlap} {cam}", file=sys.stderr, flush=True)
                     extra = {"scene": s.name, "method": spec, "rig": rig, "overlap": overlap, "camera": cam}
                     rows += run_rig(s, vs, run_, strategies, extra)
-    md = _markdown(rows, pr, n_nodes, n_view, opts.threshold)
+    md = _markdown(rows, pr, n_nodes, n_view, f"{opts.threshold:g}, lease {opts.lease} frames")
     config = {"quick": bool(opts.quick), "scenes": names, "methods": specs, "nodes": n_nodes, "viewers": n_view,
-              "threshold": opts.threshold, "delays": delays, "width": pr["width"], "height": pr["height"],
+              "threshold": opts.threshold, "lease": opts.lease, "delays": delays, "width": pr["width"],
+              "height": pr["height"],
               "frames": pr["frames"], "warmup": pr["warmup"], "seed": opts.seed,
               "links": [{"name": n, "gbit_s": g, "latency_ms": lat} for n, g, lat in LINKS]}
     results = ex.results_object(NAME, config, rows)
@@ -93,9 +102,9 @@ COLUMNS = [("rig", "rig"), ("overlap", "overlap %"), ("camera", "camera"), ("str
            ("model_ms_100g_0.1ms", "model t 100G/0.1ms [ms]")]
 
 
-def _markdown(rows: list, pr: dict, n_nodes: int, n_view: int, threshold: float) -> str:
+def _markdown(rows: list, pr: dict, n_nodes: int, n_view: int, threshold: str) -> str:
     md = (f"# {NAME}\n\n{n_nodes} nodes x {n_view // n_nodes} viewers, {pr['width']}x{pr['height']}, "
-          f"{pr['frames']} frames ({pr['warmup']} warm-up); sparse threshold {threshold:g}. Bytes per frame per "
+          f"{pr['frames']} frames ({pr['warmup']} warm-up); sparse threshold {threshold}. Bytes per frame per "
           "node and update rays per frame (summed over nodes) are means over the frames after the warm-up; "
           "times are medians (node t: mean over nodes, t: the slowest node; the owners' update is measured "
           "once and shared out by each node's rays, as the nodes run in one process here). FLIP: mean over all "
@@ -104,7 +113,15 @@ def _markdown(rows: list, pr: dict, n_nodes: int, n_view: int, threshold: float)
           "the ray rate measured here plus its share of the shading, plus for a sharing strategy its bytes "
           "over the link and, with delay 0, a round trip of the link's latency (with a delay the transfer "
           "overlaps later frames).\n\n")
-    md += ex.markdown_table(rows, COLUMNS) + "\n\n## Targets (measured in this run)\n\n"
+    md += ex.markdown_table(rows, COLUMNS)
+    md += ("\n\n## Where sparse's bytes go\n\nBytes per frame and node by kind (slc.distributed.nodes.KINDS): "
+           "requests (subscriptions and cancellations), records of new entries, first records of an entry the "
+           "node does not hold, and records sent again because the entry changed, by its state (young: in its "
+           "first new_updates updates; moving: in a motion phase; settled).\n\n")
+    md += ex.markdown_table([r for r in rows if r["strategy"] == "sparse"],
+                            [("rig", "rig"), ("overlap", "overlap %"), ("camera", "camera"), ("delay", "delay"),
+                             ("bytes_per_frame", "total")] + [(f"bytes_{k}", k) for k in KINDS])
+    md += "\n\n## Targets (measured in this run)\n\n"
     for key in sorted({(r["rig"], r["overlap"], r["camera"]) for r in rows}, key=str):
         get = {(r["strategy"], r["delay"]): r for r in rows if (r["rig"], r["overlap"], r["camera"]) == key}
         single, full, sp = get.get(("single", 0)), get.get(("full", 0)), get.get(("sparse", 0))

@@ -12,8 +12,8 @@ import pytest
 
 from slc import methods
 from slc.core.timing import NullTimer
-from slc.distributed.nodes import SharedCacheNodes, Strategy
-from slc.distributed.owners import owners
+from slc.distributed.nodes import KINDS, SharedCacheNodes, Strategy
+from slc.distributed.owners import changed_records, owners
 from slc.distributed.run import gbuffers
 from slc.methods import FrameContext
 from slc.scene import views
@@ -49,6 +49,57 @@ def test_owner_protocol_with_delay_0_and_threshold_0_gives_the_shared_cache_imag
     assert any(not np.array_equal(np.array(i), plain[v]) for v, i in out[strategies[2].label]["images"].items())
     # sparse sends fewer bytes than full replication
     assert out[strategies[1].label]["traffic"].total < out[strategies[0].label]["traffic"].total
+
+
+def test_sparse_bytes_split_by_kind_add_up_and_a_lease_cuts_the_requests(scene):
+    """A moving rig on 2 nodes, sparse at threshold 0 and delay 0 with no lease and with an 8-frame
+    one: the bytes by kind add up to the total; both give the shared cache's images; a node that
+    needs an entry again after it stopped needing it holds its record and gets it again only when
+    it changed, so the first records are at most one per subscription to an entry that is not new;
+    the lease sends fewer requests."""
+    s = scene("atrium")
+    vs = views.overlap_rig(s, 4, 0.5, aspect=W / H)
+    strategies = [Strategy("sparse", 0, 0.0), Strategy("sparse", 0, 0.0, lease=8)]
+    nodes = SharedCacheNodes(methods.create("slc", s, seed=0), 2, len(vs), strategies)
+    kinds = {st.label: dict.fromkeys(KINDS, 0) for st in strategies}
+    frames = 6
+    for f in range(frames):
+        out = nodes.step(FrameContext(frame=f), gbuffers(s, vs, f, W, H), NullTimer())
+        for st in strategies:
+            tr = out[st.label]["traffic"]
+            assert set(tr.kinds) == set(KINDS) and sum(tr.kinds.values()) == tr.total > 0
+            assert tr.kinds["requests"] == tr.request_bytes
+            for k in KINDS:
+                kinds[st.label][k] += tr.kinds[k]
+    plain = _plain(s, "slc", vs, frames)
+    for st in strategies:
+        for v, img in out[st.label]["images"].items():
+            assert np.array_equal(np.array(img), plain[v]), (st.label, v)
+        assert kinds[st.label]["first"] <= kinds[st.label]["requests"] / 4 * 40   # 4 bytes of key, 36 of cones
+    no_lease, lease = (kinds[st.label]["requests"] for st in strategies)
+    assert lease < no_lease, (lease, no_lease)
+
+
+def _cone_record(L: float, C: float, n: int = 1):
+    from slc.methods.cones.packing import pack
+    D = [mi.Vector3f(0, 0, 1), mi.Vector3f(0, 1, 0), mi.Vector3f(1, 0, 0)]
+    return pack(D, [mi.Float(0.1)] * 3, [mi.Color3f(L)] * 3, mi.Float(C), mi.UInt32(n), 3)
+
+
+def test_a_record_change_counts_against_the_entry_noise_and_any_change_counts_at_threshold_0(scene):
+    m = methods.create("slc", scene("atrium"), seed=0)
+    # the same 20% change of the radiance: at 255 samples of memory 0.2, at 32 samples sqrt(32/255) of it
+    full = float(m.record_change(_cone_record(1.0, 255), _cone_record(1.2, 255))[0])
+    young = float(m.record_change(_cone_record(1.0, 32), _cone_record(1.2, 32))[0])
+    assert abs(full - 0.2 / 1.2) < 1e-3 and abs(young / full - (32 / 255) ** 0.5) < 1e-3
+    # a cone that appears counts with its share of the radiance (a third of it here)
+    grown = float(m.record_change(_cone_record(1.0, 255, 2), _cone_record(1.0, 255, 3))[0])
+    assert abs(grown - 1 / 3) < 1e-3
+    # only C differs: no change of the light, yet a change of the words at threshold 0
+    a, b = _cone_record(1.0, 100), _cone_record(1.0, 101)
+    assert float(m.record_change(a, b)[0]) == 0.0
+    assert bool(changed_records(m, a, b, 0.0)[0]) and not bool(changed_records(m, a, b, 0.01)[0])
+    assert not bool(changed_records(m, a, a, 0.0)[0])
 
 
 def test_rendezvous_owners_move_only_the_entries_of_a_node_that_left():

@@ -28,7 +28,7 @@ import ray
 from slc import methods
 from slc.core import backend
 from slc.core.keys import INVALID
-from slc.distributed.owners import count, mask_of, owners
+from slc.distributed.owners import changed_records, count, mask_of, owners
 from slc.distributed.run import gbuffers
 from slc.methods import FrameContext
 from slc.core.timing import NullTimer
@@ -116,8 +116,8 @@ class RenderNode:
             last = [_fit(w, cap, mi.UInt32) for w in last] if last else [dr.zeros(mi.UInt32, cap) for _ in rec]
             want = dr.gather(mi.Bool, need, fr.active) & (owner == self.node)
             old = [dr.gather(mi.UInt32, w, fr.active) for w in last]
-            send = want & (~dr.gather(mi.Bool, have, fr.active) | fr.is_new |
-                           (m.record_change(old, rec) > self.threshold))
+            dr.scatter(have, False, fr.active, fr.is_new)   # a reallocated slot's record is not the entry's
+            send = want & (~dr.gather(mi.Bool, have, fr.active) | changed_records(m, old, rec, self.threshold))
             for w, r in zip(last, rec):
                 dr.scatter(w, r, fr.active, send)
             dr.scatter(have, True, fr.active, send)

@@ -12,12 +12,13 @@ directly, the others from the records their owners sent it.
 Per frame, for each node ``n`` and strategy:
 
 1. *requests*: the entries n's viewers touch that n does not own; a new one is a subscription
-   (its key to the owner), one n stops needing a cancellation (its key); nothing is sent for
-   an entry n keeps needing.
-2. *records*: the owner sends n an entry's packed record when n subscribed to it (or it is new),
-   or, ``sparse``, when it changed by more than ``threshold``
-   (:meth:`~slc.osc.payload.PayloadMethod.record_change`) since the record n last got;
-   ``full`` sends every record updated in the frame to every other node.
+   (its key to the owner), one n's viewers have not needed for ``lease`` frames a cancellation
+   (its key); nothing is sent for an entry n keeps needing or needs again within the lease.
+2. *records*: the owner sends n an entry's packed record when n holds none of it (it is new, or
+   n never got it), or, ``sparse``, when it changed by more than ``threshold`` since the record
+   n holds (:func:`slc.distributed.owners.changed_records`); n keeps the records of entries it
+   stopped needing. ``full`` sends every record updated in the frame to every other node.
+   :attr:`Traffic.kinds` splits the bytes by kind (:data:`KINDS`).
 3. *delivery*: records arrive ``delay`` frames after they are sent; n shades from what it holds.
 
 ``independent`` (no traffic: every node its own cache, updating every entry it sees) is run by
@@ -32,7 +33,7 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.core.keys import INVALID
-from slc.distributed.owners import KEY_BYTES, Message, NodeCopy, count, mask_of, owners
+from slc.distributed.owners import KEY_BYTES, Message, NodeCopy, changed_records, count, mask_of, owners
 from slc.osc.payload import PayloadMethod
 from slc.osc.protocol import FrameRequests
 
@@ -40,15 +41,26 @@ from slc.osc.protocol import FrameRequests
 @dataclass(frozen=True)
 class Strategy:
     """How owners share records: ``full`` (every updated record to every other node) or
-    ``sparse`` (a record when asked for or changed by more than ``threshold``), arriving
-    ``delay`` frames after it is sent."""
+    ``sparse`` (a record the node does not hold, or one changed by more than ``threshold``
+    since the record it holds), arriving ``delay`` frames after it is sent; a node stays
+    subscribed to an entry ``lease`` frames after its viewers last needed it."""
     kind: str
     delay: int = 0
     threshold: float = 0.0
+    lease: int = 0
 
     @property
     def label(self) -> str:
-        return f"{self.kind}-d{self.delay}" + (f"-t{self.threshold:g}" if self.kind == "sparse" else "")
+        return f"{self.kind}-d{self.delay}" + (
+            (f"-t{self.threshold:g}" + (f"-l{self.lease}" if self.lease else "")) if self.kind == "sparse" else "")
+
+
+# the kinds of bytes a frame's traffic is split into (:attr:`Traffic.kinds`): subscriptions and
+# cancellations; records of entries new in the frame; first records of an entry the node does not
+# hold; records sent again because the entry changed, by the entry's state after the update
+# (:class:`slc.osc.payload.RayPolicy`: young in its first ``new_updates`` updates, else moving in
+# a motion phase, else settled)
+KINDS = ("requests", "new", "first", "resend_young", "resend_moving", "resend_settled")
 
 
 @dataclass
@@ -58,6 +70,7 @@ class Traffic:
     record_bytes: int = 0
     records: int = 0
     node_ms: dict = field(default_factory=dict)    # node -> ms of its exchange and shading
+    kinds: dict = field(default_factory=lambda: dict.fromkeys(KINDS, 0))   # kind -> bytes (:data:`KINDS`)
 
     @property
     def total(self) -> int:
@@ -190,26 +203,36 @@ class SharedCacheNodes:
         for v in self.viewers[n]:
             slot = mi.UInt32(fr.pixel_slot[v])
             dr.scatter(need, True, slot, slot != INVALID)
-        need_act = dr.gather(mi.Bool, need, fr.active)
+        # a reallocated slot holds another entry: the node neither holds nor asks for it (every
+        # node knows this from the directory, without a message)
+        dr.scatter(c.have, False, fr.active, fr.is_new)
+        dr.scatter(c.sub, False, fr.active, fr.is_new)
+        # a node stays subscribed to an entry for ``lease`` frames after its viewers last needed it
+        dr.scatter(c.last_need, mi.UInt32(frame + 1), dr.compress(need))
+        keep = c.sub & ~need & (mi.UInt32(frame + 1) - c.last_need <= s.lease)
         owned = owner == n
-        remote = need_act & ~owned
+        remote = dr.gather(mi.Bool, need | keep, fr.active) & ~owned
 
         # ------------------------------- requests: subscriptions and cancellations (a key each)
-        new_sub = remote & (~dr.gather(mi.Bool, c.sub, fr.active) | fr.is_new)
-        remote_cap = mask_of(fr.active, cap, remote)
-        cancel = c.sub & ~remote_cap
-        traffic.request_bytes += KEY_BYTES * (count(new_sub) + count(cancel))
-        c.sub = remote_cap
+        new_sub = remote & ~dr.gather(mi.Bool, c.sub, fr.active)
+        sub = mask_of(fr.active, cap, remote) | (keep & ~mask_of(fr.active, cap, owned))
+        cancel = c.sub & ~sub
+        req = KEY_BYTES * (count(new_sub) + count(cancel))
+        traffic.request_bytes += req
+        traffic.kinds["requests"] += req
+        c.sub = sub
 
         # ------------------------------- records from the owners
         if s.kind == "full":
             send = remote
         else:
-            fresh = new_sub | ~dr.gather(mi.Bool, c.have, fr.active)
+            # a node keeps the records of the entries it stopped needing: one it subscribes to
+            # again is sent only if it changed since the record the node holds
+            fresh = ~dr.gather(mi.Bool, c.have, fr.active)
             last = [dr.gather(mi.UInt32, w, fr.active) for w in c.sent]
-            send = remote & (fresh | (m.record_change(last, rec) > s.threshold))
+            send = remote & (fresh | changed_records(m, last, rec, s.threshold))
             traffic.records += count(send)
-            traffic.record_bytes += int(dr.sum(dr.select(send, rec_bytes + KEY_BYTES, 0))[0])
+            traffic.record_bytes += _account(traffic, m, fr, send, fresh, rec_bytes + KEY_BYTES)
         for w, r in zip(c.sent, rec):
             dr.scatter(w, r, fr.active, send)
         dr.scatter(c.have, True, fr.active, send)
@@ -221,11 +244,11 @@ class SharedCacheNodes:
             c.queue.append(msg)
 
         # ------------------------------- own entries now, others as their records arrive
-        m.unpack_records(c.state, fr.active, rec, need_act & owned)
+        m.unpack_records(c.state, fr.active, rec, dr.gather(mi.Bool, need, fr.active) & owned)
         while c.queue and c.queue[0].arrive <= frame:
             msg = c.queue.pop(0)
             m.unpack_records(c.state, msg.slots, msg.words)
-        dr.eval(c.state, c.have, c.sub, c.sent)
+        dr.eval(c.state, c.have, c.sub, c.sent, c.last_need)
 
     def _shade(self, ctx, fr: FrameRequests, gbuffers, state: dict) -> list:
         """The viewers' images shaded from ``state`` (the owner's state is restored by the caller)."""
@@ -238,3 +261,20 @@ class SharedCacheNodes:
         outs = list(m.shade_all(ctx, fr, gbuffers))
         dr.eval(outs)
         return outs
+
+
+def _account(traffic: Traffic, m: PayloadMethod, fr: FrameRequests, send: mi.Bool, fresh: mi.Bool,
+             nbytes: mi.UInt32) -> int:
+    """The bytes of the records ``send`` (``nbytes`` each, over ``fr.active``) added to
+    ``traffic.kinds`` by kind (:data:`KINDS`); returns their sum."""
+    state = dr.gather(mi.UInt32, m.policy_state, fr.active)      # after this frame's update
+    young = (state & 0xFFFF) <= m.ray_policy().new_updates
+    moving = ~young & ((state >> 16) > 0)
+    again = send & ~fresh
+    masks = {"new": send & fr.is_new, "first": send & fresh & ~fr.is_new, "resend_young": again & young,
+             "resend_moving": again & moving, "resend_settled": again & ~young & ~moving}
+    sums = {k: dr.sum(dr.select(v, nbytes, 0)) for k, v in masks.items()}
+    dr.eval(sums)
+    for k, v in sums.items():
+        traffic.kinds[k] += int(v[0])
+    return sum(int(v[0]) for v in sums.values())

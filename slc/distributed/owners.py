@@ -56,6 +56,7 @@ class NodeCopy:
     have: mi.Bool
     sub: mi.Bool
     sent: list
+    last_need: mi.UInt32 = None
     queue: list = field(default_factory=list)
 
     @classmethod
@@ -65,7 +66,7 @@ class NodeCopy:
         for v in state.values():
             dr.make_opaque(v)      # in memory: frozen shading kernels take it as an input
         return cls(state, dr.zeros(mi.Bool, capacity), dr.zeros(mi.Bool, capacity),
-                   [dr.zeros(mi.UInt32, capacity) for _ in range(words)])
+                   [dr.zeros(mi.UInt32, capacity) for _ in range(words)], dr.zeros(mi.UInt32, capacity))
 
     def grow(self, template: dict, capacity: int) -> None:
         """Arrays grown to the owner's (new contents zero, old kept)."""
@@ -76,11 +77,24 @@ class NodeCopy:
             self.have = extend_bool(self.have, capacity)
             self.sub = extend_bool(self.sub, capacity)
             self.sent = [extend_array(w, 0, capacity, mi.UInt32) for w in self.sent]
+            self.last_need = extend_array(self.last_need, 0, capacity, mi.UInt32)
 
     def forget(self, mask: mi.Bool) -> None:
         """Entries (a mask over slots) whose owner is gone: neither held nor asked for."""
         self.have &= ~mask
         self.sub &= ~mask
+
+
+def changed_records(method, last: list, rec: list, threshold: float) -> mi.Bool:
+    """Entries whose record ``rec`` changed by more than ``threshold`` since ``last`` (the record
+    the node holds; :meth:`~slc.osc.payload.PayloadMethod.record_change`); at threshold 0 every
+    record whose words differ, so that the node holds the owner's value bit for bit."""
+    differ = mi.Bool(False)
+    for a, b in zip(last, rec):
+        differ |= mi.UInt32(a) != mi.UInt32(b)
+    if threshold <= 0:
+        return differ
+    return differ & (method.record_change(last, rec) > threshold)
 
 
 def extend_bool(a: mi.Bool, size: int) -> mi.Bool:

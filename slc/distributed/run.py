@@ -17,7 +17,7 @@ import drjit as dr
 import numpy as np
 
 from slc import methods
-from slc.distributed.nodes import SharedCacheNodes, Strategy
+from slc.distributed.nodes import KINDS, SharedCacheNodes, Strategy
 from slc.methods import FrameContext
 from slc.reference import references
 from slc.reference.metrics import evaluate
@@ -28,7 +28,10 @@ from slc.scene import gbuffer as gbuf
 LINKS = (("10g_1ms", 10.0, 1.0), ("100g_0.1ms", 100.0, 0.1))
 # sparse updates: a record is sent again when its entry changed by more than this
 # (PayloadMethod.record_change); chosen by measurement in docs/distributed.md, "The threshold"
-DEFAULT_THRESHOLD = 0.07
+DEFAULT_THRESHOLD = 0.052
+# sparse updates: a node stays subscribed to an entry this many frames after its viewers last
+# needed it (docs/distributed.md, "The threshold")
+DEFAULT_LEASE = 8
 
 
 @dataclass
@@ -78,7 +81,7 @@ def run_rig(scene, viewers, run: RigRun, strategies: list, extra: dict) -> list:
     indep = [methods.create(run.spec, scene, seed=run.seed) for _ in range(run.n_nodes)]
     timer = StageTimer()
     labels = [s.label for s in strategies]
-    acc = {k: {"bytes": [], "rays": [], "node": [], "time": []} for k in ["single", "independent"] + labels}
+    acc = {k: {"bytes": [], "rays": [], "node": [], "time": [], "kinds": []} for k in ["single", "independent"] + labels}
     through = []
     for f in range(run.frames):
         gbs = gbuffers(scene, viewers, f, run.width, run.height)
@@ -108,6 +111,7 @@ def run_rig(scene, viewers, run: RigRun, strategies: list, extra: dict) -> list:
             tr = out[s.label]["traffic"]
             per = [out["update_ms"] * out["owned_rays"][n] / max(rays, 1) + tr.node_ms[n] for n in nodes.live]
             _put(acc[s.label], tr.total / len(nodes.live), rays, statistics.mean(per), max(per))
+            acc[s.label]["kinds"].append({k: v / len(nodes.live) for k, v in tr.kinds.items()})
     # ------------------------------- FLIP of the last frame against the ground truth and single
     f = run.frames - 1
     single = out["single"]
@@ -125,6 +129,8 @@ def run_rig(scene, viewers, run: RigRun, strategies: list, extra: dict) -> list:
                "time_ms": statistics.median(a["time"]) if a["time"] else 0.0,
                "nodes": run.n_nodes if kind != "single" else 1, "viewers": len(viewers),
                "ray_rate_per_ms": ray_rate, **extra}
+        if kind == "sparse":     # bytes per frame and node by kind (slc.distributed.nodes.KINDS)
+            row.update({f"bytes_{k}": _m([d[k] for d in a["kinds"]]) for k in KINDS})
         if kind == "sparse":
             row["threshold"] = next(s.threshold for s in strategies if s.label == k)
         sharing = kind in ("full", "sparse")
@@ -166,6 +172,6 @@ def _flips(scene, method, gbs, frame: int, imgs: dict, single: list, spp) -> tup
     return (float(np.mean(f_gt)), float(np.mean(f_single))) if f_gt else (float("nan"), float("nan"))
 
 
-def strategies_for(delays, threshold: float) -> list:
+def strategies_for(delays, threshold: float, lease: int = DEFAULT_LEASE) -> list:
     """Full replication (delay 0) and owner-based sparse updates at every delay."""
-    return [Strategy("full")] + [Strategy("sparse", int(d), float(threshold)) for d in delays]
+    return [Strategy("full")] + [Strategy("sparse", int(d), float(threshold), int(lease)) for d in delays]

@@ -109,8 +109,9 @@ def methods_cmd():
               help="render nodes (Ray actors) sharing one cache by owner-based sparse updates; viewers go "
                    "to nodes round-robin (0: one process, no Ray; a cache method with records: slc, sh, adaptive)")
 @click.option("--threshold", default=None, type=float,
-              help="with --nodes: an owner resends an entry's record when it changed by more than this "
-                   "(the payload's own measure; default 0.07, docs/distributed.md)")
+              help="with --nodes: an owner sends an entry's record again when it changed by more than this "
+                   "since the record the node holds (the payload's own measure, unitless; default 0.052, "
+                   "docs/distributed.md)")
 @click.option("--address", default=None, help="with --nodes: a running Ray cluster (HOST:PORT); default a local instance")
 def render_cmd(scene_name, method, viewers, rig, overlap, res, frames, warmup, seed, gt, out, nodes, threshold,
                address):
