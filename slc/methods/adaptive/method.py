@@ -76,12 +76,12 @@ class AdaptiveCache(PayloadMethod):
         env = EnvLights(scene, self.env_ratio, self.env_max_sr) if self.env_lights == "auto" else None
         self.env = env if env is not None and env.any else None
         self.prior = self._prior(scene, self.sph, self.env, self.theta_delta)
-        # record size: no more slots than the scene has lights that can be listed (atrium: 3 lamps)
         ems = list(scene.mi_scene.emitters())
         n_list = sum(1 for i, e in enumerate(ems) if bool(int(e.flags()) & int(mi.EmitterFlags.Delta))
                      or (self.sph is not None and bool(self.sph.flag[i])))
         n_list += self.env.n if self.env is not None else 0
-        self.vis_k = max(1, min(self.vis_lights, n_list))
+        self.vis_k = max(1, min(self.vis_lights, n_list))       # no more slots than listable lights
+        self._vis_share = self.vis_rays if n_list <= self.vis_k else 1.0    # vis_rays: every light fits a record
 
     @staticmethod
     def _has_environment(scene) -> bool:
@@ -210,7 +210,7 @@ class AdaptiveCache(PayloadMethod):
             fr_r = dr.gather(mi.Bool, fresh, idx)
             if r == VIS:
                 ry = visibility.traced_rays(ry, dr.gather(mi.Float, h.s_delta, idx), fr_r, self.prior == VIS,
-                                            self.vis_rays)
+                                            self._vis_share)
                 dr.scatter(traced, ry, idx, on)
                 # the residual's memory is cut for moving entries only (a new entry's light did not move)
                 out, mo, st = self._vis_update()(sc, rec, si, key, ry, dr.gather(mi.Bool, moving, idx), fr_r, on,

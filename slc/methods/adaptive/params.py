@@ -16,9 +16,9 @@ PARAMS = (
     Param("sphere_sin", 0.3, "largest r/d (sine of the half-angle) of a sphere light listed at an entry",
           lo=0.0, hi=1.0),
     Param("vis_rays", 0.5, "share of the ray policy's update rays (at least one) traced by a VISIBILITY "
-          "entry whose listed lights bring at least 95% of its light (its statistics' listed share): their "
-          "unoccluded light is exact, only their visible fractions and the residual are estimated",
-          lo=0.0, hi=1.0),
+          "entry whose listed lights bring at least 95% of its light (its statistics' listed share), in a "
+          "scene whose listable lights all fit a record (vis_lights): their unoccluded light is exact, only "
+          "their visible fractions and the residual are estimated", lo=0.0, hi=1.0),
     Param("polygon_lights", "on", "rectangles and emitter meshes of at most 16 triangles (not spheres) are "
           "listed in VISIBILITY records at any size, their unoccluded irradiance exact at the pixel "
           "(Lambert's formula, clipped to the horizon) times the entry's visible fraction (on: so; "
