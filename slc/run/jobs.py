@@ -183,7 +183,7 @@ class _Progress:
 
 
 def images_of(session: "Session", job: Job) -> list:
-    """The images of a ``keep_images`` job: from this session's run, else as
+    """The images of a ``keep_images`` job: from this experiment run, else as
     committed by an earlier run (resume)."""
     return session.images.pop(job.key, None) or session.store.load_images(job)
 
@@ -217,7 +217,7 @@ class Session:
         self._pool = None
         self._runner = None
         self.stats: list[dict] = []  # per finished job: key, wall_s, run_s, load_s, attempts, host
-        self.images: dict[str, list] = {}  # keep_images jobs run in this session: key -> images per case
+        self.images: dict[str, list] = {}  # keep_images jobs run by this experiment run: key -> images per case
         self.jobs_seen = 0
 
     # ----------------------------------------------------------------------
