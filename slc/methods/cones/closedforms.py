@@ -13,7 +13,7 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.scene.bsdf_table import KIND_OTHER, KIND_PRINCIPLED, ZERO_ATTRS
-from slc.methods.cones.conestate import ConeState
+from slc.methods.cones.conestate import ConeState, cap_cosine_integral
 
 BACK_MARGIN = 1e-3                    # cos; a cap this far above the horizon holds no direction below it,
                                       # even with the quadrature's cap-membership tolerance
@@ -291,9 +291,6 @@ def horizon_terms(si, active, cones: ConeState, horizon: bool):
 def _across_cap(cos_d, sin_d, sa, ca, A, L, delta, h):
     """L_c (1/Omega_c) times the integral of cos over the part of the cap (axis at
     ``cos_d`` from the normal, half-angle ``A``) above the horizon (Snyder 1996)."""
-    x = ca * dr.rcp(dr.maximum(sa, 1e-30))
-    y = dr.clip(-x * cos_d * dr.rcp(dr.maximum(sin_d, 1e-30)), -1.0, 1.0)
-    sy = sin_d * dr.safe_sqrt(1.0 - dr.square(y))
-    part = (cos_d * dr.acos(y) - x * sy) * dr.square(sa) + dr.atan2(sy, x)
+    part = cap_cosine_integral(cos_d, sin_d, sa, ca)
     inv_om_i = dr.rcp(dr.maximum(2.0 * math.pi * h, 1e-30))
-    return dr.select(delta, L * dr.maximum(cos_d, 0.0), L * (dr.maximum(part, 0.0) * inv_om_i))
+    return dr.select(delta, L * dr.maximum(cos_d, 0.0), L * (part * inv_om_i))

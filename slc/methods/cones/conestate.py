@@ -89,6 +89,47 @@ def above_fraction(cos_d, alpha):
     return dr.select(above, 1.0, dr.select(below, 0.0, frac))
 
 
+def cap_cosine_integral(cos_d, sin_d, sin_a, cos_a):
+    r"""The integral of :math:`\max(\cos\theta, 0)` over a cap of half-angle :math:`\alpha <
+    \pi/2` whose axis lies at angle :math:`d` from the normal (Snyder 1996):
+    :math:`(\cos d \arccos y - x \sin d \sqrt{1 - y^2}) \sin^2\alpha + \arctan(\sin d \sqrt{1 -
+    y^2} / x)`, :math:`x = \cot\alpha`, :math:`y = -x \cos d / \sin d` (clipped to [-1, 1]:
+    :math:`\pi \sin^2\alpha \cos d` wholly above the horizon, 0 wholly below)."""
+    x = cos_a * dr.rcp(dr.maximum(sin_a, 1e-30))
+    y = dr.clip(-x * cos_d * dr.rcp(dr.maximum(sin_d, 1e-30)), -1.0, 1.0)
+    sy = sin_d * dr.safe_sqrt(1.0 - dr.square(y))
+    return dr.maximum((cos_d * dr.acos(y) - x * sy) * dr.square(sin_a) + dr.atan2(sy, x), 0.0)
+
+
+def above_mean_cosine(cos_d, alpha):
+    r"""The mean of :math:`\cos\theta` over the part of a cap (half-angle :math:`\alpha`, axis at
+    angle :math:`d` from the normal, ``cos_d``) above the horizon, :math:`\int_c \max(\cos\theta,
+    0)\, d\omega / \Omega_c^+`: :math:`\cos d\, (1 + \cos\alpha) / 2` for a cap wholly above it,
+    0 for one wholly below. Across the horizon the integral is Snyder's (a cap wider than a
+    hemisphere by its complement, :math:`\pi - \int_{\bar c}`) over :math:`\Omega_c^+`
+    (:func:`above_fraction`); a cap narrower than ``SMALL_CAP`` takes its planar disc's
+    segment above the horizon (centre at height :math:`\cos d`, radius :math:`\sin\alpha`),
+    whose mean height is :math:`\cos d + \tfrac{2}{3} (a^2 - \cos^2 d)^{3/2} / A_{seg}`."""
+    sin_a, cos_a = dr.sincos(alpha)
+    sin_d = dr.safe_sqrt(1.0 - dr.square(cos_d))
+    wide = alpha > 0.5 * math.pi
+    # a cap wider than a hemisphere: pi minus the integral over its complement (axis -d, pi - alpha)
+    cd, ca = dr.select(wide, -cos_d, cos_d), dr.select(wide, -cos_a, cos_a)
+    part = cap_cosine_integral(cd, sin_d, sin_a, ca)
+    integral = dr.select(wide, dr.maximum(math.pi - part, 0.0), part)
+    om_plus = 4.0 * math.pi * dr.square(dr.sin(0.5 * alpha)) * above_fraction(cos_d, alpha)
+    sphere = integral * dr.rcp(dr.maximum(om_plus, 1e-30))
+    # small caps: the planar segment above the chord at -cos_d from the disc's centre
+    a2 = dr.square(sin_a)
+    r2 = dr.maximum(a2 - dr.square(cos_d), 0.0)
+    seg = a2 * dr.acos(dr.clip(-cos_d * dr.rsqrt(dr.maximum(a2, 1e-30)), -1.0, 1.0)) + cos_d * dr.sqrt(r2)
+    plane = cos_d + (2.0 / 3.0) * r2 * dr.sqrt(r2) * dr.rcp(dr.maximum(seg, 1e-30))
+    mean = dr.select(alpha < SMALL_CAP, plane, sphere)
+    above = ~wide & ((cos_d * cos_a - sin_d * sin_a) > 0.0)
+    below = ~wide & ((cos_d * cos_a + sin_d * sin_a) <= 0.0)
+    return dr.select(above, cos_d * 0.5 * (1.0 + cos_a), dr.select(below, 0.0, dr.maximum(mean, 0.0)))
+
+
 def cone_state(storage, slot, active, texel_frame, entry_frames, K, front_only: bool = False):
     """The cones of each pixel's entry, read from ``storage`` (:class:`ConeState`). With
     ``front_only`` (the update took samples above the entry's horizon only) a cone's ``L_c``

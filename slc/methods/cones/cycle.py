@@ -269,7 +269,9 @@ def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams
         ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), ok)
         if observer is not None:
             st.extra = observer.observe(st.extra, ds, w, ok, s)
-        st.D, st.A, st.L, st.S, st.n, st.beta, _ = insert_sample(st.D, st.A, st.L, st.S, st.n, st.beta, s, w, ok, p)
+        # the cycle's sums S_c: cosine-weighted where end_cycle divides by the cap's mean cosine
+        w_s = w * s.z if (p.front_only and p.cosine_weights) else w
+        st.D, st.A, st.L, st.S, st.n, st.beta, _ = insert_sample(st.D, st.A, st.L, st.S, st.n, st.beta, s, w_s, ok, p)
         st.k = st.k + 1
         return (st,)
 
@@ -308,6 +310,6 @@ def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams
     D, A, L, S, n, beta, dropped, shrunk = shrink_step(D, A, L, S, n, beta, dirs, hits, tested, p)
 
     # ----------------------------------------------- close the cycle and pack
-    L, C, reduced = end_cycle(L, S, C, n, beta, rays, moving, p)
+    L, C, reduced = end_cycle(L, S, C, n, beta, rays, moving, p, D, A)
     motion = valid & (reduced | dropped | (beta * (180.0 / math.pi) > p.beta_min_deg))
     return pack(D, A, L, C, n, K), motion, shrunk, dropped, extra
