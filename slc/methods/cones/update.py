@@ -255,7 +255,7 @@ def _insert_full(D, A, L, S, n, beta, s, w, th, live, full, p: ConeParams):
 
 
 def end_cycle(L, S, C, n, beta, n_samples, moving, p: ConeParams, D=None, A=None):
-    """Close an update cycle: reduce C once (if a cone turned), add the cycle's
+    r"""Close an update cycle: reduce C once (if a cone turned), add the cycle's
     sample count to it (the paper: "increasing C with the exact samples in every
     cycle"), and fold the samples into each cone's running mean. With
     ``n_s`` samples and their per-cone weight sum ``S_c`` this is the paper's
