@@ -110,7 +110,7 @@ def methods_cmd():
                    "to nodes round-robin (0: one process, no Ray; a cache method with records: slc, sh, adaptive)")
 @click.option("--threshold", default=None, type=float,
               help="with --nodes: an owner sends an entry's record again when it changed by more than this "
-                   "since the record the node holds (the payload's own measure, unitless; default 0.052, "
+                   "since the record the node holds (the payload's own measure, unitless; default 0.065, "
                    "docs/distributed.md)")
 @click.option("--address", default=None, help="with --nodes: a running Ray cluster (HOST:PORT); default a local instance")
 def render_cmd(scene_name, method, viewers, rig, overlap, res, frames, warmup, seed, gt, out, nodes, threshold,
