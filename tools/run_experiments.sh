@@ -20,7 +20,7 @@
 # preset, 96x54 on 4 rigs, since its delays 1 and 4 are in no quick preset). The other full presets (slc run
 # NAME without --quick: 320x180, 240 frames, several scenes) take hours each on 2 cores and are
 # not run here. The estimates are minutes on 2 idle cores with an empty kernel cache (kernel
-# compilation included), from a run of the whole list: about 30 minutes. Left out as too long:
+# compilation included), from a run of the whole list: about 40 minutes. Left out as too long:
 # megaviews_scale.py at 1M views (ManyLoDs alone about 18 min) and the osc-gi multi-viewer full
 # preset.
 # The interpreter is .venv/bin/python (or $PYTHON_BIN) running this checkout's slc.
