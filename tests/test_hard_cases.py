@@ -251,8 +251,8 @@ def _report(name, img, ref, mask, bounds):
 #   point-like +0.4%, 5.3%   behind -0.3%, 4.7%   grazing-far -0.2%, 8.3%
 #   half-occluded +0.3%, 6.6%   many-lights +0.4%, 4.1%   moving-stopped +2.0%, 8.5%
 #   switched-off (20 frames after the switch) -0.4%, 6.3%
-# (many-lights was -3.4%, 6.5% and grazing-far +1.1%, 10.1% without the update's
-# cosine-weighted sums: their bounds fail that update)
+# (without the update's cosine-weighted sums many-lights measures -3.4%, 6.5% and grazing-far
+# +1.1%, 10.1%: their bounds fail that update)
 SLC_BOUNDS = {"point-like": (0.02, 0.21), "behind": (0.02, 0.15), "grazing-far": (0.02, 0.125),
               "half-occluded": (0.02, 0.12), "many-lights": (0.02, 0.062),
               "moving-stopped": (0.03, 0.13), "switched-off": (0.02, 0.10)}
