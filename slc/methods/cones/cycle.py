@@ -16,7 +16,7 @@ import mitsuba as mi
 from slc.core.keys import STREAM_CONE_UPDATE, keyed_rng
 from slc.methods.cones.packing import pack
 from slc.methods.cones.update import (ConeParams, cone_direction, empty_state, end_cycle, frame_rng, frame_u32,
-                                      insert_sample, shrink_step)
+                                      insert_sample, normalize_cosine_sums, shrink_step)
 from slc.scene.lights import sample_light
 
 # A stream of its own for the per-entry shift of the stratified update samples
@@ -269,8 +269,8 @@ def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams
         ok &= ~scene.ray_test(si.spawn_ray_to(ds.p), ok)
         if observer is not None:
             st.extra = observer.observe(st.extra, ds, w, ok, s)
-        # the cycle's sums S_c: cosine-weighted where end_cycle divides by the cap's mean cosine
-        w_s = w * s.z if (p.front_only and p.cosine_weights) else w
+        # the cycle's sums S_c: cosine-weighted where the end of the cycle divides by the cap's mean cosine
+        w_s = w * s.z if p.cosine_sums else w
         st.D, st.A, st.L, st.S, st.n, st.beta, _ = insert_sample(st.D, st.A, st.L, st.S, st.n, st.beta, s, w_s, ok, p)
         st.k = st.k + 1
         return (st,)
@@ -310,6 +310,8 @@ def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams
     D, A, L, S, n, beta, dropped, shrunk = shrink_step(D, A, L, S, n, beta, dirs, hits, tested, p)
 
     # ----------------------------------------------- close the cycle and pack
-    L, C, reduced = end_cycle(L, S, C, n, beta, rays, moving, p, D, A)
+    if p.cosine_sums:
+        S = normalize_cosine_sums(S, D, A, K)
+    L, C, reduced = end_cycle(L, S, C, n, beta, rays, moving, p)
     motion = valid & (reduced | dropped | (beta * (180.0 / math.pi) > p.beta_min_deg))
     return pack(D, A, L, C, n, K), motion, shrunk, dropped, extra

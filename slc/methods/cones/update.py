@@ -54,7 +54,12 @@ class ConeParams:
     front_only: bool = False        # only light above an entry's horizon reaches its pixels (every BSDF reflects on
                                     # its front side only): samples below it are dropped, shrink tests below it skipped
     cosine_weights: bool = True     # with front_only: a cycle's samples enter S_c weighted by their cosine, divided by
-                                    # the cap's mean cosine above the horizon at the end of the cycle (end_cycle)
+                                    # the cap's mean cosine above the horizon at the end of the cycle (cosine_sums)
+
+    @property
+    def cosine_sums(self) -> bool:
+        """Whether a cycle's sums are cosine-weighted (:func:`normalize_cosine_sums`)."""
+        return self.front_only and self.cosine_weights
 
 
 
@@ -254,8 +259,20 @@ def _insert_full(D, A, L, S, n, beta, s, w, th, live, full, p: ConeParams):
     return D, A, L, S, beta, caseC
 
 
-def end_cycle(L, S, C, n, beta, n_samples, moving, p: ConeParams, D=None, A=None):
-    r"""Close an update cycle: reduce C once (if a cone turned), add the cycle's
+def normalize_cosine_sums(S, D, A, K: int):
+    r"""The cycle's cosine-weighted sums ``S_c`` (:attr:`ConeParams.cosine_sums`: each sample
+    entered its cone's sum weighted by its cosine to the entry's normal) divided by the mean
+    cosine :math:`\bar\mu_c` of the part of cone ``c`` above the horizon
+    (:func:`slc.methods.cones.conestate.above_mean_cosine`; ``D``, ``A`` the cones' axes in the
+    local frame and half-angles as the cycle leaves them). The cone's irradiance at the entry,
+    :math:`L_c \bar\mu_c`, is then the samples' own estimate :math:`\sum w \cos\theta / n_s`
+    however the caps overlap, where unweighted a cone spreads what the samples near its axis
+    brought over its whole cap (docs/cones.md)."""
+    return [S[i] * dr.rcp(dr.maximum(above_mean_cosine(D[i].z, A[i]), 1e-6)) for i in range(K)]
+
+
+def end_cycle(L, S, C, n, beta, n_samples, moving, p: ConeParams):
+    """Close an update cycle: reduce C once (if a cone turned), add the cycle's
     sample count to it (the paper: "increasing C with the exact samples in every
     cycle"), and fold the samples into each cone's running mean. With
     ``n_s`` samples and their per-cone weight sum ``S_c`` this is the paper's
@@ -270,19 +287,8 @@ def end_cycle(L, S, C, n, beta, n_samples, moving, p: ConeParams, D=None, A=None
     at ``multi_cycles`` cycles of ``n_s`` samples: a moving entry forgets its
     older samples. New entries are not capped: their light did not move, and
     a cap would throw away the samples of their first, larger cycles.
-    With ``p.front_only`` and ``p.cosine_weights`` the samples entered ``S_c`` weighted by
-    their cosine to the entry's normal, and ``S_c`` is divided here by the mean cosine
-    :math:`\bar\mu_c` of the part of cone ``c`` above the horizon
-    (:func:`slc.methods.cones.conestate.above_mean_cosine`, for the cone as the cycle leaves it):
-    the cone's irradiance at the entry, :math:`L_c \bar\mu_c`, is then the samples' own
-    estimate :math:`\sum w \cos\theta / n_s`, however the caps overlap, where unweighted it
-    spreads what the samples near the axis brought over the whole cap (docs/cones.md).
-    ``D``, ``A``: the cones' axes (local frame) and half-angles, used only then.
     Returns (L, C, reduced)."""
     K = p.max_cones
-    if p.front_only and p.cosine_weights:
-        assert D is not None and A is not None, "end_cycle: cosine-weighted sums need the cones' D and A"
-        S = [S[i] * dr.rcp(dr.maximum(above_mean_cosine(D[i].z, A[i]), 1e-6)) for i in range(K)]
     C, red = c_reduction(C, beta, p)
     ns = dr.maximum(mi.Float(n_samples), 1.0)
     # moving entries keep at most ``multi_cycles`` cycles of memory; the others go up to 255
