@@ -194,12 +194,14 @@ class SphereLights:
     def centre(self, i: int) -> np.ndarray:
         return np.array([self._c[k].numpy()[i] for k in range(3)])
 
-    def light(self, p: mi.Point3f, idx: mi.UInt32, active: mi.Bool, n: mi.Vector3f | None = None):
+    def light(self, p: mi.Point3f, idx: mi.UInt32, active: mi.Bool, n: mi.Vector3f | None = None,
+              poly_active=True):
         """At points ``p``: (listed-light mask, direction, r/d, irradiance per unit cosine
         along the direction, RGB) of emitters ``idx``: for a sphere the direction to its
         centre and the point-light term pi L r^2 / d^2; for a polygon light (with the
         normals ``n``; r/d is 0) the direction of its vector irradiance and its exact term
-        (:meth:`PolygonLights.light`)."""
+        (:meth:`PolygonLights.light`), computed only where ``poly_active`` (elsewhere the
+        mask is set and the direction and term are 0: the caller has them)."""
         active = mi.Bool(active)
         fl = dr.gather(mi.UInt32, self._flag, idx, active)
         is_s = active & (fl == SPHERE_FLAG)
@@ -214,7 +216,9 @@ class SphereLights:
         sin_a = dr.select(inside, 1.0, r * inv_d)
         E = dr.select(is_s & ~inside, L * (math.pi * r * r * inv_d * inv_d), 0.0)
         if self.poly is not None and n is not None:
-            is_p, d_p, E_p = self.poly.light(self.table, p, n, idx, active & (fl == POLYGON_FLAG))
+            on_p = active & (fl == POLYGON_FLAG)
+            is_p, d_p, E_p = self.poly.light(self.table, p, n, idx, on_p & poly_active)
+            is_p = on_p
             is_s |= is_p
             d, sin_a, E = dr.select(is_p, d_p, d), dr.select(is_p, 0.0, sin_a), dr.select(is_p, E_p, E)
         return is_s, d, sin_a, E

@@ -292,11 +292,18 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
         # the light's own unoccluded irradiance (w has the choice pmf ds.pdf in it)
         w1 = w * ds.pdf * cos
         if sph is not None:
-            # a small sphere light is listed as a delta light, with its closed-form term
-            is_s, d_s, sin_a, E_s = sph.light(si.p, em, ok & ~ds.delta, nrm)
-            small = is_s & ((sin_a < sph.max_sin) | sph.polygon(em, is_s))
+            # a small sphere light is listed as a delta light, with its closed-form term; a
+            # listed polygon light's term is the list's (the same formula at the same point)
+            listed, wl_em = mi.Bool(False), dr.zeros(mi.Color3f, N)
+            for i in range(K):
+                h = idx[i] == em
+                listed |= h
+                wl_em = dr.select(h, wl[i], wl_em)
+            is_s, d_s, sin_a, E_s = sph.light(si.p, em, ok & ~ds.delta, nrm, poly_active=~listed)
+            on_p = sph.polygon(em, is_s)
+            small = is_s & ((sin_a < sph.max_sin) | on_p)
             delta |= small
-            w1 = dr.select(small, E_s * dr.maximum(dr.dot(d_s, nrm), 0.0), w1)
+            w1 = dr.select(small, dr.select(on_p & listed, wl_em, E_s * dr.maximum(dr.dot(d_s, nrm), 0.0)), w1)
         if poly:
             # a polygon light's visible fraction is the ratio of its visible to its unoccluded
             # irradiance: the sample's step is weighted by its share r of the light's exact term
