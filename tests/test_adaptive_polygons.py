@@ -109,9 +109,10 @@ MEASURED_PASSING = (0.101, 0.0060, 0.0038)
 
 # relMSE(adaptive) / relMSE(rt48) on test_cones.py's glossy planes under the small light
 # (0.2 m square at 1 m), 48 frames, without and with a blocker over half of the highlight's
-# light paths. polygon_glossy=sample: light and BSDF samples of the unshadowed term, shadow rays
-# where the entry sees part of the light; point (the default): the light as a point along its
-# vector irradiance. Measured; bound min(1, 1.5x measured) where measured <= 1, else 1.5x.
+# light paths. polygon_glossy=ltc (the default): a narrow GGX lobe's integral over a light the
+# entry sees whole, the light as a point along its vector irradiance in a partial shadow;
+# sample: light and BSDF samples of the unshadowed term, shadow rays where the entry sees part
+# of the light. Measured; bound min(1, 1.5x measured) where measured <= 1, else 1.5x.
 GLOSSY_BLOCKER = ([-0.15, 0.5, 0.35], [0.15, 0, 0], [0, 0, -0.25])
 GLOSSY_ADAPTIVE = {
     ("sample", False): {("conductor", 0.005): 0.518, ("conductor", 0.01): 0.223, ("conductor", 0.05): 0.33,
@@ -120,9 +121,12 @@ GLOSSY_ADAPTIVE = {
     ("sample", True): {("conductor", 0.005): 0.549, ("conductor", 0.01): 0.396, ("conductor", 0.05): 0.575,
                        ("conductor", 0.2): 0.69, ("plastic", 0.005): 0.422, ("plastic", 0.01): 0.431,
                        ("plastic", 0.05): 0.591, ("plastic", 0.2): 0.451},
-    ("point", False): {("conductor", 0.005): 2.985, ("conductor", 0.01): 2.64, ("conductor", 0.05): 2.989,
-                       ("conductor", 0.2): 0.408, ("plastic", 0.005): 3.53, ("plastic", 0.01): 3.098,
-                       ("plastic", 0.05): 3.872, ("plastic", 0.2): 0.253},
+    ("ltc", False): {("conductor", 0.005): 0.009, ("conductor", 0.01): 0.018, ("conductor", 0.05): 0.020,
+                     ("conductor", 0.2): 0.408, ("plastic", 0.005): 0.034, ("plastic", 0.01): 0.011,
+                     ("plastic", 0.05): 0.025, ("plastic", 0.2): 0.253},
+    ("ltc", True): {("conductor", 0.005): 55.13, ("conductor", 0.01): 72.57, ("conductor", 0.05): 24.47,
+                    ("conductor", 0.2): 3.649, ("plastic", 0.005): 3.753, ("plastic", 0.01): 7.396,
+                    ("plastic", 0.05): 7.594, ("plastic", 0.2): 2.227},
 }
 GLOSSY_PARAMS = [(mode, occ, k, a) for (mode, occ), cases in GLOSSY_ADAPTIVE.items() for k, a in cases]
 

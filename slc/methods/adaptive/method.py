@@ -406,8 +406,8 @@ class AdaptiveCache(PayloadMethod):
 
     def _vis_shading(self) -> vis_frozen.VisShading:
         """The VISIBILITY pool's shading (glossy pixels may sample their polygon lights)."""
-        S = self.polygon_samples if self.polygon_glossy == "sample" else 0
-        make = lambda fz: vis_frozen.VisShading(self.vis_k, self.sph, self.env, fz, S=S, seed=self.seed)  # noqa: E731
+        make = lambda fz: vis_frozen.VisShading(self.vis_k, self.sph, self.env, fz, self.polygon_glossy,  # noqa: E731
+                                                self.polygon_samples, self.seed)
         return self._frozen("_vis_shade", make)
 
     def _sh_shading(self) -> sh_rep.SHShading:

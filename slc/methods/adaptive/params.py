@@ -23,11 +23,13 @@ PARAMS = (
           "listed in VISIBILITY records at any size, their unoccluded irradiance exact at the pixel "
           "(Lambert's formula, clipped to the horizon) times the entry's visible fraction (on: so; "
           "off: never)", choices=("on", "off")),
-    Param("polygon_glossy", "point", "a polygon light at a pixel with a glossy lobe narrow against it (its peak "
-          "density times the light's solid angle above 0.1) or in a partial shadow (sample: polygon_samples "
-          "pairs of light and BSDF samples of its term, the diffuse reflectance as a control variate, shadow "
-          "rays only where the entry sees part of the light; point: the light as a point along its vector "
-          "irradiance, no sample)", choices=("point", "sample")),
+    Param("polygon_glossy", "ltc", "a polygon light at a pixel whose glossy lobe is narrow against it (its peak "
+          "density times the light's solid angle above 0.1). ltc: a GGX lobe's integral over the light by "
+          "linearly transformed cosines (a fitted table; no ray, no sample) where the entry sees the light "
+          "whole, the light as a point along its vector irradiance elsewhere; sample: polygon_samples pairs "
+          "of light and BSDF samples of its term, the diffuse reflectance as a control variate, shadow rays "
+          "where the entry sees part of the light; point: the light as a point along its vector irradiance",
+          choices=("ltc", "sample", "point")),
     Param("polygon_samples", 16, "sample pairs (one from the light, one from the BSDF) per polygon light at a "
           "pixel sampled by polygon_glossy=sample", lo=1, hi=256),
     Param("env_lights", "auto", "bright small regions of the environment map are listed in VISIBILITY "

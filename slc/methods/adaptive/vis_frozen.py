@@ -1,6 +1,6 @@
 """The VISIBILITY representation's update and shading as frozen functions, traced once and
 replayed (``dr.freeze``): :class:`VisUpdate` runs :func:`~slc.methods.adaptive.visibility.update`,
-:class:`VisShading` runs :func:`~slc.methods.adaptive.visibility.shade`, with the emitter, sphere
+:class:`VisShading` runs :func:`~slc.methods.adaptive.vis_shading.shade`, with the emitter, sphere
 and region tables declared as inputs (:mod:`slc.methods.adaptive.frozen_inputs`).
 """
 from __future__ import annotations
@@ -12,7 +12,9 @@ from slc.core.freeze import FrozenFunction
 from slc.core.keys import mixed_rng, stream_key
 from slc.methods.adaptive.frozen_inputs import light_tables, sampler_inputs
 from slc.methods.adaptive.polygon_glossy import has_glossy
-from slc.methods.adaptive.visibility import STREAM_VIS, shade, update
+from slc.methods.adaptive.polygon_ltc import LtcTable, Roughness
+from slc.methods.adaptive.vis_shading import shade
+from slc.methods.adaptive.visibility import STREAM_VIS, update
 
 STREAM_GLOSSY = 0x5BD1E995         # the glossy pixels' light samples (plus the viewer's index)
 
@@ -25,21 +27,25 @@ class VisShading(FrozenFunction):
     records (gathered outside), mask, interactions and the scene are inputs;
     the sphere and region tables are declared as inputs too (a frozen function
     reads only arrays reachable from its inputs). ``K``, ``sph`` and ``env``
-    are fixed per instance. Unfrozen in animated scenes (``freeze=False``) and
-    after more than ``max_recordings`` recordings."""
+    are fixed per instance; ``glossy`` is the method's ``polygon_glossy`` (``ltc``: the fitted
+    table and the scene's roughness table are inputs too; ``sample``: ``S`` sample pairs).
+    Unfrozen in animated scenes (``freeze=False``) and after more than ``max_recordings``
+    recordings."""
 
-    def __init__(self, K: int, sph=None, env=None, freeze: bool = True, max_recordings: int = 4,
-                 S: int = 0, seed: int = 0):
+    def __init__(self, K: int, sph=None, env=None, freeze: bool = True, glossy: str = "point", S: int = 0,
+                 seed: int = 0, max_recordings: int = 4):
+        S, ltc = (S if glossy == "sample" else 0), glossy == "ltc"
         if sph is None or sph.poly is None or not has_glossy(getattr(sph.scene, "mi_scene", sph.scene)):
-            S = 0                       # no polygon light or no glossy BSDF: nothing to sample
-        self.K, self.sph, self.env, self.S, self.seed = int(K), sph, env, int(S), int(seed)
+            S, ltc = 0, False           # no polygon light or no glossy BSDF: nothing to sample
+        table = LtcTable(Roughness(getattr(sph.scene, "mi_scene", sph.scene))) if ltc else None
+        self.K, self.sph, self.env, self.S, self.seed, self.ltc = int(K), sph, env, int(S), int(seed), table
         K, S = int(K), int(S)
 
         # the closure holds no reference to self: a cycle through the frozen function would be
         # freed by the garbage collector, which may run while another function records (abort)
         def kernel(rec, active, si, bsdf, scene, tables, mix):
             rng = mixed_rng(dr.arange(mi.UInt32, dr.width(active)), mix) if S > 0 else None
-            return shade(scene, rec, si, bsdf, active, K, sph, env, rng, S)
+            return shade(scene, rec, si, bsdf, active, K, sph, env, rng, S, table)
         super().__init__(kernel, freeze, False, max_recordings)
 
     def __call__(self, rec, active, si, scene, frame: int = 0, viewer: int = 0) -> mi.Color3f:
@@ -47,7 +53,7 @@ class VisShading(FrozenFunction):
         keyed by the pixel, ``seed``, ``frame`` and ``viewer``)."""
         mix = stream_key(self.seed, frame, STREAM_GLOSSY + int(viewer))
         return super().__call__([mi.UInt32(w) for w in rec], mi.Bool(active), si, si.bsdf(), scene,
-                                light_tables(self.sph, self.env), mix)
+                                light_tables(self.sph, self.env) + (self.ltc.arrays() if self.ltc else []), mix)
 
 
 class VisUpdate(FrozenFunction):

@@ -54,7 +54,6 @@ import mitsuba as mi
 
 from slc.methods.cones.packing import WordReader, WordWriter, decode_radiance, encode_radiance
 from slc.core.keys import keyed_rng, mixed_rng
-from slc.methods.adaptive.polygon_glossy import GLOSSY, polygon_term
 from slc.methods.adaptive.sampling import LightStats, SampleStats, lum, sampler_of
 
 EMPTY = 0xFFFF
@@ -145,12 +144,22 @@ def empty(n: int, K: int) -> Record:
                   dr.zeros(mi.Float, n), dr.zeros(mi.UInt32, n))
 
 
-def _slot(lst, i):
+def slot(lst, i):
     """Element ``i`` (a per-lane index) of a per-slot list."""
     r = lst[0]
     for j in range(1, len(lst)):
         r = dr.select(i == j, lst[j], r)
     return r
+
+
+def _listed(idx: list, wl: list, em: mi.UInt32):
+    """(whether emitter ``em`` is in the list ``idx``, its listed unoccluded irradiance ``wl``)."""
+    listed, w = mi.Bool(False), dr.zeros(mi.Color3f, dr.width(em))
+    for i, j in enumerate(idx):
+        h = j == em
+        listed |= h
+        w = dr.select(h, wl[i], w)
+    return listed, w
 
 
 def light_at(emitters_dr, si, idx, active, sph=None, env=None, delta=True):
@@ -245,7 +254,7 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
         return i < K
 
     def lbody(i, wl):
-        d, w = light_at(em_dr, si, _slot(idx, i), valid, sph, env, dl)
+        d, w = light_at(em_dr, si, slot(idx, i), valid, sph, env, dl)
         wc = w * dr.maximum(dr.dot(d, nrm), 0.0)
         return i + 1, [dr.select(i == j, wc, wl[j]) for j in range(K)]
 
@@ -294,11 +303,7 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
         if sph is not None:
             # a small sphere light is listed as a delta light, with its closed-form term; a
             # listed polygon light's term is the list's (the same formula at the same point)
-            listed, wl_em = mi.Bool(False), dr.zeros(mi.Color3f, N)
-            for i in range(K):
-                h = idx[i] == em
-                listed |= h
-                wl_em = dr.select(h, wl[i], wl_em)
+            listed, wl_em = _listed(idx, wl, em)
             is_s, d_s, sin_a, E_s = sph.light(si.p, em, ok & ~ds.delta, nrm, poly_active=~listed)
             on_p = sph.polygon(em, is_s)
             small = is_s & ((sin_a < sph.max_sin) | on_p)
@@ -387,41 +392,6 @@ def residual(rec: Record, nrm, env, active) -> mi.Color3f:
     if env is not None:
         E += env.unlisted_irradiance(nrm, rec.idx, active) * rec.vu
     return E
-
-
-def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None, env=None, rng=None, S: int = 0) -> mi.Color3f:
-    """L_o of the pixels ``si`` from their VISIBILITY records (see the module). With ``rng``
-    (and polygon lights), a glossy pixel's polygon lights get ``S`` sample pairs of their
-    unshadowed term each (:func:`slc.methods.adaptive.polygon_glossy.glossy_term`)."""
-    em_dr, dl = scene.emitters_dr(), has_delta(scene)
-    r = unpack(rec, K, env is not None)
-    idx, vis = r.idx, r.vis
-    ctx = mi.BSDFContext()
-    active = mi.Bool(active)
-    glossy = rng is not None and S > 0 and sph is not None and sph.poly is not None
-    gl_px = active & ((mi.UInt32(bsdf.flags()) & GLOSSY) != 0) if glossy else None
-
-    def cond(i, L, *g):
-        return (i < K) & active
-
-    def body(i, L, *g):                  # one emitter and one BSDF call site (see update)
-        ii, vi = _slot(idx, i), _slot(vis, i)
-        m = active & (ii != EMPTY) & (vi > 0.0)
-        d, w = light_at(em_dr, si, ii, m, sph, env, dl)
-        t = mi.Color3f(bsdf.eval(ctx, si, si.to_local(d), m)) * w * vi
-        if glossy:                       # a lobe narrow against the light: sampled (polygon_glossy)
-            t_s, used, rng_ = polygon_term(sph.table, scene, si, bsdf, ii, sph.polygon(ii, m & gl_px), d, w, vi,
-                                           g[0], S)
-            t, g = dr.select(used, t_s, t), (rng_,)
-        return (i + 1, L + dr.select(m, t, 0.0)) + tuple(g)
-
-    state = (mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(active))) + ((rng,) if glossy else ())
-    _, L, *_ = dr.while_loop(state=state, cond=cond, body=body)
-    fn = bsdf.eval(ctx, si, mi.Vector3f(0.0, 0.0, 1.0), active)
-    L += dr.select(active, mi.Color3f(fn) * r.E, 0.0)
-    if env is not None:        # the unlisted regions, each at its own direction
-        L += dr.select(active, env.unlisted_radiance(si, bsdf, idx, r.vu, active), 0.0)
-    return L
 
 
 # ----------------------------------------------------------------------------- conversion

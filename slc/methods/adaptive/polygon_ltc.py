@@ -1,0 +1,268 @@
+r"""Glossy shading of polygon lights by linearly transformed cosines (docs/adaptive.md, "Glossy
+pixels"; Heitz, Dupuy, Hill, Neubelt 2016).
+
+A VISIBILITY record shades a polygon light at a pixel :math:`y` as a point along its vector
+irradiance :math:`\mathbf d`: :math:`P = f(\mathbf d) \cos\theta_{\mathbf d}\, w` with
+:math:`w` the irradiance per unit cosine along :math:`\mathbf d`, exact for a Lambertian BSDF
+and wrong for a lobe narrow against the light. With ``polygon_glossy=ltc`` a pixel whose BSDF
+has a GGX lobe of roughness :math:`\alpha` (Mitsuba's ``alpha`` attribute, or ``roughness``
+squared) models that lobe as :math:`f_s \cos \approx A\, D_M`, the linearly transformed cosine
+:math:`D_M` fitted to Mitsuba's GGX lobe for :math:`(\alpha, \theta_o)` (``tools/fit_ltc.py``,
+the table ``ltc_ggx.npz``), and replaces the lobe's point term by its integral over the light:
+
+.. math:: I = P + A\,\Bigl(L \int_{\Omega_L} D_M\, d\omega - D_M(\mathbf d)\, w\Bigr), \qquad
+          \int_{\Omega_L} D_M\, d\omega = \frac1\pi\, \hat z \cdot \mathbf F(M^{-1} \Omega_L),
+
+the second integral Lambert's formula over the light's triangles transformed by :math:`M^{-1}`
+and clipped to the upper hemisphere (:func:`slc.methods.adaptive.polygon_lights.clipped_vector_irradiance`).
+The scale :math:`A` (RGB: Fresnel and albedo) is calibrated at the pixel from one BSDF
+evaluation at the LTC's peak direction :math:`\omega^* = M\hat z / |M \hat z|` (the mirror
+direction where that is below the horizon): :math:`A = (f \cos(\omega^*) - c
+\cos\theta^*) / D_M(\omega^*)`, :math:`c = \rho_d/\pi` the diffuse reflectance's Lambertian
+part. Where the lobe is wide against the light the bracket vanishes (the integral of
+:math:`D_M` is its value at the light times the light's solid angle) and :math:`I = P`; where
+it is narrow the bracket replaces the point's lobe by the integral. The entry's visible fraction
+multiplies :math:`I` as it multiplies :math:`P`. No ray, no random number.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from slc.methods.adaptive.polygon_lights import clipped_vector_irradiance
+from slc.methods.adaptive.polygon_glossy import DIFFUSE
+from slc.scene.emitter_table import RECT, ROW, ROW_E0, ROW_E1, ROW_L, ROW_P0
+
+TABLE = Path(__file__).with_name("ltc_ggx.npz")
+NARROW_TAU = 0.1     # a lobe is narrow where its peak density (1/sr) times the light's solid angle exceeds this
+MAX_FIT_L1 = 0.1    # the table's L1 error (0 to 2) below which its LTC is used (else the point term)
+
+
+class LtcTable:
+    """The fitted table (``tools/fit_ltc.py``): per (sqrt(alpha), sqrt(1 - cos theta)) cell the
+    five non-zero entries of M in the view's frame, bilinearly interpolated; ``roughness``: the
+    scene's BSDFs' alpha (:class:`Roughness`)."""
+
+    def __init__(self, roughness: "Roughness", path: Path = TABLE):
+        self.roughness = roughness
+        d = np.load(path)
+        m = np.asarray(d["m"], np.float32)                  # (alphas, views, 5)
+        self.na, self.nt = int(m.shape[0]), int(m.shape[1])
+        self.l1 = np.asarray(d["l1"])
+        self._m = [mi.Float(np.ascontiguousarray(m[..., k]).ravel()) for k in range(5)]
+        self._l1 = mi.Float(np.ascontiguousarray(self.l1, np.float32).ravel())
+        for a in self._m + [self._l1]:
+            dr.make_opaque(a)
+
+    def arrays(self) -> list:
+        return list(self._m) + [self._l1] + self.roughness.arrays()
+
+    def _lerp(self, arrays: list, alpha: mi.Float, cos_o: mi.Float, active: mi.Bool) -> list:
+        u = dr.clip(dr.sqrt(dr.maximum(alpha, 0.0)) * (self.na - 1), 0.0, self.na - 1.0001)
+        t = dr.clip(dr.sqrt(dr.maximum(1.0 - cos_o, 0.0)) * self.nt, 0.0, self.nt - 1.0001)
+        i0, j0 = mi.UInt32(u), mi.UInt32(t)
+        fu, ft = u - mi.Float(i0), t - mi.Float(j0)
+        out = []
+        for a in arrays:
+            def g(i, j):
+                return dr.gather(mi.Float, a, i * self.nt + j, active)
+            v0 = dr.lerp(g(i0, j0), g(i0, j0 + 1), ft)
+            v1 = dr.lerp(g(i0 + 1, j0), g(i0 + 1, j0 + 1), ft)
+            out.append(dr.lerp(v0, v1, fu))
+        return out
+
+    def fitted(self, alpha: mi.Float, cos_o: mi.Float, active: mi.Bool) -> mi.Bool:
+        """Lanes whose lobe the table fits within ``MAX_FIT_L1`` (its L1 error, interpolated)."""
+        return mi.Bool(active) & (self._lerp([self._l1], alpha, cos_o, active)[0] < MAX_FIT_L1)
+
+    def matrix(self, alpha: mi.Float, cos_o: mi.Float, active: mi.Bool) -> list:
+        """M's entries (m00, m02, m11, m20, m22) at (alpha, cos theta_o)."""
+        return self._lerp(self._m, alpha, cos_o, active)
+
+
+def _inverse(m: list):
+    """M^-1 of M = [[m00, 0, m02], [0, m11, 0], [m20, 0, m22]] as the same five entries, and
+    its determinant."""
+    m00, m02, m11, m20, m22 = m
+    det2 = m00 * m22 - m02 * m20
+    r = dr.rcp(dr.select(det2 != 0.0, det2, 1.0))
+    i11 = dr.rcp(dr.select(m11 != 0.0, m11, 1.0))
+    return [m22 * r, -m02 * r, i11, -m20 * r, m00 * r], r * i11
+
+
+def _apply(mi_: list, v: mi.Vector3f) -> mi.Vector3f:
+    i00, i02, i11, i20, i22 = mi_
+    return mi.Vector3f(dr.fma(i00, v.x, i02 * v.z), i11 * v.y, dr.fma(i20, v.x, i22 * v.z))
+
+
+def _density(minv: list, det: mi.Float, v: mi.Vector3f) -> mi.Float:
+    """D_M(v) for unit v: the clamped cosine at M^-1 v / |M^-1 v| times the Jacobian."""
+    lo = _apply(minv, v)
+    n2 = dr.squared_norm(lo)
+    inv_n = dr.rsqrt(dr.maximum(n2, 1e-30))
+    return dr.maximum(lo.z * inv_n, 0.0) * (1.0 / math.pi) * dr.abs(det) * inv_n * inv_n * inv_n
+
+
+class Roughness:
+    """The GGX alpha of a scene's BSDFs, by the BSDF's registry index: Mitsuba's ``alpha``
+    attribute (rough conductors, plastics, dielectrics, through ``twosided``), else
+    ``roughness`` squared (principled); 0 for BSDFs with neither (no LTC). Constant values are
+    read once here; a BSDF whose roughness is a texture is marked and evaluated per pixel."""
+
+    TEXTURED = -1.0
+
+    def __init__(self, scene: mi.Scene):
+        si = dr.zeros(mi.SurfaceInteraction3f, 1)
+        vals = {}
+        for sh in scene.shapes():
+            b = sh.bsdf()
+            if b is None:
+                continue
+            i = int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(b))[0])
+            keys = list(mi.traverse(b).keys())
+            for name, sq in (("alpha", False), ("roughness", True)):
+                if b.has_attribute(name):
+                    if any(k.endswith(name + ".value") for k in keys):
+                        a = float(b.eval_attribute_1(name, si)[0])
+                        vals[i] = a * a if sq else a
+                    else:
+                        vals[i] = self.TEXTURED
+                    break
+        n = max(vals) + 2 if vals else 2
+        t = np.zeros(n, np.float32)
+        for i, a in vals.items():
+            t[i] = a
+        self.textured = bool((t == self.TEXTURED).any())
+        self._t = mi.Float(t)
+        dr.make_opaque(self._t)
+
+    def arrays(self) -> list:
+        return [self._t]
+
+    def __call__(self, bsdf: mi.BSDFPtr, si: mi.SurfaceInteraction3f, active: mi.Bool) -> mi.Float:
+        i = dr.reinterpret_array(mi.UInt32, bsdf)
+        active = mi.Bool(active) & (i < dr.width(self._t))
+        a = dr.gather(mi.Float, self._t, i, active)
+        if self.textured:
+            tex = active & (a == self.TEXTURED)
+            at = bsdf.eval_attribute_1("alpha", si, tex)
+            r = bsdf.eval_attribute_1("roughness", si, tex)
+            a = dr.select(tex, dr.select(at > 0.0, at, r * r), a)
+        return dr.select(active, a, 0.0)
+
+
+@dataclass
+class LobeFit:
+    """A pixel's GGX lobe as an LTC (:func:`lobe_fit`): ``alpha``, the view's frame (``cphi``,
+    ``sphi``: x towards the view's tangential direction), M^-1's entries ``minv`` and its
+    determinant ``det``, the scale ``A`` (RGB) and the lanes it holds for ``on``."""
+    alpha: mi.Float
+    cphi: mi.Float
+    sphi: mi.Float
+    minv: list
+    det: mi.Float
+    A: mi.Color3f
+    on: mi.Bool
+
+    def to_view(self, v: mi.Vector3f) -> mi.Vector3f:
+        """A local-frame direction in the view's frame."""
+        return mi.Vector3f(self.cphi * v.x + self.sphi * v.y, self.cphi * v.y - self.sphi * v.x, v.z)
+
+    def density(self, v_local: mi.Vector3f) -> mi.Float:
+        return _density(self.minv, self.det, self.to_view(v_local))
+
+
+def lobe_fit(ltc: LtcTable, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, active: mi.Bool, alpha: mi.Float,
+             c: mi.Color3f) -> LobeFit:
+    """The LTC of the pixels' GGX lobes (roughness ``alpha``) and its scale A, calibrated at the
+    LTC's peak direction with the diffuse part ``c`` (rho_d/pi) taken out (see the module)."""
+    wi = si.wi
+    m = mi.Bool(active) & (alpha > 0.0) & (wi.z > 0.0)
+    st = dr.sqrt(dr.maximum(wi.x * wi.x + wi.y * wi.y, 0.0))
+    ok_t = st > 1e-7
+    cphi = dr.select(ok_t, wi.x / dr.select(ok_t, st, 1.0), 1.0)
+    sphi = dr.select(ok_t, wi.y / dr.select(ok_t, st, 1.0), 0.0)
+    M = ltc.matrix(alpha, wi.z, m)
+    minv, det = _inverse(M)
+    fit = LobeFit(alpha=mi.Float(alpha), cphi=cphi, sphi=sphi, minv=minv, det=det, A=dr.zeros(mi.Color3f, dr.width(m)),
+                  on=m)
+    # the LTC's peak, M z (in the view's frame, turned back to the local frame); the mirror
+    # direction where that lies below the horizon
+    pk = dr.normalize(mi.Vector3f(M[1], 0.0, M[4]))
+    w_star = mi.Vector3f(cphi * pk.x, sphi * pk.x, pk.z)
+    w_star = dr.select(w_star.z > 1e-3, w_star, mi.Vector3f(-wi.x, -wi.y, wi.z))
+    f_star = mi.Color3f(bsdf.eval(mi.BSDFContext(), si, w_star, m)) - c * w_star.z
+    D_star = fit.density(w_star)
+    fit.A = dr.select(m & (D_star > 0.0), dr.maximum(f_star, 0.0) / dr.select(D_star > 0.0, D_star, 1.0), 0.0)
+    return fit
+
+
+def narrow(table, si: mi.SurfaceInteraction3f, alpha: mi.Float, idx: mi.UInt32, w: mi.Color3f,
+           active: mi.Bool) -> mi.Bool:
+    """Lanes of ``active`` (polygon lights ``idx`` with irradiance per unit cosine ``w`` along
+    their vector irradiance) whose GGX lobe (roughness ``alpha``) is narrow against the light:
+    its peak density 1/(4 pi alpha^2 cos theta_o) times the light's solid angle (about
+    ``|F| = w / L``) above ``NARROW_TAU``; elsewhere the point term is as good."""
+    m = mi.Bool(active) & (alpha > 0.0) & (si.wi.z > 0.0)
+    off = mi.UInt32(dr.gather(mi.Point2f, table._seg, idx, m).x)
+    L0 = mi.Color3f(*[dr.gather(mi.Float, table._rows, off * ROW + ROW_L + k, m) for k in range(3)])
+    omega = mi.luminance(w) / dr.maximum(mi.luminance(L0), 1e-30)
+    return m & (omega > NARROW_TAU * 4.0 * math.pi * alpha * alpha * si.wi.z)
+
+
+def ltc_correction(ltc: LtcTable, table, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, alpha: mi.Float,
+                   idx: mi.UInt32, active: mi.Bool, sph, rects: bool = True) -> mi.Color3f:
+    """:math:`I - P` (see the module) of polygon lights ``idx`` at pixels ``si`` whose GGX lobes
+    (roughness ``alpha``) are narrow against them (:func:`narrow`), on lanes ``active``; 0
+    elsewhere. ``sph``: the scene's :class:`~slc.methods.adaptive.sphere_lights.SphereLights`
+    (the light's vector irradiance); ``rects``: the scene has rectangle lights (else every
+    polygon is a triangle: three corners)."""
+    m = mi.Bool(active)
+    _, d, w = sph.poly.light(table, si.p, si.sh_frame.n, idx, m)
+    seg = dr.gather(mi.Point2f, table._seg, idx, m)
+    off, cnt = mi.UInt32(seg.x), mi.UInt32(seg.y)
+    P = mi.Color3f(bsdf.eval(mi.BSDFContext(), si, si.to_local(d), m)) * w
+    I = _integral_term(ltc, table, si, bsdf, alpha, idx, m, off, cnt, d, w, P, rects)
+    return dr.select(m, I - P, 0.0)
+
+
+def _integral_term(ltc, table, si, bsdf, alpha, idx, m, off, cnt, d, w, P, rects) -> mi.Color3f:
+    """:math:`I` (the module) on lanes ``m``: the lobe's LTC and scale, the integral of
+    :math:`D_M` over the light's triangles (rows ``off`` to ``off + cnt``)."""
+    flags = mi.UInt32(bsdf.flags())
+    c = dr.select(m & ((flags & DIFFUSE) != 0), mi.Color3f(bsdf.eval_diffuse_reflectance(si, m)) * (1.0 / math.pi),
+                  0.0)
+    fit = lobe_fit(ltc, si, bsdf, m, alpha, c)
+    rect = m & (dr.gather(mi.UInt32, table._e_kind, idx, m) == RECT)
+    x = si.p
+    z = mi.Vector3f(0.0, 0.0, 1.0)
+
+    def cond(t, F, L):
+        return m & (t < cnt)
+
+    def body(t, F, L):
+        mt = m & (t < cnt)
+        r = off + t
+        get = lambda k: dr.gather(mi.Float, table._rows, r * ROW + k, mt)   # noqa: E731
+        p0 = mi.Point3f(get(ROW_P0), get(ROW_P0 + 1), get(ROW_P0 + 2))
+        e0 = mi.Vector3f(get(ROW_E0), get(ROW_E0 + 1), get(ROW_E0 + 2))
+        e1 = mi.Vector3f(get(ROW_E1), get(ROW_E1 + 1), get(ROW_E1 + 2))
+        Lt = mi.Color3f(get(ROW_L), get(ROW_L + 1), get(ROW_L + 2))
+        front = mt & (dr.dot(x - p0, dr.cross(e0, e1)) > 0.0)
+        a = mi.Vector3f(p0 - x)
+        corners = [a, a + e0, mi.Vector3f(dr.select(rect, a + e0 + e1, a + e1)), a + e1] if rects else \
+            [a, a + e0, a + e1]
+        V = [_apply(fit.minv, fit.to_view(si.to_local(v))) for v in corners]
+        Ft = clipped_vector_irradiance(V, z, front)
+        return t + 1, mi.Vector3f(F + dr.select(front, Ft, 0.0)), mi.Color3f(dr.select(mt, Lt, L))
+
+    _, F, L = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Vector3f, dr.width(m)), dr.zeros(mi.Color3f, dr.width(m))),
+                            cond=cond, body=body)
+    integral = dr.maximum(-F.z, 0.0) * (1.0 / math.pi)       # clockwise from the emitting side
+    I = P + fit.A * (L * integral - fit.density(si.to_local(d)) * w)
+    return dr.select(m, dr.maximum(I, 0.0), P)
