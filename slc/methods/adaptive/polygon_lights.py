@@ -71,6 +71,45 @@ def clipped_vector_irradiance(V: list, n: mi.Vector3f, active: mi.Bool) -> mi.Ve
     return mi.Vector3f(0.5 * F)
 
 
+def vector_irradiance(table, p: mi.Point3f, off: mi.UInt32, cnt: mi.UInt32, rect: mi.Bool, active: mi.Bool,
+                      rects: bool, n: mi.Vector3f, warp=None):
+    """(F, L): :func:`clipped_vector_irradiance` summed over the triangles of a light (the
+    emitter table's rows ``off`` to ``off + cnt``; a rectangle's one row where ``rect``) that face
+    ``p``, clipped to the half space of ``n``, and the light's radiance. ``warp``: a map applied
+    to the vectors from ``p`` to the corners before the formula (the LTC's ``M^-1`` in
+    :mod:`slc.methods.adaptive.polygon_ltc`). ``rects``: the scene has rectangle lights (else
+    every polygon is a triangle: three corners, no zero-length fourth edge, whose fused cross
+    product is a rounding error, not 0). The sum runs clockwise from the emitting side."""
+    def cond(t, F, L):
+        return active & (t < cnt)
+
+    def body(t, F, L):
+        m = active & (t < cnt)
+        r = off + t
+        get = lambda c: dr.gather(mi.Float, table._rows, r * ROW + c, m)   # noqa: E731
+        p0 = mi.Point3f(get(ROW_P0), get(ROW_P0 + 1), get(ROW_P0 + 2))
+        e0 = mi.Vector3f(get(ROW_E0), get(ROW_E0 + 1), get(ROW_E0 + 2))
+        e1 = mi.Vector3f(get(ROW_E1), get(ROW_E1 + 1), get(ROW_E1 + 2))
+        Lt = mi.Color3f(get(ROW_L), get(ROW_L + 1), get(ROW_L + 2))
+        # the emitting side is +e0 x e1 (as the sampler's one-sided density): seen from
+        # there, p0, p0 + e0, (p0 + e0 + e1,) p0 + e1 run clockwise
+        front = m & (dr.dot(p - p0, dr.cross(e0, e1)) > 0.0)
+        a = mi.Vector3f(p0 - p)
+        if rects:
+            V = [a, a + e0, mi.Vector3f(dr.select(rect, a + e0 + e1, a + e1)), a + e1]
+        else:
+            V = [a, a + e0, a + e1]
+        if warp is not None:
+            V = [warp(v) for v in V]
+        Ft = clipped_vector_irradiance(V, n, front)
+        return t + 1, mi.Vector3f(F + dr.select(front, Ft, 0.0)), mi.Color3f(dr.select(m, Lt, L))
+
+    N = dr.width(active)
+    _, F, L = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Vector3f, N), dr.zeros(mi.Color3f, N)),
+                            cond=cond, body=body, labels=("t", "F", "L"))
+    return F, L
+
+
 class PolygonLights:
     """The polygon lights of a scene: rectangles and emitter meshes of at most
     MAX_TRIANGLES triangles with constant radiance, as the emitter table ``table``
@@ -91,9 +130,7 @@ class PolygonLights:
             if kind[i] == RECT or (kind[i] == MESH and 0 < seg[i, 1] <= MAX_TRIANGLES):
                 self.flag[i] = True
         self.any = bool(self.flag.any())
-        # without rectangles every polygon is a triangle: three corners, no zero-length fourth
-        # edge (whose fused cross product is a rounding error, not 0) and a quarter less work
-        self.rects = bool((self.flag & (kind[:n] == RECT)).any())
+        self.rects = bool((self.flag & (kind[:n] == RECT)).any())    # (vector_irradiance)
         f = np.concatenate([self.flag, [False]]).astype(np.uint32)   # width >= 2 (see SphereLights)
         self._flag = mi.UInt32(f)
         dr.make_opaque(self._flag)
@@ -107,32 +144,7 @@ class PolygonLights:
         seg = dr.gather(mi.Point2f, table._seg, idx, is_p)
         off, cnt = mi.UInt32(seg.x), mi.UInt32(seg.y)
         rect = is_p & (dr.gather(mi.UInt32, table._e_kind, idx, is_p) == RECT)
-        N = dr.width(is_p)
-
-        def cond(t, F, L):
-            return is_p & (t < cnt)
-
-        def body(t, F, L):
-            m = is_p & (t < cnt)
-            r = off + t
-            get = lambda c: dr.gather(mi.Float, table._rows, r * ROW + c, m)   # noqa: E731
-            p0 = mi.Point3f(get(ROW_P0), get(ROW_P0 + 1), get(ROW_P0 + 2))
-            e0 = mi.Vector3f(get(ROW_E0), get(ROW_E0 + 1), get(ROW_E0 + 2))
-            e1 = mi.Vector3f(get(ROW_E1), get(ROW_E1 + 1), get(ROW_E1 + 2))
-            Lt = mi.Color3f(get(ROW_L), get(ROW_L + 1), get(ROW_L + 2))
-            # the emitting side is +e0 x e1 (as the sampler's one-sided density): seen from
-            # there, p0, p0 + e0, (p0 + e0 + e1,) p0 + e1 run clockwise
-            front = m & (dr.dot(p - p0, dr.cross(e0, e1)) > 0.0)
-            a = mi.Vector3f(p0 - p)
-            if self.rects:
-                V = [a, a + e0, mi.Vector3f(dr.select(rect, a + e0 + e1, a + e1)), a + e1]
-            else:
-                V = [a, a + e0, a + e1]
-            Ft = clipped_vector_irradiance(V, n, front)
-            return t + 1, mi.Vector3f(F + dr.select(front, Ft, 0.0)), mi.Color3f(dr.select(m, Lt, L))
-
-        _, F, L = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Vector3f, N), dr.zeros(mi.Color3f, N)),
-                                cond=cond, body=body, labels=("t", "F", "L"))
+        F, L = vector_irradiance(table, p, off, cnt, rect, is_p, self.rects, n)
         F = -F                      # clockwise from the emitting side: the sum points away from it
         f = dr.norm(F)
         ok = is_p & (f > 0.0) & (dr.dot(F, n) > 0.0)

@@ -34,9 +34,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from slc.methods.adaptive.polygon_lights import clipped_vector_irradiance
+from slc.methods.adaptive.polygon_lights import vector_irradiance
 from slc.methods.adaptive.polygon_glossy import DIFFUSE
-from slc.scene.emitter_table import RECT, ROW, ROW_E0, ROW_E1, ROW_L, ROW_P0
+from slc.scene.emitter_table import RECT, ROW, ROW_L
 
 TABLE = Path(__file__).with_name("ltc_ggx.npz")
 NARROW_TAU = 0.1     # a lobe is narrow where its peak density (1/sr) times the light's solid angle exceeds this
@@ -239,30 +239,8 @@ def _integral_term(ltc, table, si, bsdf, alpha, idx, m, off, cnt, d, w, P, rects
                   0.0)
     fit = lobe_fit(ltc, si, bsdf, m, alpha, c)
     rect = m & (dr.gather(mi.UInt32, table._e_kind, idx, m) == RECT)
-    x = si.p
-    z = mi.Vector3f(0.0, 0.0, 1.0)
-
-    def cond(t, F, L):
-        return m & (t < cnt)
-
-    def body(t, F, L):
-        mt = m & (t < cnt)
-        r = off + t
-        get = lambda k: dr.gather(mi.Float, table._rows, r * ROW + k, mt)   # noqa: E731
-        p0 = mi.Point3f(get(ROW_P0), get(ROW_P0 + 1), get(ROW_P0 + 2))
-        e0 = mi.Vector3f(get(ROW_E0), get(ROW_E0 + 1), get(ROW_E0 + 2))
-        e1 = mi.Vector3f(get(ROW_E1), get(ROW_E1 + 1), get(ROW_E1 + 2))
-        Lt = mi.Color3f(get(ROW_L), get(ROW_L + 1), get(ROW_L + 2))
-        front = mt & (dr.dot(x - p0, dr.cross(e0, e1)) > 0.0)
-        a = mi.Vector3f(p0 - x)
-        corners = [a, a + e0, mi.Vector3f(dr.select(rect, a + e0 + e1, a + e1)), a + e1] if rects else \
-            [a, a + e0, a + e1]
-        V = [_apply(fit.minv, fit.to_view(si.to_local(v))) for v in corners]
-        Ft = clipped_vector_irradiance(V, z, front)
-        return t + 1, mi.Vector3f(F + dr.select(front, Ft, 0.0)), mi.Color3f(dr.select(mt, Lt, L))
-
-    _, F, L = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Vector3f, dr.width(m)), dr.zeros(mi.Color3f, dr.width(m))),
-                            cond=cond, body=body)
+    F, L = vector_irradiance(table, si.p, off, cnt, rect, m, rects, mi.Vector3f(0.0, 0.0, 1.0),
+                             warp=lambda v: _apply(fit.minv, fit.to_view(si.to_local(v))))
     integral = dr.maximum(-F.z, 0.0) * (1.0 / math.pi)       # clockwise from the emitting side
     I = P + fit.A * (L * integral - fit.density(si.to_local(d)) * w)
     return dr.select(m, dr.maximum(I, 0.0), P)
