@@ -22,7 +22,8 @@ if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from slc.distributed.nodes import KINDS  # noqa: E402
-from slc.distributed.run import DEFAULT_LEASE, DEFAULT_THRESHOLD, LINKS, RigRun, run_rig, strategies_for  # noqa: E402
+from slc.distributed import DEFAULT_LEASE, DEFAULT_THRESHOLD  # noqa: E402
+from slc.distributed.run import LINKS, RigRun, run_rig, strategies_for  # noqa: E402
 from slc.run import experiment as ex  # noqa: E402
 from slc.run.errors import ExperimentError  # noqa: E402
 from slc.scene import views  # noqa: E402

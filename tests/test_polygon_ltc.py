@@ -12,9 +12,10 @@ import pytest
 
 from helpers import plane_under_rect_light, quadrature_direct
 from test_cones import _glossy_bsdf
-from slc.methods.adaptive.polygon_ltc import TABLE, LtcTable, Roughness, ltc_correction, narrow
+from slc.methods.adaptive.polygon_ltc import TABLE, LtcTable, ltc_correction, narrow
 from slc.methods.adaptive.sphere_lights import SphereLights
 from slc.run.pipeline import gbuffers_for
+from slc.scene import bsdf_table
 from slc.scene.views import single
 
 RECT = ([0, 1.0, 0], [0.1, 0, 0], [0, 0, 0.1], 20.0)
@@ -85,7 +86,7 @@ def _ltc_image(sc, gb):
     si = gb.si
     act = mi.Bool(gb.valid) & (dr.abs(si.p.y) < 1e-4)
     bsdf = si.bsdf()
-    ltc = LtcTable(Roughness(sc.mi_scene))
+    ltc = LtcTable(bsdf_table.for_scene(sc))
     alpha = ltc.roughness(bsdf, si, act)
     _, d, w = sph.poly.light(sph.table, si.p, si.sh_frame.n, idx, act)
     P = mi.Color3f(bsdf.eval(mi.BSDFContext(), si, si.to_local(d), act)) * w

@@ -62,6 +62,11 @@ def lobe(v: np.ndarray, l: np.ndarray, alpha: float) -> np.ndarray:
     return np.where(ok, ggx_d(h[:, 2], alpha) * g / (4.0 * v[2]), 0.0)
 
 
+def _reflected_pdf(h: np.ndarray, vh: np.ndarray, alpha: float) -> np.ndarray:
+    """Density of the direction reflected about normals ``h`` drawn from D(h) cos(h)."""
+    return ggx_d(h[:, 2], alpha) * h[:, 2] / np.maximum(4.0 * np.abs(vh), 1e-12)
+
+
 def sample_lobe(v: np.ndarray, u: np.ndarray, alpha: float):
     """Directions from the GGX normal distribution reflected about the view: (l, pdf)."""
     t = np.arctan(alpha * np.sqrt(u[:, 0] / np.maximum(1.0 - u[:, 0], 1e-12)))
@@ -69,8 +74,14 @@ def sample_lobe(v: np.ndarray, u: np.ndarray, alpha: float):
     h = np.stack([np.sin(t) * np.cos(phi), np.sin(t) * np.sin(phi), np.cos(t)], 1)
     vh = h @ v
     l = 2.0 * vh[:, None] * h - v[None, :]
-    pdf = ggx_d(h[:, 2], alpha) * h[:, 2] / np.maximum(4.0 * np.abs(vh), 1e-12)
-    return l, pdf
+    return l, _reflected_pdf(h, vh, alpha)
+
+
+def lobe_pdf(v: np.ndarray, l: np.ndarray, alpha: float) -> np.ndarray:
+    """The density :func:`sample_lobe` draws ``l`` with (0 below the horizon)."""
+    h = v[None, :] + l
+    h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-20)
+    return np.where(l[:, 2] > 0.0, _reflected_pdf(h, h @ v, alpha), 0.0)
 
 
 def ltc_eval(minv: np.ndarray, l: np.ndarray) -> np.ndarray:
@@ -117,7 +128,7 @@ def fit_cell(v, alpha, u_f, u_l, p0):
         l_l = ltc_sample(m, u_l)
         d_l = ltc_eval(minv, l_l)
         f_l = lobe(v, l_l, alpha) / norm
-        _, pf_l = sample_lobe_pdf(v, l_l, alpha)
+        pf_l = lobe_pdf(v, l_l, alpha)
         e1 = np.abs(f_l - d_l) ** 3 / np.maximum(d_l + pf_l, 1e-30)
         d_f = ltc_eval(minv, l_f)
         e2 = np.abs(f_f / norm - d_f) ** 3 / np.maximum(d_f + pdf_f, 1e-30)
@@ -126,14 +137,6 @@ def fit_cell(v, alpha, u_f, u_l, p0):
     res = minimize(error, p0, method="Nelder-Mead", options={"xatol": 1e-6, "fatol": 1e-9, "maxiter": 800})
     m = matrix(res.x, R)
     return res.x, m, norm, float(res.fun)
-
-
-def sample_lobe_pdf(v, l, alpha):
-    h = v[None, :] + l
-    h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-20)
-    vh = h @ v
-    pdf = ggx_d(h[:, 2], alpha) * h[:, 2] / np.maximum(4.0 * np.abs(vh), 1e-12)
-    return None, np.where(l[:, 2] > 0.0, pdf, 0.0)
 
 
 def l1_error(v, alpha, m, norm, u):
@@ -145,7 +148,7 @@ def l1_error(v, alpha, m, norm, u):
     for l_s in (l_f, l_l):
         d = ltc_eval(minv, l_s)
         f = lobe(v, l_s, alpha) / norm
-        _, pf = sample_lobe_pdf(v, l_s, alpha)
+        pf = lobe_pdf(v, l_s, alpha)
         tot += np.mean(np.abs(f - d) / np.maximum(d + pf, 1e-30))
     return float(tot)
 

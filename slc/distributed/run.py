@@ -17,6 +17,7 @@ import drjit as dr
 import numpy as np
 
 from slc import methods
+from slc.distributed import DEFAULT_LEASE
 from slc.distributed.nodes import KINDS, SharedCacheNodes, Strategy
 from slc.methods import FrameContext
 from slc.reference import references
@@ -26,12 +27,6 @@ from slc.scene import gbuffer as gbuf
 
 # the links of the model column: (name, Gbit/s, one-way latency in ms)
 LINKS = (("10g_1ms", 10.0, 1.0), ("100g_0.1ms", 100.0, 0.1))
-# sparse updates: a record is sent again when its entry changed by more than this
-# (PayloadMethod.record_change); chosen by measurement in docs/distributed.md, "The threshold"
-DEFAULT_THRESHOLD = 0.065
-# sparse updates: a node stays subscribed to an entry this many frames after its viewers last
-# needed it (docs/distributed.md, "The threshold")
-DEFAULT_LEASE = 8
 
 
 @dataclass

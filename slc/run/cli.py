@@ -24,6 +24,7 @@ from pathlib import Path
 import click
 
 from slc.core import backend
+from slc.distributed import DEFAULT_THRESHOLD
 
 
 def _errors():
@@ -110,7 +111,7 @@ def methods_cmd():
                    "to nodes round-robin (0: one process, no Ray; a cache method with records: slc, sh, adaptive)")
 @click.option("--threshold", default=None, type=float,
               help="with --nodes: an owner sends an entry's record again when it changed by more than this "
-                   "since the record the node holds (the payload's own measure, unitless; default 0.065, "
+                   f"since the record the node holds (the payload's own measure, unitless; default {DEFAULT_THRESHOLD:g}, "
                    "docs/distributed.md)")
 @click.option("--address", default=None, help="with --nodes: a running Ray cluster (HOST:PORT); default a local instance")
 def render_cmd(scene_name, method, viewers, rig, overlap, res, frames, warmup, seed, gt, out, nodes, threshold,
@@ -168,7 +169,6 @@ def _render_on_nodes(scene_name, spec, s, m, vs, nodes, threshold, address, rig,
         _fail("--gt is not available with --nodes (slc run distributed compares the nodes' images)")
     # Ray and the actors only when nodes are asked for
     from slc.distributed.actors import render_on_nodes
-    from slc.distributed.run import DEFAULT_THRESHOLD
     t = DEFAULT_THRESHOLD if threshold is None else threshold
     if t < 0:
         _fail(f"--threshold must be >= 0, got {t}")

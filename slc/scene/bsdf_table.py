@@ -10,7 +10,11 @@ Indexed by the BSDF's registry id (``dr.reinterpret_array(mi.UInt32, bsdf)``). P
   specular transmission are constant 0 and whose base colour, roughness and metallic are
   constant: ``colour``, ``roughness``, ``metallic`` hold those), ``KIND_NOT_PRINCIPLED``
   (other BSDFs without the ``clearcoat`` or ``base_color`` attribute), else ``KIND_OTHER``
-  (textured parameters: the virtual calls). The constants are the BSDF's own
+  (textured parameters: the virtual calls);
+- ``alpha``: the GGX roughness of a BSDF with Mitsuba's ``alpha`` attribute (rough conductors,
+  plastics, dielectrics, also inside ``twosided``), else its ``roughness`` squared
+  (``principled``), 0 for a BSDF with neither, ``ALPHA_TEXTURED`` where it is a texture (the
+  kernels evaluate it per point then). The constants are the BSDF's own
   ``eval_attribute`` / ``eval_diffuse_reflectance`` values (a constant texture ignores the
   point), so kernels reading them give the images of the virtual calls bit for bit.
 
@@ -27,6 +31,7 @@ import mitsuba as mi
 import numpy as np
 
 KIND_OTHER, KIND_DIFFUSE, KIND_PRINCIPLED, KIND_NOT_PRINCIPLED = 0, 1, 2, 3
+ALPHA_TEXTURED = -1.0
 ZERO_ATTRS = ("clearcoat", "sheen", "flatness", "anisotropic", "spec_trans")
 _DIFFUSE_CLASS = "SmoothDiffuse"
 
@@ -34,16 +39,18 @@ _DIFFUSE_CLASS = "SmoothDiffuse"
 class BSDFTable:
     """The per-BSDF arrays (module docstring): ``width`` (the number of registry ids, an
     opaque UInt32), ``diffuse`` (Bool), ``kind`` (UInt32), ``colour`` (Color3f),
-    ``roughness``, ``metallic`` (Float); on the host ``n`` (the width as an int),
-    ``all_diffuse`` (every shape's BSDF is smooth diffuse) and ``front_only`` (every shape's
-    BSDF reflects light from its front side only, :func:`front_side_only`)."""
+    ``roughness``, ``metallic``, ``alpha`` (Float); on the host ``n`` (the width as an int),
+    ``all_diffuse`` (every shape's BSDF is smooth diffuse), ``front_only`` (every shape's
+    BSDF reflects light from its front side only, :func:`front_side_only`) and
+    ``alpha_textured`` (some BSDF's GGX roughness is a texture)."""
     DRJIT_STRUCT = {"width": mi.UInt32, "diffuse": mi.Bool, "kind": mi.UInt32, "colour": mi.Color3f,
-                    "roughness": mi.Float, "metallic": mi.Float}
+                    "roughness": mi.Float, "metallic": mi.Float, "alpha": mi.Float}
 
-    def __init__(self, width=None, diffuse=None, kind=None, colour=None, roughness=None, metallic=None):
+    def __init__(self, width=None, diffuse=None, kind=None, colour=None, roughness=None, metallic=None,
+                 alpha=None):
         self.width, self.diffuse, self.kind = width, diffuse, kind
-        self.colour, self.roughness, self.metallic = colour, roughness, metallic
-        self.n, self.all_diffuse, self.front_only = 0, False, False
+        self.colour, self.roughness, self.metallic, self.alpha = colour, roughness, metallic, alpha
+        self.n, self.all_diffuse, self.front_only, self.alpha_textured = 0, False, False, False
 
 
 _TABLES: dict[int, tuple] = {}
@@ -88,6 +95,7 @@ def _build(shapes) -> BSDFTable | None:
     col = np.zeros((3, W), np.float32)
     rough = np.zeros(W, np.float32)
     metal = np.zeros(W, np.float32)
+    alpha = np.zeros(W, np.float32)
     si = dr.zeros(mi.SurfaceInteraction3f, 1)
     si.wi = mi.Vector3f(0.0, 0.0, 1.0)
     for rid, b in bsdfs.items():
@@ -110,11 +118,25 @@ def _build(shapes) -> BSDFTable | None:
             metal[rid] = float(b.eval_attribute_1("metallic", si)[0])
         elif not (b.has_attribute("clearcoat") and b.has_attribute("base_color")):
             kind[rid] = KIND_NOT_PRINCIPLED
+        alpha[rid] = _ggx_alpha(b, keys, si)
     t = BSDFTable(dr.opaque(mi.UInt32, W), mi.Bool(diffuse), mi.UInt32(kind), mi.Color3f(col), mi.Float(rough),
-                  mi.Float(metal))
+                  mi.Float(metal), mi.Float(alpha))
     t.n, t.all_diffuse = W, bool(all(diffuse[i] for i in bsdfs))
+    t.alpha_textured = bool((alpha == ALPHA_TEXTURED).any())
     t.front_only = all(_front_side(b) for b in bsdfs.values())
     return t
+
+
+def _ggx_alpha(b, keys: list, si) -> float:
+    """The ``alpha`` column of BSDF ``b`` (module docstring); ``keys``: its parameters' names
+    (a nested BSDF's, as in ``twosided``, carry its prefix)."""
+    for name, squared in (("alpha", False), ("roughness", True)):
+        if b.has_attribute(name):
+            if not any(k.endswith(name + ".value") for k in keys):
+                return ALPHA_TEXTURED
+            a = float(b.eval_attribute_1(name, si)[0])
+            return a * a if squared else a
+    return 0.0
 
 
 def front_side_only(scene) -> bool:

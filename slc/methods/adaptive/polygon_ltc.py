@@ -36,6 +36,7 @@ import numpy as np
 
 from slc.methods.adaptive.polygon_lights import vector_irradiance
 from slc.methods.adaptive.polygon_glossy import DIFFUSE
+from slc.scene.bsdf_table import ALPHA_TEXTURED
 from slc.scene.emitter_table import RECT, ROW, ROW_L
 
 TABLE = Path(__file__).with_name("ltc_ggx.npz")
@@ -45,22 +46,40 @@ MAX_FIT_L1 = 0.1    # the table's L1 error (0 to 2) below which its LTC is used 
 
 class LtcTable:
     """The fitted table (``tools/fit_ltc.py``): per (sqrt(alpha), sqrt(1 - cos theta)) cell the
-    five non-zero entries of M in the view's frame, bilinearly interpolated; ``roughness``: the
-    scene's BSDFs' alpha (:class:`Roughness`)."""
+    five non-zero entries of M in the view's frame and the fit's L1 error, bilinearly
+    interpolated; ``bsdfs``: the scene's :class:`slc.scene.bsdf_table.BSDFTable` (its ``alpha``
+    column; None for scenes without one: every pixel's alpha is evaluated)."""
 
-    def __init__(self, roughness: "Roughness", path: Path = TABLE):
-        self.roughness = roughness
+    def __init__(self, bsdfs, path: Path = TABLE):
+        self.bsdfs = bsdfs
         d = np.load(path)
         m = np.asarray(d["m"], np.float32)                  # (alphas, views, 5)
         self.na, self.nt = int(m.shape[0]), int(m.shape[1])
-        self.l1 = np.asarray(d["l1"])
         self._m = [mi.Float(np.ascontiguousarray(m[..., k]).ravel()) for k in range(5)]
-        self._l1 = mi.Float(np.ascontiguousarray(self.l1, np.float32).ravel())
+        self._l1 = mi.Float(np.ascontiguousarray(d["l1"], np.float32).ravel())
         for a in self._m + [self._l1]:
             dr.make_opaque(a)
 
     def arrays(self) -> list:
-        return list(self._m) + [self._l1] + self.roughness.arrays()
+        return list(self._m) + [self._l1] + ([self.bsdfs] if self.bsdfs is not None else [])
+
+    def roughness(self, bsdf: mi.BSDFPtr, si: mi.SurfaceInteraction3f, active: mi.Bool) -> mi.Float:
+        """The GGX alpha of the pixels' BSDFs (the table's ``alpha`` column; a textured one
+        evaluated here: Mitsuba's ``alpha`` attribute, else ``roughness`` squared)."""
+        active = mi.Bool(active)
+        t = self.bsdfs
+        if t is None:
+            a, tex = dr.full(mi.Float, ALPHA_TEXTURED, dr.width(active)), active
+        else:
+            rid = dr.reinterpret_array(mi.UInt32, bsdf)
+            active &= rid < t.width
+            a = dr.gather(mi.Float, t.alpha, rid, active)
+            tex = active & (a == ALPHA_TEXTURED) if t.alpha_textured else None
+        if tex is not None:
+            at = bsdf.eval_attribute_1("alpha", si, tex)
+            r = bsdf.eval_attribute_1("roughness", si, tex)
+            a = dr.select(tex, dr.select(at > 0.0, at, r * r), a)
+        return dr.select(active, a, 0.0)
 
     def _lerp(self, arrays: list, alpha: mi.Float, cos_o: mi.Float, active: mi.Bool) -> list:
         u = dr.clip(dr.sqrt(dr.maximum(alpha, 0.0)) * (self.na - 1), 0.0, self.na - 1.0001)
@@ -108,66 +127,16 @@ def _density(minv: list, det: mi.Float, v: mi.Vector3f) -> mi.Float:
     return dr.maximum(lo.z * inv_n, 0.0) * (1.0 / math.pi) * dr.abs(det) * inv_n * inv_n * inv_n
 
 
-class Roughness:
-    """The GGX alpha of a scene's BSDFs, by the BSDF's registry index: Mitsuba's ``alpha``
-    attribute (rough conductors, plastics, dielectrics, through ``twosided``), else
-    ``roughness`` squared (principled); 0 for BSDFs with neither (no LTC). Constant values are
-    read once here; a BSDF whose roughness is a texture is marked and evaluated per pixel."""
-
-    TEXTURED = -1.0
-
-    def __init__(self, scene: mi.Scene):
-        si = dr.zeros(mi.SurfaceInteraction3f, 1)
-        vals = {}
-        for sh in scene.shapes():
-            b = sh.bsdf()
-            if b is None:
-                continue
-            i = int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(b))[0])
-            keys = list(mi.traverse(b).keys())
-            for name, sq in (("alpha", False), ("roughness", True)):
-                if b.has_attribute(name):
-                    if any(k.endswith(name + ".value") for k in keys):
-                        a = float(b.eval_attribute_1(name, si)[0])
-                        vals[i] = a * a if sq else a
-                    else:
-                        vals[i] = self.TEXTURED
-                    break
-        n = max(vals) + 2 if vals else 2
-        t = np.zeros(n, np.float32)
-        for i, a in vals.items():
-            t[i] = a
-        self.textured = bool((t == self.TEXTURED).any())
-        self._t = mi.Float(t)
-        dr.make_opaque(self._t)
-
-    def arrays(self) -> list:
-        return [self._t]
-
-    def __call__(self, bsdf: mi.BSDFPtr, si: mi.SurfaceInteraction3f, active: mi.Bool) -> mi.Float:
-        i = dr.reinterpret_array(mi.UInt32, bsdf)
-        active = mi.Bool(active) & (i < dr.width(self._t))
-        a = dr.gather(mi.Float, self._t, i, active)
-        if self.textured:
-            tex = active & (a == self.TEXTURED)
-            at = bsdf.eval_attribute_1("alpha", si, tex)
-            r = bsdf.eval_attribute_1("roughness", si, tex)
-            a = dr.select(tex, dr.select(at > 0.0, at, r * r), a)
-        return dr.select(active, a, 0.0)
-
-
 @dataclass
 class LobeFit:
-    """A pixel's GGX lobe as an LTC (:func:`lobe_fit`): ``alpha``, the view's frame (``cphi``,
-    ``sphi``: x towards the view's tangential direction), M^-1's entries ``minv`` and its
-    determinant ``det``, the scale ``A`` (RGB) and the lanes it holds for ``on``."""
-    alpha: mi.Float
+    """A pixel's GGX lobe as an LTC (:func:`lobe_fit`): the view's frame (``cphi``, ``sphi``: x
+    towards the view's tangential direction), M^-1's entries ``minv`` and its determinant
+    ``det``; the scale ``A`` (RGB) is set by :func:`lobe_fit`."""
     cphi: mi.Float
     sphi: mi.Float
     minv: list
     det: mi.Float
-    A: mi.Color3f
-    on: mi.Bool
+    A: mi.Color3f = None
 
     def to_view(self, v: mi.Vector3f) -> mi.Vector3f:
         """A local-frame direction in the view's frame."""
@@ -189,8 +158,7 @@ def lobe_fit(ltc: LtcTable, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, activ
     sphi = dr.select(ok_t, wi.y / dr.select(ok_t, st, 1.0), 0.0)
     M = ltc.matrix(alpha, wi.z, m)
     minv, det = _inverse(M)
-    fit = LobeFit(alpha=mi.Float(alpha), cphi=cphi, sphi=sphi, minv=minv, det=det, A=dr.zeros(mi.Color3f, dr.width(m)),
-                  on=m)
+    fit = LobeFit(cphi=cphi, sphi=sphi, minv=minv, det=det)
     # the LTC's peak, M z (in the view's frame, turned back to the local frame); the mirror
     # direction where that lies below the horizon
     pk = dr.normalize(mi.Vector3f(M[1], 0.0, M[4]))

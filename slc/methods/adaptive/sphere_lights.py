@@ -216,9 +216,8 @@ class SphereLights:
         sin_a = dr.select(inside, 1.0, r * inv_d)
         E = dr.select(is_s & ~inside, L * (math.pi * r * r * inv_d * inv_d), 0.0)
         if self.poly is not None and n is not None:
-            on_p = active & (fl == POLYGON_FLAG)
-            is_p, d_p, E_p = self.poly.light(self.table, p, n, idx, on_p & poly_active)
-            is_p = on_p
+            is_p = active & (fl == POLYGON_FLAG)
+            _, d_p, E_p = self.poly.light(self.table, p, n, idx, is_p & poly_active)
             is_s |= is_p
             d, sin_a, E = dr.select(is_p, d_p, d), dr.select(is_p, 0.0, sin_a), dr.select(is_p, E_p, E)
         return is_s, d, sin_a, E

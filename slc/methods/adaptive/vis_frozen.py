@@ -12,9 +12,10 @@ from slc.core.freeze import FrozenFunction
 from slc.core.keys import mixed_rng, stream_key
 from slc.methods.adaptive.frozen_inputs import light_tables, sampler_inputs
 from slc.methods.adaptive.polygon_glossy import has_glossy
-from slc.methods.adaptive.polygon_ltc import LtcTable, Roughness
+from slc.methods.adaptive.polygon_ltc import LtcTable
 from slc.methods.adaptive.vis_shading import shade
 from slc.methods.adaptive.visibility import STREAM_VIS, update
+from slc.scene import bsdf_table
 
 STREAM_GLOSSY = 0x5BD1E995         # the glossy pixels' light samples (plus the viewer's index)
 
@@ -28,7 +29,7 @@ class VisShading(FrozenFunction):
     the sphere and region tables are declared as inputs too (a frozen function
     reads only arrays reachable from its inputs). ``K``, ``sph`` and ``env``
     are fixed per instance; ``glossy`` is the method's ``polygon_glossy`` (``ltc``: the fitted
-    table and the scene's roughness table are inputs too; ``sample``: ``S`` sample pairs).
+    table and the scene's BSDF table are inputs too; ``sample``: ``S`` sample pairs).
     Unfrozen in animated scenes (``freeze=False``) and after more than ``max_recordings``
     recordings."""
 
@@ -37,7 +38,7 @@ class VisShading(FrozenFunction):
         S, ltc = (S if glossy == "sample" else 0), glossy == "ltc"
         if sph is None or sph.poly is None or not has_glossy(getattr(sph.scene, "mi_scene", sph.scene)):
             S, ltc = 0, False           # no polygon light or no glossy BSDF: nothing to sample
-        table = LtcTable(Roughness(getattr(sph.scene, "mi_scene", sph.scene))) if ltc else None
+        table = LtcTable(bsdf_table.for_scene(sph.scene)) if ltc else None
         self.K, self.sph, self.env, self.S, self.seed, self.ltc = int(K), sph, env, int(S), int(seed), table
         K, S = int(K), int(S)
 

@@ -25,8 +25,7 @@ def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None, env=None, rn
     """L_o of the pixels ``si`` from their VISIBILITY records (see the module). With ``rng``
     (and polygon lights), a glossy pixel's polygon lights get ``S`` sample pairs of their
     unshadowed term each (:func:`slc.methods.adaptive.polygon_glossy.glossy_term`); with ``ltc``
-    (a :class:`~slc.methods.adaptive.polygon_ltc.LtcTable` with ``roughness``, the scene's
-    :class:`~slc.methods.adaptive.polygon_ltc.Roughness`), a GGX pixel's polygon lights get
+    (a :class:`~slc.methods.adaptive.polygon_ltc.LtcTable`), a GGX pixel's polygon lights get
     their lobe's integral (:func:`slc.methods.adaptive.polygon_ltc.ltc_correction`)."""
     em_dr, dl = scene.emitters_dr(), has_delta(scene)
     r = unpack(rec, K, env is not None)
