@@ -99,10 +99,18 @@ def vector_irradiance(table, p: mi.Point3f, off: mi.UInt32, cnt: mi.UInt32, rect
             V = [a, a + e0, mi.Vector3f(dr.select(rect, a + e0 + e1, a + e1)), a + e1]
         else:
             V = [a, a + e0, a + e1]
-        if warp is not None:
-            V = [warp(v) for v in V]
-        Ft = clipped_vector_irradiance(V, n, front)
-        return t + 1, mi.Vector3f(F + dr.select(front, Ft, 0.0)), mi.Color3f(dr.select(m, Lt, L))
+        # the formula in a branch of its own (a loop of one pass): a packet of points that all
+        # see the triangle's back, as half of a closed mesh's, skips it
+        def b_cond(todo, F):
+            return todo
+
+        def b_body(todo, F):
+            Vw = [warp(v) for v in V] if warp is not None else V
+            Ft = clipped_vector_irradiance(Vw, n, todo)
+            return mi.Bool(False), mi.Vector3f(F + dr.select(todo, Ft, 0.0))
+
+        _, F = dr.while_loop(state=(mi.Bool(front), mi.Vector3f(F)), cond=b_cond, body=b_body, labels=("todo", "F"))
+        return t + 1, mi.Vector3f(F), mi.Color3f(dr.select(m, Lt, L))
 
     N = dr.width(active)
     _, F, L = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Vector3f, N), dr.zeros(mi.Color3f, N)),

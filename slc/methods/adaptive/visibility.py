@@ -152,6 +152,15 @@ def slot(lst, i):
     return r
 
 
+def used_slots(idx: list) -> mi.UInt32:
+    """One past the last listed slot of each lane (0 for an empty list): the slots' loops stop
+    there (a record holds at most as many lights as the scene has, often fewer than K)."""
+    n = dr.zeros(mi.UInt32, dr.width(idx[0]))
+    for i, j in enumerate(idx):
+        n = dr.select(j != EMPTY, i + 1, n)
+    return n
+
+
 def _listed(idx: list, wl: list, em: mi.UInt32):
     """(whether emitter ``em`` is in the list ``idx``, its listed unoccluded irradiance ``wl``)."""
     listed, w = mi.Bool(False), dr.zeros(mi.Color3f, dr.width(em))
@@ -250,8 +259,10 @@ def update(scene: mi.Scene, rec, si, key, rays, moving, fresh, on, frame: int, s
     # ----------------------- the listed lights' exact unoccluded irradiance here
     # one emitter call site in a loop over the list: a call is traced once per emitter
     # instance, so K call sites would trace K times as much
+    n_used = used_slots(idx)
+
     def lcond(i, wl):
-        return i < K
+        return i < n_used
 
     def lbody(i, wl):
         d, w = light_at(em_dr, si, slot(idx, i), valid, sph, env, dl)
