@@ -12,7 +12,7 @@ import pytest
 
 from helpers import plane_under_rect_light, quadrature_direct
 from test_cones import _glossy_bsdf
-from slc.methods.adaptive.polygon_ltc import TABLE, LtcTable, ltc_correction, narrow
+from slc.methods.adaptive.polygon_ltc import TABLE, LtcTable, ltc_term, narrow
 from slc.methods.adaptive.sphere_lights import SphereLights
 from slc.run.pipeline import gbuffers_for
 from slc.scene import bsdf_table
@@ -79,7 +79,7 @@ def test_table_fit_error():
 
 def _ltc_image(sc, gb):
     """The unshadowed term of the scene's one polygon light at the plane's pixels: the point
-    term along the vector irradiance plus the LTC correction (polygon_glossy=ltc's shading with
+    term along the vector irradiance, or the LTC's integral where the lobe is narrow (polygon_glossy=ltc's shading with
     a visible fraction of 1)."""
     sph = SphereLights(sc, 0.3, True, True)
     idx = mi.UInt32([i for i in range(len(sph.flag)) if sph.flag[i]][0])
@@ -90,8 +90,9 @@ def _ltc_image(sc, gb):
     alpha = ltc.roughness(bsdf, si, act)
     _, d, w = sph.poly.light(sph.table, si.p, si.sh_frame.n, idx, act)
     P = mi.Color3f(bsdf.eval(mi.BSDFContext(), si, si.to_local(d), act)) * w
-    nb = narrow(sph.table, si, alpha, idx, w, ltc.fitted(alpha, si.wi.z, act & (alpha > 0.0)))
-    I = P + ltc_correction(ltc, sph.table, si, bsdf, alpha, idx, nb, sph, sph.poly.rects)
+    px = ltc.fitted(alpha, si.wi.z, act & (alpha > 0.0))
+    nb = narrow(sph.table, si, alpha, idx, w, px)
+    I = ltc_term(ltc, sph.table, si, bsdf, alpha, idx, d, w, P, px, sph.poly.rects)
     return np.array(I).T, np.array(act), np.array(nb)
 
 

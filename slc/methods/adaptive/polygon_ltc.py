@@ -17,11 +17,11 @@ the second integral Lambert's formula over the light's triangles transformed by 
 and clipped to the upper hemisphere (:func:`slc.methods.adaptive.polygon_lights.vector_irradiance`).
 The scale :math:`A` (RGB: Fresnel and albedo) is calibrated at the pixel from one BSDF
 evaluation at the LTC's peak direction :math:`\omega^* = M\hat z / |M \hat z|` (the mirror
-direction where that is below the horizon): :math:`A = (f \cos(\omega^*) - c
-\cos\theta^*) / D_M(\omega^*)`, :math:`c = \rho_d/\pi` the diffuse reflectance's Lambertian
-part. Where the lobe is wide against the light the bracket vanishes (the integral of
-:math:`D_M` is its value at the light times the light's solid angle) and :math:`I = P`; where
-it is narrow the bracket replaces the point's lobe by the integral. The entry's visible fraction
+direction where that is below the horizon): :math:`A = f_g \cos(\omega^*) / D_M(\omega^*)`,
+:math:`f_g` the BSDF's glossy components alone (a diffuse base, as roughplastic's, keeps its
+point term, exact for a Lambertian lobe). Where the lobe is wide against the light the bracket
+vanishes (the integral of :math:`D_M` is its value at the light times the light's solid angle)
+and :math:`I = P`; where it is narrow the bracket replaces the point's lobe by the integral. The entry's visible fraction
 multiplies :math:`I` as it multiplies :math:`P`. No ray, no random number.
 """
 from __future__ import annotations
@@ -35,13 +35,14 @@ import mitsuba as mi
 import numpy as np
 
 from slc.methods.adaptive.polygon_lights import vector_irradiance
-from slc.methods.adaptive.polygon_glossy import DIFFUSE
 from slc.scene.bsdf_table import ALPHA_TEXTURED
 from slc.scene.emitter_table import RECT, ROW, ROW_L
 
 TABLE = Path(__file__).with_name("ltc_ggx.npz")
 NARROW_TAU = 0.1     # a lobe is narrow where its peak density (1/sr) times the light's solid angle exceeds this
 MAX_FIT_L1 = 0.1    # the table's L1 error (0 to 2) below which its LTC is used (else the point term)
+# the BSDF's glossy components only (the scale A leaves out a diffuse base, as of roughplastic)
+GLOSSY_CONTEXT = mi.BSDFContext(mi.TransportMode.Radiance, mi.BSDFFlags.GlossyReflection)
 
 
 class LtcTable:
@@ -130,13 +131,13 @@ def _density(minv: list, det: mi.Float, v: mi.Vector3f) -> mi.Float:
 @dataclass
 class LobeFit:
     """A pixel's GGX lobe as an LTC (:func:`lobe_fit`): the view's frame (``cphi``, ``sphi``: x
-    towards the view's tangential direction), M^-1's entries ``minv`` and its determinant
-    ``det``; the scale ``A`` (RGB) is set by :func:`lobe_fit`."""
+    towards the view's tangential direction), M^-1's entries ``minv``, its determinant ``det``
+    and the scale ``A`` (RGB)."""
     cphi: mi.Float
     sphi: mi.Float
     minv: list
     det: mi.Float
-    A: mi.Color3f = None
+    A: mi.Color3f
 
     def to_view(self, v: mi.Vector3f) -> mi.Vector3f:
         """A local-frame direction in the view's frame."""
@@ -146,10 +147,11 @@ class LobeFit:
         return _density(self.minv, self.det, self.to_view(v_local))
 
 
-def lobe_fit(ltc: LtcTable, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, active: mi.Bool, alpha: mi.Float,
-             c: mi.Color3f) -> LobeFit:
+def lobe_fit(ltc: LtcTable, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, active: mi.Bool,
+             alpha: mi.Float) -> LobeFit:
     """The LTC of the pixels' GGX lobes (roughness ``alpha``) and its scale A, calibrated at the
-    LTC's peak direction with the diffuse part ``c`` (rho_d/pi) taken out (see the module)."""
+    LTC's peak direction by the BSDF's glossy components alone (a context whose type mask
+    leaves the diffuse ones out; see the module)."""
     wi = si.wi
     m = mi.Bool(active) & (alpha > 0.0) & (wi.z > 0.0)
     st = dr.sqrt(dr.maximum(wi.x * wi.x + wi.y * wi.y, 0.0))
@@ -158,16 +160,16 @@ def lobe_fit(ltc: LtcTable, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, activ
     sphi = dr.select(ok_t, wi.y / dr.select(ok_t, st, 1.0), 0.0)
     M = ltc.matrix(alpha, wi.z, m)
     minv, det = _inverse(M)
-    fit = LobeFit(cphi=cphi, sphi=sphi, minv=minv, det=det)
     # the LTC's peak, M z (in the view's frame, turned back to the local frame); the mirror
     # direction where that lies below the horizon
     pk = dr.normalize(mi.Vector3f(M[1], 0.0, M[4]))
     w_star = mi.Vector3f(cphi * pk.x, sphi * pk.x, pk.z)
     w_star = dr.select(w_star.z > 1e-3, w_star, mi.Vector3f(-wi.x, -wi.y, wi.z))
-    f_star = mi.Color3f(bsdf.eval(mi.BSDFContext(), si, w_star, m)) - c * w_star.z
-    D_star = fit.density(w_star)
-    fit.A = dr.select(m & (D_star > 0.0), dr.maximum(f_star, 0.0) / dr.select(D_star > 0.0, D_star, 1.0), 0.0)
-    return fit
+    f_star = mi.Color3f(bsdf.eval(GLOSSY_CONTEXT, si, w_star, m))
+    D_star = _density(minv, det, mi.Vector3f(cphi * w_star.x + sphi * w_star.y,
+                                             cphi * w_star.y - sphi * w_star.x, w_star.z))
+    A = dr.select(m & (D_star > 0.0), dr.maximum(f_star, 0.0) / dr.select(D_star > 0.0, D_star, 1.0), 0.0)
+    return LobeFit(cphi=cphi, sphi=sphi, minv=minv, det=det, A=A)
 
 
 def narrow(table, si: mi.SurfaceInteraction3f, alpha: mi.Float, idx: mi.UInt32, w: mi.Color3f,
@@ -183,32 +185,30 @@ def narrow(table, si: mi.SurfaceInteraction3f, alpha: mi.Float, idx: mi.UInt32, 
     return m & (omega > NARROW_TAU * 4.0 * math.pi * alpha * alpha * si.wi.z)
 
 
-def ltc_correction(ltc: LtcTable, table, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, alpha: mi.Float,
-                   idx: mi.UInt32, active: mi.Bool, sph, rects: bool = True) -> mi.Color3f:
-    """:math:`I - P` (see the module) of polygon lights ``idx`` at pixels ``si`` whose GGX lobes
-    (roughness ``alpha``) are narrow against them (:func:`narrow`), on lanes ``active``; 0
-    elsewhere. ``sph``: the scene's :class:`~slc.methods.adaptive.sphere_lights.SphereLights`
-    (the light's vector irradiance); ``rects``: the scene has rectangle lights (else every
-    polygon is a triangle: three corners)."""
-    m = mi.Bool(active)
-    _, d, w = sph.poly.light(table, si.p, si.sh_frame.n, idx, m)
-    seg = dr.gather(mi.Point2f, table._seg, idx, m)
-    off, cnt = mi.UInt32(seg.x), mi.UInt32(seg.y)
-    P = mi.Color3f(bsdf.eval(mi.BSDFContext(), si, si.to_local(d), m)) * w
-    I = _integral_term(ltc, table, si, bsdf, alpha, idx, m, off, cnt, d, w, P, rects)
-    return dr.select(m, I - P, 0.0)
+def ltc_term(ltc: LtcTable, table, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, alpha: mi.Float,
+             idx: mi.UInt32, d: mi.Vector3f, w: mi.Color3f, P: mi.Color3f, active: mi.Bool,
+             rects: bool = True) -> mi.Color3f:
+    """:math:`I` (see the module) of polygon lights ``idx`` (direction ``d`` of their vector
+    irradiance, irradiance per unit cosine ``w`` along it, point term ``P``) at pixels ``si``
+    whose GGX lobes (roughness ``alpha``, fitted by the table) are narrow against them
+    (:func:`narrow`), on lanes ``active``; ``P`` elsewhere. ``rects``: the scene has rectangle
+    lights (else every polygon is a triangle: three corners). The test, the lobe's fit and the
+    integral run in a branch of their own (a loop of one pass): a packet of pixels with no
+    active lane skips them."""
+    def cond(todo, I):
+        return todo
 
+    def body(todo, I):
+        m = narrow(table, si, alpha, idx, w, todo)
+        fit = lobe_fit(ltc, si, bsdf, m, alpha)
+        seg = dr.gather(mi.Point2f, table._seg, idx, m)
+        off, cnt = mi.UInt32(seg.x), mi.UInt32(seg.y)
+        rect = m & (dr.gather(mi.UInt32, table._e_kind, idx, m) == RECT)
+        F, L = vector_irradiance(table, si.p, off, cnt, rect, m, rects, mi.Vector3f(0.0, 0.0, 1.0),
+                                 warp=lambda v: _apply(fit.minv, fit.to_view(si.to_local(v))))
+        integral = dr.maximum(-F.z, 0.0) * (1.0 / math.pi)       # clockwise from the emitting side
+        I_m = P + fit.A * (L * integral - fit.density(si.to_local(d)) * w)
+        return mi.Bool(False), mi.Color3f(dr.select(m, dr.maximum(I_m, 0.0), I))
 
-def _integral_term(ltc, table, si, bsdf, alpha, idx, m, off, cnt, d, w, P, rects) -> mi.Color3f:
-    """:math:`I` (the module) on lanes ``m``: the lobe's LTC and scale, the integral of
-    :math:`D_M` over the light's triangles (rows ``off`` to ``off + cnt``)."""
-    flags = mi.UInt32(bsdf.flags())
-    c = dr.select(m & ((flags & DIFFUSE) != 0), mi.Color3f(bsdf.eval_diffuse_reflectance(si, m)) * (1.0 / math.pi),
-                  0.0)
-    fit = lobe_fit(ltc, si, bsdf, m, alpha, c)
-    rect = m & (dr.gather(mi.UInt32, table._e_kind, idx, m) == RECT)
-    F, L = vector_irradiance(table, si.p, off, cnt, rect, m, rects, mi.Vector3f(0.0, 0.0, 1.0),
-                             warp=lambda v: _apply(fit.minv, fit.to_view(si.to_local(v))))
-    integral = dr.maximum(-F.z, 0.0) * (1.0 / math.pi)       # clockwise from the emitting side
-    I = P + fit.A * (L * integral - fit.density(si.to_local(d)) * w)
-    return dr.select(m, dr.maximum(I, 0.0), P)
+    _, I = dr.while_loop(state=(mi.Bool(active), mi.Color3f(P)), cond=cond, body=body, labels=("todo", "I"))
+    return I
