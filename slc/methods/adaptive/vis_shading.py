@@ -42,15 +42,20 @@ def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None, env=None, rn
         ltc_px = ltc.fitted(alpha, si.wi.z, ltc_px & (alpha > 0.0))
 
     n_used = used_slots(idx)
+    z = mi.Vector3f(0.0, 0.0, 1.0)
 
+    # ----------------------- the listed lights (slots 0 to n_used - 1), then the residual
+    # (iteration n_used: the BSDF along the normal times E): one BSDF call site for both
     def cond(i, L, *g):
-        return (i < n_used) & active
+        return (i <= n_used) & active
 
-    def body(i, L, *g):                  # one emitter and one BSDF call site (see update)
+    def body(i, L, *g):
+        res = i == n_used
         ii, vi = slot(idx, i), slot(vis, i)
-        m = active & (ii != EMPTY) & (vi > 0.0)
+        m = active & ~res & (ii != EMPTY) & (vi > 0.0)
         d, w = light_at(em_dr, si, ii, m, sph, env, dl)
-        t = mi.Color3f(bsdf.eval(ctx, si, si.to_local(d), m)) * w
+        w, vi, m_f = dr.select(res, r.E, w), dr.select(res, 1.0, vi), m | (active & res)
+        t = mi.Color3f(bsdf.eval(ctx, si, dr.select(res, z, si.to_local(d)), m_f)) * w
         if use_ltc:                      # a narrow GGX lobe and a wholly visible polygon light: its integral
             whole = sph.polygon(ii, m & ltc_px) & (vi >= VIS_WHOLE)
             t = ltc_term(ltc, sph.table, si, bsdf, alpha, ii, d, w, t, whole, sph.poly.rects)
@@ -59,12 +64,10 @@ def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None, env=None, rn
             t_s, used, rng_ = polygon_term(sph.table, scene, si, bsdf, ii, sph.polygon(ii, m & gl_px), d, w, vi,
                                            g[-1], S)
             t, g = dr.select(used, t_s, t), tuple(g[:-1]) + (rng_,)
-        return (i + 1, L + dr.select(m, t, 0.0)) + tuple(g)
+        return (i + 1, L + dr.select(m_f, t, 0.0)) + tuple(g)
 
     state = (mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(active))) + ((rng,) if glossy else ())
     _, L, *g = dr.while_loop(state=state, cond=cond, body=body)
-    fn = bsdf.eval(ctx, si, mi.Vector3f(0.0, 0.0, 1.0), active)
-    L += dr.select(active, mi.Color3f(fn) * r.E, 0.0)
     if env is not None:        # the unlisted regions, each at its own direction
         L += dr.select(active, env.unlisted_radiance(si, bsdf, idx, r.vu, active), 0.0)
     return L
