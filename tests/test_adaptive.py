@@ -203,7 +203,7 @@ def test_cone_pool_update_is_slc_update_bit_for_bit():
     slots = dr.arange(mi.UInt32, n)
     stats_sum = 0.0
     for f in range(6):
-        is_new = dr.full(mi.Bool, f == 0, n)
+        is_new = dr.opaque(mi.Bool, f == 0, n)             # opaque: one kernel for every frame
         motion_in = dr.full(mi.Bool, f == 4, n)          # frame 5: every entry in its moving phase
         rays, unsettled = policy.rays(state)
         moving = (state >> 16) > 0
