@@ -21,8 +21,9 @@ direction where that is below the horizon): :math:`A = f_g \cos(\omega^*) / D_M(
 :math:`f_g` the BSDF's glossy components alone (a diffuse base, as roughplastic's, keeps its
 point term, exact for a Lambertian lobe). Where the lobe is wide against the light the bracket
 vanishes (the integral of :math:`D_M` is its value at the light times the light's solid angle)
-and :math:`I = P`; where it is narrow the bracket replaces the point's lobe by the integral. The entry's visible fraction
-multiplies :math:`I` as it multiplies :math:`P`. No ray, no random number.
+and :math:`I = P`; where it is narrow the bracket replaces the point's lobe by the integral.
+The entry's visible fraction multiplies :math:`I` as it multiplies :math:`P`. No ray, no
+random number.
 """
 from __future__ import annotations
 

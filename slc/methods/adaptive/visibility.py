@@ -154,7 +154,7 @@ def slot(lst, i):
 
 def used_slots(idx: list) -> mi.UInt32:
     """One past the last listed slot of each lane (0 for an empty list): the slots' loops stop
-    there (a record holds at most as many lights as the scene has, often fewer than K)."""
+    there (an entry often lists fewer lights than its record has slots)."""
     n = dr.zeros(mi.UInt32, dr.width(idx[0]))
     for i, j in enumerate(idx):
         n = dr.select(j != EMPTY, i + 1, n)
