@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from slc import methods
+from slc.core import backend
 from slc.core.timing import NullTimer
 from slc.distributed.nodes import KINDS, SharedCacheNodes, Strategy
 from slc.distributed.owners import changed_records, owners
@@ -132,7 +133,7 @@ def test_a_killed_node_in_process_leaves_no_entry_missing(scene):
 def ray_cluster():
     ray = pytest.importorskip("ray")
     from ray.cluster_utils import Cluster
-    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1})
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "_system_config": backend.RAY_SYSTEM_CONFIG})
     try:
         cluster.add_node(num_cpus=1)
         cluster.wait_for_nodes()
@@ -145,7 +146,6 @@ def ray_cluster():
 
 
 def _env() -> dict:
-    from slc.core import backend
     root = str(Path(__file__).resolve().parents[1])
     return {"PYTHONPATH": root, "SLC_VARIANT": backend.variant(), "SLC_CACHE": os.environ["SLC_CACHE"]}
 

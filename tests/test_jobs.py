@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from helpers import slc_cli
+from slc.core import backend
 from slc.run import jobs, jobspec
 
 from slc.scene import views
@@ -211,7 +212,7 @@ def test_two_node_cluster_gives_the_serial_rows(serial, tmp_path):
 
     from slc.run.cli import main
     out = tmp_path / "cluster"
-    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1})
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "_system_config": backend.RAY_SYSTEM_CONFIG})
     try:
         cluster.add_node(num_cpus=1)
         cluster.wait_for_nodes()

@@ -229,7 +229,8 @@ def render_on_nodes(scene: str, spec: str, n_nodes: int, rig: tuple, width: int,
             ray.init(address=address, include_dashboard=False, log_to_driver=False)
         else:
             # a new local instance, never another process's cluster on this machine
-            ray.init(address="local", num_cpus=n_nodes, include_dashboard=False, log_to_driver=False)
+            ray.init(address="local", num_cpus=n_nodes, include_dashboard=False, log_to_driver=False,
+                     _system_config=backend.RAY_SYSTEM_CONFIG)
     try:
         env = {"SLC_VARIANT": backend.variant()}
         if "SLC_CACHE" in os.environ:

@@ -112,7 +112,8 @@ class RayPool:
             threads = threads or max((os.cpu_count() or 1) // workers, 1)
             if self._own:
                 # a new local instance, never another process's cluster on this machine
-                ray.init(address="local", num_cpus=workers * threads, include_dashboard=False, **kw)
+                ray.init(address="local", num_cpus=workers * threads, include_dashboard=False,
+                         _system_config=backend.RAY_SYSTEM_CONFIG, **kw)
         self.runner, self.workers, self.threads = runner, workers, threads
         self._replacements = 0
         self.actors = [self._new_actor() for _ in range(workers)]
