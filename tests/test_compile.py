@@ -71,6 +71,7 @@ def _run_case(spec: str, rig: str, n: int, **kw) -> dict:
 
 
 METHODS = ["rt16", "restir", "slc", "slc:fetch=bilinear", "sh", "adaptive"]
+RIGS = [("single", 1), ("random", 4)]       # one viewer, then 4 random viewers, in one process
 
 
 @pytest.mark.parametrize("spec", METHODS)
@@ -79,7 +80,7 @@ def test_no_kernel_built_after_warmup(spec):
     the kernels of several viewers (its frames then bake no value the first run's kernels
     left in the process's cache: a kernel shared by both builds the same IR in both runs, and
     the first run, in a fresh process, would have built it after its warm-up)."""
-    for r, (rig, n) in zip(_run_cases(spec, [("single", 1), ("random", 4)]), [("single", 1), ("random", 4)]):
+    for r, (rig, n) in zip(_run_cases(spec, RIGS), RIGS):
         per = r["per_frame"]
         assert len(per) == FRAMES
         if rig == "single":

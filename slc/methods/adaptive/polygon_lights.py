@@ -71,15 +71,19 @@ def clipped_vector_irradiance(V: list, n: mi.Vector3f, active: mi.Bool) -> mi.Ve
     return mi.Vector3f(0.5 * F)
 
 
-def vector_irradiance(table, p: mi.Point3f, off: mi.UInt32, cnt: mi.UInt32, rect: mi.Bool, active: mi.Bool,
-                      rects: bool, n: mi.Vector3f, warp=None):
-    """(F, L): :func:`clipped_vector_irradiance` summed over the triangles of a light (the
-    emitter table's rows ``off`` to ``off + cnt``; a rectangle's one row where ``rect``) that face
-    ``p``, clipped to the half space of ``n``, and the light's radiance. ``warp``: a map applied
+def vector_irradiance(table, p: mi.Point3f, idx: mi.UInt32, active: mi.Bool, rects: bool, n: mi.Vector3f,
+                      warp=None):
+    """(F, L): :func:`clipped_vector_irradiance` summed over the triangles of light ``idx`` (its
+    rows of the emitter table; a rectangle's one row) that face ``p``, clipped to the half space
+    of ``n``, and the light's radiance. ``warp``: a map applied
     to the vectors from ``p`` to the corners before the formula (the LTC's ``M^-1`` in
     :mod:`slc.methods.adaptive.polygon_ltc`). ``rects``: the scene has rectangle lights (else
     every polygon is a triangle: three corners, no zero-length fourth edge, whose fused cross
     product is a rounding error, not 0). The sum runs clockwise from the emitting side."""
+    seg = dr.gather(mi.Point2f, table._seg, idx, active)
+    off, cnt = mi.UInt32(seg.x), mi.UInt32(seg.y)
+    rect = active & (dr.gather(mi.UInt32, table._e_kind, idx, active) == RECT)
+
     def cond(t, F, L):
         return active & (t < cnt)
 
@@ -149,10 +153,7 @@ class PolygonLights:
         exact unoccluded irradiance is ``E cos(n, d)``, 0 below the horizon or behind it."""
         active = mi.Bool(active)
         is_p = active & (dr.gather(mi.UInt32, self._flag, idx, active) != 0)
-        seg = dr.gather(mi.Point2f, table._seg, idx, is_p)
-        off, cnt = mi.UInt32(seg.x), mi.UInt32(seg.y)
-        rect = is_p & (dr.gather(mi.UInt32, table._e_kind, idx, is_p) == RECT)
-        F, L = vector_irradiance(table, p, off, cnt, rect, is_p, self.rects, n)
+        F, L = vector_irradiance(table, p, idx, is_p, self.rects, n)
         F = -F                      # clockwise from the emitting side: the sum points away from it
         f = dr.norm(F)
         ok = is_p & (f > 0.0) & (dr.dot(F, n) > 0.0)

@@ -37,7 +37,7 @@ import numpy as np
 
 from slc.methods.adaptive.polygon_lights import vector_irradiance
 from slc.scene.bsdf_table import ALPHA_TEXTURED
-from slc.scene.emitter_table import RECT, ROW, ROW_L
+from slc.scene.emitter_table import ROW, ROW_L
 
 TABLE = Path(__file__).with_name("ltc_ggx.npz")
 NARROW_TAU = 0.1     # a lobe is narrow where its peak density (1/sr) times the light's solid angle exceeds this
@@ -129,6 +129,11 @@ def _density(minv: list, det: mi.Float, v: mi.Vector3f) -> mi.Float:
     return dr.maximum(lo.z * inv_n, 0.0) * (1.0 / math.pi) * dr.abs(det) * inv_n * inv_n * inv_n
 
 
+def _to_view(cphi: mi.Float, sphi: mi.Float, v: mi.Vector3f) -> mi.Vector3f:
+    """A local-frame direction in the view's frame (x towards the view's tangential direction)."""
+    return mi.Vector3f(cphi * v.x + sphi * v.y, cphi * v.y - sphi * v.x, v.z)
+
+
 @dataclass
 class LobeFit:
     """A pixel's GGX lobe as an LTC (:func:`lobe_fit`): the view's frame (``cphi``, ``sphi``: x
@@ -142,7 +147,7 @@ class LobeFit:
 
     def to_view(self, v: mi.Vector3f) -> mi.Vector3f:
         """A local-frame direction in the view's frame."""
-        return mi.Vector3f(self.cphi * v.x + self.sphi * v.y, self.cphi * v.y - self.sphi * v.x, v.z)
+        return _to_view(self.cphi, self.sphi, v)
 
     def density(self, v_local: mi.Vector3f) -> mi.Float:
         return _density(self.minv, self.det, self.to_view(v_local))
@@ -167,8 +172,7 @@ def lobe_fit(ltc: LtcTable, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, activ
     w_star = mi.Vector3f(cphi * pk.x, sphi * pk.x, pk.z)
     w_star = dr.select(w_star.z > 1e-3, w_star, mi.Vector3f(-wi.x, -wi.y, wi.z))
     f_star = mi.Color3f(bsdf.eval(GLOSSY_CONTEXT, si, w_star, m))
-    D_star = _density(minv, det, mi.Vector3f(cphi * w_star.x + sphi * w_star.y,
-                                             cphi * w_star.y - sphi * w_star.x, w_star.z))
+    D_star = _density(minv, det, _to_view(cphi, sphi, w_star))
     A = dr.select(m & (D_star > 0.0), dr.maximum(f_star, 0.0) / dr.select(D_star > 0.0, D_star, 1.0), 0.0)
     return LobeFit(cphi=cphi, sphi=sphi, minv=minv, det=det, A=A)
 
@@ -202,10 +206,7 @@ def ltc_term(ltc: LtcTable, table, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr
     def body(todo, I):
         m = narrow(table, si, alpha, idx, w, todo)
         fit = lobe_fit(ltc, si, bsdf, m, alpha)
-        seg = dr.gather(mi.Point2f, table._seg, idx, m)
-        off, cnt = mi.UInt32(seg.x), mi.UInt32(seg.y)
-        rect = m & (dr.gather(mi.UInt32, table._e_kind, idx, m) == RECT)
-        F, L = vector_irradiance(table, si.p, off, cnt, rect, m, rects, mi.Vector3f(0.0, 0.0, 1.0),
+        F, L = vector_irradiance(table, si.p, idx, m, rects, mi.Vector3f(0.0, 0.0, 1.0),
                                  warp=lambda v: _apply(fit.minv, fit.to_view(si.to_local(v))))
         integral = dr.maximum(-F.z, 0.0) * (1.0 / math.pi)       # clockwise from the emitting side
         I_m = P + fit.A * (L * integral - fit.density(si.to_local(d)) * w)

@@ -34,12 +34,11 @@ def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None, env=None, rn
     active = mi.Bool(active)
     poly = sph is not None and sph.poly is not None
     glossy = rng is not None and S > 0 and poly
-    gl_px = active & ((mi.UInt32(bsdf.flags()) & GLOSSY) != 0) if glossy else None
     use_ltc = ltc is not None and poly
+    gl_px = active & ((mi.UInt32(bsdf.flags()) & GLOSSY) != 0) if glossy or use_ltc else None
     if use_ltc:                          # the pixels' GGX lobes as LTCs (polygon_glossy=ltc)
-        ltc_px = active & ((mi.UInt32(bsdf.flags()) & GLOSSY) != 0)
-        alpha = ltc.roughness(bsdf, si, ltc_px)
-        ltc_px = ltc.fitted(alpha, si.wi.z, ltc_px & (alpha > 0.0))
+        alpha = ltc.roughness(bsdf, si, gl_px)
+        ltc_px = ltc.fitted(alpha, si.wi.z, gl_px & (alpha > 0.0))
 
     n_used = used_slots(idx)
     z = mi.Vector3f(0.0, 0.0, 1.0)
