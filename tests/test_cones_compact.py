@@ -107,6 +107,28 @@ def test_compact_frozen_one_recording(captured):
     assert sh.n_recordings == 1
 
 
+def test_compact_frozen_after_a_call_without_quadrature_pixels(captured):
+    """Frozen: a first call in which no active pixel takes the quadrature (the packed launch
+    holds only the always-taken pixels, masked off; the adaptive cache's warm-up frames
+    with no entry in cones), then calls with many: the unfrozen values. (A packed launch of
+    width 1 recorded first loaded its inputs as scalars in every replay: all quadrature
+    pixels got one pixel's value, most of them 0.)"""
+    _, call = captured
+    self, a, _ = call
+    ok = np.array(mi.Bool(a[2]))
+    q = _sampled(call)
+    storage, slot, _, si, tf, ns, key, pid, ef = a
+    sh = ConeShading(self.max_cones, table=self.table, freeze=True, compact=True)
+    sh(storage, slot, mi.Bool(ok & ~q), si, tf, ns, key, pid, ef)
+    rng = np.random.default_rng(2)
+    for keep in (1.0, 0.6):
+        act = mi.Bool(ok & (rng.random(ok.size) < keep))
+        got = np.array(sh(storage, slot, act, si, tf, ns, key, pid, ef))
+        ref = np.array(_shade(call, active=act, compact=False)[1])
+        assert (np.array(act) & q).sum() > 10
+        assert np.array_equal(got, ref)
+
+
 @pytest.mark.slow
 def test_method_images_unchanged():
     """The method's images with ``compact=on`` (default) and ``off``: bit for bit."""

@@ -151,14 +151,18 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     # runs the quadrature's loops for all its lanes; on the atrium 3 % of the pixels (rough
     # conductors) take it, spread over 14 % of the packets. This launch evaluates the closed
     # forms and which pixels are left; the next takes the indices of those (``dr.compress``;
-    # the last pixel always taken, masked off unless it is one: no launch of width 0), gathers
+    # the last two pixels always taken, masked off unless they are ones: no launch of width 0
+    # or 1; a frozen function recorded on a width-1 launch loads its inputs as scalars and
+    # replays that on every later call: in a frame where no pixel took the quadrature, e.g.
+    # the adaptive cache's warm-up with no entry in cones, every later frame's quadrature
+    # pixels got the first one's value), gathers
     # their inputs, recomputes their cone state from them (the same operations: the same
     # values), and its values are scattered back. Same images bit for bit
     # (tests/test_cones_compact.py); measured in docs/cones.md (packed quadrature pixels).
     out = dr.select(lambert, closed, dr.select(pfast, prin, 0.0))
     dr.eval(out, sampled)
     N = dr.width(slot)
-    idx = dr.compress(sampled | (dr.arange(mi.UInt32, N) == (N - 1)))
+    idx = dr.compress(sampled | (dr.arange(mi.UInt32, N) + 2 >= N))
     on = dr.gather(mi.Bool, sampled, idx)
     si_c, bsdf_c = dr.gather(type(si), si, idx), dr.gather(mi.BSDFPtr, bsdf, idx)
     cones_c = cone_state(storage, dr.gather(mi.UInt32, slot, idx), on, dr.gather(type(tf_in), tf_in, idx),
