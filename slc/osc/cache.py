@@ -195,9 +195,10 @@ class OnSurfaceCache:
         self._frame_stats(evicted=evicted, entries_requested=n_active, new_entries=n_new,
                           new_blocks=n_new_blocks, overflow_blocks=overflow, requested_blocks=dr.width(req_vb))
         self._pending = dict(multi=multi, n_active=n_active, valid=req[0])
+        texel = mi.Float(mi.UInt32(1) << lvl) * L.texel_size      # islands are charted at world scale
         return FrameRequests(frame=frame, active=active, si=si, is_new=is_new, seed_slot=seed, keys=keys,
                              pixel_slot=pixel_slot, pixel_index=pixel_index,
-                             layer_slot=slots[0], layer_index=index[0])
+                             layer_slot=slots[0], layer_index=index[0], texel_size=texel)
 
     @staticmethod
     def _per_viewer(values, src) -> list:

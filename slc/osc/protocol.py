@@ -16,7 +16,9 @@ What the cache gives a payload (:class:`FrameRequests`):
   must be reset (or seeded); ``seed_slot``: an existing, already updated
   entry of a coarser level covering a new entry (LOD seed), else INVALID;
   ``keys``: a viewer-independent 32-bit key per entry (random numbers keyed
-  by it do not depend on who asked).
+  by it do not depend on who asked); ``texel_size``: the world-space edge of each
+  entry's texel, the patch of surface it stands for (None when the cache does not
+  provide it).
 - per viewer: ``pixel_slot`` (entry slot of each pixel, INVALID where the
   G-buffer is invalid or nothing is cached) and ``pixel_index`` (the pixel's
   index into ``active``/``si``, INVALID likewise); optionally the same for all
@@ -76,6 +78,7 @@ class FrameRequests:
     pixel_index: list = field(default_factory=list)
     layer_slot: mi.UInt32 | None = None      # pixel_slot of all viewers laid out as the frame's layers
     layer_index: mi.UInt32 | None = None     # pixel_index likewise (slc.scene.gbuffer.Layers order)
+    texel_size: mi.Float | None = None       # per active entry: the world-space edge of its texel (its footprint)
 
     @property
     def n_active(self) -> int:

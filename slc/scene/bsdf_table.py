@@ -16,7 +16,11 @@ Indexed by the BSDF's registry id (``dr.reinterpret_array(mi.UInt32, bsdf)``). P
   (``principled``), 0 for a BSDF with neither, ``ALPHA_TEXTURED`` where it is a texture (the
   kernels evaluate it per point then). The constants are the BSDF's own
   ``eval_attribute`` / ``eval_diffuse_reflectance`` values (a constant texture ignores the
-  point), so kernels reading them give the images of the virtual calls bit for bit.
+  point), so kernels reading them give the images of the virtual calls bit for bit;
+- ``two_sided``: the BSDF reflects or transmits light that arrives from behind its surface
+  (Mitsuba's ``twosided``, dielectrics, ``null`` lobes; not ``principled`` without transmission,
+  whose flags name a back side it never reflects from): light below a surface point's horizon
+  reaches the pixels that see the surface's back (:func:`two_sided`).
 
 The table is built once per scene, outside symbolic loops (:func:`for_scene`), and dropped
 with the scene's last :class:`slc.scene.scenes.Scene` (a ``mi.Scene`` takes neither attributes nor
@@ -39,17 +43,18 @@ _DIFFUSE_CLASS = "SmoothDiffuse"
 class BSDFTable:
     """The per-BSDF arrays (module docstring): ``width`` (the number of registry ids, an
     opaque UInt32), ``diffuse`` (Bool), ``kind`` (UInt32), ``colour`` (Color3f),
-    ``roughness``, ``metallic``, ``alpha`` (Float); on the host ``n`` (the width as an int),
+    ``roughness``, ``metallic``, ``alpha`` (Float), ``two_sided`` (Bool); on the host ``n`` (the width as an int),
     ``all_diffuse`` (every shape's BSDF is smooth diffuse), ``front_only`` (every shape's
     BSDF reflects light from its front side only, :func:`front_side_only`) and
     ``alpha_textured`` (some BSDF's GGX roughness is a texture)."""
     DRJIT_STRUCT = {"width": mi.UInt32, "diffuse": mi.Bool, "kind": mi.UInt32, "colour": mi.Color3f,
-                    "roughness": mi.Float, "metallic": mi.Float, "alpha": mi.Float}
+                    "roughness": mi.Float, "metallic": mi.Float, "alpha": mi.Float, "two_sided": mi.Bool}
 
     def __init__(self, width=None, diffuse=None, kind=None, colour=None, roughness=None, metallic=None,
-                 alpha=None):
+                 alpha=None, two_sided=None):
         self.width, self.diffuse, self.kind = width, diffuse, kind
         self.colour, self.roughness, self.metallic, self.alpha = colour, roughness, metallic, alpha
+        self.two_sided = two_sided
         self.n, self.all_diffuse, self.front_only, self.alpha_textured = 0, False, False, False
 
 
@@ -96,6 +101,7 @@ def _build(shapes) -> BSDFTable | None:
     rough = np.zeros(W, np.float32)
     metal = np.zeros(W, np.float32)
     alpha = np.zeros(W, np.float32)
+    two = np.zeros(W, bool)
     si = dr.zeros(mi.SurfaceInteraction3f, 1)
     si.wi = mi.Vector3f(0.0, 0.0, 1.0)
     for rid, b in bsdfs.items():
@@ -119,8 +125,9 @@ def _build(shapes) -> BSDFTable | None:
         elif not (b.has_attribute("clearcoat") and b.has_attribute("base_color")):
             kind[rid] = KIND_NOT_PRINCIPLED
         alpha[rid] = _ggx_alpha(b, keys, si)
+        two[rid] = not _front_side(b)
     t = BSDFTable(dr.opaque(mi.UInt32, W), mi.Bool(diffuse), mi.UInt32(kind), mi.Color3f(col), mi.Float(rough),
-                  mi.Float(metal), mi.Float(alpha))
+                  mi.Float(metal), mi.Float(alpha), mi.Bool(two))
     t.n, t.all_diffuse = W, bool(all(diffuse[i] for i in bsdfs))
     t.alpha_textured = bool((alpha == ALPHA_TEXTURED).any())
     t.front_only = all(_front_side(b) for b in bsdfs.values())
@@ -147,6 +154,46 @@ def front_side_only(scene) -> bool:
     (instances)."""
     t = for_scene(scene)
     return bool(t is not None and t.front_only)
+
+
+def two_sided(scene, bsdf: mi.BSDFPtr, active: mi.Bool) -> mi.Bool | None:
+    """The lanes whose BSDF ``bsdf`` reflects or transmits light arriving from behind its
+    surface (the table's ``two_sided`` column; the BSDF's flags in scenes without a table),
+    or None where no BSDF of ``scene`` does (:func:`front_side_only`: callers then trace
+    nothing for the back side). A frozen function that calls it declares
+    :func:`side_inputs` among its inputs."""
+    t = for_scene(scene)
+    if t is not None and t.front_only:
+        return None
+    active = mi.Bool(active)
+    if t is None:
+        F = mi.BSDFFlags
+        back = int(F.BackSide) | int(F.Transmission) | int(F.Null)
+        return active & ((mi.UInt32(bsdf.flags(active)) & back) != 0)
+    rid = dr.reinterpret_array(mi.UInt32, bsdf)
+    ok = active & (rid < t.width)
+    return ok & dr.gather(mi.Bool, t.two_sided, rid, ok)
+
+
+def side_inputs(scene) -> list:
+    """The arrays :func:`two_sided` reads (inputs of a frozen function that calls it)."""
+    t = for_scene(scene)
+    return [t.width, t.two_sided] if t is not None and not t.front_only else []
+
+
+def facing(n: mi.Vector3f, d: mi.Vector3f, two: mi.Bool | None) -> mi.Vector3f:
+    """The normal ``n`` turned towards direction ``d`` on the ``two`` lanes (two-sided BSDFs: the
+    hemisphere a light arrives from is the one its pixels see), else ``n``."""
+    if two is None:
+        return mi.Vector3f(n)
+    return mi.Vector3f(dr.select(two, dr.mulsign(n, dr.dot(n, d)), n))
+
+
+def side_normal(si: mi.SurfaceInteraction3f) -> mi.Vector3f:
+    """The pixels' shading normal turned towards their viewer (``si.wi``): the hemisphere whose
+    light a pixel on a two-sided surface sees (a one-sided BSDF seen from behind is 0 on
+    either side)."""
+    return mi.Vector3f(dr.mulsign(si.sh_frame.n, si.wi.z))
 
 
 def _front_side(b) -> bool:

@@ -265,6 +265,31 @@ def load(name_or_path: str, **options) -> Scene:
     return _import_definition(SCENES_DIR / f"{name_or_path}.py").build(**options)
 
 
+def load_xml_text(name: str, text: str, camera_paths: list[CameraPath], files: dict | None = None,
+                  exposure: float = 1.0, unit: float = 1.0, description: str = "") -> Scene:
+    """A built-in scene written as Mitsuba 3 XML, the way exporters write scenes (shapes and
+    lights placed by 4x4 matrices, two-sided materials, ...): ``text`` is loaded as a file
+    (mesh merging off, as :func:`load_xml`) beside ``files`` (file name -> function that
+    writes it to the path it is given: an environment map's image), all in a temporary
+    folder removed once loaded."""
+    import shutil
+    import tempfile
+    tmp = Path(tempfile.mkdtemp(prefix=f"slc-{name}-"))
+    try:
+        for fname, write in (files or {}).items():
+            write(tmp / fname)
+        (tmp / f"{name}.xml").write_text(text)
+        sc = mi.load_file(str(tmp / f"{name}.xml"), optimize=False)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return Scene(name, sc, camera_paths, exposure=exposure, unit=unit, description=description)
+
+
+def xml_matrix(M) -> str:
+    """A 4x4 matrix as the ``value`` of an XML ``<matrix>`` (row-major)."""
+    return " ".join(f"{float(v):.9g}" for v in np.asarray(M, float).reshape(16))
+
+
 def load_xml(path: Path, exposure: float = 1.0, unit: float = 1.0) -> Scene:
     """Any Mitsuba 3 XML scene. Camera paths: the XML's sensor (held still)
     plus orbits around the scene's bounding box at walking speed, taking
