@@ -12,6 +12,7 @@ from slc.methods.sh.project import irradiance, radiance
 from slc.methods.sh.shading import shade_radiance
 from slc.methods.sh.update import project_samples, running_mean, world_frame
 from slc.methods.sh.ycocg import ENCODINGS, encoding as get_encoding
+from slc.scene.bsdf_table import side_normal, two_sided
 
 
 class SHSurfaceCache(PayloadMethod):
@@ -74,7 +75,8 @@ class SHSurfaceCache(PayloadMethod):
         sc, enc, n, rays = self.scene.mi_scene, self.enc, self.enc.n, policy.rays
         slots, si = fr.active, fr.si
         sampler = keyed_rng(fr.keys, self.seed, ctx.frame, STREAM_SH_UPDATE)
-        acc, _ = project_samples(sc, si, world_frame(), rays, sampler, si.is_valid(), enc)
+        acc, _ = project_samples(sc, si, world_frame(), rays, sampler, si.is_valid(), enc,
+                                 two=two_sided(sc, si.bsdf(), si.is_valid()))
 
         # ------------------------- running mean, LOD seeding -------------------------
         # a new entry starts empty, or from its LOD seed (a coarser entry) weighing as one update
@@ -95,13 +97,16 @@ class SHSurfaceCache(PayloadMethod):
         si = gb.si
         ok = mi.Bool(gb.valid) & (slot != INVALID)
         coeffs = self.read(slot, 0, ok, n=n)
-        nrm = mi.Vector3f(si.sh_frame.n)
-        # world-frame coefficients: the irradiance at the shading normal, the radiance towards d
+        bsdf = si.bsdf()
+        two = two_sided(self.scene.mi_scene, bsdf, ok)
+        nrm = mi.Vector3f(si.sh_frame.n) if two is None else side_normal(si)
+        # world-frame coefficients: the irradiance at the shading normal (turned towards the
+        # viewer on two-sided BSDFs), the radiance towards d
         return shade_radiance(
-            si, si.bsdf(), ok,
+            si, bsdf, ok,
             lambda: mi.Color3f(*irradiance(enc, coeffs, nrm, self.presence, self.bleeding)),
             lambda d, m: (mi.Color3f(*radiance(enc, coeffs, d, self.presence, self.bleeding)), m),
-            keyed_rng(dr.arange(mi.UInt32, gb.size), self.seed, 0, STREAM_SH_SHADE), self.glossy_samples)
+            keyed_rng(dr.arange(mi.UInt32, gb.size), self.seed, 0, STREAM_SH_SHADE), self.glossy_samples, two)
 
 
 register("sh", SHSurfaceCache,

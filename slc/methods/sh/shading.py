@@ -38,7 +38,7 @@ def diffuse_only(bsdf: mi.BSDFPtr) -> mi.Bool:
 
 
 def shade_radiance(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, active: mi.Bool, irradiance_fn, radiance_fn,
-                   sampler: mi.PCG32, glossy_samples: int) -> mi.Color3f:
+                   sampler: mi.PCG32, glossy_samples: int, two=None) -> mi.Color3f:
     """:math:`L_o` of the pixels ``si`` (see the module) where ``active``.
 
     - ``irradiance_fn()``: :class:`mi.Color3f` irradiance :math:`E` at each
@@ -47,7 +47,10 @@ def shade_radiance(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, active: mi.Boo
       direction ``d``, mask of the lanes where it exists) for the lanes ``m``;
     - ``sampler``: one PCG32 stream per pixel for the BSDF samples;
     - ``glossy_samples``: BSDF samples per glossy pixel (a baked constant: the
-      average's factor; the loop bound is opaque).
+      average's factor; the loop bound is opaque);
+    - ``two``: pixels on two-sided BSDFs (:func:`slc.scene.bsdf_table.two_sided`; None: none),
+      which are shaded from behind too (``irradiance_fn`` then gives the irradiance at the
+      normal turned towards the viewer, :func:`slc.scene.bsdf_table.side_normal`).
 
     Raw values are returned (no clamp); lanes outside ``active`` are 0."""
     active = mi.Bool(active)
@@ -56,7 +59,8 @@ def shade_radiance(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, active: mi.Boo
     # ------------------- diffuse: closed-form irradiance -------------------
     E = mi.Color3f(irradiance_fn())
     rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, active & diff))
-    L = dr.select(active & diff & (si.wi.z > 0.0), rho * E * (1.0 / math.pi), 0.0)
+    front = si.wi.z > 0.0
+    L = dr.select(active & diff & (front if two is None else front | two), rho * E * (1.0 / math.pi), 0.0)
 
     # -------------- glossy: BSDF samples of the reconstructed radiance --------------
     g = active & ~diff

@@ -46,14 +46,19 @@ class ProjectionLoop:
 
 
 def project_samples(scene: mi.Scene, si: mi.SurfaceInteraction3f, frame: mi.Frame3f, rays: mi.UInt32,
-                    rng: mi.PCG32, valid: mi.Bool, enc, observer=None):
+                    rng: mi.PCG32, valid: mi.Bool, enc, observer=None, two=None):
     """The sums over ``rays`` light samples per entry (points ``si``, lanes ``valid``) of
     their projections onto ``enc``'s basis, directions in ``frame``: (list of ``enc.n``
     arrays, the observer's state). ``observer`` (a
     :class:`slc.methods.cones.cycle.SampleObserver`, optional) sees every sample with its
-    direction in ``frame``."""
+    direction in ``frame``. Light below the surface's horizon is dropped, except on the
+    ``two`` lanes (entries on two-sided BSDFs, :func:`slc.scene.bsdf_table.two_sided`; None:
+    none), whose pixels on the back see it. The horizon is the geometric normal's, turned to
+    the shading normal's side (a mirroring transform reverses a mesh's winding, so its
+    geometric normal, and not its shading normal, points into the object)."""
     N = dr.width(valid)
     ng = mi.Vector3f(si.n)
+    ng = dr.mulsign(ng, dr.dot(ng, si.sh_frame.n))
     valid = mi.Bool(valid)
 
     def cond(st: ProjectionLoop):
@@ -62,7 +67,8 @@ def project_samples(scene: mi.Scene, si: mi.SurfaceInteraction3f, frame: mi.Fram
     def body(st: ProjectionLoop):
         u = mi.Point2f(st.rng.next_float32(), st.rng.next_float32())
         ds, w, ok = sample_light(scene, si, u, valid & (st.i < rays))
-        ok &= (dr.dot(ds.d, ng) > 0.0) & dr.all(dr.isfinite(w))
+        above = dr.dot(ds.d, ng) > 0.0
+        ok &= (above if two is None else above | two) & dr.all(dr.isfinite(w))
         ok = visible(scene, si, ds, ok)
         s = frame.to_local(ds.d)
         if observer is not None:
