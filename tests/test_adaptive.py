@@ -73,10 +73,11 @@ def test_large_area_light_chooses_cones():
 
 
 def test_constant_environment_chooses_sh_and_matches_closed_form():
-    """A constant sky of radiance L over an open diffuse plane: L_o = rho L."""
+    """A constant sky of radiance L over an open diffuse plane, SH a candidate
+    (``sh_when=environment``; by default it is not): L_o = rho L."""
     L = np.array([0.8, 0.85, 1.0])
     scene = _plane("adaptive_env", lambda b: b.add_envmap(rgb=list(L)))
-    m = methods.create("adaptive:start=cones", scene, seed=1)
+    m = methods.create("adaptive:start=cones,sh_when=environment", scene, seed=1)
     imgs, gbs = render_frames(scene, m, [_still(scene)], 64, W, H)
     st = m.stats()
     assert st["share_sh"] > 0.9, st
@@ -93,9 +94,10 @@ def test_frozen_sh_shading_matches_unfrozen_and_records_once():
     out = {}
     for frozen in (True, False):
         m = methods.create("adaptive:force=sh", scene, seed=1)
-        m._sh_shade = sh_rep.SHShading(m.encoding, m.seed, m.glossy_samples, freeze=frozen)
+        rep = m.rep(ch.SH)
+        rep.shade_fn = sh_rep.SHShading(m.encoding, m.seed, m.glossy_samples, freeze=frozen)
         imgs, _ = render_frames(scene, m, [_still(scene)], 8, W, H)
-        out[frozen] = (imgs[0], m._sh_shade.recordings, m._sh_shade.frozen)
+        out[frozen] = (imgs[0], rep.shade_fn.recordings, rep.shade_fn.frozen)
     assert out[True][2] and out[True][1] == 1, out[True][1:]
     assert np.array_equal(out[True][0], out[False][0])
 
@@ -113,14 +115,14 @@ def test_frozen_cones_update_matches_unfrozen_as_entries_change():
     b.add_quad([0, 1, 0], [0.5, 0, 0], [0, 0, 0.5], bsdf=diffuse([0, 0, 0]), emission=[4.0] * 3, name="light")
     cam = CameraPath([([0.0, 0.8, 1.2], [0.0, 0.0, 0.0]), ([0.6, 0.5, 0.6], [0.3, 0.0, -0.2])], frames=10, fov=60)
     scene = b.build([cam, cam, cam])
-    _assert_frozen_matches_unfrozen(scene, "adaptive:force=cones", "_cones_up",
+    _assert_frozen_matches_unfrozen(scene, "adaptive:force=cones", ch.CONES,
                                     lambda m, frozen: cones_rep.ConesUpdate(m.cone_params, m.seed, m.sph, m.env,
                                                                             freeze=frozen))
 
 
-def _assert_frozen_matches_unfrozen(scene, spec, attr, make):
-    """Render 10 frames of ``scene`` with the method ``spec`` whose update
-    (``attr``, made by ``make(method, frozen)``) is frozen, then unfrozen: the
+def _assert_frozen_matches_unfrozen(scene, spec, tag, make):
+    """Render 10 frames of ``scene`` with the method ``spec`` whose representation ``tag``'s
+    update (made by ``make(method, frozen)``) is frozen, then unfrozen: the
     entry count changes after the warm-up (replays at other widths), the frozen
     update stays frozen with 1-2 recordings, and every frame is equal bit for bit."""
     from slc.methods import FrameContext
@@ -130,13 +132,14 @@ def _assert_frozen_matches_unfrozen(scene, spec, attr, make):
     out = {}
     for frozen in (True, False):
         m = methods.create(spec, scene, seed=1)
-        setattr(m, attr, make(m, frozen))
+        rep = m.rep(tag)
+        rep.update_fn = make(m, frozen)
         imgs, counts = [], []
         for f in range(10):
             gbs = gbuffers_for(scene, [v], f, W, H)
             imgs.append(np.array(m.render(FrameContext(f), gbs, NullTimer())[0]))
             counts.append(m.stats()["active_entries"])
-        out[frozen] = (imgs, counts, getattr(m, attr).recordings, getattr(m, attr).frozen)
+        out[frozen] = (imgs, counts, rep.update_fn.recordings, rep.update_fn.frozen)
     assert len(set(out[True][1][2:])) > 1, out[True][1]          # replayed at other widths
     assert out[True][3] and 1 <= out[True][2] <= 2, out[True][2:]
     for a, c in zip(out[True][0], out[False][0]):
@@ -155,7 +158,7 @@ def test_frozen_sh_update_matches_unfrozen_as_entries_change():
     b.add_envmap(rgb=[0.8, 0.85, 1.0])
     cam = CameraPath([([0.0, 0.8, 1.2], [0.0, 0.0, 0.0]), ([0.6, 0.5, 0.6], [0.3, 0.0, -0.2])], frames=10, fov=60)
     scene = b.build([cam, cam, cam])
-    _assert_frozen_matches_unfrozen(scene, "adaptive:force=sh", "_sh_up",
+    _assert_frozen_matches_unfrozen(scene, "adaptive:force=sh", ch.SH,
                                     lambda m, frozen: sh_rep.SHUpdate(m.encoding, m.seed, m.sh_count, m.sph, m.env,
                                                                       freeze=frozen))
 
@@ -358,7 +361,7 @@ def test_visibility_entries_whose_lights_are_listed_trace_a_share_of_the_rays():
     any other keeps them all."""
     import drjit as dr
     import mitsuba as mi
-    from slc.methods.adaptive.visibility import traced_rays
+    from slc.methods.adaptive.visibility.lights import traced_rays
     rays = mi.UInt32([32, 32, 32, 1, 8, 8])
     s = mi.Float([0.99, 0.5, 0.0, 0.99, 0.95, 0.94])
     fresh = mi.Bool([False, False, True, False, False, False])

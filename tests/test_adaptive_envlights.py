@@ -85,8 +85,8 @@ def test_plane_lists_the_disc_and_matches_ground_truth():
     measured a mean 41% low."""
     import drjit as dr
     import mitsuba as mi
-    from slc.methods.adaptive import visibility
     from slc.methods.adaptive.choice import VIS
+    from slc.methods.adaptive.visibility.record import unpack
     scene = _scene("env_plane")
     m = methods.create("adaptive:start=cones", scene, seed=1)
     imgs, gbs = render_frames(scene, m, [_still(scene)], 24, W, H)
@@ -98,7 +98,7 @@ def test_plane_lists_the_disc_and_matches_ground_truth():
     slots = np.array([int(x) for x in m.storage.numpy()[1::W_]])[:len(tags)]
     used = slots[(tags == VIS)]
     pool = m.pools[VIS]
-    r = visibility.unpack(pool.gather(mi.UInt32(used)), m.vis_k, True)
+    r = unpack(pool.gather(mi.UInt32(used)), m.vis_k, True)
     idx = np.stack([np.array(x) for x in r.idx])
     vis = np.stack([np.array(x) for x in r.vis])
     has = idx == m.env.base

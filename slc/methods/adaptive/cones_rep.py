@@ -14,13 +14,17 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from slc.methods.cones.packing import pack, unpack
+from slc.methods.cones.packing import pack, unpack, words_per_entry
 from slc.methods.cones.cycle import CycleEntries, update_cycle
+from slc.methods.cones.shading import shade_key, shader_for
 from slc.methods.cones.update import ConeParams, empty_state, end_cycle, frame_u32, insert_sample
 from slc.scene.lights import light_inputs
 from slc.core.freeze import FrozenFunction
-from slc.methods.adaptive.sampling import LightStats, lum
+from slc.methods.adaptive.choice import CONES
+from slc.methods.adaptive.representation import Entries, Pixels, Representation, Updated, lobe_irradiance
+from slc.methods.adaptive.sampling import LightStats, SampleStats, lum
 from slc.methods.adaptive.frozen_inputs import light_tables, sampler_inputs
+from slc.scene.bsdf_table import side_inputs, two_sided
 
 CONVERT_COUNT = 4.0     # C of a record converted from another representation: new samples take over fast
 
@@ -34,15 +38,17 @@ def update(scene: mi.Scene, rec, si, key, rays, unsettled, moving, first_sample,
     restarting empty (no LOD seed) and the choice rule's statistics gathered
     from the same samples. Returns (new words, motion, stats values)."""
     moving = mi.Bool(moving)
+    valid = mi.Bool(on) & si.is_valid()
     entries = CycleEntries(key, si, rays, unsettled, moving, fresh, first_sample, ~moving)
+    observer = LightStats(scene, si, sph, env, two_sided(scene, si.bsdf(), valid))
     words, motion, _, _, st = update_cycle(scene, unpack(rec, p.max_cones), entries, frame, seed, p,
-                                           valid=mi.Bool(on) & si.is_valid(), observer=LightStats(scene, si, sph, env))
+                                           valid=valid, observer=observer)
     return words, motion, st.values()
 
 
 class ConesUpdate(FrozenFunction):
     """:func:`update` traced once and replayed (``dr.freeze``, as ``slc``'s
-    :class:`slc.methods.cones.update_kernel.ConeUpdate` and :class:`~slc.methods.adaptive.vis_frozen.VisUpdate`):
+    :class:`slc.methods.cones.update_kernel.ConeUpdate` and :class:`~slc.methods.adaptive.visibility.frozen.VisUpdate`):
     tracing the cone update cycle (the sample loop, cases A-D, the shrink test,
     packing, the light statistics) cost ~45 ms of Python per frame on the
     atrium whatever the number of entries. Inputs: the scene, the emitter
@@ -59,7 +65,7 @@ class ConesUpdate(FrozenFunction):
         seed = int(seed)
 
         def kernel(scene, lights, tables, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame):
-            # no reference to the method (see vis_frozen.VisShading)
+            # no reference to the method (see visibility.frozen.VisShading)
             out, motion, st = update(scene, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame,
                                      seed, p, sph, env)
             # a statistic the samples never touch (e_delta without delta lights) is a literal zero,
@@ -75,7 +81,8 @@ class ConesUpdate(FrozenFunction):
         lights = light_inputs(scene)
         if self.sph is not None or self.env is not None:
             lights = lights + sampler_inputs(scene)
-        return super().__call__(scene, lights, light_tables(self.sph, self.env), [mi.UInt32(w) for w in rec], si,
+        return super().__call__(scene, lights, light_tables(self.sph, self.env) + side_inputs(scene),
+                                [mi.UInt32(w) for w in rec], si,
                                 mi.UInt32(key), mi.UInt32(rays), mi.Bool(unsettled), mi.Bool(moving),
                                 mi.UInt32(first_sample), mi.Bool(fresh), mi.Bool(on), frame_u32(frame))
 
@@ -108,9 +115,35 @@ def from_lobes(lobes, n_lanes: int, p: ConeParams):
     return pack(D, A, L, dr.full(mi.Float, CONVERT_COUNT, n_lanes), n, K)
 
 
-def irradiance_at_normal(lobes) -> mi.Color3f:
-    """Irradiance at the entry's normal (local z) of lobes: sum L (n.d)(1 + cos a)/2."""
-    E = mi.Color3f(0.0)
-    for d, a, Lr, m in lobes:
-        E += dr.select(m, Lr * (dr.maximum(d.z, 0.0) * 0.5 * (1.0 + dr.cos(a))), 0.0)
-    return E
+irradiance_at_normal = lobe_irradiance     # (the cones' lobes' irradiance at the entry's normal)
+
+
+class ConesRep(Representation):
+    """The CONES representation of the adaptive cache: ``slc``'s record (``cache.max_cones``
+    cones), ``slc``'s update (``cache.cone_params``) and ``slc``'s shading
+    (:func:`slc.methods.cones.shading.shader_for` with the cache's settings), on a pool of
+    its own (see the module)."""
+
+    tag, name = CONES, "cones"
+    restarts_stats = False
+
+    def words(self) -> int:
+        return words_per_entry(self.cache.max_cones)
+
+    def update(self, e: Entries) -> Updated:
+        c = self.cache
+        fn = self.frozen("update_fn", lambda fz: ConesUpdate(c.cone_params, c.seed, c.sph, c.env, freeze=fz))
+        out, motion, st = fn(c.scene.mi_scene, e.rec, e.si, e.key, e.rays, e.unsettled, e.moving, e.first_sample,
+                             e.fresh, e.on, e.frame)
+        return Updated(out, motion, SampleStats.of(st))
+
+    def shade(self, px: Pixels) -> mi.Color3f:
+        c = self.cache
+        return shader_for(c, c.max_cones)(self.pool.data, dr.select(px.active, px.slot, 0), px.active, px.si, px.tf,
+                                          c.shade_samples, shade_key(px.frame, c.seed))
+
+    def lobes(self, rec, si, active) -> list:
+        return lobes(rec, active, self.cache.max_cones)
+
+    def convert(self, src, rec, lobes, n: int) -> list:
+        return from_lobes(lobes, n, self.cache.cone_params)

@@ -242,16 +242,17 @@ class EnvLights:
         _, E = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(active))), cond=cond, body=body)
         return E
 
-    def unlisted_radiance(self, si, bsdf, listed, vu, active) -> mi.Color3f:
+    def unlisted_radiance(self, si, bsdf, listed, vu, active, nrm=None) -> mi.Color3f:
         r"""Outgoing radiance at the pixels ``si`` from the regions wholly above
         the horizon and not among the light indices ``listed``, each at its own
         direction, with the shared visible fraction ``vu``:
         :math:`v_u \sum_j f_r(\mathbf d_j)\,\Phi_j R_j` (``bsdf.eval`` has the cosine;
-        one BSDF call site in a loop over the regions)."""
+        one BSDF call site in a loop over the regions). ``nrm``: the pixels' normal whose
+        horizon counts (default: the shading normal)."""
         active = mi.Bool(active) & (mi.Float(vu) > 0.0)
         listed = [mi.UInt32(x) for x in listed]
         ctx = mi.BSDFContext()
-        nrm = si.sh_frame.n
+        nrm = si.sh_frame.n if nrm is None else nrm
 
         def cond(j, L):
             return (j < self._n) & active

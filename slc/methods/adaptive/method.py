@@ -6,23 +6,26 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from slc.methods.cones.packing import words_per_entry
-from slc.methods.cones.shading import shade_key, shader_for
 from slc.methods.cones.update import ConeParams
 from slc.core.keys import INVALID
 from slc.methods import register
 from slc.osc.payload import PayloadMethod, RayPolicy
 from slc.methods.sh.ycocg import encoding as get_encoding
 from slc.methods.adaptive import choice as ch
-from slc.methods.adaptive import cones_rep, records, sh_rep, vis_frozen, visibility
+from slc.methods.adaptive import records
 from slc.methods.adaptive.choice import CONES, NONE, SH, VIS, ChoiceParams, Header
-from slc.methods.adaptive.pool import Pool
+from slc.methods.adaptive.cones_rep import ConesRep
 from slc.methods.adaptive.env_lights import EnvLights
 from slc.methods.adaptive.lanes import count_hist, means, opaque_header, subset, tally
 from slc.methods.adaptive.params import PARAMS
+from slc.methods.adaptive.representation import Entries, Pixels
+from slc.methods.adaptive.sh_rep import SHRep
 from slc.methods.adaptive.sphere_lights import SphereLights
+from slc.methods.adaptive.visibility import VisibilityRep
+from slc.scene.bsdf_table import front_side_only
 
-REPS = (VIS, CONES, SH)
+REPRESENTATIONS = (VisibilityRep, ConesRep, SHRep)     # in the order of their tags (slc.methods.adaptive.choice)
+REPS = tuple(r.tag for r in REPRESENTATIONS)
 RESTART_COUNT = 4
 WARM_FRAMES = 2            # frames that run every kernel (see reset)
 
@@ -63,11 +66,15 @@ class AdaptiveCache(PayloadMethod):
 
     def __init__(self, scene, **kw):
         super().__init__(scene, **kw)
-        self.cone_params = ConeParams(max_cones=self.max_cones)
+        # the CONES pool is slc's record with slc's update (samples below the horizon dropped and
+        # cosine-weighted where every BSDF reflects on its front side only)
+        self._back = not front_side_only(scene)     # two-sided BSDFs: VISIBILITY keeps a residual behind
+        self.cone_params = ConeParams(max_cones=self.max_cones, front_only=not self._back)
         self.enc = get_encoding(self.encoding)
         self.choice = ChoiceParams(window=self.window, theta_delta=self.theta_delta, theta_r=self.theta_r,
                                    switch_after=self.switch_after,
-                                   allow_sh=self.sh_when == "always" or self._has_environment(scene))
+                                   allow_sh=self.sh_when == "always" or (self.sh_when == "environment"
+                                                                         and self._has_environment(scene)))
         poly, spheres = self.polygon_lights == "on", self.sphere_lights != "off"
         sph = SphereLights(scene, self.sphere_sin, spheres, poly) if spheres or poly else None
         if sph is not None and self.sphere_lights == "auto" and not sph.listable_only:   # spheres among other lights:
@@ -76,6 +83,8 @@ class AdaptiveCache(PayloadMethod):
         env = EnvLights(scene, self.env_ratio, self.env_max_sr) if self.env_lights == "auto" else None
         self.env = env if env is not None and env.any else None
         self.prior = self._prior(scene, self.sph, self.env, self.theta_delta)
+        if self.prior == SH and not self.choice.allow_sh:
+            self.prior = CONES
         ems = list(scene.mi_scene.emitters())
         n_list = sum(1 for i, e in enumerate(ems) if bool(int(e.flags()) & int(mi.EmitterFlags.Delta))
                      or (self.sph is not None and bool(self.sph.flag[i])))
@@ -108,7 +117,7 @@ class AdaptiveCache(PayloadMethod):
 
     def reset(self):
         super().reset()
-        self.pools = None
+        self.reps = None        # the representations (and their pools), made at the first update
         # First WARM_FRAMES frames: every kernel (each representation's update and shading,
         # each conversion) runs, on masked lanes where nothing needs it, so that none is
         # first built in a later frame; from then on unused ones are skipped. Two frames:
@@ -122,33 +131,34 @@ class AdaptiveCache(PayloadMethod):
         self._switches = 0
         self._tags = None
 
-    def _make_pools(self):
-        self.pools = {VIS: Pool("visibility", visibility.words(self.vis_k, self.env is not None)),
-                      CONES: Pool("cones", words_per_entry(self.max_cones)),
-                      SH: Pool("sh", sh_rep.words(self.enc))}
+    @property
+    def pools(self) -> dict | None:
+        """{tag: pool} of the representations (None before the first update)."""
+        return None if self.reps is None else {r.tag: r.pool for r in self.reps}
+
+    def rep(self, tag: int):
+        """The representation of ``tag`` (the representations and their pools are made on first use)."""
+        if self.reps is None:
+            self.reps = [R(self) for R in REPRESENTATIONS]
+        return self.reps[REPS.index(tag)]
 
     def ray_policy(self) -> RayPolicy:
         return self.settings_ray_policy()
 
     # ------------------------------------------------------------------ update
     def update(self, ctx, fr, policy):
-        """One function because its stages (slot hand-over, the representations' updates, the
-        choice) share the frame's header fields, lane masks and pool slots; its stages are marked
-        by banner comments.
-
-        One update of the active entries ``fr.active``: reused slots give back their records and
-        new ones get one, every representation updates its own entries, then the statistics
-        choose each entry's representation. Returns the entries' motion mask."""
-        if self.pools is None:
-            self._make_pools()
+        """One update of the active entries ``fr.active``: reused slots give back their records
+        and new ones get one (:meth:`_hand_over`), every representation updates its own entries
+        (:meth:`_update_representations`), then the statistics choose each entry's
+        representation and the entries that switch are converted (:meth:`_choose`). Returns
+        the entries' motion mask."""
+        self.rep(VIS)                   # the representations, on first use
         if self.sph is not None:
             self.sph.refresh()          # sphere lights' centres at the scene's current time
         # ------------------------------- the entries' headers and ray policy (opaque values)
-        sc, W = self.scene.mi_scene, self.words
-        N = fr.n_active
+        W = self.words
         base = fr.active * W
-        hw = [dr.gather(mi.UInt32, self.storage, base + k) for k in range(W)]
-        h = ch.unpack_header(hw)
+        h = ch.unpack_header([dr.gather(mi.UInt32, self.storage, base + k) for k in range(W)])
         # In frame 0 every entry is new: is_new, the rays and everything computed from them
         # (tags, counts, the switch mask) would be literals that Dr.Jit folds into the kernels,
         # so the frame-0 warm-up would trace other kernels than a frame with real switches.
@@ -158,97 +168,12 @@ class AdaptiveCache(PayloadMethod):
         # leave the stratified sequence; the others continue it after the samples they drew)
         moving, first_sample = policy.moving, policy.first_sample
         dr.make_opaque(is_new, rays, unsettled, moving, first_sample)
-        forced = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.force)
-        start = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.start, self.prior)
-        prior = forced if forced is not None else start
-
-        # ------------------------------- reused slots give back their old records; new ones get a record
-        # (all lane counts read back at once; a pool with no lane is skipped once warm)
-        fresh = is_new | (h.tag == NONE)
-        tag = dr.select(fresh, mi.UInt32(prior), h.tag)
-        slot = dr.select(fresh, mi.UInt32(INVALID), h.slot)
-        dr.eval(fresh, tag, slot)     # and after the hand-over: the same kernels in a frame without one
-        rel = [is_new & (h.tag == r) for r in REPS]
-        acq = [fresh & (tag == r) for r in REPS]
-        n_rel_acq = tally([m & (h.slot != INVALID) for m in rel] + acq)
-        for r, m, n in zip(REPS, rel, n_rel_acq[:3]):
-            if n or not self._warm:
-                self.pools[r].release(h.slot, m, n)
-        for r, m, n in zip(REPS, acq, n_rel_acq[3:]):
-            if n or not self._warm:
-                slot = dr.select(m, self.pools[r].acquire(m, n), slot)
-        dr.eval(slot)
-        z = dr.zeros(mi.Float, N)
-        h = Header(tag=tag, streak=dr.select(fresh, 0, h.streak), count=dr.select(fresh, 0, h.count),
-                   e=dr.select(fresh, 0.0, h.e), slot=slot, s_delta=dr.select(fresh, 0.0, h.s_delta),
-                   m=dr.select(fresh, mi.Vector3f(z, z, z), h.m))
-        opaque_header(h)
-
-        # ------------------------------- every representation updates its own entries
-        ed, en, mv = dr.zeros(mi.Float, N), dr.zeros(mi.Float, N), dr.zeros(mi.Vector3f, N)
-        motion, vis_motion = dr.zeros(mi.Bool, N), dr.zeros(mi.Bool, N)
-        # evaluated before the loop (else fused into the first representation's kernel: one per set)
-        traced = mi.UInt32(rays)        # the rays each entry traces (VISIBILITY: its share of them)
-        dr.make_opaque(ed, en, mv, motion, vis_motion, traced)
-        # every representation's lanes before the first update kernel: a compression waits for
-        # the kernels queued before it, and the host traces the next update while one runs
-        subsets = {r: subset(tag == r) for r in REPS}
-        for r in REPS:
-            idx, on, n_r = subsets[r]
-            if n_r == 0 and self._warm:
-                continue        # no lane: no kernel traced (tracing costs as much as a small frame)
-            # entries with many rays side by side (as slc's update): a SIMD packet's loop runs as many
-            # iterations as its largest ray count
-            order = dr.argsort(dr.gather(mi.UInt32, rays, idx), descending=True)
-            idx, on = dr.gather(mi.UInt32, idx, order), dr.gather(mi.Bool, on, order)
-            pool = self.pools[r]
-            ps = dr.gather(mi.UInt32, slot, idx)
-            rec = pool.gather(ps, on)
-            si = dr.gather(mi.SurfaceInteraction3f, fr.si, idx)
-            key = dr.gather(mi.UInt32, fr.keys, idx)
-            ry = dr.gather(mi.UInt32, rays, idx)
-            fr_r = dr.gather(mi.Bool, fresh, idx)
-            if r == VIS:
-                ry = visibility.traced_rays(ry, dr.gather(mi.Float, h.s_delta, idx), fr_r, self.prior == VIS,
-                                            self._vis_share)
-                dr.scatter(traced, ry, idx, on)
-                # the residual's memory is cut for moving entries only (a new entry's light did not move)
-                out, mo, st = self._vis_update()(sc, rec, si, key, ry, dr.gather(mi.Bool, moving, idx), fr_r, on,
-                                                 ctx.frame)
-                dr.scatter(motion, mo, idx, on)
-                dr.scatter(vis_motion, mo, idx, on)
-            elif r == CONES:
-                out, mo, st = self._cones_update()(sc, rec, si, key, ry, dr.gather(mi.Bool, unsettled, idx),
-                                                   dr.gather(mi.Bool, moving, idx),
-                                                   dr.gather(mi.UInt32, first_sample, idx), fr_r, on, ctx.frame)
-                dr.scatter(motion, mo, idx, on)
-            else:
-                out, st = self._sh_update()(sc, rec, si, key, ry, fr_r, on, ctx.frame)
-            dr.eval(out, st)
-            del rec
-            pool.scatter(out, ps, on)
-            dr.scatter(ed, st[0], idx, on)
-            dr.scatter(en, st[1], idx, on)
-            dr.scatter(mv, st[2], idx, on)
-            dr.eval(pool.data, ed, en, mv, motion, vis_motion)
+        h, fresh = self._hand_over(h, is_new, fr.n_active)
+        motion, vis_motion, stats = self._update_representations(ctx, fr, h, fresh, rays, unsettled, moving,
+                                                                 first_sample)
         # a listed delta light went dark: the statistics restart from a short window
         h.count = dr.select(vis_motion, dr.minimum(h.count, RESTART_COUNT), h.count)
-
-        # ------------------------------- statistics and the choice
-        e_d, e_n, m_hat = means(ed, en, mv, traced)
-        h = ch.update_stats(h, e_d, e_n, m_hat, self.choice)
-        allowed = ctx.frame % self.switch_period == 0
-        h, switch, target = ch.decide(h, self.choice, allowed=allowed)
-        if forced is not None:
-            switch = dr.zeros(mi.Bool, N)
-        opaque_header(h)
-        if allowed or not self._warm:
-            if forced is None and self.min_share > 0.0:
-                switch, target = self._sparse(h, switch, target, start, allowed, N)
-            dr.make_opaque(switch, target)
-            h = self._switch(fr, h, switch, target)
-        else:
-            self._switches = 0          # between switch frames: nothing to count or convert
+        h = self._choose(ctx, fr, h, stats)
         for k, w in enumerate(ch.pack_header(h)):
             dr.scatter(self.storage, w, base + k)
         self._tags = h.tag
@@ -258,6 +183,103 @@ class AdaptiveCache(PayloadMethod):
         self._count_hist = count_hist([h.tag == r for r in REPS])
         dr.eval(self.storage, self._tags, self._count_hist)
         return motion
+
+    def _representation_of_new(self) -> int:
+        forced = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.force)
+        start = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.start, self.prior)
+        return forced if forced is not None else start
+
+    def _hand_over(self, h: Header, is_new: mi.Bool, N: int):
+        """Reused slots give back their old records; new ones get a record of the
+        representation new entries start in (all lane counts read back at once; a pool with
+        no lane is skipped once warm). Returns (header, fresh: a new record)."""
+        fresh = is_new | (h.tag == NONE)
+        tag = dr.select(fresh, mi.UInt32(self._representation_of_new()), h.tag)
+        slot = dr.select(fresh, mi.UInt32(INVALID), h.slot)
+        dr.eval(fresh, tag, slot)     # and after the hand-over: the same kernels in a frame without one
+        rel = [is_new & (h.tag == r.tag) for r in self.reps]
+        acq = [fresh & (tag == r.tag) for r in self.reps]
+        n_rel_acq = tally([m & (h.slot != INVALID) for m in rel] + acq)
+        n_reps = len(self.reps)
+        for r, m, n in zip(self.reps, rel, n_rel_acq[:n_reps]):
+            if n or not self._warm:
+                r.pool.release(h.slot, m, n)
+        for r, m, n in zip(self.reps, acq, n_rel_acq[n_reps:]):
+            if n or not self._warm:
+                slot = dr.select(m, r.pool.acquire(m, n), slot)
+        dr.eval(slot)
+        z = dr.zeros(mi.Float, N)
+        h = Header(tag=tag, streak=dr.select(fresh, 0, h.streak), count=dr.select(fresh, 0, h.count),
+                   e=dr.select(fresh, 0.0, h.e), slot=slot, s_delta=dr.select(fresh, 0.0, h.s_delta),
+                   m=dr.select(fresh, mi.Vector3f(z, z, z), h.m))
+        opaque_header(h)
+        return h, fresh
+
+    def _update_representations(self, ctx, fr, h: Header, fresh, rays, unsettled, moving, first_sample):
+        """Every representation updates its own entries (:class:`~.representation.Entries`);
+        returns (motion, the motion that restarts the statistics, (e_delta, e_nd, m) means)."""
+        N = fr.n_active
+        ed, en, mv = dr.zeros(mi.Float, N), dr.zeros(mi.Float, N), dr.zeros(mi.Vector3f, N)
+        motion, vis_motion = dr.zeros(mi.Bool, N), dr.zeros(mi.Bool, N)
+        # evaluated before the loop (else fused into the first representation's kernel: one per set)
+        traced = mi.UInt32(rays)        # the rays each entry traces (VISIBILITY: its share of them)
+        dr.make_opaque(ed, en, mv, motion, vis_motion, traced)
+        # every representation's lanes before the first update kernel: a compression waits for
+        # the kernels queued before it, and the host traces the next update while one runs
+        subsets = {r.tag: subset(h.tag == r.tag) for r in self.reps}
+        for rep in self.reps:
+            idx, on, n_r = subsets[rep.tag]
+            if n_r == 0 and self._warm:
+                continue        # no lane: no kernel traced (tracing costs as much as a small frame)
+            # entries with many rays side by side (as slc's update): a SIMD packet's loop runs as many
+            # iterations as its largest ray count
+            order = dr.argsort(dr.gather(mi.UInt32, rays, idx), descending=True)
+            idx, on = dr.gather(mi.UInt32, idx, order), dr.gather(mi.Bool, on, order)
+            ps = dr.gather(mi.UInt32, h.slot, idx)
+            e = Entries(rec=rep.pool.gather(ps, on), si=dr.gather(mi.SurfaceInteraction3f, fr.si, idx),
+                        key=dr.gather(mi.UInt32, fr.keys, idx), rays=dr.gather(mi.UInt32, rays, idx),
+                        moving=dr.gather(mi.Bool, moving, idx), unsettled=dr.gather(mi.Bool, unsettled, idx),
+                        first_sample=dr.gather(mi.UInt32, first_sample, idx), fresh=dr.gather(mi.Bool, fresh, idx),
+                        s_delta=dr.gather(mi.Float, h.s_delta, idx),
+                        texel=dr.gather(mi.Float, fr.texel_size, idx) if fr.texel_size is not None else None,
+                        on=on, frame=ctx.frame)
+            up = rep.update(e)
+            if up.rays is not None:
+                dr.scatter(traced, up.rays, idx, on)
+            if up.motion is not None:
+                dr.scatter(motion, up.motion, idx, on)
+                if rep.restarts_stats:
+                    dr.scatter(vis_motion, up.motion, idx, on)
+            dr.eval(up.words, up.stats)
+            del e
+            rep.pool.scatter(up.words, ps, on)
+            dr.scatter(ed, up.stats.ed, idx, on)
+            dr.scatter(en, up.stats.en, idx, on)
+            dr.scatter(mv, up.stats.m, idx, on)
+            dr.eval(rep.pool.data, ed, en, mv, motion, vis_motion)
+        return motion, vis_motion, means(ed, en, mv, traced)
+
+    # ------------------------------------------------------------------ the choice
+    def _choose(self, ctx, fr, h: Header, stats) -> Header:
+        """The statistics' running means, the choice rule, and the switches it asks for (in
+        every ``switch_period``-th frame)."""
+        N = fr.n_active
+        forced = self.force != "auto"
+        h = ch.update_stats(h, *stats, self.choice)
+        allowed = ctx.frame % self.switch_period == 0
+        h, switch, target = ch.decide(h, self.choice, allowed=allowed)
+        if forced:
+            switch = dr.zeros(mi.Bool, N)
+        opaque_header(h)
+        if allowed or not self._warm:
+            if not forced and self.min_share > 0.0:
+                start = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.start, self.prior)
+                switch, target = self._sparse(h, switch, target, start, allowed, N)
+            dr.make_opaque(switch, target)
+            h = self._switch(fr, h, switch, target)
+        else:
+            self._switches = 0          # between switch frames: nothing to count or convert
+        return h
 
     def _sparse(self, h: Header, switch: mi.Bool, target: mi.UInt32, fallback: int, allowed: bool, N: int):
         """A representation that fewer than ``min_share`` of the active entries
@@ -286,55 +308,38 @@ class AdaptiveCache(PayloadMethod):
 
     def _switch(self, fr, h: Header, switch: mi.Bool, target: mi.UInt32) -> Header:
         """Convert the records of switching entries (old representation ->
-        lobes -> new representation), then move them between pools. One small
-        kernel per (old, new) pair that occurs: the conversion of all pairs in
-        one kernel was traced in every frame with a switch and cost more than
-        the update itself (skylit: 400 ms a frame)."""
-        sc, K, Kv = self.scene.mi_scene, self.max_cones, self.vis_k
+        lobes -> new representation, :class:`~.representation.Representation`), then move them
+        between pools. One small kernel per (old, new) pair that occurs: the conversion of all
+        pairs in one kernel was traced in every frame with a switch and cost more than the
+        update itself (skylit: 400 ms a frame)."""
         tag, slot = mi.UInt32(h.tag), mi.UInt32(h.slot)
         self._switches = int(dr.count(switch)[0]) if dr.width(switch) else 0
         if self._switches == 0 and self._warm:
             return h
-        for src in REPS:
-            for dst in REPS:
-                if dst == src:
+        for src in self.reps:
+            for dst in self.reps:
+                if dst is src:
                     continue
-                idx, on, n = subset(switch & (h.tag == src) & (target == dst))
+                idx, on, n = subset(switch & (h.tag == src.tag) & (target == dst.tag))
                 if n == 0 and self._warm:
                     continue
                 old = dr.gather(mi.UInt32, h.slot, idx)
                 si = dr.gather(mi.SurfaceInteraction3f, fr.si, idx)
-                n_l = dr.width(idx)
-                rec = self.pools[src].gather(old, on)
-                # ------------------------------- old record -> lobes
-                if src == VIS:
-                    lobes = visibility.lobes(sc, rec, si, on, Kv, self.sph, self.env)
-                elif src == CONES:
-                    lobes = cones_rep.lobes(rec, on, K)
-                else:
-                    lobes = sh_rep.lobes(rec, on, self.enc)
-                # ------------------------------- lobes -> new record
-                if dst == VIS:
-                    E = sh_rep.irradiance_at_normal(rec, self.enc) if src == SH else \
-                        cones_rep.irradiance_at_normal(lobes)
-                    new = visibility.from_irradiance(E, n_l, Kv, self.env is not None)
-                elif dst == CONES:
-                    new = cones_rep.from_lobes(lobes, n_l, self.cone_params)
-                else:
-                    new = sh_rep.from_lobes(lobes, n_l, self.enc)
+                rec = src.pool.gather(old, on)
+                new = dst.convert(src, rec, src.lobes(rec, si, on), dr.width(idx))
                 dr.eval(new)
                 del rec
-                s_new = self.pools[dst].acquire(on)
-                self.pools[dst].scatter(new, s_new, on)
-                self.pools[src].release(old, on)
-                dr.scatter(tag, mi.UInt32(dst), idx, on)
+                s_new = dst.pool.acquire(on)
+                dst.pool.scatter(new, s_new, on)
+                src.pool.release(old, on)
+                dr.scatter(tag, mi.UInt32(dst.tag), idx, on)
                 dr.scatter(slot, s_new, idx, on)
-                dr.eval(tag, slot, self.pools[dst].data)
+                dr.eval(tag, slot, dst.pool.data)
         return Header(tag=tag, streak=h.streak, count=h.count, e=h.e, slot=slot, s_delta=h.s_delta, m=h.m)
 
     def render(self, ctx, gbuffers, timer):
         out = super().render(ctx, gbuffers, timer)
-        if self.pools is not None:
+        if self.reps is not None:
             self._frames_seen += 1
             self._warm = self._frames_seen >= WARM_FRAMES
         return out
@@ -345,7 +350,7 @@ class AdaptiveCache(PayloadMethod):
 
     # ------------------------------------------------------------------ shade
     def shade(self, ctx, fr, v, gb):
-        sc, W = self.scene.mi_scene, self.words
+        W = self.words
         if self.sph is not None:
             self.sph.refresh()
         slot = mi.UInt32(fr.pixel_slot[v])
@@ -353,9 +358,6 @@ class AdaptiveCache(PayloadMethod):
         tag = dr.gather(mi.UInt32, self.storage, slot * W, ok) & 3
         ps = dr.gather(mi.UInt32, self.storage, slot * W + 1, ok)
         tf = dr.gather(mi.Frame3f, fr.si.sh_frame, fr.pixel_index[v], ok)
-        si = gb.si
-        bsdf = si.bsdf()
-        m_v, m_c, m_s = ok & (tag == VIS), ok & (tag == CONES), ok & (tag == SH)
         # a representation no active entry uses is not traced (no pixel can need it)
         if self._counts is None and getattr(self, "_count_hist", None) is not None:
             self._counts = dict(zip(REPS, tally(REPS, self._count_hist)))
@@ -364,56 +366,14 @@ class AdaptiveCache(PayloadMethod):
         # kernels whichever representations are present)
         L = dr.zeros(mi.Color3f, gb.size)
         dr.eval(L)
-        parts = []
-        if used.get(VIS, 1):
-            parts.append(lambda: self._vis_shading()(self.pools[VIS].gather(ps, m_v), m_v, si, sc, ctx.frame, v))
-        if used.get(CONES, 1):
-            parts.append(lambda: shader_for(self, self.max_cones)(
-                self.pools[CONES].data, dr.select(m_c, ps, 0), m_c, si, tf, self.shade_samples,
-                shade_key(ctx.frame, self.seed)))
-        if used.get(SH, 1):
-            parts.append(lambda: self._sh_shading()(self.pools[SH].gather(ps, m_s), m_s, si, tf))
-        for part in parts:
-            Lr = part()
-            dr.eval(Lr)
-            L = L + Lr
-            dr.eval(L)
+        for rep in self.reps:
+            if used.get(rep.tag, 1):
+                Lr = rep.shade(Pixels(slot=ps, active=ok & (tag == rep.tag), si=gb.si, tf=tf, frame=ctx.frame,
+                                      viewer=v))
+                dr.eval(Lr)
+                L = L + Lr
+                dr.eval(L)
         return L
-
-    def _frozen(self, attr: str, make):
-        """The frozen function kept in ``attr``, made on first use by
-        ``make(freeze)``; unfrozen in an animated scene, where every frame
-        would record it again."""
-        f = getattr(self, attr, None)
-        if f is None:
-            f = make(not bool(getattr(self.scene, "dynamic", False)))
-            setattr(self, attr, f)
-        return f
-
-    def _vis_update(self) -> vis_frozen.VisUpdate:
-        """The VISIBILITY update."""
-        return self._frozen("_vis_up", lambda fz: vis_frozen.VisUpdate(self.vis_k, self.seed, self.sph, self.env, fz))
-
-    def _cones_update(self) -> cones_rep.ConesUpdate:
-        """The CONES update."""
-        return self._frozen("_cones_up", lambda fz: cones_rep.ConesUpdate(
-            self.cone_params, self.seed, self.sph, self.env, freeze=fz))
-
-    def _sh_update(self) -> sh_rep.SHUpdate:
-        """The SH update."""
-        return self._frozen("_sh_up", lambda fz: sh_rep.SHUpdate(
-            self.encoding, self.seed, self.sh_count, self.sph, self.env, freeze=fz))
-
-    def _vis_shading(self) -> vis_frozen.VisShading:
-        """The VISIBILITY pool's shading (glossy pixels may sample their polygon lights)."""
-        make = lambda fz: vis_frozen.VisShading(self.vis_k, self.sph, self.env, fz, self.polygon_glossy,  # noqa: E731
-                                                self.polygon_samples, self.seed)
-        return self._frozen("_vis_shade", make)
-
-    def _sh_shading(self) -> sh_rep.SHShading:
-        """The SH pool's shading."""
-        return self._frozen("_sh_shade", lambda fz: sh_rep.SHShading(
-            self.encoding, self.seed, self.glossy_samples, freeze=fz))
 
     # ------------------------------------------------------------------ reports
     def pixel_tags(self, fr, v, gb) -> mi.UInt32:
@@ -425,24 +385,22 @@ class AdaptiveCache(PayloadMethod):
     def memory_bytes(self) -> int:
         if self.cache is None:
             return 0
-        pools = sum(p.bytes_allocated() for p in self.pools.values()) if self.pools else 0
+        pools = sum(r.pool.bytes_allocated() for r in self.reps) if self.reps else 0
         return int(self.cache.memory_bytes()) + int(self.cache.entries_allocated()) * self.payload_bytes() + pools
 
     def stats(self) -> dict:
         out = super().stats()
-        if self.pools is None:
+        if self.reps is None:
             return out
         tags = self._tags
         n = max(dr.width(tags), 1) if tags is not None else 1
-        for r in REPS:
-            name = ch.NAMES[r]
-            cnt = int(dr.count(tags == r)[0]) if tags is not None and dr.width(tags) else 0
-            out[f"share_{name}"] = cnt / n
-            out[f"bytes_{name}"] = float(self.pools[r].bytes_allocated())
-            out[f"records_{name}"] = float(self.pools[r].used)
+        for r in self.reps:
+            cnt = int(dr.count(tags == r.tag)[0]) if tags is not None and dr.width(tags) else 0
+            out[f"share_{r.name}"] = cnt / n
+            out[f"bytes_{r.name}"] = float(r.pool.bytes_allocated())
+            out[f"records_{r.name}"] = float(r.pool.used)
         out["switches"] = float(self._switches)
-        out["payload_bytes"] = out.get("payload_bytes", 0.0) + sum(float(p.bytes_allocated())
-                                                                   for p in self.pools.values())
+        out["payload_bytes"] = out.get("payload_bytes", 0.0) + sum(float(r.pool.bytes_allocated()) for r in self.reps)
         return out
 
 

@@ -50,8 +50,8 @@ PARAMS = (
           "kernels are traced in those frames)", lo=1, hi=64),
     Param("theta_delta", 0.5, "delta-light energy share above which VISIBILITY is chosen", lo=0.0, hi=1.0),
     Param("theta_r", 0.75, "mean resultant length below which SH is chosen", lo=0.0, hi=1.0),
-    Param("sh_when", "environment", "SH is a candidate of the choice only in scenes with an environment "
-          "(infinite, non-delta) emitter, or always", choices=("environment", "always")),
+    Param("sh_when", "never", "SH is a candidate of the choice only in scenes with an environment "
+          "(infinite, non-delta) emitter, always, or never", choices=("environment", "always", "never")),
     Param("min_share", 0.02, "a representation fewer than this share of the active entries ask for "
           "is not used (its entries take the scene's prior; 0: no limit)", lo=0.0, hi=1.0),
     Param("start", "prior", "representation of new entries (prior: from the scene's emitters)",

@@ -6,6 +6,7 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.scene import emitter_sampling
+from slc.scene.bsdf_table import facing
 from slc.methods.cones.cycle import SampleObserver
 
 
@@ -45,6 +46,13 @@ class SampleStats:
     def values(self):
         return [self.ed, self.en, self.m]
 
+    @classmethod
+    def of(cls, values) -> "SampleStats":
+        """The statistics from :meth:`values`' list."""
+        st = cls()
+        st.ed, st.en, st.m = values
+        return st
+
     @staticmethod
     def means(vals, rays):
         inv = dr.rcp(mi.Float(dr.maximum(mi.UInt32(rays), 1)))
@@ -55,11 +63,12 @@ class LightStats(SampleObserver):
     """The choice rule's statistics (:class:`SampleStats`) of an update cycle's light
     samples at the entries ``si``, the one observer of the three representations. A
     sample's energy is ``lum(w) max(s_z, 0)`` where it is visible (``s`` its direction in
-    the entry's frame), and it counts as delta-light energy (:meth:`listable`) where a
+    the entry's frame; ``|s_z|`` on the ``two`` lanes, entries on two-sided BSDFs, whose
+    pixels see either side), and it counts as delta-light energy (:meth:`listable`) where a
     VISIBILITY record could list its light."""
 
-    def __init__(self, scene, si, sph=None, env=None):
-        self.si, self.sph, self.env = si, sph, env
+    def __init__(self, scene, si, sph=None, env=None, two=None):
+        self.si, self.sph, self.env, self.two = si, sph, env, two
         self.samp = sampler_of(scene) if (sph is not None or env is not None) else None
 
     def init(self, n: int) -> SampleStats:
@@ -77,9 +86,11 @@ class LightStats(SampleObserver):
         if self.sph is not None:
             delta |= self.sph.small(self.si.p, em, known)
         if self.env is not None:
-            delta |= self.env.sample_listable(ds.d, em, self.si.sh_frame.n, known & ~delta)[0]
+            n = facing(self.si.sh_frame.n, ds.d, self.two)
+            delta |= self.env.sample_listable(ds.d, em, n, known & ~delta)[0]
         return delta
 
     def observe(self, st: SampleStats, ds, w, ok, s) -> SampleStats:
-        c = dr.select(ok, lum(w) * dr.maximum(s.z, 0.0), 0.0)
+        cz = s.z if self.two is None else dr.select(self.two, dr.abs(s.z), s.z)
+        c = dr.select(ok, lum(w) * dr.maximum(cz, 0.0), 0.0)
         return st.add(c, self.listable(ds, ok), s)

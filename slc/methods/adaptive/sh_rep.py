@@ -6,7 +6,8 @@ Record: the coefficients and the sample count, one float word each. Update: the
 ``sh`` method's (:mod:`slc.methods.sh.update`), in the entry's frame,
 :math:`\hat\lambda_{lm} = \frac1n \sum_k w_k V_k Y_{lm}(\omega_k)`,
 :math:`\lambda \leftarrow \lambda + \min(n/C, 1)(\hat\lambda - \lambda)`, C the sample
-count capped at ``max_count``; lights below the surface are dropped. Shading: the
+count capped at ``max_count``; lights below the surface are dropped (but at entries on
+two-sided BSDFs, whose pixels on the back see them). Shading: the
 Ramamoorthi-Hanrahan irradiance for diffuse-only BSDFs (chrominance by the
 "ratio" rule of :func:`slc.methods.sh.project.irradiance`: the paper's offset rule
 shifted the colour of a constant sky on a plane by 5%), BSDF samples of the
@@ -36,8 +37,11 @@ from slc.methods.sh.project import irradiance, radiance
 from slc.methods.sh.shading import shade_radiance
 from slc.methods.sh.update import project_samples, running_mean
 from slc.methods.sh.ycocg import encoding as get_encoding
-from slc.methods.adaptive.sampling import LightStats
+from slc.methods.adaptive.choice import SH
+from slc.methods.adaptive.representation import Entries, Pixels, Representation, Updated
+from slc.methods.adaptive.sampling import LightStats, SampleStats
 from slc.methods.adaptive.frozen_inputs import light_tables, sampler_inputs
+from slc.scene.bsdf_table import side_inputs, side_normal, two_sided
 
 CONVERT_COUNT = 4.0
 
@@ -67,8 +71,10 @@ def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int
         rng = keyed_rng(key, seed, frame, STREAM_SH_UPDATE)
     else:                              # keyed_rng with the mix given
         rng = mixed_rng(key, mix)
-    acc, st = project_samples(scene, si, si.sh_frame, rays, rng, mi.Bool(on) & si.is_valid(), enc,
-                              LightStats(scene, si, sph, env))
+    valid = mi.Bool(on) & si.is_valid()
+    two = two_sided(scene, si.bsdf(), valid)
+    acc, st = project_samples(scene, si, si.sh_frame, rays, rng, valid, enc, LightStats(scene, si, sph, env, two),
+                              two)
     coeffs, C = unpack(rec, enc)
     fresh = mi.Bool(fresh)
     coeffs, C = running_mean([dr.select(fresh, 0.0, c) for c in coeffs], dr.select(fresh, 0.0, C), acc, rays,
@@ -78,7 +84,7 @@ def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int
 
 class SHUpdate(FrozenFunction):
     """:func:`update` traced once and replayed (``dr.freeze``, as
-    :class:`~slc.methods.adaptive.vis_frozen.VisUpdate` and
+    :class:`~slc.methods.adaptive.visibility.frozen.VisUpdate` and
     :class:`~slc.methods.adaptive.cones_rep.ConesUpdate`): tracing the SH update (the
     sample loop, the projection on the encoding's basis) was Python work on
     every frame. Inputs: the scene, the emitter table's arrays
@@ -106,21 +112,23 @@ class SHUpdate(FrozenFunction):
                          lanes=("rec", "si", "key", "rays", "fresh", "on"))     # per entry (slc.core.freeze)
 
     def __call__(self, scene, rec, si, key, rays, fresh, on, frame: int):
-        return super().__call__(scene, sampler_inputs(scene), light_tables(self.sph, self.env),
+        return super().__call__(scene, sampler_inputs(scene), light_tables(self.sph, self.env) + side_inputs(scene),
                                 [mi.UInt32(w) for w in rec], si, mi.UInt32(key), mi.UInt32(rays), mi.Bool(fresh),
                                 mi.Bool(on), stream_key(self.seed, frame, STREAM_SH_UPDATE))
 
 
-def shade(rec, si, bsdf, tf, active, enc, seed: int, glossy_samples: int) -> mi.Color3f:
+def shade(rec, si, bsdf, tf, active, enc, seed: int, glossy_samples: int, scene=None) -> mi.Color3f:
     """L_o of the pixels from their SH records (:func:`slc.methods.sh.shading.shade_radiance`);
-    ``tf`` each entry's local frame, in which the coefficients live."""
+    ``tf`` each entry's local frame, in which the coefficients live. ``scene``: a scene with
+    two-sided BSDFs (None: none), whose pixels seen from behind are shaded from that side."""
     coeffs, _ = unpack(rec, enc)
-    nrm = tf.to_local(mi.Vector3f(si.sh_frame.n))
+    two = two_sided(scene, bsdf, active) if scene is not None else None
+    nrm = tf.to_local(mi.Vector3f(si.sh_frame.n) if two is None else side_normal(si))
     return shade_radiance(
         si, bsdf, active,
         lambda: mi.Color3f(*irradiance(enc, coeffs, nrm, chroma="ratio")),
         lambda d, m: (mi.Color3f(*radiance(enc, coeffs, tf.to_local(d))), m),
-        keyed_rng(dr.arange(mi.UInt32, dr.width(active)), seed, 0, STREAM_SH_SHADE), glossy_samples)
+        keyed_rng(dr.arange(mi.UInt32, dr.width(active)), seed, 0, STREAM_SH_SHADE), glossy_samples, two)
 
 
 def lobes(rec, active, enc):
@@ -156,16 +164,18 @@ def from_lobes(lobes, n_lanes: int, enc):
     return pack(out, dr.full(mi.Float, CONVERT_COUNT, n_lanes))
 
 
-def irradiance_at_normal(rec, enc) -> mi.Color3f:
+def irradiance_at_normal(rec, enc, side: float = 1.0) -> mi.Color3f:
+    """The records' irradiance at the entry's normal (``side`` -1: at the reversed normal)."""
     coeffs, _ = unpack(rec, enc)
-    return mi.Color3f(*irradiance(enc, coeffs, mi.Vector3f(0.0, 0.0, 1.0), chroma="ratio"))
+    return mi.Color3f(*irradiance(enc, coeffs, mi.Vector3f(0.0, 0.0, side), chroma="ratio"))
 
 
 # ----------------------------------------------------------------------------- frozen shading
 
-def _shade_kernel(rec, active, si, bsdf, tf, enc_name: str, seed: int, glossy_samples: int):
-    """:func:`shade` (the body of :class:`SHShading`'s frozen function)."""
-    return shade(rec, si, bsdf, tf, active, get_encoding(enc_name), seed, glossy_samples)
+def _shade_kernel(rec, active, si, bsdf, tf, enc_name: str, seed: int, glossy_samples: int, scene, tables):
+    """:func:`shade` (the body of :class:`SHShading`'s frozen function; ``tables``: the arrays
+    the two-sided lookup reads)."""
+    return shade(rec, si, bsdf, tf, active, get_encoding(enc_name), seed, glossy_samples, scene)
 
 
 class SHShading(FrozenFunction):
@@ -174,15 +184,51 @@ class SHShading(FrozenFunction):
     BSDF sampling loop) cost more host time than its kernel. The pixels' records
     (gathered outside: the pool's width changes when it grows, the pixels' does
     not), mask and interactions are the frozen function's inputs; the encoding, seed
-    and glossy sample count are fixed per instance. A static scene whose
+    and glossy sample count are fixed per instance; ``scene``: the scene where it has
+    two-sided BSDFs (None: none; see :func:`shade`). A static scene whose
     function was recorded more than ``max_recordings`` times, or an animated
     scene (recorded again every frame), shades unfrozen."""
 
     def __init__(self, enc_name: str, seed: int, glossy_samples: int, freeze: bool = True,
-                 max_recordings: int = 4):
+                 max_recordings: int = 4, scene=None):
         self.enc_name, self.seed, self.glossy_samples = str(enc_name), int(seed), int(glossy_samples)
+        self.scene = scene
         super().__init__(_shade_kernel, freeze, False, max_recordings)
 
     def __call__(self, rec, active, si, tf) -> mi.Color3f:
+        tables = side_inputs(self.scene) if self.scene is not None else []
         return super().__call__([mi.UInt32(w) for w in rec], mi.Bool(active), si, si.bsdf(), tf, self.enc_name,
-                                self.seed, self.glossy_samples)
+                                self.seed, self.glossy_samples, self.scene, tables)
+
+
+class SHRep(Representation):
+    """The SH representation of the adaptive cache: the coefficients of ``cache.encoding`` in
+    the entry's local frame and their sample count, the ``sh`` method's projection and shading
+    (see the module); its irradiance at the normal is the SH closed form."""
+
+    tag, name = SH, "sh"
+    restarts_stats = False
+
+    def words(self) -> int:
+        return words(self.cache.enc)
+
+    def update(self, e: Entries) -> Updated:
+        c = self.cache
+        fn = self.frozen("update_fn", lambda fz: SHUpdate(c.encoding, c.seed, c.sh_count, c.sph, c.env, freeze=fz))
+        out, st = fn(c.scene.mi_scene, e.rec, e.si, e.key, e.rays, e.fresh, e.on, e.frame)
+        return Updated(out, None, SampleStats.of(st))
+
+    def shade(self, px: Pixels) -> mi.Color3f:
+        c = self.cache
+        fn = self.frozen("shade_fn", lambda fz: SHShading(c.encoding, c.seed, c.glossy_samples, freeze=fz,
+                                                           scene=c.scene.mi_scene if c._back else None))
+        return fn(self.pool.gather(px.slot, px.active), px.active, px.si, px.tf)
+
+    def lobes(self, rec, si, active) -> list:
+        return lobes(rec, active, self.cache.enc)
+
+    def irradiance(self, rec, lobes, side: float) -> mi.Color3f:
+        return irradiance_at_normal(rec, self.cache.enc, side)
+
+    def convert(self, src, rec, lobes, n: int) -> list:
+        return from_lobes(lobes, n, self.cache.enc)

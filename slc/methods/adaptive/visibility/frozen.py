@@ -1,6 +1,6 @@
 """The VISIBILITY representation's update and shading as frozen functions, traced once and
-replayed (``dr.freeze``): :class:`VisUpdate` runs :func:`~slc.methods.adaptive.visibility.update`,
-:class:`VisShading` runs :func:`~slc.methods.adaptive.vis_shading.shade`, with the emitter, sphere
+replayed (``dr.freeze``): :class:`VisUpdate` runs :func:`~slc.methods.adaptive.visibility.update.update`,
+:class:`VisShading` runs :func:`~slc.methods.adaptive.visibility.shading.shade`, with the emitter, sphere
 and region tables declared as inputs (:mod:`slc.methods.adaptive.frozen_inputs`).
 """
 from __future__ import annotations
@@ -13,11 +13,13 @@ from slc.core.keys import mixed_rng, stream_key
 from slc.methods.adaptive.frozen_inputs import light_tables, sampler_inputs
 from slc.methods.adaptive.polygon_glossy import has_glossy
 from slc.methods.adaptive.polygon_ltc import LtcTable
-from slc.methods.adaptive.vis_shading import shade
-from slc.methods.adaptive.visibility import STREAM_VIS, update
+from slc.methods.adaptive.visibility.shading import shade
+from slc.methods.adaptive.visibility.update import VisLanes, VisParams, mix_of, update
 from slc.scene import bsdf_table
+from slc.scene.bsdf_table import side_inputs
 
 STREAM_GLOSSY = 0x5BD1E995         # the glossy pixels' light samples (plus the viewer's index)
+STREAM_ALBEDO = 0x2545F491         # xor'ed into that key: the residual's BSDF samples
 
 
 class VisShading(FrozenFunction):
@@ -29,24 +31,26 @@ class VisShading(FrozenFunction):
     the sphere and region tables are declared as inputs too (a frozen function
     reads only arrays reachable from its inputs). ``K``, ``sph`` and ``env``
     are fixed per instance; ``glossy`` is the method's ``polygon_glossy`` (``ltc``: the fitted
-    table and the scene's BSDF table are inputs too; ``sample``: ``S`` sample pairs).
+    table and the scene's BSDF table are inputs too; ``sample``: ``S`` sample pairs); ``back``:
+    the records keep a residual behind the surface (the scene has two-sided BSDFs).
     Unfrozen in animated scenes (``freeze=False``) and after more than ``max_recordings``
     recordings."""
 
     def __init__(self, K: int, sph=None, env=None, freeze: bool = True, glossy: str = "point", S: int = 0,
-                 seed: int = 0, max_recordings: int = 4):
+                 seed: int = 0, max_recordings: int = 4, back: bool = False):
         S, ltc = (S if glossy == "sample" else 0), glossy == "ltc"
         if sph is None or sph.poly is None or not has_glossy(getattr(sph.scene, "mi_scene", sph.scene)):
             S, ltc = 0, False           # no polygon light or no glossy BSDF: nothing to sample
         table = LtcTable(bsdf_table.for_scene(sph.scene)) if ltc else None
         self.K, self.sph, self.env, self.S, self.seed, self.ltc = int(K), sph, env, int(S), int(seed), table
-        K, S = int(K), int(S)
+        K, S, back = int(K), int(S), bool(back)
 
         # the closure holds no reference to self: a cycle through the frozen function would be
         # freed by the garbage collector, which may run while another function records (abort)
         def kernel(rec, active, si, bsdf, scene, tables, mix):
             rng = mixed_rng(dr.arange(mi.UInt32, dr.width(active)), mix) if S > 0 else None
-            return shade(scene, rec, si, bsdf, active, K, sph, env, rng, S, table)
+            rng_a = mixed_rng(dr.arange(mi.UInt32, dr.width(active)), mi.UInt32(mix) ^ STREAM_ALBEDO)
+            return shade(scene, rec, si, bsdf, active, K, sph, env, rng, S, table, back, rng_a)
         super().__init__(kernel, freeze, False, max_recordings)
 
     def __call__(self, rec, active, si, scene, frame: int = 0, viewer: int = 0) -> mi.Color3f:
@@ -71,14 +75,18 @@ class VisUpdate(FrozenFunction):
         self.K, self.seed, self.sph, self.env = int(K), int(seed), sph, env
         K, seed = int(K), int(seed)
 
-        def kernel(scene, lights, tables, rec, si, key, rays, moving, fresh, on, mix):     # no self (see VisShading)
-            out, gone, st = update(scene, rec, si, key, rays, moving, fresh, on, 0, seed, K, sph, env, mix=mix)
+        def kernel(scene, lights, tables, rec, si, key, rays, moving, fresh, on, texel, mix):   # no self (VisShading)
+            out, gone, st = update(scene, VisLanes(rec, si, key, rays, moving, fresh, on, texel),
+                                   VisParams(K, sph, env), mix)
+            st = st.values()
             dr.eval(out, gone, st)
             return out, gone, st
         super().__init__(kernel, freeze, False, max_recordings,
-                         lanes=("rec", "si", "key", "rays", "moving", "fresh", "on"))     # per entry (slc.core.freeze)
+                         lanes=("rec", "si", "key", "rays", "moving", "fresh", "on", "texel"))   # per entry
 
-    def __call__(self, scene, rec, si, key, rays, moving, fresh, on, frame: int):
-        return super().__call__(scene, sampler_inputs(scene), light_tables(self.sph, self.env), [mi.UInt32(w) for w in rec],
+    def __call__(self, scene, rec, si, key, rays, moving, fresh, on, frame: int, texel=None):
+        """``texel``: the entries' footprints (:func:`update`; None: every sample from the entry's point)."""
+        return super().__call__(scene, sampler_inputs(scene), light_tables(self.sph, self.env) + side_inputs(scene),
+                                [mi.UInt32(w) for w in rec],
                                 si, mi.UInt32(key), mi.UInt32(rays), mi.Bool(moving), mi.Bool(fresh), mi.Bool(on),
-                                stream_key(self.seed, frame, STREAM_VIS))
+                                None if texel is None else mi.Float(texel), mix_of(self.seed, frame))

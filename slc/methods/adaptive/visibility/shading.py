@@ -4,7 +4,7 @@ no ray,
 .. math:: L_o(y) = \sum_{i \le K} f_r(y, \omega_i, \omega_o) \frac{I_i(\omega_i)}{d_i^2}\, v_i
           \;+\; f_r(y, n, \omega_o)\, E_r ,
 
-each listed light's unoccluded term exact at the pixel (:func:`~slc.methods.adaptive.visibility.light_at`),
+each listed light's unoccluded term exact at the pixel (:func:`~slc.methods.adaptive.visibility.lights.light_at`),
 its visible fraction :math:`v_i` and the residual :math:`E_r` from the entry. A polygon light
 at a pixel whose glossy lobe is narrow against it gets the lobe's integral over the light
 (``polygon_glossy=ltc``, :mod:`slc.methods.adaptive.polygon_ltc`) or sampled terms
@@ -12,23 +12,57 @@ at a pixel whose glossy lobe is narrow against it gets the lobe's integral over 
 """
 from __future__ import annotations
 
+import math
+
 import drjit as dr
 import mitsuba as mi
 
 from slc.methods.adaptive.polygon_glossy import GLOSSY, VIS_WHOLE, polygon_term
 from slc.methods.adaptive.polygon_ltc import ltc_term
-from slc.methods.adaptive.visibility import EMPTY, has_delta, light_at, slot, unpack, used_slots
+from slc.methods.adaptive.visibility.lights import has_delta, light_at
+from slc.methods.adaptive.visibility.record import EMPTY, slot, unpack, used_slots
+from slc.methods.sh.shading import diffuse_only
+from slc.scene.bsdf_table import side_normal
+
+ALBEDO_SAMPLES = 4      # BSDF samples of a non-diffuse pixel's directional albedo (the residual's shading)
+
+
+def albedo(bsdf, si, ctx, active, rng, n: int) -> mi.Color3f:
+    """The pixels' directional albedo of reflection :math:`A(\omega_o) = \int f_r \cos\theta\,
+    d\omega` over the hemisphere of :math:`\omega_o` (transmission left out: the residual is
+    the light of the pixel's side), the mean weight of ``n`` BSDF samples (exact for a
+    Lambertian lobe; a GGX sample's weight is F G1, nearly constant over the lobe)."""
+    def cond(i, A, rng):
+        return (i < n) & active
+
+    def body(i, A, rng):
+        u1 = rng.next_float32()
+        u2 = mi.Point2f(rng.next_float32(), rng.next_float32())
+        bs, w = bsdf.sample(ctx, si, u1, u2, active)
+        refl = active & (bs.pdf > 0.0) & (mi.Frame3f.cos_theta(bs.wo) * mi.Frame3f.cos_theta(si.wi) > 0.0)
+        return i + 1, A + dr.select(refl, mi.Color3f(w), 0.0), rng
+
+    _, A, _ = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(active)), rng), cond=cond, body=body,
+                            labels=("i", "A", "rng"))
+    return A * (1.0 / n)
 
 
 def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None, env=None, rng=None, S: int = 0,
-          ltc=None) -> mi.Color3f:
+          ltc=None, back: bool = False, rng_a=None) -> mi.Color3f:
     """L_o of the pixels ``si`` from their VISIBILITY records (see the module). With ``rng``
     (and polygon lights), a glossy pixel's polygon lights get ``S`` sample pairs of their
     unshadowed term each (:func:`slc.methods.adaptive.polygon_glossy.glossy_term`); with ``ltc``
     (a :class:`~slc.methods.adaptive.polygon_ltc.LtcTable`), a GGX pixel's polygon lights get
-    their lobe's integral (:func:`slc.methods.adaptive.polygon_ltc.ltc_term`)."""
+    their lobe's integral (:func:`slc.methods.adaptive.polygon_ltc.ltc_term`). ``back``: the
+    records keep the residual behind the surface (two-sided BSDFs in the scene): a pixel is
+    shaded on its own side (the normal turned towards its viewer, the residual of that side).
+    The residual is light of unknown direction: a diffuse-only pixel takes it along the
+    normal (exact: ``rho/pi E``), another pixel as uniform radiance ``E/pi`` over its
+    hemisphere, ``A E/pi`` with ``A`` its directional albedo from ``ALBEDO_SAMPLES`` BSDF
+    samples (random numbers ``rng_a``; the BSDF along the normal, which is exact for a
+    Lambertian lobe, is off by orders of magnitude for a narrow lobe seen near the normal)."""
     em_dr, dl = scene.emitters_dr(), has_delta(scene)
-    r = unpack(rec, K, env is not None)
+    r = unpack(rec, K, env is not None, back)
     idx, vis = r.idx, r.vis
     ctx = mi.BSDFContext()
     active = mi.Bool(active)
@@ -41,10 +75,16 @@ def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None, env=None, rn
         ltc_px = ltc.fitted(alpha, si.wi.z, gl_px & (alpha > 0.0))
 
     n_used = used_slots(idx)
+    diff = diffuse_only(bsdf) if rng_a is not None else mi.Bool(True)
     z = mi.Vector3f(0.0, 0.0, 1.0)
+    n_px, E_res = None, r.E
+    if back:                             # the pixel's side: its normal and residual
+        n_px = side_normal(si)
+        z = mi.Vector3f(0.0, 0.0, dr.mulsign(1.0, si.wi.z))
+        E_res = dr.select(si.wi.z < 0.0, r.Eb, r.E)
 
-    # ----------------------- the listed lights (slots 0 to n_used - 1), then the residual
-    # (iteration n_used: the BSDF along the normal times E): one BSDF call site for both
+    # ----------------------- the listed lights (slots 0 to n_used - 1), then the residual of a
+    # diffuse-only pixel (iteration n_used: the BSDF along the normal times E): one BSDF call site
     def cond(i, L, *g):
         return (i <= n_used) & active
 
@@ -52,13 +92,19 @@ def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None, env=None, rn
         res = i == n_used
         ii, vi = slot(idx, i), slot(vis, i)
         m = active & ~res & (ii != EMPTY) & (vi > 0.0)
-        d, w = light_at(em_dr, si, ii, m, sph, env, dl)
-        w, vi, m_f = dr.select(res, r.E, w), dr.select(res, 1.0, vi), m | (active & res)
+        d, w, dist, hard = light_at(em_dr, si, ii, m, sph, env, dl, n=n_px, reach=True)
+        w, vi, m_f = dr.select(res, E_res, w), dr.select(res, 1.0, vi), m | (active & res & diff)
         t = mi.Color3f(bsdf.eval(ctx, si, dr.select(res, z, si.to_local(d)), m_f)) * w
         if use_ltc:                      # a narrow GGX lobe and a wholly visible polygon light: its integral
             whole = sph.polygon(ii, m & ltc_px) & (vi >= VIS_WHOLE)
             t = ltc_term(ltc, sph.table, si, bsdf, alpha, ii, d, w, t, whole, sph.poly.rects)
-        t *= vi
+        # a light with hard shadow edges, one of which crosses the entry (a visible fraction strictly
+        # between 0 and 1, measured over the entry's footprint): its visibility traced at the pixel
+        edge = m & (vi < 1.0) & hard
+        ray = si.spawn_ray(d)
+        ray.maxt = dr.select(dr.isfinite(dist), dist * (1.0 - mi.math.ShadowEpsilon), ray.maxt)
+        seen = edge & ~scene.ray_test(ray, edge)
+        t *= dr.select(edge, dr.select(seen, 1.0, 0.0), vi)
         if glossy:                       # a lobe narrow against the light: sampled (polygon_glossy)
             t_s, used, rng_ = polygon_term(sph.table, scene, si, bsdf, ii, sph.polygon(ii, m & gl_px), d, w, vi,
                                            g[-1], S)
@@ -67,6 +113,10 @@ def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None, env=None, rn
 
     state = (mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(active))) + ((rng,) if glossy else ())
     _, L, *g = dr.while_loop(state=state, cond=cond, body=body)
+    # ----------------------- the residual of the other pixels: its irradiance as uniform radiance
+    if rng_a is not None:
+        g_px = active & ~diff & (dr.max(E_res) > 0.0)
+        L += dr.select(g_px, E_res * albedo(bsdf, si, ctx, g_px, rng_a, ALBEDO_SAMPLES) * (1.0 / math.pi), 0.0)
     if env is not None:        # the unlisted regions, each at its own direction
-        L += dr.select(active, env.unlisted_radiance(si, bsdf, idx, r.vu, active), 0.0)
+        L += dr.select(active, env.unlisted_radiance(si, bsdf, idx, r.vu, active, n_px), 0.0)
     return L
