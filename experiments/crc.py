@@ -85,7 +85,7 @@ TIMING_KEYS = ("kernel", "compiled")     # per-frame fields of a run that are no
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--quick", action="store_true", help="small preset (about 3 minutes on 2 cores)")
+    p.add_argument("--quick", action="store_true", help="small preset (about 4 minutes on 2 cores)")
     p.add_argument("--scene", action="append", help="scene name or .xml path (repeatable)")
     p.add_argument("--out", default="out", help="output folder (results go to OUT/crc)")
     p.add_argument("--res", help="WxH (default 320x180, quick 128x72)")
