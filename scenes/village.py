@@ -91,7 +91,10 @@ TORCHES = [(-3.0, -2.0), (3.0, 1.0), (-4.0, 4.0), (4.0, -4.0), (1.0, 7.0), (-7.0
 
 
 def build(**options):
-    sun = str(options.get("sun", "0")).lower() in ("1", "true", "yes")
+    sun = str(options.get("sun", "0")).lower()
+    if sun not in ("0", "1", "false", "true", "no", "yes"):
+        raise ValueError(f"sun must be 0 or 1, got '{sun}'")
+    sun = sun in ("1", "true", "yes")
     b = SceneBuilder("village_sun" if sun else "village")
     grass = diffuse([0.22, 0.28, 0.14])
     wood = diffuse([0.40, 0.27, 0.16])

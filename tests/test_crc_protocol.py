@@ -88,6 +88,8 @@ def test_village_sun_is_one_directional_light_feeding_the_cache():
     assert kinds == ["DirectionalEmitter"], kinds
     assert len(night.mi_scene.emitters()) == 8 and day.name == "village:sun=1" != night.name
     del night
+    with pytest.raises(scenes.SceneError, match="sun must be 0 or 1"):
+        scenes.load("village:sun=noon")
     m = methods.create("crc", day, **CHEAP)
     imgs, gbs = render_frames(day, m, views.single(day), 1, W, H)
     ind = to_image(gbs[0], m.shade(gbs[0]))
