@@ -52,6 +52,7 @@ RUNS=(
   "slc-error-terms|run|1|slc run slc-error-terms --quick"
   "slc-moving-lights|run|1|slc run slc-moving-lights --quick"
   "crc|run|4|slc run crc --quick"
+  "crc-sweeps|md|2|python tools/crc_sweeps.py --md {md}"
   "osc-gi|run|1|slc run osc-gi --quick"
   "osc-gi-160x90|run|2|slc run osc-gi --no-ablations --no-multi --no-memory --retime 3"
   "megaviews|run|1|slc run megaviews --quick"
