@@ -1,7 +1,10 @@
 """The crc experiment's (experiments/crc.py) supplementary measurements: the terms of the
-errors, each alone, and the moving volume against the grid over the whole scene. ``c`` is
-the experiment's module (its configuration specs and run settings)."""
+errors, each alone, the moving volume against the grid over the whole scene, and where (which
+pixels, which light) Y3Co1Cg1 differs from Y3Co3Cg3 in the final frame. ``c`` is the
+experiment's module (its configuration specs and run settings)."""
 from __future__ import annotations
+
+import contextlib
 
 #: the error terms: sample multiplier of the low-noise runs
 TERMS_SAMPLES = 4
@@ -10,6 +13,14 @@ TERMS_SAMPLES = 4
 #: window centre ahead of the viewer [cells] (0: centred at the viewer, the paper); scenes whose
 #: cameras stay outside the scene box (the Cornell box) are not run
 MOVING = dict(window_fraction=0.5, step=20, ahead=0.0, skip=("cornell",))
+#: the attribution: a pixel is lit mostly by indirect light when its indirect light is at least this
+#: share of its luminance (final frame, Y3Co3Cg3); shapes listed by their share of the squared dE
+INDIRECT_LIT = 0.5
+TOP_SHAPES = 3
+#: emitter parameters that scale its light (all of them 0: the emitter is off)
+LIGHT_PARAMS = ("radiance.value", "intensity.value", "irradiance.value", "scale")
+#: Rec. 709 luminance of linear RGB
+LUMA = (0.2126, 0.7152, 0.0722)
 
 
 def last_image(c, scene, viewers, spec: str, W: int, H: int, frames: int, seed: int):
@@ -142,3 +153,89 @@ def moving(c, scene, viewers, nb: int, common: dict, W: int, H: int, frames: int
             "lab_rmse_ref_scene": err(ind, a), "lab_rmse_ref_camera": err(ind, b),
             "lab_rmse_ref_scene_inside": err(ind, a, inside), "lab_rmse_ref_camera_inside": err(ind, b, inside),
             "camera_vs_scene_inside": err(a, b, inside)}
+
+
+def light_names(scene) -> list[str]:
+    """``id (class)`` of each emitter (an area light by its shape's id)."""
+    out = []
+    for k, e in enumerate(scene.mi_scene.emitters()):
+        sh = e.get_shape()
+        out.append(f"{e.id() or (sh.id() if sh is not None else '') or f'emitter {k}'} ({e.class_name()})")
+    return out
+
+
+@contextlib.contextmanager
+def only_light(scene, k: int):
+    """Inside the block every emitter of ``scene`` but the ``k``-th is off (its
+    :data:`LIGHT_PARAMS` are 0); they are restored on leaving it."""
+    import mitsuba as mi
+    saved = []
+    try:
+        for i, e in enumerate(scene.mi_scene.emitters()):
+            if i == k:
+                continue
+            p = mi.traverse(e)
+            for key in p.keys():
+                if key in LIGHT_PARAMS:
+                    saved.append((p, key, type(p[key])(p[key])))
+                    p[key] = p[key] * 0.0
+            p.update()
+        yield
+    finally:
+        for p, key, v in saved:
+            p[key] = v
+            p.update()
+
+
+def attribution(c, scene, viewers, nb: int, common: dict, W: int, H: int, frame: int, seed: int, y333: dict,
+                y311: dict) -> dict:
+    """Where Y3Co1Cg1 differs from Y3Co3Cg3 in the final frame ``frame`` (``y333``, ``y311``: the
+    Table 1 images of that frame, {"direct", "indirect", "final"}): the squared CIE76 dE of
+    the surface pixels (those showing a surface, not the background), of the pixels lit
+    mostly by indirect light (its indirect light >= ``INDIRECT_LIT`` of the pixel's
+    luminance) and of the other surface pixels; the ``TOP_SHAPES`` shapes with the
+    largest share of it; and per light the final frame's Lab RMSE when only that light's
+    indirect light is compressed (both caches re-run with the other lights off; the offset
+    decoding is linear in the coefficients and the coefficients in the lights, so the lights'
+    differences add up to the whole but for the clamp of negative irradiance to 0)."""
+    import numpy as np
+
+    from slc.methods.crc.quality import delta_e76
+    from slc.reference.metrics import lab_rmse
+    from slc.run.pipeline import gbuffers_for
+    ex, fin = scene.exposure, y333["final"]
+    luma = np.asarray(LUMA)
+    de2 = delta_e76(fin, y311["final"], ex) ** 2
+    gb = gbuffers_for(scene, viewers, frame, W, H)[0]
+    valid = np.array(gb.valid).reshape(H, W)
+    shape = np.array(gb.shape_index).reshape(H, W)
+    lit_ind = valid & (y333["indirect"] @ luma >= INDIRECT_LIT * (fin @ luma))
+    total = max(float(de2.sum()), 1e-30)
+
+    def rmse(mask):
+        return float(np.sqrt(de2[mask].mean())) if mask.any() else None
+
+    shapes = scene.mi_scene.shapes()
+    per_shape = sorted(((float(de2[valid & (shape == i)].sum()) / total, i) for i in np.unique(shape[valid])),
+                       reverse=True)[:TOP_SHAPES]
+    lights = []
+    names = light_names(scene)
+    ind_all = max(float((y333["indirect"] @ luma).sum()), 1e-30)
+    for k, name in enumerate(names):
+        if len(names) == 1:
+            d, share = y311["indirect"] - y333["indirect"], 1.0
+        else:
+            with only_light(scene, k):
+                a, b = (last_image(c, scene, viewers, c.spec_of({**common, "bounces": nb, "encoding": e}), W, H,
+                                   frame + 1, seed)[2] for e in ("y3co3cg3", "y3co1cg1"))
+            d, share = b - a, float((a @ luma).sum()) / ind_all
+        lights.append({"light": name, "indirect_share": share, "lab_rmse_final_alone": lab_rmse(fin, fin + d, ex)})
+    return {"scene": scene.name, "bounces": nb, "frame": frame, "lab_rmse_final": float(np.sqrt(de2.mean())),
+            "surface_pixels": float(valid.mean()), "lab_rmse_final_surface": rmse(valid),
+            "indirect_lit_pixels": float(lit_ind.mean()),
+            "indirect_lit_error_share": float(de2[lit_ind].sum()) / total,
+            "lab_rmse_final_indirect_lit": rmse(lit_ind), "lab_rmse_final_direct_lit": rmse(valid & ~lit_ind),
+            "shapes": [{"shape": shapes[i].id(), "pixels": float((valid & (shape == i)).mean()), "error_share": e}
+                       for e, i in per_shape],
+            "lights": lights, "_de_map": de2 ** 0.5, "_indirect_lit": lit_ind,
+            "_images": {"y3co3cg3": y333, "y3co1cg1": y311}}

@@ -8,16 +8,23 @@ ones, depth-occupancy stride 10 at 1 MPixel), per scene and bounce count
 
 - *Table 1* (each configuration is the registered method ``crc`` through
   the common pipeline, :func:`slc.run.pipeline.run_case`): occupancy off
-  (RGB3, the "unoptimized" Radiance Hints) and on with RGB3 (27
-  coefficients), Y3Co2Cg2 (17) and Y3Co1Cg1 (11), Y3Co1Cg1 with the
+  (RGB3, the "unoptimized" Radiance Hints) and on with RGB3 and Y3Co3Cg3
+  (27 coefficients), Y3Co2Cg2 (17) and Y3Co1Cg1 (11), Y3Co1Cg1 with the
   "ratio" chroma decoding, and our earlier choices as named variants (``first_bounce=paths``: light-traced VPLs
   chosen by PCG32; ``dense``: one march sample per voxel; ``stride10``: the
   paper's literal s = 10 at this small frame size). Per row: median cache
-  time per frame, occupancy ratio, CIE Lab RMSE and pdiff (Yee's
-  PerceptualDiff, :func:`slc.methods.crc.quality.pdiff`) against the RGB3 cache
-  of the same sampling (the paper's comparison), and FLIP/PSNR/SSIM/Lab
-  RMSE of ground-truth direct + cache indirect against direct + the
-  path-traced indirect reference (``lab_rmse_ref``).
+  time per frame, occupancy ratio, and the paper's two measures, CIE Lab
+  RMSE and pdiff (Yee's PerceptualDiff, :func:`slc.methods.crc.quality.pdiff`),
+  of two images against two references of the same sampling (``experiments/_crc_protocol.py``):
+  the *final* frame (ground-truth direct light + the cache's indirect light,
+  textures included, at the scene's exposure; ``lab_rmse_final``,
+  ``pdiff_final``: against Y3Co3Cg3, the paper's Table 1;
+  ``..._final_vs_rgb3``) and the *indirect* light alone (at the exposure that
+  puts the 99th percentile of the reference's luminance at 0.8;
+  ``lab_rmse_indirect``, ``pdiff_indirect``, ``..._indirect_vs_rgb3``); and the
+  final frame against direct + the path-traced indirect reference
+  (``lab_rmse_final_vs_ref``, ``pdiff_final_vs_ref``, ``flip``, ``psnr``,
+  ``ssim``; the indirect light alone: ``*_indirect_vs_ref``).
 - *Fig. 9*: encodings of (almost) equal budget, Y3Co1Cg1 (11) and
   Y2Co2Cg2 (12; RGB2 gives identical images, a linear transform of the same
   bands), against RGB3 and the reference (rows and an image strip).
@@ -31,6 +38,15 @@ ones, depth-occupancy stride 10 at 1 MPixel), per scene and bounce count
   positions spread over the camera path (1 bounce).
 - *Fig. 10*: stage times against the CRC resolution (first scene, 2
   bounces, Y3Co1Cg1).
+- *Where Y3Co1Cg1 differs* (``attribution``): the final frame's squared
+  CIE76 differences from Y3Co3Cg3 split between the pixels lit mostly by
+  indirect light and the others, and per light the final-frame Lab RMSE
+  when only that light's indirect light is compressed.
+
+Scenes of the quick preset: the Cornell box and the atrium, and two like
+the paper's Table 1 scenes: an outdoor one lit by one sun (``village:sun=1``,
+a directional light whose RSM holds the VPLs) and an interior lit by two
+lights (``lamps:lights=2``, a point light and a spot light).
 
     python experiments/crc.py --quick
     slc run crc --quick [--scene cornell]
@@ -48,12 +64,14 @@ from slc.run import experiment, pipeline  # noqa: E402 (after the path of a stan
 
 NAME = "crc"
 
-FULL = dict(scenes=["cornell", "atrium", "sponza"], width=320, height=180, frames=24, warmup=4,
+#: the quick preset's scenes: today's two, an outdoor scene lit by one sun, an interior lit by two lights
+QUICK_SCENES = ["cornell", "atrium", "village:sun=1", "lamps:lights=2"]
+FULL = dict(scenes=QUICK_SCENES + ["sponza"], width=320, height=180, frames=24, warmup=4,
             eval_frames=[15, 23], bounces=[1, 2], ref_spp=512, direct_spp=512, resolution=24,
             profile_frames=16, path_positions=10, sweep=[8, 16, 24, 32])
-QUICK = dict(scenes=["cornell", "atrium"], width=128, height=72, frames=8, warmup=3, eval_frames=[7], bounces=[1, 2],
+QUICK = dict(scenes=QUICK_SCENES, width=128, height=72, frames=8, warmup=3, eval_frames=[7], bounces=[1, 2],
              ref_spp=256, direct_spp=256, resolution=16, profile_frames=10, path_positions=4, sweep=[8, 16])
-ENCODINGS = ["rgb3", "y3co2cg2", "y3co1cg1"]
+ENCODINGS = ["rgb3", "y3co3cg3", "y3co2cg2", "y3co1cg1"]
 #: Fig. 9: 11 and 12 coefficients (RGB2 gives the same images as Y2Co2Cg2: same bands, linear
 #: transform; tests/test_crc.py::test_encodings)
 BUDGET = ["y3co1cg1", "y2co2cg2"]
@@ -67,7 +85,7 @@ TIMING_KEYS = ("kernel", "compiled")     # per-frame fields of a run that are no
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--quick", action="store_true", help="small preset (about 3 minutes on 2 cores)")
+    p.add_argument("--quick", action="store_true", help="small preset (about 4 minutes on 2 cores)")
     p.add_argument("--scene", action="append", help="scene name or .xml path (repeatable)")
     p.add_argument("--out", default="out", help="output folder (results go to OUT/crc)")
     p.add_argument("--res", help="WxH (default 320x180, quick 128x72)")
@@ -232,19 +250,11 @@ def _preset(opts) -> dict:
     return preset
 
 
-def _base_for(r: dict, group: list[dict]):
-    """Index of the RGB3 row that differs from ``r`` only in the encoding
-    and chroma decoding (None for the variants)."""
-    if r["variant"]:
-        return None
-    return next((j for j, x in enumerate(group) if x["variant"] == "" and x["occupancy"] == r["occupancy"]
-                 and x["visibility"] == r["visibility"] and x["encoding"] == "rgb3" and x["chroma"] == "offset"),
-                None)
-
-
 def _table1_row(s, c: dict, m, viewers, cfg, preset, bar, seed: int):
     """One configuration through the common pipeline (:func:`slc.run.pipeline.run_case`): its row
-    and its composited images (ground-truth direct + indirect: {frame: (image, reference)})."""
+    and its images per evaluated frame ({frame: {"direct", "indirect", "final", "indirect_ref",
+    "final_ref"}}: the ground-truth direct light, the cache's indirect light, their sum, the
+    path-traced indirect reference and direct + that reference)."""
     import dataclasses
 
     import numpy as np
@@ -254,21 +264,22 @@ def _table1_row(s, c: dict, m, viewers, cfg, preset, bar, seed: int):
     from slc.methods.crc.quality import pdiff
     from slc.reference.metrics import evaluate
     from slc.reference.references import reference_for
-    composed = {}
+    images = {}
 
     def on_eval(f, v, gb, img, ref):
         direct = reference_for("direct", s, gb, f, gb.viewer, spp=preset["direct_spp"])
-        composed[f] = (direct + img, direct + ref)
+        images[f] = {"direct": direct, "indirect": img, "final": direct + img, "indirect_ref": ref,
+                     "final_ref": direct + ref}
 
     row = pipeline.run_case(s, spec_of(c), viewers, dataclasses.replace(cfg, on_eval=on_eval), bar, seed=seed)
     res, st = row.pop("_result"), m.settings()
-    for k in res.metrics:   # the pipeline's comparison: indirect light alone
-        row["indirect_" + k] = row.pop(k)
+    for k in res.metrics:   # the pipeline's comparison: indirect light alone against the indirect reference
+        row[k + "_indirect_vs_ref"] = row.pop(k)
     acc = {}
-    for f, (final, ref_full) in sorted(composed.items()):
-        q = evaluate(ref_full, final, s.exposure)
-        q["lab_rmse_ref"] = q.pop("lab_rmse")
-        q["pdiff_ref"] = pdiff(ref_full, final, s.exposure)
+    for f, im in sorted(images.items()):
+        q = evaluate(im["final_ref"], im["final"], s.exposure)
+        q["lab_rmse_final_vs_ref"] = q.pop("lab_rmse")
+        q["pdiff_final_vs_ref"] = pdiff(im["final_ref"], im["final"], s.exposure)
         for k, v in q.items():
             acc.setdefault(k, []).append(v)
     row.update({k: float(np.mean(v)) for k, v in acc.items()})
@@ -276,33 +287,14 @@ def _table1_row(s, c: dict, m, viewers, cfg, preset, bar, seed: int):
                                    "march_samples", "secondary_march_samples")})
     row.update({"depth_stride": m.stride_for(cfg.width, cfg.height), "variant": c["variant"],
                 "coefficients": m.enc.n, "grid": list(Grid.around(s.bbox_min, s.bbox_max, st["resolution"]).dims)})
-    return row, composed
+    return row, images
 
 
-def _against_rgb3(group: list[dict], finals: list[dict], exposure: float) -> None:
-    """Each row's Lab RMSE, pdiff and dE76 fraction against its RGB3 row (the paper's
-    comparison) and its time against RGB3 and the unoptimized cache."""
-    import numpy as np
-
-    from slc.methods.crc.quality import de76_fraction, pdiff
-    from slc.reference.metrics import lab_rmse
-    for r, fin in zip(group, finals):
-        base = _base_for(r, group)
-        r["lab_rmse"] = r["pdiff"] = r["de76_fraction"] = None
-        if base is not None:
-            fb = finals[base]
-            for k, fn in (("lab_rmse", lab_rmse), ("pdiff", pdiff), ("de76_fraction", de76_fraction)):
-                r[k] = float(np.mean([fn(fb[f][0], fin[f][0], exposure) for f in fin]))
-    unopt = next(r for r in group if not r["occupancy"] and r["encoding"] == "rgb3")
-    for r in group:
-        b = _base_for(r, group)
-        r["time_vs_rgb3"] = r["time_ms"] / max(group[b]["time_ms"], 1e-9) if b is not None else None
-        r["time_vs_unoptimized"] = r["time_ms"] / max(unopt["time_ms"], 1e-9)
-
-
-def _scene_parts(s, viewers, nb: int, common: dict, preset: dict, out: Path, seed: int, bar, acc: dict) -> None:
-    """Per scene and bounce count: the stage profile, the error terms and the moving volume
-    (rows appended to ``acc``)."""
+def _scene_parts(s, viewers, nb: int, common: dict, preset: dict, out: Path, seed: int, bar, acc: dict,
+                 group: list[dict], images: list[dict]) -> None:
+    """Per scene and bounce count: the stage profile, the error terms, the moving volume and
+    where Y3Co1Cg1 differs from Y3Co3Cg3 (rows appended to ``acc``; ``group`` and ``images``:
+    the Table 1 rows and their images)."""
     W, H = preset["width"], preset["height"]
     specs = {enc: spec_of({**common, "bounces": nb, "encoding": enc}) for enc in PROFILED}
     bar.set_postfix_str(f"{s.name}/profile/b{nb}")
@@ -317,6 +309,12 @@ def _scene_parts(s, viewers, nb: int, common: dict, preset: dict, out: Path, see
         bar.set_postfix_str(f"{s.name}/moving/b{nb}")
         acc["moving"].append(terms.moving(me, s, viewers, nb, common, W, H, preset["frames"], seed,
                                           preset["ref_spp"], preset["direct_spp"]))
+    bar.set_postfix_str(f"{s.name}/attribution/b{nb}")
+    std = {r["encoding"]: im for r, im in zip(group, images) if r["variant"] == "" and r["occupancy"]
+           and r["visibility"] == "march" and r["chroma"] == "offset"}
+    f = max(std["y3co3cg3"])
+    acc["attribution"].append(terms.attribution(me, s, viewers, nb, common, W, H, f, seed, std["y3co3cg3"][f],
+                                                std["y3co1cg1"][f]))
 
 
 def _figures(s, viewers, first: bool, common: dict, preset: dict, out: Path, seed: int, bar, acc: dict) -> None:
@@ -327,12 +325,13 @@ def _figures(s, viewers, first: bool, common: dict, preset: dict, out: Path, see
         bar.set_postfix_str(f"{s.name}/path")
         pts = _along_path(s, viewers[0], spec_of({**common, "bounces": 1}), W, H, preset["path_positions"], seed)
         acc["fig5_path"] += [{"scene": s.name, **p} for p in pts]
-        report.plot_path(out / f"fig5_{s.name}.png", pts, f"Fig. 5: {s.name}, depth occupancy along the path")
+        report.plot_path(out / f"fig5_{report.file_stem(s.name)}.png", pts,
+                         f"Fig. 5: {s.name}, depth occupancy along the path")
     if first:
         bar.set_postfix_str(f"{s.name}/sweep")
         sw = _sweep(s, viewers, preset["sweep"], W, H, seed)
         acc["fig10_sweep"] += [{"scene": s.name, **r} for r in sw]
-        report.plot_sweep(out / f"fig10_{s.name}.png", sw, f"Fig. 10: {s.name}, 2 bounces, Y3Co1Cg1")
+        report.plot_sweep(out / f"fig10_{report.file_stem(s.name)}.png", sw, f"Fig. 10: {s.name}, 2 bounces, Y3Co1Cg1")
 
 
 def run(opts) -> dict:
@@ -355,7 +354,7 @@ def run(opts) -> dict:
     plans = {nb: [{**common, "bounces": nb, "variant": "", **c} for c in _configs(nb)]
              + _extra_specs(opts.methods, nb, common) for nb in preset["bounces"]}
     rows = []
-    acc = {k: [] for k in ("profile", "fig5_path", "fig10_sweep", "error_terms", "moving")}
+    acc = {k: [] for k in ("profile", "fig5_path", "fig10_sweep", "error_terms", "moving", "attribution")}
     total = len(names) * sum(len(p) for p in plans.values()) * preset["frames"]
     with tqdm(total=total, desc=NAME, unit="frame", disable=None) as bar:
         for si, s in enumerate(experiment.each_scene(names)):
@@ -363,29 +362,40 @@ def run(opts) -> dict:
             made = {nb: [methods.create(spec_of(c), s, seed=opts.seed) for c in plan] for nb, plan in plans.items()}
             for nb, plan in plans.items():
                 done = [_table1_row(s, c, m, viewers, cfg, preset, bar, opts.seed) for c, m in zip(plan, made[nb])]
-                group, finals = [r for r, _ in done], [f for _, f in done]
-                _against_rgb3(group, finals, s.exposure)
+                group, images = [r for r, _ in done], [im for _, im in done]
+                experiment.load_part("crc_protocol").compare(group, images, s)
                 rows += group
-                report.fig9(sys.modules[__name__], out, s, nb, group, finals)
-                report.plot(out / f"crc_{s.name}_b{nb}.png", group, f"{s.name}, {nb} bounce(s), {W}x{H}")
-                _scene_parts(s, viewers, nb, common, preset, out, opts.seed, bar, acc)
+                report.fig9(sys.modules[__name__], out, s, nb, group, images)
+                report.plot(out / f"crc_{report.file_stem(s.name)}_b{nb}.png", group,
+                            f"{s.name}, {nb} bounce(s), {W}x{H}")
+                _scene_parts(s, viewers, nb, common, preset, out, opts.seed, bar, acc, group, images)
+                report.protocol_strip(out, s, nb, acc["attribution"][-1])
             _figures(s, viewers, si == 0, common, preset, out, opts.seed, bar, acc)
     config = {"quick": bool(opts.quick), "scenes": names, **preset, "seed": opts.seed,
-              "pdiff": "Yee and Newman's PerceptualDiff (slc.methods.crc.quality.pdiff): percent of pixels visibly "
-                       "different from the RGB3 cache (pdiff_ref: from the reference)",
-              "de76_fraction": "percent of pixels with CIE76 dE > 2.3 against the RGB3 cache",
-              "lab_rmse": "CIE Lab RMSE (percent) against the RGB3 cache of the same sampling; "
-                          "lab_rmse_ref against the reference",
-              "reference": "slc.reference.references: indirect reference (the method's bounces) + ground-truth direct light",
-              "indirect_metrics": "indirect_*: the pipeline's comparison of the indirect light alone with the "
-                                  "indirect reference (exposure 0.8 / p99 of the reference)",
+              "protocol": "the CRC paper's Table 1 measures (Sec. 7): CIE Lab RMSE (lab_rmse_*: RMS over the "
+                          "frame's pixels of the CIE76 dE of the images at their exposure, clipped to [0, 1]; "
+                          "dE 1 = 1%, the L* range being 100) and pdiff (pdiff_*: Yee and Newman's "
+                          "PerceptualDiff, slc.methods.crc.quality.pdiff, percent of pixels visibly different) of "
+                          "the final frame (ground-truth direct + the cache's indirect light, the scene's "
+                          "exposure) and of the indirect light alone (exposure 0.8 / p99 of the reference's "
+                          "luminance), against the Y3Co3Cg3 cache of the same sampling (the paper's 'Y3Co3Cg3 "
+                          "vs Y3Co1Cg1'; fields without suffix) and against RGB3 (suffix _vs_rgb3)",
+              "de76_fraction_final": "percent of pixels with CIE76 dE > 2.3, final frame against Y3Co3Cg3",
+              "reference": "slc.reference.references: indirect reference (the method's bounces) + ground-truth "
+                           "direct light; *_final_vs_ref, flip, psnr, ssim, rel_mse: the final frame against "
+                           "it; *_indirect_vs_ref: the pipeline's comparison of the indirect light alone with "
+                           "the indirect reference (exposure 0.8 / p99 of the reference)",
+              "attribution": "final frame, Y3Co1Cg1 against Y3Co3Cg3: the squared dE of the pixels lit mostly by "
+                             "indirect light (indirect >= half the luminance) and of the others; per light the "
+                             "Lab RMSE when only that light's indirect light is compressed (the other lights "
+                             "set to 0 in both caches)",
               "profile": f"stage ms, minimum and median over frames after 3 warm-up of {PROFILE_REPEATS} runs of "
                          "each encoding, run in turn (A B, B A, ...)"}
     results = experiment.results_object(NAME, config, experiment.strip_private(rows))
-    results.update(acc)
+    results.update({k: experiment.strip_private(v) for k, v in acc.items()})
     experiment.write_results(out, results, report.markdown(
         sys.modules[__name__], rows, acc["profile"], acc["fig5_path"], acc["fig10_sweep"], preset, names,
-        acc["error_terms"], acc["moving"]))
+        acc["error_terms"], acc["moving"], acc["attribution"]))
     print(f"results: {out / 'results.json'}")
     return results
 

@@ -1,4 +1,4 @@
-"""village: Viking-village-like night scene on rolling terrain: huts with pitched roofs, a large moon-like light high in the sky and small torches on poles; static.
+"""village: Viking-village-like night scene on rolling terrain: huts with pitched roofs, a large moon-like light high in the sky and small torches on poles; static (option sun=1: by day, lit by one sun alone).
 
 Layout (metres, y up): a 64 x 64 grid of terrain over x, z in [-30, 30]
 (smooth height field, a shallow bowl with low hills at the rim, the village
@@ -6,7 +6,11 @@ square near the origin is almost flat); seven huts (log walls as boxes, gabled
 roofs as prisms, one glossy-roofed longhouse); a palisade and a few barrels.
 The moon is an emissive icosphere of radius 10 m about 120 m away, 35 degrees
 above the horizon; the torches are emissive spheres of radius 0.08 m on
-2.2 m poles.
+2.2 m poles. ``village:sun=1`` lights the same village by day, by one sun
+alone (the CRC paper's outdoor scenes): a directional light from the moon's
+direction (35 degrees above the horizon), warm white, irradiance
+``SUN_IRRADIANCE`` on a surface facing it; no moon, no torch lights (their
+poles stay), no sky, so shadows hold indirect light only; exposure 1.
 
 Unit: one scene unit is one metre (``unit=1.0``); the camera paths walk at
 1.4 m/s with view turns up to 30 deg/s at 60 Hz (``slc.scene.camera.CameraPath``).
@@ -25,6 +29,7 @@ MOON_DIST, MOON_RADIUS = 120.0, 10.0
 MOON_RADIANCE = (90.0, 100.0, 125.0)
 TORCH_RADIUS = 0.08
 TORCH_RADIANCE = (700.0, 380.0, 120.0)
+SUN_IRRADIANCE = (7.0, 6.5, 5.7)       # W/m^2 (option sun=1)
 
 
 def height(x, z):
@@ -86,7 +91,11 @@ TORCHES = [(-3.0, -2.0), (3.0, 1.0), (-4.0, 4.0), (4.0, -4.0), (1.0, 7.0), (-7.0
 
 
 def build(**options):
-    b = SceneBuilder("village")
+    sun = str(options.get("sun", "0")).lower()
+    if sun not in ("0", "1", "false", "true", "no", "yes"):
+        raise ValueError(f"sun must be 0 or 1, got '{sun}'")
+    sun = sun in ("1", "true", "yes")
+    b = SceneBuilder("village_sun" if sun else "village")
     grass = diffuse([0.22, 0.28, 0.14])
     wood = diffuse([0.40, 0.27, 0.16])
     thatch = principled([0.35, 0.30, 0.22], roughness=0.3, specular=0.4)
@@ -135,13 +144,17 @@ def build(**options):
         poles.append(trimesh.creation.cylinder(radius=0.04, segment=[[x, y - 0.3, z], [x, y + 2.1, z]], sections=6))
         poles.append(trimesh.creation.cylinder(radius=0.07, segment=[[x, y + 2.0, z], [x, y + 2.12, z]],
                                                sections=8))
-        b.add_sphere([x, y + 2.2, z], TORCH_RADIUS, subdivisions=1, bsdf=dark, emission=TORCH_RADIANCE,
-                     name=f"torch{i}")
+        if not sun:
+            b.add_sphere([x, y + 2.2, z], TORCH_RADIUS, subdivisions=1, bsdf=dark, emission=TORCH_RADIANCE,
+                         name=f"torch{i}")
     b.add_trimesh(merge_meshes(poles), bsdf=iron, name="torch_poles")
 
-    # the moon: far, large, high in the sky (lights the whole village from one side)
+    # the moon: far, large, high in the sky (lights the whole village from one side); or the sun from there
     d = MOON_DIR / np.linalg.norm(MOON_DIR)
-    b.add_sphere(d * MOON_DIST, MOON_RADIUS, subdivisions=3, bsdf=dark, emission=MOON_RADIANCE, name="moon")
+    if sun:
+        b.add_directional_light(-d, SUN_IRRADIANCE, name="sun")
+    else:
+        b.add_sphere(d * MOON_DIST, MOON_RADIUS, subdivisions=3, bsdf=dark, emission=MOON_RADIANCE, name="moon")
 
     paths = [
         CameraPath([([-3.0, 1.8, -5.0], [10.0, 2.0, 6.0]), ([2.0, 1.8, -5.0], [0.0, 2.5, 12.0]),
@@ -156,5 +169,5 @@ def build(**options):
         CameraPath([([6.0, 2.6, 6.0], [-20.0, 14.0, -20.0]), ([4.0, 2.5, 5.0], [-8.0, 1.0, -4.0]),
                     ([0.0, 2.4, 4.0], [-2.0, 1.0, -14.0])], fov=60, name="moonward"),
     ]
-    return b.build(paths, exposure=float(options.get("exposure", 3.0)), unit=1.0,
+    return b.build(paths, exposure=float(options.get("exposure", 1.0 if sun else 3.0)), unit=1.0,
                    meeting_center=[0.0, 1.5, 0.0], description=__doc__.strip().splitlines()[0])

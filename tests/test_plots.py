@@ -130,14 +130,23 @@ def test_experiment_stage_plots_read(tmp_path, figures):
              for i, n in enumerate((16, 32, 64, 128))]
     crc.plot_sweep(tmp_path / "fig10.png", sweep, "Fig. 10: cornell, 2 bounces, Y3Co1Cg1")
     rows = [dict(variant="", visibility="march", chroma="offset", encoding=e, occupancy=occ, time_ms=3.0 + i,
-                 lab_rmse=0.5 * i, lab_rmse_ref=1.0 + i, coefficients=c)
+                 lab_rmse_final=0.5 * i, lab_rmse_final_vs_ref=1.0 + i, coefficients=c)
             for i, (e, c, occ) in enumerate([("rgb3", 27, True), ("y3co1cg1", 11, True), ("y2co2cg2", 12, True),
                                              ("rgb3", 27, False)])]
     crc.plot(tmp_path / "crc.png", rows, "cornell, 2 bounce(s), 160x90")
+    import numpy as np
+    img = {"final": np.full((9, 16, 3), 0.3), "indirect": np.full((9, 16, 3), 0.05)}
+
+    class Scene:
+        name, exposure = "village:sun=1", 1.0
+    crc.protocol_strip(tmp_path, Scene, 1, {"lab_rmse_final": 0.92, "indirect_lit_pixels": 0.041,
+                                            "_images": {"y3co3cg3": img, "y3co1cg1": img},
+                                            "_de_map": np.linspace(0, 4, 144).reshape(9, 16),
+                                            "_indirect_lit": np.eye(9, 16, dtype=bool)})
     osc_gi._reuse_plot(tmp_path / "reuse.png", {"bins": [1, 2, 4, 8, 16, 1 << 21], "counts": [50, 30, 10, 5, 1]},
                        "cornell: primary rays per secondary cell")
     figs = figures()
-    assert len(figs) == 3
+    assert len(figs) == 4
     for fig in figs:
         assert layout_problems(fig) == [], fig.axes[0].get_title()
 

@@ -121,6 +121,12 @@ class SceneBuilder:
                                       "beam_width": 0.75 * float(cutoff_deg),
                                       "intensity": {"type": "rgb", "value": list(map(float, intensity))}}
 
+    def add_directional_light(self, direction, irradiance, name="sun"):
+        """A distant light (a sun): light travels along ``direction``; ``irradiance`` (RGB, W/m^2) on a
+        surface facing it."""
+        self.extra[self._id(name)] = {"type": "directional", "direction": list(map(float, direction)),
+                                      "irradiance": {"type": "rgb", "value": list(map(float, irradiance))}}
+
     def add_envmap(self, filename=None, scale=1.0, rgb=None, to_world=None, bitmap=None):
         if bitmap is not None:
             d = {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(bitmap, np.float32)),
