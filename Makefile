@@ -21,17 +21,16 @@ llvm:
 
 install: llvm $(STAMP)
 
-# The first run: one viewer on the atrium, slc against 16 and 48 light samples per pixel.
-# 240x135 rather than the quick preset's 160x90: slc's per-frame host time (Python tracing,
-# syncs) does not grow with the pixels and weighs less there. A first run on an empty kernel
-# cache, quiet machine: slc/rt48 time 0.32x, FLIP 0.83x rt48's, 24 s
-# (docs/results/make-run.md). Three methods keep it under a minute on 2 idle cores (ground
-# truth and kernel compilation included).
+# The first run: one viewer on the atrium, the shared caches slc (Surface Light Cones) and
+# adaptive (the method to pick: per entry the representation its light needs) against 16 and 48
+# light samples per pixel. 240x135 rather than the quick preset's 160x90: the caches' per-frame
+# host time (Python tracing, syncs) does not grow with the pixels and weighs less there.
+# Figures of a first run on an empty kernel cache: docs/results/make-run.md.
 run: install
-	@echo "make run: atrium 240x135, 24 frames (10 warm-up); slc (Surface Light Cones) vs rt16 / rt48"
+	@echo "make run: atrium 240x135, 24 frames (10 warm-up); adaptive and slc (shared caches) vs rt16 / rt48"
 	@echo "(16 / 48 light samples + shadow rays per pixel); time = median direct-light ms per frame"
 	@echo "after warm-up; FLIP / PSNR / SSIM against 2048-sample ground truth on frames 15 and 23."
-	$(BIN)/slc run single-viewer --quick --res 240x135 --methods rt16 rt48 slc --sweep --out out
+	$(BIN)/slc run single-viewer --quick --res 240x135 --methods rt16 rt48 slc adaptive --sweep --out out
 
 # The whole suite (what CI runs), with the 15 slowest tests listed at the end. Three worker
 # processes on two cores (pytest-xdist; a test file stays on one worker, so its module fixtures

@@ -36,10 +36,11 @@ export SLC_CACHE=${SLC_CACHE:-$HOME/.cache/slc}
 #       md   = the command writes the Markdown file {md} itself
 RUNS=(
   "single-viewer-quick|run|1|slc run single-viewer --quick --scene atrium --scene sponza"
-  "make-run|run|1|slc run single-viewer --quick --res 240x135 --methods rt16 rt48 slc --sweep"
+  "make-run|run|1|slc run single-viewer --quick --res 240x135 --methods rt16 rt48 slc adaptive --sweep"
   "adaptive-atrium|run|1|slc run single-viewer --quick --methods slc adaptive"
   "area-lights-320x180|run|2|slc run single-viewer --quick --res 320x180 --scene street --scene cornell:variant=classic --scene atrium --scene sponza --methods rt48 restir slc adaptive adaptive:polygon_lights=off adaptive:polygon_glossy=sample adaptive:polygon_glossy=point adaptive:force=cones adaptive:force=visibility,vis_lights=3"
   "single-viewer-320x180|run|7|slc run single-viewer --quick --res 320x180 --scene atrium --scene cornell --scene garden --scene hangar --scene lamps --scene skylit --scene spheres --scene sponza --scene street --scene two_rooms --scene village --methods rt48 restir slc slc:fetch=bilinear adaptive --sweep"
+  "corpus|run|20|slc run corpus --quick"
   "overlap|run|2|slc run overlap --quick"
   "random-viewers|run|1|slc run random-viewers --quick"
   "memory|run|2|slc run memory --quick"

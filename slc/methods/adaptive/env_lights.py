@@ -29,10 +29,21 @@ record lists region :math:`j` as a directional light of irradiance
 ``base + j`` (``base``: the scene's emitter count). A light sample of the
 environment whose direction falls in a region's pixels is that region's
 sample: its shadow ray updates the region's visible fraction (a running
-mean of shadow rays to points inside the region). Samples outside kept
-regions, and samples of regions not wholly above the entry's horizon, feed
-the residual, so the residual's estimate is of the environment minus the
-listed regions, and the sum stays unbiased up to the grid's quadrature.
+mean of shadow rays to points inside the region). Samples of regions not
+wholly above the entry's horizon feed the residual.
+
+The sky: the map without its kept regions' pixels, projected once onto
+spherical harmonics of 3 bands (RGB, world frame: :math:`L_{lm} = \sum_p L_p
+Y_{lm}(\omega_p)\Omega_p`). Its unoccluded irradiance at a normal :math:`n` is
+their cosine convolution (Ramamoorthi and Hanrahan 2001),
+:math:`E_s(n) = \sum_{lm} \hat A_l L_{lm} Y_{lm}(n)` (a few percent off at most for a
+map without its small bright regions), so a VISIBILITY record lists the sky as
+one more light of exact unoccluded term with a cached visible fraction
+:math:`v_s`, the ratio estimator of the polygon lights: the environment's
+samples outside the kept regions step :math:`v_s` by their share
+:math:`r = \mathrm{lum}(w\cos\theta) P_{env} / \mathrm{lum}(E_s(n))` of it
+(:math:`E[r] = 1`), so :math:`v_s` settles at the sky's visible share of its
+irradiance, not the visible share of its directions.
 """
 from __future__ import annotations
 
@@ -41,6 +52,8 @@ import math
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+
+from slc.methods.sh.basis import A_HAT, band_of, basis
 
 NONE = 0xFFFFFFFF
 
@@ -96,20 +109,22 @@ def _components(mask: np.ndarray) -> tuple[np.ndarray, int]:
 
 
 class EnvLights:
-    """The environment's bright small regions (see the module). Parameters:
+    """The environment's bright small regions and its sky (see the module). Parameters:
     ``scene``, ``ratio`` (10): brightness threshold over the map's mean
     radiance; ``max_sr`` (0.05 sr, a disc of about 7 degrees): largest solid
-    angle of a region; ``res`` (512): grid rows; ``max_regions`` (4096).
-    ``n`` regions (0: nothing to list), ``share``: their share of the map's
-    luminous power."""
+    angle of a region; ``res`` (512): grid rows; ``max_regions`` (4096);
+    ``sky_light`` (True): the rest of the map is listed too, as the sky.
+    ``n`` regions, ``share``: their share of the map's luminous power;
+    ``sky_sh`` the sky's SH coefficients (RGB x 9, world frame), ``sky_share`` its share,
+    ``has_sky``."""
 
     def __init__(self, scene, ratio: float = 10.0, max_sr: float = 0.05, res: int = 512,
-                 max_regions: int = 4096):
+                 max_regions: int = 4096, sky_light: bool = True):
         sc = getattr(scene, "mi_scene", scene)
         ems = list(sc.emitters())
         self.base = len(ems)
         self.index = environment_index(sc)
-        self.n, self.share = 0, 0.0
+        self.n, self.share, self.sky_share, self.has_sky = 0, 0.0, 0.0, False
         if self.index is None or self.base + 1 >= 0xFFFF:
             return
         H, W = int(res), 2 * int(res)
@@ -128,53 +143,96 @@ class EnvLights:
         if not total > 0.0:
             return
         mean = total / (4.0 * math.pi)
-        # ----------------------- bright pixels -> regions
-        lab, n = _components(lum > ratio * mean)
-        if n == 0:
-            return
-        lf = lab.ravel()
-        w = (lum * om).ravel()
-        Om = np.bincount(lf, om.ravel(), n + 1)[1:]
-        Phi = np.stack([np.bincount(lf, (L[..., k] * om).ravel(), n + 1)[1:] for k in range(3)], -1)
-        P = np.stack([np.bincount(lf, w * D[..., k].ravel(), n + 1)[1:] for k in range(3)], -1)
-        Pl = np.bincount(lf, w, n + 1)[1:]
-        keep = (Om <= max_sr) & (Pl > 0.0)
-        order = [j for j in np.argsort(-Pl) if keep[j]][:max_regions]
-        if not order:
-            return
-        order = np.array(order)
-        newid = np.full(n + 1, NONE, np.uint64)
-        newid[order + 1] = np.arange(len(order))
-        d = P[order] / np.linalg.norm(P[order], axis=1, keepdims=True)
-        R = np.linalg.norm(P[order], axis=1) / Pl[order]
-        # angular radius: the farthest pixel of the region from d, plus half a pixel's diagonal
-        cosmin = np.full(len(order), 1.0)
-        sel = newid[lf] != NONE
-        ids = newid[lf][sel].astype(np.int64)
-        cosp = np.einsum("ij,ij->i", D.reshape(-1, 3)[sel], d[ids])
-        np.minimum.at(cosmin, ids, cosp)
-        alpha = np.arccos(np.clip(cosmin, -1.0, 1.0)) + 0.5 * math.hypot(math.pi / H, 2.0 * math.pi / W)
-        self.n = len(order)
-        self.share = float(Pl[order].sum() / total)
         self.H, self.W = H, W
-        self.dir, self.w = d, Phi[order] * R[:, None]
-        self.omega, self.sin_a = Om[order], np.sin(np.minimum(alpha, 0.5 * math.pi))
+        # ----------------------- bright pixels -> regions (the kept ones, brightest first)
+        lab, n = _components(lum > ratio * mean)
+        lf = lab.ravel()
+        order = []
+        if n > 0:
+            w = (lum * om).ravel()
+            Om = np.bincount(lf, om.ravel(), n + 1)[1:]
+            Phi = np.stack([np.bincount(lf, (L[..., k] * om).ravel(), n + 1)[1:] for k in range(3)], -1)
+            P = np.stack([np.bincount(lf, w * D[..., k].ravel(), n + 1)[1:] for k in range(3)], -1)
+            Pl = np.bincount(lf, w, n + 1)[1:]
+            keep = (Om <= max_sr) & (Pl > 0.0)
+            order = [j for j in np.argsort(-Pl) if keep[j]][:max_regions]
+        newid = np.full(n + 1, NONE, np.uint64)
+        if order:
+            order = np.array(order)
+            newid[order + 1] = np.arange(len(order))
+            d = P[order] / np.linalg.norm(P[order], axis=1, keepdims=True)
+            R = np.linalg.norm(P[order], axis=1) / Pl[order]
+            # angular radius: the farthest pixel of the region from d, plus half a pixel's diagonal
+            cosmin = np.full(len(order), 1.0)
+            sel = newid[lf] != NONE
+            ids = newid[lf][sel].astype(np.int64)
+            cosp = np.einsum("ij,ij->i", D.reshape(-1, 3)[sel], d[ids])
+            np.minimum.at(cosmin, ids, cosp)
+            alpha = np.arccos(np.clip(cosmin, -1.0, 1.0)) + 0.5 * math.hypot(math.pi / H, 2.0 * math.pi / W)
+            self.n = len(order)
+            self.share = float(Pl[order].sum() / total)
+            self.dir, self.w = d, Phi[order] * R[:, None]
+            self.omega, self.sin_a = Om[order], np.sin(np.minimum(alpha, 0.5 * math.pi))
+        else:
+            self.dir, self.w, self.omega, self.sin_a = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0)
         self.label = newid[lf].astype(np.uint32).reshape(H, W)
+        # ----------------------- the sky: the map without its kept regions, in SH (3 bands, RGB)
+        sky = np.where((self.label == NONE)[..., None], L, 0.0)
+        Y = np.stack(basis(D[..., 0], D[..., 1], D[..., 2], 3), -1)              # (H, W, 9)
+        self.sky_sh = np.einsum("hwc,hwi,hw->ci", sky, Y, om)                  # (3, 9)
+        self.sky_share = float((_lum(sky) * om).sum() / total) if sky_light else 0.0
+        self.has_sky = self.sky_share > 0.0
         # ----------------------- device tables (width >= 2: never a literal)
-        pad = lambda a: np.concatenate([a, a[:1]])   # noqa: E731
+        pad = lambda a: np.concatenate([a, a[:1]]) if len(a) else np.zeros((2,) + a.shape[1:])   # noqa: E731
         dd, ww, sa = pad(self.dir), pad(self.w), pad(self.sin_a)
         self._dir = mi.Vector3f(*[dd[:, k].astype(np.float32) for k in range(3)])
         self._w = mi.Color3f(*[ww[:, k].astype(np.float32) for k in range(3)])
         self._sin = mi.Float(sa.astype(np.float32))
         self._label = mi.UInt32(self.label.ravel())
+        self._sky = mi.Float(self.sky_sh.ravel().astype(np.float32))
         self._base = dr.opaque(mi.UInt32, self.base)
         self._n = dr.opaque(mi.UInt32, self.n)
         self._env = dr.opaque(mi.UInt32, self.index)
-        dr.make_opaque(self._dir, self._w, self._sin, self._label)
+        dr.make_opaque(self._dir, self._w, self._sin, self._label, self._sky)
 
     @property
     def any(self) -> bool:
-        return self.n > 0
+        """Something to list: a region, or the sky."""
+        return self.n > 0 or self.has_sky
+
+    def arrays(self) -> list:
+        """The arrays the lookups read (inputs of a frozen function)."""
+        return [self._dir, self._w, self._sin, self._label, self._base, self._n, self._env, self._sky]
+
+    def sky_irradiance(self, n: mi.Vector3f, active: mi.Bool) -> mi.Color3f:
+        """The sky's unoccluded irradiance at unit normals ``n`` (world): the cosine convolution of
+        its SH (Ramamoorthi and Hanrahan 2001), clamped at 0."""
+        Y = basis(n.x, n.y, n.z, 3)
+        E = []
+        for c in range(3):
+            e = mi.Float(0.0)
+            for i in range(9):
+                e += A_HAT[band_of(i)] * dr.gather(mi.Float, self._sky, mi.UInt32(9 * c + i), active) * Y[i]
+            E.append(dr.maximum(e, 0.0))
+        return dr.select(mi.Bool(active), mi.Color3f(*E), 0.0)
+
+    def sky_map_radiance(self, emitters_dr, d: mi.Vector3f, active: mi.Bool) -> mi.Color3f:
+        """The sky's radiance arriving from world directions ``d``: the environment's own ``eval``,
+        0 in its kept regions' pixels."""
+        active = mi.Bool(active)
+        active &= ~self.region_of(d, self._env, active)[0]
+        si = dr.zeros(mi.SurfaceInteraction3f, dr.width(active))
+        si.wi = -d
+        ptr = dr.gather(mi.EmitterPtr, emitters_dr, self._env, active)
+        return dr.select(active, mi.Color3f(ptr.eval(si, active)), 0.0)
+
+    def sky_sample(self, d: mi.Vector3f, em: mi.UInt32, active: mi.Bool) -> mi.Bool:
+        """Environment samples (emitter ``em``, direction ``d``) that are the sky's: outside the
+        kept regions' pixels."""
+        on = mi.Bool(active) & (mi.UInt32(em) == self._env)
+        if not self.has_sky:
+            return dr.zeros(mi.Bool, dr.width(on))
+        return on & ~self.region_of(d, em, on)[0]
 
     # ------------------------------------------------------------------ lookups
     def region_of(self, d: mi.Vector3f, em: mi.UInt32, active: mi.Bool):

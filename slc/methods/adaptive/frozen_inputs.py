@@ -14,7 +14,7 @@ def light_tables(sph, env) -> list:
     """The sphere and region tables' arrays (declared as inputs of a frozen function)."""
     out = []
     if env is not None:
-        out += [env._dir, env._w, env._sin, env._label, env._base, env._n, env._env]
+        out += env.arrays()
     if sph is not None:
         out += sph.arrays()
     return out

@@ -90,7 +90,11 @@ class AdaptiveCache(PayloadMethod):
                      or (self.sph is not None and bool(self.sph.flag[i])))
         n_list += self.env.n if self.env is not None else 0
         self.vis_k = max(1, min(self.vis_lights, n_list))       # no more slots than listable lights
-        self._vis_share = self.vis_rays if n_list <= self.vis_k else 1.0    # vis_rays: every light fits a record
+        # vis_rays where every light fits a record, but not under a sky: a wide light's visible
+        # fraction needs every ray (with half of them the sky-lit entries of skylit had 1.35x the
+        # per-pixel error of slc's cones)
+        sky = self.env is not None and self.env.has_sky
+        self._vis_share = self.vis_rays if n_list <= self.vis_k and not sky else 1.0
 
     @staticmethod
     def _has_environment(scene) -> bool:
@@ -103,8 +107,8 @@ class AdaptiveCache(PayloadMethod):
         ems = list(scene.mi_scene.emitters())
         if not ems:
             return CONES
-        if env is not None and len(ems) == 1 and env.share > theta_delta:
-            return VIS          # the environment alone, most of its power in listable regions
+        if env is not None and len(ems) == 1 and env.share + env.sky_share > theta_delta:
+            return VIS          # the environment alone, most of its power in listable regions and the sky
         # sphere lights count as delta lights (listed where small at the entry)
         delta = [bool(int(e.flags()) & int(mi.EmitterFlags.Delta)) or (sph is not None and bool(sph.flag[i]))
                  for i, e in enumerate(ems)]
@@ -173,7 +177,12 @@ class AdaptiveCache(PayloadMethod):
                                                                  first_sample)
         # a listed delta light went dark: the statistics restart from a short window
         h.count = dr.select(vis_motion, dr.minimum(h.count, RESTART_COUNT), h.count)
+        tag_before = h.tag
         h = self._choose(ctx, fr, h, stats)
+        # an entry that switched learns its new record with the rays of a moving entry (its record
+        # converted from another representation holds a rough estimate, which the residual's
+        # count would otherwise keep for hundreds of samples)
+        motion = motion | (h.tag != tag_before)
         for k, w in enumerate(ch.pack_header(h)):
             dr.scatter(self.storage, w, base + k)
         self._tags = h.tag

@@ -11,7 +11,7 @@ from slc.methods.cones.packing import WordReader, WordWriter, decode_radiance, e
 
 EMPTY = 0xFFFF              # an empty slot's light index
 VIS_WINDOW = 16             # samples in a listed light's visible fraction's running mean
-ENV_WINDOW = 64             # samples in the running mean of the unlisted regions' visible fraction
+ENV_WINDOW = 64             # samples in the running means of the unlisted regions' and the sky's visible fractions
 RES_MAX_COUNT = 255         # the residual's count cap, in samples (as the cones' C, 8 bits)
 MOVED_COUNT = 1             # visibility count of a listed light that moved (its next sample weighs 1/2)
 UNSETTLED_COUNT = 4         # residual count cap of moving entries, in update cycles
@@ -19,22 +19,27 @@ RESIDUAL_ALPHA = math.radians(60.0)     # the residual as a lobe (conversion): a
 
 
 def words(K: int, env: bool = False, back: bool = False) -> int:
-    """Record words: K lights, the residual (2), with environment regions the unlisted
-    regions' visible fraction (1), and with ``back`` (two-sided BSDFs in the scene) the
+    """Record words: K lights, the residual (2), with an environment the unlisted regions'
+    and the sky's visible fractions (2), and with ``back`` (two-sided BSDFs in the scene) the
     residual behind the surface (2)."""
-    return K + 2 + (1 if env else 0) + (2 if back else 0)
+    return K + 2 + (2 if env else 0) + (2 if back else 0)
 
 
 class Record:
     """An unpacked VISIBILITY record: the K listed lights (index, visible
     fraction, sample count), the residual irradiance ``E`` and its sample
     count ``C``, the unlisted environment regions' visible fraction ``vu``
-    and its sample count ``nu`` (0 without environment regions), and the
-    residual behind the surface ``Eb`` (0 without two-sided BSDFs)."""
+    and its sample count ``nu``, the sky's visible fraction ``vs`` and its samples' weight sum
+    ``ns`` (in units of 1/16; 0 without an environment), and
+    the residual behind the surface ``Eb`` (0 without two-sided BSDFs); ``conv``: converted from
+    another representation and not updated since (its residual holds all of its light)."""
 
-    def __init__(self, idx, vis, cnt, E, C, vu, nu, Eb=None):
+    def __init__(self, idx, vis, cnt, E, C, vu, nu, Eb=None, vs=None, ns=None, conv=None):
         self.idx, self.vis, self.cnt, self.E, self.C, self.vu, self.nu = idx, vis, cnt, E, C, vu, nu
+        self.conv = conv if conv is not None else dr.zeros(mi.Bool, dr.width(C))
         self.Eb = Eb if Eb is not None else dr.zeros(mi.Color3f, dr.width(C))
+        self.vs = vs if vs is not None else dr.zeros(mi.Float, dr.width(C))
+        self.ns = ns if ns is not None else dr.zeros(mi.UInt32, dr.width(C))
 
 
 def unpack(w, K: int, env: bool = False, back: bool = False) -> Record:
@@ -44,17 +49,30 @@ def unpack(w, K: int, env: bool = False, back: bool = False) -> Record:
     rd = WordReader([w[K], w[K + 1]])
     E = mi.Color3f(*[decode_radiance(rd.get(18)) for _ in range(3)])
     C = mi.Float(rd.get(8))
+    conv = rd.get(1) != 0
+    vu = nu = vs = ns = None
     if env:
-        x = mi.UInt32(w[K + 2])
-        vu, nu = mi.Float(x & 0xFFFF) * (1.0 / 65535.0), mi.UInt32((x >> 16) & 0xFF)
+        vu, nu = _fraction(w[K + 2])
+        x = mi.UInt32(w[K + 3])
+        vs, ns = mi.Float(x & 0xFFFF) * (1.0 / 65535.0), mi.UInt32(x >> 16)
     else:
         vu, nu = dr.zeros(mi.Float, dr.width(C)), dr.zeros(mi.UInt32, dr.width(C))
     Eb = None
     if back:
-        j = K + 2 + (1 if env else 0)
+        j = K + 2 + (2 if env else 0)
         rb = WordReader([w[j], w[j + 1]])
         Eb = mi.Color3f(*[decode_radiance(rb.get(18)) for _ in range(3)])
-    return Record(idx, vis, cnt, E, C, vu, nu, Eb)
+    return Record(idx, vis, cnt, E, C, vu, nu, Eb, vs, ns, conv)
+
+
+def _fraction(x):
+    """(visible fraction, count) of a word [unorm 16 | count 8 | spare 8]."""
+    x = mi.UInt32(x)
+    return mi.Float(x & 0xFFFF) * (1.0 / 65535.0), mi.UInt32((x >> 16) & 0xFF)
+
+
+def _fraction_word(v, n):
+    return mi.UInt32(dr.clip(dr.round(v * 65535.0), 0.0, 65535.0)) | (dr.minimum(mi.UInt32(n), 255) << 16)
 
 
 def pack(r: Record, K: int, env: bool = False, back: bool = False):
@@ -66,10 +84,11 @@ def pack(r: Record, K: int, env: bool = False, back: bool = False):
     for ch in range(3):
         wr.put(encode_radiance(r.E[ch]), 18)
     wr.put(mi.UInt32(dr.clip(dr.round(r.C), 0.0, 255.0)), 8)
+    wr.put(dr.select(mi.Bool(r.conv), mi.UInt32(1), mi.UInt32(0)), 1)
     out += wr.words
     if env:
-        out.append(mi.UInt32(dr.clip(dr.round(r.vu * 65535.0), 0.0, 65535.0))
-                   | (dr.minimum(mi.UInt32(r.nu), 255) << 16))
+        out += [_fraction_word(r.vu, r.nu),
+                mi.UInt32(dr.clip(dr.round(r.vs * 65535.0), 0.0, 65535.0)) | (dr.minimum(mi.UInt32(r.ns), 0xFFFF) << 16)]
     if back:
         wb = WordWriter(2)
         for ch in range(3):
@@ -90,7 +109,7 @@ def from_irradiance(E, n: int, K: int, env: bool = False, Eb=None):
     residual behind the surface); the lights come in with the next samples
     (the unlisted regions' visible fraction starts with no sample)."""
     r = empty(n, K)
-    r.E, r.C = mi.Color3f(E), dr.full(mi.Float, 4.0, n)
+    r.E, r.C, r.conv = mi.Color3f(E), dr.full(mi.Float, 4.0, n), dr.full(mi.Bool, True, n)
     if Eb is not None:
         r.Eb = mi.Color3f(Eb)
     return pack(r, K, env, Eb is not None)
@@ -124,10 +143,12 @@ def listed(idx: list, wl: list, em: mi.UInt32):
 
 
 def residual(rec: Record, nrm, env, active) -> mi.Color3f:
-    """The record's irradiance not from listed lights at normal ``nrm``: the
-    residual E_r plus the unlisted environment regions' closed form times
-    their visible fraction."""
+    """The record's irradiance not from listed lights at normal ``nrm`` (world): the
+    residual E_r plus the unlisted environment regions' closed form times their visible
+    fraction and the sky's times its own."""
     E = mi.Color3f(rec.E)
     if env is not None:
         E += env.unlisted_irradiance(nrm, rec.idx, active) * rec.vu
+        if env.has_sky:
+            E += env.sky_irradiance(nrm, active) * rec.vs
     return E

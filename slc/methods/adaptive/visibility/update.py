@@ -79,8 +79,8 @@ class ListLoop:
     irradiance's luminance, -1 for an empty slot); ``S`` the cycle's sum of the other
     samples (the residual's estimate; ``Sb`` behind the surface), ``adj`` (``adjb``) the
     energy moved between the list and the residual by replacements, ``vu`` and ``nu`` the
-    unlisted environment regions' visible fraction and sample count, ``stats`` the choice
-    rule's sums (:class:`~slc.methods.adaptive.sampling.SampleStats`) and ``rng`` the random numbers."""
+    unlisted environment regions' visible fraction and sample count, ``vs`` and ``ns`` the
+    sky's, ``stats`` the choice rule's sums (:class:`~slc.methods.adaptive.sampling.SampleStats`) and ``rng`` the random numbers."""
     k: mi.UInt32
     idx: list
     vis: list
@@ -93,6 +93,8 @@ class ListLoop:
     adjb: mi.Color3f
     vu: mi.Float
     nu: mi.UInt32
+    vs: mi.Float
+    ns: mi.UInt32
     stats: SampleStats
     rng: mi.PCG32
 
@@ -105,7 +107,9 @@ class Sample:
     bright region of the environment, ``hard`` a light with hard shadow edges, ``cos`` the cosine
     on the sample's side, ``behind`` behind a two-sided entry, ``w1`` the light's exact unoccluded
     irradiance here, ``step`` the visible fraction's step weight (polygon lights' share of their
-    exact term, else 1), ``V`` visible."""
+    exact term, else 1), ``sky`` the environment's outside its kept regions, ``sky_E`` the sky's
+    exact unoccluded irradiance on the sample's side and ``sky_step`` the sample's step weight (its
+    share of that), ``V`` visible."""
     ds: mi.DirectionSample3f
     w: mi.Color3f
     ok: mi.Bool
@@ -117,6 +121,9 @@ class Sample:
     behind: mi.Bool
     w1: mi.Color3f
     step: mi.Float | None
+    sky: mi.Bool
+    sky_E: mi.Color3f | None
+    sky_step: mi.Float | None
     V: mi.Bool | None = None
 
 
@@ -130,7 +137,8 @@ def start(site: Site, e: VisLanes) -> Record:
     sel = lambda a, b: dr.select(fresh, a, b)   # noqa: E731
     return Record([sel(e0.idx[i], r0.idx[i]) for i in range(K)], [sel(e0.vis[i], r0.vis[i]) for i in range(K)],
                   [sel(e0.cnt[i], r0.cnt[i]) for i in range(K)], sel(e0.E, r0.E), sel(e0.C, r0.C),
-                  sel(e0.vu, r0.vu), sel(e0.nu, r0.nu), sel(e0.Eb, r0.Eb))
+                  sel(e0.vu, r0.vu), sel(e0.nu, r0.nu), sel(e0.Eb, r0.Eb), sel(e0.vs, r0.vs), sel(e0.ns, r0.ns),
+                  sel(e0.conv, r0.conv))
 
 
 def listed_terms(site: Site, e: VisLanes, r: Record):
@@ -201,7 +209,15 @@ def classify(site: Site, e: VisLanes, ls: ListLoop) -> Sample:
         i_exact = lum(w1)
         r_k = lum(w * cos) * site.samp.choice_pmf(em, on_p) / dr.select(i_exact > 0.0, i_exact, 1.0)
         step = dr.select(on_p, dr.select(i_exact > 0.0, r_k, 0.0), 1.0)
-    region = mi.Bool(False)
+    region, sky, sky_E, sky_step = mi.Bool(False), mi.Bool(False), None, None
+    if env is not None and env.has_sky:
+        # a sample of the environment outside its kept regions is the sky's: its step is its
+        # share of the sky's exact unoccluded irradiance (E[r] = 1), as a polygon light's
+        sky = env.sky_sample(ds.d, em, ok & ~ds.delta)
+        sky_E = env.sky_irradiance(n_s, sky)
+        E_s = lum(sky_E)
+        r_s = lum(w * cos) * site.samp.choice_pmf(em, sky) / dr.select(E_s > 0.0, E_s, 1.0)
+        sky_step = dr.select(E_s > 0.0, r_s, 0.0)
     if env is not None:
         # a sample inside a bright region of the environment (wholly above the horizon)
         # is that region's sample
@@ -210,14 +226,17 @@ def classify(site: Site, e: VisLanes, ls: ListLoop) -> Sample:
         hard |= region & (env.light(li, region)[3] < SMALL_SIN)
         em = dr.select(region, li, em)
         w1 = dr.select(region, E_j, w1)
-    return Sample(ds, w, ok, em, delta, region, hard, cos, behind, w1, step)
+    return Sample(ds, w, ok, em, delta, region, hard, cos, behind, w1, step, sky, sky_E, sky_step)
 
 
-def take(site: Site, ls: ListLoop, s: Sample) -> ListLoop:
+def take(site: Site, ls: ListLoop, s: Sample, conv: mi.Bool, sky_cap: mi.Float) -> ListLoop:
     """One classified, shadow-tested sample into the loop's state: a listed light's visible
     fraction, the replacement of the least important listed light by a more important
     listable one (the energy moving between the list and the residual), the unlisted regions'
-    visible fraction, the residual's sums."""
+    visible fraction, the sky's visible fraction (its samples' weight sum capped at
+    ``sky_cap``), the residual's sums. ``conv``: the entries whose record was converted
+    from another representation and not updated since (its residual holds all of its light,
+    regions and sky included)."""
     K, env = site.p.K, site.p.env
     idx, vis, cnt, wl, imp = ls.idx, ls.vis, ls.cnt, ls.wl, ls.imp
     Vf = dr.select(s.V, 1.0, 0.0)
@@ -241,11 +260,11 @@ def take(site: Site, ls: ListLoop, s: Sample) -> ListLoop:
     for i in range(K):
         r = rep & (jmin == i)
         # energy moves between the list and E_r; a region's energy is never in E_r
-        # (unlisted regions are the closed form times vu)
+        # (unlisted regions are the closed form times vu) but in a converted record's
         # (behind a two-sided entry: the residual of the newcomer's side)
         out_r = env.is_region(idx[i]) if env is not None else mi.Bool(False)
         moved = dr.select(r & (idx[i] != EMPTY) & ~out_r, wl[i] * vis[i], 0.0) \
-            - dr.select(r & ~s.region, s.w1 * Vf, 0.0)
+            - dr.select(r & (~s.region | conv), s.w1 * Vf, 0.0)
         ls.adj += dr.select(s.behind, 0.0, moved)
         ls.adjb += dr.select(s.behind, moved, 0.0)
         idx[i] = dr.select(r, mi.UInt32(s.em), idx[i])
@@ -260,6 +279,23 @@ def take(site: Site, ls: ListLoop, s: Sample) -> ListLoop:
     ls.vu = dr.select(unl, dr.fma(au, Vf - ls.vu, ls.vu), ls.vu)
     ls.nu = dr.select(unl, dr.minimum(ls.nu + 1, 255), ls.nu)
     res = s.V & ~handled & ~unl
+    if s.sky_step is not None:
+        # a sample of the sky: the sky's visible fraction (a ratio estimator, as a polygon light's);
+        # a converted record's first one takes the sky's estimate out of the residual, as a
+        # listed light does
+        first = s.sky & (ls.ns == 0) & conv
+        took = dr.select(first, s.sky_E * Vf, 0.0)
+        ls.adj -= dr.select(s.behind, 0.0, took)
+        ls.adjb -= dr.select(s.behind, took, 0.0)
+        # The visible fraction is the samples' weighted mean, v_s = sum r V / sum r, kept
+        # incrementally with the weights' running sum W (``ns``, in 1/16, at most ``sky_cap``, as
+        # the residual's count): v_s <- v_s + (r / W') (V - v_s), W' = min(W + r, cap).
+        W = mi.Float(ls.ns) * (1.0 / 16.0)
+        W1 = dr.minimum(W + s.sky_step, sky_cap)
+        a_s = dr.select(W1 > 0.0, s.sky_step / dr.select(W1 > 0.0, W1, 1.0), 0.0)
+        ls.vs = dr.select(s.sky, dr.fma(dr.minimum(a_s, 1.0), Vf - ls.vs, ls.vs), ls.vs)
+        ls.ns = dr.select(s.sky, mi.UInt32(dr.minimum(dr.round(W1 * 16.0), 65535.0)), ls.ns)
+        res &= ~s.sky
     ls.S += dr.select(res & ~s.behind, s.w * s.cos, 0.0)
     ls.Sb += dr.select(res & s.behind, s.w * s.cos, 0.0)
     ls.idx, ls.vis, ls.cnt, ls.wl, ls.imp = idx, vis, cnt, wl, imp
@@ -280,7 +316,7 @@ def residual_mean(site: Site, e: VisLanes, r: Record, ls: ListLoop, gone: mi.Boo
     if site.back:
         Eb = dr.maximum(Eb + ls.adjb, 0.0)
         Eb = Eb + (ls.Sb / n - Eb) * a
-    return Record(ls.idx, ls.vis, ls.cnt, E, C, ls.vu, ls.nu, Eb)
+    return Record(ls.idx, ls.vis, ls.cnt, E, C, ls.vu, ls.nu, Eb, ls.vs, ls.ns, dr.zeros(mi.Bool, dr.width(C)))
 
 
 # ----------------------------------------------------------------------------- the cycle
@@ -300,6 +336,9 @@ def update(scene: mi.Scene, e: VisLanes, p: VisParams, mix: mi.UInt32):
     site = Site(scene, e, p)
     N = dr.width(e.key)
     r = start(site, e)
+    # the sky's weight sum's cap: as the residual's count (about that many samples)
+    n_s = mi.Float(dr.maximum(mi.UInt32(e.rays), 1))
+    sky_cap = dr.select(mi.Bool(e.moving), float(UNSETTLED_COUNT) * n_s, float(RES_MAX_COUNT))
     wl, imp, gone = listed_terms(site, e, r)
     stats = LightStats(scene, e.si, p.sph, p.env, site.two)
 
@@ -312,14 +351,14 @@ def update(scene: mi.Scene, e: VisLanes, p: VisParams, mix: mi.UInt32):
         s.V = s.ok & ~scene.ray_test(footprint_ray(e.si, s.ds, s.hard, e.texel, e.key, mix, ls.k), s.ok)
         # the choice rule's statistics
         ls.stats = stats.observe(ls.stats, s.ds, s.w, s.V, site.frame_l.to_local(s.ds.d))
-        ls = take(site, ls, s)
+        ls = take(site, ls, s, r.conv, sky_cap)
         ls.k = ls.k + 1
         return (ls,)
 
     S, Sb = dr.zeros(mi.Color3f, N), dr.zeros(mi.Color3f, N)
     adj, adjb = dr.zeros(mi.Color3f, N), dr.zeros(mi.Color3f, N)
     ls, = dr.while_loop(state=(ListLoop(mi.UInt32(0), r.idx, r.vis, r.cnt, wl, imp, S, Sb, adj, adjb, r.vu, r.nu,
-                                        stats.init(N), mixed_rng(e.key, mix)),), cond=cond, body=body)
+                                        r.vs, r.ns, stats.init(N), mixed_rng(e.key, mix)),), cond=cond, body=body)
     out = pack(residual_mean(site, e, r, ls, gone), p.K, site.hx, site.back)
     return out, gone, ls.stats
 
