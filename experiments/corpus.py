@@ -39,6 +39,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(opts) -> dict:
     from types import SimpleNamespace
 
+    from slc.core.timing import stage_table
     from slc.run import experiment as ex
     from slc.run.images import save_strip
     from slc.run.pipeline import RunConfig
@@ -48,8 +49,9 @@ def run(opts) -> dict:
     specs = opts.methods or ex.available_methods(METHODS)
     out = Path(opts.out) / NAME
     # every built-in scene, then the user's own (--scene adds to the corpus)
-    wanted = scenes.builtin_names() + [s for s in (opts.scene or []) if s not in scenes.builtin_names()]
-    names = ex.load_and_validate(wanted, specs, False)
+    own = [s for s in (opts.scene or []) if s not in scenes.builtin_names()]
+    checked = ex.load_and_validate(own + scenes.builtin_names(), specs, False)     # the user's files first
+    names = checked[len(own):] + checked[:len(own)]
     cfg = RunConfig(width=preset["width"], height=preset["height"], frames=preset["frames"],
                     warmup=preset["warmup"], eval_frames=preset["eval_frames"], seed=opts.seed)
 
@@ -75,6 +77,8 @@ def run(opts) -> dict:
     md += "\n## adaptive against the best rival\n\n" + summary_table(summary)
     md += "\n## Representation chosen by `adaptive` (share of the entries active in the last frame)\n\n" + \
         shares_table(rows)
+    md += ("\n## Where the time goes (median ms per stage; kernel execution in brackets, the rest is host time)\n\n"
+           + stage_table(rows, ("scene", "setting")))
     ex.write_results(out, results, md)
     print(md)
     print(f"results: {out / 'results.json'}")

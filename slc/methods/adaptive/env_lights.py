@@ -56,6 +56,26 @@ import numpy as np
 from slc.methods.sh.basis import A_HAT, band_of, basis
 
 NONE = 0xFFFFFFFF
+SKY_TOLERANCE = 0.03    # largest error of the sky's SH irradiance (over its mean) at which the sky is listed
+
+
+def _sh_irradiance_error(sh: np.ndarray, lum: np.ndarray, D: np.ndarray, om: np.ndarray, n: int = 128) -> float:
+    """The largest error of the SH irradiance of a map (coefficients ``sh``, 3 x 9) against its
+    exact irradiance (the grid's sum, luminance ``lum`` on directions ``D`` of solid angles ``om``)
+    over ``n`` normals spread over the sphere, relative to their mean exact irradiance. A sky
+    with a sharp glow (a sunset's, around the sun) rings in 3 bands."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    phi = k * math.pi * (3.0 - math.sqrt(5.0))
+    N = np.stack([np.sqrt(1 - z * z) * np.cos(phi), z, np.sqrt(1 - z * z) * np.sin(phi)], -1)
+    Dl = D.reshape(-1, 3)
+    w = (lum * om).reshape(-1)
+    exact = np.maximum(N @ Dl.T, 0.0) @ w
+    Y = np.stack(basis(N[:, 0], N[:, 1], N[:, 2], 3), -1)                      # (n, 9)
+    shl = 0.212671 * sh[0] + 0.715160 * sh[1] + 0.072169 * sh[2]
+    approx = np.maximum(Y @ (shl * np.array([A_HAT[band_of(i)] for i in range(9)])), 0.0)
+    mean = exact.mean()
+    return float(np.abs(approx - exact).max() / mean) if mean > 0.0 else 0.0
 
 
 def environment_index(scene) -> int | None:
@@ -115,8 +135,9 @@ class EnvLights:
     angle of a region; ``res`` (512): grid rows; ``max_regions`` (4096);
     ``sky_light`` (True): the rest of the map is listed too, as the sky.
     ``n`` regions, ``share``: their share of the map's luminous power;
-    ``sky_sh`` the sky's SH coefficients (RGB x 9, world frame), ``sky_share`` its share,
-    ``has_sky``."""
+    ``sky_sh`` the sky's SH coefficients (RGB x 9, world frame), ``sky_error`` the largest
+    error of their irradiance (over the mean), ``sky_share`` its share, ``has_sky``: the sky is
+    listed (its error at most ``SKY_TOLERANCE``)."""
 
     def __init__(self, scene, ratio: float = 10.0, max_sr: float = 0.05, res: int = 512,
                  max_regions: int = 4096, sky_light: bool = True):
@@ -180,7 +201,9 @@ class EnvLights:
         sky = np.where((self.label == NONE)[..., None], L, 0.0)
         Y = np.stack(basis(D[..., 0], D[..., 1], D[..., 2], 3), -1)              # (H, W, 9)
         self.sky_sh = np.einsum("hwc,hwi,hw->ci", sky, Y, om)                  # (3, 9)
-        self.sky_share = float((_lum(sky) * om).sum() / total) if sky_light else 0.0
+        self.sky_error = _sh_irradiance_error(self.sky_sh, _lum(sky), D, om)
+        self.sky_share = float((_lum(sky) * om).sum() / total) if sky_light and self.sky_error <= SKY_TOLERANCE \
+            else 0.0
         self.has_sky = self.sky_share > 0.0
         # ----------------------- device tables (width >= 2: never a literal)
         pad = lambda a: np.concatenate([a, a[:1]]) if len(a) else np.zeros((2,) + a.shape[1:])   # noqa: E731

@@ -80,7 +80,8 @@ class AdaptiveCache(PayloadMethod):
         if sph is not None and self.sphere_lights == "auto" and not sph.listable_only:   # spheres among other lights:
             sph = SphereLights(scene, self.sphere_sin, False, True) if poly else None   # not listed (see docs)
         self.sph = sph if sph is not None and sph.any else None
-        env = EnvLights(scene, self.env_ratio, self.env_max_sr) if self.env_lights == "auto" else None
+        env = EnvLights(scene, self.env_ratio, self.env_max_sr, sky_light=self.env_sky == "auto") \
+            if self.env_lights == "auto" else None
         self.env = env if env is not None and env.any else None
         self.prior = self._prior(scene, self.sph, self.env, self.theta_delta)
         if self.prior == SH and not self.choice.allow_sh:

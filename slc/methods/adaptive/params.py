@@ -38,6 +38,9 @@ PARAMS = (
     Param("env_ratio", 10.0, "a pixel of the environment is bright above this multiple of the map's mean "
           "radiance", lo=1.0, hi=1e6),
     Param("env_max_sr", 0.05, "largest solid angle (sr) of a bright region listed as a light", lo=0.0, hi=12.6),
+    Param("env_sky", "auto", "the rest of the environment map, the sky, is listed in VISIBILITY records with "
+          "its SH irradiance (auto: where that irradiance is within 3% of the map's; off: never)",
+          choices=("auto", "off")),
     Param("max_cones", 3, "cones per CONES entry", lo=1, hi=4),
     Param("encoding", "y3co1cg1", "SH encoding of SH entries", choices=tuple(ENCODINGS)),
     Param("sh_count", 128, "SH running-mean count cap (samples)", lo=1, hi=1e6),

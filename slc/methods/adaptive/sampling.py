@@ -94,7 +94,8 @@ class LightStats(SampleObserver):
             # the sky: listed (its exact irradiance) at entries on a diffuse-only BSDF; a glossy
             # entry's sky is shaded better by the cones (skylit's principled paving: per-pixel error
             # 0.09 in cones, 0.16 with the sky listed and 16 BSDF samples of it at the pixel)
-            delta |= self.env.sky_sample(ds.d, em, known & ~delta & self.diffuse)
+            if self.env.has_sky:
+                delta |= self.env.sky_sample(ds.d, em, known & ~delta & self.diffuse)
         return delta
 
     def observe(self, st: SampleStats, ds, w, ok, s) -> SampleStats:

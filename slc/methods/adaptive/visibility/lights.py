@@ -10,6 +10,7 @@ from slc.methods.adaptive.visibility.record import EMPTY
 from slc.scene.bsdf_table import facing
 
 SMALL_SIN = 0.04            # sine of the angular radius of a region whose shadow edges are traced per pixel
+FOOTPRINT = 2.0            # the shadow-tested footprint of an entry, in texels (an edge near it is caught too)
 LISTED_SHARE = 0.95         # listed share of an entry's light above which it traces vis_rays of its rays
 
 
@@ -80,7 +81,7 @@ def footprint_ray(si, ds, hard, texel, key, mix, k) -> mi.Ray3f:
     if texel is None:
         return ray
     h0, h1 = mi.sample_tea_32(mi.UInt32(key), mi.UInt32(mix) + mi.UInt32(k) * 0x9E3779B9, 4)
-    j = (mi.Point2f(mi.Float(h0 >> 8), mi.Float(h1 >> 8)) * (1.0 / 16777216.0) - 0.5) * mi.Float(texel)
+    j = (mi.Point2f(mi.Float(h0 >> 8), mi.Float(h1 >> 8)) * (1.0 / 16777216.0) - 0.5) * (mi.Float(texel) * FOOTPRINT)
     o = ray.o + si.sh_frame.s * j.x + si.sh_frame.t * j.y
     v = ds.p - o
     dist = dr.norm(v)
