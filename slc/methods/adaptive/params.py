@@ -10,7 +10,7 @@ from slc.osc.payload import PayloadMethod
 
 PARAMS = (
     Param("vis_lights", 12, "delta or small sphere lights with their own visibility per VISIBILITY entry", lo=1, hi=16),
-    Param("sphere_lights", "auto", "small sphere lights are listed in VISIBILITY records like delta lights "
+    Param("sphere_lights", "small", "small sphere lights are listed in VISIBILITY records like delta lights "
           "(small: where r/d < sphere_sin; auto: so, in scenes whose every emitter is a delta or sphere "
           "light; off: never)", choices=("auto", "small", "off")),
     Param("sphere_sin", 0.3, "largest r/d (sine of the half-angle) of a sphere light listed at an entry",
