@@ -29,7 +29,7 @@ R3 = 1.2207440846057596     # plastic constant of the 3-D Roberts sequence (as t
 
 
 def albedo(bsdf, si, ctx, active, rng, n: int, sky=None):
-    """The pixels' directional albedo of reflection :math:`A(\omega_o) = \int f_r \cos\theta\,
+    r"""The pixels' directional albedo of reflection :math:`A(\omega_o) = \int f_r \cos\theta\,
     d\omega` over the hemisphere of :math:`\omega_o` (transmission left out: the residual is
     the light of the pixel's side), the mean weight of ``n`` BSDF samples (exact for a
     Lambertian lobe; a GGX sample's weight is F G1, nearly constant over the lobe), and with
