@@ -37,11 +37,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(opts) -> dict:
-    from types import SimpleNamespace
-
     from slc.core.timing import stage_table
     from slc.run import experiment as ex
-    from slc.run.images import save_strip
+    from slc.run.images import strip_saver
     from slc.run.pipeline import RunConfig
     from slc.scene import scenes, views
 
@@ -55,13 +53,8 @@ def run(opts) -> dict:
     cfg = RunConfig(width=preset["width"], height=preset["height"], frames=preset["frames"],
                     warmup=preset["warmup"], eval_frames=preset["eval_frames"], seed=opts.seed)
 
-    def save_images(job, rows, res):  # on the driver, before the job is committed
-        scene = SimpleNamespace(name=res["scene_name"], exposure=res["exposure"])
-        for row, images in zip(rows, res["images"]):
-            save_strip(out, scene, row["label"], SimpleNamespace(images=images))
-
     rows = ex.run_per_scene(names, lambda s: [(spec, views.single(s), {"rig": "single"}) for spec in specs],
-                            cfg, NAME, opts.seed, keep_images=True, on_result=save_images)
+                            cfg, NAME, opts.seed, keep_images=True, on_result=strip_saver(out))
     summary = versus_rivals(rows)
     config = {"quick": bool(opts.quick), "scenes": names, "methods": specs, "width": cfg.width,
               "height": cfg.height, "frames": cfg.frames, "warmup": cfg.warmup, "eval_frames": cfg.evaluated(),

@@ -39,12 +39,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(opts) -> dict:
-    from types import SimpleNamespace
-
     from slc.run import experiment as ex
     from slc.run import plots
     from slc.core.timing import stage_table
-    from slc.run.images import save_strip
+    from slc.run.images import strip_saver
     from slc.scene import views
     from slc.run.pipeline import RunConfig
 
@@ -58,15 +56,10 @@ def run(opts) -> dict:
     cfg = RunConfig(width=preset["width"], height=preset["height"], frames=preset["frames"],
                     warmup=preset["warmup"], eval_frames=preset["eval_frames"], seed=opts.seed)
 
-    def save_images(job, rows, res):  # on the driver, before the job is committed
-        scene = SimpleNamespace(name=res["scene_name"], exposure=res["exposure"])
-        for row, images in zip(rows, res["images"]):
-            save_strip(out, scene, row["label"], SimpleNamespace(images=images))
-
     # one job per scene: every method of the comparison in the same process (docs/experiments.md)
     rows = ex.run_per_scene(names, lambda s: [(spec, views.single(s), {"rig": "single", "sweep": spec in sweep})
                                               for spec in method_specs + sweep],
-                            cfg, NAME, opts.seed, keep_images=True, on_result=save_images)
+                            cfg, NAME, opts.seed, keep_images=True, on_result=strip_saver(out))
     for row in rows:
         row["family"] = row["method"].rstrip("0123456789") or row["method"]
     ex.add_startup(rows)

@@ -6,6 +6,7 @@ evaluated frame that collects every method's image, its FLIP map and the referen
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 from slc.core import io
 from slc.core.backend import code_version
@@ -13,6 +14,16 @@ from slc.core.backend import code_version
 
 def _file_name(name: str) -> str:
     return name.replace(':', '_').replace(',', '_')
+
+
+def strip_saver(out: Path):
+    """An ``on_result`` callback for :func:`slc.run.experiment.run_per_scene` (on the driver,
+    before a job is committed) that saves every row's images with :func:`save_strip`."""
+    def save(job, rows, res):
+        scene = SimpleNamespace(name=res["scene_name"], exposure=res["exposure"])
+        for row, images in zip(rows, res["images"]):
+            save_strip(out, scene, row["label"], SimpleNamespace(images=images))
+    return save
 
 
 def save_strip(out: Path, scene, label: str, res) -> None:
