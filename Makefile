@@ -6,7 +6,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test check install llvm bench clean
+.PHONY: run test check mutants install llvm bench clean
 
 $(STAMP): pyproject.toml
 	bash tools/ensure_llvm.sh
@@ -46,6 +46,12 @@ test: install
 # method; the tests marked `slow` (see pyproject.toml) are left to `make test`.
 check: install
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not slow" --durations=10 tests
+
+# Named faults injected into the methods one at a time, in a temporary copy of the repository
+# (tools/mutants.py; the list and the tests that kill each are in docs/testing.md): every fault
+# must make its tests fail. Prints "killed K of N".
+mutants: install
+	$(BIN)/python tools/mutants.py
 
 bench: install
 	$(BIN)/slc bench rays
