@@ -72,7 +72,7 @@ FAULTS = (
     Fault("adaptive-forced-to-cones", "slc/methods/adaptive/choice.py",
           "t = dr.select(vis, mi.UInt32(VIS), dr.select(wide, mi.UInt32(SH), mi.UInt32(CONES)))",
           "t = dr.full(mi.UInt32, CONES, dr.width(R))",
-          ("tests/test_error_bounds.py::test_error_within_recorded_bound[adaptive-atrium]",),
+          ("tests/test_error_bounds.py::test_error_within_recorded_bound[adaptive-cornell]",),
           "the adaptive cache's choice rule asks for cones for every entry"),
     Fault("new-entry-rays-halved", "slc/osc/payload.py",
           "r_new = mi.UInt32(self.new)", "r_new = mi.UInt32(self.new // 2)",
