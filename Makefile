@@ -6,7 +6,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test check install llvm bench clean
+.PHONY: run test check mutants install llvm bench clean
 
 $(STAMP): pyproject.toml
 	bash tools/ensure_llvm.sh
@@ -37,14 +37,24 @@ run: install
 # are built once): most of the suite's time is Dr.Jit compiling kernels, one thread per process,
 # and a third worker fills what tracing and waiting leave idle (whole suite on an empty kernel
 # cache: 9 min 19 s against 10 min 42 s with two). TEST_WORKERS=0 runs everything in this process.
+# PYTEST = pytest with bytecode written even where PYTHONDONTWRITEBYTECODE is set: the suite starts
+# about 80 Python processes (workers, fresh interpreters, command-line runs), each importing slc
+# (0.3-0.4 s of CPU less from bytecode) and its test modules (assertions rewritten once).
 TEST_WORKERS ?= 3
+PYTEST := env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -m pytest
 test: install
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=15 tests
+	$(PYTEST) -q -n $(TEST_WORKERS) --dist loadfile --durations=15 tests
 
 # The fast tier, before every commit: unit tests, closed forms and one small render per
 # method; the tests marked `slow` (see pyproject.toml) are left to `make test`.
 check: install
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not slow" --durations=10 tests
+	$(PYTEST) -q -n $(TEST_WORKERS) --dist loadfile -m "not slow" --durations=10 tests
+
+# Named faults injected into the methods one at a time, in a temporary copy of the repository
+# (tools/mutants.py; the list and the tests that kill each are in docs/testing.md): every fault
+# must make its tests fail. Prints "killed K of N".
+mutants: install
+	$(BIN)/python tools/mutants.py
 
 bench: install
 	$(BIN)/slc bench rays

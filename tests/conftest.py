@@ -14,6 +14,8 @@ sys.path.insert(0, str(ROOT))
 
 import slc  # noqa: E402,F401  (selects the variant)
 
+FRESH_ENV = "SLC_TEST_FRESH_PROCESS"     # set in the interpreter that runs a fresh_process test
+
 
 @pytest.fixture(scope="session")
 def root():
@@ -47,3 +49,127 @@ def reference():
     def ref(kind, scene, gb, frame, spp=None, bounces=1):
         return references.reference_for(kind, scene, gb, frame, gb.viewer, spp=spp, bounces=bounces)
     return ref
+
+
+# ----------------------------------------------------------------------------- a fresh interpreter per test
+
+
+def _run_in_fresh_process(item):
+    """Run ``item`` alone in a new pytest process (its fixtures are set up there)."""
+    import subprocess
+    env = dict(os.environ, **{FRESH_ENV: "1"})
+    cmd = [sys.executable, "-m", "pytest", "-q", "--no-header", "-p", "no:cacheprovider",
+           "-rfEs", item.nodeid]
+    p = subprocess.run(cmd, capture_output=True, text=True, cwd=item.config.rootpath, env=env, timeout=1800)
+    summary = p.stdout.strip().splitlines()[-1] if p.stdout.strip() else ""
+    if p.returncode == 0 and " passed" in summary:
+        return
+    if p.returncode == 0 and " skipped" in summary:
+        pytest.skip(f"in a fresh process: {summary}")
+    pytest.fail(f"in a fresh process (exit status {p.returncode}):\n{p.stdout[-6000:]}\n{p.stderr[-3000:]}",
+                pytrace=False)
+
+
+def pytest_addoption(parser):
+    parser.addoption("--shuffle", type=int, default=None, metavar="SEED",
+                     help="run the test files in an order shuffled by SEED, and the tests of each file in an "
+                          "order shuffled by it too (a file's tests stay together: its module fixtures are "
+                          "built once), to check that no test depends on which tests ran before it in its "
+                          "process; the seed is printed in the header. Default: the collection order")
+
+
+def pytest_collection_modifyitems(config, items):
+    seed = config.getoption("--shuffle")
+    if seed is not None:
+        import random
+        rng = random.Random(seed)
+        files = {}
+        for it in items:
+            files.setdefault(it.nodeid.split("::")[0], []).append(it)
+        order = list(files)
+        rng.shuffle(order)
+        items[:] = []
+        for f in order:
+            tests = files[f]
+            rng.shuffle(tests)
+            items.extend(tests)
+    if os.environ.get(FRESH_ENV):
+        return
+    for it in items:
+        if it.get_closest_marker("fresh_process") is not None:
+            # fixtures are set up in the fresh process, not here
+            it.setup = lambda: None
+            it.runtest = (lambda item: lambda: _run_in_fresh_process(item))(it)
+
+
+def pytest_report_header(config):
+    seed = config.getoption("--shuffle")
+    return None if seed is None else f"test order shuffled with seed {seed} (--shuffle)"
+
+
+# ----------------------------------------------------------------------------- one Ray cluster per session
+
+@pytest.fixture(scope="session")
+def ray_cluster():
+    """A local Ray cluster of two nodes of one CPU each (``ray.cluster_utils.Cluster``), started
+    when a test first asks for it and shut down at the end of the session; tests connect to it
+    by ``cluster.address`` and disconnect again (``ray.shutdown()``), leaving it as they found it."""
+    ray = pytest.importorskip("ray")
+    from ray.cluster_utils import Cluster
+
+    from slc.core import backend
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "_system_config": backend.RAY_SYSTEM_CONFIG})
+    try:
+        cluster.add_node(num_cpus=1)
+        cluster.wait_for_nodes()
+        yield cluster
+    finally:
+        if ray.is_initialized():
+            ray.shutdown()
+        cluster.shutdown()
+
+
+# ----------------------------------------------------------------------------- xdist: work units and their order
+
+# Files whose tests share a session fixture that is expensive to build (the Ray cluster): one work
+# unit, so that one worker builds it once.
+SHARED_UNITS = {"tests/test_jobs.py": "ray", "tests/test_distributed.py": "ray"}
+
+# Seconds of the longest files in make test (2 cores, empty kernel cache, --durations), so that
+# they start first; any other file counts one second a test.
+UNIT_SECONDS = {
+    "tests/test_compile.py": 160, "tests/test_error_bounds.py": 160, "tests/test_cones.py": 100,
+    "tests/test_hard_cases.py": 95, "tests/test_jobs.py": 90, "tests/test_scenes.py": 85,
+    "tests/test_adaptive.py": 75, "tests/test_check.py": 60, "tests/test_adaptive_polygons.py": 55,
+    "tests/test_distributed.py": 50, "tests/test_sampling.py": 48,
+}
+
+
+def _unit_weight(nodeids) -> float:
+    """Expected seconds of a work unit: the measured ones of the files in UNIT_SECONDS, else one
+    second a test."""
+    files = {n.split("::")[0] for n in nodeids}
+    return sum(UNIT_SECONDS.get(f, 0.0) for f in files) + sum(1.0 for n in nodeids
+                                                               if n.split("::")[0] not in UNIT_SECONDS)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile`` with two changes: the files of SHARED_UNITS form one work unit each, and
+    a worker that asks for work gets the unit expected to take longest (UNIT_SECONDS), so that the
+    long files start first and no worker runs one alone at the end."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class Scheduling(LoadFileScheduling):
+        def _split_scope(self, nodeid):
+            f = nodeid.split("::", 1)[0]
+            return SHARED_UNITS.get(f, f)
+
+        def _assign_work_unit(self, node):
+            longest = max(self.workqueue, key=lambda scope: _unit_weight(self.workqueue[scope]))
+            self.workqueue.move_to_end(longest, last=False)
+            super()._assign_work_unit(node)
+
+    return Scheduling(config, log)

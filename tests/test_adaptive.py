@@ -102,6 +102,7 @@ def test_constant_environment_lists_the_sky_exactly():
     assert rel.max() < 1e-4, rel.max()
 
 
+@pytest.mark.fresh_process
 def test_frozen_sh_shading_matches_unfrozen_and_records_once():
     """The SH shading is traced once and replayed (dr.freeze): the images equal
     those of the unfrozen shading bit for bit, and 8 frames record it once."""
@@ -117,6 +118,7 @@ def test_frozen_sh_shading_matches_unfrozen_and_records_once():
     assert np.array_equal(out[True][0], out[False][0])
 
 
+@pytest.mark.fresh_process
 @pytest.mark.slow
 def test_frozen_cones_update_matches_unfrozen_as_entries_change():
     """The CONES update is traced once and replayed (dr.freeze): under an area
@@ -161,6 +163,7 @@ def _assert_frozen_matches_unfrozen(scene, spec, tag, make):
         assert np.array_equal(a, c)
 
 
+@pytest.mark.fresh_process
 @pytest.mark.slow
 def test_frozen_sh_update_matches_unfrozen_as_entries_change():
     """The SH update is traced once and replayed (dr.freeze): under a constant
@@ -215,14 +218,16 @@ def test_cone_pool_update_is_slc_update_bit_for_bit():
     Wd = words_per_entry(K)
     keys = dr.arange(mi.UInt32, n) * 7 + 11
     policy = RayPolicy(new=32, new_updates=20, halve_every=4, settled=1, moving=8)
-    storage = dr.zeros(mi.UInt32, n * Wd)
-    recs = [dr.zeros(mi.UInt32, n) for _ in range(Wd)]
-    state = dr.zeros(mi.UInt32, n)
+    # opaque (evaluated) inputs, every frame: the same kernels in every frame (a literal zero in
+    # the first frame, or each frame's unevaluated chain of policy steps, would trace new ones)
+    storage = dr.opaque(mi.UInt32, 0, n * Wd)
+    recs = [dr.opaque(mi.UInt32, 0, n) for _ in range(Wd)]
+    state = dr.opaque(mi.UInt32, 0, n)
     slots = dr.arange(mi.UInt32, n)
     stats_sum = 0.0
     for f in range(6):
         is_new = dr.opaque(mi.Bool, f == 0, n)             # opaque: one kernel for every frame
-        motion_in = dr.full(mi.Bool, f == 4, n)          # frame 5: every entry in its moving phase
+        motion_in = dr.opaque(mi.Bool, f == 4, n)        # frame 5: every entry in its moving phase
         rays, unsettled = policy.rays(state)
         moving = (state >> 16) > 0
         first = policy.samples_before(state)
@@ -240,6 +245,7 @@ def test_cone_pool_update_is_slc_update_bit_for_bit():
         assert (ed > 0).any() and (en > 0).any()          # both kinds of light are seen
         stats_sum += float(ed.sum() + en.sum())
         state = policy.advance(state, mo | motion_in)
+        dr.make_opaque(state)
     assert stats_sum > 0
 
 

@@ -23,6 +23,7 @@ def _run(scene, spec, rig):
     return m, imgs
 
 
+@pytest.mark.fresh_process
 @pytest.mark.slow
 @pytest.mark.parametrize("fetch", ["nearest", "bilinear"])
 def test_batched_images_equal_per_viewer(atrium, fetch):

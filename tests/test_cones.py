@@ -585,6 +585,7 @@ def _storage_after(sc, frames=12, cache="pixel"):
     return m, gb, slot, ok, tf
 
 
+@pytest.mark.fresh_process
 @pytest.mark.slow
 @pytest.mark.parametrize("bsdf", ["conductor", "plastic"])
 def test_mis_shading_unbiased_and_deterministic(bsdf):
@@ -623,6 +624,7 @@ def _moving_camera_plane():
     return b.build([cam])
 
 
+@pytest.mark.fresh_process
 @pytest.mark.slow
 def test_shading_freeze_recordings_bounded():
     """Over a sequence that mimics one single-viewer experiment process
@@ -662,6 +664,7 @@ def test_shading_freeze_recordings_bounded():
     assert not sh.frozen and sh.n_recordings == 0, (sh.n_recordings, sh.frozen)
 
 
+@pytest.mark.fresh_process
 @pytest.mark.parametrize("n_viewers", [1, 4])
 def test_shading_compiles_nothing_after_warmup(n_viewers):
     """After 3 warm-up frames, the shading stage builds no kernel (nor loads one from

@@ -87,6 +87,7 @@ def test_compact_no_and_all_quadrature_pixels(captured):
         assert np.all(x[:, ~mask] == 0)
 
 
+@pytest.mark.fresh_process
 def test_compact_frozen_one_recording(captured):
     """Frozen: calls whose packed launch has another width (other pixels active) replay
     the one recording and give the unfrozen values."""

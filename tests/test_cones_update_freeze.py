@@ -102,6 +102,7 @@ def test_frozen_update_bounded_after_another_scene():
     assert r["recs"] == fresh["recs"], (r["recs"], fresh["recs"])
 
 
+@pytest.mark.fresh_process
 def test_frozen_update_follows_a_moving_light():
     """An animated scene (the emitter table is refreshed as the light moves): the
     update is traced on every call, never recorded (the registry state changes every
@@ -114,6 +115,7 @@ def test_frozen_update_follows_a_moving_light():
     assert not m._cone_update.frozen and m._cone_update.n_recordings == 0
 
 
+@pytest.mark.fresh_process
 def test_static_light_replays_without_recording():
     """A static scene of fixed size: after the first two calls every update is a replay."""
     sc = plane_under_rect_light(half=0.1, radiance=20.0, bsdf=rough_conductor(0.05, "Al"), name="static_upd")

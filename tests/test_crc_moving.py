@@ -86,6 +86,7 @@ def test_scrolled_window_equals_fresh_window(atrium, bounces, shift):
     assert np.all(np.array(a.hist)[cb[keep]] == 1)
 
 
+@pytest.mark.fresh_process
 def test_moving_window_builds_no_kernels(atrium):
     """After warm-up, frames whose window moves to corners never seen
     before build no kernel (none compiled, none loaded from disk: the

@@ -130,19 +130,15 @@ def test_a_killed_node_in_process_leaves_no_entry_missing(scene):
 # ---------------------------------------------------------------------------------------------
 
 @pytest.fixture
-def ray_cluster():
-    ray = pytest.importorskip("ray")
-    from ray.cluster_utils import Cluster
-    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "_system_config": backend.RAY_SYSTEM_CONFIG})
+def ray_connected(ray_cluster):
+    """The session's two-node Ray cluster (tests/conftest.py), this process connected to it
+    for the test and disconnected afterwards."""
+    import ray
+    ray.init(address=ray_cluster.address, include_dashboard=False, log_to_driver=False)
     try:
-        cluster.add_node(num_cpus=1)
-        cluster.wait_for_nodes()
-        ray.init(address=cluster.address, include_dashboard=False, log_to_driver=False)
-        yield cluster
+        yield ray_cluster
     finally:
-        if ray.is_initialized():
-            ray.shutdown()
-        cluster.shutdown()
+        ray.shutdown()
 
 
 def _env() -> dict:
@@ -151,7 +147,7 @@ def _env() -> dict:
 
 
 @pytest.mark.slow
-def test_ray_nodes_give_the_shared_cache_images_and_survive_a_killed_node(ray_cluster, scene):
+def test_ray_nodes_give_the_shared_cache_images_and_survive_a_killed_node(ray_connected, scene):
     from slc.distributed.actors import NodeCluster, rig_viewers
     rig = ("overlap", 2, 0.5, True)
     nodes = NodeCluster(2, "atrium", "slc", rig, W, H, threshold=0.0, env=_env())

@@ -26,15 +26,22 @@ class BoundImproved(UserWarning):
 
 
 @pytest.fixture(scope="module")
-def measured():
-    """{scene: measure_scene(scene)}, filled on first use of each scene; the worsened
-    runs of a scene share its load and its partner runs."""
+def measured(request):
+    """{scene: measure_scene(scene, methods)}, filled on first use of each scene, with the
+    methods that this session's tests of the scene ask for (in a whole run every method of
+    bounds.METHODS and the worsened runs, which share the scene's load and partner runs; a
+    test run alone measures its method and its partner)."""
+    wanted = {}
+    for item in request.session.items:
+        params = getattr(getattr(item, "callspec", None), "params", {})
+        if item.module is request.module and "scene" in params and "spec" in params:
+            wanted.setdefault(params["scene"], set()).add(params["spec"])
     cache = {}
 
     def get(scene):
         if scene not in cache:
-            extra = tuple(spec for s, spec, _ in WORSENED if s == scene)
-            cache[scene] = bounds.measure_scene(scene, bounds.METHODS + extra)
+            order = bounds.METHODS + tuple(spec for s, spec, _ in WORSENED if s == scene)
+            cache[scene] = bounds.measure_scene(scene, tuple(m for m in order if m in wanted.get(scene, ())))
         return cache[scene]
     return get
 

@@ -117,6 +117,7 @@ def _point(x):
     return mi.Point3f(x + 1.0, dr.zeros(mi.Float, dr.width(x)), x * 2.0)
 
 
+@pytest.mark.fresh_process
 def test_replayed_literal_outputs_take_the_call_width():
     """Dr.Jit 1.5 returns a replayed recording's literal outputs with the width they
     had when recorded (5 lanes here when called with 7 or 9); FrozenFunction gives

@@ -64,6 +64,7 @@ def _calls(ff, scene, widths):
     return outs
 
 
+@pytest.mark.fresh_process
 def test_colliding_lane_count_is_not_recorded_again():
     scene = _scene()
     taken = _input_widths(scene)
@@ -119,6 +120,7 @@ def _kernel_named(scene, table, lanes: _Lanes):
     return _kernel(scene, table, lanes.x, lanes.k)
 
 
+@pytest.mark.fresh_process
 def test_lanes_named_by_parameter_may_be_a_structure():
     """Per-lane arguments are named by the function's parameters; a dataclass argument
     is per lane in every field: a colliding lane count runs padded, values unchanged."""
@@ -140,6 +142,7 @@ def _kernel_pair(scene, table, x, y):
     return dr.gather(mi.Float, table, mi.UInt32(y) % 7) + x * y
 
 
+@pytest.mark.fresh_process
 def test_literal_and_shared_lane_inputs_record_once():
     """Per-lane inputs that are literals in some calls (a field of the entries' interactions
     that is constant), or the same variable as another input in some calls and not in others,

@@ -14,7 +14,6 @@ from pathlib import Path
 import pytest
 
 from helpers import slc_cli
-from slc.core import backend
 from slc.run import jobs, jobspec
 
 from slc.scene import views
@@ -206,21 +205,16 @@ def test_serial_run_killed_then_resumed_equals_uninterrupted(serial, tmp_path):
 
 @pytest.mark.slow
 @needs_ray
-def test_two_node_cluster_gives_the_serial_rows(serial, tmp_path):
+def test_two_node_cluster_gives_the_serial_rows(serial, tmp_path, ray_cluster):
+    """The tiny preset on the session's two-node cluster (``--address``): the serial rows,
+    jobs on both nodes, and the driver disconnected afterwards."""
     import ray
-    from ray.cluster_utils import Cluster
 
     from slc.run.cli import main
     out = tmp_path / "cluster"
-    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "_system_config": backend.RAY_SYSTEM_CONFIG})
-    try:
-        cluster.add_node(num_cpus=1)
-        cluster.wait_for_nodes()
-        assert main(TINY + ["--out", str(out), "--address", cluster.address]) == 0
-    finally:
-        if ray.is_initialized():
-            ray.shutdown()
-        cluster.shutdown()
+    assert not ray.is_initialized()
+    assert main(TINY + ["--out", str(out), "--address", ray_cluster.address]) == 0
+    assert not ray.is_initialized()              # the run disconnected the connection it made
     assert_same_results(serial, out)
     stats = json.loads((out / "single-viewer" / "jobs.json").read_text())["jobs"]
     assert len({s["node"] for s in stats}) == 2  # both nodes ran jobs

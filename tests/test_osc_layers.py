@@ -92,6 +92,7 @@ def test_overlap_measure_equals_slot_sets(cornell):
     assert cache.stats()["pixels"] == sum(int(np.array(g.valid).sum()) for g in gbs)
 
 
+@pytest.mark.fresh_process
 @pytest.mark.slow
 @pytest.mark.parametrize("scene_name", ["cornell", "sphere"])
 def test_frozen_interactions_equal_traced(scene_name, cornell, sphere_scene):

@@ -237,6 +237,7 @@ def test_glossy_hits_bring_the_light_reflected_by_metal():
     assert abs(ratio[1] - 1.0) < abs(ratio[0] - 1.0) - 0.05, ratio
 
 
+@pytest.mark.fresh_process
 @pytest.mark.slow
 def test_frozen_kernels_give_the_traced_images():
     """``freeze`` (the kernels with shape/BSDF/emitter calls replayed) changes no pixel: a moving

@@ -2,6 +2,7 @@
 numbers every frame (the frame's streams are inputs, not baked into the recording), a replay
 after the first recordings."""
 import numpy as np
+import pytest
 
 from slc import methods
 
@@ -21,6 +22,7 @@ def _frames(spec, scene, frames=4):
     return m, out
 
 
+@pytest.mark.fresh_process
 def test_frozen_pt_matches_the_traced_estimator_and_changes_per_frame():
     s = scenes.load("cornell")
     for spec in ("pt:spp=2", "pt:spp=1,output=indirect,bounces=3"):

@@ -232,6 +232,7 @@ def test_neighbour_count_limit(cornell):
             methods.create(bad, cornell)
 
 
+@pytest.mark.fresh_process
 def test_no_kernel_recompilation_after_warmup(cornell):
     """Per-frame values (seeds, camera origin) are opaque: after two
     warm-up frames with temporal history, rendering compiles no new JIT

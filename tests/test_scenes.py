@@ -119,6 +119,7 @@ def test_every_method_renders_finite_and_deterministic(name, monkeypatch):
         assert np.array_equal(imgs[0], imgs[1]), (name, spec, "not deterministic")
 
 
+@pytest.mark.fresh_process
 def test_animation_does_not_recompile_kernels():
     dyn = [n for n in BUILTIN if n in ("street", "hangar")]
     if not dyn:

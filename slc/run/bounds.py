@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -62,9 +63,9 @@ _VPL = ":views=1024,scene_depth=5,view_depth=5"
 METHODS = ("rt16", "rt48", "restir", "regir", "slc", "slc:fetch=bilinear", "sh", "adaptive", "adaptive:polygon_lights=off",
            "crc", "megaviews" + _VPL, "manylods" + _VPL, "brute" + _VPL, "osc-gi", "sharc", "pt", "pt:output=indirect")
 
-# methods whose frame depends on nothing carried from earlier frames: only the evaluated
-# (last) frame is rendered, the very image a run of every frame ends with
-STATELESS = ("megaviews", "manylods", "brute")
+# methods whose frame depends on nothing carried from earlier frames (rtN: any N): only the
+# evaluated (last) frame is rendered, the very image a run of every frame ends with
+STATELESS = ("rtN", "pt", "megaviews", "manylods", "brute")
 
 # ratio partner of each output kind (slc.methods.OUTPUTS)
 PARTNERS = {"direct": "rt48", "indirect": "pt:output=indirect", "full": "pt"}
@@ -110,6 +111,12 @@ class Finding:
 # Measuring
 # -----------------------------------------------------------------------------
 
+def stateless(spec: str) -> bool:
+    """Whether the method ``spec`` is one of :data:`STATELESS`."""
+    name = registry.parse_spec(spec)[0]
+    return name in STATELESS or ("rtN" in STATELESS and re.fullmatch(r"rt\d+", name) is not None)
+
+
 def partner_of(output: str) -> str:
     return PARTNERS[output]
 
@@ -120,7 +127,7 @@ def measure_scene(scene_name: str, methods=METHODS, cfg: Config = CONFIG, progre
     process, the scene loaded once. ``progress(spec)`` is called before each run."""
 
     def run_cfg(spec):
-        n = 1 if registry.parse_spec(spec)[0] in STATELESS else cfg.frames
+        n = 1 if stateless(spec) else cfg.frames
         return RunConfig(width=cfg.width, height=cfg.height, frames=n, start_frame=cfg.frames - n, warmup=0,
                          seed=cfg.seed, keep_images=False, measure_overlap=False)
     scene = scenes.load(scene_name)
