@@ -73,7 +73,7 @@ class ConesUpdate(FrozenFunction):
             st = [dr.select(on, x, 0.0) for x in st]
             dr.eval(out, motion, st)
             return out, motion, st
-        super().__init__(kernel, freeze, False, max_recordings,
+        super().__init__(kernel, freeze, max_recordings=max_recordings,
                          lanes=("rec", "si", "key", "rays", "unsettled", "moving", "first_sample", "fresh",
                                 "on"))     # per entry (slc.core.freeze)
 

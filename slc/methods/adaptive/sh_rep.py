@@ -108,7 +108,7 @@ class SHUpdate(FrozenFunction):
             st = [dr.select(on, x, 0.0) for x in st]
             dr.eval(out, st)
             return out, st
-        super().__init__(kernel, freeze, False, max_recordings,
+        super().__init__(kernel, freeze, max_recordings=max_recordings,
                          lanes=("rec", "si", "key", "rays", "fresh", "on"))     # per entry (slc.core.freeze)
 
     def __call__(self, scene, rec, si, key, rays, fresh, on, frame: int):
@@ -193,7 +193,7 @@ class SHShading(FrozenFunction):
                  max_recordings: int = 4, scene=None):
         self.enc_name, self.seed, self.glossy_samples = str(enc_name), int(seed), int(glossy_samples)
         self.scene = scene
-        super().__init__(_shade_kernel, freeze, False, max_recordings)
+        super().__init__(_shade_kernel, freeze, max_recordings=max_recordings)
 
     def __call__(self, rec, active, si, tf) -> mi.Color3f:
         tables = side_inputs(self.scene) if self.scene is not None else []

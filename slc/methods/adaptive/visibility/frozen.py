@@ -51,7 +51,7 @@ class VisShading(FrozenFunction):
             rng = mixed_rng(dr.arange(mi.UInt32, dr.width(active)), mix) if S > 0 else None
             rng_a = mixed_rng(dr.arange(mi.UInt32, dr.width(active)), mi.UInt32(mix) ^ STREAM_ALBEDO)
             return shade(scene, rec, si, bsdf, active, K, sph, env, rng, S, table, back, rng_a)
-        super().__init__(kernel, freeze, False, max_recordings)
+        super().__init__(kernel, freeze, max_recordings=max_recordings)
 
     def __call__(self, rec, active, si, scene, frame: int = 0, viewer: int = 0) -> mi.Color3f:
         """``S`` > 0: a glossy pixel's polygon lights are sampled (``S`` pairs; random numbers
@@ -81,7 +81,7 @@ class VisUpdate(FrozenFunction):
             st = st.values()
             dr.eval(out, gone, st)
             return out, gone, st
-        super().__init__(kernel, freeze, False, max_recordings,
+        super().__init__(kernel, freeze, max_recordings=max_recordings,
                          lanes=("rec", "si", "key", "rays", "moving", "fresh", "on", "texel"))   # per entry
 
     def __call__(self, scene, rec, si, key, rays, moving, fresh, on, frame: int, texel=None):
