@@ -33,7 +33,8 @@ def run(opts):
         opts, NAME, QUICK, FULL, METHODS, "meeting", views.meeting, lambda name, cfg: f"{name}: meeting rig")
     ex.add_startup(rows)
     md = ex.markdown_table(rows, ex.MULTI_COLUMNS[:6] + [("startup_ms", "start-up t [ms]"),
-                                                        ("compiled_after_warmup", "kernels after warm-up")]
+                                                        ("compiled_after_warmup", "kernels after warm-up"),
+                                                        ("recordings_after_warmup", "recordings after warm-up")]
                            + ex.MULTI_COLUMNS[6:]) + "\n\n## Targets (ratios measured in this run)\n\n"
     n = max(counts)
     for name in names:

@@ -121,7 +121,8 @@ def _markdown(rows, retimed, specs, counts, overlaps, cfg) -> str:
           ex.markdown_table([r for r in rows if not r.get("derived")], ex.DEFAULT_COLUMNS[:3] + [
               ("overlap", "target overlap %"), ("measured_overlap", "measured %"), ("cache_overlap", "cache entries %")]
               + ex.DEFAULT_COLUMNS[3:4] + [("startup_ms", "start-up t [ms]"),
-                                           ("compiled_after_warmup", "kernels after warm-up")]
+                                           ("compiled_after_warmup", "kernels after warm-up"),
+                                           ("recordings_after_warmup", "recordings after warm-up")]
               + ex.DEFAULT_COLUMNS[4:]), "\n## Overlap reached\n", _reached(rows),
           "\n## Where the time goes (median ms per stage; kernel execution in brackets, the rest is host time)\n",
           stage_table(rows, ("scene", "label", "viewers", "overlap")),

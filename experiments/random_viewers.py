@@ -57,8 +57,8 @@ def run(opts):
     ex.add_startup(rows)
     cols = ex.MULTI_COLUMNS[:4] + [("overlap_start", "overlap at start %"), ("overlap_4s", "overlap over 4 s %"),
                                    ("measured_overlap", "overlap in timed frames %"), ("time_ms", "t [ms]"),
-                                   ("startup_ms", "start-up t [ms]"), ("compiled_after_warmup", "kernels after warm-up")
-                                   ] + ex.MULTI_COLUMNS[6:]
+                                   ("startup_ms", "start-up t [ms]"), ("compiled_after_warmup", "kernels after warm-up"),
+                                   ("recordings_after_warmup", "recordings after warm-up")] + ex.MULTI_COLUMNS[6:]
     md = ex.markdown_table(rows, cols) + "\n\n## Targets (ratios measured in this run)\n\n"
     n = max(counts)
     for name in names:

@@ -85,7 +85,8 @@ def run(opts) -> dict:
           f"(1.4 m/s, 60 Hz).\n\n" + ex.markdown_table(
               [r for r in rows if not r["sweep"]], [("setting", "method") if k == "method" else (k, h)
                                                     for k, h in ex.DEFAULT_COLUMNS[:4]]
-              + [("startup_ms", "start-up t [ms]"), ("compiled_after_warmup", "kernels after warm-up")]
+              + [("startup_ms", "start-up t [ms]"), ("compiled_after_warmup", "kernels after warm-up"),
+                 ("recordings_after_warmup", "recordings after warm-up")]
               + ex.DEFAULT_COLUMNS[4:]) + "\n")
     md += _targets(rows)
     md += ("\n## Where the time goes (median ms per stage; kernel execution in brackets, the rest is host time)\n\n"

@@ -22,6 +22,7 @@ METHODS = ["slc", "rt48", "restir", "regir"]
 STEADY_COLUMNS = [("scene", "scene"), ("method", "method"), ("rig", "rig"), ("viewers", "viewers"),
                   ("measured_overlap", "measured overlap %"), ("time_ms", "t [ms]"),
                   ("startup_ms", "start-up t [ms]"), ("compiled_after_warmup", "kernels after warm-up"),
+                  ("recordings_after_warmup", "recordings after warm-up"),
                   ("flip", "FLIP"), ("psnr", "PSNR"), ("ssim", "SSIM"), ("memory_mb", "memory [MB]")]
 
 

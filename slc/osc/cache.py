@@ -103,7 +103,7 @@ class OnSurfaceCache:
                            overflow_blocks=0, pixels=0, capacity=self.capacity)
         self._warned = False
         self._pending = None
-        self._interactions = EntryInteractions(animated=bool(getattr(self.scene, "dynamic", False)))
+        self._interactions = EntryInteractions()
 
     def entries_allocated(self) -> int:
         return self.pool.n_blocks * self.layout.block_texels

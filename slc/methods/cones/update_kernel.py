@@ -122,7 +122,7 @@ class ConeUpdate(FrozenFunction):
     arrays. Images are those of the traced kernel bit for bit.
 
     Parameters (defaults): ``freeze=True`` (False: trace on every call),
-    ``animated=False`` (the scene's meshes move), ``max_recordings=4``.
+    ``max_recordings=4``.
 
     A recording is reused while its inputs keep their layout: the frame number is
     an opaque ``mi.UInt32`` input and the number of active entries, the storage's
@@ -131,14 +131,13 @@ class ConeUpdate(FrozenFunction):
     width 1: one active entry, or as many entries as a mesh has vertex
     coordinates: such calls run on a free width, see :mod:`slc.core.freeze`), or a
     change of the scene's traversed state. As
-    :class:`slc.methods.cones.shading.ConeShading`: in a static scene a function recorded
-    more than ``max_recordings`` times is dropped (traced from then on); in an
-    animated one it is traced on every call (:mod:`slc.freeze`)."""
+    :class:`slc.methods.cones.shading.ConeShading`: a function recorded more than
+    ``max_recordings`` times is dropped (traced from then on; :mod:`slc.core.freeze`)."""
 
-    def __init__(self, freeze: bool = True, animated: bool = False, max_recordings: int = 4):
+    def __init__(self, freeze: bool = True, max_recordings: int = 4):
         # per-lane: the order and the batch (a lane count equal to a scene array's width runs
         # on a free width; the extra lanes repeat the last one: same words, same slot)
-        super().__init__(_update_kernel, freeze, animated, max_recordings, lanes=("order", "batch"))
+        super().__init__(_update_kernel, freeze, max_recordings, lanes=("order", "batch"))
         self._area_only = None      # ((id of the scene, table builds), constant_area_emitters)
 
     def area_only(self, scene) -> bool:
@@ -159,11 +158,9 @@ class ConeUpdate(FrozenFunction):
 
 
 def updater_for(owner) -> ConeUpdate:
-    """The :class:`ConeUpdate` of ``owner`` (a method instance), made on first use
-    (animated when the owner's scene is)."""
+    """The :class:`ConeUpdate` of ``owner`` (a method instance), made on first use."""
     up = getattr(owner, "_cone_update", None)
     if up is None:
-        scene = getattr(owner, "scene", None)
-        up = ConeUpdate(animated=bool(getattr(scene, "dynamic", False)))
+        up = ConeUpdate()
         owner._cone_update = up
     return up
