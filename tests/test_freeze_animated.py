@@ -87,9 +87,9 @@ def test_recordings_are_counted():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("spec", ["slc"])
+@pytest.mark.parametrize("spec", ["slc", "adaptive"])
 def test_methods_frozen_in_an_animated_scene(spec):
-    """slc on a moving light, 10 frames at 40x30: the same images bit for bit
+    """slc and adaptive on a moving light, 10 frames at 40x30: the same images bit for bit
     as with every frozen function traced, no recording after the third frame
     (``recordings_after_warmup`` 0) and every frozen function still frozen."""
     from slc.methods import create

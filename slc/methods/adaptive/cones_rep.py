@@ -57,8 +57,8 @@ class ConesUpdate(FrozenFunction):
     sphere and region tables, the entries' records and interactions, and the
     frame as an opaque ``mi.UInt32`` (a new frame is no new recording). The
     cone parameters, ``seed``, ``sph`` and ``env`` are fixed per instance.
-    Unfrozen in animated scenes and after more than ``max_recordings``
-    recordings. Images are those of the traced update bit for bit."""
+    Unfrozen after more than ``max_recordings`` recordings. Images are those of
+    the traced update bit for bit."""
 
     def __init__(self, p: ConeParams, seed: int, sph=None, env=None, freeze: bool = True, max_recordings: int = 4):
         self.sph, self.env = sph, env

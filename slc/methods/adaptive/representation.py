@@ -92,8 +92,7 @@ class Representation(ABC):
     """One representation of the adaptive cache (see the module). ``cache`` is the
     :class:`~slc.methods.adaptive.method.AdaptiveCache` (its settings, scene and light tables);
     ``pool`` holds the records. Subclasses set ``tag`` and ``name`` and write the methods below.
-    Their frozen functions are made on first use by :meth:`frozen` (unfrozen in animated
-    scenes, whose every frame would record them again)."""
+    Their frozen functions are made on first use by :meth:`frozen`."""
 
     tag: int = 0
     name: str = ""
@@ -132,6 +131,6 @@ class Representation(ABC):
         """The frozen function kept in ``attr``, made on first use by ``make(freeze)``."""
         f = getattr(self, attr, None)
         if f is None:
-            f = make(not bool(getattr(self.cache.scene, "dynamic", False)))
+            f = make(True)
             setattr(self, attr, f)
         return f

@@ -91,8 +91,8 @@ class SHUpdate(FrozenFunction):
     (:func:`~slc.methods.adaptive.frozen_inputs.sampler_inputs`), the sphere and region
     tables, the entries' records and interactions, and the random streams' mix
     (opaque: a new frame is no new recording). The encoding, ``seed``,
-    ``max_count``, ``sph`` and ``env`` are fixed per instance. Unfrozen in
-    animated scenes and after more than ``max_recordings`` recordings. Images
+    ``max_count``, ``sph`` and ``env`` are fixed per instance. Unfrozen after
+    more than ``max_recordings`` recordings. Images
     are those of the traced update bit for bit."""
 
     def __init__(self, enc_name: str, seed: int, max_count: int, sph=None, env=None, freeze: bool = True,
@@ -185,9 +185,8 @@ class SHShading(FrozenFunction):
     (gathered outside: the pool's width changes when it grows, the pixels' does
     not), mask and interactions are the frozen function's inputs; the encoding, seed
     and glossy sample count are fixed per instance; ``scene``: the scene where it has
-    two-sided BSDFs (None: none; see :func:`shade`). A static scene whose
-    function was recorded more than ``max_recordings`` times, or an animated
-    scene (recorded again every frame), shades unfrozen."""
+    two-sided BSDFs (None: none; see :func:`shade`). A function recorded
+    more than ``max_recordings`` times shades unfrozen."""
 
     def __init__(self, enc_name: str, seed: int, glossy_samples: int, freeze: bool = True,
                  max_recordings: int = 4, scene=None):

@@ -33,8 +33,7 @@ class VisShading(FrozenFunction):
     are fixed per instance; ``glossy`` is the method's ``polygon_glossy`` (``ltc``: the fitted
     table and the scene's BSDF table are inputs too; ``sample``: ``S`` sample pairs); ``back``:
     the records keep a residual behind the surface (the scene has two-sided BSDFs).
-    Unfrozen in animated scenes (``freeze=False``) and after more than ``max_recordings``
-    recordings."""
+    Unfrozen with ``freeze=False`` and after more than ``max_recordings`` recordings."""
 
     def __init__(self, K: int, sph=None, env=None, freeze: bool = True, glossy: str = "point", S: int = 0,
                  seed: int = 0, max_recordings: int = 4, back: bool = False):
@@ -68,8 +67,8 @@ class VisUpdate(FrozenFunction):
     the scene, the emitter table's arrays (:func:`sampler_inputs`),
     the sphere and region tables, the entries' records and interactions, and
     the random streams' mix (opaque: a new frame is no new recording). ``K``,
-    ``seed``, ``sph`` and ``env`` are fixed per instance. Unfrozen in animated
-    scenes and after more than ``max_recordings`` recordings."""
+    ``seed``, ``sph`` and ``env`` are fixed per instance. Unfrozen after more
+    than ``max_recordings`` recordings."""
 
     def __init__(self, K: int, seed: int, sph=None, env=None, freeze: bool = True, max_recordings: int = 4):
         self.K, self.seed, self.sph, self.env = int(K), int(seed), sph, env
