@@ -310,6 +310,9 @@ class PayloadMethod(Method):
         are kept in ``self.update_rays`` (a ``mi.UInt32`` over ``fr.active``). Returns the
         motion mask the payload's :meth:`update` reports."""
         state = dr.select(fr.is_new, 0, dr.gather(mi.UInt32, self.policy_state, fr.active))
+        # evaluated: no reader of ``policy_state`` is left when the scatter below writes it
+        # (an unevaluated gather would make the scatter copy the whole array first)
+        dr.eval(state)
         policy = EntryPolicy.of(self.ray_policy(), state)
         motion = self.update(ctx, fr, policy)
         dr.scatter(self.policy_state, policy.policy.advance(state, motion), fr.active)

@@ -60,9 +60,13 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     batch = UpdateBatch(mi.UInt32(active), mi.UInt32(seed_slot),
                         CycleEntries(mi.UInt32(keys), si, mi.UInt32(rays), mi.Bool(unsettled), moving,
                                      mi.Bool(is_new), first_sample, strata))
-    storage, motion_o, shrunk_o, dropped_o = kernel(
+    words, act, motion_o, shrunk_o, dropped_o = kernel(
         scene, light_inputs(scene), storage, order, batch, frame_u32(frame), int(seed), p,
         updater.area_only(scene) if updater is not None else constant_area_emitters(scene))
+    # The words are written here, not in the frozen kernel: a replay copies an input it scatters
+    # into (the whole storage, 38 MB on the atrium, every frame); here ``storage`` has no other
+    # reference and the scatter writes in place.
+    scatter_words(storage, words, act, p.max_cones)
     motion = dr.zeros(mi.Bool, N)
     dr.scatter(motion, motion_o, order)
     if stats is not None:
@@ -74,15 +78,15 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
 def _update_kernel(scene, lights, storage, order, batch: UpdateBatch, frame, seed, p: ConeParams,
                    area_only: bool = False):
     """The update proper, in the lane order ``order``: gather the inputs,
-    :func:`_updated_words`, write the words back into ``storage``. Every
+    :func:`_updated_words` (reading ``storage``, not writing it). Every
     argument that changes from frame to frame is a Dr.Jit array (``frame``
     an opaque ``mi.UInt32``), and nothing here reads an array's width, so
     that :class:`ConeUpdate` can trace it once and replay it for any number
     of entries. ``lights`` (:func:`light_inputs`) is not read here: it declares
     the emitter table's arrays, which :func:`slc.scene.lights.sample_light` reads, as
     inputs of the frozen function. ``area_only`` (a Python bool, part of the recording's
-    key) see :func:`slc.methods.cones.cycle.shrink_test`. Returns (storage, motion, shrunk,
-    dropped), the masks in lane order."""
+    key) see :func:`slc.methods.cones.cycle.shrink_test`. Returns (words, slots, motion, shrunk,
+    dropped), all in lane order: the new words of the entries at ``slots``."""
     act = dr.gather(mi.UInt32, batch.slot, order)
     e = batch.entries
     entries = CycleEntries(
@@ -92,10 +96,8 @@ def _update_kernel(scene, lights, storage, order, batch: UpdateBatch, frame, see
         dr.gather(mi.Bool, e.strata, order))
     words, motion_o, shrunk_o, dropped_o = _updated_words(
         scene, storage, act, entries, dr.gather(mi.UInt32, batch.seed_slot, order), frame, seed, p, area_only)
-    # Every intermediate that read ``storage`` died with _updated_words' locals, so
-    # the scatter below writes in place (a live reader would force a full copy).
-    scatter_words(storage, words, act, p.max_cones)
-    return storage, motion_o, shrunk_o, dropped_o
+    dr.eval(act)
+    return words, act, motion_o, shrunk_o, dropped_o
 
 
 def _updated_words(scene, storage, active, entries: CycleEntries, seed_slot, frame, seed, p: ConeParams,
