@@ -36,6 +36,7 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.methods import Method, MethodError, Param
+from slc.osc.batch import PixelBatch, pixel_batch
 from slc.osc.blocks import build_copy_kernels, extend_array
 from slc.osc.cache import OnSurfaceCache
 from slc.osc.protocol import EntryStart, FrameRequests, SurfaceCache, entry_start  # noqa: F401 (re-exported)
@@ -225,6 +226,12 @@ class PayloadMethod(Method):
         viewer. A subclass may batch the viewers into one launch; its images must be
         those of :meth:`shade` (random numbers keyed per viewer as there)."""
         return [self.shade(ctx, fr, v, gb) for v, gb in enumerate(gbuffers)]
+
+    def pixel_batch(self, fr: FrameRequests, gbuffers) -> PixelBatch:
+        """Every viewer's pixels laid out one after another for one shading launch
+        (:func:`slc.osc.batch.pixel_batch`; the layout kept on this instance while the viewers'
+        sizes hold)."""
+        return pixel_batch(self, fr, gbuffers)
 
     # ------------------------------------------------------------------ state
     def reset(self):
