@@ -140,7 +140,7 @@ class ConesRep(Representation):
     def shade(self, px: Pixels) -> mi.Color3f:
         c = self.cache
         return shader_for(c, c.max_cones)(self.pool.data, dr.select(px.active, px.slot, 0), px.active, px.si, px.tf,
-                                          c.shade_samples, shade_key(px.frame, c.seed))
+                                          c.shade_samples, shade_key(px.frame, c.seed), px.pid)
 
     def lobes(self, rec, si, active) -> list:
         return lobes(rec, active, self.cache.max_cones)

@@ -67,16 +67,20 @@ class Updated:
 
 @dataclass
 class Pixels:
-    """The pixels of one viewer whose entry a representation holds: ``slot`` each pixel's record
-    in the pool, ``active`` those pixels, ``si`` their interactions (the G-buffer's),
-    ``tf`` the local frame of each pixel's entry, ``frame`` and ``viewer`` (the index of the
-    viewer, for random streams)."""
+    """The pixels whose entry a representation holds, of one viewer or of every viewer one
+    after another: ``slot`` each pixel's record in the pool, ``active`` those pixels, ``si``
+    their interactions (the G-buffer's), ``tf`` the local frame of each pixel's entry, ``frame``,
+    ``viewer`` (the viewer's index, for random streams: an int, or per pixel a ``mi.UInt32`` of
+    ``n_viewers`` viewers) and ``pid`` (each pixel's index within its own viewer, which keys its
+    random numbers; None: its index in the arrays, one viewer)."""
     slot: mi.UInt32
     active: mi.Bool
     si: mi.SurfaceInteraction3f
     tf: mi.Frame3f
     frame: int
-    viewer: int
+    viewer: int | mi.UInt32
+    pid: mi.UInt32 | None = None
+    n_viewers: int = 1
 
 
 def lobe_irradiance(lobes: list, side: float = 1.0) -> mi.Color3f:
