@@ -208,8 +208,9 @@ class PayloadMethod(Method):
     def make_cache(self) -> SurfaceCache:
         """The surface cache this method's entries live in, built at the first
         frame. Default: an :class:`~slc.osc.OnSurfaceCache` with the settings
-        ``block``, ``bias`` and ``evict_after``."""
-        return OnSurfaceCache(self.scene, block_size=self.block, bias=self.bias, evict_after=self.evict_after)
+        ``block``, ``bias`` and ``evict_after`` (and ``freeze`` where the method has it)."""
+        return OnSurfaceCache(self.scene, block_size=self.block, bias=self.bias, evict_after=self.evict_after,
+                              freeze=bool(getattr(self, "freeze", True)))
 
     @abstractmethod
     def update(self, ctx, fr: FrameRequests, policy: EntryPolicy) -> mi.Bool:

@@ -95,6 +95,8 @@ class SurfaceLightCones(PayloadMethod):
               "(the same images; off: in the launch of all pixels, in a branch)", choices=("on", "off")),
         Param("batch", "viewers", "viewers: shade all viewers' pixels in one launch (nearest fetch; the same images "
               "as per viewer); off: one launch per viewer", choices=("off", "viewers")),
+        Param("freeze", True, "the update, the shading and the cache's entry interactions traced once and replayed "
+              "(dr.freeze; the same images); off: traced every frame"),
     ) + PayloadMethod.cache_params
 
     def __init__(self, scene, **kw):

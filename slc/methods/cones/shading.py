@@ -264,7 +264,7 @@ class ConeShading(FrozenFunction):
 
 def shader_for(owner, max_cones: int) -> ConeShading:
     """The :class:`ConeShading` of ``owner`` (a method instance), made on first use
-    (the horizon
+    (frozen unless the owner's ``freeze`` setting is off; the horizon
     treatment from the owner's ``horizon`` setting, default ``clip``; the principled
     pixels' from its ``principled`` setting, default ``sg``)."""
     sh = getattr(owner, "_cone_shading", None)
@@ -273,7 +273,8 @@ def shader_for(owner, max_cones: int) -> ConeShading:
         conductor = getattr(owner, "conductor", "sample")
         if conductor == "sg" and scene is not None and not _ggx_conductors_only(scene):
             conductor = "sample"
-        sh = ConeShading(max_cones, horizon=getattr(owner, "horizon", "clip") == "clip",
+        sh = ConeShading(max_cones, freeze=bool(getattr(owner, "freeze", True)),
+                         horizon=getattr(owner, "horizon", "clip") == "clip",
                          principled=getattr(owner, "principled", "sg"), conductor=conductor,
                          glossy=getattr(owner, "glossy", "full"), compact=getattr(owner, "compact", "on") == "on",
                          front_only=getattr(getattr(owner, "cone_params", None), "front_only", False),

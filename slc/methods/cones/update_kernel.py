@@ -163,6 +163,6 @@ def updater_for(owner) -> ConeUpdate:
     """The :class:`ConeUpdate` of ``owner`` (a method instance), made on first use."""
     up = getattr(owner, "_cone_update", None)
     if up is None:
-        up = ConeUpdate()
+        up = ConeUpdate(freeze=bool(getattr(owner, "freeze", True)))
         owner._cone_update = up
     return up
