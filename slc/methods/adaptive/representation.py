@@ -132,9 +132,10 @@ class Representation(ABC):
         return lobe_irradiance(lobes, side)
 
     def frozen(self, attr: str, make):
-        """The frozen function kept in ``attr``, made on first use by ``make(freeze)``."""
+        """The frozen function kept in ``attr``, made on first use by ``make(freeze)`` (frozen
+        unless the cache's ``freeze`` setting is off)."""
         f = getattr(self, attr, None)
         if f is None:
-            f = make(True)
+            f = make(bool(getattr(self.cache, "freeze", True)))
             setattr(self, attr, f)
         return f
