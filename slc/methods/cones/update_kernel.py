@@ -103,15 +103,13 @@ def _update_kernel(scene, lights, storage, order, batch: UpdateBatch, frame, see
 def _updated_words(scene, storage, active, entries: CycleEntries, seed_slot, frame, seed, p: ConeParams,
                    area_only: bool = False):
     """The update kernel proper on the packed ``storage``: unpack the active
-    entries (and the LOD seeds of new ones), :func:`update_cycle`, pack.
+    entries (a new entry with an LOD seed: the seed's record), :func:`update_cycle`, pack.
     Returns the evaluated (words, motion, shrunk, dropped)."""
     K = p.max_cones
-    state = unpack(gather_words(storage, active, K), K)
-    start = entry_start(entries.fresh, seed_slot, 0)
-    has_seed = start.seeded
-    seeds = unpack(gather_words(storage, start.src, K, has_seed), K)
-    words, motion, shrunk, dropped, _ = update_cycle(scene, state, entries, frame, seed, p, seeds=seeds,
-                                                     has_seed=has_seed, area_only=area_only)
+    start = entry_start(entries.fresh, seed_slot, active)
+    state = unpack(gather_words(storage, start.src, K), K)
+    words, motion, shrunk, dropped, _ = update_cycle(scene, state, entries, frame, seed, p, seeded=start.seeded,
+                                                     area_only=area_only)
     dr.eval(*words, motion, shrunk, dropped)
     return words, motion, shrunk, dropped
 
