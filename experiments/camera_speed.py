@@ -78,7 +78,8 @@ def run(opts):
                                 x="camera_speed")
     cols = [("scene", "scene"), ("method", "method"), ("camera_speed", "speed [x walk]"),
             ("speed_mps", "m/s"), ("time_ms", "t [ms]"), ("startup_ms", "start-up t [ms]"),
-            ("compiled_after_warmup", "kernels after warm-up"), ("flip", "FLIP"), ("psnr", "PSNR"),
+            ("compiled_after_warmup", "kernels after warm-up"),
+            ("recordings_after_warmup", "recordings after warm-up"), ("flip", "FLIP"), ("psnr", "PSNR"),
             ("ssim", "SSIM"), ("memory_mb", "memory [MB]")]
     md = (f"1x = walking speed {WALK_SPEED} m/s, view turns up to {TURN_RATE:g} deg/s, 60 Hz; every speed "
           f"renders {cfg.frames} frames of the scene's first path.\n\n" + ex.markdown_table(rows, cols)

@@ -78,7 +78,8 @@ def run(opts) -> dict:
           f"(1.4 m/s, 60 Hz).\n\n" + ex.markdown_table(
               [r for r in rows if not r["sweep"]], [("setting", "method") if k == "method" else (k, h)
                                                     for k, h in ex.DEFAULT_COLUMNS[:4]]
-              + [("startup_ms", "start-up t [ms]"), ("compiled_after_warmup", "kernels after warm-up")]
+              + [("startup_ms", "start-up t [ms]"), ("compiled_after_warmup", "kernels after warm-up"),
+                 ("recordings_after_warmup", "recordings after warm-up")]
               + ex.DEFAULT_COLUMNS[4:]) + "\n")
     md += _targets(rows)
     md += ("\n## Where the time goes (median ms per stage; kernel execution in brackets, the rest is host time)\n\n"
@@ -109,6 +110,12 @@ def _targets(rows) -> str:
             best = max((r for r in rows if r["scene"] == scene and not r["sweep"]), key=lambda r: r["ssim"])
             lines.append(f"- {scene}: {setting}/rt48 time {t:.2f}x (target <= {0.67 if scene == 'street' else 0.33:.2f}x), "
                          f"FLIP {f:.2f}x (target <= 1.05x), best SSIM: {best['setting']} ({best['ssim']:.3f})")
+        ad = by.get((scene, "adaptive"))
+        if ad and rt48:
+            t = ad["time_ms"] / rt48["time_ms"] if rt48["time_ms"] else float("nan")
+            f = ad["flip"] / rt48["flip"] if rt48["flip"] else float("nan")
+            tgt = " (target on the street: <= 0.4x at FLIP <= 0.7x)" if scene == "street" else ""
+            lines.append(f"- {scene}: adaptive/rt48 time {t:.2f}x, FLIP {f:.2f}x{tgt}")
         slc_r = by.get((scene, "slc"))
         if slc_r and restir:
             lines.append(f"- {scene}: restir/slc time {restir['time_ms'] / max(slc_r['time_ms'], 1e-9):.2f}x "

@@ -104,15 +104,15 @@ def test_frozen_update_bounded_after_another_scene():
 
 @pytest.mark.fresh_process
 def test_frozen_update_follows_a_moving_light():
-    """An animated scene (the emitter table is refreshed as the light moves): the
-    update is traced on every call, never recorded (the registry state changes every
-    frame), and gives the same images as ``freeze=False`` over 16 frames."""
+    """An animated scene (the light's vertex buffer and the emitter table change every
+    frame): the update is recorded at most twice and replayed, and gives the same images
+    as ``freeze=False`` over 16 frames."""
     sc = _moving_scene()
     m, imgs, _, _ = _run(sc, single(sc), 16, freeze=True)
     _, ref, _, _ = _run(sc, single(sc), 16, freeze=False)
     for f, (a, b) in enumerate(zip(imgs, ref)):
         assert np.array_equal(a[0], b[0]), f
-    assert not m._cone_update.frozen and m._cone_update.n_recordings == 0
+    assert m._cone_update.frozen and 1 <= m._cone_update.n_recordings <= 2, m.recordings_per_frame
 
 
 @pytest.mark.fresh_process

@@ -20,22 +20,17 @@ call):
   that width comes back (sponza, 240 frames: 3 recordings of the cone update),
   unless the function declares its lanes (below) and the array belongs to the
   call's own scene.
-- When meshes move, the traversed state changes from frame to frame (the
-  moved meshes' buffers, their area distributions, the rebuilt acceleration
-  structure): Dr.Jit records the function again on most frames' first call
-  (hangar with 3 moving lights: every other frame; street: every frame), and
-  each recording traces the function anew. Recordings made in timed frames
-  would make the timings depend on the pose, and the replays between two
-  recordings (hangar) do not give the traced function's images bit for bit.
+- When meshes move, the traversed state changes from frame to frame: the moved
+  meshes' buffers are new arrays, their area distributions recomputed, the
+  acceleration structure rebuilt. None of this changes the key as long as the
+  new arrays are made as the old ones were (see "Host data that changes between
+  calls" below): the street and the hangar record each function once and
+  replay it in every later frame, bit for bit the traced function's images.
 
-So:
-
-- in a static scene, a function recorded more than ``max_recordings`` times is
-  dropped (traced on every call from then on);
-- in an animated scene, the function is traced on every call (never frozen):
-  its kernels are built in the first frame and found in Dr.Jit's in-memory
-  kernel cache from then on (no value that changes per frame is baked into
-  them), so no frame after the first builds a kernel, whatever the poses.
+So a function recorded more than ``max_recordings`` times is dropped (traced on
+every call from then on), in a static scene as in an animated one; the
+recordings made in each frame are counted (:func:`recordings`, the rows'
+``recordings_after_warmup``).
 
 Widths that coincide. Dr.Jit keys a recording on which of its inputs share a
 width (their "size equivalence class"), and the inputs include every array of
@@ -49,6 +44,20 @@ per-lane arguments get copies of their last lane appended, and its outputs of
 that width are cut back to the call's. Only for functions whose extra lanes
 change nothing: pure functions and plain scatters of equal values (a copy of
 the last lane computes and writes what the last lane does).
+
+Host data that changes between calls. An array made from a numpy array
+(``mi.Float(a)``) maps the numpy memory (no copy), and that breaks a recording
+twice over. Dr.Jit keys a recording on whether each input is aligned to the
+SIMD width: a mesh's vertex buffer rebuilt from numpy in every frame lands on
+16- or 32-byte boundaries by chance, and each new combination records the
+function again (street: a recording in every frame, even of ``lambda scene, x:
+x * 2``). And a recording takes a pointer that a virtual call reads (a moving
+mesh's vertex buffer in ``compute_surface_interaction``) as a literal unless
+Dr.Jit allocated the memory: the replay reads the first frame's buffer, freed
+since. Per-frame host data goes through :func:`device_array` (a copy in memory
+Dr.Jit allocates). The acceleration structure is no such input: Mitsuba
+rebuilds it in place, its handle an input of the recording, so a replay traces
+rays against the moved geometry.
 
 Literal outputs take the call's width. A replayed recording returns an output
 that was a literal when recorded (e.g. the zero ``dn_du`` of a flat mesh's
@@ -69,15 +78,24 @@ import inspect
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
+
+
+_RECORDINGS = [0]      # recordings made by every FrozenFunction of the process
+
+
+def recordings() -> int:
+    """The recordings made so far by every :class:`FrozenFunction` of the process (a
+    function traced again because its inputs missed its recordings): the difference over a
+    frame is the frame's recordings."""
+    return _RECORDINGS[0]
 
 
 class FrozenFunction:
     """``fn`` frozen under the module's policy.
 
     Parameters (defaults): ``fn``, ``freeze=True`` (False: ``fn`` traced on
-    every call), ``animated=False`` (the scene's meshes move: ``fn`` traced on
-    every call, see the module),
-    ``max_recordings=4``, ``lanes=()`` (the per-lane arguments, by the names of
+    every call), ``max_recordings=4``, ``lanes=()`` (the per-lane arguments, by the names of
     ``fn``'s parameters, or their positions: a call whose lane count collides with another input's
     width runs on a free width, see the module; an argument named here may be a
     structure, a Dr.Jit struct or a dataclass, whose every array is per lane), ``narrow=()``
@@ -87,14 +105,13 @@ class FrozenFunction:
     ``n_recordings`` the recordings made (including those of a dropped
     function), ``frozen`` whether calls are still replayed."""
 
-    def __init__(self, fn, freeze: bool = True, animated: bool = False, max_recordings: int = 4,
-                 lanes: tuple = (), narrow: tuple = ()):
+    def __init__(self, fn, freeze: bool = True, max_recordings: int = 4, lanes: tuple = (), narrow: tuple = ()):
         self.fn = fn
         self.lanes, self.narrow = _positions(fn, lanes), _positions(fn, narrow)
         self.padded_calls = 0           # calls run on a free width
         self._scene_key, self._scene_ws = None, set()
-        self.animated, self.max_recordings = bool(animated), int(max_recordings)
-        self.frozen = bool(freeze) and not self.animated
+        self.max_recordings = int(max_recordings)
+        self.frozen = bool(freeze)
         if not self.frozen:
             self.kernel = fn
         else:
@@ -140,6 +157,7 @@ class FrozenFunction:
             recs = int(self.kernel.n_recordings)
             if recs == self.recordings:     # a replay (a recording returns the traced outputs)
                 out = fit_literals(out)
+            _RECORDINGS[0] += max(recs - self.recordings, 0)
             self.recordings = recs
             if self.recordings > self.max_recordings:
                 self.kernel.clear()
@@ -228,6 +246,17 @@ def _positions(fn, lanes) -> tuple:
     if unknown:
         raise ValueError(f"{getattr(fn, '__name__', fn)} has no parameter {', '.join(unknown)}")
     return tuple(n if isinstance(n, int) else names.index(n) for n in lanes)
+
+
+def device_array(tp, a):
+    """``a`` (a numpy array or anything ``tp`` takes) as a Dr.Jit array of type ``tp`` (a
+    1-D type: ``mi.Float``, ``mi.UInt32``...) in memory that Dr.Jit allocated, evaluated: made
+    from numpy, ``tp(a)`` would map the numpy memory (see the module: host data that changes
+    between calls). One copy kernel per type."""
+    v = tp(np.ascontiguousarray(a)) if isinstance(a, np.ndarray) else tp(a)
+    out = dr.gather(tp, v, dr.arange(mi.UInt32, dr.width(v)) + dr.opaque(mi.UInt32, 0))
+    dr.eval(out)
+    return out
 
 
 # ----------------------------------------------------------------------------- widths

@@ -23,10 +23,15 @@ STREAM_SH_SHADE = 0x5A5A0001
 STREAM_CRC = 0xC2B2AE00
 
 
+def stream_mix(seed: int, frame: int, stream: int) -> int:
+    """The 32-bit mix of (seed, frame, stream) (:func:`stream_key`'s value, on the host)."""
+    return (int(seed) * 0x9E3779B1 + int(frame) * 0x85EBCA77 + int(stream)) & 0xFFFFFFFF
+
+
 def stream_key(seed: int, frame: int, stream: int) -> mi.UInt32:
     """The opaque 32-bit mix of (seed, frame, stream): opaque, so that a new
     frame or seed never recompiles a kernel."""
-    return dr.opaque(mi.UInt32, (int(seed) * 0x9E3779B1 + int(frame) * 0x85EBCA77 + int(stream)) & 0xFFFFFFFF)
+    return dr.opaque(mi.UInt32, stream_mix(seed, frame, stream))
 
 
 def mixed_rng(keys: mi.UInt32, mix: mi.UInt32) -> mi.PCG32:

@@ -61,6 +61,8 @@ class OnSurfaceCache:
         used blocks not requested this frame are evicted early, and what
         still does not fit is reported (``stats()['overflow_blocks']``, a
         warning) and its pixels get INVALID slots.
+    freeze: the entries' interactions traced once and replayed (``dr.freeze``,
+        :class:`slc.osc.surface.EntryInteractions`; default), or traced every frame.
     front_only: only pixels whose surface faces the viewer (``si.wi.z > 0``)
         request entries; the others get INVALID slots (default off: every valid
         pixel). For payloads that shade back faces black anyway (osc-gi): a
@@ -73,8 +75,9 @@ class OnSurfaceCache:
     def __init__(self, scene, block_size: int = 8, bias: float = 1.0, evict_after: int = 60,
                  texel_size: float | None = None, max_blocks: int | None = None,
                  max_angle: float = DEFAULT_MAX_ANGLE, max_triangles: int = DEFAULT_MAX_TRIANGLES,
-                 grow: bool = True, front_only: bool = False):
+                 grow: bool = True, front_only: bool = False, freeze: bool = True):
         self.scene = scene
+        self.freeze = bool(freeze)
         self.front_only = bool(front_only)
         self.mi_scene = scene.mi_scene if hasattr(scene, "mi_scene") else scene
         self.layout = CacheLayout(self.mi_scene, block_size, bias, texel_size, max_angle, max_triangles)
@@ -103,7 +106,7 @@ class OnSurfaceCache:
                            overflow_blocks=0, pixels=0, capacity=self.capacity)
         self._warned = False
         self._pending = None
-        self._interactions = EntryInteractions(animated=bool(getattr(self.scene, "dynamic", False)))
+        self._interactions = EntryInteractions(freeze=self.freeze)
 
     def entries_allocated(self) -> int:
         return self.pool.n_blocks * self.layout.block_texels

@@ -36,6 +36,7 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.methods import Method, MethodError, Param
+from slc.osc.batch import PixelBatch, pixel_batch
 from slc.osc.blocks import build_copy_kernels, extend_array
 from slc.osc.cache import OnSurfaceCache
 from slc.osc.protocol import EntryStart, FrameRequests, SurfaceCache, entry_start  # noqa: F401 (re-exported)
@@ -207,8 +208,9 @@ class PayloadMethod(Method):
     def make_cache(self) -> SurfaceCache:
         """The surface cache this method's entries live in, built at the first
         frame. Default: an :class:`~slc.osc.OnSurfaceCache` with the settings
-        ``block``, ``bias`` and ``evict_after``."""
-        return OnSurfaceCache(self.scene, block_size=self.block, bias=self.bias, evict_after=self.evict_after)
+        ``block``, ``bias`` and ``evict_after`` (and ``freeze`` where the method has it)."""
+        return OnSurfaceCache(self.scene, block_size=self.block, bias=self.bias, evict_after=self.evict_after,
+                              freeze=bool(getattr(self, "freeze", True)))
 
     @abstractmethod
     def update(self, ctx, fr: FrameRequests, policy: EntryPolicy) -> mi.Bool:
@@ -225,6 +227,12 @@ class PayloadMethod(Method):
         viewer. A subclass may batch the viewers into one launch; its images must be
         those of :meth:`shade` (random numbers keyed per viewer as there)."""
         return [self.shade(ctx, fr, v, gb) for v, gb in enumerate(gbuffers)]
+
+    def pixel_batch(self, fr: FrameRequests, gbuffers) -> PixelBatch:
+        """Every viewer's pixels laid out one after another for one shading launch
+        (:func:`slc.osc.batch.pixel_batch`; the layout kept on this instance while the viewers'
+        sizes hold)."""
+        return pixel_batch(self, fr, gbuffers)
 
     # ------------------------------------------------------------------ state
     def reset(self):
@@ -310,6 +318,9 @@ class PayloadMethod(Method):
         are kept in ``self.update_rays`` (a ``mi.UInt32`` over ``fr.active``). Returns the
         motion mask the payload's :meth:`update` reports."""
         state = dr.select(fr.is_new, 0, dr.gather(mi.UInt32, self.policy_state, fr.active))
+        # evaluated: no reader of ``policy_state`` is left when the scatter below writes it
+        # (an unevaluated gather would make the scatter copy the whole array first)
+        dr.eval(state)
         policy = EntryPolicy.of(self.ray_policy(), state)
         motion = self.update(ctx, fr, policy)
         dr.scatter(self.policy_state, policy.policy.advance(state, motion), fr.active)

@@ -188,9 +188,9 @@ class EntryInteractions(FrozenFunction):
     is a module function without closure, so that nothing of the cache is held in
     a reference cycle; the recording policy is :class:`slc.core.freeze.FrozenFunction`'s."""
 
-    def __init__(self, freeze: bool = True, animated: bool = False, max_recordings: int = 4):
+    def __init__(self, freeze: bool = True, max_recordings: int = 4):
         # per-lane: slots, isl (a pure function: padded lanes are cut from the output)
-        super().__init__(_interactions_kernel, freeze, animated, max_recordings, lanes=(5, 6))
+        super().__init__(_interactions_kernel, freeze, max_recordings, lanes=(5, 6))
 
     def __del__(self):
         # free the recordings with their owner (refcount), not whenever the garbage

@@ -274,7 +274,8 @@ def bench_update(scene_name: str = "atrium", width: int = 320, height: int = 180
             "frame_ms": frame_ms, "update_ms": st.get("update", 0.0), "stages_ms": dict(st),
             "stages_kernel_ms": dict(res.stages_kernel),
             "frame_vs_rays": frame_ms / max(rays_ms, 1e-9), "update_vs_rays": st.get("update", 0.0) / max(rays_ms, 1e-9),
-            "compiled_after_warmup": res.compiled_after_warmup, "load": _loadavg()}
+            "compiled_after_warmup": res.compiled_after_warmup,
+            "recordings_after_warmup": res.recordings_after_warmup, "load": _loadavg()}
 
 
 def update_report_lines(r: dict) -> list[str]:
@@ -288,7 +289,8 @@ def update_report_lines(r: dict) -> list[str]:
              f"{r['entries']} entries; last frame's update)",
              f"  ratio frame / rays        : {r['frame_vs_rays']:.2f}x (target <= 1.5x)",
              f"  ratio update / rays       : {r['update_vs_rays']:.2f}x",
-             f"  kernels after warm-up     : {r['compiled_after_warmup']}"]
+             f"  kernels after warm-up     : {r['compiled_after_warmup']}",
+             f"  recordings after warm-up  : {r.get('recordings_after_warmup', 0)}"]
     if r.get("load"):
         lines.append(" load average (1, 5, 15 min) after the run: " + ", ".join(f"{x:.2f}" for x in r["load"]))
     return lines

@@ -7,8 +7,9 @@ alone (``python experiments/single_viewer.py --quick``) or through
 ``results.json`` / ``results.md`` atomically (a failed run leaves no partial
 results), renders the Markdown table, and holds the options, presets, scene
 loops, job runs and viewer-count experiments the scripts share. A row whose
-timed frames built kernels (``compiled_after_warmup`` > 0) is flagged: a
-warning on stderr, a mark in its time cell and a note in ``results.md``.
+timed frames built kernels (``compiled_after_warmup`` > 0) or recorded a frozen
+function again (``recordings_after_warmup`` > 0) is flagged: a warning on
+stderr, a mark in its time cell and a note in ``results.md``.
 An experiment's images are written by :mod:`slc.run.images`, the
 scene-variant sweeps run by :mod:`slc.run.sweeps`.
 """
@@ -85,19 +86,22 @@ DEFAULT_COLUMNS = [("scene", "scene"), ("method", "method"), ("viewers", "viewer
                    ("memory_mb", "memory [MB]")]
 
 
-COMPILED_MARK = "⚠"   # marks a time cell whose timed frames built kernels
+COMPILED_MARK = "⚠"   # marks a time cell whose timed frames built kernels (or recorded frozen functions)
 
 
 def _cell(r: dict, k: str, nd: int) -> str:
     text = _fmt(r.get(k, "-"), nd)
-    if k == "time_ms" and r.get("compiled_after_warmup"):
-        text += f" {COMPILED_MARK}{int(r['compiled_after_warmup'])}"
+    if k == "time_ms" and (r.get("compiled_after_warmup") or r.get("recordings_after_warmup")):
+        text += f" {COMPILED_MARK}{int(r.get('compiled_after_warmup') or 0)}"
+        if r.get("recordings_after_warmup"):
+            text += f"/{int(r['recordings_after_warmup'])}r"
     return text
 
 
 def markdown_table(rows: list[dict], columns=None) -> str:
     """A Markdown table of ``rows``; a time whose timed frames built kernels is
-    followed by the mark and the number of kernels (``12.34 ⚠2``)."""
+    followed by the mark and the number of kernels (``12.34 ⚠2``), and of recordings
+    when frozen functions recorded again (``12.34 ⚠2/1r``)."""
     columns = columns or DEFAULT_COLUMNS
     cols = [(k, h) for k, h in columns if any(k in r for r in rows)]
     nd = {"time_ms": 2, "flip": 4, "psnr": 2, "ssim": 4, "memory_mb": 3}
@@ -109,13 +113,16 @@ def markdown_table(rows: list[dict], columns=None) -> str:
 
 def compiled_rows(rows: list[dict]) -> list[str]:
     """One line per row whose timed frames built (compiled or loaded from
-    the disk cache) Dr.Jit kernels: its time is not steady state."""
+    the disk cache) Dr.Jit kernels or recorded frozen functions again: its time
+    is not steady state."""
     out = []
     for r in rows:
-        n = r.get("compiled_after_warmup")
-        if n:
+        n, rec = r.get("compiled_after_warmup"), r.get("recordings_after_warmup")
+        if n or rec:
             where = ", ".join(f"{k}={r[k]}" for k in ("scene", "label", "rig", "viewers", "overlap") if k in r)
-            out.append(f"{where}: {int(n)} kernel(s) built after warm-up")
+            what = [f"{int(n)} kernel(s) built"] if n else []
+            what += [f"{int(rec)} frozen-function recording(s)"] if rec else []
+            out.append(f"{where}: {' and '.join(what)} after warm-up")
     return out
 
 
@@ -130,7 +137,8 @@ def flag_compiled(results: dict, markdown: str) -> str:
               file=sys.stderr)
     note = ("\n\n## Warning: kernels built in timed frames\n\n"
             f"Times marked {COMPILED_MARK}N include N Dr.Jit kernels compiled or loaded from the disk cache "
-            "after the warm-up frames (`compiled_after_warmup`), so they depend on the state of the kernel "
+            "after the warm-up frames (`compiled_after_warmup`; N/Mr: and M frozen functions recorded again, "
+            "`recordings_after_warmup`), so they depend on the state of the kernel "
             "cache and are not steady-state figures:\n\n" + "\n".join(f"- {x}" for x in lines) + "\n")
     return markdown.rstrip("\n") + note
 
@@ -281,7 +289,8 @@ def ratio_in_turn(scene, spec: str, base, top, cfg, repeats: int = 3, seed: int 
     ratios = [x.time_ms / max(y.time_ms, 1e-9) for x, y in zip(t, b)]
     return {"ratio": statistics.median(ratios) if ratios else float("nan"), "ratios": ratios,
             "base_ms": [x.time_ms for x in b], "top_ms": [x.time_ms for x in t],
-            "compiled_after_warmup": max((x.compiled_after_warmup for x in b + t), default=0)}
+            "compiled_after_warmup": max((x.compiled_after_warmup for x in b + t), default=0),
+            "recordings_after_warmup": max((x.recordings_after_warmup for x in b + t), default=0)}
 
 
 def setup(opts, quick: dict, full: dict, methods: list[str]):

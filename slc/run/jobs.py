@@ -66,7 +66,8 @@ from slc.scene import scenes
 # Row fields that depend on the run, not on the job's inputs: how long things
 # took and where/how the job ran. Everything else must be identical between a
 # serial run and a Ray run with the same seed.
-TIMING_FIELDS = ("time_ms", "stages_ms", "stages_kernel_ms", "frames_ms", "compiled_after_warmup", "startup_ms")
+TIMING_FIELDS = ("time_ms", "stages_ms", "stages_kernel_ms", "frames_ms", "compiled_after_warmup",
+                 "recordings_after_warmup", "startup_ms")
 RUN_FIELDS = ("host", "threads", "backend", "job")
 
 

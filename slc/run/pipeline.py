@@ -11,7 +11,10 @@ ground truth, the indirect reference, or both).
 Kernels compiled or loaded from Dr.Jit's disk cache while the method
 renders are counted per frame (:class:`slc.core.timing.KernelCounter`); their sum
 over the timed frames is ``compiled_after_warmup`` in every row, and it must
-be 0: otherwise the median time depends on the state of the kernel cache.
+be 0: otherwise the median time depends on the state of the kernel cache. The
+frozen functions' recordings (:func:`slc.core.freeze.recordings`: a function
+traced again because its inputs missed its recordings) are counted alike:
+``recordings_after_warmup``, 0 when the timed frames replay.
 """
 from __future__ import annotations
 
@@ -21,7 +24,7 @@ from typing import Callable
 
 import numpy as np
 
-from slc.core import check
+from slc.core import check, freeze
 from slc.scene import gbuffer as gbuf
 from slc.reference import references
 from slc.reference.groundtruth import GT_SAMPLES
@@ -67,9 +70,11 @@ class RunResult:
     stages: dict
     metrics: dict
     memory_mb: float
-    frames_ms: list = field(default_factory=list)  # per frame: {stage: ms, "total": ms, "kernel": ms, "compiled": n}, warm-up included
+    frames_ms: list = field(default_factory=list)  # per frame: {stage: ms, "total": ms, "kernel": ms, "compiled": n,
+    #                                                "recordings": n}, warm-up included
     stages_kernel: dict = field(default_factory=dict)  # median kernel execution ms per stage (the rest is host time)
     compiled_after_warmup: int = 0  # kernels compiled or loaded from disk in the timed frames (0 when steady)
+    recordings_after_warmup: int = 0  # frozen-function recordings in the timed frames (0 when steady)
     images: dict = field(default_factory=dict)  # viewer -> {"gt", "img", "flip_map", "exposure"}, last evaluated frame
     last: dict = field(default_factory=dict)    # viewer -> composed image of the last frame
     stats: dict = field(default_factory=dict)
@@ -83,6 +88,7 @@ class RunResult:
              "memory_mb": self.memory_mb, "stages_ms": self.stages,
              "stages_kernel_ms": self.stages_kernel,
              "compiled_after_warmup": int(self.compiled_after_warmup),
+             "recordings_after_warmup": int(self.recordings_after_warmup),
              "frames_ms": [{k: round(v, 3) for k, v in f.items()} for f in self.frames_ms]}
         r.update(self.metrics)
         r.update(self.stats)
@@ -114,6 +120,7 @@ def run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress=None) 
 def _run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress, kc: KernelCounter) -> RunResult:
     timer = StageTimer()
     compiled: list[int] = []
+    recorded: list[int] = []
     method.reset()
     evals = set(cfg.evaluated())
     acc: dict[str, list] = {}
@@ -125,6 +132,7 @@ def _run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress, kc: 
         gbs = gbuffers_for(scene, viewers, f, cfg.width, cfg.height)
         ctx = FrameContext(frame=f)
         kc.take()                 # kernels of the G-buffer and of the previous frame's evaluation
+        recs = freeze.recordings()
         timer.begin_frame()
         with check.scope(method.label or method.name, f, gbs):     # check mode: names method/frame
             direct = method.render(ctx, gbs, timer)
@@ -134,6 +142,7 @@ def _run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress, kc: 
                              stage="compose")
         timer.end_frame()
         compiled.append(kc.take())
+        recorded.append(freeze.recordings() - recs)
         for k, v in method.stats().items():
             if isinstance(v, (int, float)):
                 # a cache's own overlap of entries is kept apart from the pipeline's measure
@@ -171,10 +180,12 @@ def _run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress, kc: 
                      stages={k: v for k, v in summ.items() if k != "total"}, metrics=metrics,
                      memory_mb=method.memory_bytes() / 2 ** 20,
                      stages_kernel={k: v for k, v in ksumm.items() if k != "total"},
-                     frames_ms=[dict(f, kernel=k.get("total", 0.0), compiled=c)
-                                for f, k, c in zip(timer.frames, timer.kernel_frames, compiled)],
+                     frames_ms=[dict(f, kernel=k.get("total", 0.0), compiled=c, recordings=n)
+                                for f, k, c, n in zip(timer.frames, timer.kernel_frames, compiled, recorded)],
                      compiled_after_warmup=sum(compiled[cfg.warmup:] if len(compiled) > cfg.warmup
                                                else compiled[-1:]),
+                     recordings_after_warmup=sum(recorded[cfg.warmup:] if len(recorded) > cfg.warmup
+                                                 else recorded[-1:]),
                      images=images, last=last,
                      stats=stats)
 

@@ -41,7 +41,8 @@ def variant_experiment(opts, name: str, preset: dict, specs: list[str], variants
     add_startup(rows)
     metric_vs_value_plot(out / f"flip_time_vs_{field}.png", rows, field, title)
     columns = DEFAULT_COLUMNS[:1] + [(field, field)] + [("setting", "method")] + DEFAULT_COLUMNS[3:4] + \
-        [("startup_ms", "start-up [ms]"), ("compiled_after_warmup", "kernels after warm-up")] + DEFAULT_COLUMNS[4:]
+        [("startup_ms", "start-up [ms]"), ("compiled_after_warmup", "kernels after warm-up"),
+         ("recordings_after_warmup", "recordings after warm-up")] + DEFAULT_COLUMNS[4:]
     md = (f"# {name}\n\n{cfg.width}x{cfg.height}, {cfg.frames} frames ({cfg.warmup} warm-up), one viewer; "
           f"quality on frames {cfg.evaluated()} against {cfg.gt_spp}-sample ground truth; time = median DI ms "
           f"per frame.\n\n" + markdown_table(rows, columns) + "\n"

@@ -32,6 +32,8 @@ from slc.core.spec import SpecError, parse_spec
 backend.init()
 import mitsuba as mi  # noqa: E402
 
+from slc.core.freeze import device_array  # noqa: E402
+
 from slc.scene.camera import FPS, CameraPath, random_path  # noqa: E402
 from slc.scene.checks import SceneError, check_emitters, check_values  # noqa: E402
 from slc.scene.emitter_sampling import for_scene  # noqa: E402
@@ -149,11 +151,13 @@ class Scene:
         for a in self.animated:
             M = np.asarray(a.transform(t), float)
             P = a.rest_positions @ M[:3, :3].T + M[:3, 3]
-            self._params[f"{a.shape_id}.vertex_positions"] = mi.Float(P.astype(np.float32).ravel())
+            # in memory Dr.Jit allocates: frozen functions replay on the new buffer
+            # (slc.core.freeze, "Host data that changes between calls")
+            self._params[f"{a.shape_id}.vertex_positions"] = device_array(mi.Float, P.astype(np.float32).ravel())
             if a.rest_normals is not None and f"{a.shape_id}.vertex_normals" in self._params:
                 N = a.rest_normals @ np.linalg.inv(M[:3, :3]).T
                 N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
-                self._params[f"{a.shape_id}.vertex_normals"] = mi.Float(N.astype(np.float32).ravel())
+                self._params[f"{a.shape_id}.vertex_normals"] = device_array(mi.Float, N.astype(np.float32).ravel())
         self._params.update()
         for_scene(self.mi_scene)   # re-read moved emissive meshes outside kernels
         self.time = t

@@ -57,8 +57,8 @@ class ConesUpdate(FrozenFunction):
     sphere and region tables, the entries' records and interactions, and the
     frame as an opaque ``mi.UInt32`` (a new frame is no new recording). The
     cone parameters, ``seed``, ``sph`` and ``env`` are fixed per instance.
-    Unfrozen in animated scenes and after more than ``max_recordings``
-    recordings. Images are those of the traced update bit for bit."""
+    Unfrozen after more than ``max_recordings`` recordings. Images are those of
+    the traced update bit for bit."""
 
     def __init__(self, p: ConeParams, seed: int, sph=None, env=None, freeze: bool = True, max_recordings: int = 4):
         self.sph, self.env = sph, env
@@ -73,7 +73,7 @@ class ConesUpdate(FrozenFunction):
             st = [dr.select(on, x, 0.0) for x in st]
             dr.eval(out, motion, st)
             return out, motion, st
-        super().__init__(kernel, freeze, False, max_recordings,
+        super().__init__(kernel, freeze, max_recordings=max_recordings,
                          lanes=("rec", "si", "key", "rays", "unsettled", "moving", "first_sample", "fresh",
                                 "on"))     # per entry (slc.core.freeze)
 
@@ -140,7 +140,7 @@ class ConesRep(Representation):
     def shade(self, px: Pixels) -> mi.Color3f:
         c = self.cache
         return shader_for(c, c.max_cones)(self.pool.data, dr.select(px.active, px.slot, 0), px.active, px.si, px.tf,
-                                          c.shade_samples, shade_key(px.frame, c.seed))
+                                          c.shade_samples, shade_key(px.frame, c.seed), px.pid)
 
     def lobes(self, rec, si, active) -> list:
         return lobes(rec, active, self.cache.max_cones)

@@ -360,26 +360,44 @@ class AdaptiveCache(PayloadMethod):
 
     # ------------------------------------------------------------------ shade
     def shade(self, ctx, fr, v, gb):
+        slot = mi.UInt32(fr.pixel_slot[v])
+        return self._shade_pixels(ctx, fr, slot, mi.Bool(gb.valid) & (slot != INVALID), gb.si,
+                                  mi.UInt32(fr.pixel_index[v]), v)
+
+    def shade_all(self, ctx, fr, gbuffers):
+        """All viewers' pixels: one launch per representation over every viewer's pixels one
+        after another (:meth:`~slc.osc.payload.PayloadMethod.pixel_batch`), split per viewer;
+        each pixel keeps the random numbers it has per viewer (its index within its viewer, its
+        viewer's streams), so the images are the per-viewer ones bit for bit. One viewer:
+        :meth:`shade`."""
+        if len(gbuffers) < 2:
+            return super().shade_all(ctx, fr, gbuffers)
+        px = self.pixel_batch(fr, gbuffers)
+        return px.split(self._shade_pixels(ctx, fr, px.slot, px.active, px.si, px.index, px.viewer, px.pid,
+                                           len(gbuffers)))
+
+    def _shade_pixels(self, ctx, fr, slot, ok, si, index, viewer, pid=None, n_viewers: int = 1):
+        """L_o at the pixels ``si`` (entries ``slot``, ``ok`` those with one; ``index`` their
+        entries' indices into the frame's active entries), from every representation in use;
+        ``viewer``, ``pid`` and ``n_viewers`` as :class:`~.representation.Pixels`."""
         W = self.words
         if self.sph is not None:
             self.sph.refresh()
-        slot = mi.UInt32(fr.pixel_slot[v])
-        ok = mi.Bool(gb.valid) & (slot != INVALID)
         tag = dr.gather(mi.UInt32, self.storage, slot * W, ok) & 3
         ps = dr.gather(mi.UInt32, self.storage, slot * W + 1, ok)
-        tf = dr.gather(mi.Frame3f, fr.si.sh_frame, fr.pixel_index[v], ok)
+        tf = dr.gather(mi.Frame3f, fr.si.sh_frame, index, ok)
         # a representation no active entry uses is not traced (no pixel can need it)
         if self._counts is None and getattr(self, "_count_hist", None) is not None:
             self._counts = dict(zip(REPS, tally(REPS, self._count_hist)))
         used = (self._counts or {}) if self._warm else {}
         # each representation's shading is its own kernel, added into an evaluated sum (the same
         # kernels whichever representations are present)
-        L = dr.zeros(mi.Color3f, gb.size)
+        L = dr.zeros(mi.Color3f, dr.width(slot))
         dr.eval(L)
         for rep in self.reps:
             if used.get(rep.tag, 1):
-                Lr = rep.shade(Pixels(slot=ps, active=ok & (tag == rep.tag), si=gb.si, tf=tf, frame=ctx.frame,
-                                      viewer=v))
+                Lr = rep.shade(Pixels(slot=ps, active=ok & (tag == rep.tag), si=si, tf=tf, frame=ctx.frame,
+                                      viewer=viewer, pid=pid, n_viewers=n_viewers))
                 dr.eval(Lr)
                 L = L + Lr
                 dr.eval(L)

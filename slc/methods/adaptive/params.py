@@ -61,4 +61,6 @@ PARAMS = (
           choices=("prior", "visibility", "cones", "sh")),
     Param("force", "auto", "representation of every entry (auto: the choice rule)",
           choices=("auto", "visibility", "cones", "sh")),
+    Param("freeze", True, "the representations' updates and shadings and the cache's entry interactions traced "
+          "once and replayed (dr.freeze; the same images); off: traced every frame"),
 )

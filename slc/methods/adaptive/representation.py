@@ -67,16 +67,20 @@ class Updated:
 
 @dataclass
 class Pixels:
-    """The pixels of one viewer whose entry a representation holds: ``slot`` each pixel's record
-    in the pool, ``active`` those pixels, ``si`` their interactions (the G-buffer's),
-    ``tf`` the local frame of each pixel's entry, ``frame`` and ``viewer`` (the index of the
-    viewer, for random streams)."""
+    """The pixels whose entry a representation holds, of one viewer or of every viewer one
+    after another: ``slot`` each pixel's record in the pool, ``active`` those pixels, ``si``
+    their interactions (the G-buffer's), ``tf`` the local frame of each pixel's entry, ``frame``,
+    ``viewer`` (the viewer's index, for random streams: an int, or per pixel a ``mi.UInt32`` of
+    ``n_viewers`` viewers) and ``pid`` (each pixel's index within its own viewer, which keys its
+    random numbers; None: its index in the arrays, one viewer)."""
     slot: mi.UInt32
     active: mi.Bool
     si: mi.SurfaceInteraction3f
     tf: mi.Frame3f
     frame: int
-    viewer: int
+    viewer: int | mi.UInt32
+    pid: mi.UInt32 | None = None
+    n_viewers: int = 1
 
 
 def lobe_irradiance(lobes: list, side: float = 1.0) -> mi.Color3f:
@@ -92,8 +96,7 @@ class Representation(ABC):
     """One representation of the adaptive cache (see the module). ``cache`` is the
     :class:`~slc.methods.adaptive.method.AdaptiveCache` (its settings, scene and light tables);
     ``pool`` holds the records. Subclasses set ``tag`` and ``name`` and write the methods below.
-    Their frozen functions are made on first use by :meth:`frozen` (unfrozen in animated
-    scenes, whose every frame would record them again)."""
+    Their frozen functions are made on first use by :meth:`frozen`."""
 
     tag: int = 0
     name: str = ""
@@ -129,9 +132,10 @@ class Representation(ABC):
         return lobe_irradiance(lobes, side)
 
     def frozen(self, attr: str, make):
-        """The frozen function kept in ``attr``, made on first use by ``make(freeze)``."""
+        """The frozen function kept in ``attr``, made on first use by ``make(freeze)`` (frozen
+        unless the cache's ``freeze`` setting is off)."""
         f = getattr(self, attr, None)
         if f is None:
-            f = make(not bool(getattr(self.cache.scene, "dynamic", False)))
+            f = make(bool(getattr(self.cache, "freeze", True)))
             setattr(self, attr, f)
         return f

@@ -91,8 +91,8 @@ class SHUpdate(FrozenFunction):
     (:func:`~slc.methods.adaptive.frozen_inputs.sampler_inputs`), the sphere and region
     tables, the entries' records and interactions, and the random streams' mix
     (opaque: a new frame is no new recording). The encoding, ``seed``,
-    ``max_count``, ``sph`` and ``env`` are fixed per instance. Unfrozen in
-    animated scenes and after more than ``max_recordings`` recordings. Images
+    ``max_count``, ``sph`` and ``env`` are fixed per instance. Unfrozen after
+    more than ``max_recordings`` recordings. Images
     are those of the traced update bit for bit."""
 
     def __init__(self, enc_name: str, seed: int, max_count: int, sph=None, env=None, freeze: bool = True,
@@ -108,7 +108,7 @@ class SHUpdate(FrozenFunction):
             st = [dr.select(on, x, 0.0) for x in st]
             dr.eval(out, st)
             return out, st
-        super().__init__(kernel, freeze, False, max_recordings,
+        super().__init__(kernel, freeze, max_recordings=max_recordings,
                          lanes=("rec", "si", "key", "rays", "fresh", "on"))     # per entry (slc.core.freeze)
 
     def __call__(self, scene, rec, si, key, rays, fresh, on, frame: int):
@@ -117,10 +117,11 @@ class SHUpdate(FrozenFunction):
                                 mi.Bool(on), stream_key(self.seed, frame, STREAM_SH_UPDATE))
 
 
-def shade(rec, si, bsdf, tf, active, enc, seed: int, glossy_samples: int, scene=None) -> mi.Color3f:
+def shade(rec, si, bsdf, tf, active, enc, seed: int, glossy_samples: int, scene=None, pid=None) -> mi.Color3f:
     """L_o of the pixels from their SH records (:func:`slc.methods.sh.shading.shade_radiance`);
     ``tf`` each entry's local frame, in which the coefficients live. ``scene``: a scene with
-    two-sided BSDFs (None: none), whose pixels seen from behind are shaded from that side."""
+    two-sided BSDFs (None: none), whose pixels seen from behind are shaded from that side.
+    ``pid``: each pixel's random-number key (None: its index in the arrays)."""
     coeffs, _ = unpack(rec, enc)
     two = two_sided(scene, bsdf, active) if scene is not None else None
     nrm = tf.to_local(mi.Vector3f(si.sh_frame.n) if two is None else side_normal(si))
@@ -128,7 +129,8 @@ def shade(rec, si, bsdf, tf, active, enc, seed: int, glossy_samples: int, scene=
         si, bsdf, active,
         lambda: mi.Color3f(*irradiance(enc, coeffs, nrm, chroma="ratio")),
         lambda d, m: (mi.Color3f(*radiance(enc, coeffs, tf.to_local(d))), m),
-        keyed_rng(dr.arange(mi.UInt32, dr.width(active)), seed, 0, STREAM_SH_SHADE), glossy_samples, two)
+        keyed_rng(dr.arange(mi.UInt32, dr.width(active)) if pid is None else pid, seed, 0, STREAM_SH_SHADE),
+        glossy_samples, two)
 
 
 def lobes(rec, active, enc):
@@ -172,10 +174,10 @@ def irradiance_at_normal(rec, enc, side: float = 1.0) -> mi.Color3f:
 
 # ----------------------------------------------------------------------------- frozen shading
 
-def _shade_kernel(rec, active, si, bsdf, tf, enc_name: str, seed: int, glossy_samples: int, scene, tables):
+def _shade_kernel(rec, active, si, bsdf, tf, enc_name: str, seed: int, glossy_samples: int, scene, tables, pid):
     """:func:`shade` (the body of :class:`SHShading`'s frozen function; ``tables``: the arrays
     the two-sided lookup reads)."""
-    return shade(rec, si, bsdf, tf, active, get_encoding(enc_name), seed, glossy_samples, scene)
+    return shade(rec, si, bsdf, tf, active, get_encoding(enc_name), seed, glossy_samples, scene, pid)
 
 
 class SHShading(FrozenFunction):
@@ -185,20 +187,20 @@ class SHShading(FrozenFunction):
     (gathered outside: the pool's width changes when it grows, the pixels' does
     not), mask and interactions are the frozen function's inputs; the encoding, seed
     and glossy sample count are fixed per instance; ``scene``: the scene where it has
-    two-sided BSDFs (None: none; see :func:`shade`). A static scene whose
-    function was recorded more than ``max_recordings`` times, or an animated
-    scene (recorded again every frame), shades unfrozen."""
+    two-sided BSDFs (None: none; see :func:`shade`). A function recorded
+    more than ``max_recordings`` times shades unfrozen."""
 
     def __init__(self, enc_name: str, seed: int, glossy_samples: int, freeze: bool = True,
                  max_recordings: int = 4, scene=None):
         self.enc_name, self.seed, self.glossy_samples = str(enc_name), int(seed), int(glossy_samples)
         self.scene = scene
-        super().__init__(_shade_kernel, freeze, False, max_recordings)
+        super().__init__(_shade_kernel, freeze, max_recordings=max_recordings)
 
-    def __call__(self, rec, active, si, tf) -> mi.Color3f:
+    def __call__(self, rec, active, si, tf, pid=None) -> mi.Color3f:
+        """``pid``: each pixel's random-number key (None: its index in the arrays)."""
         tables = side_inputs(self.scene) if self.scene is not None else []
         return super().__call__([mi.UInt32(w) for w in rec], mi.Bool(active), si, si.bsdf(), tf, self.enc_name,
-                                self.seed, self.glossy_samples, self.scene, tables)
+                                self.seed, self.glossy_samples, self.scene, tables, pid)
 
 
 class SHRep(Representation):
@@ -222,7 +224,7 @@ class SHRep(Representation):
         c = self.cache
         fn = self.frozen("shade_fn", lambda fz: SHShading(c.encoding, c.seed, c.glossy_samples, freeze=fz,
                                                            scene=c.scene.mi_scene if c._back else None))
-        return fn(self.pool.gather(px.slot, px.active), px.active, px.si, px.tf)
+        return fn(self.pool.gather(px.slot, px.active), px.active, px.si, px.tf, px.pid)
 
     def lobes(self, rec, si, active) -> list:
         return lobes(rec, active, self.cache.enc)

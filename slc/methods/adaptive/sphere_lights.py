@@ -37,6 +37,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from slc.core.freeze import device_array
 from slc.methods.adaptive.polygon_lights import PolygonLights
 from slc.scene import emitter_sampling
 from slc.scene.emitter_table import constant_rgb   # a constant radiance value as RGB, or None
@@ -133,11 +134,12 @@ class SphereLights:
         # width >= 2: a width-1 array would enter kernels as a literal (recompiled when it changes)
         pad = lambda a: np.concatenate([a, a[:1] * 0 if len(a) else np.zeros((1,) + a.shape[1:])])  # noqa: E731
         f, C, r, L = pad(self.flag), pad(C), pad(self.r), pad(self.L)
-        self._flag = mi.UInt32(f.astype(np.uint32))
-        self._c = mi.Point3f(*[C[:, k].astype(np.float32) for k in range(3)])
-        self._r = mi.Float(r.astype(np.float32))
-        self._L = mi.Color3f(*[L[:, k].astype(np.float32) for k in range(3)])
-        dr.make_opaque(self._flag, self._c, self._r, self._L)
+        # in memory Dr.Jit allocates: the frozen functions that read them replay after a move
+        # (slc.core.freeze, "Host data that changes between calls")
+        self._flag = device_array(mi.UInt32, f.astype(np.uint32))
+        self._c = mi.Point3f(*[device_array(mi.Float, C[:, k].astype(np.float32)) for k in range(3)])
+        self._r = device_array(mi.Float, r.astype(np.float32))
+        self._L = mi.Color3f(*[device_array(mi.Float, L[:, k].astype(np.float32)) for k in range(3)])
 
     def _list_polygons(self, sc, polygons: bool) -> None:
         """The polygon lights (emitters not listed as spheres) and, for those on meshes, their
@@ -159,8 +161,7 @@ class SphereLights:
 
     def _set_moved(self, moved: np.ndarray) -> None:
         self.moved = moved
-        self._moved = mi.UInt32(np.concatenate([moved, [False]]).astype(np.uint32))
-        dr.make_opaque(self._moved)
+        self._moved = device_array(mi.UInt32, np.concatenate([moved, [False]]).astype(np.uint32))
 
     def refresh(self) -> None:
         """Move the centres of animated sphere lights to the scene's current time, and mark

@@ -176,7 +176,7 @@ class SampleObserver:
         return extra
 
 
-def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams, seeds=None, has_seed=None,
+def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams, seeded=None,
                  valid=None, observer: SampleObserver | None = None, area_only: bool = False):
     """One function because it is one traced cycle whose stages (reset, the sample loop, the
     shrink test, the end of the cycle) share the cone state; its stages are marked by banner
@@ -185,8 +185,8 @@ def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams
     One update cycle of unpacked cone records ``state = (D, A, L, C, n)``
     (one lane per entry, as :func:`slc.methods.cones.packing.unpack` returns it) with
     the per-entry inputs ``entries`` (:class:`CycleEntries`):
-    fresh entries restart empty, or from their LOD seed's unpacked
-    record ``seeds`` where ``has_seed``; ``rays`` light samples per entry from
+    fresh entries restart empty, or where ``seeded`` from ``state``, which holds their LOD
+    seed's record there (its C capped at ``seed_c_max``); ``rays`` light samples per entry from
     the stratified sequence (see below), insertion (cases A-D), the shrink test,
     the end of the cycle. ``valid`` (default: the interaction's) masks the lanes
     that sample; ``observer`` (a :class:`SampleObserver`) sees every sample;
@@ -204,7 +204,7 @@ def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams
     # ----------------------------------------------- reset / seed new entries
     eD, eA, eL, eC, en = empty_state(N, K)
     is_new = mi.Bool(is_new)
-    if seeds is None:
+    if seeded is None:
         for i in range(K):
             D[i] = dr.select(is_new, eD[i], D[i])
             A[i] = dr.select(is_new, eA[i], A[i])
@@ -212,13 +212,14 @@ def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams
         C = dr.select(is_new, eC, C)
         n = dr.select(is_new, en, n)
     else:
-        sD, sA, sL, sC, sn = seeds
+        # the seeded lanes' state is already their seed's record (one gather and decode per
+        # entry: the entry's own record or its seed's, not both)
         for i in range(K):
-            D[i] = dr.select(has_seed, sD[i], dr.select(is_new, eD[i], D[i]))
-            A[i] = dr.select(has_seed, sA[i], dr.select(is_new, eA[i], A[i]))
-            L[i] = dr.select(has_seed, sL[i], dr.select(is_new, eL[i], L[i]))
-        C = dr.select(has_seed, dr.minimum(sC, p.seed_c_max), dr.select(is_new, eC, C))
-        n = dr.select(has_seed, sn, dr.select(is_new, en, n))
+            D[i] = dr.select(seeded, D[i], dr.select(is_new, eD[i], D[i]))
+            A[i] = dr.select(seeded, A[i], dr.select(is_new, eA[i], A[i]))
+            L[i] = dr.select(seeded, L[i], dr.select(is_new, eL[i], L[i]))
+        C = dr.select(seeded, dr.minimum(C, p.seed_c_max), dr.select(is_new, eC, C))
+        n = dr.select(seeded, n, dr.select(is_new, en, n))
 
     frame_l = si.sh_frame
     frame = frame_u32(frame)

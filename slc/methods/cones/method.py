@@ -5,7 +5,6 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.scene.bsdf_table import front_side_only
-from slc.scene.gbuffer import viewer_lanes
 from slc.core.keys import INVALID
 from slc.methods import Param, register
 from slc.osc.payload import PayloadMethod, RayPolicy
@@ -96,6 +95,8 @@ class SurfaceLightCones(PayloadMethod):
               "(the same images; off: in the launch of all pixels, in a branch)", choices=("on", "off")),
         Param("batch", "viewers", "viewers: shade all viewers' pixels in one launch (nearest fetch; the same images "
               "as per viewer); off: one launch per viewer", choices=("off", "viewers")),
+        Param("freeze", True, "the update, the shading and the cache's entry interactions traced once and replayed "
+              "(dr.freeze; the same images); off: traced every frame"),
     ) + PayloadMethod.cache_params
 
     def __init__(self, scene, **kw):
@@ -126,14 +127,17 @@ class SurfaceLightCones(PayloadMethod):
     def shade(self, ctx, fr, v, gb):
         slot = mi.UInt32(fr.pixel_slot[v])
         ok = mi.Bool(gb.valid) & (slot != INVALID)
-        # each entry's own local frame (the cones live in it)
-        tf = dr.gather(mi.Frame3f, fr.si.sh_frame, fr.pixel_index[v], ok)
         if self.fetch == "bilinear":
+            # each entry's own local frame (the cones live in it)
+            tf = dr.gather(mi.Frame3f, fr.si.sh_frame, fr.pixel_index[v], ok)
             return self._shade_bilinear(gb, slot, ok, tf, ctx.frame)
         if self.fetch == "stochastic":
             slot = self._stochastic_tap(gb, slot, ctx.frame)
-        return shader_for(self, self.max_cones)(self.storage, slot, ok, gb.si, tf, self.shade_samples,
-                                                shade_key(ctx.frame, self.seed))
+        # each pixel's entry frame gathered inside the launch (an index into the entries' frames:
+        # no kernel of its own writing nine arrays per pixel; the same values)
+        return shader_for(self, self.max_cones)(self.storage, slot, ok, gb.si, mi.UInt32(fr.pixel_index[v]),
+                                                self.shade_samples, shade_key(ctx.frame, self.seed), None,
+                                                fr.si.sh_frame)
 
     def shade_all(self, ctx, fr, gbuffers):
         """All viewers' pixels. With ``batch=viewers`` (the default) and the nearest
@@ -146,56 +150,12 @@ class SurfaceLightCones(PayloadMethod):
         (``fr.layer_slot``, ``fr.layer_index``) or are concatenated here. Otherwise (and for one viewer) :meth:`shade` per viewer."""
         if self.batch != "viewers" or self.fetch != "nearest" or len(gbuffers) < 2:
             return super().shade_all(ctx, fr, gbuffers)
-        lay = gbuffers[0].layers
-        if lay is None or any(gb.layers is not lay or gb.layer != v for v, gb in enumerate(gbuffers)):
-            lay = None
-        sizes = [gb.size for gb in gbuffers]
-        lanes, batch_pid = self._batch_layout(sizes)
-        total = sum(sizes)
-
-        # ------------------- the viewers' pixels, one after another -------------------
-        # the cache's slots laid out as the layers already (FrameRequests.layer_slot) when it
-        # provides them; else the per-viewer slots concatenated here
-        own = fr.layer_slot is not None and fr.layer_index is not None
-        slot = fr.layer_slot if own else dr.empty(mi.UInt32, total)
-        index = fr.layer_index if own else dr.empty(mi.UInt32, total)
-        if lay is None:
-            si, valid, pid = dr.empty(mi.SurfaceInteraction3f, total), dr.empty(mi.Bool, total), batch_pid
-        else:
-            si, valid, pid = lay.si, lay.valid, lay.pixel
-        for v, gb in enumerate(gbuffers):
-            if own and lay is not None:
-                break
-            at = lanes[v]
-            if not own:
-                dr.scatter(slot, mi.UInt32(fr.pixel_slot[v]), at)
-                dr.scatter(index, mi.UInt32(fr.pixel_index[v]), at)
-            if lay is None:
-                dr.scatter(si, gb.si, at)
-                dr.scatter(valid, mi.Bool(gb.valid), at)
-        ok = valid & (slot != INVALID)
-
+        px = self.pixel_batch(fr, gbuffers)
         # ------------------- one launch, split per viewer -------------------
         # (each pixel's entry frame is gathered inside the launch: ``index`` into the frames)
-        out = shader_for(self, self.max_cones)(self.storage, slot, ok, si, index, self.shade_samples,
-                                               shade_key(ctx.frame, self.seed), pid, fr.si.sh_frame)
-        return [dr.gather(mi.Color3f, out, at) for at in lanes]
-
-    def _batch_layout(self, sizes):
-        """Each viewer's lanes of the batched launch (:func:`slc.scene.gbuffer.viewer_lanes`) and each
-        batched pixel's index within its own viewer, evaluated and kept while the sizes hold (no
-        opaque offset made per viewer and frame)."""
-        key = tuple(sizes)
-        cached = getattr(self, "_layout_cache", None)
-        if cached is None or cached[0] != key:
-            offsets = [sum(sizes[:v]) for v in range(len(sizes))]
-            lanes = [viewer_lanes(n, off) for n, off in zip(sizes, offsets)]
-            pid = dr.empty(mi.UInt32, sum(sizes))
-            for n, at in zip(sizes, lanes):
-                dr.scatter(pid, dr.arange(mi.UInt32, n), at)
-            dr.eval(lanes, pid)
-            self._layout_cache = cached = (key, lanes, pid)
-        return cached[1], cached[2]
+        out = shader_for(self, self.max_cones)(self.storage, px.slot, px.active, px.si, px.index, self.shade_samples,
+                                               shade_key(ctx.frame, self.seed), px.pid, fr.si.sh_frame)
+        return px.split(out)
 
     def _shade_bilinear(self, gb, slot, ok, tf, frame):
         """Bilinear fetch: the 4 entries around the pixel's cache coordinate, each

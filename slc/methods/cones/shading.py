@@ -50,7 +50,7 @@ Random numbers are hashes of (pixel index, ``key``): deterministic for a given f
 seed and tap. See docs/cones.md for the expectation.
 
 Each :class:`ConeShading` (one per method instance) owns its own frozen function
-(``dr.freeze``); see the class for animated scenes.
+(``dr.freeze``), in static and animated scenes alike.
 """
 from __future__ import annotations
 
@@ -203,7 +203,7 @@ class ConeShading(FrozenFunction):
     cone's ``n_samples`` between the strategies by the lobe's width against the cones;
     False: half and half), ``rotate=True`` (rotate the patterns per pixel and key; False:
     the same pattern everywhere), ``freeze=True`` (record the kernel launches once and
-    replay them), ``animated=False`` (the scene's meshes move), ``max_recordings=4``,
+    replay them), ``max_recordings=4``,
     ``horizon=True`` (Lambertian pixels whose cones cross the horizon use the exact
     clipped-cap integral; False: they are sampled by the MIS quadrature),
     ``principled="sg"`` (pixels with Mitsuba's ``principled`` BSDF: diffuse part in
@@ -223,16 +223,14 @@ class ConeShading(FrozenFunction):
     Freezing pays only while its recordings are replayed. Each instance owns its frozen
     function, so recordings are freed with the method and never shared between scenes.
     A frozen function traverses every object of Mitsuba's registry (shapes, BSDFs,
-    emitters, the scene) on each call; when meshes move, that state changes from frame to
-    frame and the function would be recorded again on most frames' first call (measured
-    on ``street``: one recording per frame). So in an animated scene the shading is traced
-    on every call, never recorded (:mod:`slc.freeze`): no frame after the first builds a
-    kernel. In a static scene a function recorded more than ``max_recordings`` times is
+    emitters, the scene) on each call; moving meshes keep its recordings as long as their
+    new buffers are made as :mod:`slc.core.freeze` says (the street: one recording, replayed
+    in every later frame). A function recorded more than ``max_recordings`` times is
     dropped.
     """
 
     def __init__(self, max_cones: int, adaptive: bool = True, rotate: bool = True, freeze: bool = True,
-                 animated: bool = False, max_recordings: int = 4, horizon: bool = True,
+                 max_recordings: int = 4, horizon: bool = True,
                  principled: str = "sg", conductor: str = "sample", table=None, glossy: str = "full",
                  compact: bool = True, front_only: bool = False):
         self.table = table
@@ -251,7 +249,7 @@ class ConeShading(FrozenFunction):
         self.opts = ShadeOptions(self.max_cones, adaptive=bool(adaptive), rotate=bool(rotate), horizon=bool(horizon),
                                  principled=principled == "sg", conductor=conductor == "sg",
                                  glossy_half=glossy == "half", compact=bool(compact), front_only=bool(front_only))
-        super().__init__(shade_kernel, freeze, animated, max_recordings)
+        super().__init__(shade_kernel, freeze, max_recordings)
 
     def __call__(self, storage, slot, active, si, texel_frame, n_samples: int = 16, key: int = 0,
                  pid: mi.UInt32 | None = None, entry_frames=None) -> mi.Color3f:
@@ -266,7 +264,7 @@ class ConeShading(FrozenFunction):
 
 def shader_for(owner, max_cones: int) -> ConeShading:
     """The :class:`ConeShading` of ``owner`` (a method instance), made on first use
-    (animated when the owner's scene is, see :class:`ConeShading`; the horizon
+    (frozen unless the owner's ``freeze`` setting is off; the horizon
     treatment from the owner's ``horizon`` setting, default ``clip``; the principled
     pixels' from its ``principled`` setting, default ``sg``)."""
     sh = getattr(owner, "_cone_shading", None)
@@ -275,7 +273,7 @@ def shader_for(owner, max_cones: int) -> ConeShading:
         conductor = getattr(owner, "conductor", "sample")
         if conductor == "sg" and scene is not None and not _ggx_conductors_only(scene):
             conductor = "sample"
-        sh = ConeShading(max_cones, animated=bool(getattr(scene, "dynamic", False)),
+        sh = ConeShading(max_cones, freeze=bool(getattr(owner, "freeze", True)),
                          horizon=getattr(owner, "horizon", "clip") == "clip",
                          principled=getattr(owner, "principled", "sg"), conductor=conductor,
                          glossy=getattr(owner, "glossy", "full"), compact=getattr(owner, "compact", "on") == "on",

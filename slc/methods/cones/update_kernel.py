@@ -60,9 +60,13 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     batch = UpdateBatch(mi.UInt32(active), mi.UInt32(seed_slot),
                         CycleEntries(mi.UInt32(keys), si, mi.UInt32(rays), mi.Bool(unsettled), moving,
                                      mi.Bool(is_new), first_sample, strata))
-    storage, motion_o, shrunk_o, dropped_o = kernel(
+    words, act, motion_o, shrunk_o, dropped_o = kernel(
         scene, light_inputs(scene), storage, order, batch, frame_u32(frame), int(seed), p,
         updater.area_only(scene) if updater is not None else constant_area_emitters(scene))
+    # The words are written here, not in the frozen kernel: a replay copies an input it scatters
+    # into (the whole storage, 38 MB on the atrium, every frame); here ``storage`` has no other
+    # reference and the scatter writes in place.
+    scatter_words(storage, words, act, p.max_cones)
     motion = dr.zeros(mi.Bool, N)
     dr.scatter(motion, motion_o, order)
     if stats is not None:
@@ -74,15 +78,15 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
 def _update_kernel(scene, lights, storage, order, batch: UpdateBatch, frame, seed, p: ConeParams,
                    area_only: bool = False):
     """The update proper, in the lane order ``order``: gather the inputs,
-    :func:`_updated_words`, write the words back into ``storage``. Every
+    :func:`_updated_words` (reading ``storage``, not writing it). Every
     argument that changes from frame to frame is a Dr.Jit array (``frame``
     an opaque ``mi.UInt32``), and nothing here reads an array's width, so
     that :class:`ConeUpdate` can trace it once and replay it for any number
     of entries. ``lights`` (:func:`light_inputs`) is not read here: it declares
     the emitter table's arrays, which :func:`slc.scene.lights.sample_light` reads, as
     inputs of the frozen function. ``area_only`` (a Python bool, part of the recording's
-    key) see :func:`slc.methods.cones.cycle.shrink_test`. Returns (storage, motion, shrunk,
-    dropped), the masks in lane order."""
+    key) see :func:`slc.methods.cones.cycle.shrink_test`. Returns (words, slots, motion, shrunk,
+    dropped), all in lane order: the new words of the entries at ``slots``."""
     act = dr.gather(mi.UInt32, batch.slot, order)
     e = batch.entries
     entries = CycleEntries(
@@ -92,24 +96,20 @@ def _update_kernel(scene, lights, storage, order, batch: UpdateBatch, frame, see
         dr.gather(mi.Bool, e.strata, order))
     words, motion_o, shrunk_o, dropped_o = _updated_words(
         scene, storage, act, entries, dr.gather(mi.UInt32, batch.seed_slot, order), frame, seed, p, area_only)
-    # Every intermediate that read ``storage`` died with _updated_words' locals, so
-    # the scatter below writes in place (a live reader would force a full copy).
-    scatter_words(storage, words, act, p.max_cones)
-    return storage, motion_o, shrunk_o, dropped_o
+    dr.eval(act)
+    return words, act, motion_o, shrunk_o, dropped_o
 
 
 def _updated_words(scene, storage, active, entries: CycleEntries, seed_slot, frame, seed, p: ConeParams,
                    area_only: bool = False):
     """The update kernel proper on the packed ``storage``: unpack the active
-    entries (and the LOD seeds of new ones), :func:`update_cycle`, pack.
+    entries (a new entry with an LOD seed: the seed's record), :func:`update_cycle`, pack.
     Returns the evaluated (words, motion, shrunk, dropped)."""
     K = p.max_cones
-    state = unpack(gather_words(storage, active, K), K)
-    start = entry_start(entries.fresh, seed_slot, 0)
-    has_seed = start.seeded
-    seeds = unpack(gather_words(storage, start.src, K, has_seed), K)
-    words, motion, shrunk, dropped, _ = update_cycle(scene, state, entries, frame, seed, p, seeds=seeds,
-                                                     has_seed=has_seed, area_only=area_only)
+    start = entry_start(entries.fresh, seed_slot, active)
+    state = unpack(gather_words(storage, start.src, K), K)
+    words, motion, shrunk, dropped, _ = update_cycle(scene, state, entries, frame, seed, p, seeded=start.seeded,
+                                                     area_only=area_only)
     dr.eval(*words, motion, shrunk, dropped)
     return words, motion, shrunk, dropped
 
@@ -122,7 +122,7 @@ class ConeUpdate(FrozenFunction):
     arrays. Images are those of the traced kernel bit for bit.
 
     Parameters (defaults): ``freeze=True`` (False: trace on every call),
-    ``animated=False`` (the scene's meshes move), ``max_recordings=4``.
+    ``max_recordings=4``.
 
     A recording is reused while its inputs keep their layout: the frame number is
     an opaque ``mi.UInt32`` input and the number of active entries, the storage's
@@ -131,14 +131,13 @@ class ConeUpdate(FrozenFunction):
     width 1: one active entry, or as many entries as a mesh has vertex
     coordinates: such calls run on a free width, see :mod:`slc.core.freeze`), or a
     change of the scene's traversed state. As
-    :class:`slc.methods.cones.shading.ConeShading`: in a static scene a function recorded
-    more than ``max_recordings`` times is dropped (traced from then on); in an
-    animated one it is traced on every call (:mod:`slc.freeze`)."""
+    :class:`slc.methods.cones.shading.ConeShading`: a function recorded more than
+    ``max_recordings`` times is dropped (traced from then on; :mod:`slc.core.freeze`)."""
 
-    def __init__(self, freeze: bool = True, animated: bool = False, max_recordings: int = 4):
+    def __init__(self, freeze: bool = True, max_recordings: int = 4):
         # per-lane: the order and the batch (a lane count equal to a scene array's width runs
         # on a free width; the extra lanes repeat the last one: same words, same slot)
-        super().__init__(_update_kernel, freeze, animated, max_recordings, lanes=("order", "batch"))
+        super().__init__(_update_kernel, freeze, max_recordings, lanes=("order", "batch"))
         self._area_only = None      # ((id of the scene, table builds), constant_area_emitters)
 
     def area_only(self, scene) -> bool:
@@ -159,11 +158,9 @@ class ConeUpdate(FrozenFunction):
 
 
 def updater_for(owner) -> ConeUpdate:
-    """The :class:`ConeUpdate` of ``owner`` (a method instance), made on first use
-    (animated when the owner's scene is)."""
+    """The :class:`ConeUpdate` of ``owner`` (a method instance), made on first use."""
     up = getattr(owner, "_cone_update", None)
     if up is None:
-        scene = getattr(owner, "scene", None)
-        up = ConeUpdate(animated=bool(getattr(scene, "dynamic", False)))
+        up = ConeUpdate(freeze=bool(getattr(owner, "freeze", True)))
         owner._cone_update = up
     return up

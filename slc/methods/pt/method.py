@@ -84,8 +84,7 @@ class PathTracing(Method):
 
     def shade(self, gb, frame: int, v: int) -> mi.Color3f:
         if self._kernel is None:
-            self._kernel = FrozenFunction(_pt_kernel, bool(self.freeze),
-                                          animated=bool(getattr(self.scene, "dynamic", False)))
+            self._kernel = FrozenFunction(_pt_kernel, bool(self.freeze))
         sc, seed = self.scene.mi_scene, self.seed_for(frame, v)
         return self._kernel(sc, light_inputs(sc), gb.si, mi.Bool(gb.valid),
                             stream_state(seed, STREAM_INDIRECT + int(self.bounces)),

@@ -215,10 +215,9 @@ class SHaRC(Method):
             self.cell = max(self.cell, 1e-4)
         self.label = None if self.output == "full" else "sharc:output=indirect"
         self._stats, self._hit = {}, None
-        animated = bool(getattr(scene, "dynamic", False))
-        self._update_k = FrozenFunction(_update_kernel, bool(self.freeze), animated=animated)
-        self._query_k = FrozenFunction(_query_kernel, bool(self.freeze), animated=animated)
-        self._continue_k = FrozenFunction(_continue_kernel, bool(self.freeze), animated=animated, lanes=(2, 3),
+        self._update_k = FrozenFunction(_update_kernel, bool(self.freeze))
+        self._query_k = FrozenFunction(_query_kernel, bool(self.freeze))
+        self._continue_k = FrozenFunction(_continue_kernel, bool(self.freeze), lanes=(2, 3),
                                           narrow=(2,))
         self.reset()
 

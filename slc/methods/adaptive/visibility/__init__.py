@@ -106,7 +106,8 @@ class VisibilityRep(Representation):
         c = self.cache
         fn = self.frozen("shade_fn", lambda fz: frozen.VisShading(c.vis_k, c.sph, c.env, fz, c.polygon_glossy,
                                                                     c.polygon_samples, c.seed, back=c._back))
-        return fn(self.pool.gather(px.slot, px.active), px.active, px.si, c.scene.mi_scene, px.frame, px.viewer)
+        return fn(self.pool.gather(px.slot, px.active), px.active, px.si, c.scene.mi_scene, px.frame, px.viewer,
+                  px.pid, px.n_viewers)
 
     def lobes(self, rec, si, active) -> list:
         """The record as lobes: one Dirac lobe per listed light (I/d^2 v at the entry) and the

@@ -9,7 +9,7 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.core.freeze import FrozenFunction
-from slc.core.keys import mixed_rng, stream_key
+from slc.core.keys import mixed_rng, stream_mix
 from slc.methods.adaptive.frozen_inputs import light_tables, sampler_inputs
 from slc.methods.adaptive.polygon_glossy import has_glossy
 from slc.methods.adaptive.polygon_ltc import LtcTable
@@ -33,8 +33,7 @@ class VisShading(FrozenFunction):
     are fixed per instance; ``glossy`` is the method's ``polygon_glossy`` (``ltc``: the fitted
     table and the scene's BSDF table are inputs too; ``sample``: ``S`` sample pairs); ``back``:
     the records keep a residual behind the surface (the scene has two-sided BSDFs).
-    Unfrozen in animated scenes (``freeze=False``) and after more than ``max_recordings``
-    recordings."""
+    Unfrozen with ``freeze=False`` and after more than ``max_recordings`` recordings."""
 
     def __init__(self, K: int, sph=None, env=None, freeze: bool = True, glossy: str = "point", S: int = 0,
                  seed: int = 0, max_recordings: int = 4, back: bool = False):
@@ -47,18 +46,31 @@ class VisShading(FrozenFunction):
 
         # the closure holds no reference to self: a cycle through the frozen function would be
         # freed by the garbage collector, which may run while another function records (abort)
-        def kernel(rec, active, si, bsdf, scene, tables, mix):
-            rng = mixed_rng(dr.arange(mi.UInt32, dr.width(active)), mix) if S > 0 else None
-            rng_a = mixed_rng(dr.arange(mi.UInt32, dr.width(active)), mi.UInt32(mix) ^ STREAM_ALBEDO)
+        def kernel(rec, active, si, bsdf, scene, tables, pid, viewer, mixes):
+            mix = dr.gather(mi.UInt32, mixes, viewer)         # each pixel's viewer's streams
+            rng = mixed_rng(pid, mix) if S > 0 else None
+            rng_a = mixed_rng(pid, mix ^ STREAM_ALBEDO)
             return shade(scene, rec, si, bsdf, active, K, sph, env, rng, S, table, back, rng_a)
-        super().__init__(kernel, freeze, False, max_recordings)
+        super().__init__(kernel, freeze, max_recordings=max_recordings)
 
-    def __call__(self, rec, active, si, scene, frame: int = 0, viewer: int = 0) -> mi.Color3f:
-        """``S`` > 0: a glossy pixel's polygon lights are sampled (``S`` pairs; random numbers
-        keyed by the pixel, ``seed``, ``frame`` and ``viewer``)."""
-        mix = stream_key(self.seed, frame, STREAM_GLOSSY + int(viewer))
+    def __call__(self, rec, active, si, scene, frame: int = 0, viewer=0, pid=None, n_viewers: int = 1) -> mi.Color3f:
+        """``S`` > 0: a glossy pixel's polygon lights are sampled (``S`` pairs), and non-diffuse
+        pixels take BSDF samples for their residual: random numbers keyed by the pixel (``pid``,
+        its index within its viewer; None: its index in the arrays), ``seed``, ``frame`` and
+        ``viewer`` (an int, or per pixel a ``mi.UInt32`` of ``n_viewers`` viewers)."""
+        n = dr.width(active)
+        if isinstance(viewer, int):
+            mixes, viewer = [stream_mix(self.seed, frame, STREAM_GLOSSY + viewer)], dr.zeros(mi.UInt32, n)
+        else:
+            mixes = [stream_mix(self.seed, frame, STREAM_GLOSSY + v) for v in range(int(n_viewers))]
+        # the viewers' mixes as a table of two lanes or more (a width-1 array would enter the
+        # kernel as a scalar: another recording), opaque (a new frame is no new recording)
+        table = mi.UInt32(mixes + mixes[-1:] * max(2 - len(mixes), 0))
+        dr.make_opaque(table)
+        pid = dr.arange(mi.UInt32, n) if pid is None else mi.UInt32(pid)
         return super().__call__([mi.UInt32(w) for w in rec], mi.Bool(active), si, si.bsdf(), scene,
-                                light_tables(self.sph, self.env) + (self.ltc.arrays() if self.ltc else []), mix)
+                                light_tables(self.sph, self.env) + (self.ltc.arrays() if self.ltc else []), pid,
+                                mi.UInt32(viewer), table)
 
 
 class VisUpdate(FrozenFunction):
@@ -68,8 +80,8 @@ class VisUpdate(FrozenFunction):
     the scene, the emitter table's arrays (:func:`sampler_inputs`),
     the sphere and region tables, the entries' records and interactions, and
     the random streams' mix (opaque: a new frame is no new recording). ``K``,
-    ``seed``, ``sph`` and ``env`` are fixed per instance. Unfrozen in animated
-    scenes and after more than ``max_recordings`` recordings."""
+    ``seed``, ``sph`` and ``env`` are fixed per instance. Unfrozen after more
+    than ``max_recordings`` recordings."""
 
     def __init__(self, K: int, seed: int, sph=None, env=None, freeze: bool = True, max_recordings: int = 4):
         self.K, self.seed, self.sph, self.env = int(K), int(seed), sph, env
@@ -81,7 +93,7 @@ class VisUpdate(FrozenFunction):
             st = st.values()
             dr.eval(out, gone, st)
             return out, gone, st
-        super().__init__(kernel, freeze, False, max_recordings,
+        super().__init__(kernel, freeze, max_recordings=max_recordings,
                          lanes=("rec", "si", "key", "rays", "moving", "fresh", "on", "texel"))   # per entry
 
     def __call__(self, scene, rec, si, key, rays, moving, fresh, on, frame: int, texel=None):
