@@ -76,6 +76,7 @@ class FrameRequests:
     pixel_index: list = field(default_factory=list)
     layer_slot: mi.UInt32 | None = None      # pixel_slot of all viewers laid out as the frame's layers
     layer_index: mi.UInt32 | None = None     # pixel_index likewise (slc.scene.gbuffer.Layers order)
+    extra_slot: mi.UInt32 | None = None      # slots of the entries requested besides the pixels (begin_frame's extra)
 
     @property
     def n_active(self) -> int:
