@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 from pathlib import Path
 
 import mitsuba as mi
@@ -14,10 +15,11 @@ from slc import methods
 from slc.core import backend
 from slc.core.timing import NullTimer
 from slc.distributed.cluster import Cluster, InProcess
-from slc.distributed.messages import Requests
+from slc.distributed.messages import Requests, decode_addresses, decode_bits, encode_addresses, encode_bits
 from slc.distributed.node import KINDS, Node
 from slc.distributed.rig import Strategy, ViewerPoses, assignment, extrapolated
-from slc.distributed.owners import changed_records, owners
+from slc.distributed.owners import Regions, changed_records, owners
+from slc.distributed.seeds import ancestors
 from slc.distributed.state import Client, Subscriptions
 from slc.methods import FrameContext
 from slc.run.pipeline import gbuffers_for
@@ -131,16 +133,32 @@ def test_a_record_change_counts_against_the_entry_noise_and_any_change_counts_at
     assert not bool(changed_records(m, a, a, 0.0)[0])
 
 
-def test_rendezvous_owners_move_only_the_blocks_of_a_node_that_left():
-    keys = (np.arange(40960, dtype=np.uint64) * 2654435761 % 2 ** 32).astype(np.uint32)
-    before, after = owners(keys, [0, 1, 2], 6), owners(keys, [0, 2], 6)
-    assert set(np.unique(before)) == {0, 1, 2}
-    assert abs(np.mean(before == 1) - 1 / 3) < 0.02          # balanced
+def test_owners_move_only_the_regions_of_a_lost_node_and_a_region_holds_the_coarser_entries(scene):
+    """Rendezvous hashing: balanced over the nodes, and a node that leaves moves only its own
+    regions. On a real cache, a block's entries share their region, and so do an entry and its
+    coarser entries up to the region level (its LOD seeds stay with its owner)."""
+    regions = np.arange(40960, dtype=np.uint64) * 2654435761 % 2 ** 32
+    before, after = owners(regions, [0, 1, 2]), owners(regions, [0, 2])
+    assert set(np.unique(before)) == {0, 1, 2} and abs(np.mean(before == 1) - 1 / 3) < 0.02
     moved = before != after
     assert np.all(before[moved] == 1) and np.all(after[before == 1] != 1)
-    blocks = keys >> 6                                       # a block's entries share their owner
-    for b in np.unique(blocks)[:200]:
-        assert len(set(before[blocks == b])) == 1
+    s = scene("atrium")
+    m = methods.create("slc", s, seed=0)
+    m.render(FrameContext(frame=0), gbuffers_for(s, views.overlap_rig(s, 2, 0.5, aspect=W / H), 0, W, H), NullTimer())
+    cache, level = m.cache, 6
+    keys = np.array(cache.entry_address(m.requests.active), np.uint32)
+    of = Regions(cache.layout, level)
+    r = of(keys)
+    for b in np.unique(keys >> 6)[:200]:
+        assert len(set(r[(keys >> 6) == b])) == 1
+    up, ok = ancestors(cache, m.requests.active)
+    lvl = np.array(cache.entry_texels(m.requests.active)[1])
+    tested = 0
+    for d in range(up.shape[0]):
+        near = ok[d] & (lvl + d + 1 <= level)
+        assert np.array_equal(of(up[d][near]), r[near]), d
+        tested += int(near.sum())
+    assert tested > len(keys) // 2
 
 
 def test_subscriptions_and_the_owner_agree_on_the_needs_with_a_lease():
@@ -156,9 +174,8 @@ def test_subscriptions_and_the_owner_agree_on_the_needs_with_a_lease():
         need = np.unique(rng.choice(universe, 40)).astype(np.uint32) if f % 7 else np.zeros(0, np.uint32)
         msg = sub.frame(5, 1, f, need, lease=3, holds=holds)
         if msg is not None:
-            assert isinstance(msg, Requests) and msg.nbytes == 4 * (len(msg.subscribe) + len(msg.resubscribe)
-                                                                    + len(msg.cancel)) + len(msg.need)
-            assert np.all(holds(msg.resubscribe)) and not np.any(holds(msg.subscribe))
+            assert isinstance(msg, Requests) and np.all(holds(msg.resubscribe)) and not np.any(holds(msg.subscribe))
+            msg = pickle.loads(pickle.dumps(msg))          # as it travels between processes: encoded
             client.apply(msg)
         assert np.array_equal(client.needed(), need)
         assert np.array_equal(client.keys, sub.keys)
@@ -169,6 +186,24 @@ def test_subscriptions_and_the_owner_agree_on_the_needs_with_a_lease():
             client.apply(msg)
     assert sub.frame(5, 1, 35, need, lease=3, holds=holds) is None
     assert np.array_equal(client.keys, need) and np.array_equal(client.needed(), need)
+
+
+def test_addresses_and_need_bits_travel_encoded_and_come_back_the_same():
+    """Ascending addresses go as varint differences (an entry beside the last one: one byte),
+    need bits packed (deflated when shorter); a pickled message decodes to the same arrays and
+    its byte count is its encoded fields'."""
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 7, 500):
+        keys = np.unique(rng.integers(0, 2 ** 32, n)).astype(np.uint32)
+        assert np.array_equal(decode_addresses(encode_addresses(keys)), keys)
+    block = np.arange(64 * 1000, 64 * 1000 + 64, dtype=np.uint32)
+    assert len(encode_addresses(block)) == 3 + 63                    # the first difference takes 3 bytes
+    bits = np.packbits(np.ones(4000, bool))
+    assert len(encode_bits(bits)) < 20 and np.array_equal(decode_bits(encode_bits(bits)), bits)
+    msg = Requests(0, 1, 5, subscribe=block[:10], cancel=block[20:], need=bits)
+    back = pickle.loads(pickle.dumps(msg))
+    assert all(np.array_equal(getattr(back, k), getattr(msg, k)) for k in ("subscribe", "resubscribe", "cancel", "need"))
+    assert msg.nbytes == len(encode_addresses(block[:10])) + len(encode_addresses(block[20:])) + len(encode_bits(bits))
 
 
 def test_an_extrapolated_camera_continues_a_steady_walk_and_turn():

@@ -2,38 +2,44 @@
 
 A :class:`Node` renders the G-buffers of its own viewers only and keeps a cache of its own (its
 own slots, a :class:`slc.osc.cache.OnSurfaceCache`): the entries its viewers need, and the
-entries it *owns* (:func:`slc.distributed.owners.owners`: by block) that any node needs. The
-directory is so partitioned by owner: nodes name entries by address
+entries it *owns* that any node needs. Nodes name entries by address
 (:meth:`~slc.osc.cache.OnSurfaceCache.entry_address`) and each maps addresses to its own slots.
+Entries are grouped in regions (:class:`slc.distributed.owners.Regions`); a region's *home*
+(rendezvous hashing, :func:`~slc.distributed.owners.owners`) gets every node's requests for its
+entries and owns it, unless it *delegated* it (:mod:`slc.distributed.directory`) to the one node
+that needs it.
 
-A frame is five phases (:data:`PHASES`); each takes the messages addressed to it
+A frame is six phases (:data:`PHASES`); each takes the messages addressed to it
 (:mod:`slc.distributed.messages`) and returns those it sends. A transport carries them
 (:class:`slc.distributed.cluster.Cluster`: in one process, or between Ray actors), ``delay``
 frames late:
 
 1. ``begin``: the viewers' G-buffers (and, with ``predict``, the G-buffers of their cameras
    extrapolated ``2 x delay`` frames ahead from their last motion); the entries they need; per
-   owner, :class:`~slc.distributed.messages.Requests` (:class:`~slc.distributed.state.Subscriptions`:
+   home, :class:`~slc.distributed.messages.Requests` (:class:`~slc.distributed.state.Subscriptions`:
    subscriptions, cancellations after ``lease`` frames unneeded, the need bits);
-2. ``serve``: the requests of the other nodes; the cache's frame with the viewers' pixels and the
-   owned entries other nodes need (``extra``); with delay 0, a
-   :class:`~slc.distributed.messages.SeedQuery` to the owners of the coarser entries of each new
-   owned entry (a payload that reads LOD seeds starts from the finest one that exists anywhere,
-   as in one process);
-3. ``answer``: the existing queried entries' records, from before this frame's update;
-4. ``update``: new owned entries seeded; every owned entry any node needs updated once, with the
+2. ``forward``: as a home, the other nodes' requests; regions needed by one other node only are
+   delegated to it, a delegated region another node needs is revoked;
+3. ``serve``: delegations taken, revoked regions returned; the cache's frame with the viewers'
+   pixels and the owned entries other nodes need (``extra``); with delay 0, a
+   :class:`~slc.distributed.messages.SeedQuery` to the owners of coarser entries of each new owned
+   entry outside its region (a payload that reads LOD seeds starts from the finest coarser entry
+   that exists anywhere, as in one process);
+4. ``answer``: returned regions taken; the existing queried entries' records, from before this
+   frame's update;
+5. ``update``: new owned entries seeded; every owned entry any node needs updated once, with the
    payload's own update (random numbers keyed by the entry); per node, the
    :class:`~slc.distributed.messages.Records` of the entries it needs now: ``full``, every
    updated record to every node; ``sparse``, a record the node does not hold or one that changed
    by more than ``threshold`` since the record it holds (:func:`~slc.distributed.owners.changed_records`).
-   With ``bootstrap`` rays (and a delay), the node updates with that many rays per frame an entry its
-   viewers need and hold no record of, until the owner's record arrives;
-5. ``shade``: the records that arrived, into the node's slots; its viewers shaded (an entry with
+   With ``bootstrap`` rays (and a delay), the node updates with that many rays per frame an entry
+   its viewers need and hold no record of, until the owner's record arrives;
+6. ``shade``: the records that arrived, into the node's slots; its viewers shaded (an entry with
    no value yet shades black).
 
 ``single`` (one node, every viewer) and ``independent`` (each node updates every entry its viewers
 see, no messages) run the method's own frame. A node that leaves (:meth:`Node.drop`) moves only
-its own blocks; their entries start anew at their new owners.
+its own regions; their entries start anew at their new owners.
 """
 from __future__ import annotations
 
@@ -47,22 +53,26 @@ import numpy as np
 
 from slc.core.keys import INVALID
 from slc.core.timing import NullTimer
-from slc.distributed.messages import KEY_BYTES, Records, SeedQuery, SeedReply
-from slc.distributed.owners import changed_records, count, owners
+from slc.distributed.directory import Directory
+from slc.distributed.messages import Delegate, Relayed, SeedQuery, SeedRelay, SeedReply
+from slc.distributed.owners import Regions, count, owners
 from slc.distributed.records import unpack_into
 from slc.distributed.rig import Clock, Strategy, extrapolated, make_method
-from slc.distributed.seeds import ancestors, finest
+from slc.distributed.seeds import records_of, seed_queries, seed_slots
+from slc.distributed.sending import records_to
 from slc.distributed.state import Client, Subscriptions, in_sorted
 from slc.methods import FrameContext
 from slc.osc.payload import EntryPolicy
 from slc.scene import gbuffer as gbuf
 
-PHASES = ("begin", "serve", "answer", "update", "shade")
+PHASES = ("begin", "forward", "serve", "answer", "relay", "update", "shade")
 # bytes by kind: requests (subscriptions and cancellations), need bits, seed queries and replies,
-# records of entries new at their owner, first records of an entry the node does not hold, and
-# records sent again because the entry changed, by its state after the update (young: in its
-# first ``new_updates`` updates; moving: in a motion phase; settled)
-KINDS = ("requests", "needs", "seeds", "new", "first", "resend_young", "resend_moving", "resend_settled")
+# regions delegated, revoked and returned with their entries' state, records of entries new at
+# their owner, first records of an entry the node does not hold, and records sent again because
+# the entry changed, by its state after the update (young: in its first ``new_updates`` updates;
+# moving: in a motion phase; settled)
+KINDS = ("requests", "needs", "seeds", "ownership", "new", "first", "resend_young", "resend_moving",
+         "resend_settled")
 
 
 def _timed(phase):
@@ -85,19 +95,32 @@ class Node:
         self.viewers = dict(sorted(viewers.items()))
         self.width, self.height, self.s = int(width), int(height), strategy
         self.m, self.cache = make_method(spec, scene, seed)
-        self.subs: dict[int, Subscriptions] = {}       # owner -> this node's subscriptions there
-        self.clients: dict[int, Client] = {}           # other node -> what it asked of this owner
+        self.regions = Regions(self.cache.layout, strategy.region_level)
+        self.dir = Directory(self)
+        self.subs: dict[int, Subscriptions] = {}       # home -> this node's subscriptions there
+        self.clients: dict[tuple, Client] = {}         # (node, via) -> what it asked of this owner (via: itself,
+        #                                                  or the home that passed its requests on)
         self.value = self.boot = self.lost = self.new_now = None    # per slot (see _grow)
         self.pid = os.getpid()
-        self.fr = self.seed = None
+        self.fr = None
         self.missing = 0
 
     # ------------------------------------------------------------------ helpers
-    def _shift(self) -> int:
-        return 2 * self.cache.layout.block_shift
+    def home(self, keys: np.ndarray, live=None) -> np.ndarray:
+        """The home node of every entry address in ``keys``."""
+        return owners(self.regions(keys), self.live if live is None else live)
 
-    def _owners(self, keys: np.ndarray, live=None) -> np.ndarray:
-        return owners(keys, self.live if live is None else live, self._shift())
+    def owns(self, keys: np.ndarray) -> np.ndarray:
+        """Mask over ``keys``: this node owns the entry (its home and it did not delegate it, or
+        delegated to it)."""
+        return self.dir.owns(self.regions(keys), self.home(keys))
+
+    def owner(self, keys: np.ndarray) -> np.ndarray:
+        """The node this one sends its requests for ``keys`` to: the owner when this node knows
+        it (itself, or as the home the node it delegated the region to), else the home."""
+        home = self.home(keys)
+        return np.where(self.owns(keys), self.id,
+                        np.where(home == self.id, self.dir.away_of(self.regions(keys)), home))
 
     def _grow(self) -> None:
         """The per-slot masks sized to the cache's capacity (old contents kept)."""
@@ -120,12 +143,20 @@ class Node:
         key = np.array(vb * L.block_texels + within, np.uint32)
         return np.unique(key[np.array(valid, bool)])
 
+    def slots_of(self, keys: np.ndarray) -> tuple:
+        """(mask over ``keys``: mapped here, their slots (``mi.UInt32``, mapped ones only))."""
+        if len(keys) == 0:
+            return np.zeros(0, bool), mi.UInt32()
+        s = self.cache.address_slots(mi.UInt32(keys))
+        ok = np.array(s != INVALID, bool)
+        return ok, dr.gather(mi.UInt32, s, mi.UInt32(np.nonzero(ok)[0]))
+
     # ------------------------------------------------------------------ 1. begin
     def begin(self, frame: int) -> list:
         """G-buffers, needed entries, requests (see the module)."""
         self.clock, self.frame = Clock(), int(frame)
         with self.clock.part("gbuffer"):
-            self.gbs, pred = self._gbuffers(frame)
+            self.gbs, self.pred = self._gbuffers(frame)
         with self.clock.part("work"):
             return self._requests()
 
@@ -140,7 +171,6 @@ class Node:
         if self.s.predict and lead > 0 and frame > 0:
             pred = [gbuf.render_gbuffer(self.scene, extrapolated(p.camera(frame - 1), p.camera(frame), lead),
                                         self.width, self.height, None, p.name) for p in self.viewers.values()]
-        self.pred = pred
         return gbs, pred
 
     def _requests(self) -> list:
@@ -148,11 +178,11 @@ class Node:
             return []
         self.need_pixels = self._pixel_keys(self.gbs)
         self.need_pred = np.setdiff1d(self._pixel_keys(self.pred), self.need_pixels).astype(np.uint32)
-        need = np.union1d(self.need_pixels, self.need_pred).astype(np.uint32)
-        own, out = self._owners(need), []
+        self.need = np.union1d(self.need_pixels, self.need_pred).astype(np.uint32)
+        to, out = self.owner(self.need), []
         for o in self.live:
             if o != self.id:
-                msg = self.subs.setdefault(o, Subscriptions()).frame(self.id, o, self.frame, need[own == o],
+                msg = self.subs.setdefault(o, Subscriptions()).frame(self.id, o, self.frame, self.need[to == o],
                                                                       self.s.lease, self._holds)
                 out += [msg] if msg is not None else []
         return out
@@ -165,138 +195,109 @@ class Node:
         ok = s != INVALID
         return np.array(ok & dr.gather(mi.Bool, self.value, s, ok), bool)
 
-    # ------------------------------------------------------------------ 2. serve
+    # ------------------------------------------------------------------ 2. forward
     @_timed
-    def serve(self, inbox: list) -> list:
-        """The other nodes' requests, the cache's frame, seed queries (see the module)."""
-        m, ctx = self.m, FrameContext(frame=self.frame)
+    def forward(self, inbox: list) -> list:
+        """The other nodes' requests; new regions delegated, requests passed on to the owners of
+        delegated regions (as their home)."""
         for msg in inbox:
-            self.clients.setdefault(msg.src, Client()).apply(msg)
-        self.fr = self.seed = None
+            self.clients.setdefault((msg.src, msg.src), Client()).apply(msg)
         if not self.s.sharing:
             return []
-        wanted = [c.needed() for c in self.clients.values()] + [self.need_pred]
-        extra = np.unique(np.concatenate(wanted)).astype(np.uint32) if wanted else np.zeros(0, np.uint32)
-        extra = extra[(self._owners(extra) == self.id) | in_sorted(extra, self.need_pred)]
+        return self.dir.decide()
+
+    # ------------------------------------------------------------------ 3. serve
+    @_timed
+    def serve(self, inbox: list) -> list:
+        """Delegations and relayed requests, the cache's frame, seed queries (see the module)."""
+        m, ctx = self.m, FrameContext(frame=self.frame)
+        self.fr, out = None, []
+        if not self.s.sharing:
+            return out
+        for msg in inbox:
+            if isinstance(msg, Delegate):
+                self.dir.take(msg)
+            elif isinstance(msg, Relayed):
+                self.clients.setdefault((msg.client, msg.src), Client()).apply(msg)
+        wanted = [c.needed() for c in self.clients.values()]
+        remote = np.unique(np.concatenate(wanted)).astype(np.uint32) if wanted else np.zeros(0, np.uint32)
+        remote = remote[self.owns(remote)]
+        self.needed = np.union1d(self.need, remote).astype(np.uint32)
+        extra = np.union1d(remote, self.need_pred).astype(np.uint32)
         fr = m.begin(ctx, self.gbs, NullTimer(), extra=mi.UInt32(extra) if len(extra) else None)
         self._grow()
         self.new_now = dr.zeros(mi.Bool, dr.width(self.value))
-        out = []
         if fr.n_active:
             fr.is_new = fr.is_new | dr.gather(mi.Bool, self.lost, fr.active)
             dr.scatter(self.lost, False, fr.active)
-            dr.scatter(self.new_now, True, fr.active, fr.is_new)
-            for name in ("value", "boot"):        # a new entry holds nothing yet
-                dr.scatter(getattr(self, name), False, fr.active, fr.is_new)
             self.keys = np.array(self.cache.entry_address(fr.active), np.uint32)
-            self.owned = self._owners(self.keys) == self.id
-            new_owned = np.sort(self.keys[self.owned & np.array(fr.is_new, bool)])
-            for c in self.clients.values():       # nobody holds a record of a new entry
-                c.forget(new_owned)
-            if self.s.delay == 0 and m.reads_seeds and len(self.live) > 1:
-                out = self._seed_queries(fr)
-        self.fr = fr
+            self.fr = fr
+            self._new_entries()
+            self.owned = self.owns(self.keys)
+            if self.s.delay == 0 and self.s.seeds == "exact" and m.reads_seeds and len(self.live) > 1:
+                out += seed_queries(self)
         return out
 
-    # ------------------------------------------------------------------ seeds
-    def _existing(self, keys: np.ndarray) -> tuple:
-        """(mask over ``keys``, their slots): owned entries seen before this frame (a seed's
-        condition, :func:`slc.osc.requests.lod_seeds`)."""
-        s = self.cache.address_slots(mi.UInt32(keys))
-        ok = s != INVALID
-        ok &= (dr.gather(mi.UInt32, self.cache.pool.slot_seen, s, ok) > 0) & ~dr.gather(mi.Bool, self.new_now, s, ok)
-        ok = np.array(ok, bool) & (self._owners(keys) == self.id)
-        return ok, s
+    def _new_entries(self) -> None:
+        """A new entry holds nothing yet and nobody holds a record of it."""
+        fr = self.fr
+        dr.scatter(self.new_now, True, fr.active, fr.is_new)
+        for name in ("value", "boot"):
+            dr.scatter(getattr(self, name), False, fr.active, fr.is_new)
+        new = np.sort(self.keys[np.array(fr.is_new, bool)])
+        for c in self.clients.values():
+            c.forget(new)
 
-    def _seed_queries(self, fr) -> list:
-        new = np.nonzero(self.owned & np.array(fr.is_new, bool))[0]
-        self.seed = None
-        if len(new) == 0:
-            return []
-        keys, ok = ancestors(self.cache, dr.gather(mi.UInt32, fr.active, mi.UInt32(new)))
-        self.seed = (new, keys, ok)
-        cand = np.unique(keys[ok])
-        own = self._owners(cand)
-        self.local_seeds = cand[own == self.id]
-        return [SeedQuery(self.id, o, self.frame, keys=cand[own == o]) for o in self.live
-                if o != self.id and np.any(own == o)]
-
-    # ------------------------------------------------------------------ 3. answer
+    # ------------------------------------------------------------------ 4. answer, 5. relay
     @_timed
     def answer(self, inbox: list) -> list:
-        """Records of the queried entries that exist, before this frame's update."""
+        """Records of the queried entries that exist, before this frame's update; queries of
+        entries of delegated regions passed on to their owners."""
         out = []
         for q in inbox:
-            keys, words, nbytes = self._records_of(q.keys)
-            if len(keys):
-                out.append(SeedReply(self.id, q.src, self.frame, keys=keys, words=words, kinds={"seeds": nbytes}))
+            if isinstance(q, SeedQuery):
+                out += self._reply(q.keys, q.src)
+                away = self.dir.away_of(self.regions(q.keys))
+                for n in np.unique(away[away >= 0]).tolist():
+                    out.append(SeedRelay(self.id, n, self.frame, keys=q.keys[away == n], origin=q.src))
         return out
 
-    def _records_of(self, keys: np.ndarray) -> tuple:
-        """(keys, words, bytes) of the existing owned entries among ``keys`` (addresses)."""
-        if len(keys) == 0:
-            return keys, None, 0
-        ok, s = self._existing(keys)
-        keys = keys[ok]
-        if len(keys) == 0:
-            return keys, None, 0
-        slots = dr.gather(mi.UInt32, s, mi.UInt32(np.nonzero(ok)[0]))
-        rec = self.m.pack_records(slots)
-        nbytes = int(dr.sum(self.m.record_bytes(rec))[0]) + KEY_BYTES * len(keys)
-        return keys, np.stack([np.array(w, np.uint32) for w in rec]), nbytes
+    @_timed
+    def relay(self, inbox: list) -> list:
+        """Seed queries passed on by the homes of regions delegated to this node."""
+        out = []
+        for q in inbox:
+            out += self._reply(q.keys, q.origin)
+        return out
 
-    # ------------------------------------------------------------------ 4. update
+    def _reply(self, keys: np.ndarray, to: int) -> list:
+        keys, words, nbytes = records_of(self, keys)
+        return [SeedReply(self.id, to, self.frame, keys=keys, words=words, record_kinds={"seeds": nbytes},
+                          counts={"seeds": len(keys)})] if len(keys) else []
+
+    # ------------------------------------------------------------------ 6. update
     @_timed
     def update(self, inbox: list) -> list:
         """Seeds, the owned entries' update, bootstrap, records to the other nodes."""
         m, fr = self.m, self.fr
         self.rays = self.boot_rays = 0
-        out = []
-        if self.s.sharing and fr is not None and fr.n_active:
-            idx = np.nonzero(self.owned)[0]
-            sub = _subset(fr, idx)
-            sub.seed_slot = self._seed_slots(fr, idx, inbox)
-            if dr.width(sub.active):
-                m.update_requested(FrameContext(frame=self.frame), sub)
-                self.rays = int(dr.sum(m.update_rays)[0])
-                dr.scatter(self.value, True, sub.active)
-            if self.s.bootstrap > 0 and self.s.delay > 0:
-                self._bootstrap(fr)
-            out = self._records(sub, self.keys[idx], np.array(sub.is_new, bool))
-        return out
+        if not self.s.sharing or fr is None:
+            return []
+        idx = np.nonzero(self.owned & in_sorted(self.keys, self.needed))[0]
+        sub = _subset(fr, idx)
+        sub.seed_slot = seed_slots(self, idx, inbox)
+        if dr.width(sub.active):
+            m.update_requested(FrameContext(frame=self.frame), sub)
+            self.rays = int(dr.sum(m.update_rays)[0])
+            dr.scatter(self.value, True, sub.active)
+        if self.s.bootstrap > 0 and self.s.delay > 0:
+            self._bootstrap()
+        return records_to(self, sub, self.keys[idx], np.array(sub.is_new, bool))
 
-    def _seed_slots(self, fr, idx: np.ndarray, replies: list) -> mi.UInt32:
-        """The LOD seed of every owned entry ``idx``: with delay 0 the finest coarser entry that
-        exists at its owner, its record written into the new entry's own slot (the update reads
-        it there); else the cache's own choice when this node holds a value of it."""
-        seed = dr.gather(mi.UInt32, fr.seed_slot, mi.UInt32(idx))
-        if not self.m.reads_seeds or len(self.live) == 1:
-            return seed
-        if self.s.delay > 0 or getattr(self, "seed", None) is None:
-            ok = seed != INVALID
-            return dr.select(ok & dr.gather(mi.Bool, self.value, seed, ok), seed, INVALID)
-        new, keys, valid = self.seed
-        found = [self._records_of(self.local_seeds)[:2]] + [(r.keys, r.words) for r in replies]
-        found = [(k, w) for k, w in found if len(k)]
-        self.seed = None
-        if not found:
-            return dr.full(mi.UInt32, INVALID, len(idx))
-        fk, fw = np.concatenate([k for k, _ in found]), np.concatenate([w for _, w in found], axis=1)
-        order = np.argsort(fk)
-        fw, pick = fw[:, order], finest(keys, valid, fk[order])
-        seeded = pick >= 0
-        out = dr.full(mi.UInt32, INVALID, len(idx))
-        if np.any(seeded):
-            slots = dr.gather(mi.UInt32, fr.active, mi.UInt32(new[seeded]))
-            unpack_into(self.m, slots, fw[:, pick[seeded]])
-            pos = np.searchsorted(idx, new[seeded])
-            dr.scatter(out, slots, mi.UInt32(pos))
-        return out
-
-    def _bootstrap(self, fr) -> None:
+    def _bootstrap(self) -> None:
         """``bootstrap`` rays on every entry this node's viewers need, owned elsewhere, of which
         it holds no record: the payload's update on its own copy (the record overwrites it)."""
-        m = self.m
+        m, fr = self.m, self.fr
         wait = (~self.owned) & in_sorted(self.keys, self.need_pixels)
         wait &= ~np.array(dr.gather(mi.Bool, self.value, fr.active), bool)
         idx = np.nonzero(wait)[0]
@@ -313,48 +314,7 @@ class Node:
         dr.scatter(self.boot, True, sub.active)
         self.boot_rays = int(dr.sum(pol.rays)[0])
 
-    def _records(self, sub, keys: np.ndarray, is_new: np.ndarray) -> list:
-        """Per other node, the records it gets of the owned entries ``sub`` (see the module)."""
-        m = self.m
-        if dr.width(sub.active) == 0:
-            return []
-        rec = m.pack_records(sub.active)
-        nb = m.record_bytes(rec) + KEY_BYTES
-        st = dr.gather(mi.UInt32, m.policy_state, sub.active)       # after this update
-        young = np.array((st & 0xFFFF) <= m.ray_policy().new_updates, bool)
-        moving = ~young & np.array((st >> 16) > 0, bool)
-        rec_np = np.stack([np.array(w, np.uint32) for w in rec])
-        nb = np.array(nb, np.int64)
-        out = []
-        for j in self.live:
-            if j == self.id:
-                continue
-            c = self.clients.setdefault(j, Client())
-            held, last = c.holds(keys)
-            if self.s.kind == "full":
-                send = np.ones(len(keys), bool)
-            else:
-                send = in_sorted(keys, c.needed())
-                test = np.nonzero(send & held)[0]
-                if len(test):
-                    t = mi.UInt32(test)
-                    changed = changed_records(m, [mi.UInt32(w) for w in last[:, test]],
-                                              [dr.gather(mi.UInt32, w, t) for w in rec], self.s.threshold)
-                    send[test] = np.array(changed, bool)
-            idx = np.nonzero(send)[0]
-            if len(idx) == 0:
-                continue
-            again = held[idx]
-            kinds = {"new": is_new[idx], "first": ~is_new[idx] & ~again,
-                     "resend_young": again & young[idx], "resend_moving": again & moving[idx],
-                     "resend_settled": again & ~young[idx] & ~moving[idx]}
-            kb = {k: int(nb[idx][v].sum()) for k, v in kinds.items()}
-            words = rec_np[:, idx]
-            c.sent(keys[idx], words)
-            out.append(Records(self.id, j, self.frame, keys=keys[idx], words=words, kinds=kb))
-        return out
-
-    # ------------------------------------------------------------------ 5. shade
+    # ------------------------------------------------------------------ 7. shade
     @_timed
     def shade(self, inbox: list, images: bool = False) -> dict:
         """The records that arrived; the viewers' images (numpy, when ``images``) and the
@@ -366,26 +326,19 @@ class Node:
             self.boot_rays = 0
         else:
             for msg in inbox:
-                self._receive(msg)
+                ok, slots = self.slots_of(msg.keys)
+                if np.any(ok):
+                    unpack_into(self.m, slots, msg.words[:, ok])
+                    dr.scatter(self.value, True, slots)
+                    dr.scatter(self.boot, False, slots)
             outs = self._shade()
         dr.eval(outs)
         res = {"node": self.id, "pid": self.pid, "rays": self.rays, "boot_rays": self.boot_rays,
-               "missing": self.missing, "clock": self.clock, "memory": self.memory_bytes()}
+               "missing": self.missing, "clock": self.clock, "memory": self.memory_bytes(),
+               "delegated": self.dir.count()}
         if images:
             res["images"] = {v: np.array(o, np.float32) for v, o in zip(self.viewers, outs)}
         return res
-
-    def _receive(self, msg: Records) -> None:
-        if len(msg.keys) == 0:
-            return
-        s = self.cache.address_slots(mi.UInt32(msg.keys))
-        ok = np.array(s != INVALID, bool)
-        if not np.any(ok):
-            return
-        slots = dr.gather(mi.UInt32, s, mi.UInt32(np.nonzero(ok)[0]))
-        unpack_into(self.m, slots, msg.words[:, ok])
-        dr.scatter(self.value, True, slots)
-        dr.scatter(self.boot, False, slots)
 
     def _shade(self) -> list:
         """The viewers' images; a pixel whose entry holds no value yet (no record, no bootstrap)
@@ -411,27 +364,29 @@ class Node:
     # ------------------------------------------------------------------ membership
     def drop(self, dead: int, live_before: list) -> None:
         """Node ``dead`` left: the entries it owned start anew at their new owners (rendezvous
-        hashing moves only those); no node holds a record of them; nobody subscribes there."""
+        hashing moves only its regions; regions delegated to it or by it are no one's); no node
+        holds a record of them; nobody subscribes there."""
         self.live = [n for n in live_before if n != dead]
         self.subs.pop(dead, None)
-        self.clients.pop(dead, None)
+        self.clients = {k: c for k, c in self.clients.items() if dead not in k}
         if self.value is None:
             return
         cap = dr.width(self.value)
         slots = dr.arange(mi.UInt32, cap)
-        mapped = dr.gather(mi.UInt32, self.cache.pool.blk_vb, slots // self.cache.layout.block_texels) != INVALID
-        keys = np.array(self.cache.entry_address(dr.select(mapped, slots, 0)), np.uint32)
-        gone = mi.Bool(np.array(mapped, bool) & (owners(keys, live_before, self._shift()) == dead))
-        self.lost |= gone
-        self.value &= ~gone
-        self.boot &= ~gone
+        mapped = np.array(dr.gather(mi.UInt32, self.cache.pool.blk_vb, slots // self.cache.layout.block_texels)
+                          != INVALID, bool)
+        keys = np.array(self.cache.entry_address(dr.select(mi.Bool(mapped), slots, 0)), np.uint32)
+        gone = mapped & ((self.home(keys, live_before) == dead) | self.dir.drop(dead, self.regions(keys)))
+        self.lost |= mi.Bool(gone)
+        self.value &= ~mi.Bool(gone)
+        self.boot &= ~mi.Bool(gone)
         for c in self.clients.values():
-            c.forget(np.sort(keys[np.array(gone, bool)]))
+            c.forget(np.sort(keys[gone]))
 
     def memory_bytes(self) -> int:
         """The method's cache and payload, and this node's protocol state."""
         proto = sum(c.nbytes() for c in self.clients.values())
-        proto += sum(s.keys.nbytes + s.last.nbytes for s in self.subs.values())
+        proto += sum(s.keys.nbytes + s.last.nbytes for s in self.subs.values()) + self.dir.nbytes()
         proto += sum(dr.width(a) for a in (self.value, self.boot, self.lost, self.new_now) if a is not None)
         return int(self.m.memory_bytes()) + int(proto)
 

@@ -1,13 +1,14 @@
 """Who owns a cache entry, and when a record changed enough to be sent again.
 
-Ownership is rendezvous hashing of the entry's *block* (its address with the texel in the block
-dropped, :meth:`slc.osc.cache.OnSurfaceCache.entry_address`): every live node scores the block
-with a hash of (block, node) and the highest score owns it. Every node computes the same owner
-without a message; when a node leaves only its own blocks move (each to the live node that
-scored it next highest). A block's entries share their owner, so an owner allocates whole blocks
-of its own entries (a block of B^2 entries split over the nodes would be allocated on each of
-them) and a block's life at its owner (requested in a frame when any node needs one of its
-entries) is its life in the single-process cache.
+Ownership is rendezvous hashing of the entry's *region*: every live node scores the region with a
+hash of (region, node) and the highest score owns it. Every node computes the same owner without
+a message; when a node leaves only its own regions move (each to the live node that scored it
+next highest). A region (:class:`Regions`) is the block (B x B texels) of the entry's coarser
+entries at level ``T`` that covers it (an entry of level ``T`` or coarser: its own block): an
+entry and its coarser entries up to level ``T`` share their owner, so a new entry's LOD seed is
+mostly its owner's own, and a block's entries share their owner, so an owner allocates whole
+blocks of its own entries and a block's life at its owner (requested in a frame when any node
+needs one of its entries) is its life in the single-process cache.
 """
 from __future__ import annotations
 
@@ -26,10 +27,37 @@ def _mix(x: np.ndarray) -> np.ndarray:
         return (x ^ (x >> np.uint64(31))) & _M64
 
 
-def owners(keys, live, block_shift: int) -> np.ndarray:
-    """The owner node (an id from ``live``) of every entry address in ``keys`` (numpy or Dr.Jit;
-    ``block_shift``: log2 of the entries per block): rendezvous hashing of the block."""
-    k = np.asarray(keys, np.uint64) >> np.uint64(block_shift)
+class Regions:
+    """The region of entries of a cache ``layout`` (:class:`slc.osc.layout.CacheLayout`; see the
+    module) at level ``level``: ``regions(addresses)`` (numpy) -> each entry's region, the virtual
+    block at level min(max(its level, ``level``), its island's top level) that covers it."""
+
+    def __init__(self, layout, level: int):
+        self.level, self.levels, self.shift = int(level), int(layout.levels), int(layout.block_shift)
+        self.base = np.array(layout.d_lvl_base, np.int64)
+        self.nbx = np.array(layout.d_lvl_nbx, np.int64)
+        self.maxl = np.array(layout.d_isl_maxl, np.int64)
+
+    def __call__(self, keys) -> np.ndarray:
+        return self.of(keys)[0]
+
+    def of(self, keys) -> tuple:
+        """(regions, delegatable: the entry's level is at most ``level``, so that its region holds
+        every coarser entry covering it up to that level)."""
+        vb = np.asarray(keys, np.int64) >> (2 * self.shift)
+        k = np.searchsorted(self.base, vb, side="right") - 1       # (island, level) of each block
+        isl, lvl = k // self.levels, k % self.levels
+        local = vb - self.base[k]
+        by, bx = local // self.nbx[k], local % self.nbx[k]
+        up = np.maximum(np.minimum(np.maximum(lvl, self.level), self.maxl[isl]), lvl) - lvl
+        ka = k + up
+        return (self.base[ka] + (by >> up) * self.nbx[ka] + (bx >> up)).astype(np.uint64), lvl <= self.level
+
+
+def owners(regions, live) -> np.ndarray:
+    """The owner node (an id from ``live``) of every region in ``regions`` (numpy): rendezvous
+    hashing."""
+    k = np.asarray(regions, np.uint64)
     live = [int(n) for n in live]
     if len(live) == 1 or k.size == 0:
         return np.full(k.shape, live[0], np.int64)

@@ -25,13 +25,25 @@ class Strategy:
     (every updated record to every node) or ``sparse`` (see the module), messages ``delay``
     frames late; ``threshold``, ``lease`` (frames a subscription outlives the need),
     ``predict`` (request entries ahead of each camera), ``bootstrap`` (rays per frame a node
-    spends on an entry it waits for; 0: none)."""
+    spends on an entry it waits for; 0: none), ``region_level`` (the level ``T`` of the regions
+    entries are owned by, :class:`slc.distributed.owners.Regions`), ``delegate`` (sparse: a new
+    region is owned by a node that needs it, :mod:`slc.distributed.directory`), ``seeds`` (a new
+    entry's LOD seed: ``exact``, the finest coarser entry that exists anywhere, asked of its owner
+    in the frame; ``held``, the finest one its owner holds, no message; default: exact at
+    threshold 0, where the records are exact too, else held)."""
     kind: str
     delay: int = 0
     threshold: float = 0.0
     lease: int = 0
     predict: bool = False
     bootstrap: int = 0
+    region_level: int = 0
+    delegate: bool = True
+    seeds: str = ""
+
+    def __post_init__(self):
+        if not self.seeds:       # exact where the records are (threshold 0), else what the owner holds
+            object.__setattr__(self, "seeds", "exact" if self.threshold <= 0 else "held")
 
     @property
     def sharing(self) -> bool:
@@ -47,7 +59,7 @@ class Strategy:
     def label(self) -> str:
         s = f"{self.kind}-d{self.delay}"
         if self.kind == "sparse":
-            s += f"-t{self.threshold:g}-l{self.lease}"
+            s += f"-t{self.threshold:g}-l{self.lease}-{self.seeds}" + ("" if self.delegate else "-hashed")
         return s + ("" if self.hiding == "none" else f"-{self.hiding}")
 
 
