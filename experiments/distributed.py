@@ -37,7 +37,9 @@ FULL = dict(scenes=["atrium"], nodes=4, viewers=16, overlaps=[25, 50, 100], dela
             cameras=["static", "moving"], width=96, height=54, frames=60, warmup=30, scale_nodes=[2])
 QUICK = dict(scenes=["atrium"], nodes=4, viewers=16, overlaps=[50], delays=[0, 2],
              cameras=["static", "moving"], width=64, height=36, frames=40, warmup=20, scale_nodes=[2])
-HIDING = ((False, 0), (True, 0), (False, 1), (True, 1))     # (predict, bootstrap on) per delayed row
+# latency hiding, (predict, bootstrap on): at delay 2 each part alone and both; at other delays none and both
+HIDING = ((False, 0), (True, 0), (False, 1), (True, 1))
+EACH_PART_AT = 2
 
 
 def add_arguments(p):
@@ -78,13 +80,17 @@ def _check(opts, n_nodes: int, n_view: int, delays: list) -> None:
 
 
 def strategies(delays: list, opts) -> list:
-    """Full replication (delay 0) and sparse updates at every delay; at a delay, one per latency
-    hiding (:data:`HIDING`)."""
+    """Full replication (delay 0) and sparse updates at every delay; at delay 0 also with each
+    part of the protocol left out alone (seeds asked of their owners exactly; regions owned by
+    their home, not by a node that needs them); at a delay, without and with latency hiding
+    (:data:`HIDING`: each part alone at delay :data:`EACH_PART_AT`)."""
+    t, lease = float(opts.threshold), int(opts.lease)
     out = [Strategy("full")]
     for d in delays:
-        for predict, boot in (HIDING if d > 0 else HIDING[:1]):
-            out.append(Strategy("sparse", int(d), float(opts.threshold), int(opts.lease), predict,
-                                int(opts.bootstrap) if boot else 0))
+        for predict, boot in (HIDING[:1] if d == 0 else HIDING if d == EACH_PART_AT else HIDING[::3]):
+            out.append(Strategy("sparse", int(d), t, lease, predict, int(opts.bootstrap) if boot else 0))
+        if d == 0 and t > 0:
+            out += [Strategy("sparse", 0, t, lease, seeds="exact"), Strategy("sparse", 0, t, lease, delegate=False)]
     return out
 
 
@@ -176,19 +182,17 @@ def _rig_rows(s, procs, vs: list, run_: RigRun, n_nodes: int, strats: list, extr
         res = run_strategy(procs, st, poses, k, run_)
         single = res["images"] if single is None else single
         f = flips(s, output, vs, run_, res["images"], single)
-        rows.append({**row(st, res, f, k, len(vs), 2 if _reads_seeds(run_.spec, s) else 1), **extra})
+        variant = ("owners by home" if st.kind == "sparse" and not st.delegate else
+                   "seeds exact" if st.kind == "sparse" and st.seeds == "exact" and st.threshold > 0 else "")
+        rows.append({**row(st, res, f, k, len(vs), 2 if st.seeds == "exact" else 1), **extra, "variant": variant})
         if extra["camera"] == "moving" and extra["block"] == "main" and f["strip"] is not None:
             images[(extra["rig"], extra["overlap"], st.label)] = f["strip"]
     return rows
 
 
-def _reads_seeds(spec: str, s) -> bool:
-    from slc import methods
-    return bool(getattr(methods.create(spec, s), "reads_seeds", False))
-
-
 COLUMNS = [("rig", "rig"), ("overlap", "overlap %"), ("camera", "camera"), ("strategy", "strategy"),
-           ("delay", "delay"), ("hiding", "hiding"), ("nodes", "nodes"), ("processes", "processes"),
+           ("owners", "owners"), ("seeds", "seeds"), ("delay", "delay"), ("hiding", "hiding"), ("nodes", "nodes"),
+           ("processes", "processes"),
            ("gbuffer_viewers_per_node", "G-buffer viewers/node"),
            ("bytes_per_frame", "bytes/frame/node"), ("serialized_bytes_per_frame", "pickled bytes/frame/node"),
            ("update_rays", "update rays/frame"), ("flip", "FLIP"), ("flip_vs_single", "FLIP vs single"),
@@ -211,8 +215,9 @@ def _markdown(rows: list, pr: dict, n_nodes: int, n_view: int, opts) -> str:
           f"{opts.lease} frames, bootstrap {opts.bootstrap} rays. "
           + ("Nodes in this process, one after another. " if opts.in_process else
              "One Ray actor process per node, each rendering its own viewers' G-buffers only. ")
-          + "**Measured**: bytes per frame and node (the protocol's count: 4 bytes per address, the payload's "
-          "record bytes, 1 bit per need flag; and the messages pickled, protocol 5, as Ray carries them) and "
+          + "**Measured**: bytes per frame and node (the protocol's count: the addresses as varint differences, "
+          "the payload's record bytes, the need bits' changes, deflated when shorter; and the messages pickled, "
+          "protocol 5, as Ray carries them from one process to another) and "
           "update rays per frame summed over nodes (bootstrap rays included) are means over the frames after the "
           "warm-up; times are medians over those frames: t and CPU of the slowest node's work in the frame "
           "(G-buffers apart), the driver's wall time of the frame (every phase's round trip through Ray "
@@ -220,10 +225,11 @@ def _markdown(rows: list, pr: dict, n_nodes: int, n_view: int, opts) -> str:
           "viewers on the last frame, against the 2048-sample ground truth and against the single-process "
           "shared cache. **Model columns** (not measured): the slowest node's CPU time, plus for a sharing "
           "strategy its bytes over the link and, with delay 0, the round trips of the link's latency in the "
-          "frame (requests, seed queries and replies, records: 2), or with a delay the larger of compute and "
-          "transfer.\n\n")
-    main = [r for r in rows if r["block"] == "main"]
-    md += ex.markdown_table(main, COLUMNS)
+          "frame (requests and records: 1; with seeds exact, seed queries and replies: 2), or with a delay the "
+          "larger of compute and transfer.\n\n")
+    every = [r for r in rows if r["block"] == "main"]
+    main = [r for r in every if not r["variant"]]
+    md += ex.markdown_table(every, COLUMNS)
     md += ("\n\n## Where sparse's bytes go\n\nBytes per frame and node by kind (slc.distributed.node.KINDS): "
            "requests (subscriptions and cancellations), need bits, seed queries and replies, records of entries "
            "new at their owner, first records of an entry the node does not hold, and records sent again "
@@ -232,10 +238,29 @@ def _markdown(rows: list, pr: dict, n_nodes: int, n_view: int, opts) -> str:
     md += ex.markdown_table([r for r in main if r["strategy"] == "sparse" and r["hiding"] == "none"],
                             [("rig", "rig"), ("overlap", "overlap %"), ("camera", "camera"), ("delay", "delay"),
                              ("bytes_per_frame", "total")] + [(f"bytes_{k}", k) for k in KINDS])
+    md += _parts_table(every)
     md += _hiding_table(main)
     md += _scale_table(rows, n_nodes)
-    md += _targets(rows, n_nodes, n_view)
+    md += _targets(main, n_nodes, n_view)
     return md
+
+
+def _parts_table(rows: list) -> str:
+    """Sparse updates at delay 0 with each part of the protocol left out alone."""
+    out = ("\n\n## Each part of sparse updates\n\nDelay 0: the protocol as run (new regions owned by a node "
+           "that needs them, a new entry seeded from what its owner holds), with LOD seeds asked of their owners "
+           "exactly, and with every region owned by its home: bytes against full replication's, FLIP against the "
+           "single cache's.\n\n| rig | protocol | bytes vs full | FLIP vs single's |\n|---|---|---|---|\n")
+    for key in sorted({_key(r) for r in rows}, key=str):
+        get = [r for r in rows if _key(r) == key]
+        single = next((r for r in get if r["strategy"] == "single"), None)
+        full = next((r for r in get if r["strategy"] == "full"), None)
+        for r in get:
+            if r["strategy"] == "sparse" and r["delay"] == 0 and single and full:
+                out += (f"| {_fmt_rig(r)} | {r['variant'] or 'as run'} | "
+                        f"1/{full['bytes_per_frame'] / max(r['bytes_per_frame'], 1e-9):.0f} | "
+                        f"{r['flip'] / max(single['flip'], 1e-9):.3f}x |\n")
+    return out
 
 
 def _hiding_table(rows: list) -> str:
@@ -257,7 +282,7 @@ def _hiding_table(rows: list) -> str:
 
 def _scale_table(rows: list, n_nodes: int) -> str:
     rs = [r for r in rows if r["rig"] == "random" and r["camera"] == "moving" and r["strategy"] == "sparse"
-          and r["delay"] == 0 and r["hiding"] == "none"]
+          and r["delay"] == 0 and r["hiding"] == "none" and not r["variant"]]
     if len({r["nodes"] for r in rs}) < 2:
         return ""
     out = ("\n\n## A node's work as nodes are added\n\nThe random rig, moving cameras, sparse updates at delay 0, "
@@ -272,9 +297,8 @@ def _scale_table(rows: list, n_nodes: int) -> str:
     return out
 
 
-def _targets(rows: list, n_nodes: int, n_view: int) -> str:
+def _targets(main: list, n_nodes: int, n_view: int) -> str:
     out = "\n\n## Targets (measured in this run)\n\n"
-    main = [r for r in rows if r["block"] == "main"]
     shared = [r for r in main if r["strategy"] in ("full", "sparse", "independent")]
     out += (f"- processes: {sorted({r['processes'] for r in shared})} (target: the nodes, {n_nodes}); G-buffer "
             f"viewers per node: {sorted({r['gbuffer_viewers_per_node'] for r in shared})} (target "
@@ -306,7 +330,8 @@ def _figures(out: Path, rows: list, images: dict) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from slc.core import io
-    main = [r for r in rows if r["block"] == "main" and r["strategy"] == "sparse" and r["camera"] == "moving"]
+    main = [r for r in rows if r["block"] == "main" and r["strategy"] == "sparse" and r["camera"] == "moving"
+            and not r["variant"]]
     keys = sorted({_key(r) for r in main}, key=str)
     if keys:
         fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.8), layout="constrained", squeeze=False)

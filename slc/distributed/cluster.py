@@ -56,9 +56,10 @@ class Cluster:
     def step(self, frame: int, images: bool = False) -> dict:
         """One frame on every live node. Returns ``results`` (node -> its ``shade`` result),
         ``frame_ms`` (the driver's wall time of the frame), ``bytes`` and ``serialized``
-        (sent in the frame, all nodes), ``kinds`` (bytes by :data:`KINDS`), ``messages``."""
+        (sent in the frame, all nodes), ``kinds`` (bytes by :data:`KINDS`), ``messages`` and
+        ``links`` (distinct (sender, receiver) pairs)."""
         t0 = time.perf_counter()
-        acc = {"bytes": 0, "serialized": 0, "messages": 0, "kinds": dict.fromkeys(KINDS, 0)}
+        acc = {"bytes": 0, "serialized": 0, "messages": 0, "links": set(), "kinds": dict.fromkeys(KINDS, 0)}
         gone, results = [], {}
         for phase in PHASES:
             args = {}
@@ -77,12 +78,14 @@ class Cluster:
                         self._post(frame, msg, acc)
         for n in gone:
             self.lose(n)
+        acc["links"] = len(acc["links"])
         return {"results": results, "frame_ms": 1e3 * (time.perf_counter() - t0), **acc}
 
     def _post(self, frame: int, msg, acc: dict) -> None:
         acc["bytes"] += msg.nbytes
         acc["serialized"] += len(pickle.dumps(msg, protocol=5))
         acc["messages"] += 1
+        acc["links"].add((msg.src, msg.dst))
         for k, v in msg.kinds.items():
             acc["kinds"][k] += v
         self.queue.setdefault((frame + self.delay, READ_IN[type(msg)], msg.dst), []).append(msg)

@@ -15,7 +15,7 @@ A frame is six phases (:data:`PHASES`); each takes the messages addressed to it
 frames late:
 
 1. ``begin``: the viewers' G-buffers (and, with ``predict``, the G-buffers of their cameras
-   extrapolated ``2 x delay`` frames ahead from their last motion); the entries they need; per
+   extrapolated ``2 x delay + 2`` frames ahead from their last motion); the entries they need; per
    home, :class:`~slc.distributed.messages.Requests` (:class:`~slc.distributed.state.Subscriptions`:
    subscriptions, cancellations after ``lease`` frames unneeded, the need bits);
 2. ``forward``: as a home, the other nodes' requests; regions needed by one other node only are
@@ -66,6 +66,10 @@ from slc.osc.payload import EntryPolicy
 from slc.scene import gbuffer as gbuf
 
 PHASES = ("begin", "forward", "serve", "answer", "relay", "update", "shade")
+# requests ahead of a camera: its pose this many frames beyond the round trip of a request and its
+# record (2 x delay); measured on the quick preset's overlap rig at delay 2: FLIP 1.056x delay 0's
+# ahead by the round trip alone, 1.006x two frames further (docs/distributed.md, "Latency")
+PREDICT_MARGIN = 2
 # bytes by kind: requests (subscriptions and cancellations), need bits, seed queries and replies,
 # regions delegated, revoked and returned with their entries' state, records of entries new at
 # their owner, first records of an entry the node does not hold, and records sent again because
@@ -166,9 +170,9 @@ class Node:
         gbs = [gbuf.render_gbuffer(self.scene, p.camera(frame), self.width, self.height,
                                    p.camera(frame - 1) if frame > 0 else None, p.name) for p in self.viewers.values()]
         gbuf.attach_layers(gbs)
-        lead = 2 * self.s.delay
+        lead = 2 * self.s.delay + PREDICT_MARGIN
         pred = []
-        if self.s.predict and lead > 0 and frame > 0:
+        if self.s.predict and self.s.delay > 0 and frame > 0:
             pred = [gbuf.render_gbuffer(self.scene, extrapolated(p.camera(frame - 1), p.camera(frame), lead),
                                         self.width, self.height, None, p.name) for p in self.viewers.values()]
         return gbs, pred

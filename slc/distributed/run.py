@@ -86,6 +86,7 @@ def run_strategy(procs: Processes, strategy: Strategy, poses: list, n_nodes: int
         live = max(len(res), 1)
         frames.append({
             "bytes": out["bytes"] / live, "serialized": out["serialized"] / live,
+            "messages": out["messages"] / live, "links": out["links"] / live,
             "kinds": {k: v / live for k, v in out["kinds"].items()}, "frame_ms": out["frame_ms"],
             "rays": sum(r["rays"] + r["boot_rays"] for r in res.values()),
             "boot_rays": sum(r["boot_rays"] for r in res.values()),
@@ -123,7 +124,10 @@ def row(strategy: Strategy, res: dict, flip: dict, n_nodes: int, n_viewers: int,
     fr = res["frames"]
     nodes = sorted(fr[0]["work"]) if fr else []
     slowest = [max(f["work"].values()) for f in fr]
+    sparse = strategy.kind == "sparse"
     r = {"strategy": strategy.kind, "delay": strategy.delay, "hiding": strategy.hiding,
+         "owners": ("a node that needs it" if strategy.delegate else "home") if sparse else None,
+         "seeds": strategy.seeds if strategy.sharing else None,
          "threshold": strategy.threshold if strategy.kind == "sparse" else None,
          "lease": strategy.lease if strategy.kind == "sparse" else None, "bootstrap": strategy.bootstrap,
          "nodes": n_nodes, "viewers": n_viewers, "processes": len(set(res["pids"])),
@@ -131,6 +135,7 @@ def row(strategy: Strategy, res: dict, flip: dict, n_nodes: int, n_viewers: int,
          "bytes_per_frame": _m([f["bytes"] for f in fr]),
          "serialized_bytes_per_frame": _m([f["serialized"] for f in fr]),
          "update_rays": _m([f["rays"] for f in fr]), "bootstrap_rays": _m([f["boot_rays"] for f in fr]),
+         "messages_per_frame": _m([f["messages"] for f in fr]), "peers_per_frame": _m([f["links"] for f in fr]),
          "flip": flip["flip"], "flip_vs_single": flip["flip_vs_single"],
          "time_ms": _med(slowest),
          "node_time_ms": _m([_med([f["work"][n] for f in fr]) for n in nodes]),
