@@ -1,88 +1,70 @@
-"""Who owns a cache entry, and what a node holds of the entries it does not own.
+"""Who owns a cache entry, and when a record changed enough to be sent again.
 
-Ownership is rendezvous hashing of the entry's viewer-independent 32-bit key
-(:attr:`slc.osc.protocol.FrameRequests.keys`): every live node scores the key
-with a hash of (key, node) and the highest score owns it. Every node computes
-the same owner without a message, and when a node leaves only its own
-entries move (each to the live node that scored it next highest).
-
-A message between nodes holds, per entry, its 4-byte key and, for a record,
-the payload's packed words (:meth:`slc.osc.payload.PayloadMethod.pack_records`;
-slc's 3 cones: 9 words, 36 bytes). Requests (a subscription to an entry, or
-its end) are one key each.
+Ownership is rendezvous hashing of the entry's *region*: every live node scores the region with a
+hash of (region, node) and the highest score owns it. Every node computes the same owner without
+a message; when a node leaves only its own regions move (each to the live node that scored it
+next highest). A region (:class:`Regions`) is the block (B x B texels) of the entry's coarser
+entries at level ``T`` that covers it (an entry of level ``T`` or coarser: its own block): an
+entry and its coarser entries up to level ``T`` share their owner, so a new entry's LOD seed is
+mostly its owner's own, and a block's entries share their owner, so an owner allocates whole
+blocks of its own entries and a block's life at its owner (requested in a frame when any node
+needs one of its entries) is its life in the single-process cache.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
-from slc.osc.blocks import extend_array
-
-KEY_BYTES = 4          # an entry's key in a request or in front of a record
-
-
-def owners(keys: mi.UInt32, live: list) -> mi.UInt32:
-    """The owner node (an id from ``live``) of every key: rendezvous hashing."""
-    best, owner = dr.zeros(mi.UInt32, dr.width(keys)), dr.full(mi.UInt32, live[0], dr.width(keys))
-    for node in live:
-        score, _ = mi.sample_tea_32(mi.UInt32(keys), dr.opaque(mi.UInt32, 0x51ED0000 + int(node)), 4)
-        take = score > best
-        owner = dr.select(take, mi.UInt32(node), owner)
-        best = dr.select(take, score, best)
-    return owner
+_M64 = np.uint64(0xFFFFFFFFFFFFFFFF)
 
 
-@dataclass
-class Message:
-    """Records on their way to one node: sent in frame ``sent``, applied in frame ``arrive``."""
-    sent: int
-    arrive: int
-    slots: mi.UInt32
-    words: list
+def _mix(x: np.ndarray) -> np.ndarray:
+    """SplitMix64's finaliser: a 64-bit hash of ``x`` (uint64)."""
+    with np.errstate(over="ignore"):
+        x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        return (x ^ (x >> np.uint64(31))) & _M64
 
 
-@dataclass
-class NodeCopy:
-    """One node's copy of the cache under one strategy.
+class Regions:
+    """The region of entries of a cache ``layout`` (:class:`slc.osc.layout.CacheLayout`; see the
+    module) at level ``level``: ``regions(addresses)`` (numpy) -> each entry's region, the virtual
+    block at level min(max(its level, ``level``), its island's top level) that covers it."""
 
-    ``state``: the payload's per-entry arrays (:meth:`PayloadMethod.entry_state`) the node
-    shades from; ``have``: the node holds a record of the entry; ``sub``: the node has asked
-    the entry's owner for it (and not cancelled); ``sent``: per word, the record the owner last
-    sent this node (what the change threshold compares with); ``queue``: records not yet
-    arrived."""
-    state: dict
-    have: mi.Bool
-    sub: mi.Bool
-    sent: list
-    last_need: mi.UInt32 = None
-    queue: list = field(default_factory=list)
+    def __init__(self, layout, level: int):
+        self.level, self.levels, self.shift = int(level), int(layout.levels), int(layout.block_shift)
+        self.base = np.array(layout.d_lvl_base, np.int64)
+        self.nbx = np.array(layout.d_lvl_nbx, np.int64)
+        self.maxl = np.array(layout.d_isl_maxl, np.int64)
 
-    @classmethod
-    def blank(cls, template: dict, capacity: int, words: int) -> "NodeCopy":
-        """An empty copy shaped as ``template`` (the owner's entry state)."""
-        state = {k: dr.zeros(type(v), dr.width(v)) for k, v in template.items()}
-        for v in state.values():
-            dr.make_opaque(v)      # in memory: frozen shading kernels take it as an input
-        return cls(state, dr.zeros(mi.Bool, capacity), dr.zeros(mi.Bool, capacity),
-                   [dr.zeros(mi.UInt32, capacity) for _ in range(words)], dr.zeros(mi.UInt32, capacity))
+    def __call__(self, keys) -> np.ndarray:
+        return self.of(keys)[0]
 
-    def grow(self, template: dict, capacity: int) -> None:
-        """Arrays grown to the owner's (new contents zero, old kept)."""
-        for k, v in template.items():
-            if dr.width(self.state[k]) < dr.width(v):
-                self.state[k] = extend_array(self.state[k], 0, dr.width(v), type(v))
-        if dr.width(self.have) < capacity:
-            self.have = extend_bool(self.have, capacity)
-            self.sub = extend_bool(self.sub, capacity)
-            self.sent = [extend_array(w, 0, capacity, mi.UInt32) for w in self.sent]
-            self.last_need = extend_array(self.last_need, 0, capacity, mi.UInt32)
+    def of(self, keys) -> tuple:
+        """(regions, delegatable: the entry's level is at most ``level``, so that its region holds
+        every coarser entry covering it up to that level)."""
+        vb = np.asarray(keys, np.int64) >> (2 * self.shift)
+        k = np.searchsorted(self.base, vb, side="right") - 1       # (island, level) of each block
+        isl, lvl = k // self.levels, k % self.levels
+        local = vb - self.base[k]
+        by, bx = local // self.nbx[k], local % self.nbx[k]
+        up = np.maximum(np.minimum(np.maximum(lvl, self.level), self.maxl[isl]), lvl) - lvl
+        ka = k + up
+        return (self.base[ka] + (by >> up) * self.nbx[ka] + (bx >> up)).astype(np.uint64), lvl <= self.level
 
-    def forget(self, mask: mi.Bool) -> None:
-        """Entries (a mask over slots) whose owner is gone: neither held nor asked for."""
-        self.have &= ~mask
-        self.sub &= ~mask
+
+def owners(regions, live) -> np.ndarray:
+    """The owner node (an id from ``live``) of every region in ``regions`` (numpy): rendezvous
+    hashing."""
+    k = np.asarray(regions, np.uint64)
+    live = [int(n) for n in live]
+    if len(live) == 1 or k.size == 0:
+        return np.full(k.shape, live[0], np.int64)
+    with np.errstate(over="ignore"):
+        salts = [_mix(np.array([n + 1], np.uint64) * np.uint64(0x9E3779B97F4A7C15)) for n in live]
+    scores = np.stack([_mix(k ^ salt) for salt in salts])
+    return np.asarray(live, np.int64)[np.argmax(scores, axis=0)]
 
 
 def changed_records(method, last: list, rec: list, threshold: float) -> mi.Bool:
@@ -97,21 +79,6 @@ def changed_records(method, last: list, rec: list, threshold: float) -> mi.Bool:
     return differ & (method.record_change(last, rec) > threshold)
 
 
-def extend_bool(a: mi.Bool, size: int) -> mi.Bool:
-    """A mask grown to ``size`` lanes (the new ones False)."""
-    out = dr.zeros(mi.Bool, size)
-    dr.scatter(out, a, dr.arange(mi.UInt32, dr.width(a)))
-    dr.eval(out)
-    return out
-
-
 def count(mask: mi.Bool) -> int:
     """Lanes set in ``mask`` (0 for an empty mask)."""
     return int(dr.count(mask)[0]) if dr.width(mask) else 0
-
-
-def mask_of(slots, capacity: int, active=True) -> mi.Bool:
-    """A mask over ``capacity`` slots, set at ``slots`` (where ``active``)."""
-    out = dr.zeros(mi.Bool, capacity)
-    dr.scatter(out, True, mi.UInt32(slots), active)
-    return out

@@ -127,9 +127,10 @@ class OnSurfaceCache:
         return dict(self._stats, cache_bytes=self.memory_bytes())
 
     # ------------------------------------------------------------------ frame
-    def begin_frame(self, frame: int, gbuffers, timer=None) -> FrameRequests:
+    def begin_frame(self, frame: int, gbuffers, timer=None, extra=None) -> FrameRequests:
         """Requests from every viewer's G-buffer, dedupe, allocation, update
-        queue; timed as stages "requests", "allocate", "queue"."""
+        queue; timed as stages "requests", "allocate", "queue". ``extra``: more
+        entries by :meth:`entry_address`, their slots in ``FrameRequests.extra_slot``."""
         timer = timer if timer is not None else NullTimer()
         L, pool = self.layout, self.pool
         # all viewers' pixels as one array: the frame's layered G-buffer (no copy
@@ -145,7 +146,8 @@ class OnSurfaceCache:
                 if self.front_only:
                     req = (req[0] & (src.si.wi.z > 0.0),) + tuple(req[1:])
                 dr.eval(req[0], req[1], req[2])    # once: both passes of requested_blocks read them
-            req_vb = requested_blocks([req], L.n_vblocks)
+            reqs = [req] + ([_address_request(L, extra)] if extra is not None and dr.width(extra) > 0 else [])
+            req_vb = requested_blocks(reqs, L.n_vblocks)
             st.outputs(req_vb)
 
         # ---------------------------------------------------------- 2. allocate + slot dedupe
@@ -163,7 +165,7 @@ class OnSurfaceCache:
                               f"not allocated this frame (pixels get INVALID); pass max_blocks or grow=True")
                 self._warned = True
             req_phys = pool.touch(req_vb, self.tick)
-            active, slots, index, multi = dedupe(pool, [req], req_phys, [src.viewer])
+            active, slots, index, multi = dedupe(pool, reqs, req_phys, [src.viewer] + [len(gbuffers)] * (len(reqs) - 1))
             dr.eval(active)    # apart: n_active may equal a viewer's pixel count (same-sized values fuse)
             st.outputs(slots[0], index[0], multi, pool.blk_vb, pool.blk_last)
         pixel_slot, pixel_index = self._per_viewer(slots[0], src), self._per_viewer(index[0], src)
@@ -201,7 +203,8 @@ class OnSurfaceCache:
         texel = mi.Float(mi.UInt32(1) << lvl) * L.texel_size      # islands are charted at world scale
         return FrameRequests(frame=frame, active=active, si=si, is_new=is_new, seed_slot=seed, keys=keys,
                              pixel_slot=pixel_slot, pixel_index=pixel_index,
-                             layer_slot=slots[0], layer_index=index[0], texel_size=texel)
+                             layer_slot=slots[0], layer_index=index[0], texel_size=texel,
+                             extra_slot=slots[1] if len(reqs) > 1 else None)
 
     @staticmethod
     def _per_viewer(values, src) -> list:
@@ -225,6 +228,22 @@ class OnSurfaceCache:
     def _keys(self, isl, lvl, tx, ty) -> mi.UInt32:
         k0, _ = mi.sample_tea_32(isl * self.layout.levels + lvl, (ty << 16) | tx, 4)
         return k0
+
+    def entry_address(self, slots) -> mi.UInt32:
+        """Each slot's texel as ``virtual block * B^2 + texel in block``: unique, the same on every
+        render node, whatever physical block holds it (a key of 32 bits while the virtual texture
+        holds fewer than 2^32 texels)."""
+        slots = mi.UInt32(slots)
+        B2 = self.layout.block_texels
+        return dr.gather(mi.UInt32, self.pool.blk_vb, slots // B2) * B2 + (slots & (B2 - 1))
+
+    def address_slots(self, address, active=True) -> mi.UInt32:
+        """The slots holding the texels ``address`` (:meth:`entry_address`) where their block is
+        mapped, else INVALID."""
+        a = mi.UInt32(address)
+        L = self.layout
+        ph = self.pool.phys(a >> (2 * L.block_shift), active)
+        return dr.select(ph != INVALID, ph * L.block_texels + (a & (L.block_texels - 1)), INVALID)
 
     def entry_keys(self, slots) -> mi.UInt32:
         """A 32-bit hash of each slot's (island, level, tx, ty): the same for a
@@ -267,3 +286,11 @@ class OnSurfaceCache:
         """Mip level of every pixel of a G-buffer (0 where nothing is cached)."""
         valid, _, _, lvl = self.layout.pixel_texels(gb)
         return dr.select(valid, lvl, 0)
+
+
+def _address_request(layout: CacheLayout, address) -> tuple:
+    """A request (valid, virtual block, texel in block, level) of the entries ``address``
+    (:meth:`OnSurfaceCache.entry_address`; the level is not read by the allocation)."""
+    a = mi.UInt32(address)
+    return (dr.full(mi.Bool, True, dr.width(a)), a >> (2 * layout.block_shift), a & (layout.block_texels - 1),
+            dr.zeros(mi.UInt32, dr.width(a)))

@@ -190,6 +190,7 @@ class PayloadMethod(Method):
     words = 1
     storage_type = mi.UInt32
     needs: frozenset = frozenset()
+    reads_seeds = True       # the update starts a new entry from its LOD seed (FrameRequests.seed_slot)
 
     def __init__(self, scene, cache: SurfaceCache | None = None, **kw):
         super().__init__(scene, **kw)
@@ -303,12 +304,14 @@ class PayloadMethod(Method):
         self._last = {"active_entries": n_active, "motion_entries": motion}
         return outs
 
-    def begin(self, ctx, gbuffers, timer) -> FrameRequests:
+    def begin(self, ctx, gbuffers, timer, extra=None) -> FrameRequests:
         """The cache's requests of this frame, storage grown to its capacity (the first part
-        of :meth:`render`)."""
+        of :meth:`render`); ``extra``: entries requested besides the pixels (by address,
+        :meth:`slc.osc.cache.OnSurfaceCache.begin_frame`)."""
         if self.cache is None:
             self._set_up_cache()
-        fr = self.requests = self.cache.begin_frame(ctx.frame, gbuffers, timer)
+        fr = self.requests = (self.cache.begin_frame(ctx.frame, gbuffers, timer) if extra is None else
+                              self.cache.begin_frame(ctx.frame, gbuffers, timer, extra=extra))
         self._grow()
         return fr
 

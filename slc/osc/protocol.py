@@ -79,6 +79,7 @@ class FrameRequests:
     layer_slot: mi.UInt32 | None = None      # pixel_slot of all viewers laid out as the frame's layers
     layer_index: mi.UInt32 | None = None     # pixel_index likewise (slc.scene.gbuffer.Layers order)
     texel_size: mi.Float | None = None       # per active entry: the world-space edge of its texel (its footprint)
+    extra_slot: mi.UInt32 | None = None      # slots of the entries requested besides the pixels (begin_frame's extra)
 
     @property
     def n_active(self) -> int:

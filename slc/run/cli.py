@@ -24,7 +24,7 @@ from pathlib import Path
 import click
 
 from slc.core import backend
-from slc.distributed import DEFAULT_THRESHOLD
+from slc.distributed import DEFAULT_LEASE, DEFAULT_THRESHOLD
 
 
 def _errors():
@@ -132,8 +132,7 @@ def render_cmd(scene_name, method, viewers, rig, overlap, res, frames, warmup, s
     except ValueError as e:
         _fail(str(e))
     if nodes:
-        _render_on_nodes(scene_name, method, s, m, vs, nodes, threshold, address, (rig, viewers, overlap),
-                         (w, h), frames, seed, gt, out)
+        _render_on_nodes(scene_name, method, s, m, vs, nodes, threshold, address, (w, h), frames, seed, gt, out)
         return
     cfg = RunConfig(width=w, height=h, frames=frames, warmup=min(warmup, frames - 1), seed=seed,
                     eval_frames=[frames - 1] if gt else [])
@@ -154,10 +153,10 @@ def render_cmd(scene_name, method, viewers, rig, overlap, res, frames, warmup, s
     click.echo(f"wrote {outd}")
 
 
-def _render_on_nodes(scene_name, spec, s, m, vs, nodes, threshold, address, rig, size, frames, seed, gt, out):
-    """``slc render --nodes K``: the viewers of ``rig`` ((name, viewers, overlap)) on K Ray render
-    nodes (:func:`slc.distributed.actors.render_on_nodes`); ``s``, ``m``, ``vs``: the scene,
-    method and viewers loaded here to check the input before Ray starts."""
+def _render_on_nodes(scene_name, spec, s, m, vs, nodes, threshold, address, size, frames, seed, gt, out):
+    """``slc render --nodes K``: the viewers ``vs`` on K Ray render nodes, one process each
+    (:func:`slc.distributed.actors.render_on_nodes`); ``s``, ``m``: the scene and method loaded
+    here to check the input before Ray starts."""
     # after --variant (the modules build Mitsuba types on import)
     from slc.core import io
     from slc.osc.payload import PayloadMethod
@@ -172,14 +171,15 @@ def _render_on_nodes(scene_name, spec, s, m, vs, nodes, threshold, address, rig,
     t = DEFAULT_THRESHOLD if threshold is None else threshold
     if t < 0:
         _fail(f"--threshold must be >= 0, got {t}")
-    res = render_on_nodes(scene_name, spec, nodes, (*rig, False), *size, frames, t, seed=seed, address=address,
-                          output=m.output)
+    res = render_on_nodes(s, scene_name, spec, vs, nodes, *size, frames, t, DEFAULT_LEASE, seed=seed,
+                          address=address, output=m.output)
     outd = Path(out)
     for v, img in sorted(res["images"].items()):
         io.write_hdr_and_png(outd / f"{s.name}_{m.name}_node{v % nodes}_{vs[v].name}", img, s.exposure)
     sent = res["bytes_per_frame"]
     io.write_json(outd / "nodes.json", {"scene": s.name, "method": spec, "nodes": nodes, "threshold": t,
-                                        "bytes_per_frame": sent, "missing": res["missing"]})
+                                        "processes": res["processes"], "bytes_per_frame": sent,
+                                        "serialized_bytes_per_frame": res["serialized_bytes_per_frame"]})
     click.echo(f"{s.name} {m.name} on {nodes} nodes, viewers={len(vs)}: {sum(sent) / max(len(sent), 1):.0f} bytes "
                f"per frame sent (mean over {len(sent)} frames), threshold {t:g}")
     click.echo(f"wrote {outd}")

@@ -62,7 +62,7 @@ class AdaptiveCache(PayloadMethod):
 
     name = "adaptive"
     params = PARAMS + PayloadMethod.cache_params
-    words, storage_type = ch.HEADER_WORDS, mi.UInt32
+    words, storage_type, reads_seeds = ch.HEADER_WORDS, mi.UInt32, False    # new entries start in the prior
 
     def __init__(self, scene, **kw):
         super().__init__(scene, **kw)
