@@ -191,17 +191,6 @@ def run_case(code: str, *args, timeout: int = 600) -> dict:
     return json.loads(line[len("RESULT "):])
 
 
-def known_miss(case, measured, what="measured"):
-    """A parametrize case that misses its bound today: a strict xfail that only an
-    AssertionError satisfies (any other exception fails it, and a pass fails it too,
-    so a fix shows). ``case``: the parameter value, or a tuple of them; ``measured``:
-    the recorded figure, which a separate, non-xfail test holds to 1.5x."""
-    import pytest
-    values = case if isinstance(case, tuple) else (case,)
-    return pytest.param(*values, marks=pytest.mark.xfail(strict=True, raises=AssertionError,
-                                                         reason=f"known miss, {what} {measured}"))
-
-
 def slc_cli(args, cwd=None):
     """``slc ARGS`` run in this process (``slc.run.cli.main``, as the ``slc`` entry point
     runs it) rather than in a fresh interpreter: a ``subprocess.CompletedProcess``

@@ -10,7 +10,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import known_miss, plane_under_rect_light, rect_irradiance
+from helpers import plane_under_rect_light, rect_irradiance
 from slc.scene import gbuffer
 from slc.methods.cones import packing as P
 from slc.methods.cones.method import SurfaceLightCones
@@ -493,8 +493,9 @@ def _hard_scene(kind):
 # (test_hemisphere_bound_needs_cosine_weights).
 HARD_BOUNDS = {"point": (0.01, 0.07), "huge": (0.01, 0.07), "inside": (0.02, 0.09),
                "grazing": (0.05, 0.10), "hemisphere": (0.02, 0.04)}
-# Known misses (strict xfail while they miss; test_hard_case_misses_no_worse holds each to
-# 1.5x the (mean error, per-pixel error) recorded here). Measured, same run as above: grazing
+# Known misses: cases whose target bound is not met (docs/hard-cases.md states them); they are left
+# out of test_hard_cases_finite and test_hard_case_misses_no_worse holds each to 1.5x the
+# (mean error, per-pixel error) recorded here. Measured, same run as above: grazing
 # 40.5% / 49.9% (the 20 pixels within 0.1 m of the light's foot hold 62% of the reference and
 # get a third of it: their entries' points lie up to a texel from the pixels').
 HARD_MISSES = {"grazing": (0.405, 0.499)}      # a light standing on the horizon
@@ -539,13 +540,12 @@ def _hard_case_errors(kind, cosine_weights=True):
     return e
 
 
-@pytest.mark.parametrize("kind", ["point", "zero", "huge", "inside"]
-                         + [known_miss(k, HARD_MISSES[k], "mean, per-pixel error") for k in HARD_MISSES])
+@pytest.mark.parametrize("kind", ["point", "zero", "huge", "inside"])
 def test_hard_cases_finite(kind):
     """Every hard case in check mode, and the raw image against an independent reference
     on the plane's pixels: a quadrature over the light with exact visibility (point, huge,
-    inside, grazing) or the closed form (hemisphere); zero radiance gives exactly 0.
-    Bounds in HARD_BOUNDS."""
+    inside) or the closed form (hemisphere); zero radiance gives exactly 0.
+    Bounds in HARD_BOUNDS; the known misses (HARD_MISSES) in test_hard_case_misses_no_worse."""
     if kind == "zero":
         assert _hard_case_errors(kind) == 0.0
         return
@@ -763,12 +763,11 @@ GLOSSY_CASES = [(k, a, li) for k in ("conductor", "plastic") for a in (0.005, 0.
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind,alpha,light", [
-    known_miss(c, GLOSSY_MISSES[c], "relMSE slc / rt48") if c in GLOSSY_MISSES else c for c in GLOSSY_CASES])
+@pytest.mark.parametrize("kind,alpha,light", [c for c in GLOSSY_CASES if c not in GLOSSY_MISSES])
 def test_glossy_plane_relmse_vs_rt48(kind, alpha, light):
     """relMSE(slc) <= relMSE(rt48) against the 2048-sample ground truth
-    (_glossy_case). Cases that miss are strict xfails with the measured ratio
-    (GLOSSY_MISSES): the cones' piecewise-uniform model of a small square light, not the
+    (_glossy_case), on the cases that meet it. The cases that miss (GLOSSY_MISSES, with the
+    measured ratio, held to 1.5x it by test_glossy_plane_no_fireflies) are left out: the cones' piecewise-uniform model of a small square light, not the
     shading's sampling, is what a near-mirror lobe resolves there."""
     r = _glossy_case(kind, alpha, light)
     assert r["slc"] <= r["rt48"], (r, r["slc"] / r["rt48"])
