@@ -28,7 +28,8 @@ its recorded value is *worse* (the test fails); more than 10% below it is
 bound follows an improvement). Runs are deterministic up to the order of
 floating-point atomics, far inside 10%.
 
-Adding a scene: one line in :data:`SCENES`, then a re-record.
+Adding a scene: one line in :data:`SCENES` (and in :data:`SCENE_METHODS` to measure some
+methods only), then a re-record.
 """
 from __future__ import annotations
 
@@ -53,6 +54,10 @@ SCENES = {
     "atrium": "large court, three small round lamps and one large light, colonnades",
     "village": "glossy slate and iron under a 10 m moon far away and 8 cm torches close by",
     "spheres": "dark room, four spherical lights (radii 0.03-1 m, radiances 1-1e4) over glossy plates",
+    "box_export": "Cornell box as exporters write it: rectangles and cubes by matrices, a mirrored cube",
+    "lamp_export": "room lit by a small bright rectangle inside a lamp shade and a second rectangle",
+    "preview_export": "smooth plastic, glass and metal on a checkered plane under an environment map with a sun",
+    "sun_export": "one directional light: hard shadows only",
 }
 
 # the VPL methods with 1024 VPLs and depth-5 hierarchies (the defaults, 4096 VPLs and depth 7,
@@ -62,6 +67,11 @@ _VPL = ":views=1024,scene_depth=5,view_depth=5"
 # the method families, each with its settings as run (defaults but for the VPL methods)
 METHODS = ("rt16", "rt48", "restir", "regir", "slc", "slc:fetch=bilinear", "sh", "adaptive", "adaptive:polygon_lights=off",
            "crc", "megaviews" + _VPL, "manylods" + _VPL, "brute" + _VPL, "osc-gi", "sharc", "pt", "pt:output=indirect")
+
+# scenes measured with some methods only (the others: every method of METHODS): the exported
+# scenes hold the direct-light cache methods a user picks, and their partner
+SCENE_METHODS = {name: ("rt48", "slc", "adaptive")
+                 for name in ("box_export", "lamp_export", "preview_export", "sun_export")}
 
 # methods whose frame depends on nothing carried from earlier frames (rtN: any N): only the
 # evaluated (last) frame is rendered, the very image a run of every frame ends with
@@ -121,10 +131,17 @@ def partner_of(output: str) -> str:
     return PARTNERS[output]
 
 
-def measure_scene(scene_name: str, methods=METHODS, cfg: Config = CONFIG, progress=None) -> dict:
+def methods_for(scene_name: str) -> tuple:
+    """The methods the table holds for ``scene_name`` (:data:`SCENE_METHODS`, else :data:`METHODS`)."""
+    return SCENE_METHODS.get(scene_name, METHODS)
+
+
+def measure_scene(scene_name: str, methods=None, cfg: Config = CONFIG, progress=None) -> dict:
     """{method: {"partner", "flip", "rel_mse"[, "flip_ratio", "rel_mse_ratio"]}} of one
-    scene: every method of ``methods`` (and the partners they need) run once in this
-    process, the scene loaded once. ``progress(spec)`` is called before each run."""
+    scene: every method of ``methods`` (default :func:`methods_for` the scene; and the
+    partners they need) run once in this process, the scene loaded once. ``progress(spec)``
+    is called before each run."""
+    methods = methods_for(scene_name) if methods is None else methods
 
     def run_cfg(spec):
         n = 1 if stateless(spec) else cfg.frames
