@@ -6,10 +6,10 @@ entries it *owns* that any node needs. Nodes name entries by address
 (:meth:`~slc.osc.cache.OnSurfaceCache.entry_address`) and each maps addresses to its own slots.
 Entries are grouped in regions (:class:`slc.distributed.owners.Regions`); a region's *home*
 (rendezvous hashing, :func:`~slc.distributed.owners.owners`) gets every node's requests for its
-entries and owns it, unless it *delegated* it (:mod:`slc.distributed.directory`) to the one node
-that needs it.
+entries and owns it, unless it *delegated* it (:mod:`slc.distributed.directory`) to a node that
+needs it.
 
-A frame is six phases (:data:`PHASES`); each takes the messages addressed to it
+A frame is seven phases (:data:`PHASES`); each takes the messages addressed to it
 (:mod:`slc.distributed.messages`) and returns those it sends. A transport carries them
 (:class:`slc.distributed.cluster.Cluster`: in one process, or between Ray actors), ``delay``
 frames late:
@@ -18,23 +18,25 @@ frames late:
    extrapolated ``2 x delay + 2`` frames ahead from their last motion); the entries they need; per
    home, :class:`~slc.distributed.messages.Requests` (:class:`~slc.distributed.state.Subscriptions`:
    subscriptions, cancellations after ``lease`` frames unneeded, the need bits);
-2. ``forward``: as a home, the other nodes' requests; regions needed by one other node only are
-   delegated to it, a delegated region another node needs is revoked;
-3. ``serve``: delegations taken, revoked regions returned; the cache's frame with the viewers'
+2. ``forward``: as a home, the other nodes' requests; a region no entry of which exists yet,
+   needed by other nodes and not by the home, is delegated to one of them (for the region's
+   life); requests for a delegated region are passed on to its owner;
+3. ``serve``: delegations taken; the cache's frame with the viewers'
    pixels and the owned entries other nodes need (``extra``); with delay 0, a
    :class:`~slc.distributed.messages.SeedQuery` to the owners of coarser entries of each new owned
    entry outside its region (a payload that reads LOD seeds starts from the finest coarser entry
    that exists anywhere, as in one process);
-4. ``answer``: returned regions taken; the existing queried entries' records, from before this
-   frame's update;
-5. ``update``: new owned entries seeded; every owned entry any node needs updated once, with the
+4. ``answer``: the existing queried entries' records, from before this frame's update; queries
+   of entries of delegated regions passed on to their owners;
+5. ``relay``: as the owner of delegated regions, the queries their homes passed on, answered;
+6. ``update``: new owned entries seeded; every owned entry any node needs updated once, with the
    payload's own update (random numbers keyed by the entry); per node, the
    :class:`~slc.distributed.messages.Records` of the entries it needs now: ``full``, every
    updated record to every node; ``sparse``, a record the node does not hold or one that changed
    by more than ``threshold`` since the record it holds (:func:`~slc.distributed.owners.changed_records`).
    With ``bootstrap`` rays (and a delay), the node updates with that many rays per frame an entry
    its viewers need and hold no record of, until the owner's record arrives;
-6. ``shade``: the records that arrived, into the node's slots; its viewers shaded (an entry with
+7. ``shade``: the records that arrived, into the node's slots; its viewers shaded (an entry with
    no value yet shades black).
 
 ``single`` (one node, every viewer) and ``independent`` (each node updates every entry its viewers
@@ -71,7 +73,7 @@ PHASES = ("begin", "forward", "serve", "answer", "relay", "update", "shade")
 # ahead by the round trip alone, 1.006x two frames further (docs/distributed.md, "Latency")
 PREDICT_MARGIN = 2
 # bytes by kind: requests (subscriptions and cancellations), need bits, seed queries and replies,
-# regions delegated, revoked and returned with their entries' state, records of entries new at
+# regions delegated, records of entries new at
 # their owner, first records of an entry the node does not hold, and records sent again because
 # the entry changed, by its state after the update (young: in its first ``new_updates`` updates;
 # moving: in a motion phase; settled)
