@@ -153,7 +153,7 @@ def _unit_weight(nodeids) -> float:
                                                                if n.split("::")[0] not in UNIT_SECONDS)
 
 
-@pytest.hookimpl(tryfirst=True)
+@pytest.hookimpl(tryfirst=True, optionalhook=True)
 def pytest_xdist_make_scheduler(config, log):
     """``--dist loadfile`` with two changes: the files of SHARED_UNITS form one work unit each, and
     a worker that asks for work gets the unit expected to take longest (UNIT_SECONDS), so that the

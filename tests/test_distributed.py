@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import pickle
+import time
 from pathlib import Path
 
 import mitsuba as mi
@@ -230,6 +231,11 @@ def ray_nodes(ray_cluster):
            "SLC_CACHE": os.environ["SLC_CACHE"]}
     ray.init(address=ray_cluster.address, include_dashboard=False, log_to_driver=False,
              runtime_env={"env_vars": env})
+    # the actors of an earlier test's driver end after it disconnects: wait for their CPUs
+    t_end = time.monotonic() + 60.0
+    while ray.available_resources().get("CPU", 0.0) < ray.cluster_resources().get("CPU", 0.0) \
+            and time.monotonic() < t_end:
+        time.sleep(0.2)
     try:
         yield ray_cluster
     finally:
@@ -237,7 +243,8 @@ def ray_nodes(ray_cluster):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("spec", ["slc", "adaptive"])
+@pytest.mark.fresh_process   # in its own process: after its connections, a later connection of the
+@pytest.mark.parametrize("spec", ["slc", "adaptive"])   # same process had its actors cancelled by Ray
 def test_node_processes_give_the_single_process_images_and_survive_a_killed_process(ray_nodes, scene, spec):
     import ray
     from slc.distributed.actors import RayNodes, node_actors

@@ -16,7 +16,8 @@ def test_ratio_in_turn_alternates_and_divides_within_each_repetition(monkeypatch
 
     def fake_run(scene, m, viewers, cfg):
         calls.append((viewers, cfg.eval_frames, cfg.keep_images))
-        return SimpleNamespace(time_ms=next(times), compiled_after_warmup=int(len(calls) == 4))
+        return SimpleNamespace(time_ms=next(times), compiled_after_warmup=int(len(calls) == 4),
+                               recordings_after_warmup=0)
 
     monkeypatch.setattr(experiment, "run_sequence", fake_run)
     monkeypatch.setattr(methods, "create", lambda spec, scene, seed=0: object())

@@ -252,10 +252,12 @@ def device_array(tp, a):
     """``a`` (a numpy array or anything ``tp`` takes) as a Dr.Jit array of type ``tp`` (a
     1-D type: ``mi.Float``, ``mi.UInt32``...) in memory that Dr.Jit allocated, evaluated: made
     from numpy, ``tp(a)`` would map the numpy memory (see the module: host data that changes
-    between calls). One copy kernel per type."""
+    between calls). One copy kernel per type; it has run when this returns (kernels run
+    asynchronously: the caller may change or free ``a`` right after)."""
     v = tp(np.ascontiguousarray(a)) if isinstance(a, np.ndarray) else tp(a)
     out = dr.gather(tp, v, dr.arange(mi.UInt32, dr.width(v)) + dr.opaque(mi.UInt32, 0))
     dr.eval(out)
+    dr.sync_thread()
     return out
 
 

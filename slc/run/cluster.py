@@ -118,11 +118,34 @@ class RayPool:
         self._replacements = 0
         self.actors = [self._new_actor() for _ in range(workers)]
         # wait until every worker has imported slc, so that jobs are not charged with worker start-up
-        self.info = ray.get([a.info.remote() for a in self.actors])
+        self.info = self._started()
 
     def _new_actor(self):
         return SceneWorker.options(num_cpus=self.threads, scheduling_strategy="SPREAD",
                                    max_restarts=0, max_task_retries=0).remote(self.runner, self.threads)
+
+    def _started(self) -> list:
+        """Every worker's ``info`` once it has started; a worker that dies before it starts (Ray
+        cancels an actor whose process does not come up) is replaced, at most ``workers`` times
+        in all."""
+        info, tries = [None] * len(self.actors), 0
+        while True:
+            refs = {a.info.remote(): i for i, a in enumerate(self.actors) if info[i] is None}
+            if not refs:
+                return info
+            for ref, i in refs.items():
+                try:
+                    info[i] = ray.get(ref)
+                except ray.exceptions.RayError as e:
+                    tries += 1
+                    if tries > self.workers:
+                        msg = str(e).strip().splitlines()
+                        raise ExperimentError(f"Ray workers do not start: {msg[0] if msg else type(e).__name__}") from None
+                    try:
+                        ray.kill(self.actors[i])
+                    except Exception:
+                        pass
+                    self.actors[i] = self._new_actor()
 
     def close(self) -> None:
         for a in self.actors:
