@@ -123,7 +123,7 @@ Every file here is written by one command, each experiment a first run on an emp
 cache (`HOME` pointed at a new empty folder; the reference cache `SLC_CACHE` kept):
 
 ```sh
-tools/run_experiments.sh docs/results            # all of them, quick presets and the distributed full preset (about 40 minutes on 2 cores)
+tools/run_experiments.sh docs/results            # all of them, quick presets and the distributed full preset (about 2 hours on 2 cores)
 tools/run_experiments.sh docs/results --only crc # a subset, by the names in the first column
 ```
 

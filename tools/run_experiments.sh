@@ -16,11 +16,11 @@
 #              when OUT is docs/results, else none)
 #   --warm     keep HOME (kernel cache from earlier runs): faster, not a first run
 #   --list     print the entries with their estimated minutes and exit
-# Every experiment runs its --quick preset (or the small form listed; distributed runs its full
-# preset, 96x54 on 4 rigs, since its delays 1 and 4 are in no quick preset). The other full presets (slc run
+# Every experiment runs its --quick preset (or the small form listed; the entry distributed runs
+# its full preset, 96x54 on 4 rigs and delays 0-4, about an hour: one Ray process per node). The other full presets (slc run
 # NAME without --quick: 320x180, 240 frames, several scenes) take hours each on 2 cores and are
 # not run here. The estimates are minutes on 2 idle cores with an empty kernel cache (kernel
-# compilation included), from a run of the whole list: about 40 minutes. Left out as too long:
+# compilation included): about 2 hours 10 minutes for the whole list. Left out as too long:
 # megaviews_scale.py at 1M views (ManyLoDs alone about 18 min) and the osc-gi multi-viewer full
 # preset.
 # The interpreter is .venv/bin/python (or $PYTHON_BIN) running this checkout's slc.
@@ -58,8 +58,8 @@ RUNS=(
   "osc-gi|run|1|slc run osc-gi --quick"
   "osc-gi-160x90|run|2|slc run osc-gi --no-ablations --no-multi --no-memory --retime 3"
   "megaviews|run|1|slc run megaviews --quick"
-  "distributed-quick|run|2|slc run distributed --quick"
-  "distributed|run|8|slc run distributed"
+  "distributed-quick|run|9|slc run distributed --quick"
+  "distributed|run|60|slc run distributed"
   "megaviews-scale|jsonl|1|python tools/megaviews_scale.py 65536 262144"
   "regir-sweep|md|1|python tools/regir_sweep.py --scenes atrium sponza --md {md}"
   "bench-rays|text|1|slc bench rays ; slc bench rays --scene sponza"
