@@ -20,7 +20,7 @@
 # its full preset, 96x54 on 4 rigs and delays 0-4, about an hour: one Ray process per node). The other full presets (slc run
 # NAME without --quick: 320x180, 240 frames, several scenes) take hours each on 2 cores and are
 # not run here. The estimates are minutes on 2 idle cores with an empty kernel cache (kernel
-# compilation included): about 2 hours 10 minutes for the whole list. Left out as too long:
+# compilation included): about 2 hours for the whole list. Left out as too long:
 # megaviews_scale.py at 1M views (ManyLoDs alone about 18 min) and the osc-gi multi-viewer full
 # preset.
 # The interpreter is .venv/bin/python (or $PYTHON_BIN) running this checkout's slc.
@@ -41,7 +41,7 @@ RUNS=(
   "area-lights-320x180|run|2|slc run single-viewer --quick --res 320x180 --scene street --scene cornell:variant=classic --scene atrium --scene sponza --methods rt48 restir slc adaptive adaptive:polygon_lights=off adaptive:polygon_glossy=sample adaptive:polygon_glossy=point adaptive:force=cones adaptive:force=visibility,vis_lights=3"
   "single-viewer-street-320x180|run|3|slc run single-viewer --quick --scene street --res 320x180 --methods rt48 slc slc:freeze=off adaptive adaptive:freeze=off"
   "single-viewer-320x180|run|7|slc run single-viewer --quick --res 320x180 --scene atrium --scene cornell --scene garden --scene hangar --scene lamps --scene skylit --scene spheres --scene sponza --scene street --scene two_rooms --scene village --methods rt48 restir slc slc:fetch=bilinear adaptive --sweep"
-  "corpus|run|20|slc run corpus --quick"
+  "corpus|run|6|slc run corpus --quick"
   "overlap|run|3|slc run overlap --quick"
   "random-viewers|run|2|slc run random-viewers --quick"
   "memory|run|2|slc run memory --quick"
