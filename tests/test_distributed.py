@@ -212,9 +212,9 @@ def test_an_extrapolated_camera_continues_a_steady_walk_and_turn():
         a = np.radians(2.0 * t)
         o = np.array([0.1 * t, 1.5, 0.0])
         return Camera(o, o + 3.0 * np.array([np.sin(a), 0.0, np.cos(a)]), fov=60.0)
-    for lead in (1, 4):
-        c = extrapolated(cam(9), cam(10), lead)
-        want = cam(10 + lead)
+    for ahead in (1, 4):
+        c = extrapolated(cam(9), cam(10), ahead)
+        want = cam(10 + ahead)
         assert np.allclose(c.origin, want.origin) and np.allclose(c.target, want.target, atol=1e-9)
 
 

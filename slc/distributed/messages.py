@@ -68,12 +68,15 @@ def _keys(a=None) -> np.ndarray:
 @dataclass
 class Message:
     """From node ``src`` to node ``dst``, sent in frame ``sent``. ``ADDRESSES``: the fields that
-    are ascending address lists, ``BITS``: the packed need bits (both encoded when pickled)."""
+    are ascending address lists, ``BITS``: the packed need bits (both encoded when pickled);
+    ``KIND``: the kind (:data:`slc.distributed.node.KINDS`) all of a message's address bytes
+    count as, where one kind covers them."""
     src: int
     dst: int
     sent: int
     ADDRESSES = ()
     BITS = ()
+    KIND = None
 
     def encoded(self, name: str) -> bytes:
         v = getattr(self, name)
@@ -81,7 +84,8 @@ class Message:
 
     @property
     def kinds(self) -> dict:
-        return {}
+        """Bytes by kind: the encoded addresses, as :data:`KIND`."""
+        return {self.KIND: sum(len(self.encoded(k)) for k in self.ADDRESSES)} if self.KIND else {}
 
     @property
     def nbytes(self) -> int:
@@ -128,10 +132,7 @@ class SeedQuery(Message):
     ``keys`` that exist (their LOD seeds, :func:`slc.osc.requests.lod_seeds`)."""
     keys: np.ndarray = field(default_factory=_keys)
     ADDRESSES = ("keys",)
-
-    @property
-    def kinds(self) -> dict:
-        return {"seeds": len(self.encoded("keys"))}
+    KIND = "seeds"
 
 
 @dataclass
@@ -173,14 +174,11 @@ class SeedReply(Records):
 
 @dataclass
 class Delegate(Message):
-    """A home hands new ``regions`` (no entry of theirs exists yet) to the one node that needs
-    them: it owns them from now on."""
+    """A home hands new ``regions`` (no entry of theirs exists yet) to a node that needs them,
+    which owns them for the regions' life."""
     regions: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint64))
     ADDRESSES = ("regions",)
-
-    @property
-    def kinds(self) -> dict:
-        return {"ownership": len(self.encoded("regions"))}
+    KIND = "ownership"
 
 
 @dataclass

@@ -172,10 +172,10 @@ class Node:
         gbs = [gbuf.render_gbuffer(self.scene, p.camera(frame), self.width, self.height,
                                    p.camera(frame - 1) if frame > 0 else None, p.name) for p in self.viewers.values()]
         gbuf.attach_layers(gbs)
-        lead = 2 * self.s.delay + PREDICT_MARGIN
+        ahead = 2 * self.s.delay + PREDICT_MARGIN
         pred = []
         if self.s.predict and self.s.delay > 0 and frame > 0:
-            pred = [gbuf.render_gbuffer(self.scene, extrapolated(p.camera(frame - 1), p.camera(frame), lead),
+            pred = [gbuf.render_gbuffer(self.scene, extrapolated(p.camera(frame - 1), p.camera(frame), ahead),
                                         self.width, self.height, None, p.name) for p in self.viewers.values()]
         return gbs, pred
 

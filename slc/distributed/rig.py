@@ -78,8 +78,8 @@ class ViewerPoses:
         return self.cameras[int(frame)]
 
 
-def extrapolated(prev: Camera, cur: Camera, lead: float) -> Camera:
-    """The camera ``lead`` frames after ``cur`` if it keeps the motion from ``prev`` to ``cur``:
+def extrapolated(prev: Camera, cur: Camera, ahead: float) -> Camera:
+    """The camera ``ahead`` frames after ``cur`` if it keeps the motion from ``prev`` to ``cur``:
     its origin moved on along a line, its view direction turned on about the same axis."""
     o0, o1 = np.asarray(prev.origin, float), np.asarray(cur.origin, float)
     d0, d1 = np.asarray(prev.target, float) - o0, np.asarray(cur.target, float) - o1
@@ -90,9 +90,9 @@ def extrapolated(prev: Camera, cur: Camera, lead: float) -> Camera:
     d = b
     if s > 1e-9:
         k = axis / s
-        ang = lead * np.arctan2(s, c)
+        ang = ahead * np.arctan2(s, c)
         d = b * np.cos(ang) + np.cross(k, b) * np.sin(ang) + k * np.dot(k, b) * (1 - np.cos(ang))
-    o = o1 + lead * (o1 - o0)
+    o = o1 + ahead * (o1 - o0)
     return Camera(o, o + d * dist, np.asarray(cur.up, float), cur.fov)
 
 
