@@ -1,5 +1,5 @@
 """The package's layers, checked: imports go one way, no cycles, modules of a readable size,
-long functions that say why they are one function.
+long functions that say why they are one function, none over ``MAX_FN`` lines, loop state named.
 
 Layers, bottom to top (a module may import from its own layer and the layers below):
 
@@ -32,6 +32,9 @@ SHARED = {"adaptive": {"cones", "sh"}, "crc": {"sh"}, "oscgi": {"sh"}}
 MAX_LINES, MAX_LONG, LONG = 650, 5, 450
 # a function over LONG_FN lines starts its docstring with the reason it is one function
 LONG_FN, ONE_FUNCTION = 80, "one function because"
+# no function in slc/ over MAX_FN lines; a dr.while_loop state holds at most MAX_STATE positional
+# values (more: one named structure, a DRJIT_STRUCT dataclass)
+MAX_FN, MAX_STATE = 100, 3
 
 
 def _modules() -> dict[str, Path]:
@@ -216,6 +219,37 @@ def test_long_functions_say_why():
                 bad.append(f"{p.relative_to(ROOT)}:{fn.lineno} {fn.name} ({n} lines)")
     assert not bad, (f"functions over {LONG_FN} lines whose docstring does not start with why they are one "
                      f"function ('{ONE_FUNCTION.capitalize()} ...'):\n" + "\n".join(bad))
+
+
+def _package_functions():
+    for p in sorted(PKG.rglob("*.py")):
+        for fn in ast.walk(ast.parse(p.read_text())):
+            if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                yield p, fn
+
+
+def test_no_function_over_max_fn():
+    bad = [f"{p.relative_to(ROOT)}:{fn.lineno} {fn.name} ({fn.end_lineno - fn.lineno + 1} lines)"
+           for p, fn in _package_functions() if fn.end_lineno - fn.lineno + 1 > MAX_FN]
+    assert not bad, f"functions in slc/ over {MAX_FN} lines (split them into stages):\n" + "\n".join(bad)
+
+
+def test_loop_state_is_named():
+    """Every ``dr.while_loop`` in slc/ spells its state as a tuple of at most ``MAX_STATE``
+    values, a named structure counting as one (a state built elsewhere cannot be checked)."""
+    bad = []
+    for p in sorted(PKG.rglob("*.py")):
+        for call in ast.walk(ast.parse(p.read_text())):
+            if not (isinstance(call, ast.Call) and isinstance(call.func, (ast.Attribute, ast.Name))
+                    and (getattr(call.func, "attr", None) or getattr(call.func, "id", None)) == "while_loop"):
+                continue
+            state = next((k.value for k in call.keywords if k.arg == "state"), call.args[0] if call.args else None)
+            where = f"{p.relative_to(ROOT)}:{call.lineno}"
+            if not isinstance(state, ast.Tuple):
+                bad.append(f"{where}: state not a tuple literal")
+            elif len(state.elts) > MAX_STATE:
+                bad.append(f"{where}: {len(state.elts)} positional state values")
+    assert not bad, "dr.while_loop states to name (a DRJIT_STRUCT dataclass):\n" + "\n".join(bad)
 
 
 @pytest.mark.parametrize("folder", sorted(p.name for p in (PKG / "methods").iterdir()

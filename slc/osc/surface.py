@@ -18,6 +18,8 @@ the real surface (never on the tessellation).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import drjit as dr
 import mitsuba as mi
 
@@ -31,6 +33,20 @@ _SI_ANALYTIC_TABLES = ("d_shape_analytic", "d_shape_kind", "d_shape_xform")
 
 EDGE_INSET = 1e-4     # border entries of analytic shapes stay this far (in u, v) inside the domain
 BORDER_INSET = 1e-3   # clamped border entries move this fraction of the way to the triangle's centroid
+
+
+@dataclass
+class ClosestLoop:
+    """The state of :meth:`TexelPoints.lookup`'s search over an island's triangles (one lane per
+    entry): ``i`` the next triangle (``count``: done), ``best_d`` the squared 2D distance to the
+    closest triangle so far (0: inside it), ``best_j`` that triangle, ``bu``, ``bv`` the Mitsuba
+    barycentrics of its closest point."""
+    i: mi.UInt32 = field(default_factory=mi.UInt32)
+    best_d: mi.Float = field(default_factory=mi.Float)
+    best_j: mi.UInt32 = field(default_factory=mi.UInt32)
+    bu: mi.Float = field(default_factory=mi.Float)
+    bv: mi.Float = field(default_factory=mi.Float)
+    DRJIT_STRUCT = {"i": mi.UInt32, "best_d": mi.Float, "best_j": mi.UInt32, "bu": mi.Float, "bv": mi.Float}
 
 
 class TexelPoints:
@@ -91,24 +107,25 @@ class TexelPoints:
         bu, bv = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
         uv = L.d_sorted_uv
 
-        def cond(i, best_d, best_j, bu, bv):
-            return i < count
+        def cond(st: ClosestLoop):
+            return st.i < count
 
-        def body(i, best_d, best_j, bu, bv):
-            j = start + i
+        def body(st: ClosestLoop):
+            j = start + st.i
             p0 = dr.gather(mi.Point2f, uv, j * 3 + 0)
             p1 = dr.gather(mi.Point2f, uv, j * 3 + 1)
             p2 = dr.gather(mi.Point2f, uv, j * 3 + 2)
             d2, u, v = _closest_on_triangle(c, p0, p1, p2)
-            better = d2 < best_d
-            best_d = dr.select(better, d2, best_d)
-            best_j = dr.select(better, j, best_j)
-            bu = dr.select(better, u, bu)
-            bv = dr.select(better, v, bv)
-            i = dr.select(best_d <= 0.0, count, i + 1)   # inside: done
-            return i, best_d, best_j, bu, bv
+            better = d2 < st.best_d
+            st.best_d = dr.select(better, d2, st.best_d)
+            st.best_j = dr.select(better, j, st.best_j)
+            st.bu = dr.select(better, u, st.bu)
+            st.bv = dr.select(better, v, st.bv)
+            st.i = dr.select(st.best_d <= 0.0, count, st.i + 1)   # inside: done
+            return (st,)
 
-        i, best_d, best_j, bu, bv = dr.while_loop((i, best_d, best_j, bu, bv), cond, body)
+        st, = dr.while_loop((ClosestLoop(i, best_d, best_j, bu, bv),), cond, body)
+        best_d, best_j, bu, bv = st.best_d, st.best_j, st.bu, st.bv
         tri = dr.gather(mi.UInt32, L.d_sorted_tri, best_j)
         # a centre outside every triangle is clamped onto an edge; move it a
         # little towards the centroid, so that an entry never sits exactly on an

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -35,6 +36,31 @@ from slc.scene.emitter_table import (MESH, OTHER, POINT, RECT, ROW, ROW_E0, ROW_
 # proportional choice raised RT-16's relMSE on atrium, sponza, garden, street and (28x) village, where a
 # bright distant moon takes the samples of nearby torches (docs/emitter-sampling.md).
 DEFAULT_CHOICE = os.environ.get("SLC_EMITTER_CHOICE", "uniform")
+
+
+@dataclass
+class SampledEntry:
+    """The table entry a light sample chose, per lane: its ``row`` (16 floats), the fractions
+    ``u2`` of ``u`` the lookups left, its emitter ``em``, the probability factor ``pa``, its point
+    ``p0`` (a triangle's corner, a sphere's centre, a point light) and its ``kind``."""
+    row: mi.ArrayXf
+    u2: mi.Point2f
+    em: mi.UInt32
+    pa: mi.Float
+    p0: mi.Point3f
+    kind: mi.UInt32
+
+
+@dataclass
+class PointSample:
+    """What the branch of each kind writes to its lanes of a light sample: the point ``p``, its
+    normal ``n``, the solid-angle density ``pdf`` (emitter choice in it), ``delta`` (a point light)
+    and the radiance ``Le`` (a point light's intensity over d^2)."""
+    p: mi.Point3f
+    n: mi.Vector3f
+    pdf: mi.Float
+    delta: mi.Bool
+    Le: mi.Color3f
 
 
 class EmitterSampler(EmitterTable):
@@ -92,11 +118,7 @@ class EmitterSampler(EmitterTable):
     # ------------------------------------------------------------------ sampling
 
     def sample(self, si: mi.SurfaceInteraction3f, u: mi.Point2f, active: mi.Bool, solid_angle: bool = False):
-        r"""One function because it is one traced sample whose stages (emitter, entry, one branch
-        per kind, the weight) write the same point, normal, density and radiance lanes; its
-        stages are marked by banner comments.
-
-        One light sample from ``si``: (DirectionSample3f, L_e/pdf as
+        r"""One light sample from ``si``: (DirectionSample3f, L_e/pdf as
         Color3f, mask, emitter index). ``ds.pdf`` is the solid-angle density
         with the emitter choice in it (the choice probability alone for
         point lights, ``ds.delta``); the mask is false where no sample exists
@@ -106,9 +128,60 @@ class EmitterSampler(EmitterTable):
         it subtends (:func:`slc.scene.spherical.sample_triangle`; by area where
         that is small or nearly a hemisphere), density
         :math:`P(e) P(t|e) / \Omega_t`. :meth:`pdf` knows only area sampling:
-        use it for estimators without MIS (the cache updates)."""
-        active = mi.Bool(active)
+        use it for estimators without MIS (the cache updates).
 
+        Stages: the emitter and the entry within it (:meth:`_entry`), one branch per kind
+        present that writes its lanes of the sample (:class:`PointSample`), the weight."""
+        active = mi.Bool(active)
+        row, u2 = self._entry(u, active)
+        em = mi.UInt32(row[ROW_EM])
+        pa = row[ROW_PA]
+        p0 = mi.Point3f(row[ROW_P0], row[ROW_P0 + 1], row[ROW_P0 + 2])
+        Le = mi.Color3f(row[ROW_L], row[ROW_L + 1], row[ROW_L + 2])
+        present = set(self.kinds_present)
+        if len(present) == 1:   # one kind (e.g. emissive meshes only): no per-lane kind
+            kind = mi.UInt32(self.kinds_present[0])
+        else:
+            kind = dr.gather(mi.UInt32, self._e_kind, em, active)
+
+        e = SampledEntry(row=row, u2=u2, em=em, pa=pa, p0=p0, kind=kind)
+        out = PointSample(p=mi.Point3f(p0), n=dr.zeros(mi.Vector3f, dr.width(active)),
+                          pdf=dr.zeros(mi.Float, dr.width(active)), delta=dr.zeros(mi.Bool, dr.width(active)), Le=Le)
+        if present & {MESH, RECT}:
+            self._sample_flat(si, e, active, solid_angle and MESH in present, out)
+        if SPHERE in present:
+            self._sample_sphere(si, e, active, out)
+
+        # ------------------ point lights: a delta in position ------------------
+        if POINT in present:
+            pt = active & (kind == POINT)
+            d2 = dr.squared_norm(p0 - si.p)
+            out.pdf = dr.select(pt, pa, out.pdf)
+            out.delta |= pt
+            out.Le = dr.select(pt, out.Le / dr.select(d2 > 0.0, d2, 1.0), out.Le)
+
+        ds_o = self._sample_other(si, e, active, out) if OTHER in present else None
+
+        # ------------------ direction sample and weight ------------------
+        p, pdf = out.p, out.pdf
+        ds = dr.zeros(mi.DirectionSample3f, dr.width(active))
+        to = p - si.p
+        dist = dr.norm(to)
+        d = to / dr.select(dist > 0.0, dist, 1.0)
+        if ds_o is not None:
+            far = active & (kind == OTHER)
+            d = dr.select(far, ds_o.d, d)
+            dist = dr.select(far, ds_o.dist, dist)
+        ds.p, ds.n, ds.d, ds.dist = p, mi.Normal3f(out.n), d, dist
+        ds.pdf, ds.delta, ds.time = pdf, out.delta, si.time
+        ds.emitter = dr.gather(mi.EmitterPtr, self._emitters_dr, em, active)
+        ok = active & (pdf > 0.0)
+        w = dr.select(ok, out.Le / dr.select(ok, pdf, 1.0), 0.0)
+        ok &= dr.max(w) > 0.0
+        return ds, w, ok, em
+
+    def _entry(self, u: mi.Point2f, active: mi.Bool):
+        """The chosen entry's row (two lookups) and the fractions ``u2`` of ``u`` the lookups left."""
         # ------------------------ emitter: by u.x ------------------------
         if self.n_emitters == 1:
             k, ux = mi.UInt32(0), mi.Float(u.x)
@@ -137,122 +210,85 @@ class EmitterSampler(EmitterTable):
         keep = frac < q
         row = _row(self._rows, off + dr.select(keep, j, mi.UInt32(cell.y)), active)
         uy = dr.select(keep, frac / dr.select(q > 0.0, q, 1.0), (frac - q) / dr.select(q < 1.0, 1.0 - q, 1.0))
-        u2 = mi.Point2f(ux, dr.clip(uy, 0.0, 0.99999994))
+        return row, mi.Point2f(ux, dr.clip(uy, 0.0, 0.99999994))
 
-        em = mi.UInt32(row[ROW_EM])
-        pa = row[ROW_PA]
-        p0 = mi.Point3f(row[ROW_P0], row[ROW_P0 + 1], row[ROW_P0 + 2])
-        Le = mi.Color3f(row[ROW_L], row[ROW_L + 1], row[ROW_L + 2])
-        present = set(self.kinds_present)
-        if len(present) == 1:   # one kind (e.g. emissive meshes only): no per-lane kind
-            kind = mi.UInt32(self.kinds_present[0])
-        else:
-            kind = dr.gather(mi.UInt32, self._e_kind, em, active)
+    def _sample_flat(self, si, e: "SampledEntry", active: mi.Bool, solid_angle: bool, out: "PointSample"):
+        """Triangles and rectangles: uniform in area (mesh triangles with ``solid_angle``: in the
+        solid angle they subtend where :func:`slc.scene.spherical.sample_triangle` does)."""
+        row, kind, p0, pa, u2 = e.row, e.kind, e.p0, e.pa, e.u2
+        flat = active & ((kind == MESH) | (kind == RECT))
+        e0 = mi.Vector3f(row[ROW_E0], row[ROW_E0 + 1], row[ROW_E0 + 2])
+        e1 = mi.Vector3f(row[ROW_E1], row[ROW_E1 + 1], row[ROW_E1 + 2])
+        nf = dr.normalize(dr.cross(e0, e1))   # the geometric normal (rectangles: oriented at set-up)
+        b = mi.warp.square_to_uniform_triangle(u2)
+        b = dr.select(kind == MESH, mi.Vector2f(b), mi.Vector2f(u2))
+        pf = p0 + e0 * b.x + e1 * b.y
+        sa = None
+        if solid_angle:
+            ps, omega, sa, ok_sa = spherical.sample_triangle(si.p, p0, e0, e1, u2, flat & (kind == MESH))
+            pf = dr.select(sa, ps, pf)
+        to = pf - si.p
+        d2 = dr.squared_norm(to)
+        cos_y = -dr.dot(to, nf) * dr.rsqrt(dr.select(d2 > 0.0, d2, 1.0))
+        ok_f = flat & (cos_y > 0.0) & (d2 > 0.0)
+        out.p = dr.select(flat, pf, out.p)
+        out.n = dr.select(flat, nf, out.n)
+        pdf_f = pa * d2 / dr.select(ok_f, cos_y, 1.0)
+        if sa is not None:
+            # P(e) P(t|e) / Omega_t, with P(e) P(t|e) = pa A_t
+            ok_f &= ~sa | ok_sa
+            a_t = 0.5 * dr.norm(dr.cross(e0, e1))
+            pdf_f = dr.select(sa, pa * a_t / dr.select(sa & (omega > 0.0), omega, 1.0), pdf_f)
+        out.pdf = dr.select(ok_f, pdf_f, out.pdf)
 
-        p = mi.Point3f(p0)
-        n = dr.zeros(mi.Vector3f, dr.width(active))
-        pdf = dr.zeros(mi.Float, dr.width(active))
-        delta = dr.zeros(mi.Bool, dr.width(active))
+    def _sample_sphere(self, si, e: "SampledEntry", active: mi.Bool, out: "PointSample"):
+        """Spheres: uniform in the cone they subtend from outside, by area from inside."""
+        em, kind, p0, pa, u2 = e.em, e.kind, e.p0, e.pa, e.u2
+        sph = active & (kind == SPHERE)
+        r = dr.gather(mi.Float, self._e_r, em, sph)
+        dc = p0 - si.p
+        dc2 = dr.squared_norm(dc)
+        outside = dc2 > dr.square(r * (1.0 - 1e-4))
+        inv_dc = dr.rsqrt(dr.select(dc2 > 0.0, dc2, 1.0))
+        sin_max = r * inv_dc
+        sin2_max = dr.square(sin_max)
+        cos_max = dr.safe_sqrt(1.0 - sin2_max)
+        sin2 = dr.select(sin2_max > 0.00068523,
+                         1.0 - dr.square(dr.fma(cos_max - 1.0, u2.x, 1.0)), sin2_max * u2.x)
+        cos_t = dr.safe_sqrt(1.0 - sin2)
+        inv_sin_max = dr.rcp(dr.select(sin_max > 0.0, sin_max, 1.0))
+        cos_a = sin2 * inv_sin_max + cos_t * dr.safe_sqrt(dr.fma(-sin2, dr.square(inv_sin_max), 1.0))
+        sin_a = dr.safe_sqrt(dr.fma(-cos_a, cos_a, 1.0))
+        sp, cp = dr.sincos(u2.y * (2.0 * math.pi))
+        v_cone = mi.Frame3f(-dc * inv_dc).to_world(mi.Vector3f(cp * sin_a, sp * sin_a, cos_a))
+        v_in = mi.warp.square_to_uniform_sphere(u2)
+        v = dr.select(outside, v_cone, v_in)
+        ps = dr.fma(v, r, p0)
+        to = ps - si.p
+        d2 = dr.squared_norm(to)
+        cos_y = dr.abs(dr.dot(to, v)) * dr.rsqrt(dr.select(d2 > 0.0, d2, 1.0))
+        cone_pdf = dr.rcp(dr.select(cos_max < 1.0, 2.0 * math.pi * (1.0 - cos_max), 0.0))
+        area_pdf = dr.gather(mi.Float, self._e_inv_area, em, sph) * d2 / dr.select(cos_y > 0.0, cos_y, 1.0)
+        pdf_s = pa * dr.select(outside, cone_pdf, dr.select(cos_y > 0.0, area_pdf, 0.0))
+        ok_s = sph & (d2 > 0.0) & dr.isfinite(pdf_s)
+        out.p = dr.select(sph, ps, out.p)
+        out.n = dr.select(sph, v, out.n)
+        out.pdf = dr.select(ok_s, pdf_s, out.pdf)
 
-        # ------------------ triangles and rectangles: uniform in area ------------------
-        if present & {MESH, RECT}:
-            flat = active & ((kind == MESH) | (kind == RECT))
-            e0 = mi.Vector3f(row[ROW_E0], row[ROW_E0 + 1], row[ROW_E0 + 2])
-            e1 = mi.Vector3f(row[ROW_E1], row[ROW_E1 + 1], row[ROW_E1 + 2])
-            nf = dr.normalize(dr.cross(e0, e1))   # the geometric normal (rectangles: oriented at set-up)
-            b = mi.warp.square_to_uniform_triangle(u2)
-            b = dr.select(kind == MESH, mi.Vector2f(b), mi.Vector2f(u2))
-            pf = p0 + e0 * b.x + e1 * b.y
-            sa = None
-            if solid_angle and MESH in present:
-                ps, omega, sa, ok_sa = spherical.sample_triangle(si.p, p0, e0, e1, u2, flat & (kind == MESH))
-                pf = dr.select(sa, ps, pf)
-            to = pf - si.p
-            d2 = dr.squared_norm(to)
-            cos_y = -dr.dot(to, nf) * dr.rsqrt(dr.select(d2 > 0.0, d2, 1.0))
-            ok_f = flat & (cos_y > 0.0) & (d2 > 0.0)
-            p = dr.select(flat, pf, p)
-            n = dr.select(flat, nf, n)
-            pdf_f = pa * d2 / dr.select(ok_f, cos_y, 1.0)
-            if sa is not None:
-                # P(e) P(t|e) / Omega_t, with P(e) P(t|e) = pa A_t
-                ok_f &= ~sa | ok_sa
-                a_t = 0.5 * dr.norm(dr.cross(e0, e1))
-                pdf_f = dr.select(sa, pa * a_t / dr.select(sa & (omega > 0.0), omega, 1.0), pdf_f)
-            pdf = dr.select(ok_f, pdf_f, pdf)
-
-        # ------------------ spheres: uniform in the subtended cone ------------------
-        if SPHERE in present:
-            sph = active & (kind == SPHERE)
-            r = dr.gather(mi.Float, self._e_r, em, sph)
-            dc = p0 - si.p
-            dc2 = dr.squared_norm(dc)
-            outside = dc2 > dr.square(r * (1.0 - 1e-4))
-            inv_dc = dr.rsqrt(dr.select(dc2 > 0.0, dc2, 1.0))
-            sin_max = r * inv_dc
-            sin2_max = dr.square(sin_max)
-            cos_max = dr.safe_sqrt(1.0 - sin2_max)
-            sin2 = dr.select(sin2_max > 0.00068523,
-                             1.0 - dr.square(dr.fma(cos_max - 1.0, u2.x, 1.0)), sin2_max * u2.x)
-            cos_t = dr.safe_sqrt(1.0 - sin2)
-            inv_sin_max = dr.rcp(dr.select(sin_max > 0.0, sin_max, 1.0))
-            cos_a = sin2 * inv_sin_max + cos_t * dr.safe_sqrt(dr.fma(-sin2, dr.square(inv_sin_max), 1.0))
-            sin_a = dr.safe_sqrt(dr.fma(-cos_a, cos_a, 1.0))
-            sp, cp = dr.sincos(u2.y * (2.0 * math.pi))
-            v_cone = mi.Frame3f(-dc * inv_dc).to_world(mi.Vector3f(cp * sin_a, sp * sin_a, cos_a))
-            v_in = mi.warp.square_to_uniform_sphere(u2)
-            v = dr.select(outside, v_cone, v_in)
-            ps = dr.fma(v, r, p0)
-            to = ps - si.p
-            d2 = dr.squared_norm(to)
-            cos_y = dr.abs(dr.dot(to, v)) * dr.rsqrt(dr.select(d2 > 0.0, d2, 1.0))
-            cone_pdf = dr.rcp(dr.select(cos_max < 1.0, 2.0 * math.pi * (1.0 - cos_max), 0.0))
-            area_pdf = dr.gather(mi.Float, self._e_inv_area, em, sph) * d2 / dr.select(cos_y > 0.0, cos_y, 1.0)
-            pdf_s = pa * dr.select(outside, cone_pdf, dr.select(cos_y > 0.0, area_pdf, 0.0))
-            ok_s = sph & (d2 > 0.0) & dr.isfinite(pdf_s)
-            p = dr.select(sph, ps, p)
-            n = dr.select(sph, v, n)
-            pdf = dr.select(ok_s, pdf_s, pdf)
-
-        # ------------------ point lights: a delta in position ------------------
-        if POINT in present:
-            pt = active & (kind == POINT)
-            d2 = dr.squared_norm(p0 - si.p)
-            pdf = dr.select(pt, pa, pdf)
-            delta |= pt
-            Le = dr.select(pt, Le / dr.select(d2 > 0.0, d2, 1.0), Le)
-
-        # ------------------ everything else: Mitsuba, for those lanes only ------------------
-        ds_o = None
-        if OTHER in present:
-            oth = active & (kind == OTHER)
-            ptr = dr.gather(mi.EmitterPtr, self._emitters_dr, em, oth)
-            ds_o, w_o = ptr.sample_direction(si, u2, oth)
-            pdf_o = ds_o.pdf * pa
-            oth &= ds_o.pdf > 0.0
-            p = dr.select(oth, ds_o.p, p)
-            n = dr.select(oth, mi.Vector3f(ds_o.n), n)
-            pdf = dr.select(oth, pdf_o, pdf)
-            delta = dr.select(oth, ds_o.delta, delta)
-            # w_o = L_e / p_e: turn it into L_e so that the common division applies
-            Le = dr.select(oth, mi.Color3f(w_o) * ds_o.pdf, Le)
-
-        # ------------------ direction sample and weight ------------------
-        ds = dr.zeros(mi.DirectionSample3f, dr.width(active))
-        to = p - si.p
-        dist = dr.norm(to)
-        d = to / dr.select(dist > 0.0, dist, 1.0)
-        if ds_o is not None:
-            far = active & (kind == OTHER)
-            d = dr.select(far, ds_o.d, d)
-            dist = dr.select(far, ds_o.dist, dist)
-        ds.p, ds.n, ds.d, ds.dist = p, mi.Normal3f(n), d, dist
-        ds.pdf, ds.delta, ds.time = pdf, delta, si.time
-        ds.emitter = dr.gather(mi.EmitterPtr, self._emitters_dr, em, active)
-        ok = active & (pdf > 0.0)
-        w = dr.select(ok, Le / dr.select(ok, pdf, 1.0), 0.0)
-        ok &= dr.max(w) > 0.0
-        return ds, w, ok, em
+    def _sample_other(self, si, e: "SampledEntry", active: mi.Bool, out: "PointSample") -> mi.DirectionSample3f:
+        """Everything else: Mitsuba's ``sample_direction``, for those lanes only; its sample."""
+        oth = active & (e.kind == OTHER)
+        ptr = dr.gather(mi.EmitterPtr, self._emitters_dr, e.em, oth)
+        ds_o, w_o = ptr.sample_direction(si, e.u2, oth)
+        pdf_o = ds_o.pdf * e.pa
+        oth &= ds_o.pdf > 0.0
+        out.p = dr.select(oth, ds_o.p, out.p)
+        out.n = dr.select(oth, mi.Vector3f(ds_o.n), out.n)
+        out.pdf = dr.select(oth, pdf_o, out.pdf)
+        out.delta = dr.select(oth, ds_o.delta, out.delta)
+        # w_o = L_e / p_e: turn it into L_e so that the common division applies
+        out.Le = dr.select(oth, mi.Color3f(w_o) * ds_o.pdf, out.Le)
+        return ds_o
 
     # ------------------------------------------------------------------ densities
 

@@ -35,7 +35,7 @@ visible from the entry); where it is partial the samples are shadowed by a ray e
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
@@ -118,16 +118,55 @@ def _hit(x: mi.Point3f, w: mi.Vector3f, tri: Tri) -> tuple:
     return ok, dr.fma(w, t, x)
 
 
+@dataclass
+class LightWalk:
+    """A polygon light seen from the pixels ``x``: its rows in the table (``off``, ``rect``),
+    its ``n_tri`` triangles and the solid angle ``omega_total`` their front faces subtend."""
+    table: object
+    x: mi.Point3f
+    off: mi.UInt32
+    rect: mi.Bool
+    n_tri: mi.UInt32
+    omega_total: mi.Float | None = None
+
+    def tri(self, t: mi.UInt32, m: mi.Bool) -> Tri:
+        """Triangle ``t`` of the light (:func:`_tri`)."""
+        return _tri(self.table, self.x, self.off, self.rect, t, m)
+
+
+@dataclass
+class PickLoop:
+    """The state of the walk that picks the light sample's triangle (one lane per pixel): ``t``
+    the triangles passed, ``run`` their summed solid angle, ``k`` the triangle picked (``n_tri``:
+    none yet) and ``u`` the sample's first coordinate rescaled within it."""
+    t: mi.UInt32 = field(default_factory=mi.UInt32)
+    run: mi.Float = field(default_factory=mi.Float)
+    k: mi.UInt32 = field(default_factory=mi.UInt32)
+    u: mi.Float = field(default_factory=mi.Float)
+    DRJIT_STRUCT = {"t": mi.UInt32, "run": mi.Float, "k": mi.UInt32, "u": mi.Float}
+
+
+@dataclass
+class HitLoop:
+    """The state of the walk that meets the BSDF sample's ray with the light (one lane per pixel):
+    ``t`` the triangles tested, ``h`` whether the ray met a front face, ``y`` the first point met
+    and ``k`` its triangle."""
+    t: mi.UInt32 = field(default_factory=mi.UInt32)
+    h: mi.Bool = field(default_factory=mi.Bool)
+    y: mi.Point3f = field(default_factory=mi.Point3f)
+    k: mi.UInt32 = field(default_factory=mi.UInt32)
+    DRJIT_STRUCT = {"t": mi.UInt32, "h": mi.Bool, "y": mi.Point3f, "k": mi.UInt32}
+
+
 def glossy_term(table, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, idx: mi.UInt32, active: mi.Bool,
                 rng: mi.PCG32, S: int, c: mi.Color3f, tau: float, scene: mi.Scene | None = None,
                 shadow: mi.Bool | None = None):
-    """One function because its stages (the light's solid angle, the light sample, the BSDF
-    sample) are the loops of one traced estimate that share the light's triangle walk.
-
-    (the control-variate part of :math:`\\hat I`, the lanes it was made for, ``rng``) for
+    """(the control-variate part of :math:`\\hat I`, the lanes it was made for, ``rng``) for
     polygon lights ``idx`` at the pixels ``si``: where the BSDF's peak density times the light's
     solid angle exceeds ``tau`` (a lobe not wide against the light), or ``shadow`` holds, ``S``
-    sample pairs from ``rng`` of :math:`\\int (f - c \\cos\\theta) L` (module docstring).
+    sample pairs from ``rng`` of :math:`\\int (f - c \\cos\\theta) L` (module docstring): the
+    light's solid angle (:func:`_omega_total`), then per pair a light sample
+    (:func:`_light_sample`) and a BSDF sample (:func:`_bsdf_sample`).
     ``shadow`` (with ``scene``): lanes whose samples are shadowed by a ray each."""
     ctx = mi.BSDFContext()
     x = si.p
@@ -135,17 +174,11 @@ def glossy_term(table, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, idx: mi.UI
     seg = dr.gather(mi.Point2f, table._seg, idx, m)
     off, cnt = mi.UInt32(seg.x), mi.UInt32(seg.y)
     rect = m & (dr.gather(mi.UInt32, table._e_kind, idx, m) == RECT)
-    n_tri = dr.select(rect, 2 * cnt, cnt)
+    light = LightWalk(table, x, off, rect, dr.select(rect, 2 * cnt, cnt))
     N = dr.width(m)
 
     # ------------------------ the solid angle the light's front faces subtend
-    def c_total(t, om):
-        return m & (t < n_tri)
-
-    def b_total(t, om):
-        return t + 1, om + _tri(table, x, off, rect, t, m & (t < n_tri)).omega
-
-    _, omega_total = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Float, N)), cond=c_total, body=b_total)
+    light.omega_total = omega_total = _omega_total(light, m, N)
     wi = si.wi
     peak = bsdf.pdf(ctx, si, mi.Vector3f(-wi.x, -wi.y, wi.z), m & (omega_total > 0.0))
     partial = mi.Bool(shadow) if shadow is not None else mi.Bool(False)
@@ -163,65 +196,97 @@ def glossy_term(table, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, idx: mi.UI
         u3, u4 = mi.radical_inverse_2(s, sc[2]), mi.sobol_2(s, sc[3])
         u_l = dr.fma(mi.Float(s), 1.0 / max(int(S), 1), shift)
         u_l -= dr.floor(u_l)
-
-        # the light sample: a triangle in proportion to its solid angle (u1, reused within it)
-        def c_pick(t, run, k, u):
-            return live & (t < n_tri)
-
-        def b_pick(t, run, k, u):
-            om = _tri(table, x, off, rect, t, live & (t < n_tri)).omega
-            first = (run + om > u1 * omega_total) & (k == n_tri) & (om > 0.0)
-            u_in = dr.clip((u1 * omega_total - run) / dr.select(om > 0.0, om, 1.0), 0.0, 0.99999994)
-            return t + 1, run + om, dr.select(first, t, k), dr.select(first, u_in, u)
-
-        _, _, k, u1 = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Float, N), mi.UInt32(n_tri),
-                                           dr.zeros(mi.Float, N)), cond=c_pick, body=b_pick)
-        on_l = live & (k < n_tri)
-        tri = _tri(table, x, off, rect, dr.select(on_l, k, 0), on_l)
-        y, _, use, ok = sample_triangle(x, tri.p0, tri.e0, tri.e1, mi.Point2f(u1, u2), on_l)
-        # by area where the map is not used: the triangle's square-root warp
-        su = dr.sqrt(u1)
-        y_area = tri.p0 + tri.e0 * (su * (1.0 - u2)) + tri.e1 * (su * u2)
-        y = dr.select(use, y, y_area)
-        ok = dr.select(use, ok, on_l)
-        wl = dr.normalize(y - x)
-        p_l = _density(x, tri, y, omega_total, use)
-        lo = si.to_local(wl)
-        f_l = bsdf.eval(ctx, si, lo, ok)
-        pf_l = bsdf.pdf(ctx, si, lo, ok)
-        den = p_l + pf_l
-        if scene is not None:
-            ok &= ~scene.ray_test(si.spawn_ray_to(y), ok & shadow)
-        g_l = mi.Color3f(f_l) - c * dr.maximum(lo.z, 0.0)
-        acc += dr.select(ok & (den > 0.0), g_l * tri.L / dr.select(den > 0.0, den, 1.0), 0.0)
-
-        # the BSDF sample, where it meets a front face of the light
-        bs, wgt = bsdf.sample(ctx, si, u_l, mi.Point2f(u3, u4), live)
-        wb = si.to_world(bs.wo)
-        okb = live & (bs.pdf > 0.0) & dr.all(dr.isfinite(mi.Color3f(wgt)))
-
-        def c_hit(t, h, yh, kh):
-            return okb & (t < n_tri)
-
-        def b_hit(t, h, yh, kh):
-            tt = _tri(table, x, off, rect, t, okb & (t < n_tri))
-            hit, p = _hit(x, wb, tt)
-            new = hit & ~h
-            return t + 1, h | hit, dr.select(new, p, yh), dr.select(new, t, kh)
-
-        _, h, yh, kh = dr.while_loop(state=(mi.UInt32(0), mi.Bool(False), dr.zeros(mi.Point3f, N), mi.UInt32(0)),
-                                     cond=c_hit, body=b_hit)
-        tb = _tri(table, x, off, rect, kh, okb & h)
-        if scene is not None:
-            h &= ~scene.ray_test(si.spawn_ray_to(yh), okb & h & shadow)
-        p_lb = _density(x, tb, yh, omega_total, _uses_solid_angle(tb))
-        f_b = mi.Color3f(wgt) * bs.pdf - c * dr.maximum(bs.wo.z, 0.0)
-        den_b = p_lb + bs.pdf
-        acc += dr.select(okb & h & (den_b > 0.0), f_b * tb.L / dr.select(den_b > 0.0, den_b, 1.0), 0.0)
+        acc += _light_sample(light, si, bsdf, ctx, live, u1, u2, c, scene, shadow)
+        acc += _bsdf_sample(light, si, bsdf, ctx, live, u_l, u3, u4, c, scene, shadow)
         return s + 1, acc
 
     _, acc = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Color3f, N)), cond=c_pair, body=b_pair)
     return acc * (1.0 / max(int(S), 1)), live, rng
+
+
+def _omega_total(light: LightWalk, m: mi.Bool, N: int) -> mi.Float:
+    """The solid angle the front faces of the light subtend at the lanes ``m``."""
+    def c_total(t, om):
+        return m & (t < light.n_tri)
+
+    def b_total(t, om):
+        return t + 1, om + light.tri(t, m & (t < light.n_tri)).omega
+
+    _, omega_total = dr.while_loop(state=(mi.UInt32(0), dr.zeros(mi.Float, N)), cond=c_total, body=b_total)
+    return omega_total
+
+
+def _light_sample(light: LightWalk, si, bsdf, ctx, live: mi.Bool, u1: mi.Float, u2: mi.Float, c: mi.Color3f,
+                  scene, shadow) -> mi.Color3f:
+    """One light sample's term: a triangle in proportion to its solid angle (``u1``, reused
+    within it), a point on it (:func:`slc.scene.spherical.sample_triangle`, by area where the map
+    is not used), weighted by the balance heuristic."""
+    x, n_tri, omega_total = light.x, light.n_tri, light.omega_total
+    N = dr.width(live)
+
+    def c_pick(st: PickLoop):
+        return live & (st.t < n_tri)
+
+    def b_pick(st: PickLoop):
+        om = light.tri(st.t, live & (st.t < n_tri)).omega
+        first = (st.run + om > u1 * omega_total) & (st.k == n_tri) & (om > 0.0)
+        u_in = dr.clip((u1 * omega_total - st.run) / dr.select(om > 0.0, om, 1.0), 0.0, 0.99999994)
+        st.t, st.run, st.k, st.u = st.t + 1, st.run + om, dr.select(first, st.t, st.k), dr.select(first, u_in, st.u)
+        return (st,)
+
+    st, = dr.while_loop(state=(PickLoop(mi.UInt32(0), dr.zeros(mi.Float, N), mi.UInt32(n_tri),
+                                        dr.zeros(mi.Float, N)),), cond=c_pick, body=b_pick)
+    k, u1 = st.k, st.u
+    on_l = live & (k < n_tri)
+    tri = light.tri(dr.select(on_l, k, 0), on_l)
+    y, _, use, ok = sample_triangle(x, tri.p0, tri.e0, tri.e1, mi.Point2f(u1, u2), on_l)
+    # by area where the map is not used: the triangle's square-root warp
+    su = dr.sqrt(u1)
+    y_area = tri.p0 + tri.e0 * (su * (1.0 - u2)) + tri.e1 * (su * u2)
+    y = dr.select(use, y, y_area)
+    ok = dr.select(use, ok, on_l)
+    wl = dr.normalize(y - x)
+    p_l = _density(x, tri, y, omega_total, use)
+    lo = si.to_local(wl)
+    f_l = bsdf.eval(ctx, si, lo, ok)
+    pf_l = bsdf.pdf(ctx, si, lo, ok)
+    den = p_l + pf_l
+    if scene is not None:
+        ok &= ~scene.ray_test(si.spawn_ray_to(y), ok & shadow)
+    g_l = mi.Color3f(f_l) - c * dr.maximum(lo.z, 0.0)
+    return dr.select(ok & (den > 0.0), g_l * tri.L / dr.select(den > 0.0, den, 1.0), 0.0)
+
+
+def _bsdf_sample(light: LightWalk, si, bsdf, ctx, live: mi.Bool, u_l: mi.Float, u3: mi.Float, u4: mi.Float,
+                 c: mi.Color3f, scene, shadow) -> mi.Color3f:
+    """One BSDF sample's term, where its ray meets a front face of the light (at most 16
+    triangles tested), weighted by the balance heuristic."""
+    x, n_tri = light.x, light.n_tri
+    N = dr.width(live)
+    bs, wgt = bsdf.sample(ctx, si, u_l, mi.Point2f(u3, u4), live)
+    wb = si.to_world(bs.wo)
+    okb = live & (bs.pdf > 0.0) & dr.all(dr.isfinite(mi.Color3f(wgt)))
+
+    def c_hit(st: HitLoop):
+        return okb & (st.t < n_tri)
+
+    def b_hit(st: HitLoop):
+        tt = light.tri(st.t, okb & (st.t < n_tri))
+        hit, p = _hit(x, wb, tt)
+        new = hit & ~st.h
+        st.t, st.h, st.y, st.k = st.t + 1, st.h | hit, dr.select(new, p, st.y), dr.select(new, st.t, st.k)
+        return (st,)
+
+    st, = dr.while_loop(state=(HitLoop(mi.UInt32(0), mi.Bool(False), dr.zeros(mi.Point3f, N), mi.UInt32(0)),),
+                        cond=c_hit, body=b_hit)
+    h, yh, kh = st.h, st.y, st.k
+    tb = light.tri(kh, okb & h)
+    if scene is not None:
+        h &= ~scene.ray_test(si.spawn_ray_to(yh), okb & h & shadow)
+    p_lb = _density(x, tb, yh, light.omega_total, _uses_solid_angle(tb))
+    f_b = mi.Color3f(wgt) * bs.pdf - c * dr.maximum(bs.wo.z, 0.0)
+    den_b = p_lb + bs.pdf
+    return dr.select(okb & h & (den_b > 0.0), f_b * tb.L / dr.select(den_b > 0.0, den_b, 1.0), 0.0)
 
 
 def polygon_term(table, scene: mi.Scene, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, idx: mi.UInt32,

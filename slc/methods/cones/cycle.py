@@ -178,48 +178,26 @@ class SampleObserver:
 
 def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams, seeded=None,
                  valid=None, observer: SampleObserver | None = None, area_only: bool = False):
-    """One function because it is one traced cycle whose stages (reset, the sample loop, the
-    shrink test, the end of the cycle) share the cone state; its stages are marked by banner
-    comments.
-
-    One update cycle of unpacked cone records ``state = (D, A, L, C, n)``
+    """One update cycle of unpacked cone records ``state = (D, A, L, C, n)``
     (one lane per entry, as :func:`slc.methods.cones.packing.unpack` returns it) with
-    the per-entry inputs ``entries`` (:class:`CycleEntries`):
-    fresh entries restart empty, or where ``seeded`` from ``state``, which holds their LOD
-    seed's record there (its C capped at ``seed_c_max``); ``rays`` light samples per entry from
-    the stratified sequence (see below), insertion (cases A-D), the shrink test,
-    the end of the cycle. ``valid`` (default: the interaction's) masks the lanes
+    the per-entry inputs ``entries`` (:class:`CycleEntries`), in stages that share the cone
+    state: fresh entries restart empty, or where ``seeded`` from ``state``, which holds their
+    LOD seed's record there (its C capped at ``seed_c_max``; :func:`_reset`); ``rays`` light
+    samples per entry from the stratified sequence (:func:`_sequence_start`), insertion (cases
+    A-D; :func:`_light_samples`), the shrink test (and :func:`_gone_turn`), the end of the cycle.
+    ``valid`` (default: the interaction's) masks the lanes
     that sample; ``observer`` (a :class:`SampleObserver`) sees every sample;
     ``area_only`` see :func:`shrink_test`.
     Shared by ``slc`` (through :func:`slc.methods.cones.update_kernel.update_entries`) and the adaptive cache's
     cone pool. Returns (packed words, motion, shrunk, dropped, observer state);
     nothing evaluated."""
     key, si, rays, unsettled, moving = entries.key, entries.si, entries.rays, entries.unsettled, entries.moving
-    is_new, first_sample, strata = entries.fresh, entries.first_sample, entries.strata
     K = p.max_cones
     N = dr.width(key)
     valid = si.is_valid() if valid is None else mi.Bool(valid)
-    D, A, L, C, n = (list(state[0]), list(state[1]), list(state[2]), state[3], state[4])
 
     # ----------------------------------------------- reset / seed new entries
-    eD, eA, eL, eC, en = empty_state(N, K)
-    is_new = mi.Bool(is_new)
-    if seeded is None:
-        for i in range(K):
-            D[i] = dr.select(is_new, eD[i], D[i])
-            A[i] = dr.select(is_new, eA[i], A[i])
-            L[i] = dr.select(is_new, eL[i], L[i])
-        C = dr.select(is_new, eC, C)
-        n = dr.select(is_new, en, n)
-    else:
-        # the seeded lanes' state is already their seed's record (one gather and decode per
-        # entry: the entry's own record or its seed's, not both)
-        for i in range(K):
-            D[i] = dr.select(seeded, D[i], dr.select(is_new, eD[i], D[i]))
-            A[i] = dr.select(seeded, A[i], dr.select(is_new, eA[i], A[i]))
-            L[i] = dr.select(seeded, L[i], dr.select(is_new, eL[i], L[i]))
-        C = dr.select(seeded, dr.minimum(C, p.seed_c_max), dr.select(is_new, eC, C))
-        n = dr.select(seeded, n, dr.select(is_new, en, n))
+    D, A, L, C, n = _reset(state, entries.fresh, seeded, N, p)
 
     frame_l = si.sh_frame
     frame = frame_u32(frame)
@@ -230,24 +208,81 @@ def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams
     extra = observer.init(N) if observer is not None else ()
 
     # ----------------------------------------------- light samples, one at a time per entry
-    # Stratified over the entry's life: sample j of the entry is the R2 point
-    # frac(shift + j alpha), the shift fixed per entry (uniform, so every sample
-    # is uniform and the estimate stays unbiased) and j counting on from the
-    # samples of earlier cycles, so that the first cycles together cover the
-    # light-sampling domain evenly instead of at random. Where ``strata`` is
-    # false (moving entries) the sample count is not a
-    # function of the age, and indices repeating those of the previous cycle
-    # would correlate the cycles they average: there j = frame x rays, in a
-    # sequence of its own (a second shift), consecutive over the cycles of a
-    # moving phase while the entry's rays stay the same.
-    if p.stratified:
-        shift = keyed_rng(key, seed, 0, STREAM_CONE_STRATA)
-        s0, s1, m0, m1 = (shift.next_uint32(), shift.next_uint32(), shift.next_uint32(), shift.next_uint32())
-        j = dr.select(strata, mi.UInt32(first_sample), (frame & 0xFFFFFF) * rays)
-        q0 = dr.select(strata, s0, m0) + j * R2_STEP[0]
-        q1 = dr.select(strata, s1, m1) + j * R2_STEP[1]
+    q0, q1 = _sequence_start(entries, seed, frame, rays, N, p)
+    st = _light_samples(scene, si, valid, rays, observer, p,
+                        SampleLoop(mi.UInt32(0), D, A, L, S, n, beta, sampler, q0, q1, extra))
+    D, A, L, S, n, beta, sampler, extra = st.D, st.A, st.L, st.S, st.n, st.beta, st.sampler, st.extra
+
+    # ----------------------------------------------- shrink test: one ray per cone
+    dirs, tested, hits, dark = shrink_test(scene, si, D, A, n, key, valid, mi.Bool(unsettled), sampler, frame, p,
+                                           area_only)
+    beta = _gone_turn(scene, si, D, A, S, beta, tested, hits, dark, p)
+    D, A, L, S, n, beta, dropped, shrunk = shrink_step(D, A, L, S, n, beta, dirs, hits, tested, p)
+
+    # ----------------------------------------------- close the cycle and pack
+    if p.cosine_sums:
+        S = normalize_cosine_sums(S, D, A, K)
+    L, C, reduced = end_cycle(L, S, C, n, beta, rays, moving, p)
+    motion = valid & (reduced | dropped | (beta * (180.0 / math.pi) > p.beta_min_deg))
+    return pack(D, A, L, C, n, K), motion, shrunk, dropped, extra
+
+
+def _reset(state, is_new, seeded, N: int, p: ConeParams):
+    """The cone records ``(D, A, L, C, n)`` at the start of the cycle: ``state``'s, where
+    ``is_new`` empty, except where ``seeded`` (``state`` holds the seed's record there, one
+    gather and decode per entry: the entry's own record or its seed's, not both), C capped at
+    ``seed_c_max``."""
+    K = p.max_cones
+    D, A, L, C, n = (list(state[0]), list(state[1]), list(state[2]), state[3], state[4])
+    eD, eA, eL, eC, en = empty_state(N, K)
+    is_new = mi.Bool(is_new)
+    if seeded is None:
+        for i in range(K):
+            D[i] = dr.select(is_new, eD[i], D[i])
+            A[i] = dr.select(is_new, eA[i], A[i])
+            L[i] = dr.select(is_new, eL[i], L[i])
+        C = dr.select(is_new, eC, C)
+        n = dr.select(is_new, en, n)
     else:
+        for i in range(K):
+            D[i] = dr.select(seeded, D[i], dr.select(is_new, eD[i], D[i]))
+            A[i] = dr.select(seeded, A[i], dr.select(is_new, eA[i], A[i]))
+            L[i] = dr.select(seeded, L[i], dr.select(is_new, eL[i], L[i]))
+        C = dr.select(seeded, dr.minimum(C, p.seed_c_max), dr.select(is_new, eC, C))
+        n = dr.select(seeded, n, dr.select(is_new, en, n))
+    return D, A, L, C, n
+
+
+def _sequence_start(entries: CycleEntries, seed, frame: mi.UInt32, rays: mi.UInt32, N: int, p: ConeParams):
+    """The R2 point ``(q0, q1)`` (32-bit fixed point) of the cycle's first light sample.
+
+    Stratified over the entry's life: sample j of the entry is the R2 point
+    frac(shift + j alpha), the shift fixed per entry (uniform, so every sample
+    is uniform and the estimate stays unbiased) and j counting on from the
+    samples of earlier cycles, so that the first cycles together cover the
+    light-sampling domain evenly instead of at random. Where ``strata`` is
+    false (moving entries) the sample count is not a
+    function of the age, and indices repeating those of the previous cycle
+    would correlate the cycles they average: there j = frame x rays, in a
+    sequence of its own (a second shift), consecutive over the cycles of a
+    moving phase while the entry's rays stay the same."""
+    if not p.stratified:
         q0 = q1 = dr.zeros(mi.UInt32, N)
+        return q0, q1
+    strata = entries.strata
+    shift = keyed_rng(entries.key, seed, 0, STREAM_CONE_STRATA)
+    s0, s1, m0, m1 = (shift.next_uint32(), shift.next_uint32(), shift.next_uint32(), shift.next_uint32())
+    j = dr.select(strata, mi.UInt32(entries.first_sample), (frame & 0xFFFFFF) * rays)
+    q0 = dr.select(strata, s0, m0) + j * R2_STEP[0]
+    q1 = dr.select(strata, s1, m1) + j * R2_STEP[1]
+    return q0, q1
+
+
+def _light_samples(scene, si, valid: mi.Bool, rays: mi.UInt32, observer: SampleObserver | None, p: ConeParams,
+                   st: SampleLoop) -> SampleLoop:
+    """The cycle's ``rays`` light samples inserted one at a time into the cones of ``st``
+    (a symbolic loop over the samples, one lane per entry)."""
+    frame_l = si.sh_frame
 
     def cond(st: SampleLoop):
         return st.k < rays
@@ -276,31 +311,32 @@ def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams
         st.k = st.k + 1
         return (st,)
 
-    st, = dr.while_loop(state=(SampleLoop(mi.UInt32(0), D, A, L, S, n, beta, sampler, q0, q1, extra),), cond=cond,
-                        body=body, labels=("cycle",))
-    D, A, L, S, n, beta, sampler, extra = st.D, st.A, st.L, st.S, st.n, st.beta, st.sampler, st.extra
+    st, = dr.while_loop(state=(st,), cond=cond, body=body, labels=("cycle",))
+    return st
 
-    # ----------------------------------------------- shrink test: one ray per cone
-    dirs, tested, hits, dark = shrink_test(scene, si, D, A, n, key, valid, mi.Bool(unsettled), sampler, frame, p,
-                                           area_only)
-    # A light that left (switched off, moved away) leaves a cone whose rim tests
-    # miss but which only shrinks by epsilon alpha per test, with its L_c and C
-    # kept: it would fade as (1 - n/C) per cycle, 255 cycles for a settled entry.
-    # A light switched off shows itself: a shrink-test ray that hits the front
-    # side of an emitter's shape emitting nothing there (a light that moved is
-    # not hit at all). A large cone whose rim test missed (a rim ray falls off a
-    # square light most of the time) and that got no sample this cycle is tested
-    # once more on its axis; a dark rim or axis hit counts the cycle as a turn of
-    # ``gone_turn`` (C divided by 3, motion reported: 8 cycles of memory and
-    # rays_moving rays until it stops). With ``gone_test`` any axis miss counts
-    # so (a light that moved away too). A cone that still gets samples holds a
-    # light that moves within reach, which widening and shrinking follow. With
-    # ``area_only`` no emitter is dark: no test.
+
+def _gone_turn(scene, si, D, A, S, beta: mi.Float, tested, hits, dark, p: ConeParams) -> mi.Float:
+    """The cycle's largest cone turn ``beta``, at least ``gone_turn`` where a light left.
+
+    A light that left (switched off, moved away) leaves a cone whose rim tests
+    miss but which only shrinks by epsilon alpha per test, with its L_c and C
+    kept: it would fade as (1 - n/C) per cycle, 255 cycles for a settled entry.
+    A light switched off shows itself: a shrink-test ray that hits the front
+    side of an emitter's shape emitting nothing there (a light that moved is
+    not hit at all). A large cone whose rim test missed (a rim ray falls off a
+    square light most of the time) and that got no sample this cycle is tested
+    once more on its axis; a dark rim or axis hit counts the cycle as a turn of
+    ``gone_turn`` (C divided by 3, motion reported: 8 cycles of memory and
+    rays_moving rays until it stops). With ``gone_test`` any axis miss counts
+    so (a light that moved away too). A cone that still gets samples holds a
+    light that moves within reach, which widening and shrinking follow. With
+    ``area_only`` no emitter is dark (``dark`` None): no test."""
+    frame_l = si.sh_frame
     gone = mi.Bool(False)
     for d in dark or []:
         gone |= d
     if p.gone_test or dark is not None:
-        for i in range(K):
+        for i in range(p.max_cones):
             m = tested[i] & ~hits[i] & (A[i] >= p.alpha_small) & (dr.max(S[i]) <= 0.0)
             if dark is not None:
                 m &= ~dark[i]
@@ -308,11 +344,4 @@ def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams
             lit, off = emitter_hit(scene, si2, m)
             gone |= m & (~lit if p.gone_test else off)
         beta = dr.select(gone, dr.maximum(beta, p.gone_turn), beta)
-    D, A, L, S, n, beta, dropped, shrunk = shrink_step(D, A, L, S, n, beta, dirs, hits, tested, p)
-
-    # ----------------------------------------------- close the cycle and pack
-    if p.cosine_sums:
-        S = normalize_cosine_sums(S, D, A, K)
-    L, C, reduced = end_cycle(L, S, C, n, beta, rays, moving, p)
-    motion = valid & (reduced | dropped | (beta * (180.0 / math.pi) > p.beta_min_deg))
-    return pack(D, A, L, C, n, K), motion, shrunk, dropped, extra
+    return beta

@@ -70,11 +70,7 @@ from slc.methods.cones.quadrature import quadrature, samples_px
 def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.SurfaceInteraction3f,
                  bsdf: mi.BSDFPtr, texel_frame: mi.Frame3f, n_total: mi.UInt32, key: mi.UInt32,
                  pid: mi.UInt32 | None, table, entry_frames, opts: ShadeOptions) -> mi.Color3f:
-    """One function because it is one traced kernel whose branches (Lambertian, principled,
-    quadrature, the compacted quadrature) share the cone state and the pixel masks; its stages
-    are marked by banner comments.
-
-    Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
+    """Direct illumination of the pixels ``si`` (BSDFs ``bsdf``) from the entries
     ``slot``; ``texel_frame`` is the local frame of each pixel's entry (the frame its
     cone directions are stored in). ``n_total`` directions per live cone and ``key``
     are opaque scalars; ``opts`` the shading's choices (:class:`ShadeOptions`, see
@@ -84,7 +80,9 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     (:func:`bsdf_table`, optional) gives the constants of BSDFs without textures. With
     ``entry_frames`` (the entries' frames), ``texel_frame`` is instead each pixel's index
     into them (the gather then runs inside this kernel, not as a kernel of its own).
-    Entries without cones and inactive pixels give 0."""
+    Entries without cones and inactive pixels give 0. One traced kernel whose branches
+    (Lambertian, principled, quadrature, the compacted quadrature: :func:`_compact_quadrature`)
+    share the cone state and the pixel masks."""
     # ------------------- the entries' cones, the pixels' BSDF kinds -------------------
     K = opts.max_cones
     tf_in = texel_frame
@@ -110,16 +108,7 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
     # principled closed form, quadrature): on the LLVM backend a SIMD packet skips a branch
     # none of its lanes takes, so a pixel pays only for its own kind (the images are the
     # same bit for bit as with every kind computed for every pixel and selected).
-    def lambert_fn(closed):
-        if consts is None:
-            rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert))
-        else:
-            tab = kind == KIND_DIFFUSE
-            rho = dr.select(tab, consts[1](), mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert & ~tab)))
-        return rho * closed * (1.0 / math.pi)
-
-    closed = dr.if_stmt(args=(closed,), cond=lambert, true_fn=lambert_fn,
-                        false_fn=lambda closed: mi.Color3f(0.0), label="lambert")
+    closed = _lambert_branch(bsdf, si, lambert, closed, kind, consts)
 
     # ------------------- principled (and GGX conductor) pixels: closed forms -------------------
     prin, pfast = glossy_closed(bsdf, si, ctx, active & cones_ok & ~lambert, cones, term, below_c, consts,
@@ -147,26 +136,50 @@ def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.Su
         return dr.select(lambert, closed, dr.select(pfast, prin, acc))
 
     # ------------------- the quadrature's pixels compacted into a launch of their own -------------------
-    # A SIMD packet (16 lanes with AVX-512 on the LLVM backend) holding one quadrature pixel
-    # runs the quadrature's loops for all its lanes; on the atrium 3 % of the pixels (rough
-    # conductors) take it, spread over 14 % of the packets. This launch evaluates the closed
-    # forms and which pixels are left; the next takes the indices of those (``dr.compress``;
-    # the last two pixels always taken, masked off unless they are ones: no launch of width 0
-    # or 1; a frozen function recorded on a width-1 launch loads its inputs as scalars and
-    # replays that on every later call: in a frame where no pixel took the quadrature, e.g.
-    # the adaptive cache's warm-up with no entry in cones, every later frame's quadrature
-    # pixels got the first one's value), gathers
-    # their inputs, recomputes their cone state from them (the same operations: the same
-    # values), and its values are scattered back. Same images bit for bit
-    # (tests/test_cones_compact.py); measured in docs/cones.md (packed quadrature pixels).
     out = dr.select(lambert, closed, dr.select(pfast, prin, 0.0))
+    return _compact_quadrature(out, sampled, storage, slot, si, bsdf, tf_in, n_total, key, pid, entry_frames,
+                               ctx, opts)
+
+
+def _lambert_branch(bsdf, si, lambert: mi.Bool, closed: mi.Color3f, kind, consts) -> mi.Color3f:
+    """The Lambertian pixels ``lambert``: their diffuse reflectance (from the table where it has
+    their BSDF) times ``closed`` (the cone integral) over pi, in a symbolic branch; 0 elsewhere."""
+    def lambert_fn(closed):
+        if consts is None:
+            rho = mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert))
+        else:
+            tab = kind == KIND_DIFFUSE
+            rho = dr.select(tab, consts[1](), mi.Color3f(bsdf.eval_diffuse_reflectance(si, lambert & ~tab)))
+        return rho * closed * (1.0 / math.pi)
+
+    return dr.if_stmt(args=(closed,), cond=lambert, true_fn=lambert_fn,
+                      false_fn=lambda closed: mi.Color3f(0.0), label="lambert")
+
+
+def _compact_quadrature(out: mi.Color3f, sampled: mi.Bool, storage, slot, si, bsdf, tf_in, n_total, key, pid,
+                        entry_frames, ctx, opts: ShadeOptions) -> mi.Color3f:
+    """``out`` (the closed forms) with the quadrature of the pixels ``sampled`` scattered in,
+    computed in a launch of their own.
+
+    A SIMD packet (16 lanes with AVX-512 on the LLVM backend) holding one quadrature pixel
+    runs the quadrature's loops for all its lanes; on the atrium 3 % of the pixels (rough
+    conductors) take it, spread over 14 % of the packets. This launch evaluates the closed
+    forms and which pixels are left; the next takes the indices of those (``dr.compress``;
+    the last two pixels always taken, masked off unless they are ones: no launch of width 0
+    or 1; a frozen function recorded on a width-1 launch loads its inputs as scalars and
+    replays that on every later call: in a frame where no pixel took the quadrature, e.g.
+    the adaptive cache's warm-up with no entry in cones, every later frame's quadrature
+    pixels got the first one's value), gathers
+    their inputs, recomputes their cone state from them (the same operations: the same
+    values), and its values are scattered back. Same images bit for bit
+    (tests/test_cones_compact.py); measured in docs/cones.md (packed quadrature pixels)."""
     dr.eval(out, sampled)
     N = dr.width(slot)
     idx = dr.compress(sampled | (dr.arange(mi.UInt32, N) + 2 >= N))
     on = dr.gather(mi.Bool, sampled, idx)
     si_c, bsdf_c = dr.gather(type(si), si, idx), dr.gather(mi.BSDFPtr, bsdf, idx)
     cones_c = cone_state(storage, dr.gather(mi.UInt32, slot, idx), on, dr.gather(type(tf_in), tf_in, idx),
-                          entry_frames, K, opts.front_only)
+                          entry_frames, opts.max_cones, opts.front_only)
     acc = quadrature(bsdf_c, si_c, ctx, on, cones_c, samples_px(bsdf_c, n_total, opts.glossy_half), key,
                       dr.gather(mi.UInt32, pid, idx), opts)
     dr.scatter(out, acc, idx, on)

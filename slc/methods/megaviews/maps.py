@@ -122,6 +122,18 @@ def fuse(maps: Maps) -> None:
 # Queries
 # -----------------------------------------------------------------------------
 
+@dataclass
+class AncestorLoop:
+    """The state of the walk up the view hierarchy in :func:`lookup` (one lane per query): ``i``
+    the levels passed, ``node`` the view node whose map is read next, ``vis`` the point seen in
+    every map read so far, ``alive`` the walk not yet past the root."""
+    i: mi.UInt32 = field(default_factory=mi.UInt32)
+    node: mi.UInt32 = field(default_factory=mi.UInt32)
+    vis: mi.Bool = field(default_factory=mi.Bool)
+    alive: mi.Bool = field(default_factory=mi.Bool)
+    DRJIT_STRUCT = {"i": mi.UInt32, "node": mi.UInt32, "vis": mi.Bool, "alive": mi.Bool}
+
+
 def lookup(maps: Maps, view: mi.UInt32, x: mi.Point3f, active, bias: mi.Float, fused: bool = True):
     """Visibility of points ``x`` from views ``view`` through the maps:
     ``|x - p| <= depth(texel) + bias``. With ``fused`` one lookup in the
@@ -138,18 +150,19 @@ def lookup(maps: Maps, view: mi.UInt32, x: mi.Point3f, active, bias: mi.Float, f
     alive = mi.Bool(active)
     steps = dr.opaque(mi.UInt32, V.depth + 1)
 
-    def cond(i, node, vis, alive):
-        return alive & (i < steps)
+    def cond(st: AncestorLoop):
+        return st.alive & (st.i < steps)
 
-    def body(i, node, vis, alive):
-        p = dr.gather(mi.Point3f, V.centre, node, alive)
+    def body(st: AncestorLoop):
+        p = dr.gather(mi.Point3f, V.centre, st.node, st.alive)
         vs = x - p
         face, tx, ty = pb.texel(vs, lay.R)
-        d = dr.gather(mi.Float, maps.depth, node * lay.texels + (face * lay.R + ty) * lay.R + tx, alive)
-        vis &= ~alive | (dr.norm(vs) <= d + bias)
-        alive &= node != 0
-        node = dr.gather(mi.UInt32, V.parent, node, alive)
-        return i + 1, node, vis, alive
+        d = dr.gather(mi.Float, maps.depth, st.node * lay.texels + (face * lay.R + ty) * lay.R + tx, st.alive)
+        st.vis &= ~st.alive | (dr.norm(vs) <= d + bias)
+        st.alive &= st.node != 0
+        st.node = dr.gather(mi.UInt32, V.parent, st.node, st.alive)
+        st.i = st.i + 1
+        return (st,)
 
-    _, _, vis, _ = dr.while_loop(state=(mi.UInt32(0), node, vis, alive), cond=cond, body=body)
-    return vis
+    st, = dr.while_loop(state=(AncestorLoop(mi.UInt32(0), node, vis, alive),), cond=cond, body=body)
+    return st.vis

@@ -36,7 +36,7 @@ Reference
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
@@ -163,14 +163,84 @@ def cull_walk(V: ViewHierarchy, cull_level: int):
     return nodes, skip, accept
 
 
+@dataclass
+class CullNodes:
+    """The view nodes of the culling walk (:func:`cull_walk`) on the device, in DFS order: each
+    node's first point in the hierarchy's point ``order`` and its point ``count``, its ``skip``
+    pointer, whether its VPLs are gathered (``accept``), its bounding sphere (``centre``,
+    ``radius``) and cone (axis ``dir``, half-angle ``psi`` with the views' ``phi``); ``K`` the
+    number of nodes (opaque)."""
+    order: mi.UInt32
+    first: mi.UInt32
+    count: mi.UInt32
+    skip: mi.UInt32
+    accept: mi.Bool
+    centre: mi.Point3f
+    radius: mi.Float
+    dir: mi.Vector3f
+    psi: mi.Float
+    K: mi.UInt32
+
+    @staticmethod
+    def build(V: ViewHierarchy, cull_level: int) -> "CullNodes":
+        order = as_u32(V.tree.order)
+        nodes_np, skip_np, accept_np = cull_walk(V, cull_level)
+        nodes = as_u32(nodes_np)
+        first = as_u32(V.tree.first_point[nodes_np])
+        count = as_u32(V.tree.point_count[nodes_np])
+        skip = as_u32(skip_np)
+        accept = as_bool(accept_np)
+        ncentre = dr.gather(mi.Point3f, V.centre, nodes)
+        nradius = dr.gather(mi.Float, V.radius, nodes)
+        ndir = mi.Vector3f(dr.gather(mi.Point3f, V.dir, nodes))
+        npsi = dr.gather(mi.Float, V.theta, nodes) + V.phi_value
+        return CullNodes(order, first, count, skip, accept, ncentre, nradius, ndir, npsi,
+                         dr.opaque(mi.UInt32, len(nodes_np)))
+
+    def visit(self, x: mi.Point3f, eps: mi.Float, cut: mi.Float | None, i: mi.UInt32):
+        """(VPLs gathered from DFS node ``i`` for the points ``x``, next DFS position): a node
+        culled (its cone cannot see ``x``, or with ``cut`` its bound lies farther) is skipped
+        with its subtree."""
+        c_ = dr.gather(mi.Point3f, self.centre, i)
+        r_ = dr.gather(mi.Float, self.radius, i)
+        culled = tv.cull_test(x, eps, c_, r_, dr.gather(mi.Vector3f, self.dir, i), dr.gather(mi.Float, self.psi, i))
+        if cut is not None:
+            culled |= dr.norm(c_ - x) - r_ > cut
+        acc = dr.gather(mi.Bool, self.accept, i)
+        n_i = dr.select(~culled & acc, dr.gather(mi.UInt32, self.count, i), 0)
+        nxt = dr.select(culled | acc, dr.gather(mi.UInt32, self.skip, i), i + 1)
+        return n_i, nxt
+
+    def vpl_count(self, x: mi.Point3f, eps: mi.Float, cut: mi.Float | None, active: mi.Bool) -> mi.UInt32:
+        """``C(x)``: the VPLs of the nodes the walk keeps for the points ``x``."""
+        def c_cond(i, C):
+            return active & (i < self.K)
+
+        def c_body(i, C):
+            n_i, nxt = self.visit(x, eps, cut, i)
+            return nxt, C + n_i
+
+        _, C = dr.while_loop(state=(mi.UInt32(0), mi.UInt32(0)), cond=c_cond, body=c_body)
+        return C
+
+
+@dataclass
+class SampleWalk:
+    """The state of :func:`gather`'s pass 2 (one lane per pixel): ``i`` the DFS position, ``s``
+    the samples emitted, ``cum`` the VPLs of the nodes passed, ``L`` the sum of the samples."""
+    i: mi.UInt32 = field(default_factory=mi.UInt32)
+    s: mi.UInt32 = field(default_factory=mi.UInt32)
+    cum: mi.UInt32 = field(default_factory=mi.UInt32)
+    L: mi.Color3f = field(default_factory=mi.Color3f)
+    DRJIT_STRUCT = {"i": mi.UInt32, "s": mi.UInt32, "cum": mi.UInt32, "L": mi.Color3f}
+
+
 def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cull_level: int = 6,
            cull_tree: ViewHierarchy | None = None, fused: bool = True, bias_leaf: float = 2.0,
            bias_slope: float = 2.0, d_min: float | None = None, shadows: bool = True,
            cutoff: float = 0.0) -> mi.Color3f:
-    """One function because it is one traced kernel whose two passes walk the same culled view
-    nodes (``visit``); its stages are marked by banner comments.
-
-    Subsampled VPL gathering at the G-buffer points (see module docstring).
+    """Subsampled VPL gathering at the G-buffer points (see module docstring), one traced
+    kernel whose two passes walk the same culled view nodes (:meth:`CullNodes.visit`).
 
     ``cull_level``: the view hierarchy is walked depth first down to this
     level (the paper: 6), skipping the subtree of every node culled for
@@ -183,18 +253,8 @@ def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cu
     V = cull_tree if cull_tree is not None else maps.view_h
     if V.flat:
         raise ValueError("gathering needs an octree view hierarchy for culling")
-    order = as_u32(V.tree.order)
-    nodes_np, skip_np, accept_np = cull_walk(V, cull_level)
-    nodes = as_u32(nodes_np)
-    first = as_u32(V.tree.first_point[nodes_np])
-    count = as_u32(V.tree.point_count[nodes_np])
-    skip = as_u32(skip_np)
-    accept = as_bool(accept_np)
-    ncentre = dr.gather(mi.Point3f, V.centre, nodes)
-    nradius = dr.gather(mi.Float, V.radius, nodes)
-    ndir = mi.Vector3f(dr.gather(mi.Point3f, V.dir, nodes))
-    npsi = dr.gather(mi.Float, V.theta, nodes) + V.phi_value
-    K = dr.opaque(mi.UInt32, len(nodes_np))
+    nodes = CullNodes.build(V, cull_level)
+    K = nodes.K
     S = dr.opaque(mi.UInt32, int(samples))
     use_cut = cutoff > 0.0
     cut = dr.opaque(mi.Float, float(cutoff) if use_cut else 0.0)
@@ -205,28 +265,10 @@ def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cu
     dmin = dr.opaque(mi.Float, float(d_min if d_min is not None else 0.05 * scene_h.tree.edge))
     bsdf_x = si.bsdf()
     ctx = mi.BSDFContext()
-
-    def visit(i):
-        """(VPLs gathered from DFS node i, next DFS position)."""
-        c_ = dr.gather(mi.Point3f, ncentre, i)
-        r_ = dr.gather(mi.Float, nradius, i)
-        culled = tv.cull_test(x, eps, c_, r_, dr.gather(mi.Vector3f, ndir, i), dr.gather(mi.Float, npsi, i))
-        if use_cut:
-            culled |= dr.norm(c_ - x) - r_ > cut
-        acc = dr.gather(mi.Bool, accept, i)
-        n_i = dr.select(~culled & acc, dr.gather(mi.UInt32, count, i), 0)
-        nxt = dr.select(culled | acc, dr.gather(mi.UInt32, skip, i), i + 1)
-        return n_i, nxt
+    cut_v = cut if use_cut else None
 
     # ----------------- pass 1: C(x), VPLs of the non-culled nodes -----------------
-    def c_cond(i, C):
-        return active & (i < K)
-
-    def c_body(i, C):
-        n_i, nxt = visit(i)
-        return nxt, C + n_i
-
-    _, C = dr.while_loop(state=(mi.UInt32(0), mi.UInt32(0)), cond=c_cond, body=c_body)
+    C = nodes.vpl_count(x, eps, cut_v, active)
 
     # --------------- pass 2: systematic samples over the kept VPLs ---------------
     sampler = rng(gb.size, seed, stream=77)
@@ -234,16 +276,17 @@ def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cu
     Cf = mi.Float(C)
     step = Cf / dr.maximum(mi.Float(S), 1.0)
 
-    def cond(i, s, cum, L):
-        return active & (C > 0) & (i < K) & (s < S)
+    def cond(st: SampleWalk):
+        return active & (C > 0) & (st.i < K) & (st.s < S)
 
-    def body(i, s, cum, L):
-        n_i, nxt = visit(i)
+    def body(st: SampleWalk):
+        i, s, cum = st.i, st.s, st.cum
+        n_i, nxt = nodes.visit(x, eps, cut_v, i)
         t = (mi.Float(s) + xi) * step
         inside = t < mi.Float(cum + n_i)
         # ---- emit sample s from node i ----
         local = dr.minimum(mi.UInt32(dr.maximum(t - mi.Float(cum), 0.0)), dr.maximum(n_i, 1) - 1)
-        k = dr.gather(mi.UInt32, order, dr.gather(mi.UInt32, first, i) + local, inside)
+        k = dr.gather(mi.UInt32, nodes.order, dr.gather(mi.UInt32, nodes.first, i) + local, inside)
         si_k = dr.gather(mi.SurfaceInteraction3f, vpls.si, k, inside)
         phi_k = dr.gather(mi.Color3f, vpls.flux, k, inside)
         d = si_k.p - x
@@ -260,15 +303,15 @@ def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cu
         if shadows:
             bias = bias_leaf * eps + bias_slope * dist * (2.0 / R)
             ok = lookup(maps, k, x, ok, bias, fused)
-        L += dr.select(ok, contrib, 0.0)
-        s = dr.select(inside, s + 1, s)
-        cum = dr.select(inside, cum, cum + n_i)
-        i = dr.select(inside, i, nxt)
-        return i, s, cum, L
+        st.L += dr.select(ok, contrib, 0.0)
+        st.s = dr.select(inside, s + 1, s)
+        st.cum = dr.select(inside, cum, cum + n_i)
+        st.i = dr.select(inside, i, nxt)
+        return (st,)
 
-    _, _, _, L = dr.while_loop(state=(mi.UInt32(0), mi.UInt32(0), mi.UInt32(0), mi.Color3f(0.0)),
-                               cond=cond, body=body)
-    return dr.select(active, L * Cf / dr.maximum(mi.Float(S), 1.0), 0.0)
+    st, = dr.while_loop(state=(SampleWalk(mi.UInt32(0), mi.UInt32(0), mi.UInt32(0), mi.Color3f(0.0)),),
+                        cond=cond, body=body)
+    return dr.select(active, st.L * Cf / dr.maximum(mi.Float(S), 1.0), 0.0)
 
 
 # -----------------------------------------------------------------------------

@@ -35,6 +35,35 @@ class Slots:
     DRJIT_STRUCT = {"y": mi.Point3f, "n": mi.Vector3f, "Le": mi.Color3f, "W": mi.Float, "M": mi.Float}
 
 
+@dataclass
+class BuildLoop:
+    """The state of a reservoir's build (one lane per reservoir): ``i`` the candidates drawn, the
+    selected candidate's point ``y``, normal ``n``, radiance ``Le`` and target ``p_sel``, ``w_sum``
+    the sum of the resampling weights, ``smp`` the random numbers."""
+    i: mi.UInt32 = field(default_factory=mi.UInt32)
+    y: mi.Point3f = field(default_factory=mi.Point3f)
+    n: mi.Vector3f = field(default_factory=mi.Vector3f)
+    Le: mi.Color3f = field(default_factory=mi.Color3f)
+    p_sel: mi.Float = field(default_factory=mi.Float)
+    w_sum: mi.Float = field(default_factory=mi.Float)
+    smp: mi.PCG32 = field(default_factory=mi.PCG32)
+    DRJIT_STRUCT = {"i": mi.UInt32, "y": mi.Point3f, "n": mi.Vector3f, "Le": mi.Color3f, "p_sel": mi.Float,
+                    "w_sum": mi.Float, "smp": mi.PCG32}
+
+
+@dataclass
+class TapLoop:
+    """The state of a pixel sample's slot taps (one lane per pixel): ``i`` the taps drawn, the
+    selected sample's point ``y_sel`` and ratio ``r_sel`` (``f L_e G`` over its target), ``w_sum``
+    the sum of the resampling weights, ``smp`` the random numbers."""
+    i: mi.UInt32 = field(default_factory=mi.UInt32)
+    y_sel: mi.Point3f = field(default_factory=mi.Point3f)
+    r_sel: mi.Color3f = field(default_factory=mi.Color3f)
+    w_sum: mi.Float = field(default_factory=mi.Float)
+    smp: mi.PCG32 = field(default_factory=mi.PCG32)
+    DRJIT_STRUCT = {"i": mi.UInt32, "y_sel": mi.Point3f, "r_sel": mi.Color3f, "w_sum": mi.Float, "smp": mi.PCG32}
+
+
 def light_term(x: mi.Point3f, y: mi.Point3f, n: mi.Vector3f, Le: mi.Color3f, active: mi.Bool):
     """``L_e G`` of a stored light sample seen from ``x`` in the sample's own measure:
     ``L_e cos_y / d^2`` on area lights (0 behind the emitting side), ``I / d^2`` for a point light
@@ -222,7 +251,8 @@ class ReGIR(Method):
         floor = dr.opaque(mi.Float, self.cosine)
 
         # ---------------- B candidates from the emitter table at the cell centre ----------------
-        def body(i, y, n, Le, p_sel, w_sum, smp):
+        def body(st: BuildLoop):
+            smp = st.smp
             u = mi.Point2f(smp.next_float32(), smp.next_float32())
             ds, w, ok, em = self._table.sample(si, u, active)
             kind = self._table.kind(em, ok)
@@ -234,20 +264,21 @@ class ReGIR(Method):
             p_hat = self._shadowed(si, ds.p, p_hat)
             wi = mi.luminance(w)                                # p_hat / p: the same ratio in any measure
             wi = dr.select(ok & (p_hat > 0.0) & (wi > 0.0) & dr.isfinite(wi), wi, 0.0)
-            w_sum += wi
-            take = (wi > 0.0) & (smp.next_float32() * w_sum < wi)
-            y = dr.select(take, ds.p, y)
-            n = dr.select(take, nc, n)
-            Le = dr.select(take, Le_c, Le)
-            p_sel = dr.select(take, p_hat, p_sel)
-            return i + 1, y, n, Le, p_sel, w_sum, smp
+            st.w_sum += wi
+            take = (wi > 0.0) & (smp.next_float32() * st.w_sum < wi)
+            st.y = dr.select(take, ds.p, st.y)
+            st.n = dr.select(take, nc, st.n)
+            st.Le = dr.select(take, Le_c, st.Le)
+            st.p_sel = dr.select(take, p_hat, st.p_sel)
+            st.i = st.i + 1
+            return (st,)
 
         n_build = dr.opaque(mi.UInt32, self.build)
-        state = (mi.UInt32(0), mi.Point3f(0.0), mi.Vector3f(0.0), mi.Color3f(0.0), mi.Float(0.0), mi.Float(0.0), smp)
+        state = BuildLoop(mi.UInt32(0), mi.Point3f(0.0), mi.Vector3f(0.0), mi.Color3f(0.0), mi.Float(0.0),
+                          mi.Float(0.0), smp)
         with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
-            _, y, n, Le, p_sel, w_sum, smp = dr.while_loop(
-                state=state, cond=lambda i, *_: i < n_build, body=body,
-                labels=("i", "y", "n", "Le", "p_sel", "w_sum", "smp"))
+            st, = dr.while_loop(state=(state,), cond=lambda st: st.i < n_build, body=body, labels=("build",))
+        y, n, Le, p_sel, w_sum, smp = st.y, st.n, st.Le, st.p_sel, st.w_sum, st.smp
         ok = (p_sel > 0.0) & (w_sum > 0.0)
         W = dr.select(ok, w_sum / dr.select(ok, float(self.build) * p_sel, 1.0), 0.0)
         M = mi.Float(1.0)
@@ -316,7 +347,8 @@ class ReGIR(Method):
         floor = dr.opaque(mi.Float, self.cosine)
 
         # ---------------- slot taps of the pixel's cell ----------------
-        def tap(i, y_sel, r_sel, w_sum, smp):
+        def tap(st: TapLoop):
+            smp = st.smp
             j = dr.minimum(mi.UInt32(smp.next_float32() * Sf), S - 1)
             s = dr.gather(Slots, self.store, slot * S + j, has_cell)
             t, d, ok = light_term(si.p, s.y, s.n, s.Le, has_cell & (s.W > 0.0))
@@ -324,16 +356,17 @@ class ReGIR(Method):
             p_hat = mi.luminance(col)
             w = dr.select(ok & (p_hat > 0.0), m_tap * p_hat * s.W, 0.0)
             w = dr.select(dr.isfinite(w), w, 0.0)
-            w_sum += w
-            take = (w > 0.0) & (smp.next_float32() * w_sum < w)
-            y_sel = dr.select(take, s.y, y_sel)
-            r_sel = dr.select(take, col / dr.select(take, p_hat, 1.0), r_sel)
-            return i + 1, y_sel, r_sel, w_sum, smp
+            st.w_sum += w
+            take = (w > 0.0) & (smp.next_float32() * st.w_sum < w)
+            st.y_sel = dr.select(take, s.y, st.y_sel)
+            st.r_sel = dr.select(take, col / dr.select(take, p_hat, 1.0), st.r_sel)
+            st.i = st.i + 1
+            return (st,)
 
         def sample(k, L, smp):
-            state = (mi.UInt32(0), mi.Point3f(0.0), mi.Color3f(0.0), mi.Float(0.0), smp)
-            _, y_sel, r_sel, w_sum, smp = dr.while_loop(
-                state=state, cond=lambda i, *_: i < n_taps, body=tap, labels=("i", "y", "ratio", "w_sum", "smp"))
+            state = TapLoop(mi.UInt32(0), mi.Point3f(0.0), mi.Color3f(0.0), mi.Float(0.0), smp)
+            st, = dr.while_loop(state=(state,), cond=lambda st: st.i < n_taps, body=tap, labels=("taps",))
+            y_sel, r_sel, w_sum, smp = st.y_sel, st.r_sel, st.w_sum, st.smp
 
             # ---------------- emitter-table samples at the pixel ----------------
             for _ in range(self.table):

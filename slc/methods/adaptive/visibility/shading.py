@@ -13,6 +13,7 @@ at a pixel whose glossy lobe is narrow against it gets the lobe's integral over 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
@@ -26,6 +27,29 @@ from slc.scene.bsdf_table import side_normal
 
 ALBEDO_SAMPLES = 16     # BSDF samples of a non-diffuse pixel's directional albedo and sky (the residual's shading)
 R3 = 1.2207440846057596     # plastic constant of the 3-D Roberts sequence (as the cones' quadrature)
+
+
+@dataclass
+class AlbedoLoop:
+    """The state of :func:`albedo`'s sample loop (one lane per pixel): ``i`` the BSDF samples
+    drawn, ``A`` the sum of their weights, ``Ls`` the sum of their weights times the sky's
+    radiance, ``rng`` the pixel's random numbers."""
+    i: mi.UInt32 = field(default_factory=mi.UInt32)
+    A: mi.Color3f = field(default_factory=mi.Color3f)
+    Ls: mi.Color3f = field(default_factory=mi.Color3f)
+    rng: mi.PCG32 = field(default_factory=mi.PCG32)
+    DRJIT_STRUCT = {"i": mi.UInt32, "A": mi.Color3f, "Ls": mi.Color3f, "rng": mi.PCG32}
+
+
+@dataclass
+class SlotLoop:
+    """The state of :func:`shade`'s loop over a record's slots (one lane per pixel): ``i`` the
+    slot, ``L`` the radiance summed so far, ``rng`` the random numbers of the sampled glossy
+    terms (None without them)."""
+    i: mi.UInt32 = field(default_factory=mi.UInt32)
+    L: mi.Color3f = field(default_factory=mi.Color3f)
+    rng: mi.PCG32 | None = None
+    DRJIT_STRUCT = {"i": mi.UInt32, "L": mi.Color3f, "rng": mi.PCG32}
 
 
 def albedo(bsdf, si, ctx, active, rng, n: int, sky=None):
@@ -42,23 +66,24 @@ def albedo(bsdf, si, ctx, active, rng, n: int, sky=None):
     def frac(x):
         return x - dr.floor(x)
 
-    def cond(i, A, Ls, rng):
-        return (i < n) & active
+    def cond(st: AlbedoLoop):
+        return (st.i < n) & active
 
-    def body(i, A, Ls, rng):
-        k = mi.Float(i)
+    def body(st: AlbedoLoop):
+        k = mi.Float(st.i)
         u1 = frac(o[0] + k * (1.0 / R3))
         u2 = mi.Point2f(frac(o[1] + k * (1.0 / R3 ** 2)), frac(o[2] + k * (1.0 / R3 ** 3)))
         bs, w = bsdf.sample(ctx, si, u1, u2, active)
         refl = active & (bs.pdf > 0.0) & (mi.Frame3f.cos_theta(bs.wo) * mi.Frame3f.cos_theta(si.wi) > 0.0)
         if sky is not None:
-            Ls = Ls + dr.select(refl, mi.Color3f(w) * sky(si.to_world(bs.wo), refl), 0.0)
-        return i + 1, A + dr.select(refl, mi.Color3f(w), 0.0), Ls, rng
+            st.Ls = st.Ls + dr.select(refl, mi.Color3f(w) * sky(si.to_world(bs.wo), refl), 0.0)
+        st.i, st.A = st.i + 1, st.A + dr.select(refl, mi.Color3f(w), 0.0)
+        return (st,)
 
     z = dr.zeros(mi.Color3f, dr.width(active))
-    _, A, Ls, _ = dr.while_loop(state=(mi.UInt32(0), z, mi.Color3f(z), rng), cond=cond, body=body,
-                                labels=("i", "A", "Ls", "rng"))
-    return A * (1.0 / n), Ls * (1.0 / n)
+    st, = dr.while_loop(state=(AlbedoLoop(mi.UInt32(0), z, mi.Color3f(z), rng),), cond=cond, body=body,
+                        labels=("albedo",))
+    return st.A * (1.0 / n), st.Ls * (1.0 / n)
 
 
 def visible(scene: mi.Scene, si, d: mi.Vector3f, dist: mi.Float, active: mi.Bool) -> mi.Bool:
@@ -126,10 +151,11 @@ def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None, env=None, rn
 
     # ----------------------- the listed lights (slots 0 to n_used - 1), then the residual of a
     # diffuse-only pixel (iteration n_used: the BSDF along the normal times E): one BSDF call site
-    def cond(i, L, *g):
-        return (i <= n_used) & active
+    def cond(st: SlotLoop):
+        return (st.i <= n_used) & active
 
-    def body(i, L, *g):
+    def body(st: SlotLoop):
+        i = st.i
         res = i == n_used
         ii, vi = slot(idx, i), slot(vis, i)
         m = active & ~res & (ii != EMPTY) & (vi > 0.0)
@@ -144,13 +170,14 @@ def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None, env=None, rn
         edge = m & (vi < 1.0) & hard
         t *= dr.select(edge, dr.select(visible(scene, si, d, dist, edge), 1.0, 0.0), vi)
         if glossy:                       # a lobe narrow against the light: sampled (polygon_glossy)
-            t_s, used, rng_ = polygon_term(sph.table, scene, si, bsdf, ii, sph.polygon(ii, m & gl_px), d, w, vi,
-                                           g[-1], S)
-            t, g = dr.select(used, t_s, t), tuple(g[:-1]) + (rng_,)
-        return (i + 1, L + dr.select(m_f, t, 0.0)) + tuple(g)
+            t_s, used, st.rng = polygon_term(sph.table, scene, si, bsdf, ii, sph.polygon(ii, m & gl_px), d, w, vi,
+                                             st.rng, S)
+            t = dr.select(used, t_s, t)
+        st.i, st.L = i + 1, st.L + dr.select(m_f, t, 0.0)
+        return (st,)
 
-    state = (mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(active))) + ((rng,) if glossy else ())
-    _, L, *g = dr.while_loop(state=state, cond=cond, body=body)
+    L = dr.while_loop(state=(SlotLoop(mi.UInt32(0), dr.zeros(mi.Color3f, dr.width(active)), rng if glossy else None),),
+                      cond=cond, body=body)[0].L
     # ----------------------- the residual of the other pixels: its irradiance as uniform radiance
     if rng_a is not None:
         L += uniform_residual(si, bsdf, ctx, active & ~diff, E_res, r.vs, env if sky else None, em_dr, rng_a)
