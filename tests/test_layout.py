@@ -6,7 +6,7 @@ Layers, bottom to top (a module may import from its own layer and the layers bel
     core       backend, keys, freeze, timing, check, io
     scene      scenes, views and rigs, the G-buffer, light sampling, the BSDF table
     reference  the ground truth, path-traced references, metrics
-    methods    the method contract (slc.methods: Method, Param, the registry)
+    methods    the method contract (slc.methods: the registry; slc.methods.base: Method, Param)
     osc        the on-surface cache and its contract for cache methods
     method     one folder per method under slc/methods/ (baselines included)
     distributed  render nodes sharing one surface cache (owners, records, the Ray actors)
@@ -86,8 +86,8 @@ def _layer(mod: str) -> tuple[str, str | None]:
     if len(parts) == 1:
         return "run", None             # slc/__init__.py selects the variant: it may import core only
     top = parts[1]
-    if top == "methods":
-        return ("method", parts[2]) if len(parts) > 2 else ("methods", None)
+    if top == "methods":       # a folder under slc/methods/ is a method; a module beside them, the contract
+        return ("method", parts[2]) if len(parts) > 2 and (PKG / "methods" / parts[2]).is_dir() else ("methods", None)
     return top, None
 
 

@@ -168,10 +168,7 @@ class Node:
 
     def _gbuffers(self, frame: int) -> tuple:
         """The viewers' G-buffers, and with ``predict`` those of their extrapolated cameras."""
-        self.scene.set_frame(frame)
-        gbs = [gbuf.render_gbuffer(self.scene, p.camera(frame), self.width, self.height,
-                                   p.camera(frame - 1) if frame > 0 else None, p.name) for p in self.viewers.values()]
-        gbuf.attach_layers(gbs)
+        gbs = gbuf.frame_gbuffers(self.scene, list(self.viewers.values()), frame, self.width, self.height)
         ahead = 2 * self.s.delay + PREDICT_MARGIN
         pred = []
         if self.s.predict and self.s.delay > 0 and frame > 0:

@@ -1,7 +1,8 @@
 """The base class of cache methods: a payload in a surface cache.
 
-In the spirit of Mitsuba 3's ``ad/integrators/common.py``, the base class
-runs the frame and a subclass writes only the part that differs::
+:meth:`slc.methods.base.Method.render` runs the frame; this base class writes
+a cache method's shared stage (:meth:`PayloadMethod.update_frame`) and a
+subclass writes only the part that differs::
 
     class MyCache(PayloadMethod):
         name = "mine"
@@ -12,14 +13,15 @@ runs the frame and a subclass writes only the part that differs::
         def shade_all(self, ctx, fr, gbuffers):       # optional: all viewers at once
         def make_cache(self):                         # optional: another surface cache
 
-:meth:`PayloadMethod.render` does, per frame: the cache's requests
+:meth:`PayloadMethod.update_frame` does, per frame: the cache's requests
 (:class:`slc.osc.protocol.FrameRequests`), storage growth to the cache's
 capacity, the ray policy of every active entry (from the payload's own
 per-entry state: new, moving or settled; one :class:`EntryPolicy`), the
 payload's ``update`` (stage "update"), the policy state's advance with the
-motion the update reports, and ``shade_all`` (stage "shade"): by default
-``shade`` for every viewer; a subclass may shade all viewers' pixels in one
-launch instead. Memory is the cache's own structures plus the allocated
+motion the update reports; then :meth:`~slc.methods.base.Method.render` calls
+``shade_all`` (stage "shade"): by default ``shade`` for every viewer; a
+subclass may shade all viewers' pixels in one launch instead. A frame
+without active entries shades nothing (its light is 0). Memory is the cache's own structures plus the allocated
 entries times :meth:`payload_bytes`.
 
 An entry's words are read and written through :meth:`PayloadMethod.read` /
@@ -129,7 +131,7 @@ class RayPolicy:
 @dataclass(frozen=True)
 class EntryPolicy:
     """The ray policy of this frame's active entries, built once by
-    :meth:`PayloadMethod.render` and handed to :meth:`PayloadMethod.update`.
+    :meth:`PayloadMethod.update_frame` and handed to :meth:`PayloadMethod.update`.
 
     ``state``: each entry's policy state word before this update
     (``updates | motion_left << 16``; 0 for a new entry); ``rays`` and
@@ -222,13 +224,6 @@ class PayloadMethod(Method):
     def shade(self, ctx, fr: FrameRequests, v: int, gb) -> mi.Color3f:
         """Viewer ``v``'s pixels from the entries ``fr.pixel_slot[v]`` (no rays)."""
 
-    def shade_all(self, ctx, fr: FrameRequests, gbuffers) -> list:
-        """Every viewer's pixels (a list of ``mi.Color3f``, one per G-buffer), called
-        once per frame with at least one active entry. Default: :meth:`shade` per
-        viewer. A subclass may batch the viewers into one launch; its images must be
-        those of :meth:`shade` (random numbers keyed per viewer as there)."""
-        return [self.shade(ctx, fr, v, gb) for v, gb in enumerate(gbuffers)]
-
     def pixel_batch(self, fr: FrameRequests, gbuffers) -> PixelBatch:
         """Every viewer's pixels laid out one after another for one shading launch
         (:func:`slc.osc.batch.pixel_batch`; the layout kept on this instance while the viewers'
@@ -283,7 +278,9 @@ class PayloadMethod(Method):
         self.policy_state = extend_array(self.policy_state, 0, cap, mi.UInt32)
 
     # ------------------------------------------------------------------ frame
-    def render(self, ctx, gbuffers, timer):
+    def update_frame(self, ctx, gbuffers, timer) -> FrameRequests:
+        """The cache's requests (:meth:`begin`), then every requested entry updated once
+        (stage "update"); the requests are what shading reads."""
         fr = self.begin(ctx, gbuffers, timer)
         n_active = fr.n_active
         motion = mi.Bool()
@@ -293,20 +290,16 @@ class PayloadMethod(Method):
             if n_active > 0:
                 motion = self.update_requested(ctx, fr)
                 st.outputs(self.storage, self.policy_state)
-
-        # ------------------------------- shade every viewer from the entries
-        with timer.stage("shade") as st:
-            if n_active > 0:
-                outs = list(self.shade_all(ctx, fr, gbuffers))
-            else:
-                outs = [dr.zeros(mi.Color3f, gb.size) for gb in gbuffers]
-            st.outputs(*outs)
         self._last = {"active_entries": n_active, "motion_entries": motion}
-        return outs
+        return fr
+
+    def can_shade(self, fr: FrameRequests) -> bool:
+        """A frame without active entries has nothing to shade from (its light is 0)."""
+        return fr.n_active > 0
 
     def begin(self, ctx, gbuffers, timer, extra=None) -> FrameRequests:
         """The cache's requests of this frame, storage grown to its capacity (the first part
-        of :meth:`render`); ``extra``: entries requested besides the pixels (by address,
+        of :meth:`update_frame`); ``extra``: entries requested besides the pixels (by address,
         :meth:`slc.osc.cache.OnSurfaceCache.begin_frame`)."""
         if self.cache is None:
             self._set_up_cache()
@@ -317,7 +310,7 @@ class PayloadMethod(Method):
 
     def update_requested(self, ctx, fr: FrameRequests) -> mi.Bool:
         """Update every active entry of ``fr`` once under the ray policy and advance the
-        entries' policy state (the update stage of :meth:`render`); the rays each entry took
+        entries' policy state (the update stage of :meth:`update_frame`); the rays each entry took
         are kept in ``self.update_rays`` (a ``mi.UInt32`` over ``fr.active``). Returns the
         motion mask the payload's :meth:`update` reports."""
         state = dr.select(fr.is_new, 0, dr.gather(mi.UInt32, self.policy_state, fr.active))

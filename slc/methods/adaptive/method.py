@@ -347,8 +347,7 @@ class AdaptiveCache(PayloadMethod):
                 dr.eval(tag, slot, dst.pool.data)
         return Header(tag=tag, streak=h.streak, count=h.count, e=h.e, slot=slot, s_delta=h.s_delta, m=h.m)
 
-    def render(self, ctx, gbuffers, timer):
-        out = super().render(ctx, gbuffers, timer)
+    def finish(self, ctx, fr, gbuffers, out, timer):
         if self.reps is not None:
             self._frames_seen += 1
             self._warm = self._frames_seen >= WARM_FRAMES
