@@ -17,7 +17,7 @@ from slc.core.timing import StageTimer
 from slc.methods import FrameContext, MethodError
 from slc.scene.camera import Viewer
 from slc.scene.gbuffer import compose, frame_gbuffers, to_image
-from slc.osc.payload import RayPolicy
+from slc.methods.cache_method import RayPolicy
 from slc.scene.scenes import load
 
 from helpers import plane_under_rect_light, render_frames

@@ -64,7 +64,7 @@ from slc.distributed.seeds import records_of, seed_queries, seed_slots
 from slc.distributed.sending import records_to
 from slc.distributed.state import Client, Subscriptions, in_sorted
 from slc.methods import FrameContext
-from slc.osc.payload import EntryPolicy
+from slc.methods.cache_method import EntryPolicy
 from slc.scene import gbuffer as gbuf
 
 PHASES = ("begin", "forward", "serve", "answer", "relay", "update", "shade")

@@ -69,7 +69,7 @@ def owners(regions, live) -> np.ndarray:
 
 def changed_records(method, last: list, rec: list, threshold: float) -> mi.Bool:
     """Entries whose record ``rec`` changed by more than ``threshold`` since ``last`` (the record
-    the node holds; :meth:`~slc.osc.payload.PayloadMethod.record_change`); at threshold 0 every
+    the node holds; :meth:`~slc.methods.cache_method.PayloadMethod.record_change`); at threshold 0 every
     record whose words differ, so that the node holds the owner's value bit for bit."""
     differ = mi.Bool(False)
     for a, b in zip(last, rec):

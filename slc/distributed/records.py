@@ -1,6 +1,6 @@
 """Records written into a node's own slots.
 
-A record is the payload's words as stored (:meth:`slc.osc.payload.PayloadMethod.pack_records`),
+A record is the payload's words as stored (:meth:`slc.methods.cache_method.PayloadMethod.pack_records`),
 so that a receiver shades from the owner's value bit for bit. A payload whose entries point into
 pools of their own (``method.pools``: the adaptive cache's representation pools,
 :mod:`slc.methods.adaptive.records`: word 0's low two bits the representation, word 1 the pool

@@ -7,7 +7,7 @@ returns per viewer the light it computes (``output``: ``"direct"`` light
 without the emitted radiance seen directly, which
 :func:`slc.scene.gbuffer.compose` adds; ``"indirect"``; or ``"full"``);
 :meth:`Method.render` runs the frame and a subclass writes its shading and
-the stages it shares across the viewers (see :mod:`slc.osc.payload` for
+the stages it shares across the viewers (see :mod:`slc.methods.cache_method` for
 the cache-method base class).
 
 Methods are found, like scenes and experiments, without editing a core file:

@@ -9,7 +9,7 @@ import mitsuba as mi
 from slc.methods.cones.update import ConeParams
 from slc.core.keys import INVALID
 from slc.methods import register
-from slc.osc.payload import PayloadMethod, RayPolicy
+from slc.methods.cache_method import PayloadMethod, RayPolicy
 from slc.methods.sh.ycocg import encoding as get_encoding
 from slc.methods.adaptive import choice as ch
 from slc.methods.adaptive import records
@@ -365,7 +365,7 @@ class AdaptiveCache(PayloadMethod):
 
     def shade_all(self, ctx, fr, gbuffers):
         """All viewers' pixels: one launch per representation over every viewer's pixels one
-        after another (:meth:`~slc.osc.payload.PayloadMethod.pixel_batch`), split per viewer;
+        after another (:meth:`~slc.methods.cache_method.PayloadMethod.pixel_batch`), split per viewer;
         each pixel keeps the random numbers it has per viewer (its index within its viewer, its
         viewer's streams), so the images are the per-viewer ones bit for bit. One viewer:
         :meth:`shade`."""

@@ -8,7 +8,7 @@ import mitsuba as mi
 
 from slc.core.keys import INVALID
 from slc.methods.adaptive.choice import CONES, SH, VIS
-from slc.osc.payload import PayloadMethod
+from slc.methods.cache_method import PayloadMethod
 
 REPS = (VIS, CONES, SH)
 

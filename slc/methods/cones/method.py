@@ -7,7 +7,7 @@ import mitsuba as mi
 from slc.scene.bsdf_table import front_side_only
 from slc.core.keys import INVALID
 from slc.methods import Param, register
-from slc.osc.payload import PayloadMethod, RayPolicy
+from slc.methods.cache_method import PayloadMethod, RayPolicy
 from slc.osc.protocol import BILINEAR_TAPS
 from slc.methods.cones.packing import unpack, words_per_entry
 from slc.methods.cones.shading import shade_key, shader_for

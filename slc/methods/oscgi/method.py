@@ -12,7 +12,7 @@ from slc.core.keys import INVALID, keyed_rng, stream_key
 from slc.scene.lights import diffuse_flags
 from slc.methods import MethodError, Param, create, register
 from slc.osc.cache import OnSurfaceCache
-from slc.osc.payload import PayloadMethod, RayPolicy
+from slc.methods.cache_method import PayloadMethod, RayPolicy
 from slc.osc.protocol import ENTRY_TOPOLOGY
 from slc.methods.sh.shading import diffuse_only, shade_radiance
 from slc.methods.oscgi.hemisphere import HemiGrid

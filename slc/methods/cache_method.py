@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from slc.methods import Method, MethodError, Param
+from slc.methods.base import Method, MethodError, Param
 from slc.osc.batch import PixelBatch, pixel_batch
 from slc.osc.blocks import build_copy_kernels, extend_array
 from slc.osc.cache import OnSurfaceCache
