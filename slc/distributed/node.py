@@ -58,7 +58,7 @@ from slc.core.timing import NullTimer
 from slc.distributed.directory import Directory
 from slc.distributed.messages import Delegate, Relayed, SeedQuery, SeedRelay, SeedReply
 from slc.distributed.owners import Regions, count, owners
-from slc.distributed.records import unpack_into
+from slc.distributed.records import codec_for, unpack_into
 from slc.distributed.rig import Clock, Strategy, extrapolated, make_method
 from slc.distributed.seeds import records_of, seed_queries, seed_slots
 from slc.distributed.sending import records_to
@@ -101,6 +101,7 @@ class Node:
         self.viewers = dict(sorted(viewers.items()))
         self.width, self.height, self.s = int(width), int(height), strategy
         self.m, self.cache = make_method(spec, scene, seed)
+        self.codec = codec_for(self.m)            # its entries as records (slc.distributed.records)
         self.regions = Regions(self.cache.layout, strategy.region_level)
         self.dir = Directory(self)
         self.subs: dict[int, Subscriptions] = {}       # home -> this node's subscriptions there
@@ -331,7 +332,7 @@ class Node:
             for msg in inbox:
                 ok, slots = self.slots_of(msg.keys)
                 if np.any(ok):
-                    unpack_into(self.m, slots, msg.words[:, ok])
+                    unpack_into(self.codec, slots, msg.words[:, ok])
                     dr.scatter(self.value, True, slots)
                     dr.scatter(self.boot, False, slots)
             outs = self._shade()

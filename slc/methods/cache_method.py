@@ -323,45 +323,6 @@ class PayloadMethod(Method):
         self.update_rays = policy.rays
         return motion
 
-    # ------------------------------------------------------------------ records (entries sent between nodes)
-    # A record is what one render node sends another for one entry: the payload's packed words,
-    # exactly as stored, so that a receiver shades from the owner's value bit for bit
-    # (slc.distributed). ``entry_state`` is everything shading reads per entry, so that a node may
-    # shade from its own copy of it.
-    def entry_state(self) -> dict:
-        """The per-entry arrays shading reads (name -> Dr.Jit array); default: the storage."""
-        return {"storage": self.storage}
-
-    def set_entry_state(self, state: dict) -> None:
-        """Shade from ``state`` (arrays shaped as :meth:`entry_state`'s) from now on."""
-        self.storage = state["storage"]
-
-    def pack_records(self, slots: mi.UInt32) -> list:
-        """The records of the entries ``slots``: a list of ``mi.UInt32`` words, one lane per entry."""
-        words = self.read(mi.UInt32(slots), 0, n=self.words)
-        words = words if isinstance(words, list) else [words]
-        return [w if self.storage_type is mi.UInt32 else dr.reinterpret_array(mi.UInt32, w) for w in words]
-
-    def unpack_records(self, state: dict, slots: mi.UInt32, words: list, active=True) -> None:
-        """Write the records ``words`` (from :meth:`pack_records`) of the entries ``slots`` into
-        ``state`` (an :meth:`entry_state` copy)."""
-        vals = words if self.storage_type is mi.UInt32 else [dr.reinterpret_array(self.storage_type, w)
-                                                             for w in words]
-        self.write(vals, mi.UInt32(slots), 0, active, storage=state["storage"])
-
-    def record_bytes(self, words: list) -> mi.UInt32:
-        """Bytes of each record on the wire (default: all of its words)."""
-        return dr.full(mi.UInt32, 4 * len(words), dr.width(words[0]) if words else 0)
-
-    def record_change(self, old: list, new: list) -> mi.Float:
-        """How much each entry changed between two of its records, in the payload's own terms
-        (0: identical). Default: 1 where any word differs, else 0 (a payload without a finer
-        measure sends every changed record at any positive threshold)."""
-        diff = mi.Bool(False)
-        for a, b in zip(old, new):
-            diff |= mi.UInt32(a) != mi.UInt32(b)
-        return dr.select(diff, mi.Float(1.0), mi.Float(0.0))
-
     # ------------------------------------------------------------------ reports
     def payload_bytes(self) -> int:
         """Bytes per entry: the payload's words and its 4-byte policy state."""

@@ -12,7 +12,6 @@ from slc.methods import register
 from slc.methods.cache_method import PayloadMethod, RayPolicy
 from slc.methods.sh.ycocg import encoding as get_encoding
 from slc.methods.adaptive import choice as ch
-from slc.methods.adaptive import records
 from slc.methods.adaptive.choice import CONES, NONE, SH, VIS, ChoiceParams, Header
 from slc.methods.adaptive.cones_rep import ConesRep
 from slc.methods.adaptive.env_lights import EnvLights
@@ -352,10 +351,6 @@ class AdaptiveCache(PayloadMethod):
             self._frames_seen += 1
             self._warm = self._frames_seen >= WARM_FRAMES
         return out
-
-    # ------------------------------------------------------------------ records (slc.methods.adaptive.records)
-    entry_state, set_entry_state, record_bytes = records.entry_state, records.set_entry_state, records.record_bytes
-    pack_records, unpack_records = records.pack_records, records.unpack_records
 
     # ------------------------------------------------------------------ shade
     def shade(self, ctx, fr, v, gb):
