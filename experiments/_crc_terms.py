@@ -46,6 +46,7 @@ def error_terms(c, scene, viewers, nb: int, common: dict, W: int, H: int, frames
     import mitsuba as mi
     import numpy as np
 
+    from slc.methods import FrameContext
     from slc.reference.metrics import lab_rmse
     from slc.reference.references import image_of, reference_for
     f = frames - 1
@@ -76,7 +77,7 @@ def error_terms(c, scene, viewers, nb: int, common: dict, W: int, H: int, frames
            "reference_noise": L(ind4, ind), "rgb3_vs_ref4": L(ind4, img["rgb3"])}
     c32 = mh.cache
     mh.cache = mi.Float(np.array(c32, dtype=np.float32).astype(np.float16).astype(np.float32))
-    out["quantisation_fp16"] = L(img["rgb3_hi"], image_of("indirect", gb, mh.shade(gb)))
+    out["quantisation_fp16"] = L(img["rgb3_hi"], image_of("indirect", gb, mh.shade(FrameContext(f), None, 0, gb)))
     mh.cache = c32
     out["interpolation"] = out["unfiltered_hi_vs_ref"] = None
     if nb == 1:

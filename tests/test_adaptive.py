@@ -205,7 +205,7 @@ def test_cone_pool_update_is_slc_update_bit_for_bit():
     from slc.methods.cones.packing import words_per_entry
     from slc.methods.cones.update import ConeParams
     from slc.methods.cones.update_kernel import update_entries
-    from slc.osc.payload import RayPolicy
+    from slc.methods.cache_method import RayPolicy
 
     scene = _plane("adaptive_cone_bits", lambda b: (b.add_quad([0, 1.0, 0], [0.3, 0, 0], [0, 0, 0.3],
                                                              bsdf=diffuse([0, 0, 0]), emission=[4.0] * 3,

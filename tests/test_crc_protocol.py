@@ -92,7 +92,7 @@ def test_village_sun_is_one_directional_light_feeding_the_cache():
         scenes.load("village:sun=noon")
     m = methods.create("crc", day, **CHEAP)
     imgs, gbs = render_frames(day, m, views.single(day), 1, W, H)
-    ind = to_image(gbs[0], m.shade(gbs[0]))
+    ind = to_image(gbs[0], m.shade(methods.FrameContext(0), None, 0, gbs[0]))
     assert np.isfinite(ind).all() and (ind >= 0).all() and ind.mean() > 0
 
 

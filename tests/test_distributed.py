@@ -20,6 +20,7 @@ from slc.distributed.messages import Requests, decode_addresses, decode_bits, en
 from slc.distributed.node import KINDS, Node
 from slc.distributed.rig import Strategy, ViewerPoses, assignment, extrapolated
 from slc.distributed.owners import Regions, changed_records, owners
+from slc.distributed.records import codec_for
 from slc.distributed.seeds import ancestors
 from slc.distributed.state import Client, Subscriptions
 from slc.methods import FrameContext
@@ -119,17 +120,17 @@ def _cone_record(L: float, C: float, n: int = 1):
 
 
 def test_a_record_change_counts_against_the_entry_noise_and_any_change_counts_at_threshold_0(scene):
-    m = methods.create("slc", scene("atrium"), seed=0)
+    m = codec_for(methods.create("slc", scene("atrium"), seed=0))
     # the same 20% change of the radiance: at 255 samples of memory 0.2, at 32 samples sqrt(32/255) of it
-    full = float(m.record_change(_cone_record(1.0, 255), _cone_record(1.2, 255))[0])
-    young = float(m.record_change(_cone_record(1.0, 32), _cone_record(1.2, 32))[0])
+    full = float(m.change(_cone_record(1.0, 255), _cone_record(1.2, 255))[0])
+    young = float(m.change(_cone_record(1.0, 32), _cone_record(1.2, 32))[0])
     assert abs(full - 0.2 / 1.2) < 1e-3 and abs(young / full - (32 / 255) ** 0.5) < 1e-3
     # a cone that appears counts with its share of the radiance (a third of it here)
-    grown = float(m.record_change(_cone_record(1.0, 255, 2), _cone_record(1.0, 255, 3))[0])
+    grown = float(m.change(_cone_record(1.0, 255, 2), _cone_record(1.0, 255, 3))[0])
     assert abs(grown - 1 / 3) < 1e-3
     # only C differs: no change of the light, yet a change of the words at threshold 0
     a, b = _cone_record(1.0, 100), _cone_record(1.0, 101)
-    assert float(m.record_change(a, b)[0]) == 0.0
+    assert float(m.change(a, b)[0]) == 0.0
     assert bool(changed_records(m, a, b, 0.0)[0]) and not bool(changed_records(m, a, b, 0.01)[0])
     assert not bool(changed_records(m, a, a, 0.0)[0])
 

@@ -281,7 +281,7 @@ def test_rt_with_table_matches_ground_truth_mean(name, choice, monkeypatch):
     with lights.emitter_sampling_as("table"):
         assert lights.sampler(s.mi_scene) is not None
         m = methods.create("rt256", s, seed=1)
-        img = gbuffer.to_image(gb, gbuffer.compose(gb, m.shade(gb, 0, 0)))
+        img = gbuffer.to_image(gb, gbuffer.compose(gb, m.shade(methods.FrameContext(0), None, 0, gb)))
     assert np.isfinite(img).all()
     valid = np.array(gb.valid).reshape(36, 64)
     a, b = img[valid].mean(), gt[valid].mean()

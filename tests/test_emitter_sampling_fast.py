@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from slc.scene import emitter_sampling, emitter_table, lights, scenes, views
+from slc.methods import FrameContext
 from slc.methods.rt.method import RandomLightSampling
 from slc.run.pipeline import gbuffers_for
 
@@ -157,7 +158,7 @@ def test_rt_with_surface_bsdf_equals_plain_eval():
     s = scenes.load("atrium")
     gb = gbuffers_for(s, views.single(s), 0, 48, 27)[0]
     m = RandomLightSampling(s, n=4)
-    got = _arr(m.shade(gb, 0, 0))
+    got = _arr(m.shade(FrameContext(0), None, 0, gb))
     sc, si, active = s.mi_scene, gb.si, gb.valid
     sampler = lights.rng(gb.size, m.seed_for(0, 0), stream=1)
     bsdf, ctx = si.bsdf(), mi.BSDFContext()

@@ -44,7 +44,7 @@ def test_rt_matches_ground_truth_mean(kind):
     gb = gbuffers_for(s, views.single(s), 0, 64, 48)[0]
     gt = groundtruth.ground_truth(s, gb, 0, kind)
     m = methods.create("rt256", s, seed=1)
-    img = gbuffer.to_image(gb, gbuffer.compose(gb, m.shade(gb, 0, 0)))
+    img = gbuffer.to_image(gb, gbuffer.compose(gb, m.shade(methods.FrameContext(0), None, 0, gb)))
     assert np.isfinite(img).all() and np.isfinite(gt).all()
     valid = np.array(gb.valid).reshape(48, 64)
     a, b = img[valid].mean(), gt[valid].mean()

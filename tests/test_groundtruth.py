@@ -38,7 +38,7 @@ def test_rt16_vs_rt64_relative_mse_ratio():
         vals = []
         for seed in range(3):
             m = methods.create(f"rt{n}", s, seed=seed)
-            img = gbuffer.to_image(gb, gbuffer.compose(gb, m.shade(gb, 0, 0)))
+            img = gbuffer.to_image(gb, gbuffer.compose(gb, m.shade(methods.FrameContext(0), None, 0, gb)))
             vals.append(rel_mse(gt, img))
         errs[n] = np.mean(vals)
     ratio = errs[16] / errs[64]

@@ -6,8 +6,9 @@ Layers, bottom to top (a module may import from its own layer and the layers bel
     core       backend, keys, freeze, timing, check, io
     scene      scenes, views and rigs, the G-buffer, light sampling, the BSDF table
     reference  the ground truth, path-traced references, metrics
-    methods    the method contract (slc.methods: Method, Param, the registry)
-    osc        the on-surface cache and its contract for cache methods
+    osc        the on-surface cache and its contract for cache methods (requests, capabilities)
+    methods    the method contract (slc.methods: the registry; slc.methods.base: Method, Param;
+               slc.methods.cache_method: the cache-method base class)
     method     one folder per method under slc/methods/ (baselines included)
     distributed  render nodes sharing one surface cache (owners, records, the Ray actors)
     run        the frame loop, experiments, jobs, the command line, benchmarks
@@ -26,7 +27,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "slc"
 
-RANK = {"core": 0, "scene": 1, "reference": 2, "methods": 3, "osc": 4, "method": 5, "distributed": 6, "run": 7}
+RANK = {"core": 0, "scene": 1, "reference": 2, "osc": 3, "methods": 4, "method": 5, "distributed": 6, "run": 7}
 # method folders whose modules other methods may import (representations reused by a composite method)
 SHARED = {"adaptive": {"cones", "sh"}, "crc": {"sh"}, "oscgi": {"sh"}}
 MAX_LINES, MAX_LONG, LONG = 650, 5, 450
@@ -89,8 +90,8 @@ def _layer(mod: str) -> tuple[str, str | None]:
     if len(parts) == 1:
         return "run", None             # slc/__init__.py selects the variant: it may import core only
     top = parts[1]
-    if top == "methods":
-        return ("method", parts[2]) if len(parts) > 2 else ("methods", None)
+    if top == "methods":       # a folder under slc/methods/ is a method; a module beside them, the contract
+        return ("method", parts[2]) if len(parts) > 2 and (PKG / "methods" / parts[2]).is_dir() else ("methods", None)
     return top, None
 
 

@@ -13,8 +13,11 @@ import pytest
 from helpers import slc_cli
 from slc import methods
 from slc.reference.groundtruth import ground_truth
-from slc.methods import MethodError
-from slc.osc.payload import RayPolicy
+from slc.core.timing import StageTimer
+from slc.methods import FrameContext, MethodError
+from slc.scene.camera import Viewer
+from slc.scene.gbuffer import compose, frame_gbuffers, to_image
+from slc.methods.cache_method import RayPolicy
 from slc.scene.scenes import load
 
 from helpers import plane_under_rect_light, render_frames
@@ -38,6 +41,29 @@ def _import(path):
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+def test_per_viewer_example_runs_and_matches_ground_truth(tmp_path):
+    """The per-viewer example (a ``shade`` and nothing else: ``Method.render`` runs the frame)
+    renders one light sample per pixel whose mean over the image is the ground truth's, times
+    its shading stage, and gives every viewer its own random numbers."""
+    _import(_doc_example(tmp_path, "OneSample"))
+    scene = plane_under_rect_light()
+    cam = scene.path(0).at(0)
+    viewers = [Viewer("v0", lambda f: cam), Viewer("v1", lambda f: cam)]
+    m = methods.create("one", scene, seed=1)
+    gbs = frame_gbuffers(scene, viewers, 0, 64, 48)
+    timer = StageTimer()
+    timer.begin_frame()
+    d = m.render(FrameContext(0), gbs, timer)
+    timer.end_frame()
+    assert set(timer.frames[0]) == {"shade", "total"}                # the shading stage, timed
+    imgs = [to_image(gb, compose(gb, x)) for gb, x in zip(gbs, d)]
+    assert not np.array_equal(imgs[0], imgs[1])                  # per-viewer random streams
+    gt = ground_truth(scene, gbs[0], 0, "v0", spp=512, use_cache=False)
+    valid = np.array(gbs[0].valid).reshape(48, 64)
+    a, b = imgs[0][valid].mean(), gt[valid].mean()
+    assert abs(a - b) / b < 0.03, (a, b)
 
 
 def test_worked_example_runs_and_matches_ground_truth(tmp_path):

@@ -74,7 +74,7 @@ FAULTS = (
           "t = dr.full(mi.UInt32, CONES, dr.width(R))",
           ("tests/test_error_bounds.py::test_error_within_recorded_bound[adaptive-cornell]",),
           "the adaptive cache's choice rule asks for cones for every entry"),
-    Fault("new-entry-rays-halved", "slc/osc/payload.py",
+    Fault("new-entry-rays-halved", "slc/methods/cache_method.py",
           "r_new = mi.UInt32(self.new)", "r_new = mi.UInt32(self.new // 2)",
           ("tests/test_error_bounds.py::test_error_within_recorded_bound[slc-atrium]",),
           "a new cache entry traces half the update rays of the ray policy"),

@@ -139,14 +139,11 @@ def render_on_nodes(scene, scene_name: str, spec: str, viewers: list, n_nodes: i
             out = cluster.step(f, images=f == frames - 1)
             sent.append(out["bytes"])
             pickled.append(out["serialized"])
-        scene.set_frame(frames - 1)
-        f = frames - 1
+        gbs = gbuf.frame_gbuffers(scene, viewers, frames - 1, width, height)
         images = {}
         for r in out["results"].values():
             for v, img in r["images"].items():
-                gb = gbuf.render_gbuffer(scene, viewers[v].camera(f), width, height,
-                                         viewers[v].camera(f - 1) if f > 0 else None, viewers[v].name)
-                images[v] = image_of(output, gb, mi.Color3f(img))
+                images[v] = image_of(output, gbs[v], mi.Color3f(img))
         return {"images": images, "bytes_per_frame": sent, "serialized_bytes_per_frame": pickled,
                 "processes": len(set(pids))}
     finally:

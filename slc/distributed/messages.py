@@ -145,7 +145,7 @@ class SeedRelay(SeedQuery):
 @dataclass
 class Records(Message):
     """Records of entries: ``keys`` (ascending) and ``words`` (uint32, one row per word of the
-    payload's packed record, :meth:`slc.osc.payload.PayloadMethod.pack_records`, one column per
+    payload's packed record, :meth:`slc.distributed.records.RecordCodec.pack`, one column per
     entry); ``record_kinds``: the payload's record bytes by kind (:data:`KINDS`), ``counts``:
     records by kind; ``kinds`` adds the encoded addresses, shared out by the records' counts."""
     keys: np.ndarray = field(default_factory=_keys)

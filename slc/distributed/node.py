@@ -58,13 +58,13 @@ from slc.core.timing import NullTimer
 from slc.distributed.directory import Directory
 from slc.distributed.messages import Delegate, Relayed, SeedQuery, SeedRelay, SeedReply
 from slc.distributed.owners import Regions, count, owners
-from slc.distributed.records import unpack_into
+from slc.distributed.records import codec_for, unpack_into
 from slc.distributed.rig import Clock, Strategy, extrapolated, make_method
 from slc.distributed.seeds import records_of, seed_queries, seed_slots
 from slc.distributed.sending import records_to
 from slc.distributed.state import Client, Subscriptions, in_sorted
 from slc.methods import FrameContext
-from slc.osc.payload import EntryPolicy
+from slc.methods.cache_method import EntryPolicy
 from slc.scene import gbuffer as gbuf
 
 PHASES = ("begin", "forward", "serve", "answer", "relay", "update", "shade")
@@ -101,6 +101,7 @@ class Node:
         self.viewers = dict(sorted(viewers.items()))
         self.width, self.height, self.s = int(width), int(height), strategy
         self.m, self.cache = make_method(spec, scene, seed)
+        self.codec = codec_for(self.m)            # its entries as records (slc.distributed.records)
         self.regions = Regions(self.cache.layout, strategy.region_level)
         self.dir = Directory(self)
         self.subs: dict[int, Subscriptions] = {}       # home -> this node's subscriptions there
@@ -168,10 +169,7 @@ class Node:
 
     def _gbuffers(self, frame: int) -> tuple:
         """The viewers' G-buffers, and with ``predict`` those of their extrapolated cameras."""
-        self.scene.set_frame(frame)
-        gbs = [gbuf.render_gbuffer(self.scene, p.camera(frame), self.width, self.height,
-                                   p.camera(frame - 1) if frame > 0 else None, p.name) for p in self.viewers.values()]
-        gbuf.attach_layers(gbs)
+        gbs = gbuf.frame_gbuffers(self.scene, list(self.viewers.values()), frame, self.width, self.height)
         ahead = 2 * self.s.delay + PREDICT_MARGIN
         pred = []
         if self.s.predict and self.s.delay > 0 and frame > 0:
@@ -334,7 +332,7 @@ class Node:
             for msg in inbox:
                 ok, slots = self.slots_of(msg.keys)
                 if np.any(ok):
-                    unpack_into(self.m, slots, msg.words[:, ok])
+                    unpack_into(self.codec, slots, msg.words[:, ok])
                     dr.scatter(self.value, True, slots)
                     dr.scatter(self.boot, False, slots)
             outs = self._shade()

@@ -67,16 +67,16 @@ def owners(regions, live) -> np.ndarray:
     return np.asarray(live, np.int64)[np.argmax(scores, axis=0)]
 
 
-def changed_records(method, last: list, rec: list, threshold: float) -> mi.Bool:
+def changed_records(codec, last: list, rec: list, threshold: float) -> mi.Bool:
     """Entries whose record ``rec`` changed by more than ``threshold`` since ``last`` (the record
-    the node holds; :meth:`~slc.osc.payload.PayloadMethod.record_change`); at threshold 0 every
+    the node holds; the payload's measure :meth:`slc.distributed.records.RecordCodec.change`); at threshold 0 every
     record whose words differ, so that the node holds the owner's value bit for bit."""
     differ = mi.Bool(False)
     for a, b in zip(last, rec):
         differ |= mi.UInt32(a) != mi.UInt32(b)
     if threshold <= 0:
         return differ
-    return differ & (method.record_change(last, rec) > threshold)
+    return differ & (codec.change(last, rec) > threshold)
 
 
 def count(mask: mi.Bool) -> int:

@@ -13,7 +13,7 @@ import numpy as np
 from slc import methods
 from slc.methods import MethodError
 from slc.osc.cache import OnSurfaceCache
-from slc.osc.payload import PayloadMethod
+from slc.methods.cache_method import PayloadMethod
 from slc.scene.camera import Camera
 
 INITIAL_BLOCKS = 1024      # a node's cache pool starts at 64K entries (8x8 blocks) and doubles on demand

@@ -155,9 +155,7 @@ def flips(scene, output: str, viewers: list, run: RigRun, images: dict, single: 
     (``flip``) and against ``single`` (the single-process cache's images, ``flip_vs_single``);
     ``strip``: viewer 0's (ground truth, image, FLIP map, exposure)."""
     f = run.frames - 1
-    scene.set_frame(f)
-    gbs = [gbuf.render_gbuffer(scene, v.camera(f), run.width, run.height, v.camera(f - 1) if f > 0 else None, v.name)
-           for v in viewers]
+    gbs = gbuf.frame_gbuffers(scene, viewers, f, run.width, run.height)
     f_gt, f_single, strip = [], [], None
     for v, img in sorted(images.items()):
         gb = gbs[v]

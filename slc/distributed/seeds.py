@@ -75,8 +75,8 @@ def records_of(node, keys: np.ndarray) -> tuple:
     ok, s = existing(node, keys)
     if not np.any(ok):
         return keys[:0], None, 0
-    rec = node.m.pack_records(dr.gather(mi.UInt32, s, mi.UInt32(np.nonzero(ok)[0])))
-    nbytes = int(dr.sum(node.m.record_bytes(rec))[0])
+    rec = node.codec.pack(dr.gather(mi.UInt32, s, mi.UInt32(np.nonzero(ok)[0])))
+    nbytes = int(dr.sum(node.codec.nbytes(rec))[0])
     return keys[ok], np.stack([np.array(w, np.uint32) for w in rec]), nbytes
 
 
@@ -108,6 +108,6 @@ def seed_slots(node, idx: np.ndarray, replies: list) -> mi.UInt32:
     seeded = pick >= 0
     if np.any(seeded):
         slots = dr.gather(mi.UInt32, fr.active, mi.UInt32(new[seeded]))
-        unpack_into(node.m, slots, fw[:, pick[seeded]])
+        unpack_into(node.codec, slots, fw[:, pick[seeded]])
         dr.scatter(out, slots, mi.UInt32(np.searchsorted(idx, new[seeded])))
     return out

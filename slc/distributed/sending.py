@@ -20,8 +20,8 @@ def records_to(node, sub, keys: np.ndarray, is_new: np.ndarray) -> list:
     m, s = node.m, node.s
     if dr.width(sub.active) == 0:
         return []
-    rec = m.pack_records(sub.active)
-    nb = np.array(m.record_bytes(rec), np.int64)
+    rec = node.codec.pack(sub.active)
+    nb = np.array(node.codec.nbytes(rec), np.int64)
     st = dr.gather(mi.UInt32, m.policy_state, sub.active)       # after this update
     young = np.array((st & 0xFFFF) <= m.ray_policy().new_updates, bool)
     moving = ~young & np.array((st >> 16) > 0, bool)
@@ -38,7 +38,7 @@ def records_to(node, sub, keys: np.ndarray, is_new: np.ndarray) -> list:
             test = np.nonzero(send & held)[0]
             if len(test):
                 t = mi.UInt32(test)
-                changed = changed_records(m, [mi.UInt32(w) for w in last[:, test]],
+                changed = changed_records(node.codec, [mi.UInt32(w) for w in last[:, test]],
                                           [dr.gather(mi.UInt32, w, t) for w in rec], s.threshold)
                 send[test] = np.array(changed, bool)
         idx = np.nonzero(send)[0]

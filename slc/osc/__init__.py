@@ -1,12 +1,12 @@
 """On-surface cache (OSC): the shared cache structure that cache methods
 (Surface Light Cones, SH caches, your own) store their per-entry payloads in.
+Their base class, :class:`slc.methods.cache_method.PayloadMethod`, lives in the
+methods layer above this package, which imports nothing from it.
 
 Modules, one concept each:
 
 - :mod:`.protocol`: the contract between a surface cache and its payload
   (:class:`FrameRequests`, :class:`SurfaceCache`, declared capabilities, :class:`EntryTopology`);
-- :mod:`.payload`: :class:`PayloadMethod`, the base class of cache methods
-  (it owns ``render()``: frame requests, the ray policy, update, shading);
 - :mod:`.islands`: islands, their texture spaces, the per-mesh atlas (numpy set-up);
 - :mod:`.analytic`: analytic shapes' (u, v) grids, from which their islands are built (numpy set-up);
 - :mod:`.layout`: islands and levels as Dr.Jit tables, the virtual block space;

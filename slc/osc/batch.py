@@ -1,6 +1,6 @@
 """Every viewer's pixels laid out one after another for one shading launch (:class:`PixelBatch`),
 as a multi-view renderer's layered G-buffer holds them: a cache method that shades all viewers
-at once (:meth:`slc.osc.payload.PayloadMethod.shade_all`) maps each pixel to its entry, keys its
+at once (:meth:`slc.methods.cache_method.PayloadMethod.shade_all`) maps each pixel to its entry, keys its
 random numbers by its index within its own viewer (so the images are the per-viewer ones) and
 splits the result per viewer."""
 from __future__ import annotations

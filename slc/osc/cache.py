@@ -16,7 +16,7 @@ Per frame (:meth:`OnSurfaceCache.begin_frame`), all in Dr.Jit:
    :mod:`.surface`); every active entry's ``SurfaceInteraction3f``.
 
 How many rays an entry gets is its payload's decision
-(:class:`slc.osc.payload.PayloadMethod`). See ``docs/osc.md``.
+(:class:`slc.methods.cache_method.PayloadMethod`). See ``docs/osc.md``.
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """The contract between a surface cache and the payload that lives in it.
 
 A *surface cache* decides which surface points have entries and where they
-live; a *payload* (cones, SH, ...; see :class:`slc.osc.payload.PayloadMethod`)
+live; a *payload* (cones, SH, ...; see :class:`slc.methods.cache_method.PayloadMethod`)
 decides what an entry stores, how it is updated and how pixels are shaded
 from it. Once per frame the cache turns all viewers' G-buffers into
 :class:`FrameRequests`; the payload updates every active entry once, from

@@ -107,7 +107,7 @@ def bench_rays(scene_name: str = "atrium", width: int = 320, height: int = 180, 
 
         def ours(m=m, mode=mode):
             with emitter_sampling_as(mode):
-                return m.shade(gb, 0, 0)
+                return m.shade(methods.FrameContext(0), None, 0, gb)
 
         def sample_only(mode=mode):
             with emitter_sampling_as(mode):

@@ -159,7 +159,7 @@ def _render_on_nodes(scene_name, spec, s, m, vs, nodes, threshold, address, size
     here to check the input before Ray starts."""
     # after --variant (the modules build Mitsuba types on import)
     from slc.core import io
-    from slc.osc.payload import PayloadMethod
+    from slc.methods.cache_method import PayloadMethod
     if nodes < 1 or nodes > len(vs):
         _fail(f"--nodes must be between 1 and the number of viewers ({len(vs)}), got {nodes}")
     if not isinstance(m, PayloadMethod):

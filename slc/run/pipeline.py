@@ -95,16 +95,9 @@ class RunResult:
         return r
 
 
-def gbuffers_for(scene, viewers, frame: int, width: int, height: int) -> list:
-    """One G-buffer per viewer; with several viewers they are also laid out as one
-    array (:func:`slc.scene.gbuffer.attach_layers`), as part of G-buffer generation."""
-    scene.set_frame(frame)
-    out = []
-    for v in viewers:
-        prev = v.camera(frame - 1) if frame > 0 else None
-        out.append(gbuf.render_gbuffer(scene, v.camera(frame), width, height, prev, v.name))
-    gbuf.attach_layers(out)
-    return out
+#: the G-buffers of one frame (:func:`slc.scene.gbuffer.frame_gbuffers`), by the name the frame loop's
+#: callers import
+gbuffers_for = gbuf.frame_gbuffers
 
 
 def run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress=None) -> RunResult:
@@ -129,7 +122,7 @@ def _run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress, kc: 
     last = {}
     for i in range(cfg.frames):
         f = cfg.start_frame + i * cfg.frame_step
-        gbs = gbuffers_for(scene, viewers, f, cfg.width, cfg.height)
+        gbs = gbuf.frame_gbuffers(scene, viewers, f, cfg.width, cfg.height)
         ctx = FrameContext(frame=f)
         kc.take()                 # kernels of the G-buffer and of the previous frame's evaluation
         recs = freeze.recordings()

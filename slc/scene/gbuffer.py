@@ -213,6 +213,20 @@ def render_gbuffer(scene: Scene, cam: Camera, width: int, height: int,
     return gb
 
 
+def frame_gbuffers(scene: Scene, viewers, frame: int, width: int, height: int) -> list:
+    """The G-buffers of frame ``frame``: the scene posed at the frame
+    (:meth:`Scene.set_frame`), one G-buffer per viewer (anything with ``camera(frame)`` and
+    ``name``: a rig's viewer, a render node's viewer poses), its motion vectors towards the
+    viewer's camera at the previous frame; with several viewers also laid out as one array
+    (:func:`attach_layers`), as part of G-buffer generation. Every frame of the pipeline, of
+    the render nodes and of their evaluation is built here."""
+    scene.set_frame(frame)
+    out = [render_gbuffer(scene, v.camera(frame), width, height, v.camera(frame - 1) if frame > 0 else None, v.name)
+           for v in viewers]
+    attach_layers(out)
+    return out
+
+
 def to_image(gb: GBuffer, value: mi.Color3f) -> np.ndarray:
     """(H, W, 3) float32 numpy image of a per-pixel colour."""
     a = np.array(value, dtype=np.float32)

@@ -9,10 +9,9 @@ import mitsuba as mi
 from slc.methods.cones.update import ConeParams
 from slc.core.keys import INVALID
 from slc.methods import register
-from slc.osc.payload import PayloadMethod, RayPolicy
+from slc.methods.cache_method import PayloadMethod, RayPolicy
 from slc.methods.sh.ycocg import encoding as get_encoding
 from slc.methods.adaptive import choice as ch
-from slc.methods.adaptive import records
 from slc.methods.adaptive.choice import CONES, NONE, SH, VIS, ChoiceParams, Header
 from slc.methods.adaptive.cones_rep import ConesRep
 from slc.methods.adaptive.env_lights import EnvLights
@@ -347,16 +346,11 @@ class AdaptiveCache(PayloadMethod):
                 dr.eval(tag, slot, dst.pool.data)
         return Header(tag=tag, streak=h.streak, count=h.count, e=h.e, slot=slot, s_delta=h.s_delta, m=h.m)
 
-    def render(self, ctx, gbuffers, timer):
-        out = super().render(ctx, gbuffers, timer)
+    def finish(self, ctx, fr, gbuffers, out, timer):
         if self.reps is not None:
             self._frames_seen += 1
             self._warm = self._frames_seen >= WARM_FRAMES
         return out
-
-    # ------------------------------------------------------------------ records (slc.methods.adaptive.records)
-    entry_state, set_entry_state, record_bytes = records.entry_state, records.set_entry_state, records.record_bytes
-    pack_records, unpack_records = records.pack_records, records.unpack_records
 
     # ------------------------------------------------------------------ shade
     def shade(self, ctx, fr, v, gb):
@@ -366,7 +360,7 @@ class AdaptiveCache(PayloadMethod):
 
     def shade_all(self, ctx, fr, gbuffers):
         """All viewers' pixels: one launch per representation over every viewer's pixels one
-        after another (:meth:`~slc.osc.payload.PayloadMethod.pixel_batch`), split per viewer;
+        after another (:meth:`~slc.methods.cache_method.PayloadMethod.pixel_batch`), split per viewer;
         each pixel keeps the random numbers it has per viewer (its index within its viewer, its
         viewer's streams), so the images are the per-viewer ones bit for bit. One viewer:
         :meth:`shade`."""

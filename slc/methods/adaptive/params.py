@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from slc.methods import Param
 from slc.methods.sh.ycocg import ENCODINGS
-from slc.osc.payload import PayloadMethod
+from slc.methods.cache_method import PayloadMethod
 
 PARAMS = (
     Param("vis_lights", 12, "delta or small sphere lights with their own visibility per VISIBILITY entry", lo=1, hi=16),

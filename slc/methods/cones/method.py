@@ -7,9 +7,9 @@ import mitsuba as mi
 from slc.scene.bsdf_table import front_side_only
 from slc.core.keys import INVALID
 from slc.methods import Param, register
-from slc.osc.payload import PayloadMethod, RayPolicy
+from slc.methods.cache_method import PayloadMethod, RayPolicy
 from slc.osc.protocol import BILINEAR_TAPS
-from slc.methods.cones.packing import unpack, words_per_entry
+from slc.methods.cones.packing import words_per_entry
 from slc.methods.cones.shading import shade_key, shader_for
 from slc.methods.cones.update import ConeParams
 from slc.methods.cones.update_kernel import update_entries, updater_for
@@ -199,33 +199,6 @@ class SurfaceLightCones(PayloadMethod):
             chosen = dr.select(take, s_j, chosen)
             done |= take
         return chosen
-
-    # ------------------------------------------------------------------ records
-    def record_change(self, old, new):
-        r"""How much an entry's cones changed between two records: the largest over its cones of
-        the radiance change :math:`\lvert L_c' - L_c \rvert` (luminance; a cone missing from one
-        record counts with radiance 0) relative to the entry's total radiance, and of the axis turn
-        in radians weighted by the cone's share of that radiance (cones in both records), times
-        :math:`\sqrt{C' / 255}` for the newer record's :math:`C'` samples: an estimate of
-        :math:`C'` samples is noisy by about :math:`1/\sqrt{C'}` of its value, so the change is
-        counted in units of that noise, scaled so that an entry with the full 255 samples of
-        memory keeps the plain change."""
-        K = self.max_cones
-        D0, _, L0, _, n0 = unpack(old, K)
-        D1, _, L1, C1, n1 = unpack(new, K)
-        Y0 = [dr.select(n0 > i, mi.luminance(L0[i]), 0.0) for i in range(K)]
-        Y1 = [dr.select(n1 > i, mi.luminance(L1[i]), 0.0) for i in range(K)]
-        total = mi.Float(0.0)
-        for i in range(K):
-            total += dr.maximum(Y0[i], Y1[i])
-        inv = dr.select(total > 0.0, dr.rcp(dr.maximum(total, 1e-30)), 0.0)
-        change = mi.Float(0.0)
-        for i in range(K):
-            d_energy = dr.abs(Y1[i] - Y0[i]) * inv
-            turn = dr.safe_acos(dr.clip(dr.dot(D0[i], D1[i]), -1.0, 1.0))
-            share = dr.select((n0 > i) & (n1 > i), dr.maximum(Y0[i], Y1[i]) * inv, 0.0)
-            change = dr.maximum(change, dr.maximum(d_energy, turn * share))
-        return change * dr.sqrt(dr.clip(C1, 1.0, 255.0) / 255.0)
 
     def stats(self) -> dict:
         out = super().stats()

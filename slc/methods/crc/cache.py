@@ -126,6 +126,7 @@ class CRCCache(Bounces, MovingWindow, Method):
 
     name = "crc"
     output = "indirect"
+    shade_stage = "reconstruct"
     params = (
         Param("encoding", "y3co1cg1", "SH encoding of the radiance", choices=tuple(ENCODINGS)),
         Param("resolution", 16, "grid cells on the scene box's longest side", lo=2, hi=256),
@@ -305,8 +306,9 @@ class CRCCache(Bounces, MovingWindow, Method):
             self._blend(cells, coeffs)
             st.outputs(self.cache, self.hist)
 
-    def shade(self, gb) -> mi.Color3f:
-        """Outgoing diffuse indirect radiance rho E / pi at the G-buffer points."""
+    def shade(self, ctx, fr, v: int, gb) -> mi.Color3f:
+        """Outgoing diffuse indirect radiance rho E / pi at the G-buffer points (the cache
+        reconstructed there; stage "reconstruct")."""
         si, active = gb.si, gb.valid & (gb.si.wi.z > 0.0)
         n = front_normal(si)
         q = si.p + n * (0.5 * self.grid.h)
@@ -336,14 +338,9 @@ class CRCCache(Bounces, MovingWindow, Method):
         rho = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, active))
         return dr.select(active, rho * E * (1.0 / math.pi), 0.0)
 
-    def render(self, ctx, gbuffers, timer) -> list:
-        """Indirect light per viewer: the cache update of frame ``ctx.frame``
-        (shared by all viewers), then reconstruction at each G-buffer."""
+    def update_frame(self, ctx, gbuffers, timer) -> None:
+        """The cache update of frame ``ctx.frame``, shared by all viewers (:meth:`update`)."""
         self.update(ctx.frame, gbuffers, timer)
-        with timer.stage("reconstruct") as st:
-            out = [self.shade(gb) for gb in gbuffers]
-            st.outputs(*out)
-        return out
 
     # ---------------------------------------------------------------- figures
     #: stages whose work scales with the coefficient count (where compression can save)

@@ -15,12 +15,24 @@ indirect reference, not with the direct ground truth.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+
+import mitsuba as mi
 
 from slc.methods import Method, MethodError, Param, register
 from slc.methods.megaviews import traversal as tv
 from slc.methods.megaviews.maps import PAIR_BYTES
 from slc.methods.megaviews import vpl as vp
 from slc.methods.megaviews.hierarchy import SCENE_DEPTH, VIEW_DEPTH, SceneHierarchy, ViewHierarchy
+
+
+@dataclass
+class Lights:
+    """The frame's virtual point lights and their shadow maps (with the view hierarchy
+    gathering culls with), shared by every viewer's gathering."""
+    vpls: vp.VPLSet
+    maps: object
+    tree: ViewHierarchy
 
 
 class ManyViewIR(Method):
@@ -33,6 +45,7 @@ class ManyViewIR(Method):
     subclasses differ only in how the maps are rendered (``mode``).
     """
     name = "megaviews"
+    shade_stage = "gather"
     mode = "megaviews"
     output = "indirect"
     params = (
@@ -124,19 +137,17 @@ class ManyViewIR(Method):
                       fused=self.fusion, cutoff=self.cutoff * sh.tree.edge)
         return vp.bilateral(gb, L, self.filter) if self.filter > 0 else L
 
-    def render(self, ctx, gbuffers, timer):
+    def update_frame(self, ctx, gbuffers, timer) -> "Lights":
         with timer.stage("vpl") as st:
             vpls = self.lights(self.seed_for(ctx.frame))
             st.outputs(vpls.flux, vpls.position, vpls.normal)
         maps, tree = self.shadow_maps(vpls, timer)
         with timer.stage("maps") as st:
             st.outputs(maps.depth)
-        outs = []
-        with timer.stage("gather") as st:
-            for v, gb in enumerate(gbuffers):
-                outs.append(self.gather(gb, vpls, maps, tree, self.seed_for(ctx.frame, v)))
-            st.outputs(*outs)
-        return outs
+        return Lights(vpls=vpls, maps=maps, tree=tree)
+
+    def shade(self, ctx, fr: "Lights", v: int, gb) -> mi.Color3f:
+        return self.gather(gb, fr.vpls, fr.maps, fr.tree, self.seed_for(ctx.frame, v))
 
     # --------------------------------------------------------------- figures
     def memory(self) -> dict:

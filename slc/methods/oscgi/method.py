@@ -12,7 +12,7 @@ from slc.core.keys import INVALID, keyed_rng, stream_key
 from slc.scene.lights import diffuse_flags
 from slc.methods import MethodError, Param, create, register
 from slc.osc.cache import OnSurfaceCache
-from slc.osc.payload import PayloadMethod, RayPolicy
+from slc.methods.cache_method import PayloadMethod, RayPolicy
 from slc.osc.protocol import ENTRY_TOPOLOGY
 from slc.methods.sh.shading import diffuse_only, shade_radiance
 from slc.methods.oscgi.hemisphere import HemiGrid
@@ -293,10 +293,14 @@ class OSCGI(PrimaryUpdate, PayloadMethod):
         return shade_radiance(si, bsdf, ok, irradiance, radiance, sampler, self.glossy_samples)
 
     # ------------------------------------------------------------------ frame
-    def render(self, ctx, gbuffers, timer):
+    def update_frame(self, ctx, gbuffers, timer):
         if self.secondary is None:
             self.secondary = self._make_secondary()
-        out = super().render(ctx, gbuffers, timer)
+        return super().update_frame(ctx, gbuffers, timer)
+
+    def finish(self, ctx, fr, gbuffers, out, timer):
+        """After shading the cached light: the direct light per pixel (stage "direct") or the
+        per-pixel method ``_sub`` (its own frame) added to it; the memory log."""
         # ------- direct light per pixel (output=full, direct != cache): added to the cached indirect -------
         if self.output == "full" and self.direct == "rt":
             with timer.stage("direct") as st:

@@ -6,8 +6,7 @@ import mitsuba as mi
 
 from slc.core.freeze import FrozenFunction
 from slc.scene.lights import direct_sample, light_inputs, stream_state
-from slc.methods import MethodError, Param, register
-from slc.methods import Method
+from slc.methods import Method, MethodError, Param, register
 from slc.reference.references import STREAM_INDIRECT, indirect_paths
 
 _STREAM_DIRECT = 3
@@ -82,20 +81,17 @@ class PathTracing(Method):
         if self.output not in ("full", "indirect"):
             raise MethodError(f"{self.name}: output must be full or indirect")
 
-    def shade(self, gb, frame: int, v: int) -> mi.Color3f:
+    def shade(self, ctx, fr, v: int, gb) -> mi.Color3f:
         if self._kernel is None:
             self._kernel = FrozenFunction(_pt_kernel, bool(self.freeze))
-        sc, seed = self.scene.mi_scene, self.seed_for(frame, v)
+        sc, seed = self.scene.mi_scene, self.seed_for(ctx.frame, v)
         return self._kernel(sc, light_inputs(sc), gb.si, mi.Bool(gb.valid),
                             stream_state(seed, STREAM_INDIRECT + int(self.bounces)),
                             stream_state(seed, _STREAM_DIRECT), int(self.spp), int(self.bounces),
                             self.output == "full")
 
-    def render(self, ctx, gbuffers, timer):
+    def finish(self, ctx, fr, gbuffers, outs, timer):
         self._pixels = sum(g.size for g in gbuffers)
-        with timer.stage("shade") as st:
-            outs = [self.shade(gb, ctx.frame, v) for v, gb in enumerate(gbuffers)]
-            st.outputs(*outs)
         return outs
 
     def memory_bytes(self) -> int:

@@ -87,6 +87,13 @@ def cell_target(rp: mi.Point3f, rn: mi.Vector3f, y: mi.Point3f, n: mi.Vector3f, 
     return dr.select(ok, mi.luminance(t) * dr.maximum(dr.dot(d, rn), floor), 0.0)
 
 
+@dataclass
+class Cells:
+    """The frame's cells for shading: per viewer the slot of each pixel's cell
+    (:meth:`ReGIR.find_cells`), and how many cells the build stage filled."""
+    slot: list
+    built: object
+
 class ReGIR(Method):
     r"""Reservoir-based grid importance sampling of direct light (ReGIR), one grid shared by all
     viewers.
@@ -168,7 +175,7 @@ class ReGIR(Method):
 
     # ------------------------------------------------------------------ frame
 
-    def render(self, ctx, gbuffers, timer):
+    def update_frame(self, ctx, gbuffers, timer) -> "Cells":
         frame = dr.opaque(mi.UInt32, ctx.frame)
         history = self.temporal and not self._lights_moved()
         with timer.stage("cells") as st:
@@ -177,11 +184,11 @@ class ReGIR(Method):
         with timer.stage("build") as st:
             built = self.build_cells(ctx, frame, history)
             st.outputs(self.store)
-        with timer.stage("shade") as st:
-            outs = [self.shade(gb, c, ctx.frame, v) for v, (gb, c) in enumerate(zip(gbuffers, cell))]
-            st.outputs(*outs)
+        return Cells(slot=cell, built=built)
+
+    def finish(self, ctx, fr: "Cells", gbuffers, outs, timer):
         self._pixels = sum(gb.size for gb in gbuffers)
-        self._stats = {"cells_built": float(built), "cell_load": self.grid.load(),
+        self._stats = {"cells_built": float(fr.built), "cell_load": self.grid.load(),
                        "cell_overflow": float(self.grid.overflow)}
         return outs
 
@@ -329,9 +336,10 @@ class ReGIR(Method):
 
     # ------------------------------------------------------------------ shading
 
-    def shade(self, gb, slot, frame: int, v: int) -> mi.Color3f:
+    def shade(self, ctx, fr: "Cells", v: int, gb) -> mi.Color3f:
         """One viewer's direct light: ``samples`` times a resampling of slot taps and table
         samples with one shadow ray, averaged."""
+        slot, frame = fr.slot[v], ctx.frame
         sc = self.scene.mi_scene
         si, active = gb.si, mi.Bool(gb.valid)
         bsdf = SurfaceBSDF(sc, si, active, mi.BSDFContext())

@@ -48,6 +48,13 @@ class CandidateLoop:
     DRJIT_STRUCT = {"i": mi.UInt32, "res": Stream, "smp": mi.PCG32}
 
 
+@dataclass
+class Passes:
+    """What the reservoir passes of a frame leave for shading and the next frame, per viewer:
+    the final reservoirs and the pixels whose temporal reuse took a previous reservoir."""
+    final: list
+    reused: list
+
 class ReSTIR(LightTarget, Reuse, Method):
     r"""ReSTIR DI with temporal and spatial reuse, one set of reservoirs per viewer.
 
@@ -254,7 +261,8 @@ class ReSTIR(LightTarget, Reuse, Method):
 
     # ------------------------------ Stage 4: shade ------------------------------
 
-    def shade(self, gb, r: Reservoir) -> mi.Color3f:
+    def shade(self, ctx, fr: "Passes", v: int, gb) -> mi.Color3f:
+        r = fr.final[v]
         si, active = gb.si, gb.valid
         ok = active & (r.W > 0.0)
         c, _, d, dist, kind, _ = self.evaluate(si, si.bsdf(), r.y, r.n, r.light, ok)
@@ -263,7 +271,7 @@ class ReSTIR(LightTarget, Reuse, Method):
 
     # ------------------------------ Frame ------------------------------
 
-    def render(self, ctx, gbuffers, timer):
+    def update_frame(self, ctx, gbuffers, timer) -> "Passes":
         shape = (gbuffers[0].width, gbuffers[0].height, len(gbuffers)) if gbuffers else None
         if shape != self._shape:
             self.state = {}
@@ -291,13 +299,13 @@ class ReSTIR(LightTarget, Reuse, Method):
                     r, p = self.spatial_reuse(gb, r, p, reused, s)
                 final.append(r)
                 st.outputs(r)
-        with timer.stage("shade") as st:
-            outs = [self.shade(gb, r) for gb, r in zip(gbuffers, final)]
-            st.outputs(*outs)
-        for v, (gb, r) in enumerate(zip(gbuffers, final)):
+        return Passes(final=final, reused=[t[1] for t in temp])
+
+    def finish(self, ctx, fr: "Passes", gbuffers, outs, timer):
+        for v, (gb, r) in enumerate(zip(gbuffers, fr.final)):
             self.state[v] = (r, gb)
         n_pix = sum(gb.size for gb in gbuffers)
-        reused_frac = sum(int(np.count_nonzero(np.array(t[1]))) for t in temp) / max(n_pix, 1)
+        reused_frac = sum(int(np.count_nonzero(np.array(m))) for m in fr.reused) / max(n_pix, 1)
         self._stats = {"temporal_reuse": reused_frac}
         return outs
 

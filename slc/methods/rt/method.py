@@ -32,9 +32,9 @@ class RandomLightSampling(Method):
         self.name = f"rt{self.n}"
         self._pixels = 0
 
-    def shade(self, gb, frame: int, viewer_index: int) -> mi.Color3f:
+    def shade(self, ctx, fr, v: int, gb) -> mi.Color3f:
         sc = self.scene.mi_scene
-        sampler = rng(gb.size, self.seed_for(frame, viewer_index), stream=1)
+        sampler = rng(gb.size, self.seed_for(ctx.frame, v), stream=1)
         si, active = gb.si, gb.valid
         ctx = mi.BSDFContext()
         bsdf = SurfaceBSDF(sc, si, active, ctx)   # diffuse albedo read once per pixel, not per sample
@@ -56,13 +56,8 @@ class RandomLightSampling(Method):
                                     labels=("i", "L", "sampler"))
         return L / float(max(self.n, 1))
 
-    def render(self, ctx, gbuffers, timer):
-        outs = []
+    def finish(self, ctx, fr, gbuffers, outs, timer):
         self._pixels = sum(g.size for g in gbuffers)
-        with timer.stage("shade") as st:
-            for v, gb in enumerate(gbuffers):
-                outs.append(self.shade(gb, ctx.frame, v))
-            st.outputs(*outs)
         return outs
 
     def memory_bytes(self) -> int:

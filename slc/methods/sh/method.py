@@ -7,7 +7,7 @@ import mitsuba as mi
 
 from slc.core.keys import INVALID, STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng
 from slc.methods import Param, register
-from slc.osc.payload import PayloadMethod, RayPolicy, entry_start
+from slc.methods.cache_method import PayloadMethod, RayPolicy, entry_start
 from slc.methods.sh.project import irradiance, radiance
 from slc.methods.sh.shading import shade_radiance
 from slc.methods.sh.update import project_samples, running_mean, world_frame

@@ -3,7 +3,7 @@ in NVIDIA's RTXGI, on the hash grid of :mod:`slc.core.hashgrid` with a fixed cel
 :class:`SHaRC` and ``docs/world-space.md``."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
@@ -145,6 +145,16 @@ def _continue_kernel(scene, lights, o, d, state, bounces: int) -> mi.Color3f:
     return L
 
 
+@dataclass
+class Resolved:
+    """The frame's cache after its update and resolve stages, for shading: the frame index
+    (opaque), the cells resolved and the update paths traced; shading appends, per viewer, the
+    mask of the query paths that read the cache (``hit``)."""
+    frame_id: mi.UInt32
+    cells: object
+    update_paths: object
+    hit: list = field(default_factory=list)
+
 class SHaRC(Method):
     r"""Spatially hashed radiance cache (SHaRC): outgoing radiance per world-space cell, updated by
     a few paths and read at the first secondary hit of every viewer's paths.
@@ -238,7 +248,7 @@ class SHaRC(Method):
 
     # ------------------------------------------------------------------ frame
 
-    def render(self, ctx, gbuffers, timer):
+    def update_frame(self, ctx, gbuffers, timer) -> "Resolved":
         frame = dr.opaque(mi.UInt32, ctx.frame)
         with timer.stage("update") as st:
             self.grid.evict(frame, self.evict)
@@ -247,13 +257,12 @@ class SHaRC(Method):
         with timer.stage("resolve") as st:
             resolved = self.resolve(frame)
             st.outputs(self.rad, self.count)
-        with timer.stage("shade") as st:
-            res = [self.shade(gb, ctx.frame, v, frame) for v, gb in enumerate(gbuffers)]
-            outs = [r[0] for r in res]
-            st.outputs(*outs)
-        self._hit = [(r[1], dr.width(r[1])) for r in res]
-        self._stats = {"cells_updated": float(resolved), "cell_overflow": float(self.grid.overflow),
-                       "update_paths": float(sum(u[0] for u in ups))}
+        return Resolved(frame_id=frame, cells=resolved, update_paths=sum(u[0] for u in ups))
+
+    def finish(self, ctx, fr: "Resolved", gbuffers, outs, timer):
+        self._hit = [(m, dr.width(m)) for m in fr.hit]
+        self._stats = {"cells_updated": float(fr.cells), "cell_overflow": float(self.grid.overflow),
+                       "update_paths": float(fr.update_paths)}
         return outs
 
     # ------------------------------------------------------------------ update
@@ -324,11 +333,12 @@ class SHaRC(Method):
 
     # ------------------------------------------------------------------ query
 
-    def shade(self, gb, frame: int, v: int, frame_id):
+    def shade(self, ctx, fr: "Resolved", v: int, gb) -> mi.Color3f:
         """One viewer's light: the first segments of the query paths (:func:`_query_kernel`), then
         the paths without a cached value, gathered, go on (:func:`_continue_kernel`); the cells
-        read stay alive. Also the mask of the query paths that read the cache."""
-        sc, seed, spp = self.scene.mi_scene, self.seed_for(frame, v), int(self.spp)
+        read stay alive. The mask of the query paths that read the cache is kept in ``fr.hit``."""
+        frame_id = fr.frame_id
+        sc, seed, spp = self.scene.mi_scene, self.seed_for(ctx.frame, v), int(self.spp)
         lights = light_inputs(sc)
         q = self._query_k(sc, lights, gb.si, mi.Bool(gb.valid), self.grid.keys, self.rad, self.count,
                           stream_state(seed, STREAM_QUERY), stream_state(seed, STREAM_DIRECT),
@@ -346,7 +356,8 @@ class SHaRC(Method):
             L += dr.gather(mi.Color3f, Lf, pix + k)
         L = dr.select(mi.Bool(gb.valid), (L + q.Ld) / float(spp), 0.0)
         dr.eval(L, self.grid.used)
-        return L, q.slot != INVALID
+        fr.hit.append(q.slot != INVALID)
+        return L
 
     # ------------------------------------------------------------------ state
 

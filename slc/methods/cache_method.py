@@ -1,7 +1,8 @@
 """The base class of cache methods: a payload in a surface cache.
 
-In the spirit of Mitsuba 3's ``ad/integrators/common.py``, the base class
-runs the frame and a subclass writes only the part that differs::
+:meth:`slc.methods.base.Method.render` runs the frame; this base class writes
+a cache method's shared stage (:meth:`PayloadMethod.update_frame`) and a
+subclass writes only the part that differs::
 
     class MyCache(PayloadMethod):
         name = "mine"
@@ -12,14 +13,15 @@ runs the frame and a subclass writes only the part that differs::
         def shade_all(self, ctx, fr, gbuffers):       # optional: all viewers at once
         def make_cache(self):                         # optional: another surface cache
 
-:meth:`PayloadMethod.render` does, per frame: the cache's requests
+:meth:`PayloadMethod.update_frame` does, per frame: the cache's requests
 (:class:`slc.osc.protocol.FrameRequests`), storage growth to the cache's
 capacity, the ray policy of every active entry (from the payload's own
 per-entry state: new, moving or settled; one :class:`EntryPolicy`), the
 payload's ``update`` (stage "update"), the policy state's advance with the
-motion the update reports, and ``shade_all`` (stage "shade"): by default
-``shade`` for every viewer; a subclass may shade all viewers' pixels in one
-launch instead. Memory is the cache's own structures plus the allocated
+motion the update reports; then :meth:`~slc.methods.base.Method.render` calls
+``shade_all`` (stage "shade"): by default ``shade`` for every viewer; a
+subclass may shade all viewers' pixels in one launch instead. A frame
+without active entries shades nothing (its light is 0). Memory is the cache's own structures plus the allocated
 entries times :meth:`payload_bytes`.
 
 An entry's words are read and written through :meth:`PayloadMethod.read` /
@@ -35,7 +37,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from slc.methods import Method, MethodError, Param
+from slc.methods.base import Method, MethodError, Param
 from slc.osc.batch import PixelBatch, pixel_batch
 from slc.osc.blocks import build_copy_kernels, extend_array
 from slc.osc.cache import OnSurfaceCache
@@ -129,7 +131,7 @@ class RayPolicy:
 @dataclass(frozen=True)
 class EntryPolicy:
     """The ray policy of this frame's active entries, built once by
-    :meth:`PayloadMethod.render` and handed to :meth:`PayloadMethod.update`.
+    :meth:`PayloadMethod.update_frame` and handed to :meth:`PayloadMethod.update`.
 
     ``state``: each entry's policy state word before this update
     (``updates | motion_left << 16``; 0 for a new entry); ``rays`` and
@@ -222,13 +224,6 @@ class PayloadMethod(Method):
     def shade(self, ctx, fr: FrameRequests, v: int, gb) -> mi.Color3f:
         """Viewer ``v``'s pixels from the entries ``fr.pixel_slot[v]`` (no rays)."""
 
-    def shade_all(self, ctx, fr: FrameRequests, gbuffers) -> list:
-        """Every viewer's pixels (a list of ``mi.Color3f``, one per G-buffer), called
-        once per frame with at least one active entry. Default: :meth:`shade` per
-        viewer. A subclass may batch the viewers into one launch; its images must be
-        those of :meth:`shade` (random numbers keyed per viewer as there)."""
-        return [self.shade(ctx, fr, v, gb) for v, gb in enumerate(gbuffers)]
-
     def pixel_batch(self, fr: FrameRequests, gbuffers) -> PixelBatch:
         """Every viewer's pixels laid out one after another for one shading launch
         (:func:`slc.osc.batch.pixel_batch`; the layout kept on this instance while the viewers'
@@ -283,7 +278,9 @@ class PayloadMethod(Method):
         self.policy_state = extend_array(self.policy_state, 0, cap, mi.UInt32)
 
     # ------------------------------------------------------------------ frame
-    def render(self, ctx, gbuffers, timer):
+    def update_frame(self, ctx, gbuffers, timer) -> FrameRequests:
+        """The cache's requests (:meth:`begin`), then every requested entry updated once
+        (stage "update"); the requests are what shading reads."""
         fr = self.begin(ctx, gbuffers, timer)
         n_active = fr.n_active
         motion = mi.Bool()
@@ -293,20 +290,16 @@ class PayloadMethod(Method):
             if n_active > 0:
                 motion = self.update_requested(ctx, fr)
                 st.outputs(self.storage, self.policy_state)
-
-        # ------------------------------- shade every viewer from the entries
-        with timer.stage("shade") as st:
-            if n_active > 0:
-                outs = list(self.shade_all(ctx, fr, gbuffers))
-            else:
-                outs = [dr.zeros(mi.Color3f, gb.size) for gb in gbuffers]
-            st.outputs(*outs)
         self._last = {"active_entries": n_active, "motion_entries": motion}
-        return outs
+        return fr
+
+    def can_shade(self, fr: FrameRequests) -> bool:
+        """A frame without active entries has nothing to shade from (its light is 0)."""
+        return fr.n_active > 0
 
     def begin(self, ctx, gbuffers, timer, extra=None) -> FrameRequests:
         """The cache's requests of this frame, storage grown to its capacity (the first part
-        of :meth:`render`); ``extra``: entries requested besides the pixels (by address,
+        of :meth:`update_frame`); ``extra``: entries requested besides the pixels (by address,
         :meth:`slc.osc.cache.OnSurfaceCache.begin_frame`)."""
         if self.cache is None:
             self._set_up_cache()
@@ -317,7 +310,7 @@ class PayloadMethod(Method):
 
     def update_requested(self, ctx, fr: FrameRequests) -> mi.Bool:
         """Update every active entry of ``fr`` once under the ray policy and advance the
-        entries' policy state (the update stage of :meth:`render`); the rays each entry took
+        entries' policy state (the update stage of :meth:`update_frame`); the rays each entry took
         are kept in ``self.update_rays`` (a ``mi.UInt32`` over ``fr.active``). Returns the
         motion mask the payload's :meth:`update` reports."""
         state = dr.select(fr.is_new, 0, dr.gather(mi.UInt32, self.policy_state, fr.active))
@@ -329,45 +322,6 @@ class PayloadMethod(Method):
         dr.scatter(self.policy_state, policy.policy.advance(state, motion), fr.active)
         self.update_rays = policy.rays
         return motion
-
-    # ------------------------------------------------------------------ records (entries sent between nodes)
-    # A record is what one render node sends another for one entry: the payload's packed words,
-    # exactly as stored, so that a receiver shades from the owner's value bit for bit
-    # (slc.distributed). ``entry_state`` is everything shading reads per entry, so that a node may
-    # shade from its own copy of it.
-    def entry_state(self) -> dict:
-        """The per-entry arrays shading reads (name -> Dr.Jit array); default: the storage."""
-        return {"storage": self.storage}
-
-    def set_entry_state(self, state: dict) -> None:
-        """Shade from ``state`` (arrays shaped as :meth:`entry_state`'s) from now on."""
-        self.storage = state["storage"]
-
-    def pack_records(self, slots: mi.UInt32) -> list:
-        """The records of the entries ``slots``: a list of ``mi.UInt32`` words, one lane per entry."""
-        words = self.read(mi.UInt32(slots), 0, n=self.words)
-        words = words if isinstance(words, list) else [words]
-        return [w if self.storage_type is mi.UInt32 else dr.reinterpret_array(mi.UInt32, w) for w in words]
-
-    def unpack_records(self, state: dict, slots: mi.UInt32, words: list, active=True) -> None:
-        """Write the records ``words`` (from :meth:`pack_records`) of the entries ``slots`` into
-        ``state`` (an :meth:`entry_state` copy)."""
-        vals = words if self.storage_type is mi.UInt32 else [dr.reinterpret_array(self.storage_type, w)
-                                                             for w in words]
-        self.write(vals, mi.UInt32(slots), 0, active, storage=state["storage"])
-
-    def record_bytes(self, words: list) -> mi.UInt32:
-        """Bytes of each record on the wire (default: all of its words)."""
-        return dr.full(mi.UInt32, 4 * len(words), dr.width(words[0]) if words else 0)
-
-    def record_change(self, old: list, new: list) -> mi.Float:
-        """How much each entry changed between two of its records, in the payload's own terms
-        (0: identical). Default: 1 where any word differs, else 0 (a payload without a finer
-        measure sends every changed record at any positive threshold)."""
-        diff = mi.Bool(False)
-        for a, b in zip(old, new):
-            diff |= mi.UInt32(a) != mi.UInt32(b)
-        return dr.select(diff, mi.Float(1.0), mi.Float(0.0))
 
     # ------------------------------------------------------------------ reports
     def payload_bytes(self) -> int:
