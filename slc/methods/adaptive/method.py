@@ -6,11 +6,11 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from slc.methods.cones.update import ConeParams
+from slc.lib.cones.update import ConeParams
 from slc.core.keys import INVALID
 from slc.methods import register
 from slc.osc.payload import PayloadMethod, RayPolicy
-from slc.methods.sh.ycocg import encoding as get_encoding
+from slc.lib.sh.ycocg import encoding as get_encoding
 from slc.methods.adaptive import choice as ch
 from slc.methods.adaptive import records
 from slc.methods.adaptive.choice import CONES, NONE, SH, VIS, ChoiceParams, Header

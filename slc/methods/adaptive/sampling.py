@@ -5,10 +5,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from slc.methods.sh.shading import diffuse_only
+from slc.lib.sh.shading import diffuse_only
 from slc.scene import emitter_sampling
 from slc.scene.bsdf_table import facing
-from slc.methods.cones.cycle import SampleObserver
+from slc.lib.cones.cycle import SampleObserver
 
 
 def lum(c):

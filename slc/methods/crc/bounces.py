@@ -13,7 +13,7 @@ import numpy as np
 
 from slc.core.backend import aligned
 from slc.core.keys import STREAM_CRC, keyed_rng
-from slc.methods.sh.project import irradiance, project
+from slc.lib.sh.project import irradiance, project
 from slc.methods.crc.march import march, visible
 
 # Random streams of the stages (offsets of STREAM_CRC; keys: light path, RSM

@@ -15,9 +15,9 @@ import mitsuba as mi
 import numpy as np
 
 from slc.methods import Method, Param
-from slc.methods.sh.project import irradiance
-from slc.methods.sh.ycocg import ENCODINGS
-from slc.methods.sh.ycocg import encoding as get_encoding
+from slc.lib.sh.project import irradiance
+from slc.lib.sh.ycocg import ENCODINGS
+from slc.lib.sh.ycocg import encoding as get_encoding
 from slc.methods.crc import volume
 from slc.methods.crc.bounces import Bounces, front_normal
 from slc.methods.crc.grid import GEOMETRY_FACTOR, Grid

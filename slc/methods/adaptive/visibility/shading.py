@@ -21,7 +21,7 @@ from slc.methods.adaptive.polygon_glossy import GLOSSY, VIS_WHOLE, polygon_term
 from slc.methods.adaptive.polygon_ltc import ltc_term
 from slc.methods.adaptive.visibility.lights import has_delta, light_at
 from slc.methods.adaptive.visibility.record import EMPTY, slot, unpack, used_slots
-from slc.methods.sh.shading import diffuse_only
+from slc.lib.sh.shading import diffuse_only
 from slc.scene.bsdf_table import side_normal
 
 ALBEDO_SAMPLES = 16     # BSDF samples of a non-diffuse pixel's directional albedo and sky (the residual's shading)
