@@ -8,12 +8,12 @@ Layers, bottom to top (a module may import from its own layer and the layers bel
     reference  the ground truth, path-traced references, metrics
     methods    the method contract (slc.methods: Method, Param, the registry)
     osc        the on-surface cache and its contract for cache methods
-    lib        algorithms the method folders share (cone lobes, SH and YCoCg)
+    lib        algorithms the method folders build on (cone lobes, SH and YCoCg, light integrals)
     method     one folder per method under slc/methods/ (baselines included)
     distributed  render nodes sharing one surface cache (owners, records, the Ray actors)
     run        the frame loop, experiments, jobs, the command line, benchmarks
 
-Method folders do not import each other: what two of them share is in ``slc/lib``.
+Method folders do not import each other: the algorithms they share or build on are in ``slc/lib``.
 """
 from __future__ import annotations
 

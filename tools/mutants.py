@@ -78,7 +78,7 @@ FAULTS = (
           "r_new = mi.UInt32(self.new)", "r_new = mi.UInt32(self.new // 2)",
           ("tests/test_error_bounds.py::test_error_within_recorded_bound[slc-atrium]",),
           "a new cache entry traces half the update rays of the ray policy"),
-    Fault("polygon-light-flipped", "slc/methods/adaptive/polygon_lights.py",
+    Fault("polygon-light-flipped", "slc/lib/lights/polygon_lights.py",
           "front = m & (dr.dot(p - p0, dr.cross(e0, e1)) > 0.0)", "front = m & (dr.dot(p - p0, dr.cross(e0, e1)) < 0.0)",
           ("tests/test_adaptive_polygons.py::test_unoccluded_square_light_is_exact",),
           "a polygon light's exact irradiance is taken from its back side"),
