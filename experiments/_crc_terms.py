@@ -97,7 +97,7 @@ class _Moves:
         self.method, self.moves = method, []
 
     def update(self, n: int) -> None:
-        self.moves.append(self.method.moves)
+        self.moves.append(self.method.region.moves)
 
 
 def moving(c, scene, viewers, nb: int, common: dict, W: int, H: int, frames: int, seed: int, ref_spp: int,
@@ -134,7 +134,7 @@ def moving(c, scene, viewers, nb: int, common: dict, W: int, H: int, frames: int
     ind = reference_for("indirect", scene, gb, f, gb.viewer, spp=ref_spp, bounces=nb)
     a, b = rs.last[gb.viewer], rc.last[gb.viewer]
     q = gb.si.p + front_normal(gb.si) * (0.5 * mc.grid.h)
-    inside = np.array(gb.valid & mc.in_window(gb.si.p, q)).reshape(H, W)
+    inside = np.array(gb.valid & mc.region.in_window(gb.si.p, q)).reshape(H, W)
 
     def err(r, t, mask=None):
         if mask is None:
@@ -146,7 +146,7 @@ def moving(c, scene, viewers, nb: int, common: dict, W: int, H: int, frames: int
         return statistics.median(x.get(key, 0.0) for x in res.frames_ms[warm:])
     return {"scene": scene.name, "bounces": nb, "window": window, "window_cells": mc.grid.n_cells,
             "grid_cells": ms.grid.n_cells, "step": MOVING["step"], "frames": frames, "last_frame": f,
-            "moves": mc.moves, "first_move_frame": first_move, "kernels_built_after_warmup": built,
+            "moves": mc.region.moves, "first_move_frame": first_move, "kernels_built_after_warmup": built,
             "time_scene_ms": med(rs, "total"), "time_camera_ms": med(rc, "total"), "scroll_ms": med(rc, "scroll"),
             "time_camera_vs_scene": med(rc, "total") / max(med(rs, "total"), 1e-9),
             "active_scene": ms.n_active, "active_camera": mc.n_active,

@@ -50,7 +50,7 @@ def _cache_state(m) -> dict:
     import mitsuba as mi
     import numpy as np
 
-    from slc.methods.cones.packing import gather_words, unpack
+    from slc.lib.cones.packing import gather_words, unpack
     fr = m.requests
     if fr is None or fr.n_active == 0:
         return {}

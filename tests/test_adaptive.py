@@ -194,7 +194,7 @@ def _plane_points(scene, n=64):
 
 @pytest.mark.slow
 def test_cone_pool_update_is_slc_update_bit_for_bit():
-    """The adaptive cone pool runs slc's own update cycle (slc.methods.cones.cycle.update_cycle
+    """The adaptive cone pool runs slc's own update cycle (slc.lib.cones.cycle.update_cycle
     through a SampleObserver): from the same records, keys, rays, policy state and seed
     its new records equal those of slc's update_entries word for word, over cycles of
     the ray ramp (stratified samples from first_sample) and a moving cycle (C capped,
@@ -202,8 +202,8 @@ def test_cone_pool_update_is_slc_update_bit_for_bit():
     import drjit as dr
 
     from slc.methods.adaptive import cones_rep
-    from slc.methods.cones.packing import words_per_entry
-    from slc.methods.cones.update import ConeParams
+    from slc.lib.cones.packing import words_per_entry
+    from slc.lib.cones.update import ConeParams
     from slc.methods.cones.update_kernel import update_entries
     from slc.methods.cache_method import RayPolicy
 

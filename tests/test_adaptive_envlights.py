@@ -1,5 +1,5 @@
 """Bright small regions of the environment as listed lights of the adaptive
-cache's VISIBILITY records (slc/methods/adaptive/env_lights.py): detection, the
+cache's VISIBILITY records (slc/lib/lights/env_lights.py): detection, the
 closed form, accuracy against the project's ground truth and a card's
 shadow. 32x32 images, a diffuse plane (albedo 0.5) under a dim sky with one
 bright disc."""
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from slc import methods
-from slc.methods.adaptive.env_lights import EnvLights
+from slc.lib.lights.env_lights import EnvLights
 from slc.reference.groundtruth import ground_truth
 from slc.scene.builder import SceneBuilder, diffuse
 from slc.scene.camera import CameraPath, Viewer

@@ -1,5 +1,5 @@
 """adaptive's polygon lights (VISIBILITY records list rectangles and small emitter meshes;
-slc.methods.adaptive.polygon_lights): exact where the light is unoccluded, still or moving; the
+slc.lib.lights.polygon_lights): exact where the light is unoccluded, still or moving; the
 visible fraction as a ratio of irradiances under a half-occluded light and a light that passes
 behind an occluder and back (quadrature with exact visibility); the glossy planes of
 test_cones.py against rt48. Scenes and references of tests/test_hard_cases.py."""

@@ -1,5 +1,5 @@
 """Small sphere lights in the adaptive cache's VISIBILITY records
-(slc/methods/adaptive/sphere_lights.py): the choice, accuracy against the project's
+(slc/lib/lights/sphere_lights.py): the choice, accuracy against the project's
 ground truth, and a moving sphere followed without lag. 32x32 images."""
 import math
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from slc import methods
-from slc.methods.adaptive.sphere_lights import SphereLights
+from slc.lib.lights.sphere_lights import SphereLights
 from slc.reference.groundtruth import ground_truth
 from slc.scene.builder import SceneBuilder, diffuse
 from slc.scene.camera import CameraPath, Viewer

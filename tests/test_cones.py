@@ -12,10 +12,10 @@ import pytest
 
 from helpers import plane_under_rect_light, rect_irradiance
 from slc.scene import gbuffer
-from slc.methods.cones import packing as P
+from slc.lib.cones import packing as P
 from slc.methods.cones.method import SurfaceLightCones
 from slc.methods.cones.pixelcache import PixelSlotCache
-from slc.methods.cones.update import (ConeParams, angle_between, c_reduction, end_cycle, insert_sample, merge_cones,
+from slc.lib.cones.update import (ConeParams, angle_between, c_reduction, end_cycle, insert_sample, merge_cones,
                               shrink_cone, shrink_step)
 from slc.reference.groundtruth import direct_mis
 from slc.methods import FrameContext, create
@@ -594,7 +594,7 @@ def test_mis_shading_unbiased_and_deterministic(bsdf):
     model's integral) to 1 % over the image and 3 % per pixel (L1; the two estimates'
     own noise is about 1-1.6 %), for a sharp (alpha 0.01) and a rough (0.3) lobe. The
     same key gives the same image, frozen or not."""
-    from slc.methods.cones.shading import ConeShading
+    from slc.lib.cones.shading import ConeShading
     for alpha in (0.01, 0.3):
         b = rough_conductor(alpha, "Al") if bsdf == "conductor" else \
             {"type": "roughplastic", "distribution": "ggx", "alpha": alpha,

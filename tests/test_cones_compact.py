@@ -11,8 +11,8 @@ import pytest
 from helpers import render_frames
 from slc import methods
 from slc.scene import scenes, views
-from slc.methods.cones import shading as shmod
-from slc.methods.cones.shading import ConeShading
+from slc.lib.cones import shading as shmod
+from slc.lib.cones.shading import ConeShading
 
 W, H = 48, 27
 

@@ -12,10 +12,10 @@ import pytest
 from helpers import hard_scene, render_frames
 from slc import methods
 from slc.scene import scenes, views
-from slc.methods.cones import packing as P
-from slc.methods.cones.closedforms import lambertian
-from slc.methods.cones.conestate import above_fraction, above_mean_cosine
-from slc.methods.cones.shading import ConeShading
+from slc.lib.cones import packing as P
+from slc.lib.cones.closedforms import lambertian
+from slc.lib.cones.conestate import above_fraction, above_mean_cosine
+from slc.lib.cones.shading import ConeShading
 
 
 def _clipped_cap_integral(cos_d, alpha, n=400_000, seed=0):

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from helpers import plane_under_rect_light
-from slc.methods.cones import closedforms as cfmod
+from slc.lib.cones import closedforms as cfmod
 from slc.methods.cones import update_kernel as upmod
-from slc.methods.cones.shading import ConeShading, bsdf_table
+from slc.lib.cones.shading import ConeShading, bsdf_table
 from slc.scene.builder import diffuse, principled, rough_conductor
 
 

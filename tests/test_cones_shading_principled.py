@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from helpers import hard_scene, plane_under_rect_light
-from slc.methods.cones.shading import ConeShading
+from slc.lib.cones.shading import ConeShading
 from slc.scene.builder import principled
 
 

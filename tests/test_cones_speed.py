@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from helpers import plane_under_rect_light
-from slc.methods.cones.shading import ConeShading, bsdf_table
+from slc.lib.cones.shading import ConeShading, bsdf_table
 from slc.scene.bsdf_table import KIND_DIFFUSE, KIND_NOT_PRINCIPLED, KIND_OTHER, KIND_PRINCIPLED
 from slc.scene.builder import diffuse, principled, rough_conductor
 

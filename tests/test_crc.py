@@ -268,13 +268,13 @@ def test_halton_rectangle_and_paper_stride(cornell):
     """The precomputed Halton points are the radical inverses (bases 2, 3);
     the default depth stride is the paper's 10 at 1 MPixel scaled by the
     frame's side (1 at 128x72, 2 at 320x180), a set stride is kept."""
-    from slc.methods.crc.cache import halton
+    from slc.methods.crc.bounces import halton
     assert np.allclose(halton(5, 2), [0, 1 / 2, 1 / 4, 3 / 4, 1 / 8])
     assert np.allclose(halton(5, 3), [0, 1 / 3, 2 / 3, 1 / 9, 4 / 9])
     c = CRCCache(cornell, samples=8)
     assert [c.stride_for(*wh) for wh in ((128, 72), (320, 180), (1000, 1000), (8, 8))] == [1, 2, 10, 1]
     assert CRCCache(cornell, depth_stride=10).stride_for(128, 72) == 10
-    h = np.array(c._halton_cells)
+    h = np.array(c.transport.halton_cells)
     assert h.shape == (2, 8) and np.allclose(h[1], halton(8, 3))
 
 

@@ -28,7 +28,7 @@ def _pinned(scene, offset, **kw):
     """A moving-volume cache whose window corner is pinned at ``offset``
     (world cells) instead of following the camera."""
     m = methods.create("crc", scene, volume="camera", **kw)
-    m._window_offset = lambda gbs: np.asarray(offset, dtype=np.int64)
+    m.region.corner = lambda gbs: np.asarray(offset, dtype=np.int64)
     return m
 
 
@@ -40,7 +40,7 @@ def _cells(m, cells):
     """World integer coordinates (n, 3) of window cells."""
     nx, ny, _ = m.grid.dims
     c = np.asarray(cells, np.int64)
-    return np.stack([c % nx, (c // nx) % ny, c // (nx * ny)], 1) + m.offset
+    return np.stack([c % nx, (c // nx) % ny, c // (nx * ny)], 1) + m.region.offset
 
 
 def _coeffs(m):
@@ -66,7 +66,7 @@ def test_scrolled_window_equals_fresh_window(atrium, bounces, shift):
     a.render(FrameContext(0), gbs, NullTimer())
     act_a = {tuple(x) for x in _cells(a, np.array(a.active))}
     a.place(B)                                    # scroll only
-    assert a.moves == 1
+    assert a.region.moves == 1
     b = _pinned(atrium, B, **kw)
     b.render(FrameContext(0), gbs, NullTimer())
     cb = np.array(b.active)
@@ -103,18 +103,18 @@ def test_moving_window_builds_no_kernels(atrium):
     c = _centre(m)
     offsets = [c, c + [1, 0, 0], c + [1, 1, 0], c + [0, 1, -1], c + [-1, 0, 1], c + [2, -1, 0]]
     for f in range(3):
-        m._window_offset = lambda gbs, o=offsets[f]: np.asarray(o, dtype=np.int64)
+        m.region.corner = lambda gbs, o=offsets[f]: np.asarray(o, dtype=np.int64)
         dr.eval(m.render(FrameContext(f), gbs, NullTimer()))
     dr.sync_thread()
     with KernelCounter() as kc:
         kc.take()
         for f in range(3, 6):
-            m._window_offset = lambda gbs, o=offsets[f]: np.asarray(o, dtype=np.int64)
+            m.region.corner = lambda gbs, o=offsets[f]: np.asarray(o, dtype=np.int64)
             dr.eval(m.render(FrameContext(f), gbs, NullTimer()))
         dr.sync_thread()
         built = kc.take()
         hist = kc.last
-    assert m.moves == 5
+    assert m.region.moves == 5
     assert built == 0, f"{built} kernels built or loaded while the window moved: {hist[:3]}"
 
 
@@ -129,13 +129,13 @@ def test_window_follows_camera_and_shades_nothing_outside(atrium):
         out = m.render(FrameContext(f), gbs, NullTimer())
         cam = np.asarray(gbs[0].camera.origin, float)
         cell = np.floor((cam - m.world.lo) / m.world.h).astype(int)
-        assert np.array_equal(cell - m.offset, [m.window // 2] * 3)
-        offs.append(m.offset.copy())
-    assert m.moves >= 1 and len({tuple(o) for o in offs}) >= 2
+        assert np.array_equal(cell - m.region.offset, [m.window // 2] * 3)
+        offs.append(m.region.offset.copy())
+    assert m.region.moves >= 1 and len({tuple(o) for o in offs}) >= 2
     gb = gbs[0]
     from slc.methods.crc.bounces import front_normal
     q = gb.si.p + front_normal(gb.si) * (0.5 * m.grid.h)
-    outside = np.array(gb.valid & ~m.in_window(gb.si.p, q))
+    outside = np.array(gb.valid & ~m.region.in_window(gb.si.p, q))
     img = np.array(out[0])
     assert outside.sum() > 0
     assert np.all(img[:, outside] == 0.0) if img.shape[0] == 3 else np.all(img[outside] == 0.0)

@@ -114,7 +114,7 @@ def test_a_lost_node_in_process_moves_only_its_entries_and_the_run_goes_on(scene
 
 
 def _cone_record(L: float, C: float, n: int = 1):
-    from slc.methods.cones.packing import pack
+    from slc.lib.cones.packing import pack
     D = [mi.Vector3f(0, 0, 1), mi.Vector3f(0, 1, 0), mi.Vector3f(1, 0, 0)]
     return pack(D, [mi.Float(0.1)] * 3, [mi.Color3f(L)] * 3, mi.Float(C), mi.UInt32(n), 3)
 

@@ -176,7 +176,7 @@ def test_one_bsdf_table_per_scene():
     table, built once per scene (cached, dropped by ``forget``): smooth diffuse BSDFs are
     flagged whatever their reflectance, only the constant one is KIND_DIFFUSE."""
     from slc.scene import bsdf_table
-    from slc.methods.cones.shading import bsdf_table as cone_table
+    from slc.lib.cones.shading import bsdf_table as cone_table
     sc = _bsdf_scene()
     t = bsdf_table.for_scene(sc)
     assert cone_table(sc) is t and bsdf_table.for_scene(sc) is t

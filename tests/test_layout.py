@@ -9,13 +9,12 @@ Layers, bottom to top (a module may import from its own layer and the layers bel
     osc        the on-surface cache and its contract for cache methods (requests, capabilities)
     methods    the method contract (slc.methods: the registry; slc.methods.base: Method, Param;
                slc.methods.cache_method: the cache-method base class)
+    lib        algorithms the method folders build on (cone lobes, SH and YCoCg, light integrals)
     method     one folder per method under slc/methods/ (baselines included)
     distributed  render nodes sharing one surface cache (owners, records, the Ray actors)
     run        the frame loop, experiments, jobs, the command line, benchmarks
 
-Method folders do not import each other, except the representations named in ``SHARED`` below:
-``adaptive`` is built from the cone and SH representations, and the SH basis, projection, YCoCg
-encodings and shading of ``slc/methods/sh`` serve the other SH caches (``crc``, ``osc-gi``).
+Method folders do not import each other: the algorithms they share or build on are in ``slc/lib``.
 """
 from __future__ import annotations
 
@@ -27,9 +26,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "slc"
 
-RANK = {"core": 0, "scene": 1, "reference": 2, "osc": 3, "methods": 4, "method": 5, "distributed": 6, "run": 7}
-# method folders whose modules other methods may import (representations reused by a composite method)
-SHARED = {"adaptive": {"cones", "sh"}, "crc": {"sh"}, "oscgi": {"sh"}}
+RANK = {"core": 0, "scene": 1, "reference": 2, "osc": 3, "methods": 4, "lib": 5, "method": 6, "distributed": 7,
+        "run": 8}
 MAX_LINES, MAX_LONG, LONG = 650, 5, 450
 # a function over LONG_FN lines starts its docstring with the reason it is one function
 LONG_FN, ONE_FUNCTION = 80, "one function because"
@@ -120,7 +118,7 @@ def test_imports_go_one_way():
             dl, dfolder = _layer(d)
             if RANK[dl] > RANK[layer]:
                 bad.append(f"{name} ({layer}) imports {d} ({dl})")
-            elif layer == dl == "method" and folder != dfolder and dfolder not in SHARED.get(folder, ()):
+            elif layer == dl == "method" and folder != dfolder:
                 bad.append(f"{name} imports another method's module {d}")
     assert not bad, "imports against the layers:\n" + "\n".join(sorted(bad))
 

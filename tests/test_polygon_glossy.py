@@ -1,4 +1,4 @@
-"""Glossy shading of polygon lights (slc.methods.adaptive.polygon_glossy): the sampled
+"""Glossy shading of polygon lights (slc.lib.lights.polygon_glossy): the sampled
 unshadowed term against a quadrature of the BSDF over the light (exact visibility, here
 none hides it), for a rough conductor and a plastic (with and without the diffuse
 reflectance as control variate) under a rectangle."""
@@ -10,8 +10,8 @@ import pytest
 from helpers import plane_under_rect_light, quadrature_direct
 from test_cones import _glossy_bsdf
 from slc.core.keys import mixed_rng
-from slc.methods.adaptive.polygon_glossy import glossy_term
-from slc.methods.adaptive.sphere_lights import SphereLights
+from slc.lib.lights.polygon_glossy import glossy_term
+from slc.lib.lights.sphere_lights import SphereLights
 from slc.run.pipeline import gbuffers_for
 from slc.scene.views import single
 

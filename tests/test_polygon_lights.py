@@ -1,4 +1,4 @@
-"""Polygon lights (slc.methods.adaptive.polygon_lights): Lambert's formula with horizon
+"""Polygon lights (slc.lib.lights.polygon_lights): Lambert's formula with horizon
 clipping against a quadrature of the irradiance over the emitter's triangles, for a
 rectangle and a cube light (twelve triangles), from points that see them whole, cut by the
 horizon, from behind and from the side."""
@@ -7,7 +7,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from slc.methods.adaptive.polygon_lights import MAX_TRIANGLES, PolygonLights
+from slc.lib.lights.polygon_lights import MAX_TRIANGLES, PolygonLights
 from slc.scene import emitter_sampling
 from slc.scene.builder import SceneBuilder, diffuse
 from slc.scene.camera import CameraPath

@@ -1,5 +1,5 @@
 """Glossy shading of polygon lights by linearly transformed cosines
-(slc.methods.adaptive.polygon_ltc, polygon_glossy=ltc): the fitting tool's lobe against
+(slc.lib.lights.polygon_ltc, polygon_glossy=ltc): the fitting tool's lobe against
 Mitsuba's, the fitted table's error, and the shaded term against a quadrature of the BSDF over
 the light."""
 import importlib.util
@@ -12,8 +12,8 @@ import pytest
 
 from helpers import plane_under_rect_light, quadrature_direct
 from test_cones import _glossy_bsdf
-from slc.methods.adaptive.polygon_ltc import TABLE, LtcTable, ltc_term, narrow
-from slc.methods.adaptive.sphere_lights import SphereLights
+from slc.lib.lights.polygon_ltc import TABLE, LtcTable, ltc_term, narrow
+from slc.lib.lights.sphere_lights import SphereLights
 from slc.run.pipeline import gbuffers_for
 from slc.scene import bsdf_table
 from slc.scene.views import single

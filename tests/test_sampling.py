@@ -7,7 +7,7 @@
       against ``scene.pdf_emitter_direction`` summed over every emitter surface
       along the direction (occluders are ignored: the sampler does not test
       visibility) plus the environment where the direction escapes;
-   b. the cone-direction map of the cone shading (``slc.methods.cones.quadrature.cone_samples``)
+   b. the cone-direction map of the cone shading (``slc.lib.cones.quadrature.cone_samples``)
       against the uniform pdf over the cone, 1 / (2 pi (1 - cos alpha)).
       The shading itself uses a fixed stratified (spherical-Fibonacci) pattern of
       16 directions, the same for every pixel and frame: a fixed point set has no
@@ -34,7 +34,7 @@ import pytest
 from helpers import independent_runs, plane_under_rect_light, rect_irradiance, z_test
 from slc import methods
 from slc.scene import scenes, views
-from slc.methods.cones.quadrature import GOLDEN, cone_samples
+from slc.lib.cones.quadrature import GOLDEN, cone_samples
 from slc.reference.groundtruth import direct_mis
 from slc.scene.lights import sample_light, sample_light_reference
 from slc.methods import FrameContext

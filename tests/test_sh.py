@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from slc.methods.sh import (A_HAT, ENCODINGS, basis, clamped_cosine_zonal, encoding, irradiance, project, radiance,
+from slc.lib.sh import (A_HAT, ENCODINGS, basis, clamped_cosine_zonal, encoding, irradiance, project, radiance,
                     ringing_bound, rgb_to_ycocg, ycocg_to_rgb)
 
 
@@ -231,7 +231,7 @@ def test_shade_radiance_diffuse_closed_form_and_masks():
 
     from slc.core.keys import keyed_rng
     from slc.scene.builder import diffuse
-    from slc.methods.sh.shading import shade_radiance
+    from slc.lib.sh.shading import shade_radiance
     si, _scene = _plane_si(diffuse([0.25, 0.5, 0.75]))
     n = dr.width(si)
     active = mi.Bool(np.arange(n) % 3 != 0) & si.is_valid()
@@ -255,7 +255,7 @@ def test_shade_radiance_glossy_constant_field_and_radiance_mask():
 
     from slc.core.keys import keyed_rng
     from slc.scene.builder import rough_conductor
-    from slc.methods.sh.shading import shade_radiance
+    from slc.lib.sh.shading import shade_radiance
     si, _scene = _plane_si(rough_conductor(0.1, rgb=[1.0, 1.0, 1.0]))
     n = dr.width(si)
     active = si.is_valid()
@@ -280,7 +280,7 @@ def test_running_mean_counts_samples():
     import mitsuba as mi
 
     import slc.core.backend  # noqa: F401
-    from slc.methods.sh.update import running_mean
+    from slc.lib.sh.update import running_mean
     c, C = running_mean([mi.Float(5.0)], mi.Float(0.0), [mi.Float(8 * 2.0)], mi.UInt32(8), 16)
     assert dr.allclose(c[0], 2.0) and dr.allclose(C, 8.0)
     c, C = running_mean(c, C, [mi.Float(11.0)], mi.UInt32(1), 16)

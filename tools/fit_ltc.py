@@ -1,7 +1,7 @@
 """Fit the linearly transformed cosines (Heitz et al. 2016) of Mitsuba's GGX reflection lobe and
-write the table `slc/methods/adaptive/ltc_ggx.npz` that `polygon_glossy=ltc` shades with.
+write the table `slc/lib/lights/ltc_ggx.npz` that `polygon_glossy=ltc` shades with.
 
-    python tools/fit_ltc.py [--alphas 64] [--size 32] [--samples 512] [--out slc/methods/adaptive/ltc_ggx.npz]
+    python tools/fit_ltc.py [--alphas 64] [--size 32] [--samples 512] [--out slc/lib/lights/ltc_ggx.npz]
 
 The lobe is Mitsuba's `roughconductor` (GGX, separable Smith shadowing) without Fresnel,
 times the cosine, for a view at angle theta to the normal and roughness alpha:
@@ -158,7 +158,7 @@ def main(argv=None) -> int:
     ap.add_argument("--alphas", type=int, default=64, help="table points in sqrt(alpha) (default 64)")
     ap.add_argument("--size", type=int, default=32, help="table points in the view angle (default 32)")
     ap.add_argument("--samples", type=int, default=512, help="samples per strategy in the fit's error (default 512)")
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "slc/methods/adaptive/ltc_ggx.npz"))
+    ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "slc/lib/lights/ltc_ggx.npz"))
     o = ap.parse_args(argv)
     u_f = qmc.Sobol(2, scramble=True, seed=1).random(o.samples)
     u_l = qmc.Sobol(2, scramble=True, seed=2).random(o.samples)

@@ -45,11 +45,11 @@ class Fault:
 
 
 FAULTS = (
-    Fault("cone-radiance-x1.05", "slc/methods/cones/conestate.py",
+    Fault("cone-radiance-x1.05", "slc/lib/cones/conestate.py",
           "axis=Dw, alpha=A, L=L,", "axis=Dw, alpha=A, L=[x * 1.05 for x in L],",
           ("tests/test_cones.py::test_small_light_diffuse_plane_converges[pixel]",),
           "every cone's radiance L_c read 5% too bright by the shading"),
-    Fault("sh-band-2-dropped", "slc/methods/sh/basis.py",
+    Fault("sh-band-2-dropped", "slc/lib/sh/basis.py",
           "A_HAT = (math.pi, 2.0 * math.pi / 3.0, math.pi / 4.0)", "A_HAT = (math.pi, 2.0 * math.pi / 3.0, 0.0)",
           ("tests/test_sh.py::test_clamped_cosine_lobe_coefficients_and_irradiance",),
           "the SH irradiance drops band 2 (its cosine-lobe factor is 0)"),
@@ -78,7 +78,7 @@ FAULTS = (
           "r_new = mi.UInt32(self.new)", "r_new = mi.UInt32(self.new // 2)",
           ("tests/test_error_bounds.py::test_error_within_recorded_bound[slc-atrium]",),
           "a new cache entry traces half the update rays of the ray policy"),
-    Fault("polygon-light-flipped", "slc/methods/adaptive/polygon_lights.py",
+    Fault("polygon-light-flipped", "slc/lib/lights/polygon_lights.py",
           "front = m & (dr.dot(p - p0, dr.cross(e0, e1)) > 0.0)", "front = m & (dr.dot(p - p0, dr.cross(e0, e1)) < 0.0)",
           ("tests/test_adaptive_polygons.py::test_unoccluded_square_light_is_exact",),
           "a polygon light's exact irradiance is taken from its back side"),

@@ -25,7 +25,7 @@ Off (the default) it costs one environment look-up per stage: nothing is
 read back from the device.
 
 Stage outputs are what each stage declares (``st.outputs``), float arrays
-checked, integer ones not: the cone cache's packed words (:mod:`slc.methods.cones.packing`)
+checked, integer ones not: the cone cache's packed words (:mod:`slc.lib.cones.packing`)
 encode a NaN or negative radiance sample as 0, so check mode sees such a
 sample of the cone update only through the images it leads to.
 

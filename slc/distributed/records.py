@@ -26,7 +26,7 @@ from slc.methods.adaptive.choice import CONES, NONE, SH, VIS
 from slc.methods.adaptive.method import AdaptiveCache
 from slc.methods.cache_method import PayloadMethod
 from slc.methods.cones.method import SurfaceLightCones
-from slc.methods.cones.packing import unpack
+from slc.lib.cones.packing import unpack
 
 REPS = (VIS, CONES, SH)
 

@@ -24,9 +24,9 @@ import numpy as np
 
 from slc import methods
 from slc.core.keys import STREAM_CONE_UPDATE
-from slc.methods.cones.packing import gather_words, unpack
-from slc.methods.cones.cycle import shrink_test_plan
-from slc.methods.cones.update import frame_rng, frame_u32
+from slc.lib.cones.packing import gather_words, unpack
+from slc.lib.cones.cycle import shrink_test_plan
+from slc.lib.cones.update import frame_rng, frame_u32
 from slc.methods.rt.method import RandomLightSampling
 from slc.run.experiment import runs_in_turn
 from slc.run.pipeline import RunConfig, gbuffers_for, run_sequence
@@ -193,7 +193,7 @@ def _update_rays(sc, cap: dict, p, seed: int):
     the update's own sampler (:func:`slc.scene.lights.sample_light`, the scene's emitter
     table; independent random numbers instead of the entry's R2 sequence: the same
     distribution of rays), and the shrink test's closest-hit rays, made by the
-    update's own :func:`slc.methods.cones.cycle.shrink_test_plan` (directions and
+    update's own :func:`slc.lib.cones.cycle.shrink_test_plan` (directions and
     schedule) on the entries' cone records before the update.
     Returns (shadow rays, their mask, shrink rays, their mask)."""
     si, rays, words = cap["si"], cap["rays"], cap["words"]

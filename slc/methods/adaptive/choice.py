@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from slc.methods.cones.packing import decode_radiance, encode_radiance
+from slc.lib.cones.packing import decode_radiance, encode_radiance
 
 NONE, VIS, CONES, SH = 0, 1, 2, 3
 NAMES = {NONE: "none", VIS: "visibility", CONES: "cones", SH: "sh"}

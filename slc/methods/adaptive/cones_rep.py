@@ -3,21 +3,21 @@ r"""CONES representation: the Surface Light Cones record of :mod:`slc.methods.co
 cones) in a pool of its own.
 
 :func:`update` is the ``slc`` method's own update cycle
-(:func:`slc.methods.cones.cycle.update_cycle`: same light sampler, same per-entry
+(:func:`slc.lib.cones.cycle.update_cycle`: same light sampler, same per-entry
 R2 samples, same ray ramp through the shared ray policy), on records of the
 pool, with the :class:`~slc.methods.adaptive.sampling.LightStats` observer that
 gathers the cycle's light statistics for the choice rule. Shading is
-:class:`slc.methods.cones.shading.ConeShading` on the pool, unchanged.
+:class:`slc.lib.cones.shading.ConeShading` on the pool, unchanged.
 """
 from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
 
-from slc.methods.cones.packing import pack, unpack, words_per_entry
-from slc.methods.cones.cycle import CycleEntries, update_cycle
-from slc.methods.cones.shading import shade_key, shader_for
-from slc.methods.cones.update import ConeParams, empty_state, end_cycle, frame_u32, insert_sample
+from slc.lib.cones.packing import pack, unpack, words_per_entry
+from slc.lib.cones.cycle import CycleEntries, update_cycle
+from slc.lib.cones.shading import shade_key, shader_for
+from slc.lib.cones.update import ConeParams, empty_state, end_cycle, frame_u32, insert_sample
 from slc.scene.lights import light_inputs
 from slc.core.freeze import FrozenFunction
 from slc.methods.adaptive.choice import CONES
@@ -32,7 +32,7 @@ CONVERT_COUNT = 4.0     # C of a record converted from another representation: n
 def update(scene: mi.Scene, rec, si, key, rays, unsettled, moving, first_sample, fresh, on, frame: int, seed: int,
            p: ConeParams, sph=None, env=None):
     """One update cycle of cone records ``rec`` (packed words, one lane per
-    entry): :func:`slc.methods.cones.cycle.update_cycle`, the ``slc`` method's update
+    entry): :func:`slc.lib.cones.cycle.update_cycle`, the ``slc`` method's update
     (its light sampler, per-entry R2 samples from ``first_sample`` where not
     ``moving``, C capped for ``moving`` entries), with ``fresh`` records
     restarting empty (no LOD seed) and the choice rule's statistics gathered
@@ -121,7 +121,7 @@ irradiance_at_normal = lobe_irradiance     # (the cones' lobes' irradiance at th
 class ConesRep(Representation):
     """The CONES representation of the adaptive cache: ``slc``'s record (``cache.max_cones``
     cones), ``slc``'s update (``cache.cone_params``) and ``slc``'s shading
-    (:func:`slc.methods.cones.shading.shader_for` with the cache's settings), on a pool of
+    (:func:`slc.lib.cones.shading.shader_for` with the cache's settings), on a pool of
     its own (see the module)."""
 
     tag, name = CONES, "cones"

@@ -6,20 +6,20 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from slc.methods.cones.update import ConeParams
+from slc.lib.cones.update import ConeParams
 from slc.core.keys import INVALID
 from slc.methods import register
 from slc.methods.cache_method import PayloadMethod, RayPolicy
-from slc.methods.sh.ycocg import encoding as get_encoding
+from slc.lib.sh.ycocg import encoding as get_encoding
 from slc.methods.adaptive import choice as ch
 from slc.methods.adaptive.choice import CONES, NONE, SH, VIS, ChoiceParams, Header
 from slc.methods.adaptive.cones_rep import ConesRep
-from slc.methods.adaptive.env_lights import EnvLights
+from slc.lib.lights.env_lights import EnvLights
 from slc.methods.adaptive.lanes import count_hist, means, opaque_header, subset, tally
 from slc.methods.adaptive.params import PARAMS
 from slc.methods.adaptive.representation import Entries, Pixels
 from slc.methods.adaptive.sh_rep import SHRep
-from slc.methods.adaptive.sphere_lights import SphereLights
+from slc.lib.lights.sphere_lights import SphereLights
 from slc.methods.adaptive.visibility import VisibilityRep
 from slc.scene.bsdf_table import front_side_only
 

@@ -5,7 +5,7 @@ light statistics and the choice rule's thresholds, and the representation of new
 from __future__ import annotations
 
 from slc.methods import Param
-from slc.methods.sh.ycocg import ENCODINGS
+from slc.lib.sh.ycocg import ENCODINGS
 from slc.methods.cache_method import PayloadMethod
 
 PARAMS = (

@@ -5,10 +5,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from slc.methods.sh.shading import diffuse_only
+from slc.lib.sh.shading import diffuse_only
 from slc.scene import emitter_sampling
 from slc.scene.bsdf_table import facing
-from slc.methods.cones.cycle import SampleObserver
+from slc.lib.cones.cycle import SampleObserver
 
 
 def lum(c):
@@ -79,9 +79,9 @@ class LightStats(SampleObserver):
 
     def listable(self, ds, ok):
         """Samples of a light a VISIBILITY record lists: a delta light, a sphere light small
-        at the entry (``sph``, :mod:`slc.methods.adaptive.sphere_lights`), a bright region of the
+        at the entry (``sph``, :mod:`slc.lib.lights.sphere_lights`), a bright region of the
         environment wholly above the entry's horizon or the rest of the environment, its sky
-        (``env``, :mod:`slc.methods.adaptive.env_lights`)."""
+        (``env``, :mod:`slc.lib.lights.env_lights`)."""
         delta = mi.Bool(ds.delta)
         if self.samp is None:
             return delta

@@ -3,16 +3,16 @@ YCoCg chrominance compression (:mod:`slc.methods.sh`, default Y3Co1Cg1: 11
 coefficients), in the entry's local frame, in a pool of its own.
 
 Record: the coefficients and the sample count, one float word each. Update: the
-``sh`` method's (:mod:`slc.methods.sh.update`), in the entry's frame,
+``sh`` method's (:mod:`slc.lib.sh.update`), in the entry's frame,
 :math:`\hat\lambda_{lm} = \frac1n \sum_k w_k V_k Y_{lm}(\omega_k)`,
 :math:`\lambda \leftarrow \lambda + \min(n/C, 1)(\hat\lambda - \lambda)`, C the sample
 count capped at ``max_count``; lights below the surface are dropped (but at entries on
 two-sided BSDFs, whose pixels on the back see them). Shading: the
 Ramamoorthi-Hanrahan irradiance for diffuse-only BSDFs (chrominance by the
-"ratio" rule of :func:`slc.methods.sh.project.irradiance`: the paper's offset rule
+"ratio" rule of :func:`slc.lib.sh.project.irradiance`: the paper's offset rule
 shifted the colour of a constant sky on a plane by 5%), BSDF samples of the
 reconstructed radiance otherwise: the ``sh`` method's shading
-(:func:`slc.methods.sh.shading.shade_radiance`) on the pool's local-frame coefficients.
+(:func:`slc.lib.sh.shading.shade_radiance`) on the pool's local-frame coefficients.
 
 Conversion. To lobes: one cone about the mean direction of the luminance,
 :math:`\mathbf d \propto (\lambda_{1,1}, \lambda_{1,-1}, \lambda_{1,0})`, with
@@ -32,11 +32,11 @@ import mitsuba as mi
 
 from slc.core.freeze import FrozenFunction
 from slc.core.keys import STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng, mixed_rng, stream_key
-from slc.methods.sh.basis import C1, band_of, basis
-from slc.methods.sh.project import irradiance, radiance
-from slc.methods.sh.shading import shade_radiance
-from slc.methods.sh.update import project_samples, running_mean
-from slc.methods.sh.ycocg import encoding as get_encoding
+from slc.lib.sh.basis import C1, band_of, basis
+from slc.lib.sh.project import irradiance, radiance
+from slc.lib.sh.shading import shade_radiance
+from slc.lib.sh.update import project_samples, running_mean
+from slc.lib.sh.ycocg import encoding as get_encoding
 from slc.methods.adaptive.choice import SH
 from slc.methods.adaptive.representation import Entries, Pixels, Representation, Updated
 from slc.methods.adaptive.sampling import LightStats, SampleStats
@@ -61,7 +61,7 @@ def pack(coeffs, C):
 
 def update(scene: mi.Scene, rec, si, key, rays, fresh, on, frame: int, seed: int, enc, max_count: int, sph=None,
            env=None, mix=None):
-    """One update cycle of SH records (:mod:`slc.methods.sh.update`, in the entry's frame, fresh
+    """One update cycle of SH records (:mod:`slc.lib.sh.update`, in the entry's frame, fresh
     records restarting empty), with the choice rule's statistics
     (:class:`~slc.methods.adaptive.sampling.LightStats`, ``sph`` and ``env`` see there) from the
     same samples. Returns (new words, stats values). ``mix``: the random streams' (seed,
@@ -118,7 +118,7 @@ class SHUpdate(FrozenFunction):
 
 
 def shade(rec, si, bsdf, tf, active, enc, seed: int, glossy_samples: int, scene=None, pid=None) -> mi.Color3f:
-    """L_o of the pixels from their SH records (:func:`slc.methods.sh.shading.shade_radiance`);
+    """L_o of the pixels from their SH records (:func:`slc.lib.sh.shading.shade_radiance`);
     ``tf`` each entry's local frame, in which the coefficients live. ``scene``: a scene with
     two-sided BSDFs (None: none), whose pixels seen from behind are shaded from that side.
     ``pid``: each pixel's random-number key (None: its index in the arrays)."""
@@ -182,7 +182,7 @@ def _shade_kernel(rec, active, si, bsdf, tf, enc_name: str, seed: int, glossy_sa
 
 class SHShading(FrozenFunction):
     """:func:`shade` on an SH pool, traced once and replayed (``dr.freeze``, as
-    :class:`slc.methods.cones.shading.ConeShading`): tracing the SH shading (basis,
+    :class:`slc.lib.cones.shading.ConeShading`): tracing the SH shading (basis,
     BSDF sampling loop) cost more host time than its kernel. The pixels' records
     (gathered outside: the pool's width changes when it grows, the pixels' does
     not), mask and interactions are the frozen function's inputs; the encoding, seed

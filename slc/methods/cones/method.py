@@ -9,9 +9,9 @@ from slc.core.keys import INVALID
 from slc.methods import Param, register
 from slc.methods.cache_method import PayloadMethod, RayPolicy
 from slc.osc.protocol import BILINEAR_TAPS
-from slc.methods.cones.packing import words_per_entry
-from slc.methods.cones.shading import shade_key, shader_for
-from slc.methods.cones.update import ConeParams
+from slc.lib.cones.packing import words_per_entry
+from slc.lib.cones.shading import shade_key, shader_for
+from slc.lib.cones.update import ConeParams
 from slc.methods.cones.update_kernel import update_entries, updater_for
 
 

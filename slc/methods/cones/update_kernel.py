@@ -1,5 +1,5 @@
 """The cone update kernel on the packed storage: the active entries gathered in ray order, one
-update cycle each (:func:`slc.methods.cones.cycle.update_cycle`), their words written back
+update cycle each (:func:`slc.lib.cones.cycle.update_cycle`), their words written back
 (:func:`update_entries`, the ``slc`` method's update); :class:`ConeUpdate` traces that kernel
 once and replays it (``dr.freeze``), one instance per method instance (:func:`updater_for`)."""
 from __future__ import annotations
@@ -10,9 +10,9 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.core.freeze import FrozenFunction
-from slc.methods.cones.cycle import CycleEntries, constant_area_emitters, update_cycle
-from slc.methods.cones.packing import gather_words, scatter_words, unpack
-from slc.methods.cones.update import ConeParams, frame_u32
+from slc.lib.cones.cycle import CycleEntries, constant_area_emitters, update_cycle
+from slc.lib.cones.packing import gather_words, scatter_words, unpack
+from slc.lib.cones.update import ConeParams, frame_u32
 from slc.osc.protocol import entry_start
 from slc.scene.lights import light_inputs, sampler
 
@@ -39,7 +39,7 @@ def update_entries(scene: mi.Scene, storage: mi.UInt32, active: mi.UInt32, si: m
     shrink-test schedule (the OSC's viewer-independent texel keys make an entry's
     history independent of which other viewers exist). ``moving`` (default:
     none) marks the entries whose C is capped (see
-    :func:`slc.methods.cones.update.end_cycle`); ``first_sample`` (default 0) is the index of the cycle's
+    :func:`slc.lib.cones.update.end_cycle`); ``first_sample`` (default 0) is the index of the cycle's
     first sample in the entry's stratified sequence where ``strata`` (default:
     not ``moving``) holds; elsewhere the cycle's samples continue a second
     per-entry sequence at ``frame x rays``. ``updater`` (a :class:`ConeUpdate`,
@@ -85,7 +85,7 @@ def _update_kernel(scene, lights, storage, order, batch: UpdateBatch, frame, see
     of entries. ``lights`` (:func:`light_inputs`) is not read here: it declares
     the emitter table's arrays, which :func:`slc.scene.lights.sample_light` reads, as
     inputs of the frozen function. ``area_only`` (a Python bool, part of the recording's
-    key) see :func:`slc.methods.cones.cycle.shrink_test`. Returns (words, slots, motion, shrunk,
+    key) see :func:`slc.lib.cones.cycle.shrink_test`. Returns (words, slots, motion, shrunk,
     dropped), all in lane order: the new words of the entries at ``slots``."""
     act = dr.gather(mi.UInt32, batch.slot, order)
     e = batch.entries
@@ -131,7 +131,7 @@ class ConeUpdate(FrozenFunction):
     width 1: one active entry, or as many entries as a mesh has vertex
     coordinates: such calls run on a free width, see :mod:`slc.core.freeze`), or a
     change of the scene's traversed state. As
-    :class:`slc.methods.cones.shading.ConeShading`: a function recorded more than
+    :class:`slc.lib.cones.shading.ConeShading`: a function recorded more than
     ``max_recordings`` times is dropped (traced from then on; :mod:`slc.core.freeze`)."""
 
     def __init__(self, freeze: bool = True, max_recordings: int = 4):

@@ -1,8 +1,8 @@
-"""The new coefficients of the CRC cache (:class:`Bounces`, a base of
-:class:`slc.methods.crc.cache.CRCCache`): light injection (the virtual point lights from one
-reflective shadow map per emitter, or from random light paths), the first bounce's (VPL, cell)
-samples with their visibility, the secondary bounces' marched or traced hits, and the sums of
-their SH projections per cell."""
+"""The new coefficients of the CRC cache (:class:`Bounces`, held by
+:class:`slc.methods.crc.cache.CRCCache` as ``transport``): light injection (the virtual point
+lights from one reflective shadow map per emitter, or from random light paths), the first bounce's
+(VPL, cell) samples with their visibility, the secondary bounces' marched or traced hits, and the
+sums of their SH projections per cell."""
 from __future__ import annotations
 
 import math
@@ -13,12 +13,26 @@ import numpy as np
 
 from slc.core.backend import aligned
 from slc.core.keys import STREAM_CRC, keyed_rng
-from slc.methods.sh.project import irradiance, project
+from slc.lib.sh.project import irradiance, project
+from slc.methods.crc.grid import Grid, lookup
 from slc.methods.crc.march import march, visible
+from slc.methods.crc.window import Region
 
 # Random streams of the stages (offsets of STREAM_CRC; keys: light path, RSM
 # frame, (cell, sample) pair or cell index)
 _LIGHTS, _FIRST_BOUNCE, _ROTATION, _RSM, _SECONDARY = 11, 12, 13, 14, 20
+
+
+def halton(n: int, base: int) -> np.ndarray:
+    """The first ``n`` points (index 0..n-1) of the radical inverse in ``base``."""
+    out = np.zeros(n)
+    i = np.arange(n)
+    f = 1.0 / base
+    while np.any(i > 0):
+        out += (i % base) * f
+        i //= base
+        f /= base
+    return out
 
 
 def front_normal(si: mi.SurfaceInteraction3f) -> mi.Vector3f:
@@ -28,8 +42,29 @@ def front_normal(si: mi.SurfaceInteraction3f) -> mi.Vector3f:
 
 
 class Bounces:
-    """Light injection and the bounces of :class:`~slc.methods.crc.cache.CRCCache`; a base of
-    that class, reading its settings, grid, geometry volume and coefficient volumes."""
+    """Light injection and the bounces of :class:`~slc.methods.crc.cache.CRCCache`.
+
+    Parameters: ``scene``, ``enc`` (the SH encoding), ``region`` (:class:`Region`: the current
+    cache grid and the random-stream key of a cell), ``geo`` (the geometry volume's lattice), and
+    the cache's settings named in ``SETTINGS`` (``seed``, the VPLs: ``first_bounce``, ``vpls``,
+    ``rsm_size``; the first bounce: ``samples``, ``jitter``, ``min_distance``, ``visibility``,
+    ``march_samples``; the secondary bounces: ``secondary_rays``, ``secondary_distance``,
+    ``secondary_march_samples``, ``albedo``; the irradiance's ``chroma`` decoding). Holds the
+    precomputed Halton rectangles: ``halton_cells`` (``samples`` cell samples over the RSM atlas)
+    and ``halton_rsm`` (``rsm_size``^2 RSM position samples)."""
+
+    SETTINGS = ("seed", "first_bounce", "vpls", "rsm_size", "samples", "jitter", "min_distance", "visibility",
+                "march_samples", "secondary_rays", "secondary_distance", "secondary_march_samples", "albedo",
+                "chroma")
+
+    def __init__(self, scene, enc, region: Region, geo: Grid, **settings):
+        self.scene, self.enc, self.region, self.geo = scene, enc, region, geo
+        for k in self.SETTINGS:
+            setattr(self, k, settings[k])
+        self.halton_cells = mi.Point2f(halton(self.samples, 2).astype(np.float32),
+                                       halton(self.samples, 3).astype(np.float32))
+        r2 = self.rsm_size * self.rsm_size
+        self.halton_rsm = np.stack([halton(r2, 2), halton(r2, 3)], 1)
 
     def _vpl(self, si: mi.SurfaceInteraction3f, w):
         ok = si.is_valid() & (si.wi.z > 0.0)
@@ -37,7 +72,7 @@ class Bounces:
         phi = dr.select(ok, mi.Color3f(w) * rho, 0.0)
         return dr.select(ok, si.p, 0.0), front_normal(si), phi
 
-    def _lights(self, frame: int):
+    def lights(self, frame: int):
         """Virtual point lights (X, N, Phi rho) and the estimator's factor n_e."""
         sc = self.scene.mi_scene
         if self.first_bounce == "paths":
@@ -51,7 +86,7 @@ class Bounces:
         emitters = sc.emitters_dr()
         n_e, R = dr.width(emitters), self.rsm_size
         rot = np.random.default_rng([self.seed, frame, _RSM]).random(2)  # Cranley-Patterson, per frame
-        u2 = np.tile((self._halton_rsm + rot) % 1.0, (max(n_e, 1), 1)).astype(np.float32)
+        u2 = np.tile((self.halton_rsm + rot) % 1.0, (max(n_e, 1), 1)).astype(np.float32)
         t = dr.arange(mi.UInt32, n_e * R * R)
         e, tex = t // (R * R), t % (R * R)
         u3 = (mi.Point2f(mi.Float(tex % R), mi.Float(tex // R)) + 0.5) * (1.0 / R)
@@ -67,7 +102,7 @@ class Bounces:
         lane = dr.arange(mi.UInt32, dr.width(cells) * count)
         return dr.gather(mi.UInt32, cells, lane // count), lane % count
 
-    def _sum(self, omega: mi.Vector3f, L: mi.Color3f, n_cells: int, count: int, scale: float) -> list:
+    def sum_projections(self, omega: mi.Vector3f, L: mi.Color3f, n_cells: int, count: int, scale: float) -> list:
         """``scale`` x the sum over each cell's ``count`` lanes of
         ``project(enc, omega, L)`` (in registers, one cell per lane)."""
         enc = self.enc
@@ -88,22 +123,23 @@ class Bounces:
 
     def _jittered(self, Pc: mi.Point3f, sampler: mi.PCG32) -> mi.Point3f:
         off = mi.Vector3f(sampler.next_float32(), sampler.next_float32(), sampler.next_float32()) - 0.5
-        return Pc + off * (self.jitter * self.grid.h)
+        return Pc + off * (self.jitter * self.region.grid.h)
 
-    def _first_bounce_samples(self, frame: int, cells: mi.UInt32, X, N, phi, n_e: int, points=None):
+    def first_bounce_samples(self, frame: int, cells: mi.UInt32, X, N, phi, n_e: int, geometry: mi.UInt32,
+                             points=None):
         """(omega_k, L_k) of every (cell, sample) lane: VPL choice and visibility.
         ``points`` (diagnostic): receive at these points (one per entry of
         ``cells``, no jitter) instead of the jittered cell centres."""
         geo, ns = self.geo, self.samples
-        d2min = (self.min_distance * self.grid.h) ** 2
+        d2min = (self.min_distance * self.region.grid.h) ** 2
         cell, i = self._lanes(cells, ns)
-        key = self._key(cell)
+        key = self.region.key(cell)
         sampler = keyed_rng(key * ns + i, self.seed, frame, STREAM_CRC + _FIRST_BOUNCE)
         # ------------------------------- VPL choice -------------------------------
         if self.first_bounce == "rsm":
             R = self.rsm_size
             rot = keyed_rng(key, self.seed, frame, STREAM_CRC + _ROTATION)   # one per cell
-            h = dr.gather(mi.Point2f, self._halton_cells, i)
+            h = dr.gather(mi.Point2f, self.halton_cells, i)
             ux = h.x + rot.next_float32()
             uy = h.y + rot.next_float32()
             ux, uy = ux - dr.floor(ux), uy - dr.floor(uy)
@@ -114,7 +150,7 @@ class Bounces:
         else:
             j = dr.minimum(mi.UInt32(sampler.next_float32() * self.vpls), self.vpls - 1)
         if points is None:
-            P = self._jittered(self.grid.center(cell), sampler)
+            P = self._jittered(self.region.grid.center(cell), sampler)
         else:
             P = mi.Vector3f(dr.gather(mi.Point3f, points, cell))   # the type _jittered() gives
         Xk = dr.gather(mi.Point3f, X, j)
@@ -127,7 +163,7 @@ class Bounces:
         ok = (cos_k > 0.0) & (dr.max(Pk) > 0.0) & (d2 > 0.0)
         # -------------------------------- visibility --------------------------------
         if self.visibility == "march":
-            ok = visible(self.geometry, geo, P, Xk, sampler.next_float32(), ok,
+            ok = visible(geometry, geo, P, Xk, sampler.next_float32(), ok,
                          start_offset=geo.h, end_offset=2.0 * geo.h, samples=self.march_samples)
         else:
             ray = mi.Ray3f(P, w_dir)
@@ -135,16 +171,16 @@ class Bounces:
             ok &= ~self.scene.mi_scene.ray_test(ray, ok)
         return w_dir, Pk * dr.select(ok, cos_k / (math.pi * dr.maximum(d2, d2min)), 0.0)
 
-    def _secondary_samples(self, frame: int, bounce: int, cells: mi.UInt32):
+    def secondary_samples(self, frame: int, bounce: int, cells: mi.UInt32, geometry: mi.UInt32):
         """(omega, lookup point, normal, albedo, hit) of every (cell, ray) lane."""
-        geo, h, nr = self.geo, self.grid.h, self.secondary_rays
+        geo, h, nr = self.geo, self.region.grid.h, self.secondary_rays
         cell, i = self._lanes(cells, nr)
-        sampler = keyed_rng(self._key(cell) * nr + i, self.seed, frame, STREAM_CRC + _SECONDARY + bounce)
+        sampler = keyed_rng(self.region.key(cell) * nr + i, self.seed, frame, STREAM_CRC + _SECONDARY + bounce)
         d = mi.warp.square_to_uniform_sphere(mi.Point2f(sampler.next_float32(), sampler.next_float32()))
-        P = self._jittered(self.grid.center(cell), sampler)
+        P = self._jittered(self.region.grid.center(cell), sampler)
         # ----------------------- nearest visible surface point -----------------------
         if self.visibility == "march":
-            hit, t = march(self.geometry, geo, P, d, geo.h, self.secondary_distance * h, sampler.next_float32(),
+            hit, t = march(geometry, geo, P, d, geo.h, self.secondary_distance * h, sampler.next_float32(),
                            mi.Bool(True), samples=self.secondary_march_samples)
             X = P + dr.select(hit, t, 0.0) * d
             n = -d
@@ -157,8 +193,8 @@ class Bounces:
             rho = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, hit))
         return d, mi.Point3f(X + n * (0.5 * h)), n, dr.select(hit, rho, 0.0), hit
 
-    def _secondary_sum(self, n_cells: int, samples, vin: mi.Float) -> list:
-        """Bounce i from the lanes of :meth:`_secondary_samples` and the
+    def secondary_sum(self, n_cells: int, samples, vin: mi.Float) -> list:
+        """Bounce i from the lanes of :meth:`secondary_samples` and the
         previous bounce's volume ``vin`` (lookup, irradiance, projection)."""
         enc, nr = self.enc, self.secondary_rays
         d_all, q_all, n_all, rho_all, hit_all = samples
@@ -174,10 +210,10 @@ class Bounces:
             d = dr.gather(mi.Vector3f, d_all, k)
             nrm = dr.gather(mi.Vector3f, n_all, k)
             q = dr.gather(mi.Point3f, q_all, k, hit)
-            if self.moving:     # a hit whose stencil leaves the window reads nothing
-                hit &= self.grid.stencil_inside(q)
+            if self.region.moving:     # a hit whose stencil leaves the window reads nothing
+                hit &= self.region.grid.stencil_inside(q)
             rho = dr.gather(mi.Color3f, rho_all, k, hit)
-            coeffs = self._lookup(vin, q, hit)
+            coeffs = lookup(self.region.grid, vin, enc.n, q, hit)
             E = irradiance(enc, coeffs, nrm, clamp=True, chroma=self.chroma)
             L = dr.select(hit, rho * mi.Color3f(*E) * (1.0 / math.pi), 0.0)
             return i + 1, [a + b for a, b in zip(acc, project(enc, d, L))]

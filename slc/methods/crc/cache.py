@@ -2,9 +2,10 @@
 a uniform grid: diffuse indirect illumination from an SH radiance field
 stored in YCoCg with fewer bands for chrominance.
 
-This module holds the cache, its state, occupancy, temporal blend, frame and reconstruction; its
-bases hold light injection and the bounces (:mod:`slc.methods.crc.bounces`) and the moving volume
-(:mod:`slc.methods.crc.window`)."""
+This module holds the cache, its state, occupancy, temporal blend, frame and reconstruction; the
+parts it holds are the light injection and the bounces (``transport``,
+:mod:`slc.methods.crc.bounces`) and the cells it covers, the scene grid or the moving volume
+(``region``, :mod:`slc.methods.crc.window`)."""
 from __future__ import annotations
 
 import math
@@ -15,31 +16,19 @@ import mitsuba as mi
 import numpy as np
 
 from slc.methods import Method, Param
-from slc.methods.sh.project import irradiance
-from slc.methods.sh.ycocg import ENCODINGS
-from slc.methods.sh.ycocg import encoding as get_encoding
+from slc.lib.sh.project import irradiance
+from slc.lib.sh.ycocg import ENCODINGS
+from slc.lib.sh.ycocg import encoding as get_encoding
 from slc.methods.crc import volume
 from slc.methods.crc.bounces import Bounces, front_normal
-from slc.methods.crc.grid import GEOMETRY_FACTOR, Grid
-from slc.methods.crc.window import MovingWindow
+from slc.methods.crc.grid import GEOMETRY_FACTOR, Grid, lookup
+from slc.methods.crc.window import Region
 
 #: the paper's depth-occupancy stride s, at a 1 MPixel frame buffer
 PAPER_STRIDE = 10
 
 
-def halton(n: int, base: int) -> np.ndarray:
-    """The first ``n`` points (index 0..n-1) of the radical inverse in ``base``."""
-    out = np.zeros(n)
-    i = np.arange(n)
-    f = 1.0 / base
-    while np.any(i > 0):
-        out += (i % base) * f
-        i //= base
-        f /= base
-    return out
-
-
-class CRCCache(Bounces, MovingWindow, Method):
+class CRCCache(Method):
     r"""Grid radiance cache with chrominance-compressed SH (CRC).
 
     Per frame (each step one timed stage; ``*_march`` stages do not depend
@@ -112,7 +101,7 @@ class CRCCache(Bounces, MovingWindow, Method):
     (moved ``ahead`` cells along its view); when it moves by whole cells
     the blended coefficients and the blend history are scrolled
     (:meth:`place`), the geometry volume stays global, and shaded points
-    the window does not serve (:meth:`in_window`) get 0.
+    the window does not serve (:meth:`Region.in_window`) get 0.
 
     Random numbers: one stream per light path, per frame (RSM rotation),
     per (cell, sample) and per cell (:func:`slc.core.keys.keyed_rng`, keyed by
@@ -170,17 +159,17 @@ class CRCCache(Bounces, MovingWindow, Method):
         self.world = Grid.around(scene.bbox_min, scene.bbox_max, self.resolution)
         self.geo = self.world.finer(GEOMETRY_FACTOR)
         self.moving = self.volume == "camera"
-        self.offset = np.zeros(3, dtype=np.int64)     # window corner in world cells
-        self.moves = 0
-        self.grid = self._window_grid() if self.moving else self.world
+        self.region = Region(self.world, self.moving, self.window, self.ahead)
         self.voxelize_ms = 0.0
         self._voxel_time = None
-        # the precomputed Halton rectangles: cell samples over the RSM atlas, RSM position samples
-        self._halton_cells = mi.Point2f(halton(self.samples, 2).astype(np.float32),
-                                        halton(self.samples, 3).astype(np.float32))
-        r2 = self.rsm_size * self.rsm_size
-        self._halton_rsm = np.stack([halton(r2, 2), halton(r2, 3)], 1)
+        self.transport = Bounces(scene, self.enc, self.region, self.geo,
+                                 **{k: getattr(self, k) for k in Bounces.SETTINGS})
         self.reset()
+
+    @property
+    def grid(self) -> Grid:
+        """The current cache grid (the world lattice, or the moving window's cells)."""
+        return self.region.grid
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
@@ -206,16 +195,12 @@ class CRCCache(Bounces, MovingWindow, Method):
         self.voxelize_ms = (time.perf_counter() - t0) * 1e3
         self._voxel_time = t
 
-    # ----------------------------------------------------------- coefficients
-    def _lookup(self, vol: mi.Float, q: mi.Point3f, active: mi.Bool) -> list:
-        """Trilinearly interpolated coefficients of ``vol`` at points q."""
-        n = self.grid.n_cells
-        acc = [mi.Float(0.0) for _ in range(self.enc.n)]
-        for idx, w in self.grid.trilinear(q):
-            for c in range(self.enc.n):
-                acc[c] += w * dr.gather(mi.Float, vol, idx + c * n, active)
-        return acc
+    def place(self, offset) -> None:
+        """Put the moving window's corner at world cell ``offset``, scrolling the coefficients and
+        the blend history when the cache holds any (:meth:`Region.place`)."""
+        self.cache, self.hist = self.region.place(offset, self.cache, self.hist, self.enc.n, scroll=self._placed)
 
+    # ----------------------------------------------------------- coefficients
     def _store(self, coeffs: list, cells: mi.UInt32) -> mi.Float:
         n = self.grid.n_cells
         vol = dr.zeros(mi.Float, self.enc.n * n)
@@ -233,7 +218,7 @@ class CRCCache(Bounces, MovingWindow, Method):
                 occ |= volume.depth_occupancy(self.grid, [gb], self.stride_for(gb.width, gb.height))
             occ = volume.dilate(occ, self.grid)
         else:
-            occ = self._world_occupancy()
+            occ = self.region.occupancy(self.geo_occ)
         return dr.compress(occ != 0)
 
     def stride_for(self, width: int, height: int) -> int:
@@ -262,7 +247,7 @@ class CRCCache(Bounces, MovingWindow, Method):
         self._voxelize()
         if self.moving:
             with timer.stage("scroll") as st:
-                self.place(self._window_offset(gbuffers))
+                self.place(self.region.corner(gbuffers))
                 st.outputs(self.cache, self.hist)
             self._placed = True
         with timer.stage("occupancy") as st:
@@ -274,13 +259,13 @@ class CRCCache(Bounces, MovingWindow, Method):
             self.hist = dr.zeros(mi.UInt32, self.grid.n_cells)
             return
         with timer.stage("lights") as st:
-            X, N, phi, n_e = self._lights(frame)
+            X, N, phi, n_e = self.transport.lights(frame)
             st.outputs(X, N, phi)
         with timer.stage("bounce1_march") as st:
-            omega, L = self._first_bounce_samples(frame, cells, X, N, phi, n_e)
+            omega, L = self.transport.first_bounce_samples(frame, cells, X, N, phi, n_e, self.geometry)
             st.outputs(omega, L)
         with timer.stage("bounce1_project") as st:
-            coeffs = self._sum(omega, L, nc, self.samples, float(n_e) / float(self.samples))
+            coeffs = self.transport.sum_projections(omega, L, nc, self.samples, float(n_e) / float(self.samples))
             st.outputs(*coeffs)
         del omega, L
         self._volumes = 2
@@ -291,10 +276,10 @@ class CRCCache(Bounces, MovingWindow, Method):
                 st.outputs(inc)
             for b in range(2, self.bounces + 1):
                 with timer.stage("bounce2_march") as st:
-                    smp = self._secondary_samples(frame, b, cells)
+                    smp = self.transport.secondary_samples(frame, b, cells, self.geometry)
                     st.outputs(*smp)
                 with timer.stage("bounce2_project") as st:
-                    new = self._secondary_sum(nc, smp, inc)
+                    new = self.transport.secondary_sum(nc, smp, inc)
                     total = [t + x for t, x in zip(total, new)]
                     if b < self.bounces:
                         inc = self._store(new, cells)
@@ -313,8 +298,8 @@ class CRCCache(Bounces, MovingWindow, Method):
         n = front_normal(si)
         q = si.p + n * (0.5 * self.grid.h)
         if self.moving:         # outside the window: no cached indirect light
-            active &= self.in_window(si.p, q)
-        coeffs = self._lookup(self.cache, q, active)
+            active &= self.region.in_window(si.p, q)
+        coeffs = lookup(self.grid, self.cache, self.enc.n, q, active)
         E = mi.Color3f(*irradiance(self.enc, coeffs, n, self.presence, self.bleeding, chroma=self.chroma))
         rho = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, active))
         return dr.select(active, rho * E * (1.0 / math.pi), 0.0)
@@ -330,10 +315,10 @@ class CRCCache(Bounces, MovingWindow, Method):
         q = mi.Point3f(si.p + n * (0.5 * self.grid.h))
         if self.geometry is None:
             self._voxelize()
-        X, N, phi, n_e = self._lights(frame)
+        X, N, phi, n_e = self.transport.lights(frame)
         pts = dr.arange(mi.UInt32, dr.width(q))
-        omega, L = self._first_bounce_samples(frame, pts, X, N, phi, n_e, points=q)
-        coeffs = self._sum(omega, L, dr.width(q), self.samples, float(n_e) / float(self.samples))
+        omega, L = self.transport.first_bounce_samples(frame, pts, X, N, phi, n_e, self.geometry, points=q)
+        coeffs = self.transport.sum_projections(omega, L, dr.width(q), self.samples, float(n_e) / float(self.samples))
         E = mi.Color3f(*irradiance(self.enc, coeffs, n, self.presence, self.bleeding, chroma=self.chroma))
         rho = mi.Color3f(si.bsdf().eval_diffuse_reflectance(si, active))
         return dr.select(active, rho * E * (1.0 / math.pi), 0.0)
@@ -362,4 +347,4 @@ class CRCCache(Bounces, MovingWindow, Method):
     def stats(self) -> dict:
         return {"occupancy_ratio": self.occupancy_ratio(), "active_cells": self.n_active,
                 "cells": self.grid.n_cells, "coefficients": self.enc.n, "voxelize_ms": self.voxelize_ms,
-                "window_moves": self.moves}
+                "window_moves": self.region.moves}

@@ -102,3 +102,14 @@ class Grid:
                     w = ((f.x if dx else 1.0 - f.x) * (f.y if dy else 1.0 - f.y) * (f.z if dz else 1.0 - f.z))
                     out.append((self.flat(i0 + mi.Vector3i(dx, dy, dz)), w))
         return out
+
+
+def lookup(grid: Grid, vol: mi.Float, n_coeffs: int, q: mi.Point3f, active: mi.Bool) -> list:
+    """Trilinearly interpolated coefficients of ``vol`` (``n_coeffs`` dense volumes over ``grid``,
+    coefficient-major) at points q."""
+    n = grid.n_cells
+    acc = [mi.Float(0.0) for _ in range(n_coeffs)]
+    for idx, w in grid.trilinear(q):
+        for c in range(n_coeffs):
+            acc[c] += w * dr.gather(mi.Float, vol, idx + c * n, active)
+    return acc

@@ -1,8 +1,8 @@
-"""The moving volume of the CRC cache (``volume="camera"``, the paper's Sec. 7;
-:class:`MovingWindow`, a base of :class:`slc.methods.crc.cache.CRCCache`): the window's corner
-from the first viewer's camera, the shaded points it serves, the random-stream key of a window
-cell (its world cell's), the geometry occupancy read from the world's, and the scroll of the
-coefficients and blend history when the window moves by whole cells."""
+"""The cells the CRC cache covers (:class:`Region`, held by :class:`slc.methods.crc.cache.CRCCache`
+as ``region``): the scene grid, or the moving volume (``volume="camera"``, the paper's Sec. 7): the
+window's corner from the first viewer's camera, the shaded points it serves, the random-stream key
+of a window cell (its world cell's), the geometry occupancy read from the world's, and the scroll of
+the coefficients and blend history when the window moves by whole cells."""
 from __future__ import annotations
 
 import drjit as dr
@@ -12,11 +12,20 @@ import numpy as np
 from slc.methods.crc.grid import Grid
 
 
-class MovingWindow:
-    """The moving window of :class:`~slc.methods.crc.cache.CRCCache`; a base of that class,
-    reading its settings, world lattice and coefficient volumes."""
+class Region:
+    """The cache grid of :class:`~slc.methods.crc.cache.CRCCache`: the world lattice ``world``
+    itself, or with ``moving`` a ``window``^3 window of it (cells per side) whose centre cell holds
+    the first viewer's camera, moved ``ahead`` cells along its view (the ``window`` and ``ahead``
+    settings). ``grid`` is the current cache grid, ``offset`` the window's corner in world cells,
+    ``moves`` the whole-cell moves so far."""
 
-    def _window_offset(self, gbuffers) -> np.ndarray:
+    def __init__(self, world: Grid, moving: bool, window: int, ahead: float):
+        self.world, self.moving, self.window, self.ahead = world, moving, window, ahead
+        self.offset = np.zeros(3, dtype=np.int64)     # window corner in world cells
+        self.moves = 0
+        self.grid = self._window_grid() if moving else world
+
+    def corner(self, gbuffers) -> np.ndarray:
         """World-cell corner of the window whose centre cell holds the first
         viewer's camera (moved ``ahead`` cells along its view)."""
         cam = gbuffers[0].camera
@@ -33,7 +42,7 @@ class MovingWindow:
     def _cell_offset(self) -> mi.Vector3i:
         return mi.Vector3i(*(dr.opaque(mi.Int32, int(x)) for x in self.offset))
 
-    def _key(self, cell: mi.UInt32) -> mi.UInt32:
+    def key(self, cell: mi.UInt32) -> mi.UInt32:
         """Random-stream key of a cache cell: its flat index; in a moving
         window, the flat index of its world cell (the same key as with
         volume=scene), or for a cell outside the scene's grid ``n_world`` +
@@ -48,44 +57,47 @@ class MovingWindow:
         outside = mi.UInt32(self.world.n_cells) + mi.UInt32((ip.z * (ny + 2 * P) + ip.y) * (nx + 2 * P) + ip.x)
         return dr.select(self.world.inside(i), self.world.flat(i), outside)
 
-    def _world_occupancy(self) -> mi.UInt32:
-        """The (dilated) geometry occupancy of the window's cells, read from
-        the world's."""
+    def occupancy(self, geo_occ: mi.UInt32) -> mi.UInt32:
+        """The (dilated) geometry occupancy ``geo_occ`` of the world's cells, read at the
+        window's cells."""
         if not self.moving:
-            return self.geo_occ
+            return geo_occ
         j = self.grid.unflat(dr.arange(mi.UInt32, self.grid.n_cells)) + self._cell_offset()
         ok = self.world.inside(j)
-        return dr.gather(mi.UInt32, self.geo_occ, dr.select(ok, self.world.flat(j), 0), ok)
+        return dr.gather(mi.UInt32, geo_occ, dr.select(ok, self.world.flat(j), 0), ok)
 
-    def _scroll(self, delta: np.ndarray) -> None:
-        """Move the window by ``delta`` whole cells: every coefficient (and
-        the blend history) is copied from the cell that held the same world
-        position; cells entering the window start empty. Gathers only (no
-        recomputation), the shift an opaque input (no kernel build per move)."""
-        n, nc = self.grid.n_cells, self.enc.n
+    def _scroll(self, delta: np.ndarray, cache: mi.Float, hist: mi.UInt32, n_coeffs: int):
+        """Move the window by ``delta`` whole cells: every coefficient of ``cache`` (``n_coeffs``
+        volumes over the grid) and the blend history ``hist`` is copied from the cell that held
+        the same world position; cells entering the window start empty. Gathers only (no
+        recomputation), the shift an opaque input (no kernel build per move). (cache, hist)."""
+        n, nc = self.grid.n_cells, n_coeffs
         d = mi.Vector3i(*(dr.opaque(mi.Int32, int(x)) for x in delta))
         lane = dr.arange(mi.UInt32, nc * n)
         c, idx = lane // n, lane % n
         j = self.grid.unflat(idx) + d
         ok = self.grid.inside(j)
         src = dr.select(ok, self.grid.flat(j), 0)
-        self.cache = dr.gather(mi.Float, self.cache, src + c * n, ok)
+        cache = dr.gather(mi.Float, cache, src + c * n, ok)
         jh = self.grid.unflat(dr.arange(mi.UInt32, n)) + d
         okh = self.grid.inside(jh)
-        self.hist = dr.gather(mi.UInt32, self.hist, dr.select(okh, self.grid.flat(jh), 0), okh)
+        hist = dr.gather(mi.UInt32, hist, dr.select(okh, self.grid.flat(jh), 0), okh)
+        return cache, hist
 
-    def place(self, offset) -> None:
-        """Put the window's corner at world cell ``offset``, scrolling the
-        coefficients when the cache holds any."""
+    def place(self, offset, cache: mi.Float, hist: mi.UInt32, n_coeffs: int, scroll: bool):
+        """Put the window's corner at world cell ``offset``; with ``scroll`` (the cache holds
+        coefficients) scroll ``cache`` and ``hist`` (see :meth:`_scroll`) and count the move.
+        (cache, hist)."""
         offset = np.asarray(offset, dtype=np.int64)
         delta = offset - self.offset
         if not np.any(delta):
-            return
+            return cache, hist
         self.offset = offset
-        if self._placed:
-            self._scroll(delta)
+        if scroll:
+            cache, hist = self._scroll(delta, cache, hist, n_coeffs)
             self.moves += 1
         self.grid = self._window_grid()
+        return cache, hist
 
     def _window_grid(self) -> Grid:
         return Grid(lo=self.world.lo + self.offset * self.world.h, h=self.world.h, dims=(self.window,) * 3)

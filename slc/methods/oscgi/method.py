@@ -14,7 +14,7 @@ from slc.methods import MethodError, Param, create, register
 from slc.osc.cache import OnSurfaceCache
 from slc.methods.cache_method import PayloadMethod, RayPolicy
 from slc.osc.protocol import ENTRY_TOPOLOGY
-from slc.methods.sh.shading import diffuse_only, shade_radiance
+from slc.lib.sh.shading import diffuse_only, shade_radiance
 from slc.methods.oscgi.hemisphere import HemiGrid
 from slc.methods.oscgi.kernels import STREAM_PIXEL_DIRECT, STREAM_SHADE, pixel_direct_kernel, primary_direct_kernel, primary_ray_kernel
 from slc.methods.oscgi.laps import Laps
@@ -270,7 +270,7 @@ class OSCGI(PrimaryUpdate, PayloadMethod):
         ``idx`` into ``fr.si``); ``pid`` each pixel's index within its own viewer (the key of
         its random numbers); ``storage``: the entries' words (default ``self.storage``). Diffuse
         BSDFs from the irradiance words, others by BSDF samples of the hemisphere texels
-        (:func:`slc.methods.sh.shading.shade_radiance`)."""
+        (:func:`slc.lib.sh.shading.shade_radiance`)."""
         G = self.grid
         ok = valid & (slot != INVALID) & (si.wi.z > 0.0)
         bsdf = si.bsdf()

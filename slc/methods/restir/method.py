@@ -6,9 +6,9 @@ of initial candidates (local lights, environment, BSDF), temporal reuse from
 the previous frame's reservoirs through the motion vectors, spatial reuse
 from neighbouring pixels, and final shading with one shadow ray.
 
-This module holds the method, its initial candidates, shading and frame; its bases hold the
-light set-up and target function (:mod:`slc.methods.restir.target`) and the temporal and
-spatial reuse (:mod:`slc.methods.restir.reuse`).
+This module holds the method, its initial candidates, shading and frame; the parts it holds are
+the light set-up and target function (``target``, :mod:`slc.methods.restir.target`) and the
+temporal and spatial reuse (``reuse``, :mod:`slc.methods.restir.reuse`).
 """
 from __future__ import annotations
 
@@ -55,7 +55,7 @@ class Passes:
     final: list
     reused: list
 
-class ReSTIR(LightTarget, Reuse, Method):
+class ReSTIR(Method):
     r"""ReSTIR DI with temporal and spatial reuse, one set of reservoirs per viewer.
 
     Estimator (per pixel x, one sample y selected by resampling):
@@ -147,7 +147,10 @@ class ReSTIR(LightTarget, Reuse, Method):
             self.local, self.env, self.bsdf = (PRESETS[self.preset][k] for k in ("local", "env", "bsdf"))
         self.n_local, self.n_env, self.n_bsdf = self.local, self.env, self.bsdf
         self.depth_thr, self.normal_thr = self.depth, self.normal
-        self._setup_lights()
+        self.target = LightTarget(scene, self.n_local, self.n_env, self.n_bsdf)
+        self.reuse = Reuse(self.target, temporal=self.temporal, mcap=self.mcap, depth_thr=self.depth_thr,
+                           normal_thr=self.normal_thr, spatial=self.spatial, radius=self.radius,
+                           boost=self.boost, bias=self.bias)
         self.reset()
 
     def validate(self):
@@ -157,7 +160,7 @@ class ReSTIR(LightTarget, Reuse, Method):
     def reset(self):
         self.state: dict[int, tuple] = {}   # viewer -> (Reservoir, previous GBuffer)
         self._shape = None                  # (width, height, viewers) of the allocation
-        self._bboxes = None
+        self.target.reset()
         self._stats = {}
 
     # ------------------------------ Stage 1: initial ------------------------------
@@ -176,19 +179,19 @@ class ReSTIR(LightTarget, Reuse, Method):
         ctx = mi.BSDFContext()
         sampler = rng(n, seed, stream=11)
         res = Stream(n)
-        if self._table is not None:
-            self._table.refresh()   # animated emissive meshes
+        if self.target.table is not None:
+            self.target.table.refresh()   # animated emissive meshes
 
         def add(into, y, nrm, light, ok, u_sel, p_dir=None):
-            _, p_hat, d, dist, kind, ds, p_bsdf = self.evaluate(si, bsdf, y, nrm, light, ok, with_pdf=True)
-            denom = self._pdf_sum(si, bsdf, light, kind, d, dist, nrm, ds, ok & (p_hat > 0.0),
-                                  p_dir=p_dir, p_bsdf=p_bsdf)
+            _, p_hat, d, dist, kind, ds, p_bsdf = self.target.evaluate(si, bsdf, y, nrm, light, ok, with_pdf=True)
+            denom = self.target.pdf_sum(si, bsdf, light, kind, d, dist, nrm, ds, ok & (p_hat > 0.0),
+                                        p_dir=p_dir, p_bsdf=p_bsdf)
             good = ok & (p_hat > 0.0) & (denom > 0.0)
             w = dr.select(good, p_hat / dr.select(good, denom, 1.0), 0.0)
             into.update(y, nrm, light, p_hat, w, u_sel, good)
 
         # ---------------- Local-light candidates (symbolic loop) ----------------
-        if self._L and self.n_local:
+        if self.target.L and self.n_local:
             n_local = dr.opaque(mi.UInt32, self.n_local)
 
             def cond(s: CandidateLoop):
@@ -196,14 +199,14 @@ class ReSTIR(LightTarget, Reuse, Method):
 
             def body(s: CandidateLoop):
                 smp = s.smp
-                if self._table is not None:
+                if self.target.table is not None:
                     u = mi.Point2f(smp.next_float32(), smp.next_float32())
-                    ds, _, ok, light = self._table.sample(si, u, active)
+                    ds, _, ok, light = self.target.table.sample(si, u, active)
                     add(s.res, mi.Point3f(ds.p), mi.Vector3f(ds.n), light, ok, smp.next_float32())
                 else:
-                    k = dr.minimum(mi.UInt32(smp.next_float32() * self._L), self._L - 1)
-                    light = dr.gather(mi.UInt32, self._local, k, active)
-                    em = dr.gather(mi.EmitterPtr, self._emitters, light, active)
+                    k = dr.minimum(mi.UInt32(smp.next_float32() * self.target.L), self.target.L - 1)
+                    light = dr.gather(mi.UInt32, self.target.local, k, active)
+                    em = dr.gather(mi.EmitterPtr, self.target.emitters, light, active)
                     u = mi.Point2f(smp.next_float32(), smp.next_float32())
                     ds, _ = em.sample_direction(si, u, active)
                     ok = active & (ds.pdf > 0.0)
@@ -216,11 +219,11 @@ class ReSTIR(LightTarget, Reuse, Method):
             res, sampler = s.res, s.smp
 
         # ---------------- Environment candidates ----------------
-        if self._E and self.n_env:
+        if self.target.E and self.n_env:
             for _ in range(self.n_env):
-                k = dr.minimum(mi.UInt32(sampler.next_float32() * self._E), self._E - 1)
-                light = dr.gather(mi.UInt32, self._inf, k, active)
-                em = dr.gather(mi.EmitterPtr, self._emitters, light, active)
+                k = dr.minimum(mi.UInt32(sampler.next_float32() * self.target.E), self.target.E - 1)
+                light = dr.gather(mi.UInt32, self.target.infinite, k, active)
+                em = dr.gather(mi.EmitterPtr, self.target.emitters, light, active)
                 u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
                 ds, _ = em.sample_direction(si, u, active)
                 ok = active & (ds.pdf > 0.0)
@@ -239,12 +242,12 @@ class ReSTIR(LightTarget, Reuse, Method):
             em = si2.emitter(sc, hit)
             hit_em = hit & (em != None)  # noqa: E711 (EmitterPtr comparison)
             rid = dr.reinterpret_array(mi.UInt32, em)
-            light = dr.gather(mi.UInt32, self._id_to_index, rid, hit_em)
+            light = dr.gather(mi.UInt32, self.target.id_to_index, rid, hit_em)
             y = dr.select(hit_em, si2.p, mi.Point3f(wo))
             nrm = dr.select(hit_em, mi.Vector3f(si2.n), 0.0)
-            if self._env_index >= 0:
+            if self.target.env_index >= 0:
                 miss = ok & ~si2.is_valid()
-                light = dr.select(miss, self._env_index, light)
+                light = dr.select(miss, self.target.env_index, light)
                 cand = hit_em | miss
             else:
                 cand = hit_em
@@ -253,8 +256,8 @@ class ReSTIR(LightTarget, Reuse, Method):
         # ---------------- Finalize (M = 1) and initial visibility ----------------
         r = res.finalize(mi.Float(1.0), mi.Float(1.0), active)
         if self.visibility:
-            d, dist, kind = self._direction(si, r.y, r.light, active & (r.W > 0.0))
-            vis = self._visible(si, d, dist, kind, active & (r.W > 0.0))
+            d, dist, kind = self.target.direction(si, r.y, r.light, active & (r.W > 0.0))
+            vis = self.target.visible(si, d, dist, kind, active & (r.W > 0.0))
             r.W = dr.select(vis, r.W, 0.0)
         return r, res.p_hat
 
@@ -265,9 +268,23 @@ class ReSTIR(LightTarget, Reuse, Method):
         r = fr.final[v]
         si, active = gb.si, gb.valid
         ok = active & (r.W > 0.0)
-        c, _, d, dist, kind, _ = self.evaluate(si, si.bsdf(), r.y, r.n, r.light, ok)
-        vis = self._visible(si, d, dist, kind, ok)
+        c, _, d, dist, kind, _ = self.target.evaluate(si, si.bsdf(), r.y, r.n, r.light, ok)
+        vis = self.target.visible(si, d, dist, kind, ok)
         return dr.select(vis, c * r.W, 0.0)
+
+    # ------------------------------ Stages 2-3: reuse, by the parts ------------------------------
+
+    def _light_moved(self) -> mi.Bool:
+        """Per emitter: its shape moved since the previous frame (:meth:`LightTarget.moved`)."""
+        return self.target.moved()
+
+    def temporal_reuse(self, gb, r: Reservoir, p_cur, prev, moved, seed: int):
+        """Stage 2 (:meth:`Reuse.temporal_reuse`): (reservoir, reused mask, target value)."""
+        return self.reuse.temporal_reuse(gb, r, p_cur, prev, moved, seed)
+
+    def spatial_reuse(self, gb, r: Reservoir, p_cur, reused, seed: int):
+        """Stage 3 (:meth:`Reuse.spatial_reuse`): (reservoir, target value)."""
+        return self.reuse.spatial_reuse(gb, r, p_cur, reused, seed)
 
     # ------------------------------ Frame ------------------------------
 

@@ -37,7 +37,7 @@ class PairwiseLoop:
     DRJIT_STRUCT = {"i": mi.UInt32, "smp": mi.PCG32, "sel": mi.PCG32, "st": Stream, "m_c": mi.Float}
 
 
-def spatial_pairwise(m, gb, r: Reservoir, p_cur, k, R: float, seed: int):
+def spatial_pairwise(reuse, gb, r: Reservoir, p_cur, k, R: float, seed: int):
     """Spatial reuse with pairwise MIS (Bitterli 2022, Lin et al. 2022),
     M-weighted: the current (canonical) reservoir c and each of the K
     accepted neighbours i form a pair that holds the share
@@ -62,7 +62,7 @@ def spatial_pairwise(m, gb, r: Reservoir, p_cur, k, R: float, seed: int):
 
     # ---------------- Pass 1: accepted neighbours ----------------
     def body(s: AcceptLoop):
-        _, ok, rq = m.accepted_neighbour(s.smp, gb, r, R)
+        _, ok, rq = reuse.accepted_neighbour(s.smp, gb, r, R)
         s.used = s.used | dr.select(ok, mi.UInt32(1) << s.i, 0)
         s.K = s.K + dr.select(ok, 1.0, 0.0)
         s.M_n = s.M_n + dr.select(ok, rq.M, 0.0)
@@ -83,15 +83,15 @@ def spatial_pairwise(m, gb, r: Reservoir, p_cur, k, R: float, seed: int):
     c_ok = active & (r.W > 0.0)
 
     def body2(s: PairwiseLoop):
-        q, _ = m.neighbour(s.smp, *m.pixel_xy(n, gb.width), R, gb.width, gb.height)
+        q, _ = reuse.neighbour(s.smp, *reuse.pixel_xy(n, gb.width), R, gb.width, gb.height)
         ok = ((used >> s.i) & 1) != 0
         rq = dr.gather(Reservoir, r, q, ok)
         si_q = dr.gather(mi.SurfaceInteraction3f, si, q, ok)
         bsdf_q = si_q.bsdf()
         has = ok & (rq.W > 0.0)
-        _, p_c_i, _, _, _, _ = m.evaluate(si, bsdf, rq.y, rq.n, rq.light, has)
-        _, p_i_i, _, _, _, _ = m.evaluate(si_q, bsdf_q, rq.y, rq.n, rq.light, has)
-        _, p_i_c, _, _, _, _ = m.evaluate(si_q, bsdf_q, r.y, r.n, r.light, ok & c_ok)
+        _, p_c_i, _, _, _, _ = reuse.target.evaluate(si, bsdf, rq.y, rq.n, rq.light, has)
+        _, p_i_i, _, _, _, _ = reuse.target.evaluate(si_q, bsdf_q, rq.y, rq.n, rq.light, has)
+        _, p_i_c, _, _, _, _ = reuse.target.evaluate(si_q, bsdf_q, r.y, r.n, r.light, ok & c_ok)
         f = (rq.M + Mc_K) * inv_total
         m_i = f * share(rq.M * p_i_i, Mc_K * p_c_i)
         s.st.update(rq.y, rq.n, rq.light, p_c_i, m_i * p_c_i * rq.W, s.sel.next_float32(), has)

@@ -1,5 +1,5 @@
-"""The reuse stages of ReSTIR (:class:`Reuse`, a base of
-:class:`slc.methods.restir.method.ReSTIR`): temporal reuse of the previous frame's reservoir
+"""The reuse stages of ReSTIR (:class:`Reuse`, held by :class:`slc.methods.restir.method.ReSTIR`
+as ``reuse``): temporal reuse of the previous frame's reservoir
 through the motion vectors, spatial reuse of neighbouring pixels' reservoirs with the ``basic`` and
 ``off`` weights (``pairwise``: :func:`slc.methods.restir.pairwise.spatial_pairwise`), and the
 neighbour sequence and similarity test both stages share."""
@@ -34,12 +34,25 @@ class NeighbourLoop:
 
 
 class Reuse:
-    """Temporal and spatial reuse of :class:`~slc.methods.restir.method.ReSTIR`; a base of
-    that class, reading its settings, target function and light tables."""
+    """Temporal and spatial reuse of :class:`~slc.methods.restir.method.ReSTIR` reservoirs.
+
+    Parameters: ``target`` (:class:`~slc.methods.restir.target.LightTarget`: the target function
+    p_hat and the emitter kinds), ``temporal`` (temporal reuse on/off), ``mcap`` (temporal M cap),
+    ``depth_thr`` (relative depth threshold), ``normal_thr`` (normal threshold, a cosine),
+    ``spatial`` (spatial neighbours), ``radius`` (spatial radius in pixels at 1080p, scaled by
+    height / 1080, at least 2 px), ``boost`` (spatial neighbours where history was rejected) and
+    ``bias`` (reuse weights: ``pairwise``, ``basic`` or ``off``), as ReSTIR's settings."""
+
+    def __init__(self, target, *, temporal: int, mcap: float, depth_thr: float, normal_thr: float,
+                 spatial: int, radius: float, boost: int, bias: str):
+        self.target = target
+        self.temporal, self.mcap = temporal, mcap
+        self.depth_thr, self.normal_thr = depth_thr, normal_thr
+        self.spatial, self.radius, self.boost, self.bias = spatial, radius, boost, bias
 
     # ------------------------------ Stage 2: temporal ------------------------------
 
-    def _similar(self, n_a, n_b, depth_a, depth_b):
+    def similar(self, n_a, n_b, depth_a, depth_b):
         """RTXDI's neighbour test: relative depth and normal thresholds."""
         depth_ok = dr.abs(depth_b - depth_a) <= self.depth_thr * dr.maximum(depth_a, 1e-6)
         return depth_ok & (dr.dot(n_a, n_b) >= self.normal_thr)
@@ -66,22 +79,23 @@ class Reuse:
         si_p = dr.gather(mi.SurfaceInteraction3f, gb_prev.si, q, ok)
         cam_o = mi.Point3f(*[dr.opaque(mi.Float, float(c)) for c in gb_prev.camera.origin])
         expected = dr.norm(si.p - cam_o)
-        ok &= self._similar(si.sh_frame.n, si_p.sh_frame.n, expected, dr.gather(mi.Float, gb_prev.depth, q, ok))
+        ok &= self.similar(si.sh_frame.n, si_p.sh_frame.n, expected, dr.gather(mi.Float, gb_prev.depth, q, ok))
         rp = dr.gather(Reservoir, r_prev_all, q, ok)
-        ok &= ~(dr.gather(mi.Bool, moved, rp.light, ok) & (dr.gather(mi.UInt32, self._kind, rp.light, ok) == AREA))
+        ok &= ~(dr.gather(mi.Bool, moved, rp.light, ok)
+                & (dr.gather(mi.UInt32, self.target.kinds, rp.light, ok) == AREA))
         ok &= rp.M > 0.0
         M_p = dr.select(ok, dr.minimum(rp.M, self.mcap), 0.0)
 
         # ---------------- Resampling: current + history ----------------
         st = Stream(n)
         M = r.M + M_p
-        _, p_here, _, _, _, _ = self.evaluate(si, bsdf, rp.y, rp.n, rp.light, ok & (rp.W > 0.0))
+        _, p_here, _, _, _, _ = self.target.evaluate(si, bsdf, rp.y, rp.n, rp.light, ok & (rp.W > 0.0))
         if self.bias == "pairwise":
             # balance heuristic over the two reservoirs' targets, weighted by their M:
             # m_c(y) = M_c p_c(y) / (M_c p_c(y) + M_p p_p(y)), m_p(y) = 1 - m_c(y)
             bsdf_p = si_p.bsdf()
-            _, p_pp, _, _, _, _ = self.evaluate(si_p, bsdf_p, rp.y, rp.n, rp.light, ok & (rp.W > 0.0))
-            _, p_pc, _, _, _, _ = self.evaluate(si_p, bsdf_p, r.y, r.n, r.light, ok & (r.W > 0.0))
+            _, p_pp, _, _, _, _ = self.target.evaluate(si_p, bsdf_p, rp.y, rp.n, rp.light, ok & (rp.W > 0.0))
+            _, p_pc, _, _, _, _ = self.target.evaluate(si_p, bsdf_p, r.y, r.n, r.light, ok & (r.W > 0.0))
             m_c = share(r.M * p_cur, dr.select(ok, M_p * p_pc, 0.0))
             m_p = share(M_p * p_pp, r.M * p_here)
             st.update(r.y, r.n, r.light, p_cur, m_c * p_cur * r.W, sampler.next_float32(), active)
@@ -98,7 +112,7 @@ class Reuse:
             bsdf_p = si_p.bsdf()
             # only where a sample was selected (W = 0 otherwise, whatever Z)
             sel = ok & (st.p_hat > 0.0) & (st.w_sum > 0.0)
-            _, p_prev, _, _, _, _ = self.evaluate(si_p, bsdf_p, st.y, st.n, st.light, sel)
+            _, p_prev, _, _, _, _ = self.target.evaluate(si_p, bsdf_p, st.y, st.n, st.light, sel)
             Z += dr.select(sel & (p_prev > 0.0), M_p, 0.0)
         return st.finalize(Z, M, active), ok, st.p_hat
 
@@ -151,7 +165,7 @@ class Reuse:
         def body(s: NeighbourLoop):
             q, ok, rq = self.accepted_neighbour(s.smp, gb, r, R)
             # the target is only needed for a non-zero resampling weight; M counts regardless
-            _, p_here, _, _, _, _ = self.evaluate(si, bsdf, rq.y, rq.n, rq.light, ok & (rq.W > 0.0))
+            _, p_here, _, _, _, _ = self.target.evaluate(si, bsdf, rq.y, rq.n, rq.light, ok & (rq.W > 0.0))
             s.st.update(rq.y, rq.n, rq.light, p_here, p_here * rq.W * rq.M, s.sel.next_float32(), ok)
             s.M = s.M + dr.select(ok, rq.M, 0.0)
             s.used = s.used | dr.select(ok, mi.UInt32(1) << s.i, 0)
@@ -176,7 +190,7 @@ class Reuse:
                 ok = ((used >> i) & 1) != 0
                 Mq = dr.gather(mi.Float, r.M, q, ok)
                 si_q = dr.gather(mi.SurfaceInteraction3f, si, q, ok)
-                _, p_q, _, _, _, _ = self.evaluate(si_q, si_q.bsdf(), y_s, n_s, l_s, ok)
+                _, p_q, _, _, _, _ = self.target.evaluate(si_q, si_q.bsdf(), y_s, n_s, l_s, ok)
                 return i + 1, smp, Z + dr.select(ok & (p_q > 0.0), Mq, 0.0)
 
             _, _, Z = dr.while_loop(state=(mi.UInt32(0), rng(n, seed, stream=13), Z),
@@ -191,7 +205,7 @@ class Reuse:
         n0 = mi.Vector3f(gb.si.sh_frame.n)
         q, ok = self.neighbour(smp, *self.pixel_xy(gb.size, W_), R, W_, H_)
         ok &= dr.gather(mi.Bool, gb.valid, q, ok)
-        ok &= self._similar(n0, dr.gather(mi.Vector3f, n0, q, ok), gb.depth, dr.gather(mi.Float, gb.depth, q, ok))
+        ok &= self.similar(n0, dr.gather(mi.Vector3f, n0, q, ok), gb.depth, dr.gather(mi.Float, gb.depth, q, ok))
         rq = dr.gather(Reservoir, r, q, ok)
         return q, ok & (rq.M > 0.0), rq
 

@@ -8,10 +8,10 @@ import mitsuba as mi
 from slc.core.keys import INVALID, STREAM_SH_SHADE, STREAM_SH_UPDATE, keyed_rng
 from slc.methods import Param, register
 from slc.methods.cache_method import PayloadMethod, RayPolicy, entry_start
-from slc.methods.sh.project import irradiance, radiance
-from slc.methods.sh.shading import shade_radiance
-from slc.methods.sh.update import project_samples, running_mean, world_frame
-from slc.methods.sh.ycocg import ENCODINGS, encoding as get_encoding
+from slc.lib.sh.project import irradiance, radiance
+from slc.lib.sh.shading import shade_radiance
+from slc.lib.sh.update import project_samples, running_mean, world_frame
+from slc.lib.sh.ycocg import ENCODINGS, encoding as get_encoding
 from slc.scene.bsdf_table import side_normal, two_sided
 
 
@@ -29,7 +29,7 @@ class SHSurfaceCache(PayloadMethod):
               \qquad \lambda \leftarrow \lambda + \min(n/C, 1)(\hat\lambda - \lambda),
 
     with :math:`C` the sample count capped at ``max_count`` (an exponential
-    moving average once capped, so moving lights fade in; :mod:`slc.methods.sh.update`,
+    moving average once capped, so moving lights fade in; :mod:`slc.lib.sh.update`,
     shared with the adaptive cache's SH records): a new entry's ``rays_new``-sample
     updates average evenly until the cap, a settled entry's 1-sample update
     weighs ``1/max_count``. A new entry starts from its LOD seed (a coarser

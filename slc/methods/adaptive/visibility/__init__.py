@@ -49,13 +49,13 @@ the residual's running mean, :math:`E_r \leftarrow E_r + n(\hat E_r - E_r)/C_r` 
 the sample count, at most 255, or 4 cycles while the entry is moving)
 with :math:`\hat E_r = \frac1n\sum_k [k \text{ not in the list}]\, w_k V_k c_k`.
 
-Small sphere lights (:mod:`slc.methods.adaptive.sphere_lights`, ``sph``) are listed
+Small sphere lights (:mod:`slc.lib.lights.sphere_lights`, ``sph``) are listed
 like delta lights where they are small at the entry (:math:`r/d` below
 ``sph.max_sin``): their :math:`v_i` is the running mean of shadow rays to
 sampled points on the sphere and their unoccluded term is the closed form
 :math:`\pi L r^2/d^2` towards the current centre.
 
-Bright small regions of the environment map (:mod:`slc.methods.adaptive.env_lights`,
+Bright small regions of the environment map (:mod:`slc.lib.lights.env_lights`,
 ``env``) are listed like delta lights where wholly above the entry's horizon
 (index ``env.base + j``, unoccluded term :math:`\Phi_j R_j` along
 :math:`\mathbf d_j`); samples of regions above the horizon but not listed

@@ -11,8 +11,8 @@ import mitsuba as mi
 from slc.core.freeze import FrozenFunction
 from slc.core.keys import mixed_rng, stream_mix
 from slc.methods.adaptive.frozen_inputs import light_tables, sampler_inputs
-from slc.methods.adaptive.polygon_glossy import has_glossy
-from slc.methods.adaptive.polygon_ltc import LtcTable
+from slc.lib.lights.polygon_glossy import has_glossy
+from slc.lib.lights.polygon_ltc import LtcTable
 from slc.methods.adaptive.visibility.shading import shade
 from slc.methods.adaptive.visibility.update import VisLanes, VisParams, mix_of, update
 from slc.scene import bsdf_table

@@ -7,7 +7,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from slc.methods.cones.packing import WordReader, WordWriter, decode_radiance, encode_radiance
+from slc.lib.cones.packing import WordReader, WordWriter, decode_radiance, encode_radiance
 
 EMPTY = 0xFFFF              # an empty slot's light index
 VIS_WINDOW = 16             # samples in a listed light's visible fraction's running mean

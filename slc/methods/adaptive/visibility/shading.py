@@ -7,8 +7,8 @@ no ray,
 each listed light's unoccluded term exact at the pixel (:func:`~slc.methods.adaptive.visibility.lights.light_at`),
 its visible fraction :math:`v_i` and the residual :math:`E_r` from the entry. A polygon light
 at a pixel whose glossy lobe is narrow against it gets the lobe's integral over the light
-(``polygon_glossy=ltc``, :mod:`slc.methods.adaptive.polygon_ltc`) or sampled terms
-(``sample``, :mod:`slc.methods.adaptive.polygon_glossy`) in place of the point's.
+(``polygon_glossy=ltc``, :mod:`slc.lib.lights.polygon_ltc`) or sampled terms
+(``sample``, :mod:`slc.lib.lights.polygon_glossy`) in place of the point's.
 """
 from __future__ import annotations
 
@@ -18,11 +18,11 @@ from dataclasses import dataclass, field
 import drjit as dr
 import mitsuba as mi
 
-from slc.methods.adaptive.polygon_glossy import GLOSSY, VIS_WHOLE, polygon_term
-from slc.methods.adaptive.polygon_ltc import ltc_term
+from slc.lib.lights.polygon_glossy import GLOSSY, VIS_WHOLE, polygon_term
+from slc.lib.lights.polygon_ltc import ltc_term
 from slc.methods.adaptive.visibility.lights import has_delta, light_at
 from slc.methods.adaptive.visibility.record import EMPTY, slot, unpack, used_slots
-from slc.methods.sh.shading import diffuse_only
+from slc.lib.sh.shading import diffuse_only
 from slc.scene.bsdf_table import side_normal
 
 ALBEDO_SAMPLES = 16     # BSDF samples of a non-diffuse pixel's directional albedo and sky (the residual's shading)
@@ -108,9 +108,9 @@ def shade(scene: mi.Scene, rec, si, bsdf, active, K: int, sph=None, env=None, rn
           ltc=None, back: bool = False, rng_a=None) -> mi.Color3f:
     """L_o of the pixels ``si`` from their VISIBILITY records (see the module). With ``rng``
     (and polygon lights), a glossy pixel's polygon lights get ``S`` sample pairs of their
-    unshadowed term each (:func:`slc.methods.adaptive.polygon_glossy.glossy_term`); with ``ltc``
-    (a :class:`~slc.methods.adaptive.polygon_ltc.LtcTable`), a GGX pixel's polygon lights get
-    their lobe's integral (:func:`slc.methods.adaptive.polygon_ltc.ltc_term`). ``back``: the
+    unshadowed term each (:func:`slc.lib.lights.polygon_glossy.glossy_term`); with ``ltc``
+    (a :class:`~slc.lib.lights.polygon_ltc.LtcTable`), a GGX pixel's polygon lights get
+    their lobe's integral (:func:`slc.lib.lights.polygon_ltc.ltc_term`). ``back``: the
     records keep the residual behind the surface (two-sided BSDFs in the scene): a pixel is
     shaded on its own side (the normal turned towards its viewer, the residual of that side).
     The residual is light of unknown direction: a diffuse-only pixel takes it along the

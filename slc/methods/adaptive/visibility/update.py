@@ -28,8 +28,8 @@ STREAM_VIS = 0x3C6EF372
 @dataclass
 class VisParams:
     """The fixed inputs of the update: ``K`` slots, the scene's ``sph`` (sphere and polygon lights,
-    :class:`~slc.methods.adaptive.sphere_lights.SphereLights`) and ``env`` (the environment's bright
-    regions, :class:`~slc.methods.adaptive.env_lights.EnvLights`), None where absent."""
+    :class:`~slc.lib.lights.sphere_lights.SphereLights`) and ``env`` (the environment's bright
+    regions, :class:`~slc.lib.lights.env_lights.EnvLights`), None where absent."""
     K: int
     sph: object = None
     env: object = None

@@ -2,9 +2,9 @@ r"""The closed forms of the cone shading, no quadrature: Lambertian pixels (the 
 cosine over each cone, clipped at the horizon for cones across it), pixels with Mitsuba's
 ``principled`` BSDF (the diffuse part at each cone's axis, the GGX lobe as a spherical Gaussian
 of which each cap holds a fraction) and, as an option, isotropic GGX ``roughconductor`` pixels
-(the same Gaussian plus GGX's tail at far cones' axes). :func:`slc.methods.cones.shading.shade_kernel`
+(the same Gaussian plus GGX's tail at far cones' axes). :func:`slc.lib.cones.shading.shade_kernel`
 runs each kind of pixel in a symbolic branch of its own; the model is described in the docstring
-of :mod:`slc.methods.cones.shading` and measured in docs/cones.md."""
+of :mod:`slc.lib.cones.shading` and measured in docs/cones.md."""
 from __future__ import annotations
 
 import math
@@ -13,7 +13,7 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.scene.bsdf_table import KIND_OTHER, KIND_PRINCIPLED, ZERO_ATTRS
-from slc.methods.cones.conestate import ConeState, cap_cosine_integral
+from slc.lib.cones.conestate import ConeState, cap_cosine_integral
 
 BACK_MARGIN = 1e-3                    # cos; a cap this far above the horizon holds no direction below it,
                                       # even with the quadrature's cap-membership tolerance
@@ -69,7 +69,7 @@ def _principled_cones(bsdf, si, ctx, active, cones: ConeState, term, below, cons
     inv_om, L, Dw = cones.inv_omega, cones.L, cones.axis
     # ------------------- which pixels, and their parameters (one read per pixel) -------------------
     # (BSDFs without textures: from the table ``consts``, see
-    # :func:`slc.methods.cones.shading.bsdf_table`; BSDFs of
+    # :func:`slc.lib.cones.shading.bsdf_table`; BSDFs of
     # kind KIND_NOT_PRINCIPLED are not read: they lack the attributes ``read`` asks for)
     if consts is not None:
         tab = active & (consts[0] == KIND_PRINCIPLED) & (mi.Frame3f.cos_theta(si.wi) > 0.0)
@@ -252,7 +252,7 @@ def horizon_terms(si, active, cones: ConeState, horizon: bool):
     with ``horizon``; 0 if not live) and whether its cap lies wholly below the horizon;
     their sum, and per pixel whether every live cone has the closed form (``cones_ok``)
     and lies wholly above the horizon with a margin (``clear``). See
-    :func:`slc.methods.cones.shading.shade_kernel`."""
+    :func:`slc.lib.cones.shading.shade_kernel`."""
     K, A, L, Dw, live, delta, h = cones.K, cones.alpha, cones.L, cones.axis, cones.live, cones.dirac, cones.h
     sin_a, cos_a = cones.sin_alpha, cones.cos_alpha
     nrm = si.sh_frame.n

@@ -77,7 +77,7 @@ def vector_irradiance(table, p: mi.Point3f, idx: mi.UInt32, active: mi.Bool, rec
     rows of the emitter table; a rectangle's one row) that face ``p``, clipped to the half space
     of ``n``, and the light's radiance. ``warp``: a map applied
     to the vectors from ``p`` to the corners before the formula (the LTC's ``M^-1`` in
-    :mod:`slc.methods.adaptive.polygon_ltc`). ``rects``: the scene has rectangle lights (else
+    :mod:`slc.lib.lights.polygon_ltc`). ``rects``: the scene has rectangle lights (else
     every polygon is a triangle: three corners, no zero-length fourth edge, whose fused cross
     product is a rounding error, not 0). The sum runs clockwise from the emitting side."""
     seg = dr.gather(mi.Point2f, table._seg, idx, active)

@@ -1,4 +1,4 @@
-r"""Projection of radiance onto an :class:`~slc.methods.sh.ycocg.Encoding` and
+r"""Projection of radiance onto an :class:`~slc.lib.sh.ycocg.Encoding` and
 reconstruction of irradiance and radiance from its coefficients.
 
 Projection of one radiance sample arriving from direction :math:`\omega`
@@ -18,7 +18,7 @@ normal n by the closed-form cosine convolution (Ramamoorthi and Hanrahan
 converted back to RGB. ``presence`` scales Y and ``bleeding`` scales Co
 and Cg (the paper's artistic controls; 1 = physically based). Negative
 values, from ringing of the truncated series (at most
-:func:`~slc.methods.sh.basis.ringing_bound` times the total incident power for 3
+:func:`~slc.lib.sh.basis.ringing_bound` times the total incident power for 3
 bands), are clamped to 0 after the conversion to RGB.
 
 Coefficients are a list of ``enc.n`` arrays (one per coefficient, laid out
@@ -26,8 +26,8 @@ channel by channel). All functions work on Dr.Jit and numpy arrays.
 """
 from __future__ import annotations
 
-from slc.methods.sh.basis import A_HAT, band_of, basis
-from slc.methods.sh.ycocg import Encoding, encoding
+from slc.lib.sh.basis import A_HAT, band_of, basis
+from slc.lib.sh.ycocg import Encoding, encoding
 
 
 def _max0(x):

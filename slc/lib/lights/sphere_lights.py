@@ -38,7 +38,7 @@ import mitsuba as mi
 import numpy as np
 
 from slc.core.freeze import device_array
-from slc.methods.adaptive.polygon_lights import PolygonLights
+from slc.lib.lights.polygon_lights import PolygonLights
 from slc.scene import emitter_sampling
 from slc.scene.emitter_table import constant_rgb   # a constant radiance value as RGB, or None
 
@@ -56,7 +56,7 @@ class SphereLights:
     ``max_sin`` (0.3): largest :math:`r/d` at which a sphere counts as small at a point;
     ``spheres`` (True): list sphere lights; ``polygons`` (False): list the rectangles and
     small emitter meshes that are not spheres as polygon lights
-    (:class:`~slc.methods.adaptive.polygon_lights.PolygonLights`, listed at any size: their
+    (:class:`~slc.lib.lights.polygon_lights.PolygonLights`, listed at any size: their
     irradiance is exact)."""
 
     def __init__(self, scene, max_sin: float = 0.3, spheres: bool = True, polygons: bool = False):

@@ -3,7 +3,7 @@
 inserted one at a time (:func:`update_cycle`, with an optional :class:`SampleObserver` that reads
 them), the shrink-test rays (:func:`shrink_test`, with the shortcut for constant area emitters,
 :func:`constant_area_emitters`) and the close of the cycle, packed. Built from the operations of
-:mod:`slc.methods.cones.update`; shared by ``slc`` (through
+:mod:`slc.lib.cones.update`; shared by ``slc`` (through
 :func:`slc.methods.cones.update_kernel.update_entries`) and the adaptive cache's cone pool."""
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.core.keys import STREAM_CONE_UPDATE, keyed_rng
-from slc.methods.cones.packing import pack
-from slc.methods.cones.update import (ConeParams, cone_direction, empty_state, end_cycle, frame_rng, frame_u32,
+from slc.lib.cones.packing import pack
+from slc.lib.cones.update import (ConeParams, cone_direction, empty_state, end_cycle, frame_rng, frame_u32,
                                       insert_sample, normalize_cosine_sums, shrink_step)
 from slc.scene.lights import sample_light
 
@@ -124,7 +124,7 @@ class CycleEntries:
     """The per-entry inputs of one update cycle (one lane per entry): ``key`` (the
     entry's random-number and shrink-schedule key), ``si`` (its surface point and
     frame), ``rays`` (light samples this cycle), ``unsettled`` (the ray policy's
-    flag), ``moving`` (C capped, see :func:`slc.methods.cones.update.end_cycle`), ``fresh`` (the entry
+    flag), ``moving`` (C capped, see :func:`slc.lib.cones.update.end_cycle`), ``fresh`` (the entry
     restarts: new, or a record converted from elsewhere), ``first_sample`` (the
     index of the cycle's first sample in the entry's stratified sequence) and
     ``strata`` (the samples continue that sequence; false: a per-frame one)."""
@@ -179,7 +179,7 @@ class SampleObserver:
 def update_cycle(scene, state, entries: CycleEntries, frame, seed, p: ConeParams, seeded=None,
                  valid=None, observer: SampleObserver | None = None, area_only: bool = False):
     """One update cycle of unpacked cone records ``state = (D, A, L, C, n)``
-    (one lane per entry, as :func:`slc.methods.cones.packing.unpack` returns it) with
+    (one lane per entry, as :func:`slc.lib.cones.packing.unpack` returns it) with
     the per-entry inputs ``entries`` (:class:`CycleEntries`), in stages that share the cone
     state: fresh entries restart empty, or where ``seeded`` from ``state``, which holds their
     LOD seed's record there (its C capped at ``seed_c_max``; :func:`_reset`); ``rays`` light

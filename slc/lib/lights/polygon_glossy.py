@@ -1,7 +1,7 @@
 r"""Glossy shading of polygon lights without shadow rays (docs/adaptive.md, "Polygon lights").
 
 A VISIBILITY record lists a polygon light with its visible fraction :math:`v`; a Lambertian
-pixel gets the light's exact irradiance :math:`E` (:mod:`slc.methods.adaptive.polygon_lights`),
+pixel gets the light's exact irradiance :math:`E` (:mod:`slc.lib.lights.polygon_lights`),
 other BSDFs see the light as a point along its vector irradiance :math:`\mathbf d`. That is
 wrong for a lobe that is narrow against the light: at a pixel :math:`y` whose BSDF's peak density
 (at the mirror direction) times the light's solid angle :math:`\Omega` exceeds ``tau``, the

@@ -2,7 +2,7 @@
 A-D), the end of an update cycle (C reduction, C increment, running mean of the radiance), and
 the shrink of cones whose shrink test missed (moving / vanished lights); with the update's
 parameters (:class:`ConeParams`), per-frame random numbers and cone geometry. One update cycle
-built from them is :mod:`slc.methods.cones.cycle`; the kernel on the packed storage, traced once
+built from them is :mod:`slc.lib.cones.cycle`; the kernel on the packed storage, traced once
 and replayed, :mod:`slc.methods.cones.update_kernel`.
 
 All functions work on *unpacked* cone state held in registers, vectorized
@@ -28,7 +28,7 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.core.keys import mixed_rng
-from slc.methods.cones.conestate import above_mean_cosine
+from slc.lib.cones.conestate import above_mean_cosine
 
 INF = float("inf")
 
@@ -263,7 +263,7 @@ def normalize_cosine_sums(S, D, A, K: int):
     r"""The cycle's cosine-weighted sums ``S_c`` (:attr:`ConeParams.cosine_sums`: each sample
     entered its cone's sum weighted by its cosine to the entry's normal) divided by the mean
     cosine :math:`\bar\mu_c` of the part of cone ``c`` above the horizon
-    (:func:`slc.methods.cones.conestate.above_mean_cosine`; ``D``, ``A`` the cones' axes in the
+    (:func:`slc.lib.cones.conestate.above_mean_cosine`; ``D``, ``A`` the cones' axes in the
     local frame and half-angles as the cycle leaves them). The cone's irradiance at the entry,
     :math:`L_c \bar\mu_c`, is then the samples' own estimate :math:`\sum w \cos\theta / n_s`
     however the caps overlap, where unweighted a cone spreads what the samples near its axis

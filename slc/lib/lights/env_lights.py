@@ -53,7 +53,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from slc.methods.sh.basis import A_HAT, band_of, basis
+from slc.lib.sh.basis import A_HAT, band_of, basis
 
 NONE = 0xFFFFFFFF
 SKY_TOLERANCE = 0.03    # largest error of the sky's SH irradiance (over its mean) at which the sky is listed

@@ -28,11 +28,11 @@ Purely Lambertian pixels use the exact cone integral (no loop):
 integral of the cosine over the part of the cap above it for cones across it.
 Pixels with Mitsuba's ``principled`` BSDF (no clearcoat, sheen, flatness, anisotropy or
 transmission) whose cones have that closed form skip the quadrature too (``principled="sg"``,
-the default; :func:`slc.methods.cones.closedforms._principled_cones`): the diffuse part in closed form with its angular
+the default; :func:`slc.lib.cones.closedforms._principled_cones`): the diffuse part in closed form with its angular
 factor at each cone axis, the GGX lobe as a Gaussian around the mirror direction of which
 each cap holds a fraction; an approximation, measured in docs/cones.md.
 With ``conductor="sg"`` (an option, off by default) isotropic GGX ``roughconductor`` pixels
-get the same Gaussian lobe plus GGX's tail at far cones' axes (:func:`slc.methods.cones.closedforms._conductor_cones`).
+get the same Gaussian lobe plus GGX's tail at far cones' axes (:func:`slc.lib.cones.closedforms._conductor_cones`).
 Each kind of pixel runs in a symbolic branch of its own, and BSDFs without textures are read
 from a per-scene table (:func:`bsdf_table`) instead of virtual calls (same images). Pixels
 seen from behind whose BSDF only reflects and whose cones all lie in front give 0 without
@@ -62,9 +62,9 @@ import mitsuba as mi
 from slc.scene import bsdf_table as bsdf_tables
 from slc.scene.bsdf_table import KIND_DIFFUSE, KIND_OTHER
 from slc.core.freeze import FrozenFunction
-from slc.methods.cones.closedforms import glossy_closed, horizon_terms, lambertian
-from slc.methods.cones.conestate import ShadeOptions, cone_state
-from slc.methods.cones.quadrature import quadrature, samples_px
+from slc.lib.cones.closedforms import glossy_closed, horizon_terms, lambertian
+from slc.lib.cones.conestate import ShadeOptions, cone_state
+from slc.lib.cones.quadrature import quadrature, samples_px
 
 
 def shade_kernel(storage: mi.UInt32, slot: mi.UInt32, active: mi.Bool, si: mi.SurfaceInteraction3f,
@@ -220,10 +220,10 @@ class ConeShading(FrozenFunction):
     ``horizon=True`` (Lambertian pixels whose cones cross the horizon use the exact
     clipped-cap integral; False: they are sampled by the MIS quadrature),
     ``principled="sg"`` (pixels with Mitsuba's ``principled`` BSDF: diffuse part in
-    closed form, specular lobe as a spherical Gaussian, see :func:`slc.methods.cones.closedforms._principled_cones`;
+    closed form, specular lobe as a spherical Gaussian, see :func:`slc.lib.cones.closedforms._principled_cones`;
     ``"sample"``: the MIS quadrature), ``conductor="sample"`` (pixels with an
     isotropic GGX ``roughconductor``: the MIS quadrature; ``"sg"``: the lobe as a spherical
-    Gaussian over each cone, see :func:`slc.methods.cones.closedforms._conductor_cones`; only for scenes whose
+    Gaussian over each cone, see :func:`slc.lib.cones.closedforms._conductor_cones`; only for scenes whose
     roughconductors all use GGX, :func:`shader_for` checks), ``glossy="full"`` (``"half"``:
     pixels whose BSDF is purely glossy, e.g. rough conductors, take half of ``n_samples``
     on the quadrature: faster, noisier, see docs/cones.md), ``compact=True`` (the pixels that
@@ -231,7 +231,7 @@ class ConeShading(FrozenFunction):
     closed-form pixels do not run its loops; False: in a branch of the launch of all pixels;
     the same images bit for bit), ``front_only=False`` (the update took light from above each
     entry's horizon only, ``ConeParams.front_only``: a cone across the horizon spreads its
-    ``L_c`` over its part above it, :func:`slc.methods.cones.conestate.cone_state`).
+    ``L_c`` over its part above it, :func:`slc.lib.cones.conestate.cone_state`).
 
     Freezing pays only while its recordings are replayed. Each instance owns its frozen
     function, so recordings are freed with the method and never shared between scenes.
@@ -304,7 +304,7 @@ def bsdf_table(scene):
 
 def _ggx_conductors_only(scene) -> bool:
     """Whether every ``roughconductor`` of the scene (``slc`` scene or ``mi.Scene``) is
-    GGX (the closed form of :func:`slc.methods.cones.closedforms._conductor_cones` assumes it)."""
+    GGX (the closed form of :func:`slc.lib.cones.closedforms._conductor_cones` assumes it)."""
     ms = getattr(scene, "mi_scene", scene)
     for sh in ms.shapes():
         text = str(sh.bsdf()) if sh.bsdf() is not None else ""

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from slc.methods.sh.basis import n_coeffs
+from slc.lib.sh.basis import n_coeffs
 
 
 def rgb_to_ycocg(r, g, b):

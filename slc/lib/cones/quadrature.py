@@ -3,7 +3,7 @@ r"""The MIS quadrature of the cone shading, for the pixels no closed form covers
 (a rank-1 R3 sequence, rotated per pixel) combined by the balance heuristic over all samples of a
 pixel, with the split of the directions between the two strategies by the lobe's width against
 the cones and the per-pixel random numbers. The estimator is derived in the docstring of
-:mod:`slc.methods.cones.shading` and in docs/cones.md."""
+:mod:`slc.lib.cones.shading` and in docs/cones.md."""
 from __future__ import annotations
 
 import math
@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from slc.methods.cones.conestate import ConeState, ShadeOptions
+from slc.lib.cones.conestate import ConeState, ShadeOptions
 
 GOLDEN = 0.6180339887498949           # 1 / phi: azimuths of the spherical-Fibonacci pattern
 R3 = 1.2207440846057596               # plastic constant of the 3-D Roberts (R3) sequence

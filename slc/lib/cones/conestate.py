@@ -2,7 +2,7 @@
 gathered from the packed storage and unpacked by :func:`cone_state` into a :class:`ConeState`
 (per cone the axis in world space, the half-angle, the radiance and the quantities the closed
 forms and the quadrature share: live, Dirac, solid angle, density), and :class:`ShadeOptions`,
-the choices of a :class:`slc.methods.cones.shading.ConeShading` (part of a frozen recording's
+the choices of a :class:`slc.lib.cones.shading.ConeShading` (part of a frozen recording's
 key). See docs/cones.md for what a cone's radiance means."""
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from slc.methods.cones.packing import gather_words, unpack
+from slc.lib.cones.packing import gather_words, unpack
 
 ALPHA_DELTA = 1e-3                    # rad; narrower cones are Dirac cones (as in ConeParams.alpha_delta)
 
@@ -45,7 +45,7 @@ class ConeState:
 @dataclass(frozen=True)
 class ShadeOptions:
     """The shading's choices (part of a frozen recording's key), see
-    :class:`slc.methods.cones.shading.ConeShading`:
+    :class:`slc.lib.cones.shading.ConeShading`:
     ``max_cones``, ``adaptive``, ``rotate``, ``horizon``, ``principled`` and ``conductor``
     (closed forms on), ``glossy_half``, ``compact``, ``front_only`` (:func:`cone_state`)."""
     max_cones: int

@@ -14,7 +14,7 @@ the table ``ltc_ggx.npz``), and replaces the lobe's point term by its integral o
           \int_{\Omega_L} D_M\, d\omega = \frac1\pi\, \hat z \cdot \mathbf F(M^{-1} \Omega_L),
 
 the second integral Lambert's formula over the light's triangles transformed by :math:`M^{-1}`
-and clipped to the upper hemisphere (:func:`slc.methods.adaptive.polygon_lights.vector_irradiance`).
+and clipped to the upper hemisphere (:func:`slc.lib.lights.polygon_lights.vector_irradiance`).
 The scale :math:`A` (RGB: Fresnel and albedo) is calibrated at the pixel from one BSDF
 evaluation at the LTC's peak direction :math:`\omega^* = M\hat z / |M \hat z|` (the mirror
 direction where that is below the horizon): :math:`A = f_g \cos(\omega^*) / D_M(\omega^*)`,
@@ -35,7 +35,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from slc.methods.adaptive.polygon_lights import vector_irradiance
+from slc.lib.lights.polygon_lights import vector_irradiance
 from slc.scene.bsdf_table import ALPHA_TEXTURED
 from slc.scene.emitter_table import ROW, ROW_L
 

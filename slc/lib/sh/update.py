@@ -26,7 +26,7 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.scene.lights import sample_light, visible
-from slc.methods.sh.project import project
+from slc.lib.sh.project import project
 
 
 def world_frame() -> mi.Frame3f:
@@ -50,7 +50,7 @@ def project_samples(scene: mi.Scene, si: mi.SurfaceInteraction3f, frame: mi.Fram
     """The sums over ``rays`` light samples per entry (points ``si``, lanes ``valid``) of
     their projections onto ``enc``'s basis, directions in ``frame``: (list of ``enc.n``
     arrays, the observer's state). ``observer`` (a
-    :class:`slc.methods.cones.cycle.SampleObserver`, optional) sees every sample with its
+    :class:`slc.lib.cones.cycle.SampleObserver`, optional) sees every sample with its
     direction in ``frame``. Light below the surface's horizon is dropped, except on the
     ``two`` lanes (entries on two-sided BSDFs, :func:`slc.scene.bsdf_table.two_sided`; None:
     none), whose pixels on the back see it. The horizon is the geometric normal's, turned to
