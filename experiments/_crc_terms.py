@@ -5,6 +5,17 @@ experiment's module (its configuration specs and run settings)."""
 from __future__ import annotations
 
 import contextlib
+import statistics
+
+import mitsuba as mi
+import numpy as np
+
+from slc import methods
+from slc.methods.crc.bounces import front_normal
+from slc.methods.crc.quality import delta_e76
+from slc.reference.metrics import lab_rmse
+from slc.reference.references import image_of, reference_for
+from slc.run.pipeline import gbuffers_for, run_sequence
 
 #: the error terms: sample multiplier of the low-noise runs
 TERMS_SAMPLES = 4
@@ -25,8 +36,6 @@ LUMA = (0.2126, 0.7152, 0.0722)
 
 def last_image(c, scene, viewers, spec: str, W: int, H: int, frames: int, seed: int):
     """(method, G-buffer, indirect image) of the last of ``frames`` frames."""
-    from slc import methods
-    from slc.run.pipeline import gbuffers_for, run_sequence
     m = methods.create(spec, scene, seed=seed)
     res = run_sequence(scene, m, viewers, c.run_config(W, H, frames, 0))
     gb = gbuffers_for(scene, viewers, frames - 1, W, H)[0]
@@ -43,11 +52,6 @@ def error_terms(c, scene, viewers, nb: int, common: dict, W: int, H: int, frames
     interpolation (1 bounce: the grid against the estimator at each shaded point's own lookup
     point, both at the high samples); reference noise (``ref_spp`` against 4x); RGB3 and the
     unfiltered estimator against the reference."""
-    import mitsuba as mi
-    import numpy as np
-
-    from slc.reference.metrics import lab_rmse
-    from slc.reference.references import image_of, reference_for
     f = frames - 1
 
     def last(seed_=seed, **kw):
@@ -108,15 +112,6 @@ def moving(c, scene, viewers, nb: int, common: dict, W: int, H: int, frames: int
     builds the scroll kernel); errors at the last frame (composited, Lab RMSE): each against
     the reference over the image and over the pixels inside the window, and the two caches
     against each other inside the window."""
-    import statistics
-
-    import numpy as np
-
-    from slc import methods
-    from slc.methods.crc.bounces import front_normal
-    from slc.reference.metrics import lab_rmse
-    from slc.run.pipeline import gbuffers_for, run_sequence
-    from slc.reference.references import reference_for
     window = max(4, int(round(common["resolution"] * MOVING["window_fraction"])))
     sp_cam = c.spec_of({**common, "bounces": nb, "volume": "camera", "window": window, "ahead": MOVING["ahead"]})
     ms = methods.create(c.spec_of({**common, "bounces": nb}), scene, seed=seed)
@@ -168,7 +163,6 @@ def light_names(scene) -> list[str]:
 def only_light(scene, k: int):
     """Inside the block every emitter of ``scene`` but the ``k``-th is off (its
     :data:`LIGHT_PARAMS` are 0); they are restored on leaving it."""
-    import mitsuba as mi
     saved = []
     try:
         for i, e in enumerate(scene.mi_scene.emitters()):
@@ -198,11 +192,6 @@ def attribution(c, scene, viewers, nb: int, common: dict, W: int, H: int, frame:
     indirect light is compressed (both caches re-run with the other lights off; the offset
     decoding is linear in the coefficients and the coefficients in the lights, so the lights'
     differences add up to the whole but for the clamp of negative irradiance to 0)."""
-    import numpy as np
-
-    from slc.methods.crc.quality import delta_e76
-    from slc.reference.metrics import lab_rmse
-    from slc.run.pipeline import gbuffers_for
     ex, fin = scene.exposure, y333["final"]
     luma = np.asarray(LUMA)
     de2 = delta_e76(fin, y311["final"], ex) ** 2

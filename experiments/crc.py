@@ -60,7 +60,23 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:  # runnable alone
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from slc.run import experiment, pipeline  # noqa: E402 (after the path of a standalone run)
+import dataclasses  # noqa: E402 (after the path of a standalone run)
+import statistics  # noqa: E402
+
+import numpy as np  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from slc import methods  # noqa: E402
+from slc.core.errors import MethodError  # noqa: E402
+from slc.core.spec import parse_spec  # noqa: E402
+from slc.methods.crc.cache import CRCCache  # noqa: E402
+from slc.methods.crc.grid import Grid  # noqa: E402
+from slc.methods.crc.quality import pdiff  # noqa: E402
+from slc.reference.metrics import evaluate  # noqa: E402
+from slc.reference.references import reference_for  # noqa: E402
+from slc.run import experiment, pipeline  # noqa: E402
+from slc.run.pipeline import RunConfig, run_sequence  # noqa: E402
+from slc.scene import views  # noqa: E402
 
 NAME = "crc"
 
@@ -115,10 +131,9 @@ def spec_of(settings: dict) -> str:
 def _extra_specs(specs, nb: int, common: dict) -> list[dict]:
     """``--methods`` specs as settings, with the experiment's bounces and
     resolution unless the spec sets them."""
-    from slc import methods
     out = []
     for spec in specs or []:
-        name, settings = methods.parse_spec(spec)
+        name, settings = parse_spec(spec, "method setting", MethodError)
         if name != "crc":
             raise methods.MethodError(f"the crc experiment runs the crc method only (got '{spec}')")
         out.append({**common, "bounces": nb, "variant": "extra", **settings})
@@ -127,7 +142,6 @@ def _extra_specs(specs, nb: int, common: dict) -> list[dict]:
 
 def run_config(W: int, H: int, frames: int, warmup: int, **kw):
     """A run of ``frames`` frames, nothing evaluated (the experiment compares images itself)."""
-    from slc.run.pipeline import RunConfig
     return RunConfig(width=W, height=H, frames=frames, warmup=warmup, eval_frames=[], measure_overlap=False, **kw)
 
 
@@ -144,9 +158,6 @@ def _stage_frames(res, warmup: int) -> list[dict]:
 def _profile(scene, viewers, specs: list[str], W: int, H: int, frames: int, warmup: int, seed: int) -> dict:
     """{spec: {stage: (min ms, median ms)}} over the frames >= warmup of
     ``PROFILE_REPEATS`` runs of each, in turn (A B, B A, ...: load changes hit all alike)."""
-    import statistics
-
-    from slc.run import experiment
     runs = experiment.runs_in_turn(scene, [(sp, viewers) for sp in specs], run_config(W, H, frames, warmup),
                                    PROFILE_REPEATS, seed)
     out = {}
@@ -160,7 +171,6 @@ def _profile(scene, viewers, specs: list[str], W: int, H: int, frames: int, warm
 def _profile_rows(scene_name: str, nb: int, prof: dict, specs: dict) -> list[dict]:
     """Rows (one per stage and the sums) with the ms of each encoding and the
     ratio to RGB3, for the minimum and the median over frames."""
-    from slc.methods.crc.cache import CRCCache
     groups = {"coefficient stages": CRCCache.COEFFICIENT_STAGES, "fixed stages": CRCCache.FIXED_STAGES}
     stages = [k for k in CRCCache.FIXED_STAGES + CRCCache.COEFFICIENT_STAGES if k in prof[specs["rgb3"]]]
     rows = []
@@ -184,8 +194,6 @@ def _along_path(scene, viewer, spec: str, W: int, H: int, positions: int, seed: 
     """Fig. 5: depth occupancy ratio and first-bounce ms at ``positions`` viewer positions
     spread over the camera path (3 frames at each, the last one timed; the run resets the
     cache)."""
-    from slc import methods
-    from slc.run.pipeline import run_sequence
     m = methods.create(spec, scene, seed=seed)
     path = getattr(viewer.pose, "__self__", None)
     n = int(getattr(path, "n_frames", 0) or 0) or 600
@@ -204,8 +212,6 @@ def _along_path(scene, viewer, spec: str, W: int, H: int, positions: int, seed: 
 def _sweep(scene, viewers, resolutions, W: int, H: int, seed: int) -> list[dict]:
     """Fig. 10: stage ms (minimum of 3 frames after 2 warm-up) against the
     CRC resolution; Y3Co1Cg1, 2 bounces."""
-    from slc import methods
-    from slc.run.pipeline import run_sequence
     rows = []
     for r in resolutions:
         m = methods.create(f"crc:resolution={r},bounces=2", scene, seed=seed)
@@ -222,7 +228,6 @@ def _sweep(scene, viewers, resolutions, W: int, H: int, seed: int) -> list[dict]
 # ---------------------------------------------------------------------------
 
 def _preset(opts) -> dict:
-    from slc.run import experiment
     preset = dict(QUICK if opts.quick else FULL)
     if opts.res:
         w, _, h = opts.res.lower().partition("x")
@@ -255,15 +260,6 @@ def _table1_row(s, c: dict, m, viewers, cfg, preset, bar, seed: int):
     and its images per evaluated frame ({frame: {"direct", "indirect", "final", "indirect_ref",
     "final_ref"}}: the ground-truth direct light, the cache's indirect light, their sum, the
     path-traced indirect reference and direct + that reference)."""
-    import dataclasses
-
-    import numpy as np
-
-    from slc.run import experiment
-    from slc.methods.crc.grid import Grid
-    from slc.methods.crc.quality import pdiff
-    from slc.reference.metrics import evaluate
-    from slc.reference.references import reference_for
     images = {}
 
     def on_eval(f, v, gb, img, ref):
@@ -335,12 +331,6 @@ def _figures(s, viewers, first: bool, common: dict, preset: dict, out: Path, see
 
 
 def run(opts) -> dict:
-    from tqdm import tqdm
-
-    from slc import methods
-
-    from slc.scene import views
-    from slc.run.pipeline import RunConfig
     report = experiment.load_part("crc_report")
     preset = _preset(opts)
     W, H = preset["width"], preset["height"]

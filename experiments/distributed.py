@@ -22,11 +22,15 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import os  # noqa: E402 (after the path of a standalone run)
+
+from slc import methods  # noqa: E402
+from slc.core import io  # noqa: E402
 from slc.distributed import DEFAULT_BOOTSTRAP, DEFAULT_LEASE, DEFAULT_THRESHOLD  # noqa: E402
 from slc.distributed.node import KINDS  # noqa: E402
 from slc.distributed.rig import Strategy  # noqa: E402
 from slc.distributed.run import LINKS, Processes, RigRun, flips, poses_of, row, run_strategy  # noqa: E402
-from slc.run import experiment as ex  # noqa: E402
+from slc.run import experiment as ex, plots  # noqa: E402
 from slc.run.errors import ExperimentError  # noqa: E402
 from slc.scene import views  # noqa: E402
 from slc.scene.camera import Viewer  # noqa: E402
@@ -147,22 +151,21 @@ class _Procs:
 
     def close(self) -> None:
         if self.own_ray:
-            import ray
+            import ray  # Ray: only when the nodes are processes (not --in-process)
             ray.shutdown()
 
 
 def _processes(opts, scene, name: str, n_nodes: int) -> _Procs:
     if opts.in_process:
         return _Procs(Processes(scene, name, n_nodes, ray_nodes=False), False)
-    import os
-    from slc.distributed.actors import start_ray
+    from slc.distributed.actors import start_ray  # imports Ray: only when the nodes are processes
     threads = opts.threads or max((os.cpu_count() or 1) // n_nodes, 1)
     own = start_ray(n_nodes, opts.address)
     try:
         return _Procs(Processes(scene, name, n_nodes, ray_nodes=True, threads=threads), own)
     except Exception:
         if own:
-            import ray
+            import ray  # Ray: only when the nodes are processes
             ray.shutdown()
         raise
 
@@ -173,7 +176,6 @@ def _rig_rows(s, procs, vs: list, run_: RigRun, n_nodes: int, strats: list, extr
     poses = poses_of(vs, run_.frames)
     print(f"{NAME}: {extra['scene']} {extra['method']} {extra['rig']} {extra['overlap']} {extra['camera']} "
           f"{n_nodes} nodes", file=sys.stderr, flush=True)
-    from slc import methods
     output = methods.create(run_.spec, s).output
     runs = [(Strategy("single"), 1)] + ([(Strategy("independent"), n_nodes)] if extra["block"] == "main" else [])
     runs += [(st, n_nodes) for st in strats]
@@ -326,10 +328,7 @@ def _targets(main: list, n_nodes: int, n_view: int) -> str:
 def _figures(out: Path, rows: list, images: dict) -> None:
     """FLIP against the delay per latency hiding (moving cameras), and viewer 0's last frame under
     the single cache and sparse updates at the largest delay without and with both hidings."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from slc.core import io
+    plt = plots.pyplot()
     main = [r for r in rows if r["block"] == "main" and r["strategy"] == "sparse" and r["camera"] == "moving"
             and not r["variant"]]
     keys = sorted({_key(r) for r in main}, key=str)
@@ -354,6 +353,5 @@ def _figures(out: Path, rows: list, images: dict) -> None:
 
 def _strips(out: Path, rows: list, images: dict) -> None:
     """Viewer 0's last frame per moving rig and strategy: ground truth | image | FLIP map."""
-    from slc.core import io
     for (rig, overlap, label), (gt, img, fmap, exposure) in images.items():
         io.comparison_strip(out / "images" / f"{rig}{overlap or ''}_moving_{label}_v0.png", gt, img, fmap, exposure)

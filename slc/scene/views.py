@@ -19,6 +19,8 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 from slc.scene.camera import Camera, Viewer
@@ -120,7 +122,6 @@ def _scene_window(scene: Scene, p) -> tuple[float, float, float, float]:
     """(x0, x1, y0, y1): the part of the path's first view that shows the front of
     a surface, in tangent units of the camera's basis (x right, y up), from a
     G-buffer at ``CALIBRATION_RES``."""
-    import mitsuba as mi
     cam = p.at(0)
     w, h = CALIBRATION_RES
     gb = render_gbuffer(scene, cam, w, h, None, "window")
@@ -304,8 +305,6 @@ def meeting(scene: Scene, n: int, radius: float | None = None, height: float | N
 def inside_geometry(scene: Scene, p, n_dirs: int = 64) -> bool:
     """Whether point ``p`` is enclosed by geometry: more than half of
     ``n_dirs`` fixed directions hit a surface from its back side."""
-    import drjit as dr
-    import mitsuba as mi
     d = np.random.default_rng(7).normal(size=(n_dirs, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     o = np.broadcast_to(np.asarray(p, float), d.shape)
