@@ -17,6 +17,7 @@ the frames after the warm-up; FLIP on the last frame over all viewers.
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 if __name__ == "__main__" and __package__ is None:
@@ -98,6 +99,17 @@ def strategies(delays: list, opts) -> list:
     return out
 
 
+@dataclass(frozen=True)
+class _RigCase:
+    """One rig of the run: ``rig`` (overlap or random) at ``overlap`` percent (overlap rigs),
+    ``camera`` (moving or static), its viewers spread over ``nodes`` nodes."""
+    rig: str
+    overlap: float | None
+    camera: str
+    nodes: int
+    viewers: int
+
+
 def run(opts):
     pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
     n_nodes, n_view = opts.nodes or pr["nodes"], opts.viewers or pr["viewers"]
@@ -113,16 +125,16 @@ def run(opts):
         try:
             for spec in specs:
                 run_ = RigRun(pr["width"], pr["height"], pr["frames"], pr["warmup"], spec, opts.seed)
-                rigs = [("overlap", o, c, n_nodes, n_view) for o in pr["overlaps"] for c in pr["cameras"]]
-                rigs += [("random", None, c, n_nodes, n_view) for c in pr["cameras"]]
-                rigs += [("random", None, "moving", k, k * per_node) for k in scale]
-                for rig, overlap, cam, k, nv in rigs:
-                    base = (views.overlap_rig(s, nv, overlap / 100.0, aspect=pr["width"] / pr["height"])
-                            if rig == "overlap" else random_viewers(s, nv, seed=opts.seed))
-                    vs = _static(base) if cam == "static" else base
-                    extra = {"scene": s.name, "method": spec, "rig": rig, "overlap": overlap, "camera": cam,
-                             "block": "scale" if k != n_nodes else "main"}
-                    rows += _rig_rows(s, procs, vs, run_, k, strategies(delays, opts) if k == n_nodes
+                rigs = [_RigCase("overlap", o, c, n_nodes, n_view) for o in pr["overlaps"] for c in pr["cameras"]]
+                rigs += [_RigCase("random", None, c, n_nodes, n_view) for c in pr["cameras"]]
+                rigs += [_RigCase("random", None, "moving", k, k * per_node) for k in scale]
+                for r in rigs:
+                    base = (views.overlap_rig(s, r.viewers, r.overlap / 100.0, aspect=pr["width"] / pr["height"])
+                            if r.rig == "overlap" else random_viewers(s, r.viewers, seed=opts.seed))
+                    vs = _static(base) if r.camera == "static" else base
+                    extra = {"scene": s.name, "method": spec, "rig": r.rig, "overlap": r.overlap, "camera": r.camera,
+                             "block": "scale" if r.nodes != n_nodes else "main"}
+                    rows += _rig_rows(s, procs, vs, run_, r.nodes, strategies(delays, opts) if r.nodes == n_nodes
                                       else [Strategy("sparse", 0, opts.threshold, opts.lease)], extra, images)
         finally:
             procs.close()
