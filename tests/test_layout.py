@@ -223,3 +223,20 @@ def test_long_functions_say_why():
 def test_each_method_folder_registers_by_convention(folder):
     assert (PKG / "methods" / folder / "method.py").is_file(), \
         f"slc/methods/{folder}/ has no method.py (methods are found as slc/methods/<folder>/method.py)"
+
+
+MAX_FN_IMPORTS = 40
+
+
+def test_few_function_level_imports():
+    """Imports sit at module level (importing slc chooses no Mitsuba variant, so nothing waits for
+    one): at most ``MAX_FN_IMPORTS`` imports inside functions in slc/ and experiments/ together,
+    for what must wait (Ray, matplotlib's backend, a slow optional import, the command line's
+    commands after its variant)."""
+    found = []
+    for p in sorted(_sources()):
+        tree = ast.parse(p.read_text())
+        inner = {id(n): n for fn in ast.walk(tree) if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef))
+                 for n in ast.walk(fn) if isinstance(n, (ast.Import, ast.ImportFrom))}
+        found += [f"{p.relative_to(ROOT)}:{n.lineno}" for n in inner.values()]
+    assert len(found) <= MAX_FN_IMPORTS, f"{len(found)} function-level imports:\n" + "\n".join(sorted(found))

@@ -261,7 +261,8 @@ def ratio(a, b):
 
 def runs_in_turn(scene, cases, cfg, repeats: int = 3, seed: int = 0, alternate: bool = True,
                  first_cfg=None, before=None) -> list[list]:
-    """Run ``cases`` ((method spec, viewers) pairs) again, in turn: ``repeats``
+    """Run ``cases`` ((method, viewers) pairs; the method a spec, or a function that makes a new
+    one, its settings as data) again, in turn: ``repeats``
     repetitions of every case, each a whole :func:`slc.run.pipeline.run_sequence` of
     ``cfg`` with a new method instance; with ``alternate`` every other repetition
     runs the cases in reverse order (a load that drifts during the repetitions
@@ -278,7 +279,8 @@ def runs_in_turn(scene, cases, cfg, repeats: int = 3, seed: int = 0, alternate: 
                 before(i)
             spec, viewers = cases[i]
             c = first_cfg if rep == 0 and first_cfg is not None else cfg
-            out[i].append(run_sequence(scene, methods.create(spec, scene, seed=seed), viewers, c))
+            m = spec() if callable(spec) else methods.create(spec, scene, seed=seed)
+            out[i].append(run_sequence(scene, m, viewers, c))
     return out
 
 
