@@ -84,7 +84,7 @@ def _layer(mod: str) -> tuple[str, str | None]:
     """(layer, method folder or None) of a module name."""
     parts = mod.split(".")
     if len(parts) == 1:
-        return "run", None             # slc/__init__.py selects the variant: it may import core only
+        return "run", None             # slc/__init__.py points Dr.Jit at libLLVM: it may import core only
     top = parts[1]
     if top == "methods":
         return ("method", parts[2]) if len(parts) > 2 else ("methods", None)
