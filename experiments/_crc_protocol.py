@@ -6,6 +6,12 @@ sampling, settings and frames. The choices where the paper's text is vague are s
 docs/sh-crc.md."""
 from __future__ import annotations
 
+import numpy as np
+
+from slc.methods.crc.quality import de76_fraction, pdiff
+from slc.reference.metrics import lab_rmse
+from slc.reference.references import exposure_for
+
 #: the paper's two measures, each of two images against two references (row fields
 #: ``{measure}_{image}`` against Y3Co3Cg3 and ``{measure}_{image}_vs_rgb3`` against RGB3)
 PROTOCOL = dict(measures=("lab_rmse", "pdiff"), images=("final", "indirect"), references=("y3co3cg3", "rgb3"))
@@ -30,7 +36,6 @@ def field_name(measure: str, image: str, reference: str) -> str:
 def exposure_of(image: str, scene, reference) -> float:
     """Exposure of a compared image: the scene's for the final frame; for the indirect light
     alone 0.8 / the 99th percentile of the reference's luminance (as the pipeline shows it)."""
-    from slc.reference.references import exposure_for
     return exposure_for("indirect" if image == "indirect" else "full", scene, reference)
 
 
@@ -39,10 +44,6 @@ def compare(group: list[dict], images: list[dict], scene) -> None:
     Y3Co3Cg3 and RGB3 rows (same sampling, settings and frames; None without such a row),
     averaged over the evaluated frames; the share of pixels with CIE76 dE > 2.3 in the final
     frame against Y3Co3Cg3; the time against RGB3 and the unoptimized cache."""
-    import numpy as np
-
-    from slc.methods.crc.quality import de76_fraction, pdiff
-    from slc.reference.metrics import lab_rmse
     fns = {"lab_rmse": lab_rmse, "pdiff": pdiff, "de76_fraction": de76_fraction}
 
     def measure(fn, b, im, image):

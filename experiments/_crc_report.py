@@ -2,7 +2,12 @@
 figures. ``c`` is the experiment's module (its constants)."""
 from __future__ import annotations
 
-from slc.run import experiment
+import numpy as np
+
+from slc.core import io
+from slc.methods.crc.cache import CRCCache
+from slc.reference.references import exposure_for
+from slc.run import experiment, plots
 
 
 def _f(v, fmt="{:.2f}"):
@@ -67,7 +72,6 @@ def _against(c, rows) -> str:
 
 def _profile(c, prof_rows) -> str:
     encs = [e for e in c.PROFILED if e != "rgb3"]
-    from slc.methods.crc.cache import CRCCache
     stage_names = set(CRCCache.FIXED_STAGES + CRCCache.COEFFICIENT_STAGES)
     md = ("\n## Stage profile (encodings side by side)\n\nms per frame, minimum (median) over the profiled frames "
           f"after warm-up of {c.PROFILE_REPEATS} runs of each encoding, run in turn (A B, B A, ...; the same frames). "
@@ -98,7 +102,6 @@ def _figs(path_rows, sweep_rows) -> str:
             md += (f"| {p['scene']} | {p['position'] + 1} | {p['frame']} | {p['occupancy_ratio']:.3f} | "
                    f"{p['active_cells']} | {p['bounce1_ms']:.2f} | {p['total_ms']:.2f} |\n")
     if sweep_rows:
-        from slc.methods.crc.cache import CRCCache
         st = [k for k in CRCCache.FIXED_STAGES + CRCCache.COEFFICIENT_STAGES if any(k in r for r in sweep_rows)]
         md += ("\n## Fig. 10: stage ms against the CRC resolution (2 bounces, Y3Co1Cg1, min of 3 frames)\n\n"
                "| scene | resolution | cells | occupancy | " + " | ".join(st) + " | total | voxelize (once) |\n|"
@@ -269,16 +272,12 @@ def _targets(rows, prof_rows, preset, names, term_rows, moving_rows, att_rows=()
 # ---------------------------------------------------------------------------
 
 def _figure(ncols: int, size):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = plots.pyplot()
     return plt.subplots(1, ncols, figsize=size)
 
 
 def _save(path, fig, title: str, fontsize: int = 9) -> None:
-    import matplotlib.pyplot as plt
-
-    from slc.core import io
+    plt = plots.pyplot()
     fig.suptitle(title, fontsize=fontsize)
     fig.tight_layout()
     io.write_figure(path, fig, dpi=120)
@@ -305,7 +304,6 @@ def plot(path, rows, title):
 
 def _strip(path, panels, exposure, title):
     """Fig. 9: tone-mapped images side by side, titles with their errors."""
-    from slc.core import io
     fig, axes = _figure(len(panels), (2.6 * len(panels), 2.0))
     for ax, (label, img) in zip(axes, panels):
         ax.imshow(io.tonemap(img, exposure))
@@ -345,14 +343,12 @@ def plot_sweep(path, rows, title):
 
 def _stages(rows) -> list[str]:
     """The cache's stages that ``rows`` have, in the cache's order."""
-    from slc.methods.crc.cache import CRCCache
     return [k for k in CRCCache.FIXED_STAGES + CRCCache.COEFFICIENT_STAGES if any(k in r for r in rows)]
 
 
 def fig9(c, out, s, nb: int, group: list[dict], images: list[dict]) -> None:
     """The last evaluated frame's final images (reference, RGB3 and the equal-budget encodings)
     and their strip."""
-    from slc.core import io
     stem = out / "images" / f"{file_stem(s.name)}_b{nb}"
     last = max(images[0])
     io.write_hdr_and_png(stem.with_name(stem.name + "_reference"), images[0][last]["final_ref"], s.exposure)
@@ -373,10 +369,6 @@ def protocol_strip(out, s, nb: int, a: dict) -> None:
     """Where Y3Co1Cg1 differs (one attribution row): the final frames of Y3Co3Cg3 and
     Y3Co1Cg1, the CIE76 dE map, the pixels lit mostly by indirect light, and the indirect
     light of both (at the exposure of the indirect comparison)."""
-    import numpy as np
-
-    from slc.core import io
-    from slc.reference.references import exposure_for
     y3, y1 = a["_images"]["y3co3cg3"], a["_images"]["y3co1cg1"]
     ex_ind = exposure_for("indirect", s, y3["indirect"])
     fig, axes = _figure(6, (2.6 * 6, 2.1))

@@ -5,6 +5,17 @@ experiment's module (its configuration specs and run settings)."""
 from __future__ import annotations
 
 import contextlib
+import statistics
+
+import mitsuba as mi
+import numpy as np
+
+from slc.methods.crc.bounces import front_normal
+from slc.methods import FrameContext
+from slc.methods.crc.quality import delta_e76
+from slc.reference.metrics import lab_rmse
+from slc.reference.references import image_of, reference_for
+from slc.run.pipeline import gbuffers_for, run_sequence
 
 #: the error terms: sample multiplier of the low-noise runs
 TERMS_SAMPLES = 4
@@ -23,11 +34,10 @@ LIGHT_PARAMS = ("radiance.value", "intensity.value", "irradiance.value", "scale"
 LUMA = (0.2126, 0.7152, 0.0722)
 
 
-def last_image(c, scene, viewers, spec: str, W: int, H: int, frames: int, seed: int):
-    """(method, G-buffer, indirect image) of the last of ``frames`` frames."""
-    from slc import methods
-    from slc.run.pipeline import gbuffers_for, run_sequence
-    m = methods.create(spec, scene, seed=seed)
+def last_image(c, scene, viewers, config: dict, W: int, H: int, frames: int, seed: int):
+    """(method, G-buffer, indirect image) of the last of ``frames`` frames of the crc method of
+    ``config`` (:func:`make` of the experiment's module ``c``)."""
+    m = c.make(scene, config, seed)
     res = run_sequence(scene, m, viewers, c.run_config(W, H, frames, 0))
     gb = gbuffers_for(scene, viewers, frames - 1, W, H)[0]
     return m, gb, res.last[gb.viewer]
@@ -43,16 +53,10 @@ def error_terms(c, scene, viewers, nb: int, common: dict, W: int, H: int, frames
     interpolation (1 bounce: the grid against the estimator at each shaded point's own lookup
     point, both at the high samples); reference noise (``ref_spp`` against 4x); RGB3 and the
     unfiltered estimator against the reference."""
-    import mitsuba as mi
-    import numpy as np
-
-    from slc.methods import FrameContext
-    from slc.reference.metrics import lab_rmse
-    from slc.reference.references import image_of, reference_for
     f = frames - 1
 
     def last(seed_=seed, **kw):
-        return last_image(c, scene, viewers, c.spec_of({**common, "bounces": nb, **kw}), W, H, frames, seed_)
+        return last_image(c, scene, viewers, {**common, "bounces": nb, **kw}, W, H, frames, seed_)
 
     m0, gb, rgb = last(encoding="rgb3")
     hi = TERMS_SAMPLES * m0.samples
@@ -109,19 +113,9 @@ def moving(c, scene, viewers, nb: int, common: dict, W: int, H: int, frames: int
     builds the scroll kernel); errors at the last frame (composited, Lab RMSE): each against
     the reference over the image and over the pixels inside the window, and the two caches
     against each other inside the window."""
-    import statistics
-
-    import numpy as np
-
-    from slc import methods
-    from slc.methods.crc.bounces import front_normal
-    from slc.reference.metrics import lab_rmse
-    from slc.run.pipeline import gbuffers_for, run_sequence
-    from slc.reference.references import reference_for
     window = max(4, int(round(common["resolution"] * MOVING["window_fraction"])))
-    sp_cam = c.spec_of({**common, "bounces": nb, "volume": "camera", "window": window, "ahead": MOVING["ahead"]})
-    ms = methods.create(c.spec_of({**common, "bounces": nb}), scene, seed=seed)
-    mc = methods.create(sp_cam, scene, seed=seed)
+    ms = c.make(scene, {**common, "bounces": nb}, seed)
+    mc = c.make(scene, {**common, "bounces": nb, "volume": "camera", "window": window, "ahead": MOVING["ahead"]}, seed)
     warm, cfg = 2, c.run_config(W, H, frames, 2, frame_step=MOVING["step"])
     rs, moves = run_sequence(scene, ms, viewers, cfg), _Moves(mc)
     rc = run_sequence(scene, mc, viewers, cfg, progress=moves)
@@ -169,7 +163,6 @@ def light_names(scene) -> list[str]:
 def only_light(scene, k: int):
     """Inside the block every emitter of ``scene`` but the ``k``-th is off (its
     :data:`LIGHT_PARAMS` are 0); they are restored on leaving it."""
-    import mitsuba as mi
     saved = []
     try:
         for i, e in enumerate(scene.mi_scene.emitters()):
@@ -199,11 +192,6 @@ def attribution(c, scene, viewers, nb: int, common: dict, W: int, H: int, frame:
     indirect light is compressed (both caches re-run with the other lights off; the offset
     decoding is linear in the coefficients and the coefficients in the lights, so the lights'
     differences add up to the whole but for the clamp of negative irradiance to 0)."""
-    import numpy as np
-
-    from slc.methods.crc.quality import delta_e76
-    from slc.reference.metrics import lab_rmse
-    from slc.run.pipeline import gbuffers_for
     ex, fin = scene.exposure, y333["final"]
     luma = np.asarray(LUMA)
     de2 = delta_e76(fin, y311["final"], ex) ** 2
@@ -227,8 +215,8 @@ def attribution(c, scene, viewers, nb: int, common: dict, W: int, H: int, frame:
             d, share = y311["indirect"] - y333["indirect"], 1.0
         else:
             with only_light(scene, k):
-                a, b = (last_image(c, scene, viewers, c.spec_of({**common, "bounces": nb, "encoding": e}), W, H,
-                                   frame + 1, seed)[2] for e in ("y3co3cg3", "y3co1cg1"))
+                a, b = (last_image(c, scene, viewers, {**common, "bounces": nb, "encoding": e}, W, H, frame + 1,
+                                   seed)[2] for e in ("y3co3cg3", "y3co1cg1"))
             d, share = b - a, float((a @ luma).sum()) / ind_all
         lights.append({"light": name, "indirect_share": share, "lab_rmse_final_alone": lab_rmse(fin, fin + d, ex)})
     return {"scene": scene.name, "bounces": nb, "frame": frame, "lab_rmse_final": float(np.sqrt(de2.mean())),

@@ -6,7 +6,9 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from slc.core import io
 from slc.run import experiment
+from slc.run.plots import place_labels, pyplot
 
 
 def write(c, out: Path, opts, preset: dict, modes: list, names: list, rows: list, notes: list) -> dict:
@@ -113,12 +115,8 @@ def _summary(c, names, rows) -> list:
 def plots(c, out: Path, rows: list) -> None:
     """The views and resolution sweeps' figures: time and memory per scene and method (``OUT/views.png``,
     ``OUT/resolution.png``)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
-    from slc.core import io
-    from slc.run.plots import place_labels
     for sweep, x, xl in [("views", "views", "views"), ("resolution", "resolution", "map resolution")]:
         fig, axs = plt.subplots(1, 2, figsize=(10, 4))
         marks = []

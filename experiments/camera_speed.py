@@ -22,6 +22,15 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from tqdm import tqdm  # noqa: E402 (after the path of a standalone run)
+
+from slc.run import experiment as ex, plots  # noqa: E402
+from slc.run.experiment import add_common_arguments  # noqa: E402
+from slc.run.images import save_strip  # noqa: E402
+from slc.run.pipeline import run_case  # noqa: E402
+from slc.scene import views  # noqa: E402
+from slc.scene.camera import FPS, TURN_RATE, WALK_SPEED  # noqa: E402
+
 NAME = "camera-speed"
 SPEEDS = [0.25, 0.5, 1.0, 2.0, 4.0]
 FALLBACK_SCENE = "village"      # second scene when ../shared (Sponza) is absent
@@ -33,21 +42,11 @@ METHODS = ["slc", "rt48", "restir"]
 
 
 def add_arguments(p):
-    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
     p.add_argument("--speeds", type=float, nargs="+", help="camera speeds as multiples of walking speed")
 
 
 def run(opts):
-    from tqdm import tqdm
-
-    from slc.run import experiment as ex
-    from slc.run import plots
-    from slc.run.images import save_strip
-    from slc.run.pipeline import run_case
-    from slc.scene import views
-    from slc.scene.camera import FPS, TURN_RATE, WALK_SPEED
-
     pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     if not opts.scene and len(names) < 2 and FALLBACK_SCENE not in names:
         names += ex.load_and_validate([FALLBACK_SCENE], specs, True)
@@ -92,7 +91,6 @@ def run(opts):
 
 def _ratios(rows, names, speeds) -> str:
     """slc against rt48 and restir per speed: FLIP and time ratios."""
-    from slc.run import experiment as ex
     lines = []
     for name in names:
         by = {(r["setting"], r["camera_speed"]): r for r in rows if r["scene"] == name}

@@ -24,6 +24,13 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:  # runnable alone
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from slc.core.timing import stage_table  # noqa: E402 (after the path of a standalone run)
+from slc.run import experiment as ex  # noqa: E402
+from slc.run.experiment import add_common_arguments  # noqa: E402
+from slc.run.images import strip_saver  # noqa: E402
+from slc.run.pipeline import RunConfig  # noqa: E402
+from slc.scene import scenes, views  # noqa: E402
+
 NAME = "corpus"
 FULL = dict(width=320, height=180, frames=120, warmup=10, eval_frames=[59, 119])
 QUICK = dict(width=320, height=180, frames=24, warmup=10, eval_frames=[15, 23])
@@ -32,17 +39,10 @@ RIVALS = ("rt48", "restir", "regir", "slc")      # the column "adaptive vs best 
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
 
 
 def run(opts) -> dict:
-    from slc.core.timing import stage_table
-    from slc.run import experiment as ex
-    from slc.run.images import strip_saver
-    from slc.run.pipeline import RunConfig
-    from slc.scene import scenes, views
-
     preset = ex.apply_common(opts, QUICK if opts.quick else FULL)
     specs = opts.methods or ex.available_methods(METHODS)
     out = Path(opts.out) / NAME

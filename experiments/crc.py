@@ -60,7 +60,24 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:  # runnable alone
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from slc.run import experiment, pipeline  # noqa: E402 (after the path of a standalone run)
+import dataclasses  # noqa: E402 (after the path of a standalone run)
+import functools  # noqa: E402
+import statistics  # noqa: E402
+
+import numpy as np  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from slc import methods  # noqa: E402
+from slc.core.errors import MethodError  # noqa: E402
+from slc.core.spec import parse_spec  # noqa: E402
+from slc.methods.crc.cache import CRCCache  # noqa: E402
+from slc.methods.crc.grid import Grid  # noqa: E402
+from slc.methods.crc.quality import pdiff  # noqa: E402
+from slc.reference.metrics import evaluate  # noqa: E402
+from slc.reference.references import reference_for  # noqa: E402
+from slc.run import experiment, pipeline  # noqa: E402
+from slc.run.pipeline import RunConfig, run_sequence  # noqa: E402
+from slc.scene import views  # noqa: E402
 
 NAME = "crc"
 
@@ -107,18 +124,29 @@ def _configs(bounces: int) -> list[dict]:
     return out
 
 
-def spec_of(settings: dict) -> str:
-    items = {k: v for k, v in settings.items() if k != "variant"}
-    return "crc:" + ",".join(f"{k}={int(v) if isinstance(v, bool) else v}" for k, v in items.items())
+def settings_of(config: dict) -> dict:
+    """The crc method's settings of a configuration (its ``variant`` names the configuration)."""
+    return {k: v for k, v in config.items() if k != "variant"}
+
+
+def spec_of(config: dict) -> str:
+    """The configuration's name in rows, profiles and plots: its settings as a method spec."""
+    return "crc:" + ",".join(f"{k}={int(v) if isinstance(v, bool) else v}" for k, v in settings_of(config).items())
+
+
+def make(scene, config: dict, seed: int):
+    """The crc method of ``config``, its settings passed as data, labelled :func:`spec_of`."""
+    m = methods.create("crc", scene, seed=seed, **settings_of(config))
+    m.label = spec_of(config)
+    return m
 
 
 def _extra_specs(specs, nb: int, common: dict) -> list[dict]:
     """``--methods`` specs as settings, with the experiment's bounces and
     resolution unless the spec sets them."""
-    from slc import methods
     out = []
     for spec in specs or []:
-        name, settings = methods.parse_spec(spec)
+        name, settings = parse_spec(spec, "method setting", MethodError)
         if name != "crc":
             raise methods.MethodError(f"the crc experiment runs the crc method only (got '{spec}')")
         out.append({**common, "bounces": nb, "variant": "extra", **settings})
@@ -127,7 +155,6 @@ def _extra_specs(specs, nb: int, common: dict) -> list[dict]:
 
 def run_config(W: int, H: int, frames: int, warmup: int, **kw):
     """A run of ``frames`` frames, nothing evaluated (the experiment compares images itself)."""
-    from slc.run.pipeline import RunConfig
     return RunConfig(width=W, height=H, frames=frames, warmup=warmup, eval_frames=[], measure_overlap=False, **kw)
 
 
@@ -141,16 +168,13 @@ def _stage_frames(res, warmup: int) -> list[dict]:
 # Stage profile, error terms, the moving volume, Figs. 5 and 10
 # ---------------------------------------------------------------------------
 
-def _profile(scene, viewers, specs: list[str], W: int, H: int, frames: int, warmup: int, seed: int) -> dict:
+def _profile(scene, viewers, configs: list[dict], W: int, H: int, frames: int, warmup: int, seed: int) -> dict:
     """{spec: {stage: (min ms, median ms)}} over the frames >= warmup of
-    ``PROFILE_REPEATS`` runs of each, in turn (A B, B A, ...: load changes hit all alike)."""
-    import statistics
-
-    from slc.run import experiment
-    runs = experiment.runs_in_turn(scene, [(sp, viewers) for sp in specs], run_config(W, H, frames, warmup),
-                                   PROFILE_REPEATS, seed)
+    ``PROFILE_REPEATS`` runs of each configuration, in turn (A B, B A, ...: load changes hit all alike)."""
+    runs = experiment.runs_in_turn(scene, [(functools.partial(make, scene, c, seed), viewers) for c in configs],
+                                   run_config(W, H, frames, warmup), PROFILE_REPEATS, seed)
     out = {}
-    for sp, rs in zip(specs, runs):
+    for sp, rs in zip(map(spec_of, configs), runs):
         fr = [f for r in rs for f in _stage_frames(r, warmup)]
         keys = sorted({k for x in fr for k in x})
         out[sp] = {k: (min(x.get(k, 0.0) for x in fr), statistics.median(x.get(k, 0.0) for x in fr)) for k in keys}
@@ -160,7 +184,6 @@ def _profile(scene, viewers, specs: list[str], W: int, H: int, frames: int, warm
 def _profile_rows(scene_name: str, nb: int, prof: dict, specs: dict) -> list[dict]:
     """Rows (one per stage and the sums) with the ms of each encoding and the
     ratio to RGB3, for the minimum and the median over frames."""
-    from slc.methods.crc.cache import CRCCache
     groups = {"coefficient stages": CRCCache.COEFFICIENT_STAGES, "fixed stages": CRCCache.FIXED_STAGES}
     stages = [k for k in CRCCache.FIXED_STAGES + CRCCache.COEFFICIENT_STAGES if k in prof[specs["rgb3"]]]
     rows = []
@@ -180,13 +203,11 @@ def _profile_rows(scene_name: str, nb: int, prof: dict, specs: dict) -> list[dic
     return rows
 
 
-def _along_path(scene, viewer, spec: str, W: int, H: int, positions: int, seed: int) -> list[dict]:
+def _along_path(scene, viewer, config: dict, W: int, H: int, positions: int, seed: int) -> list[dict]:
     """Fig. 5: depth occupancy ratio and first-bounce ms at ``positions`` viewer positions
     spread over the camera path (3 frames at each, the last one timed; the run resets the
     cache)."""
-    from slc import methods
-    from slc.run.pipeline import run_sequence
-    m = methods.create(spec, scene, seed=seed)
+    m = make(scene, config, seed)
     path = getattr(viewer.pose, "__self__", None)
     n = int(getattr(path, "n_frames", 0) or 0) or 600
     out = []
@@ -204,11 +225,9 @@ def _along_path(scene, viewer, spec: str, W: int, H: int, positions: int, seed: 
 def _sweep(scene, viewers, resolutions, W: int, H: int, seed: int) -> list[dict]:
     """Fig. 10: stage ms (minimum of 3 frames after 2 warm-up) against the
     CRC resolution; Y3Co1Cg1, 2 bounces."""
-    from slc import methods
-    from slc.run.pipeline import run_sequence
     rows = []
     for r in resolutions:
-        m = methods.create(f"crc:resolution={r},bounces=2", scene, seed=seed)
+        m = make(scene, dict(resolution=r, bounces=2), seed)
         fr = _stage_frames(run_sequence(scene, m, viewers, run_config(W, H, 5, 2, keep_images=False)), 2)
         stages = sorted({k for x in fr for k in x if k != "total"})
         rows.append({"resolution": r, "cells": m.grid.n_cells, "occupancy_ratio": m.occupancy_ratio(),
@@ -222,7 +241,6 @@ def _sweep(scene, viewers, resolutions, W: int, H: int, seed: int) -> list[dict]
 # ---------------------------------------------------------------------------
 
 def _preset(opts) -> dict:
-    from slc.run import experiment
     preset = dict(QUICK if opts.quick else FULL)
     if opts.res:
         w, _, h = opts.res.lower().partition("x")
@@ -255,15 +273,6 @@ def _table1_row(s, c: dict, m, viewers, cfg, preset, bar, seed: int):
     and its images per evaluated frame ({frame: {"direct", "indirect", "final", "indirect_ref",
     "final_ref"}}: the ground-truth direct light, the cache's indirect light, their sum, the
     path-traced indirect reference and direct + that reference)."""
-    import dataclasses
-
-    import numpy as np
-
-    from slc.run import experiment
-    from slc.methods.crc.grid import Grid
-    from slc.methods.crc.quality import pdiff
-    from slc.reference.metrics import evaluate
-    from slc.reference.references import reference_for
     images = {}
 
     def on_eval(f, v, gb, img, ref):
@@ -271,7 +280,8 @@ def _table1_row(s, c: dict, m, viewers, cfg, preset, bar, seed: int):
         images[f] = {"direct": direct, "indirect": img, "final": direct + img, "indirect_ref": ref,
                      "final_ref": direct + ref}
 
-    row = pipeline.run_case(s, spec_of(c), viewers, dataclasses.replace(cfg, on_eval=on_eval), bar, seed=seed)
+    row = pipeline.run_case(s, spec_of(c), viewers, dataclasses.replace(cfg, on_eval=on_eval), bar, seed=seed,
+                            method=make(s, c, seed))
     res, st = row.pop("_result"), m.settings()
     for k in res.metrics:   # the pipeline's comparison: indirect light alone against the indirect reference
         row[k + "_indirect_vs_ref"] = row.pop(k)
@@ -296,9 +306,10 @@ def _scene_parts(s, viewers, nb: int, common: dict, preset: dict, out: Path, see
     where Y3Co1Cg1 differs from Y3Co3Cg3 (rows appended to ``acc``; ``group`` and ``images``:
     the Table 1 rows and their images)."""
     W, H = preset["width"], preset["height"]
-    specs = {enc: spec_of({**common, "bounces": nb, "encoding": enc}) for enc in PROFILED}
+    configs = {enc: {**common, "bounces": nb, "encoding": enc} for enc in PROFILED}
+    specs = {enc: spec_of(c) for enc, c in configs.items()}
     bar.set_postfix_str(f"{s.name}/profile/b{nb}")
-    prof = _profile(s, viewers, list(specs.values()), W, H, preset["profile_frames"],
+    prof = _profile(s, viewers, list(configs.values()), W, H, preset["profile_frames"],
                     min(3, preset["profile_frames"] - 1), seed)
     acc["profile"] += _profile_rows(s.name, nb, prof, specs)
     bar.set_postfix_str(f"{s.name}/terms/b{nb}")
@@ -323,7 +334,7 @@ def _figures(s, viewers, first: bool, common: dict, preset: dict, out: Path, see
     W, H = preset["width"], preset["height"]
     if 1 in preset["bounces"]:
         bar.set_postfix_str(f"{s.name}/path")
-        pts = _along_path(s, viewers[0], spec_of({**common, "bounces": 1}), W, H, preset["path_positions"], seed)
+        pts = _along_path(s, viewers[0], {**common, "bounces": 1}, W, H, preset["path_positions"], seed)
         acc["fig5_path"] += [{"scene": s.name, **p} for p in pts]
         report.plot_path(out / f"fig5_{report.file_stem(s.name)}.png", pts,
                          f"Fig. 5: {s.name}, depth occupancy along the path")
@@ -335,12 +346,6 @@ def _figures(s, viewers, first: bool, common: dict, preset: dict, out: Path, see
 
 
 def run(opts) -> dict:
-    from tqdm import tqdm
-
-    from slc import methods
-
-    from slc.scene import views
-    from slc.run.pipeline import RunConfig
     report = experiment.load_part("crc_report")
     preset = _preset(opts)
     W, H = preset["width"], preset["height"]
@@ -359,7 +364,7 @@ def run(opts) -> dict:
     with tqdm(total=total, desc=NAME, unit="frame", disable=None) as bar:
         for si, s in enumerate(experiment.each_scene(names)):
             viewers = views.single(s)
-            made = {nb: [methods.create(spec_of(c), s, seed=opts.seed) for c in plan] for nb, plan in plans.items()}
+            made = {nb: [make(s, c, opts.seed) for c in plan] for nb, plan in plans.items()}
             for nb, plan in plans.items():
                 done = [_table1_row(s, c, m, viewers, cfg, preset, bar, opts.seed) for c, m in zip(plan, made[nb])]
                 group, images = [r for r, _ in done], [im for _, im in done]

@@ -17,16 +17,21 @@ the frames after the warm-up; FLIP on the last frame over all viewers.
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import os  # noqa: E402 (after the path of a standalone run)
+
+from slc import methods  # noqa: E402
+from slc.core import io  # noqa: E402
 from slc.distributed import DEFAULT_BOOTSTRAP, DEFAULT_LEASE, DEFAULT_THRESHOLD  # noqa: E402
 from slc.distributed.node import KINDS  # noqa: E402
 from slc.distributed.rig import Strategy  # noqa: E402
 from slc.distributed.run import LINKS, Processes, RigRun, flips, poses_of, row, run_strategy  # noqa: E402
-from slc.run import experiment as ex  # noqa: E402
+from slc.run import experiment as ex, plots  # noqa: E402
 from slc.run.errors import ExperimentError  # noqa: E402
 from slc.scene import views  # noqa: E402
 from slc.scene.camera import Viewer  # noqa: E402
@@ -94,6 +99,17 @@ def strategies(delays: list, opts) -> list:
     return out
 
 
+@dataclass(frozen=True)
+class _RigCase:
+    """One rig of the run: ``rig`` (overlap or random) at ``overlap`` percent (overlap rigs),
+    ``camera`` (moving or static), its viewers spread over ``nodes`` nodes."""
+    rig: str
+    overlap: float | None
+    camera: str
+    nodes: int
+    viewers: int
+
+
 def run(opts):
     pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
     n_nodes, n_view = opts.nodes or pr["nodes"], opts.viewers or pr["viewers"]
@@ -109,16 +125,16 @@ def run(opts):
         try:
             for spec in specs:
                 run_ = RigRun(pr["width"], pr["height"], pr["frames"], pr["warmup"], spec, opts.seed)
-                rigs = [("overlap", o, c, n_nodes, n_view) for o in pr["overlaps"] for c in pr["cameras"]]
-                rigs += [("random", None, c, n_nodes, n_view) for c in pr["cameras"]]
-                rigs += [("random", None, "moving", k, k * per_node) for k in scale]
-                for rig, overlap, cam, k, nv in rigs:
-                    base = (views.overlap_rig(s, nv, overlap / 100.0, aspect=pr["width"] / pr["height"])
-                            if rig == "overlap" else random_viewers(s, nv, seed=opts.seed))
-                    vs = _static(base) if cam == "static" else base
-                    extra = {"scene": s.name, "method": spec, "rig": rig, "overlap": overlap, "camera": cam,
-                             "block": "scale" if k != n_nodes else "main"}
-                    rows += _rig_rows(s, procs, vs, run_, k, strategies(delays, opts) if k == n_nodes
+                rigs = [_RigCase("overlap", o, c, n_nodes, n_view) for o in pr["overlaps"] for c in pr["cameras"]]
+                rigs += [_RigCase("random", None, c, n_nodes, n_view) for c in pr["cameras"]]
+                rigs += [_RigCase("random", None, "moving", k, k * per_node) for k in scale]
+                for r in rigs:
+                    base = (views.overlap_rig(s, r.viewers, r.overlap / 100.0, aspect=pr["width"] / pr["height"])
+                            if r.rig == "overlap" else random_viewers(s, r.viewers, seed=opts.seed))
+                    vs = _static(base) if r.camera == "static" else base
+                    extra = {"scene": s.name, "method": spec, "rig": r.rig, "overlap": r.overlap, "camera": r.camera,
+                             "block": "scale" if r.nodes != n_nodes else "main"}
+                    rows += _rig_rows(s, procs, vs, run_, r.nodes, strategies(delays, opts) if r.nodes == n_nodes
                                       else [Strategy("sparse", 0, opts.threshold, opts.lease)], extra, images)
         finally:
             procs.close()
@@ -147,22 +163,21 @@ class _Procs:
 
     def close(self) -> None:
         if self.own_ray:
-            import ray
+            import ray  # Ray: only when the nodes are processes (not --in-process)
             ray.shutdown()
 
 
 def _processes(opts, scene, name: str, n_nodes: int) -> _Procs:
     if opts.in_process:
         return _Procs(Processes(scene, name, n_nodes, ray_nodes=False), False)
-    import os
-    from slc.distributed.actors import start_ray
+    from slc.distributed.actors import start_ray  # imports Ray: only when the nodes are processes
     threads = opts.threads or max((os.cpu_count() or 1) // n_nodes, 1)
     own = start_ray(n_nodes, opts.address)
     try:
         return _Procs(Processes(scene, name, n_nodes, ray_nodes=True, threads=threads), own)
     except Exception:
         if own:
-            import ray
+            import ray  # Ray: only when the nodes are processes
             ray.shutdown()
         raise
 
@@ -173,7 +188,6 @@ def _rig_rows(s, procs, vs: list, run_: RigRun, n_nodes: int, strats: list, extr
     poses = poses_of(vs, run_.frames)
     print(f"{NAME}: {extra['scene']} {extra['method']} {extra['rig']} {extra['overlap']} {extra['camera']} "
           f"{n_nodes} nodes", file=sys.stderr, flush=True)
-    from slc import methods
     output = methods.create(run_.spec, s).output
     runs = [(Strategy("single"), 1)] + ([(Strategy("independent"), n_nodes)] if extra["block"] == "main" else [])
     runs += [(st, n_nodes) for st in strats]
@@ -326,10 +340,7 @@ def _targets(main: list, n_nodes: int, n_view: int) -> str:
 def _figures(out: Path, rows: list, images: dict) -> None:
     """FLIP against the delay per latency hiding (moving cameras), and viewer 0's last frame under
     the single cache and sparse updates at the largest delay without and with both hidings."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from slc.core import io
+    plt = plots.pyplot()
     main = [r for r in rows if r["block"] == "main" and r["strategy"] == "sparse" and r["camera"] == "moving"
             and not r["variant"]]
     keys = sorted({_key(r) for r in main}, key=str)
@@ -354,6 +365,5 @@ def _figures(out: Path, rows: list, images: dict) -> None:
 
 def _strips(out: Path, rows: list, images: dict) -> None:
     """Viewer 0's last frame per moving rig and strategy: ground truth | image | FLIP map."""
-    from slc.core import io
     for (rig, overlap, label), (gt, img, fmap, exposure) in images.items():
         io.comparison_strip(out / "images" / f"{rig}{overlap or ''}_moving_{label}_v0.png", gt, img, fmap, exposure)

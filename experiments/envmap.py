@@ -16,6 +16,12 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from slc.run import experiment as ex  # noqa: E402 (after the path of a standalone run)
+from slc.run.adaptive_viz import add_choice_section  # noqa: E402
+from slc.run.experiment import add_common_arguments  # noqa: E402
+from slc.run.sweeps import variant_experiment  # noqa: E402
+from slc.scene.scenes import ENVMAPS_DIR  # noqa: E402
+
 NAME = "envmap"
 FULL = dict(scene="skylit", maps=["venice", "studio", "spots"], width=320, height=180, frames=120, warmup=10, eval_frames=[59, 119])
 QUICK = dict(scene="skylit", maps=["venice", "spots"], width=160, height=90, frames=24, warmup=10, eval_frames=[23])
@@ -23,15 +29,11 @@ METHODS = ["rt48", "restir", "regir", "slc", "slc:max_cones=4", "sh", "adaptive"
 
 
 def add_arguments(p):
-    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
     p.add_argument("--maps", nargs="+", help="environment maps: venice, studio (../shared/envmaps), spots, constant")
 
 
 def run(opts):
-    from slc.run import experiment as ex
-    from slc.run.sweeps import variant_experiment
-    from slc.scene.scenes import ENVMAPS_DIR
     pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
     scene = (opts.scene or [pr["scene"]])[0]
     maps = opts.maps or pr["maps"]
@@ -44,7 +46,6 @@ def run(opts):
     specs = opts.methods or ex.available_methods(METHODS)
     res = variant_experiment(opts, NAME, pr, specs, variants, "envmap",
                              f"{scene}: error and time per environment map")
-    from slc.run.adaptive_viz import add_choice_section
     return add_choice_section(opts, NAME, res, "envmap")
 
 

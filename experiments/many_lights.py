@@ -17,6 +17,10 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from slc.run.adaptive_viz import add_choice_section  # noqa: E402 (after the path of a standalone run)
+from slc.run.experiment import add_common_arguments  # noqa: E402
+from slc.run.sweeps import scene_option_sweep  # noqa: E402
+
 NAME = "many-lights"
 FULL = dict(scene="hangar", lights=[3, 6, 12, 24], width=320, height=180, frames=120, warmup=10, eval_frames=[59, 119])
 QUICK = dict(scene="hangar", lights=[3, 12, 24], width=160, height=90, frames=24, warmup=10, eval_frames=[23])
@@ -24,16 +28,13 @@ METHODS = ["rt48", "restir", "regir", "slc:max_cones=1", "slc:max_cones=2", "slc
 
 
 def add_arguments(p):
-    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
     p.add_argument("--lights", type=int, nargs="+", help="light counts")
 
 
 def run(opts):
-    from slc.run.sweeps import scene_option_sweep
     res = scene_option_sweep(opts, NAME, QUICK, FULL, METHODS, "lights",
                              "error and time against the number of moving lights")
-    from slc.run.adaptive_viz import add_choice_section
     return add_choice_section(opts, NAME, res, "lights")
 
 

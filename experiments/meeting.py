@@ -11,6 +11,11 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from slc.core.timing import stage_table  # noqa: E402 (after the path of a standalone run)
+from slc.run import experiment as ex  # noqa: E402
+from slc.run.experiment import add_viewer_arguments  # noqa: E402
+from slc.scene import views  # noqa: E402
+
 NAME = "meeting"
 FULL = dict(scenes=["atrium", "cornell"], viewers=[1, 16], width=320, height=180, frames=240, warmup=10,
             eval_frames=[239], eval_viewers=2)
@@ -21,15 +26,10 @@ TARGET = 20.0       # rt48's time over a cache method's at 16 viewers (the paper
 
 
 def add_arguments(p):
-    from slc.run.experiment import add_viewer_arguments
     add_viewer_arguments(p)
 
 
 def run(opts):
-    from slc.run import experiment as ex
-    from slc.scene import views
-    from slc.core.timing import stage_table
-
     rows, names, specs, cfg, out, counts = ex.viewer_count_experiment(
         opts, NAME, QUICK, FULL, METHODS, "meeting", views.meeting, lambda name, cfg: f"{name}: meeting rig")
     ex.add_startup(rows)

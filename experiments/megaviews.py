@@ -48,7 +48,9 @@ import numpy as np  # noqa: E402
 
 from slc import methods  # noqa: E402
 from slc.core import io  # noqa: E402
+from slc.core.timing import StageTimer  # noqa: E402
 from slc.methods.megaviews import vpl as vp  # noqa: E402
+from slc.methods.megaviews.hierarchy import sample_surface  # noqa: E402
 from slc.reference import metrics, references  # noqa: E402
 from slc.run import experiment  # noqa: E402
 from slc.run.pipeline import RunConfig, gbuffers_for, run_case  # noqa: E402
@@ -84,7 +86,6 @@ def _time_maps(m, vpls, reps, phi=math.pi / 2):
     """(median ms, stage medians, maps, octree view hierarchy) of the
     method's shadow-map rendering of ``vpls`` (one untimed warm-up run when
     this method and setting have not run yet: kernel compilation)."""
-    from slc.core.timing import StageTimer
     key = (m.name, m.res, m.cull, m.scene_h, phi)   # sizes and depths build no new kernels
     timer = StageTimer()
     if key not in _WARM:
@@ -104,7 +105,6 @@ _WARM: set = set()
 def _errors(gb, img, ref):
     """(worst-channel relative error of the image mean, median per-pixel
     relative luminance error), as tests/test_megaviews.py measures them."""
-    import numpy as np
     valid = np.array(gb.valid, bool).reshape(gb.height, gb.width)
     x, r = img[valid], ref[valid]
     mean_err = np.abs(x.mean(0) - r.mean(0)) / np.maximum(r.mean(0), 1e-12)
@@ -116,10 +116,6 @@ def _errors(gb, img, ref):
 def _random_views(s, n, seed):
     """``n`` views at uniform random surface points of the scene, each
     looking along its normal (Fig. 11's random distribution)."""
-    import numpy as np
-
-    from slc.methods.megaviews import vpl as vp
-    from slc.methods.megaviews.hierarchy import sample_surface
     P, N, _, _ = sample_surface(s.mi_scene, n, seed=seed + 11)
     k = np.random.default_rng(seed).choice(len(P), n, replace=len(P) < n)
     return vp.VPLSet(None, None, P[k] + 1e-3 * N[k], N[k], np.zeros(n))

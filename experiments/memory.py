@@ -20,6 +20,14 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from tqdm import tqdm  # noqa: E402 (after the path of a standalone run)
+
+from slc import methods  # noqa: E402
+from slc.run import experiment as ex, plots  # noqa: E402
+from slc.run.experiment import add_viewer_arguments  # noqa: E402
+from slc.run.pipeline import run_sequence  # noqa: E402
+from slc.scene import random_walks, views  # noqa: E402
+
 NAME = "memory"
 FULL = dict(scenes=["atrium"], viewers=[1, 4, 16], width=320, height=180, frames=240, warmup=10,
             eval_frames=[], eval_viewers=1)
@@ -29,15 +37,10 @@ METHODS = ["slc", "rt16", "rt48", "restir"]
 
 
 def add_arguments(p):
-    from slc.run.experiment import add_viewer_arguments
     add_viewer_arguments(p)
 
 
 def run(opts):
-    from slc.run import experiment as ex
-    from slc.run import plots
-    from slc.scene import random_walks, views
-
     pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     counts = opts.viewers or pr["viewers"]
     def cases(s):
@@ -75,10 +78,6 @@ def _run_cases(cases, cfg, desc, seed):
     """Like ``slc.run.experiment.run_cases``, and for cache methods ``active_mb``
     = mean entries requested per timed frame x bytes per entry
     (:func:`entry_bytes_of`, read from the method after the run)."""
-    from tqdm import tqdm
-
-    from slc import methods
-    from slc.run.pipeline import run_sequence
     rows = []
     with tqdm(total=len(cases) * cfg.frames, desc=desc, unit="frame", disable=None) as bar:
         for s, spec, vs, extra in cases:

@@ -26,6 +26,18 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:  # runnable alone
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import numpy as np  # noqa: E402 (after the path of a standalone run)
+from tqdm import tqdm  # noqa: E402
+
+from slc import methods  # noqa: E402
+from slc.core import io  # noqa: E402
+from slc.core.errors import MethodError  # noqa: E402
+from slc.core.spec import parse_spec  # noqa: E402
+from slc.run import experiment, plots  # noqa: E402
+from slc.run.images import save_strip  # noqa: E402
+from slc.run.pipeline import RunConfig, run_sequence  # noqa: E402
+from slc.scene import views  # noqa: E402
+
 NAME = "osc-gi"
 
 DIRECT_VARIANTS = ["osc-gi:direct=cache", "osc-gi:direct=cones", "osc-gi:direct=restir", "osc-gi:direct=rt,direct_n=4"]
@@ -82,7 +94,6 @@ def _loglog(pts, x):
 def _pt_cost(pt_rows):
     """PT's time per frame as a + b spp (a fixed part, one path per pixel and sample), least squares
     on relative errors over all PT rows: one row timed under another load does not decide alone."""
-    import numpy as np
     pts = [(float(r["spp"]), r["time_ms"]) for r in pt_rows if r.get("spp") and r["time_ms"] > 0]
     if len(pts) < 2:
         return None
@@ -121,7 +132,6 @@ def _retime(s, v, cfg, srows, opts, bar=None) -> None:
     """The rows ``RETIMED`` and the full-light PT rows timed again in turn, ``opts.retime`` passes
     (:func:`slc.run.experiment.runs_in_turn`): osc-gi / PT at equal time from each pass's own times (a
     load that changes during the run weighs on both). Writes ``retimed_ms``, ``flip_vs_pt_retimed``."""
-    from slc.run import experiment
     pts = [r for r in srows if r["group"] == "full" and r["family"] == "pt"]
     rows = [r for r in srows if r["group"] == "full" and r["setting"] in RETIMED]
     if not pts or not rows:
@@ -150,9 +160,6 @@ def _retime(s, v, cfg, srows, opts, bar=None) -> None:
 
 def _row(s, spec, group, cfg, bar, seed):
     """One single-viewer sequence (:func:`slc.run.pipeline.run_sequence`) -> (row, result, method)."""
-    from slc import methods
-    from slc.scene import views
-    from slc.run.pipeline import run_sequence
     m = methods.create(spec, s, seed=seed)
     bar.set_postfix_str(f"{s.name}/{spec}")
     res = run_sequence(s, m, views.single(s), cfg, progress=bar)
@@ -169,11 +176,8 @@ def _row(s, spec, group, cfg, bar, seed):
 
 
 def _reuse_plot(path, hist, title):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = plots.pyplot()
 
-    from slc.core import io
     fig, ax = plt.subplots(figsize=(5, 3.2))
     b = hist["bins"]
     labels = [str(a) if z == a + 1 else (f"{a}-{z - 1}" if z < 1 << 20 else f">={a}") for a, z in zip(b, b[1:])]
@@ -188,10 +192,6 @@ def _reuse_plot(path, hist, title):
 def _multi_viewer(s, preset, cfg, seed) -> list:
     """1, 4, 16 viewers (and the ablations) in turn, ``multi_repeats`` times in alternating order;
     the ratio to one viewer within each repetition, its median reported with its range."""
-    from slc.run import experiment
-    from slc import methods
-    from slc.scene import views
-    from slc.run.pipeline import run_sequence
     v = views.single(s)
     mw, mh = preset["multi_res"]
     mf, mw_up = preset["multi_frames"], preset["multi_warmup"]
@@ -239,12 +239,6 @@ def _multi_viewer(s, preset, cfg, seed) -> list:
 def _memory_scaling(s, resolutions, seed) -> list:
     """osc-gi's memory at several resolutions (one viewer, 3 frames), primary + secondary in use
     fitted linearly in the pixel count and evaluated at 1920 x 1080 (the slides: 300-700 MB)."""
-    import numpy as np
-
-    from slc import methods
-
-    from slc.scene import views
-    from slc.run.pipeline import RunConfig, run_sequence
     out = []
     for w, h in resolutions:
         m = methods.create("osc-gi", s, seed=seed)
@@ -263,11 +257,6 @@ def _memory_scaling(s, resolutions, seed) -> list:
 
 def _scene(s, preset, cfg, specs, opts, out, bar, res) -> None:
     """Every part of the experiment on one scene; rows appended to ``res`` (a dict of lists)."""
-    from slc.run import plots
-    from slc.run.images import save_strip
-    from slc import methods
-    from slc.scene import views
-    from slc.run.pipeline import run_sequence
     W, H = cfg.width, cfg.height
     srows = []
     for group, group_specs in specs.items():
@@ -306,13 +295,6 @@ def _scene(s, preset, cfg, specs, opts, out, bar, res) -> None:
 
 
 def run(opts) -> dict:
-    from tqdm import tqdm
-
-    from slc.run import experiment
-
-    from slc import methods
-    from slc.run.pipeline import RunConfig
-
     preset = experiment.apply_common(opts, QUICK if opts.quick else FULL)
     if getattr(opts, "warmup", None) is not None:
         if not 0 <= opts.warmup < preset["frames"]:
@@ -333,7 +315,7 @@ def run(opts) -> dict:
              "ablation": [] if opts.no_ablations else list(preset["ablations"])}
     specs = {} if opts.only_multi else specs
     for spec in [x for group in specs.values() for x in group]:      # bad specs stop the run before any work
-        methods.parse_spec(spec)
+        parse_spec(spec, "method setting", MethodError)
     res = {"rows": [], "multi": [], "hists": {}, "laps": {}, "memory": []}
     n_runs = len(names) * sum(len(x) for x in specs.values())
     with tqdm(total=n_runs * preset["frames"], desc=NAME, unit="frame", disable=None) as bar:

@@ -20,7 +20,7 @@ if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from slc.core.timing import stage_table  # noqa: E402 (after the path of a standalone run)
-from slc.methods import parse_spec  # noqa: E402
+from slc.core.spec import parse_spec  # noqa: E402
 from slc.run import experiment as ex  # noqa: E402
 from slc.run import plots  # noqa: E402
 from slc.scene import views  # noqa: E402

@@ -16,6 +16,10 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from slc.run.adaptive_viz import add_choice_section  # noqa: E402 (after the path of a standalone run)
+from slc.run.experiment import add_common_arguments  # noqa: E402
+from slc.run.sweeps import scene_option_sweep  # noqa: E402
+
 NAME = "point-lights"
 FULL = dict(scene="lamps", lights=[16, 32, 64], width=320, height=180, frames=120, warmup=10, eval_frames=[59, 119])
 QUICK = dict(scene="lamps", lights=[16, 64], width=160, height=90, frames=24, warmup=10, eval_frames=[23])
@@ -23,16 +27,13 @@ METHODS = ["rt48", "restir", "regir", "slc", "slc:max_cones=4", "sh", "adaptive"
 
 
 def add_arguments(p):
-    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
     p.add_argument("--lights", type=int, nargs="+", help="light counts")
 
 
 def run(opts):
-    from slc.run.sweeps import scene_option_sweep
     res = scene_option_sweep(opts, NAME, QUICK, FULL, METHODS, "lights",
                              "error and time against the number of point/spot lights")
-    from slc.run.adaptive_viz import add_choice_section
     return add_choice_section(opts, NAME, res, "lights")
 
 

@@ -17,6 +17,12 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from slc.core.timing import stage_table  # noqa: E402 (after the path of a standalone run)
+from slc.run import experiment as ex  # noqa: E402
+from slc.run.experiment import add_viewer_arguments  # noqa: E402
+from slc.run.pipeline import gbuffers_for  # noqa: E402
+from slc.scene import random_walks, views  # noqa: E402
+
 NAME = "random-viewers"
 FULL = dict(scenes=["atrium", "sponza"], viewers=[1, 4, 16], width=320, height=180, frames=240, warmup=10,
             eval_frames=[79, 239], eval_viewers=2)
@@ -29,17 +35,10 @@ CACHES = ("slc", "adaptive")
 
 
 def add_arguments(p):
-    from slc.run.experiment import add_viewer_arguments
     add_viewer_arguments(p)
 
 
 def run(opts):
-    from slc.run import experiment as ex
-    from slc.scene import random_walks, views
-
-    from slc.run.pipeline import gbuffers_for
-    from slc.core.timing import stage_table
-
     overlaps = {}
 
     def make(s, n):
@@ -82,7 +81,6 @@ def run(opts):
 
 def opts_res(opts):
     """The run's resolution (the preset's unless --res)."""
-    from slc.run import experiment as ex
     pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
     return pr["width"], pr["height"]
 

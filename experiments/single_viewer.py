@@ -18,6 +18,13 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:  # runnable alone
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from slc.core.timing import stage_table  # noqa: E402 (after the path of a standalone run)
+from slc.run import experiment as ex, plots  # noqa: E402
+from slc.run.experiment import add_common_arguments  # noqa: E402
+from slc.run.images import strip_saver  # noqa: E402
+from slc.run.pipeline import RunConfig  # noqa: E402
+from slc.scene import views  # noqa: E402
+
 NAME = "single-viewer"
 
 # 60 Hz paths at walking speed: the full preset renders 4 s (240 frames); the warm-up (10 frames) covers
@@ -33,19 +40,11 @@ BASE_METHODS = ["rt16", "rt48", "restir", "regir", "slc", "slc:fetch=bilinear"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
     p.add_argument("--sweep", nargs="*", help="extra settings for the speed-against-error plot")
 
 
 def run(opts) -> dict:
-    from slc.run import experiment as ex
-    from slc.run import plots
-    from slc.core.timing import stage_table
-    from slc.run.images import strip_saver
-    from slc.scene import views
-    from slc.run.pipeline import RunConfig
-
     preset = ex.apply_common(opts, QUICK if opts.quick else FULL)
     method_specs = opts.methods or ex.available_methods(BASE_METHODS)
     sweep = ex.available_methods(preset["sweep"]) if opts.sweep is None else opts.sweep

@@ -29,6 +29,21 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import drjit as dr  # noqa: E402 (after the path of a standalone run)
+import mitsuba as mi  # noqa: E402
+import numpy as np  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from slc import methods  # noqa: E402
+from slc.core.keys import INVALID  # noqa: E402
+from slc.methods.cones.pixelcache import PixelSlotCache  # noqa: E402
+from slc.reference import references  # noqa: E402
+from slc.reference.metrics import evaluate  # noqa: E402
+from slc.run import experiment as ex, plots  # noqa: E402
+from slc.run.experiment import add_common_arguments  # noqa: E402
+from slc.run.pipeline import RunConfig, run_sequence  # noqa: E402
+from slc.scene import views  # noqa: E402
+
 NAME = "slc-error-terms"
 CONVERGED_RAYS = 64          # rays per entry and frame of the "converged" runs
 AGE_BINS = [(1, 1), (2, 3), (4, 7), (8, 15), (16, 31), (32, 10 ** 9)]
@@ -37,7 +52,6 @@ QUICK = dict(scenes=["atrium"], width=160, height=90, frames=24, warmup=10, eval
 
 
 def add_arguments(p):
-    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
     p.add_argument("--settings", nargs="*", default=[],
                    help="extra slc settings to run on both cameras with the age histogram (e.g. "
@@ -64,12 +78,6 @@ def _cases(extra):
 def _age_histogram(method, gb, img, gt, exposure, acc):
     """Per-pixel FLIP of ``img`` binned by the age (completed updates) of the
     pixel's entry; accumulates (pixels, FLIP sum) per bin into ``acc``."""
-    import drjit as dr
-    import mitsuba as mi
-    import numpy as np
-
-    from slc.core.keys import INVALID
-    from slc.reference.metrics import evaluate
     fmap = evaluate(gt, img, exposure, with_map=True)["flip_map"].reshape(-1)
     slot = mi.UInt32(method.requests.pixel_slot[0])
     ok = slot != INVALID
@@ -82,15 +90,6 @@ def _age_histogram(method, gb, img, gt, exposure, acc):
 
 
 def run(opts):
-    from tqdm import tqdm
-
-    from slc.run import experiment as ex
-    from slc import methods
-    from slc.reference import references
-    from slc.scene import views
-    from slc.methods.cones.pixelcache import PixelSlotCache
-    from slc.run.pipeline import RunConfig, run_sequence
-
     pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
     extra = list(opts.settings or [])
     cases = _cases(extra)
@@ -132,7 +131,6 @@ def run(opts):
 
 
 def _report(rows, cfg) -> str:
-    from slc.run import experiment as ex
     md = ex.markdown_table(rows, [("scene", "scene"), ("camera", "camera"), ("case", "run"), ("time_ms", "t [ms]"),
                                   ("flip", "FLIP"), ("psnr", "PSNR"), ("ssim", "SSIM"), ("rel_mse", "relMSE")]) + "\n"
     md += "\n## Error terms (FLIP differences between the controlled runs)\n\n"
@@ -168,9 +166,7 @@ def _report(rows, cfg) -> str:
 
 
 def _plot(out: Path, rows):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = plots.pyplot()
     out.mkdir(parents=True, exist_ok=True)
     for scene in dict.fromkeys(r["scene"] for r in rows):
         fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=120)

@@ -31,6 +31,20 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import drjit as dr  # noqa: E402 (after the path of a standalone run)
+import mitsuba as mi  # noqa: E402
+import numpy as np  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from slc import methods  # noqa: E402
+from slc.lib.cones.packing import gather_words, unpack  # noqa: E402
+from slc.reference import references  # noqa: E402
+from slc.reference.metrics import evaluate  # noqa: E402
+from slc.run import experiment as ex, plots  # noqa: E402
+from slc.run.experiment import add_common_arguments  # noqa: E402
+from slc.run.pipeline import RunConfig, run_sequence  # noqa: E402
+from slc.scene import views  # noqa: E402
+
 NAME = "slc-moving-lights"
 FULL = dict(scenes=["street"], width=320, height=180, frames=64, warmup=10)
 QUICK = dict(scenes=["street"], width=160, height=90, frames=32, warmup=10)
@@ -39,18 +53,12 @@ METHODS = ["rt48", "restir", "slc", "slc:rays_new=64,rays_settled=64,rays_moving
 
 
 def add_arguments(p):
-    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
     p.add_argument("--gt-spp", type=int, default=512, help="ground-truth samples per pixel of the per-frame curve")
 
 
 def _cache_state(m) -> dict:
     """Moving share, motion share and mean C of the entries of viewer 0's pixels."""
-    import drjit as dr
-    import mitsuba as mi
-    import numpy as np
-
-    from slc.lib.cones.packing import gather_words, unpack
     fr = m.requests
     if fr is None or fr.n_active == 0:
         return {}
@@ -68,15 +76,6 @@ def _cache_state(m) -> dict:
 
 
 def run(opts):
-    from tqdm import tqdm
-
-    from slc.run import experiment as ex
-    from slc import methods
-    from slc.reference import references
-    from slc.scene import views
-    from slc.reference.metrics import evaluate
-    from slc.run.pipeline import RunConfig, run_sequence
-
     pr = ex.apply_common(opts, QUICK if opts.quick else FULL)
     specs = opts.methods or METHODS
     names = ex.load_and_validate(opts.scene or pr["scenes"], specs, bool(opts.scene))
@@ -115,9 +114,7 @@ def run(opts):
 
 
 def _plot(out: Path, rows):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = plots.pyplot()
     out.mkdir(parents=True, exist_ok=True)
     for scene in dict.fromkeys(r["scene"] for r in rows):
         fig, axs = plt.subplots(3, 1, figsize=(6.4, 8.0), dpi=120, sharex=True)

@@ -13,6 +13,11 @@ from pathlib import Path
 if __name__ == "__main__" and __package__ is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from slc.core.timing import stage_table  # noqa: E402 (after the path of a standalone run)
+from slc.run import experiment as ex, plots  # noqa: E402
+from slc.run.experiment import add_common_arguments  # noqa: E402
+from slc.scene import views  # noqa: E402
+
 NAME = "stereo"
 FULL = dict(scenes=["atrium"], singles=16, pairs=[8, 16], width=320, height=180, frames=240, warmup=10,
             eval_frames=[239], eval_viewers=2)
@@ -27,16 +32,10 @@ STEADY_COLUMNS = [("scene", "scene"), ("method", "method"), ("rig", "rig"), ("vi
 
 
 def add_arguments(p):
-    from slc.run.experiment import add_common_arguments
     add_common_arguments(p)
 
 
 def run(opts):
-    from slc.run import experiment as ex
-    from slc.run import plots
-    from slc.scene import views
-    from slc.core.timing import stage_table
-
     pr, specs, names, cfg = ex.setup(opts, QUICK, FULL, METHODS)
     def cases(s):
         out = []

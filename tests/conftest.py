@@ -12,7 +12,9 @@ os.environ.setdefault("SLC_CACHE", str(Path.home() / ".cache" / "slc-tests"))
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import slc  # noqa: E402,F401  (selects the variant)
+from slc.core import backend  # noqa: E402
+
+backend.init()  # test modules build Mitsuba types on import
 
 FRESH_ENV = "SLC_TEST_FRESH_PROCESS"     # set in the interpreter that runs a fresh_process test
 
@@ -117,7 +119,6 @@ def ray_cluster():
     ray = pytest.importorskip("ray")
     from ray.cluster_utils import Cluster
 
-    from slc.core import backend
     cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "_system_config": backend.RAY_SYSTEM_CONFIG})
     try:
         cluster.add_node(num_cpus=1)

@@ -86,7 +86,7 @@ def _layer(mod: str) -> tuple[str, str | None]:
     """(layer, method folder or None) of a module name."""
     parts = mod.split(".")
     if len(parts) == 1:
-        return "run", None             # slc/__init__.py selects the variant: it may import core only
+        return "run", None             # slc/__init__.py points Dr.Jit at libLLVM: it may import core only
     top = parts[1]
     if top == "methods":       # a folder under slc/methods/ is a method; a module beside them, the contract
         return ("method", parts[2]) if len(parts) > 2 and (PKG / "methods" / parts[2]).is_dir() else ("methods", None)
@@ -256,3 +256,20 @@ def test_loop_state_is_named():
 def test_each_method_folder_registers_by_convention(folder):
     assert (PKG / "methods" / folder / "method.py").is_file(), \
         f"slc/methods/{folder}/ has no method.py (methods are found as slc/methods/<folder>/method.py)"
+
+
+MAX_FN_IMPORTS = 40
+
+
+def test_few_function_level_imports():
+    """Imports sit at module level (importing slc chooses no Mitsuba variant, so nothing waits for
+    one): at most ``MAX_FN_IMPORTS`` imports inside functions in slc/ and experiments/ together,
+    for what must wait (Ray, matplotlib's backend, a slow optional import, the command line's
+    commands after its variant)."""
+    found = []
+    for p in sorted(_sources()):
+        tree = ast.parse(p.read_text())
+        inner = {id(n): n for fn in ast.walk(tree) if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef))
+                 for n in ast.walk(fn) if isinstance(n, (ast.Import, ast.ImportFrom))}
+        found += [f"{p.relative_to(ROOT)}:{n.lineno}" for n in inner.values()]
+    assert len(found) <= MAX_FN_IMPORTS, f"{len(found)} function-level imports:\n" + "\n".join(sorted(found))

@@ -4,7 +4,6 @@ deterministic; no kernel built after warm-up."""
 import numpy as np
 import pytest
 
-import slc  # noqa: F401  (selects the Mitsuba variant)
 from helpers import independent_runs, run_case, z_test
 from slc import methods
 from slc.scene import scenes, views

@@ -3,7 +3,6 @@ disocclusion/stale samples, determinism, memory and settings."""
 import numpy as np
 import pytest
 
-import slc  # noqa: F401  (selects the Mitsuba variant)
 from helpers import independent_runs
 from slc import methods
 from slc.scene import scenes, views

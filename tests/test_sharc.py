@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import slc  # noqa: F401  (selects the Mitsuba variant)
 from slc import methods
 from slc.scene import scenes, views
 from slc.methods import FrameContext, MethodError

@@ -29,7 +29,6 @@ def main(argv=None) -> int:
     p.add_argument("--table", default=None, help="table path (default: tests/data/error_bounds.json)")
     opts = p.parse_args(argv)
 
-    import slc  # noqa: F401  (selects the variant)
     from slc.run import bounds
     from slc.methods import MethodError
     from slc.scene.checks import SceneError

@@ -3,16 +3,30 @@
 ``cuda_ad_rgb`` is chosen when a CUDA device is present, ``llvm_ad_rgb``
 otherwise. ``SLC_VARIANT`` (or the CLI's ``--variant``) overrides the choice.
 
+Importing ``slc`` chooses no variant: the command line chooses it once (its ``--variant``), or
+the first module that builds Mitsuba types on import does (the packages ``slc.scene``,
+``slc.osc`` and ``slc.methods`` call :func:`ensure`); :func:`init` (``slc.set_variant``) before
+that picks one.
+
 Dr.Jit 1.5's LLVM backend needs libLLVM >= 16 (Debian's libLLVM 15 fails at
-kernel compilation with "Cannot select ... fminimum"). Before Dr.Jit is
-imported we look for a suitable libLLVM, point ``DRJIT_LIBLLVM_PATH`` at it,
-and fail with a one-line message otherwise.
+kernel compilation with "Cannot select ... fminimum"). Dr.Jit starts its LLVM
+backend when it is imported, from ``DRJIT_LIBLLVM_PATH`` or its own search, so
+``import slc`` (:func:`prepare`), before anything imports Dr.Jit, looks for a
+suitable libLLVM, points ``DRJIT_LIBLLVM_PATH`` at it, and fails with a
+one-line message otherwise; this module imports Dr.Jit only after that.
 """
 from __future__ import annotations
 
 import glob
 import os
+import platform
 import re
+import subprocess
+import sys
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
 
 SUPPORTED_VARIANTS = ("cuda_ad_rgb", "llvm_ad_rgb")
 MIN_LLVM = 16
@@ -50,8 +64,16 @@ def find_libllvm() -> str | None:
     return best
 
 
+def _jit():
+    """(drjit, mitsuba), imported after :func:`prepare`."""
+    # Dr.Jit starts its LLVM backend on import: imported once DRJIT_LIBLLVM_PATH is set
+    import drjit
+    import mitsuba
+    return drjit, mitsuba
+
+
 def cuda_available() -> bool:
-    import drjit as dr
+    dr, _ = _jit()
     try:
         return bool(dr.has_backend(dr.JitBackend.CUDA))
     except Exception:
@@ -74,6 +96,13 @@ def prepare_llvm() -> None:
     os.environ["DRJIT_LIBLLVM_PATH"] = path
 
 
+def prepare() -> None:
+    """Point Dr.Jit at libLLVM >= 16 before it is imported (``import slc`` calls it; it chooses no
+    variant), unless ``SLC_VARIANT`` asks for CUDA; a one-line BackendError otherwise."""
+    if os.environ.get("SLC_VARIANT") != "cuda_ad_rgb":
+        prepare_llvm()
+
+
 def choose_variant(override: str | None = None) -> str:
     """The variant to use: override > $SLC_VARIANT > CUDA if present > LLVM."""
     v = override or os.environ.get("SLC_VARIANT")
@@ -90,15 +119,16 @@ _variant: str | None = None
 def init(variant: str | None = None) -> str:
     """Select the Mitsuba variant once per process and return its name.
 
-    Called on ``import slc``; calling it again with a different explicit
-    variant switches (only sensible before any scene is loaded)."""
+    The command line calls it with its ``--variant``, :func:`ensure` without; calling it again
+    with a different explicit variant switches (only sensible before any module that builds
+    Mitsuba types on import is imported)."""
     global _variant
     if _variant is not None and (variant is None or variant == _variant):
         return _variant
     want = variant or os.environ.get("SLC_VARIANT")
     if want != "cuda_ad_rgb":
         prepare_llvm()
-    import mitsuba as mi
+    _, mi = _jit()
     v = choose_variant(variant)
     if v == "cuda_ad_rgb" and not cuda_available():
         raise BackendError("variant cuda_ad_rgb requested but no CUDA device is available")
@@ -109,16 +139,24 @@ def init(variant: str | None = None) -> str:
     return v
 
 
+def ensure() -> str:
+    """The variant, chosen by :func:`init` unless chosen already: called on import by the packages
+    whose modules build Mitsuba types on import. A :class:`BackendError` stops the import with its
+    one line, not a traceback."""
+    try:
+        return init()
+    except BackendError:
+        sys.tracebacklimit = 0  # print the one-line reason, not a traceback
+        raise
+
+
 def variant() -> str:
     return init()
 
 
 def env_info() -> dict:
     """Versions, CPU and variant: the ``env`` block of results.json."""
-    import platform
-    import drjit as dr
-    import mitsuba as mi
-    import numpy as np
+    dr, mi = _jit()
     cpu = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo") as f:
@@ -145,8 +183,6 @@ def code_version() -> str:
     installed package's version (``slc 0.1.0``)."""
     global _CODE_VERSION
     if _CODE_VERSION is None:
-        import subprocess
-        from pathlib import Path
         try:
             r = subprocess.run(["git", "describe", "--always", "--dirty", "--tags"], capture_output=True, text=True,
                                cwd=Path(__file__).resolve().parents[1], timeout=10)
@@ -154,7 +190,6 @@ def code_version() -> str:
         except (OSError, subprocess.SubprocessError):
             _CODE_VERSION = None
         if _CODE_VERSION is None:
-            from importlib import metadata
             try:
                 _CODE_VERSION = f"slc {metadata.version('slc')}"
             except metadata.PackageNotFoundError:
@@ -173,7 +208,6 @@ def aligned(a, dtype):
     differs (``align 1`` loads) from the one for an aligned array, so a kernel
     fed per-frame numpy data would be built again in whichever frame numpy's
     allocator returned the other kind of address."""
-    import numpy as np
     a = np.ascontiguousarray(a, dtype)
     buf = np.empty(a.nbytes + 64, np.uint8)
     off = (-buf.ctypes.data) % 64

@@ -17,7 +17,11 @@ import os
 import tempfile
 from pathlib import Path
 
+import matplotlib
+import matplotlib.image as mpimg
+import mitsuba as mi
 import numpy as np
+import OpenEXR
 
 
 def tonemap(hdr: np.ndarray, exposure: float = 1.0) -> np.ndarray:
@@ -47,14 +51,12 @@ def _atomic(path: Path, write):
 
 
 def write_exr(path, img: np.ndarray) -> None:
-    import mitsuba as mi
     # raw HDR values: NaN/Inf/negative are written as they are (clamping is for display only)
     a = np.ascontiguousarray(img, dtype=np.float32)
     _atomic(path, lambda p: mi.Bitmap(a, pixel_format=mi.Bitmap.PixelFormat.RGB).write(p))
 
 
 def read_exr(path) -> np.ndarray:
-    import mitsuba as mi
     return np.array(mi.Bitmap(str(path)), dtype=np.float32)
 
 
@@ -69,7 +71,6 @@ def write_layers(path, layers: dict, header: dict | None = None) -> None:
     ``LAYER.R``, ``LAYER.G``, ``LAYER.B``, an (H, W) map as ``LAYER.Y``; float32, ZIP
     compression, raw values (NaN/Inf/negative as they are). ``header``: extra attributes
     (str, int or float values) next to the standard ones."""
-    import OpenEXR
     channels = {}
     for name, a in layers.items():
         a = np.asarray(a, np.float32)
@@ -92,7 +93,6 @@ def write_layers(path, layers: dict, header: dict | None = None) -> None:
 def read_layers(path) -> tuple[dict, dict]:
     """(layers, header) of an EXR: per layer an (H, W, 3) image (channels R, G, B) or an
     (H, W) map (one channel); the header with OpenEXR's standard attributes."""
-    import OpenEXR
     with OpenEXR.File(str(path), separate_channels=True) as f:
         header = dict(f.header())
         chans = {k: np.array(c.pixels, np.float32) for k, c in f.channels().items()}
@@ -108,7 +108,6 @@ def read_layers(path) -> tuple[dict, dict]:
 
 
 def write_png(path, ldr: np.ndarray) -> None:
-    import matplotlib.image as mpimg
     a = np.clip(np.asarray(ldr, np.float32), 0.0, 1.0)
     _atomic(path, lambda p: mpimg.imsave(p, a, format="png"))
 
@@ -122,7 +121,6 @@ def write_hdr_and_png(stem, hdr: np.ndarray, exposure: float) -> None:
 
 def comparison_strip(path, reference_hdr, test_hdr, flip_map, exposure: float) -> None:
     """One PNG: ground truth | method | FLIP error map (magma)."""
-    import matplotlib
     fm = np.asarray(flip_map, np.float32)
     if fm.ndim == 3 and fm.shape[2] == 3:
         err = fm

@@ -27,8 +27,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from slc.core import spec as spec_syntax
-from slc.methods.base import OUTPUTS, FrameContext, Method, MethodError, Param, param_table  # noqa: F401 (the contract)
+from slc.core import backend
+from slc.core.spec import parse_spec
+
+backend.ensure()  # method modules build Mitsuba types on import
+
+from slc.methods.base import OUTPUTS, FrameContext, Method, MethodError, Param, param_table  # noqa: E402,F401 (the contract)
 
 # -----------------------------------------------------------------------------
 # Registry and discovery
@@ -114,20 +118,11 @@ def available() -> dict[str, str]:
     return out
 
 
-def parse_spec(spec: str) -> tuple[str, dict]:
-    """``"slc:max_cones=2,bias=0.5"`` -> ``("slc", {"max_cones": "2", "bias": "0.5"})``;
-    values stay strings: each method's :class:`Param` converts and checks them."""
-    try:
-        return spec_syntax.parse_spec(spec, "method setting")
-    except spec_syntax.SpecError as e:
-        raise MethodError(str(e)) from None
-
-
 def create(spec: str, scene, **settings) -> Method:
     """Instantiate a method by name (``rt16``, ``rt48``, ``slc``, ``restir``...),
     optionally with settings in the name: ``slc:max_cones=2``."""
     _load_all()
-    name, extra = parse_spec(spec)
+    name, extra = parse_spec(spec, "method setting", MethodError)
     settings = {**extra, **settings}
     for entry in _REGISTRY.values():
         m = entry.pattern.fullmatch(name)

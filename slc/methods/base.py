@@ -33,12 +33,9 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from slc.core.errors import MethodError  # noqa: F401 (raised by Param.parse; re-exported)
 
 OUTPUTS = ("direct", "indirect", "full")
-
-
-class MethodError(ValueError):
-    """Unknown method name or bad method settings (one-line message)."""
 
 
 @dataclass

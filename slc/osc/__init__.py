@@ -21,6 +21,10 @@ warning names them). Not done: the back side of a triangle shares the front side
 seeded from coarser entries only (not from finer ones).
 Design and numbers: docs/osc.md.
 """
+from slc.core import backend
+
+backend.ensure()  # the modules of this package build Mitsuba types on import
+
 from slc.core.keys import INVALID
 from slc.osc.cache import OnSurfaceCache
 from slc.osc.islands import MeshIslands, build_mesh_islands, charts_overlap, cluster_faces, island_deviation

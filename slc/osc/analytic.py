@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 
@@ -52,7 +54,6 @@ def shape_to_world(shape) -> np.ndarray:
     sphere's centre and radius, the cylinder's p0, p1 and radius into it: the
     object-space shapes are the unit sphere, the unit cylinder z in [0, 1] and
     the unit disk)."""
-    import mitsuba as mi
     M = np.array(mi.traverse(shape)["to_world"].matrix, np.float64)
     return M.reshape(4, 4) if M.size == 16 else M[..., 0].reshape(4, 4)
 
@@ -65,8 +66,6 @@ def analytic_point(kind, M, uv):
     world (p, dp_du, dp_dv). (``Shape.eval_parameterization`` finds the point
     by tracing a ray and misses on some lanes: 19 of 100k interior points of
     a transformed cylinder, most of its rims.)"""
-    import drjit as dr
-    import mitsuba as mi
     u, v = mi.Float(uv.x), mi.Float(uv.y)
     sph, cyl = kind == 0, kind == 1
     phi = dr.two_pi * dr.select(kind == 2, v, u)
@@ -101,7 +100,6 @@ def tessellate_analytic(shape) -> ParamGrid | None:
     spec = ANALYTIC_GRIDS.get(shape.class_name())
     if spec is None:
         return None
-    import mitsuba as mi
     nu, nv, pu, pv = spec
     gu, gv = np.meshgrid(np.arange(nu + 1) / nu, np.arange(nv + 1) / nv)   # (nv+1, nu+1)
     uv = np.stack([gu.ravel(), gv.ravel()], axis=1)

@@ -15,14 +15,15 @@ from __future__ import annotations
 
 import math
 
+import flip_evaluator as fe
 import numpy as np
+from skimage.metrics import structural_similarity
 
 from slc.core.io import tonemap
 
 
 def flip(reference_ldr: np.ndarray, test_ldr: np.ndarray):
     """(mean LDR-FLIP, error map HxW) of two tone-mapped sRGB images."""
-    import flip_evaluator as fe
     ref = np.ascontiguousarray(np.clip(reference_ldr, 0, 1), dtype=np.float32)
     tst = np.ascontiguousarray(np.clip(test_ldr, 0, 1), dtype=np.float32)
     emap, mean, _ = fe.evaluate(ref, tst, "LDR", inputsRGB=True, applyMagma=False)
@@ -37,7 +38,6 @@ def psnr(reference_ldr, test_ldr) -> float:
 
 
 def ssim(reference_ldr, test_ldr) -> float:
-    from skimage.metrics import structural_similarity
     r, t = np.asarray(reference_ldr, np.float64), np.asarray(test_ldr, np.float64)
     win = min(7, min(r.shape[0], r.shape[1]) // 2 * 2 - 1)
     return float(structural_similarity(r, t, channel_axis=2, data_range=1.0, win_size=max(win, 3)))
@@ -49,7 +49,7 @@ def rel_mse(reference_hdr, test_hdr, eps: float = 1e-2) -> float:
 
 
 def lab_rmse(reference_hdr, test_hdr, exposure: float = 1.0) -> float:
-    import colour
+    import colour  # colour-science takes seconds to import: only when a Lab error is asked for
     def lab(img):
         rgb = np.clip(np.asarray(img, np.float64) * exposure, 0.0, 1.0)
         xyz = colour.RGB_to_XYZ(rgb, colour.RGB_COLOURSPACES["sRGB"], apply_cctf_decoding=False)

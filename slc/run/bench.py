@@ -15,6 +15,7 @@ from other processes on a shared machine hits both samplers alike.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import statistics
 import time
 
@@ -302,9 +303,6 @@ def update_report_lines(r: dict) -> list[str]:
 
 def image_md5(img) -> str:
     """md5 of an image's float32 values (bit-identical images give the same digest)."""
-    import hashlib
-
-    import numpy as np
     return hashlib.md5(np.ascontiguousarray(np.asarray(img, np.float32)).tobytes()).hexdigest()
 
 

@@ -40,6 +40,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from slc import methods as registry
+from slc.core.spec import parse_spec
 from slc.run.experiment import release_scenes
 from slc.run.pipeline import RunConfig, run_sequence
 from slc.scene import scenes, views
@@ -123,7 +124,7 @@ class Finding:
 
 def stateless(spec: str) -> bool:
     """Whether the method ``spec`` is one of :data:`STATELESS`."""
-    name = registry.parse_spec(spec)[0]
+    name = parse_spec(spec)[0]
     return name in STATELESS or ("rtN" in STATELESS and re.fullmatch(r"rt\d+", name) is not None)
 
 

@@ -14,32 +14,33 @@ Every command takes ``--variant`` (or ``SLC_VARIANT``) and ``--check`` (or
 --check`` work as well). Bad input (missing
 file, unknown scene/method/experiment, a scene without emitters) prints one
 line ``slc: error: ...`` and exits with status 2, writing no results.
+
+This module imports nothing that builds Mitsuba types: the group chooses the variant, then
+imports what the commands do (:mod:`slc.run.commands`).
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 import click
 
-from slc.core import backend
-from slc.distributed import DEFAULT_LEASE, DEFAULT_THRESHOLD
+from slc.core import backend, check
+from slc.core.check import CheckError
+from slc.core.errors import MethodError, SceneError
+from slc.core.spec import SpecError
+from slc.distributed import DEFAULT_THRESHOLD
+from slc.run.errors import ExperimentError, JobsFailed
+
+# bad input: one line, exit status 2, no results written
+BAD_INPUT = (SceneError, MethodError, SpecError, ExperimentError, backend.BackendError, FileNotFoundError, CheckError)
 
 
-def _errors():
-    # after --variant (the module builds Mitsuba types on import)
-    from slc.run.experiment import ExperimentError
-    from slc.methods import MethodError
-    from slc.scene.checks import SceneError
-    from slc.core.check import CheckError
-    return (SceneError, MethodError, ExperimentError, backend.BackendError, FileNotFoundError, CheckError)
-
-
-def _jobs_failed():
-    # after --variant (the module builds Mitsuba types on import)
-    from slc.run.jobs import JobsFailed
-    return JobsFailed
+def _commands():
+    """:mod:`slc.run.commands`, once the variant is chosen."""
+    # after --variant: the commands' modules build Mitsuba types on import
+    from slc.run import commands
+    return commands
 
 
 def _fail(msg: str):
@@ -64,8 +65,6 @@ def _parse_res(res: str) -> tuple[int, int]:
 def cli(variant, check_mode):
     """slc: shared caches of incoming light for many viewers."""
     if check_mode:
-        # after --variant (the module builds Mitsuba types on import)
-        from slc.core import check
         check.enable()
     try:
         backend.init(variant)
@@ -76,20 +75,13 @@ def cli(variant, check_mode):
 @cli.command("scenes")
 def scenes_cmd():
     """List the built-in scenes."""
-    # after --variant (the module builds Mitsuba types on import)
-    from slc.scene import scenes
-    for name, desc in scenes.describe_builtins():
-        click.echo(f"{name:10s} {desc}")
-    click.echo("(or any Mitsuba 3 scene: --scene path/to/scene.xml)")
+    _commands().list_scenes()
 
 
 @cli.command("methods")
 def methods_cmd():
     """List the available methods."""
-    # after --variant (the module builds Mitsuba types on import)
-    from slc import methods
-    for name, desc in sorted(methods.available().items()):
-        click.echo(f"{name:10s} {desc}")
+    _commands().list_methods()
 
 
 @cli.command("render")
@@ -117,72 +109,9 @@ def methods_cmd():
 def render_cmd(scene_name, method, viewers, rig, overlap, res, frames, warmup, seed, gt, out, nodes, threshold,
                address):
     """Render a sequence with one method; write images and timings."""
-    # after --variant (the module builds Mitsuba types on import)
-    from slc.core import io
-    from slc import methods
-    from slc.scene import scenes, views
-    from slc.run.pipeline import RunConfig, run_sequence
-    w, h = _parse_res(res)
-    if viewers < 1 or frames < 1:
-        _fail("--viewers and --frames must be at least 1")
-    s = scenes.load(scene_name)
-    m = methods.create(method, s, seed=seed)
-    try:
-        vs = views.make_rig(s, rig, viewers, overlap)
-    except ValueError as e:
-        _fail(str(e))
-    if nodes:
-        _render_on_nodes(scene_name, method, s, m, vs, nodes, threshold, address, (w, h), frames, seed, gt, out)
-        return
-    cfg = RunConfig(width=w, height=h, frames=frames, warmup=min(warmup, frames - 1), seed=seed,
-                    eval_frames=[frames - 1] if gt else [])
-    from tqdm import tqdm
-    with tqdm(total=frames, desc=f"{s.name}/{m.name}", unit="frame", disable=None) as bar:
-        r = run_sequence(s, m, vs, cfg, progress=bar)
-    outd = Path(out)
-    for vname, img in r.last.items():
-        io.write_hdr_and_png(outd / f"{s.name}_{m.name}_{vname}", img, s.exposure)
-    for vname, im in r.images.items():
-        io.comparison_strip(outd / f"{s.name}_{m.name}_{vname}_strip.png", im["gt"], im["img"],
-                            im["flip_map"], im["exposure"])
-    row = {"scene": s.name, **r.row(), "per_frame_ms": r.per_frame_ms}
-    io.write_json(outd / "timings.json", row)
-    click.echo(f"{s.name} {m.name} ({m.output} light) viewers={len(vs)}: {r.time_ms:.2f} ms/frame (median after "
-               f"{cfg.warmup} warm-up)" + "".join(f", {k} {v:.4f}" for k, v in r.metrics.items())
-               + (f" vs the {m.output} reference" if r.metrics else ""))
-    click.echo(f"wrote {outd}")
-
-
-def _render_on_nodes(scene_name, spec, s, m, vs, nodes, threshold, address, size, frames, seed, gt, out):
-    """``slc render --nodes K``: the viewers ``vs`` on K Ray render nodes, one process each
-    (:func:`slc.distributed.actors.render_on_nodes`); ``s``, ``m``: the scene and method loaded
-    here to check the input before Ray starts."""
-    # after --variant (the modules build Mitsuba types on import)
-    from slc.core import io
-    from slc.methods.cache_method import PayloadMethod
-    if nodes < 1 or nodes > len(vs):
-        _fail(f"--nodes must be between 1 and the number of viewers ({len(vs)}), got {nodes}")
-    if not isinstance(m, PayloadMethod):
-        _fail(f"--nodes needs a cache method whose entries are records (slc, sh, adaptive); '{m.name}' has none")
-    if gt:
-        _fail("--gt is not available with --nodes (slc run distributed compares the nodes' images)")
-    # Ray and the actors only when nodes are asked for
-    from slc.distributed.actors import render_on_nodes
-    t = DEFAULT_THRESHOLD if threshold is None else threshold
-    if t < 0:
-        _fail(f"--threshold must be >= 0, got {t}")
-    res = render_on_nodes(s, scene_name, spec, vs, nodes, *size, frames, t, DEFAULT_LEASE, seed=seed,
-                          address=address, output=m.output)
-    outd = Path(out)
-    for v, img in sorted(res["images"].items()):
-        io.write_hdr_and_png(outd / f"{s.name}_{m.name}_node{v % nodes}_{vs[v].name}", img, s.exposure)
-    sent = res["bytes_per_frame"]
-    io.write_json(outd / "nodes.json", {"scene": s.name, "method": spec, "nodes": nodes, "threshold": t,
-                                        "processes": res["processes"], "bytes_per_frame": sent,
-                                        "serialized_bytes_per_frame": res["serialized_bytes_per_frame"]})
-    click.echo(f"{s.name} {m.name} on {nodes} nodes, viewers={len(vs)}: {sum(sent) / max(len(sent), 1):.0f} bytes "
-               f"per frame sent (mean over {len(sent)} frames), threshold {t:g}")
-    click.echo(f"wrote {outd}")
+    size = _parse_res(res)
+    _commands().render(scene_name, method, viewers, rig, overlap, size, frames, warmup, seed, gt, out, nodes,
+                       threshold, address)
 
 
 @cli.command("run", add_help_option=False,
@@ -191,27 +120,7 @@ def _render_on_nodes(scene_name, spec, s, m, vs, nodes, threshold, address, size
 @click.argument("args", nargs=-1, type=click.UNPROCESSED)
 def run_cmd(experiment_name, args):
     """Run an experiment (single-viewer, ...); options after the name."""
-    # after --variant (the module builds Mitsuba types on import)
-    from slc.run import experiment
-    mod = experiment.load(experiment_name)
-    _run_module(mod, list(args), prog=f"slc run {experiment_name}")
-
-
-def _run_module(mod, argv, prog):
-    p = argparse.ArgumentParser(prog=prog, description=(mod.__doc__ or "").strip().splitlines()[0])
-    if hasattr(mod, "add_arguments"):
-        mod.add_arguments(p)
-    p.add_argument("--check", action="store_true",
-                   help="check mode (= SLC_CHECK=1): stop at the first NaN/Inf or negative value")
-    opts = p.parse_args(argv)
-    if opts.check:
-        # after --variant (the module builds Mitsuba types on import)
-        from slc.core import check
-        check.enable()
-    # after --variant (the module builds Mitsuba types on import)
-    from slc.run.jobs import session_for
-    with session_for(getattr(mod, "NAME", prog.split()[-1]), opts):
-        mod.run(opts)
+    _commands().run_experiment(experiment_name, list(args), prog=f"slc run {experiment_name}")
 
 
 @cli.group("bench")
@@ -226,11 +135,7 @@ def bench_grp():
 @click.option("--repeats", default=5, show_default=True, type=int)
 def bench_rays(scene_name, res, n, repeats):
     """RT-N throughput next to Mitsuba's raw scene.ray_test on the same rays, with Mitsuba's light sampler and the emitter table."""
-    # after --variant (the module builds Mitsuba types on import)
-    from slc.run.bench import bench_rays as run, report_lines
-    w, h = _parse_res(res)
-    for line in report_lines(run(scene_name, w, h, n, repeats)):
-        click.echo(line)
+    _commands().bench_rays(scene_name, _parse_res(res), n, repeats)
 
 
 @bench_grp.command("update")
@@ -242,13 +147,10 @@ def bench_rays(scene_name, res, n, repeats):
 @click.option("--method", default="slc", show_default=True, help="slc, with settings (slc:max_cones=2)")
 def bench_update(scene_name, res, frames, warmup, repeats, method):
     """slc's frame time next to the rays its update traces, traced alone."""
-    # after --variant (the module builds Mitsuba types on import)
-    from slc.run.bench import bench_update as run, update_report_lines
-    w, h = _parse_res(res)
+    size = _parse_res(res)
     if frames <= warmup:
         raise click.BadParameter(f"--frames ({frames}) must exceed --warmup ({warmup})")
-    for line in update_report_lines(run(scene_name, w, h, frames, warmup, repeats, method)):
-        click.echo(line)
+    _commands().bench_update(scene_name, size, frames, warmup, repeats, method)
 
 
 @bench_grp.command("ab")
@@ -269,22 +171,12 @@ def bench_ab(spec_a, spec_b, scene_names, res, frames, warmup, repeats, seed, re
     """Two method settings (e.g. osc-gi osc-gi:sharp=0.2) timed in turn in one process on one viewer:
     median time per frame of each, the ratio B / A within each repetition, the metrics of the last
     frame against its reference and each image's md5 (a bit-identical refactor shows equal digests)."""
-    # after --variant (the module builds Mitsuba types on import)
-    from slc.run.bench import ab_report_lines, bench_ab as run
-    w, h = _parse_res(res)
+    size = _parse_res(res)
     if frames < 1 or repeats < 1:
         _fail("--frames and --repeat must be at least 1")
     if warmup is not None and not 0 <= warmup < frames:
         _fail(f"--warmup ({warmup}) must be at least 0 and below --frames ({frames})")
-    out = []
-    for name in scene_names:
-        r = run(name, spec_a, spec_b, w, h, frames, warmup, repeats, seed, ref_spp)
-        out.append(r)
-        for line in ab_report_lines(r):
-            click.echo(line)
-    if json_path:
-        from slc.core import io  # after --variant, as above
-        io.write_json(Path(json_path), out)
+    _commands().bench_ab(spec_a, spec_b, scene_names, size, frames, warmup, repeats, seed, ref_spp, json_path)
 
 
 def main(argv=None):
@@ -295,9 +187,9 @@ def main(argv=None):
     except click.ClickException as e:
         e.show()
         sys.exit(2)
-    except _errors() as e:
+    except BAD_INPUT as e:
         _fail(str(e))
-    except _jobs_failed() as e:  # a run error, not bad input: exit 1, completed jobs kept for --resume
+    except JobsFailed as e:  # a run error, not bad input: exit 1, completed jobs kept for --resume
         click.echo(f"slc: error: {e}", err=True)
         sys.exit(1)
     except SystemExit as e:
@@ -306,16 +198,15 @@ def main(argv=None):
 
 
 def run_experiment_standalone(path: str) -> int:
-    """Entry point of ``python experiments/NAME.py [options]``."""
-    # after --variant (the module builds Mitsuba types on import)
-    from slc.run import experiment
+    """Entry point of ``python experiments/NAME.py [options]`` (the variant: ``SLC_VARIANT`` or the
+    automatic choice)."""
     try:
-        mod = experiment.load(Path(path).stem)
-        _run_module(mod, sys.argv[1:], prog=Path(path).name)
-    except _errors() as e:
+        backend.init()
+        _commands().run_experiment(Path(path).stem, sys.argv[1:], prog=Path(path).name)
+    except BAD_INPUT as e:
         click.echo(f"{Path(path).name}: error: {e}", err=True)
         return 2
-    except _jobs_failed() as e:
+    except JobsFailed as e:
         click.echo(f"{Path(path).name}: error: {e}", err=True)
         return 1
     return 0

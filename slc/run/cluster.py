@@ -24,10 +24,12 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
 import time
 from collections import deque
 from pathlib import Path
 
+import numpy as np
 import ray
 
 from slc.core import backend
@@ -42,7 +44,6 @@ class SceneWorker:
         self.runner = runner(threads)
 
     def info(self) -> dict:
-        import socket
         return {"host": socket.gethostname(), "pid": os.getpid(), "threads": self.runner.threads}
 
     def run(self, job) -> dict:
@@ -65,7 +66,6 @@ def _runtime_env() -> dict:
 def _writable(obj):
     """Ray hands numpy arrays back read-only (zero-copy from its object
     store); copy them so the driver's writers (e.g. ``mi.Bitmap``) take them."""
-    import numpy as np
     if isinstance(obj, np.ndarray):
         return obj if obj.flags.writeable else obj.copy()
     if isinstance(obj, dict):
@@ -80,7 +80,6 @@ def _check_reachable(address: str, timeout: float = 5.0) -> None:
     HOST:PORT head is not listening."""
     if address == "auto" or "://" in address:
         return
-    import socket
     host, _, port = address.rpartition(":")
     try:
         socket.create_connection((host or "127.0.0.1", int(port)), timeout=timeout).close()

@@ -8,6 +8,11 @@ class ExperimentError(ValueError):
     """Bad experiment input: unknown experiment, bad option, unreachable cluster (one-line message)."""
 
 
+class JobsFailed(RuntimeError):
+    """Some jobs still failed after their retries (one-line summary; exit status 1: a run error,
+    not bad input)."""
+
+
 def raise_fatal(res: dict) -> None:
     """Stop the run on a check-mode error reported by a job (``{"fatal": message}``)."""
     if "fatal" in res:

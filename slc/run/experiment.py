@@ -23,10 +23,13 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 from slc import methods
 from slc.core import io
 from slc.core.backend import env_info
+from slc.core.errors import MethodError
+from slc.core.spec import parse_spec
 from slc.run import jobs, jobspec
 from slc.run.errors import ExperimentError
 from slc.run.pipeline import RunConfig, run_sequence
@@ -195,7 +198,7 @@ def apply_common(opts, preset: dict) -> dict:
 
 def available_methods(wanted: list[str]) -> list[str]:
     """``wanted`` without the methods that are not implemented (yet)."""
-    return [spec for spec in wanted if methods.known(methods.parse_spec(spec)[0])]
+    return [spec for spec in wanted if methods.known(parse_spec(spec, "method setting", MethodError)[0])]
 
 
 def load_and_validate(scene_names: list[str], method_specs: list[str], explicit_scenes: bool) -> list[str]:
@@ -258,7 +261,8 @@ def ratio(a, b):
 
 def runs_in_turn(scene, cases, cfg, repeats: int = 3, seed: int = 0, alternate: bool = True,
                  first_cfg=None, before=None) -> list[list]:
-    """Run ``cases`` ((method spec, viewers) pairs) again, in turn: ``repeats``
+    """Run ``cases`` ((method, viewers) pairs; the method a spec, or a function that makes a new
+    one, its settings as data) again, in turn: ``repeats``
     repetitions of every case, each a whole :func:`slc.run.pipeline.run_sequence` of
     ``cfg`` with a new method instance; with ``alternate`` every other repetition
     runs the cases in reverse order (a load that drifts during the repetitions
@@ -275,7 +279,8 @@ def runs_in_turn(scene, cases, cfg, repeats: int = 3, seed: int = 0, alternate: 
                 before(i)
             spec, viewers = cases[i]
             c = first_cfg if rep == 0 and first_cfg is not None else cfg
-            out[i].append(run_sequence(scene, methods.create(spec, scene, seed=seed), viewers, c))
+            m = spec() if callable(spec) else methods.create(spec, scene, seed=seed)
+            out[i].append(run_sequence(scene, m, viewers, c))
     return out
 
 
@@ -364,8 +369,6 @@ def run_cases(cases, cfg, desc: str, seed: int = 0, keep: bool = False) -> list[
     progress bar; rows in the order of ``cases``. ``keep`` gives each row a
     ``_result`` whose ``images`` are the evaluated images (for
     :func:`slc.run.images.save_strip`)."""
-    from types import SimpleNamespace
-
     session = jobs.current(desc.split()[0])
     js = jobspec.jobs_from_cases(session.experiment, cases, cfg, seed, keep_images=keep)
     live = {jobspec.scene_source(s): s for s, *_ in cases}

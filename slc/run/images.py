@@ -5,8 +5,11 @@ evaluated frame that collects every method's image, its FLIP map and the referen
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from types import SimpleNamespace
+
+import numpy as np
 
 from slc.core import io
 from slc.core.backend import code_version
@@ -53,10 +56,6 @@ def add_to_frame_exr(out: Path, scene, label: str, im: dict) -> Path:
     JSON: per method layer its full setting, its reference and error layers and the exposure
     of its tone map (PNGs, FLIP). The first call of a run replaces a file left
     by an earlier run; later calls read it back and add their layers."""
-    import json
-
-    import numpy as np
-
     frame = int(im.get("frame", -1))
     path = out / "images" / f"{_file_name(scene.name)}_frame{frame}.exr"
     layers, meta = {}, {}

@@ -53,11 +53,12 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import drjit as dr
+from tqdm import tqdm
 
 from slc.core import io
 from slc.core.backend import variant
 from slc.core.check import CheckError
-from slc.run.errors import ExperimentError, raise_fatal
+from slc.run.errors import ExperimentError, JobsFailed, raise_fatal
 from slc.run.jobspec import Case, Job
 from slc.run.pipeline import run_case
 from slc.run.rowstore import RowStore, normalize_rows
@@ -69,10 +70,6 @@ from slc.scene import scenes
 TIMING_FIELDS = ("time_ms", "stages_ms", "stages_kernel_ms", "frames_ms", "compiled_after_warmup",
                  "recordings_after_warmup", "startup_ms")
 RUN_FIELDS = ("host", "threads", "backend", "job")
-
-
-class JobsFailed(RuntimeError):
-    """Some jobs still failed after their retries (one-line summary)."""
 
 
 # -----------------------------------------------------------------------------
@@ -156,7 +153,6 @@ class _Progress:
     follows the frames of the job that runs."""
 
     def __init__(self, total: int, done: int, desc: str):
-        from tqdm import tqdm
         self.bar = tqdm(total=total, initial=done, desc=desc, unit="job", disable=None, dynamic_ncols=True)
         self._case = ""
         self._frame = 0
@@ -212,7 +208,7 @@ class Session:
         self.distributed = bool(workers or address)
         if self.distributed:
             try:
-                import ray  # noqa: F401
+                import ray  # noqa: F401  (Ray: checked only when jobs go to workers)
             except ImportError:
                 raise ExperimentError("--workers/--address need Ray (pip install 'ray==2.60.0')") from None
         self._pool = None

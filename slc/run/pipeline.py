@@ -191,9 +191,10 @@ def _mean(vals):
     return statistics.mean(vals) if vals else float("nan")
 
 
-def run_case(scene, spec: str, viewers, cfg, bar=None, seed: int = 0, **extra) -> dict:
-    """One (scene, method, viewers) sequence -> a results row."""
-    m = methods.create(spec, scene, seed=seed)
+def run_case(scene, spec: str, viewers, cfg, bar=None, seed: int = 0, method=None, **extra) -> dict:
+    """One (scene, method, viewers) sequence -> a results row; ``method``: the method ``spec``
+    names, made by the caller (from its settings as data), else made here."""
+    m = methods.create(spec, scene, seed=seed) if method is None else method
     if bar is not None:
         bar.set_postfix_str(f"{scene.name}/{spec}/{len(viewers)}v")
     res = run_sequence(scene, m, viewers, cfg, progress=bar)

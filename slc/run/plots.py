@@ -4,12 +4,27 @@ go to the legend or a key under the axes, labels are placed so that they overlap
 nor the points, and a time axis is logarithmic where times span a decade or more."""
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
+
+import numpy as np
+from matplotlib.lines import Line2D
+from matplotlib.transforms import Bbox
 
 from slc.core import io
 
 SHORT_NAME = 16        # longest point label drawn on a plot; longer settings get a number and a key line
 KEY_WIDTH = 100        # characters per line of a plot's key (7 pt, the figure's width)
+
+
+def pyplot():
+    """``matplotlib.pyplot`` on the Agg backend (figures go to files; nothing is displayed)."""
+    # matplotlib's backend is chosen when a figure is first made, not when slc is imported
+    # (a notebook importing slc keeps its own backend)
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
 
 
 def log_if_wide(ax, values, axis: str = "x", span: float = 10.0) -> None:
@@ -25,8 +40,6 @@ def place_labels(fig, ax, points, fontsize: int = 7) -> list:
     no label placed before it, no other point and not the axes' legend (else the position
     covering least); labels set further off get a thin leader line. The figure's layout is
     computed first and then fixed, so the labels stay where they were checked."""
-    import numpy as np
-    from matplotlib.transforms import Bbox
     fig.canvas.draw()
     fig.set_layout_engine("none")
     renderer = fig.canvas.get_renderer()
@@ -89,7 +102,6 @@ def short_names(rows: list[dict], family_of) -> tuple[list[str], list[str]]:
     (those go in the legend, :func:`shared_options`), the family's name when none is left, a
     number when still longer than :data:`SHORT_NAME`; and the key lines ``N  full label`` of
     the numbered rows."""
-    import textwrap
     shared = {}
     for r in rows:
         shared.setdefault(family_of(r), []).append(r)
@@ -126,11 +138,7 @@ def speed_error_plot(path: Path, rows: list[dict], title: str, x="time_ms", y="f
     the axes, whose width the key leaves alone. A family's points are joined by a line when
     they are one sweep (:func:`_one_sweep`). The time axis is logarithmic when the times
     span a decade or more."""
-    import textwrap
-
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     rows = [r for r in rows if r.get(x) is not None and r.get(y) is not None]
     fam_of = lambda r: r.get("family", r["method"])  # noqa: E731
     fams: dict[str, list] = {}
@@ -155,7 +163,6 @@ def speed_error_plot(path: Path, rows: list[dict], title: str, x="time_ms", y="f
     if fams:
         ax.legend(fontsize=7, title="method", title_fontsize=7)
     if key:
-        from matplotlib.lines import Line2D
         blank = [Line2D([], [], linestyle="none") for _ in key]
         fig.legend(blank, key, loc="outside lower left", fontsize=7, frameon=False, handlelength=0,
                    handletextpad=0, title="settings of the numbered points", title_fontsize=7,
@@ -170,9 +177,7 @@ def time_vs_viewers_plot(path: Path, rows: list[dict], title: str, group=("metho
     """One line per group (e.g. method and overlap), ``y`` against ``x`` (log 2), ``y`` on a log
     axis when it spans a decade or more; points labelled with the measured overlap when rows
     carry it (:func:`place_labels`); the legend under the axes."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     groups: dict[tuple, list] = {}
     for r in rows:
         groups.setdefault(tuple(r.get(g) for g in group), []).append(r)
@@ -202,9 +207,7 @@ def time_vs_viewers_plot(path: Path, rows: list[dict], title: str, group=("metho
 def metric_vs_value_plot(path: Path, rows: list[dict], field: str, title: str) -> None:
     """FLIP (left) and time (right, log when it spans a decade or more) against ``field``, one
     line per method setting; the settings in one legend under both axes."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     groups: dict[str, list] = {}
     for r in rows:
         groups.setdefault(r.get("setting", r["method"]), []).append(r)

@@ -16,6 +16,7 @@ from typing import Callable
 
 import mitsuba as mi
 import numpy as np
+import trimesh
 
 from slc.scene.camera import CameraPath
 from slc.scene.scenes import SCENES_DIR, Animated, Scene
@@ -98,14 +99,12 @@ class SceneBuilder:
         return self.add_mesh(V, np.array([[0, 1, 2], [0, 2, 3]]), **kw)
 
     def add_sphere(self, center, radius, subdivisions=2, **kw) -> str:
-        import trimesh
         tm = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
         tm.apply_translation(np.asarray(center, float))
         kw.setdefault("smooth", True)
         return self.add_trimesh(tm, **kw)
 
     def add_cylinder(self, p0, p1, radius, sections=12, **kw) -> str:
-        import trimesh
         tm = trimesh.creation.cylinder(radius=radius, segment=np.array([p0, p1], float), sections=sections)
         return self.add_trimesh(tm, **kw)
 
@@ -155,7 +154,6 @@ class SceneBuilder:
 
 def box_mesh(lo, hi):
     """A trimesh box spanning the corners ``lo`` and ``hi``."""
-    import trimesh
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     tm = trimesh.creation.box(extents=hi - lo)
     tm.apply_translation(0.5 * (lo + hi))
@@ -164,7 +162,6 @@ def box_mesh(lo, hi):
 
 def merge_meshes(parts):
     """One trimesh from several (fewer shapes make a faster scene)."""
-    import trimesh
     return trimesh.util.concatenate(parts)
 
 

@@ -12,11 +12,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from slc.core.errors import SceneError
+
 SUPPORTED_EMITTERS = ("area", "point", "spot", "envmap", "constant", "directional")
-
-
-class SceneError(ValueError):
-    """A scene cannot be loaded (one-line reason for the user)."""
 
 
 def check_emitters(mi_scene: mi.Scene, name: str) -> None:

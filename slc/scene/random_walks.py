@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import math
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 from slc.scene.camera import CameraPath, Viewer
@@ -33,8 +35,6 @@ def _clear(scene: Scene, a: np.ndarray, b: np.ndarray, margin: float) -> np.ndar
     (six axis rays: none hits a back face or anything nearer than
     ``margin``). One batched ray query; used when a rig is built, never in
     timed frames."""
-    import drjit as dr
-    import mitsuba as mi
     n = len(a)
     axes = np.concatenate([np.eye(3), -np.eye(3)])
     d = b - a

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import shutil
+import tempfile
 import weakref
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +29,7 @@ from typing import Callable
 import numpy as np
 
 from slc.core import backend
-from slc.core.spec import SpecError, parse_spec
+from slc.core.spec import parse_spec
 
 backend.init()
 import mitsuba as mi  # noqa: E402
@@ -230,15 +232,6 @@ def _import_definition(path: Path):
     return mod
 
 
-def parse_scene_spec(spec: str) -> tuple[str, dict]:
-    """``"hangar:lights=24"`` -> ``("hangar", {"lights": "24"})``, the syntax of
-    method specs (values stay strings; each scene's ``build`` converts its own)."""
-    try:
-        return parse_spec(spec, "scene option")
-    except SpecError as e:
-        raise SceneError(str(e)) from None
-
-
 def load(name_or_path: str, **options) -> Scene:
     """Load a built-in scene by name, a ``.py`` definition or a ``.xml`` file.
     Built-in scenes take options in the name, like methods take settings:
@@ -247,7 +240,7 @@ def load(name_or_path: str, **options) -> Scene:
 
     Raises :class:`SceneError` with a one-line message on any problem."""
     if ":" in str(name_or_path) and Path(str(name_or_path)).suffix not in (".xml", ".py"):
-        name, opts = parse_scene_spec(name_or_path)
+        name, opts = parse_spec(name_or_path, "scene option", SceneError)  # values stay strings
         if name not in builtin_names():
             raise SceneError(f"unknown scene '{name}' (built-in scenes: {', '.join(builtin_names())})")
         try:
@@ -276,8 +269,6 @@ def load_xml_text(name: str, text: str, camera_paths: list[CameraPath], files: d
     (mesh merging off, as :func:`load_xml`) beside ``files`` (file name -> function that
     writes it to the path it is given: an environment map's image), all in a temporary
     folder removed once loaded."""
-    import shutil
-    import tempfile
     tmp = Path(tempfile.mkdtemp(prefix=f"slc-{name}-"))
     try:
         for fname, write in (files or {}).items():

@@ -17,8 +17,10 @@ A :class:`~slc.scene.camera.Viewer` maps a frame index to a
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 from slc.scene.camera import Camera, Viewer
@@ -116,11 +118,19 @@ def _fan(p, n: int, step: float, aspect: float, pivot: str = "eye"):
     return out
 
 
-def _scene_window(scene: Scene, p) -> tuple[float, float, float, float]:
-    """(x0, x1, y0, y1): the part of the path's first view that shows the front of
-    a surface, in tangent units of the camera's basis (x right, y up), from a
-    G-buffer at ``CALIBRATION_RES``."""
-    import mitsuba as mi
+@dataclass(frozen=True)
+class Window:
+    """A rectangle of a camera's view in tangent units of its basis (x right, y up):
+    ``x0 <= x <= x1``, ``y0 <= y <= y1``."""
+    x0: float
+    x1: float
+    y0: float
+    y1: float
+
+
+def _scene_window(scene: Scene, p) -> Window:
+    """The part of the path's first view that shows the front of a surface
+    (:class:`Window`), from a G-buffer at ``CALIBRATION_RES``."""
     cam = p.at(0)
     w, h = CALIBRATION_RES
     gb = render_gbuffer(scene, cam, w, h, None, "window")
@@ -131,10 +141,10 @@ def _scene_window(scene: Scene, p) -> tuple[float, float, float, float]:
     d = np.array(gb.si.p).T[front] - np.asarray(cam.origin, float)
     z = d @ f
     x, y = (d @ r) / z, (d @ u) / z
-    return float(x.min()), float(x.max()), float(y.min()), float(y.max())
+    return Window(float(x.min()), float(x.max()), float(y.min()), float(y.max()))
 
 
-def _tiles(p, n: int, step: float, aspect: float, window):
+def _tiles(p, n: int, step: float, aspect: float, window: Window):
     """Viewers at the path's position, each aimed at a tile of ``window``, what
     its camera sees of the scene (:func:`_scene_window`): a grid of ceil(sqrt(n)) columns,
     tiles of the render's aspect as large as fit ``1 + (k - 1) step`` tiles
@@ -143,7 +153,7 @@ def _tiles(p, n: int, step: float, aspect: float, window):
     outside the scene (the cornell box seen through its open side) every view
     looks into the box at the front of its walls. Viewer 0 holds the tile
     nearest the window's centre."""
-    x0, x1, y0, y1 = window
+    x0, x1, y0, y1 = window.x0, window.x1, window.y0, window.y1
     cols = int(math.ceil(math.sqrt(n)))
     rows = int(math.ceil(n / cols))
     tw = min((x1 - x0) / (1.0 + (cols - 1) * step), (y1 - y0) * aspect / (1.0 + (rows - 1) * step))
@@ -175,13 +185,14 @@ def fan_pivot(scene: Scene, path: int = 0) -> str:
     return "eye" if inside else "tile"
 
 
-def _rig(p, n: int, step: float, aspect: float, pivot: str, window=None):
+def _rig(p, n: int, step: float, aspect: float, pivot: str, window: Window | None = None):
     """The views of a fan (:func:`_fan`) or, with ``pivot="tile"``, of tiles of ``window``
     (:func:`_tiles`)."""
     return _tiles(p, n, step, aspect, window) if pivot == "tile" else _fan(p, n, step, aspect, pivot)
 
 
-def _fan_overlap(scene: Scene, p, n: int, step: float, aspect: float, pivot: str = "eye", window=None) -> float:
+def _fan_overlap(scene: Scene, p, n: int, step: float, aspect: float, pivot: str = "eye",
+                 window: Window | None = None) -> float:
     """Mean measured overlap of a fan over ``CALIBRATION_FRAMES``."""
     w, h = CALIBRATION_RES
     w = max(int(round(h * aspect)), 1)
@@ -304,8 +315,6 @@ def meeting(scene: Scene, n: int, radius: float | None = None, height: float | N
 def inside_geometry(scene: Scene, p, n_dirs: int = 64) -> bool:
     """Whether point ``p`` is enclosed by geometry: more than half of
     ``n_dirs`` fixed directions hit a surface from its back side."""
-    import drjit as dr
-    import mitsuba as mi
     d = np.random.default_rng(7).normal(size=(n_dirs, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     o = np.broadcast_to(np.asarray(p, float), d.shape)
