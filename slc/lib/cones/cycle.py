@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from slc.core.keys import STREAM_CONE_UPDATE, keyed_rng
 from slc.lib.cones.packing import pack
@@ -114,7 +115,6 @@ def constant_area_emitters(scene) -> bool:
 
 
 def _positive(v) -> bool:
-    import numpy as np
     a = np.array(v, dtype=np.float64).ravel()
     return a.size > 0 and bool(np.isfinite(a).all()) and bool(a.max() > 0.0)
 

@@ -102,7 +102,7 @@ def _directions(H: int, W: int):
 
 def _components(mask: np.ndarray) -> tuple[np.ndarray, int]:
     """8-connected components of ``mask`` (H, W), joined across the phi seam."""
-    from scipy import ndimage
+    from scipy import ndimage  # scipy only where an environment map is split into regions
     lab, n = ndimage.label(mask, structure=np.ones((3, 3), int))
     if n == 0:
         return lab, 0

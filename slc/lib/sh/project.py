@@ -26,18 +26,16 @@ channel by channel). All functions work on Dr.Jit and numpy arrays.
 """
 from __future__ import annotations
 
+import drjit as dr
+import numpy as np
+
 from slc.lib.sh.basis import A_HAT, band_of, basis
 from slc.lib.sh.ycocg import Encoding, encoding
 
 
 def _max0(x):
-    try:
-        import drjit as dr
-        if dr.is_array_v(x):
-            return dr.maximum(x, 0.0)
-    except ImportError:  # pragma: no cover
-        pass
-    import numpy as np
+    if dr.is_array_v(x):
+        return dr.maximum(x, 0.0)
     return np.maximum(x, 0.0)
 
 
@@ -69,13 +67,8 @@ def _channel_dot(enc: Encoding, coeffs, Y, factors):
 
 
 def _select(cond, a, b):
-    try:
-        import drjit as dr
-        if dr.is_array_v(cond):
-            return dr.select(cond, a, b)
-    except ImportError:  # pragma: no cover
-        pass
-    import numpy as np
+    if dr.is_array_v(cond):
+        return dr.select(cond, a, b)
     return np.where(cond, a, b)
 
 

@@ -49,14 +49,14 @@ _ADOBE_TO_XYZ = np.array([[0.576700, 0.185556, 0.188212],
 
 
 def _lab(img, exposure):
-    import colour
+    import colour  # optional and slow to import: only where a Lab figure is asked for
     rgb = np.clip(np.asarray(img, np.float64) * exposure, 0.0, 1.0)
     xyz = colour.RGB_to_XYZ(rgb, colour.RGB_COLOURSPACES["sRGB"], apply_cctf_decoding=False)
     return colour.XYZ_to_Lab(xyz)
 
 
 def delta_e76(reference_hdr, test_hdr, exposure: float = 1.0) -> np.ndarray:
-    import colour
+    import colour  # optional and slow to import: only where a Lab figure is asked for
     return colour.delta_E(_lab(reference_hdr, exposure), _lab(test_hdr, exposure), method="CIE 1976")
 
 

@@ -15,6 +15,7 @@ indirect reference, not with the direct ground truth.
 from __future__ import annotations
 
 import math
+from contextlib import nullcontext
 from dataclasses import dataclass
 
 import mitsuba as mi
@@ -115,7 +116,6 @@ class ManyViewIR(Method):
         """(maps, octree view hierarchy for gathering) of views at the VPLs
         (hemispheres, ``phi = pi/2``; ``pi`` for omnidirectional views)."""
         sh = self.scene_hierarchy()
-        from contextlib import nullcontext
         with (timer.stage("view_hierarchy") if timer is not None else nullcontext()) as st:
             tree = ViewHierarchy(vpls.position, vpls.normal, phi, self.view_depth)
             flat = None if self.mode == "megaviews" else ViewHierarchy(vpls.position, vpls.normal, phi, flat=True)

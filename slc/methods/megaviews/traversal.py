@@ -60,6 +60,8 @@ filling for leaves larger than a texel), chunked by the budget.
 from __future__ import annotations
 
 import math
+from contextlib import nullcontext
+from types import SimpleNamespace
 
 import drjit as dr
 import mitsuba as mi
@@ -355,8 +357,6 @@ def render_maps(scene_h: SceneHierarchy, view_h: ViewHierarchy, R: int = 16, mod
     view hierarchy), ``viewonly`` (octree view hierarchy, no scene
     hierarchy: scene leaves x view root), ``manylods`` or ``brute`` (flat
     view sets)."""
-    from contextlib import nullcontext
-    from types import SimpleNamespace
     untimed = SimpleNamespace(outputs=lambda *values: None)   # no timer: no stage, nothing checked
 
     def stage(name):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from slc.scene.lights import light_inputs
 from slc.core.freeze import FrozenFunction
@@ -207,7 +208,6 @@ class OSCGI(PrimaryUpdate, PayloadMethod):
     def _cell_edge(self) -> float:
         """The secondary cells' edge (scene units): max(``secondary_cm``, ``secondary_scene`` x the
         scene's bounding-box diagonal); fixed for the run (a new edge would change every cell's key)."""
-        import numpy as np
         unit = float(getattr(self.scene, "unit", 1.0) or 1.0)
         bb = self.scene.mi_scene.bbox()
         diag = float(np.linalg.norm(np.array(bb.max) - np.array(bb.min)))

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from slc.core.backend import aligned
 from slc.scene.lights import light_inputs
@@ -232,7 +233,6 @@ class PrimaryUpdate:
         under the limit), so that its kernels are the same whether or not the budget bites in
         a frame (a first frame under the limit after the warm-up would build kernels); one viewer
         under the limit reads the cache's arrays directly (the same kernels and images)."""
-        import numpy as np
         N, B = fr.n_active, self.update_limit(fr)
         cap = dr.width(self.storage) // self.words
         if B > 0 and (self._upd_frame is None or dr.width(self._upd_frame) < cap):
