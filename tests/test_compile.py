@@ -185,6 +185,7 @@ def test_counter_sees_a_kernel_with_a_per_frame_literal():
 import json
 import drjit as dr, mitsuba as mi
 import slc
+slc.set_variant()
 from slc.core.timing import KernelCounter
 out = {}
 for name, lit in (("literal", lambda f: f), ("opaque", lambda f: dr.opaque(mi.UInt32, f))):

@@ -115,7 +115,9 @@ class Clock:
 
 def make_method(spec: str, scene, seed: int = 0) -> tuple:
     """(the cache method of a node, its cache): ``spec`` with a pool of :data:`INITIAL_BLOCKS` that
-    doubles on demand (the same slots as the default pool: blocks are mapped lowest free first)."""
+    doubles on demand (the same slots as the default pool: blocks are mapped lowest free first).
+    The method is made once; its cache, built from its settings, is given to it before its first
+    frame."""
     m = methods.create(spec, scene, seed=seed)
     if not isinstance(m, PayloadMethod):
         raise MethodError(f"'{spec}' keeps no cache entries to share between nodes (slc, sh, adaptive do)")
@@ -126,7 +128,8 @@ def make_method(spec: str, scene, seed: int = 0) -> tuple:
         cache = m.make_cache()
     if cache.layout.n_vblocks * cache.layout.block_texels >= 2 ** 32:
         raise MethodError(f"'{spec}': the cache's {cache.layout.n_vblocks} blocks do not fit 32-bit entry addresses")
-    return methods.create(spec, scene, seed=seed, cache=cache), cache
+    m.use_cache(cache)
+    return m, cache
 
 
 

@@ -256,6 +256,13 @@ class PayloadMethod(Method):
         for j, v in enumerate(values):
             dr.scatter(st, v, slots * self.words + (word + j), active)
 
+    def use_cache(self, cache: SurfaceCache) -> None:
+        """Keep this method's entries in ``cache`` (as the constructor keyword ``cache`` does);
+        before the first frame only."""
+        if self.cache is not None:
+            raise MethodError(f"{self.name}: the cache is set before the first frame")
+        self._cache_arg = cache
+
     def _set_up_cache(self):
         cache = self._cache_arg if self._cache_arg is not None else self.make_cache()
         missing = set(self.needs) - set(cache.capabilities)
