@@ -88,6 +88,7 @@ def test_constant_environment_chooses_sh_and_matches_closed_form():
     assert rel.max() < 0.02, rel
 
 
+@pytest.mark.slow
 def test_constant_environment_lists_the_sky_exactly():
     """The same sky by default: every entry lists the sky (VISIBILITY, its irradiance pi L in
     closed form, visible fraction 1 over the open plane), so L_o = rho L per pixel with no noise
@@ -102,6 +103,7 @@ def test_constant_environment_lists_the_sky_exactly():
     assert rel.max() < 1e-4, rel.max()
 
 
+@pytest.mark.slow
 @pytest.mark.fresh_process
 def test_frozen_sh_shading_matches_unfrozen_and_records_once():
     """The SH shading is traced once and replayed (dr.freeze): the images equal

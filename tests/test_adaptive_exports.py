@@ -70,6 +70,7 @@ def preview(scene):
     return scene("preview_export")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", ["adaptive:force=sh", "sh"])
 def test_sh_records_of_a_mirrored_mesh(preview, spec):
     """preview_export's plastic cube is placed by a mirroring matrix: its geometric normals
@@ -85,6 +86,7 @@ def test_sh_records_of_a_mirrored_mesh(preview, spec):
     assert 0.7 < c / rc < 1.5, (c / rc, b / rb)
 
 
+@pytest.mark.slow
 def test_lamp_room_walls_facing_away_are_lit(scene):
     """lamp_export's walls and ceiling are two-sided rectangles facing out of the room, lit
     from inside by a 5 cm light in a lamp shade and a ceiling panel: at 397f359 the lamp's
@@ -97,6 +99,7 @@ def test_lamp_room_walls_facing_away_are_lit(scene):
         assert abs(a / r - 1.0) < 0.05, (name, a / r)
 
 
+@pytest.mark.slow
 def test_hard_shadow_edges_traced_at_the_pixel(scene):
     """sun_export has one directional light: every shadow edge is hard, and one shadow ray
     per pixel is exact. A visible fraction cached per entry made the edges blocky (at

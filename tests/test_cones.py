@@ -540,6 +540,7 @@ def _hard_case_errors(kind, cosine_weights=True):
     return e
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["point", "zero", "huge", "inside"])
 def test_hard_cases_finite(kind):
     """Every hard case in check mode, and the raw image against an independent reference
@@ -661,6 +662,7 @@ def test_shading_freeze_recordings_bounded():
     assert sh.frozen and 1 <= sh.n_recordings <= 2, (sh.n_recordings, sh.frozen)
 
 
+@pytest.mark.slow
 @pytest.mark.fresh_process
 @pytest.mark.parametrize("n_viewers", [1, 4])
 def test_shading_compiles_nothing_after_warmup(n_viewers):

@@ -72,6 +72,7 @@ def test_compact_equals_branch(captured, opts):
     assert np.array_equal(a, b)
 
 
+@pytest.mark.slow
 def test_compact_no_and_all_quadrature_pixels(captured):
     """None of the active pixels on the quadrature (only the last pixel of the packed
     launch, masked off), and only quadrature pixels: the same values as in a branch."""
@@ -87,6 +88,7 @@ def test_compact_no_and_all_quadrature_pixels(captured):
         assert np.all(x[:, ~mask] == 0)
 
 
+@pytest.mark.slow
 @pytest.mark.fresh_process
 def test_compact_frozen_one_recording(captured):
     """Frozen: calls whose packed launch has another width (other pixels active) replay
@@ -151,6 +153,7 @@ def test_erf_saturates():
     assert float(dr.erf(mi.Float(-3.5))[0]) > -1.0          # (not saturated above: the test can fail)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("opts", [{}, {"conductor": "sg"}])
 def test_far_cap_shortcut_same_values(captured, opts, monkeypatch):
     """Principled (and GGX conductor) pixels: the SG lobe's share of caps far from the peak

@@ -60,7 +60,8 @@ def _run(cluster, frames=FRAMES, kill=None):
     return images, outs
 
 
-@pytest.mark.parametrize("spec", ["slc", pytest.param("adaptive", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("spec", ["slc", "adaptive"])
 def test_nodes_with_threshold_0_and_delay_0_render_the_single_process_images(scene, spec):
     """Three nodes, each with its own cache and its own viewers' G-buffers only, a moving rig:
     sparse updates at threshold 0 and full replication give the single-process cache's images bit
@@ -84,6 +85,7 @@ def test_nodes_with_threshold_0_and_delay_0_render_the_single_process_images(sce
     assert sent["sparse"] < sent["full"]
 
 
+@pytest.mark.slow
 def test_a_delay_leaves_pixels_waiting_and_bootstrap_and_prediction_fill_them(scene):
     """Messages 2 frames late on a moving rig: without hiding, pixels of entries whose record is
     on its way are black; bootstrap rays give every such pixel a value; requests from the
@@ -101,6 +103,7 @@ def test_a_delay_leaves_pixels_waiting_and_bootstrap_and_prediction_fill_them(sc
     assert missing["predict"] < missing["none"], missing
 
 
+@pytest.mark.slow
 def test_a_lost_node_in_process_moves_only_its_entries_and_the_run_goes_on(scene):
     s = scene("atrium")
     vs = views.overlap_rig(s, 6, 0.5, aspect=W / H)

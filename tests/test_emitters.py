@@ -38,7 +38,8 @@ def _scene(kind):
     return Scene(kind, mi.load_dict(d), [cam, cam, cam])
 
 
-@pytest.mark.parametrize("kind", ["point", "sphere", "constant", "envmap", "directional"])
+@pytest.mark.parametrize("kind", ["point", "sphere"] + [pytest.param(k, marks=pytest.mark.slow)
+                                                 for k in ("constant", "envmap", "directional")])
 def test_rt_matches_ground_truth_mean(kind):
     s = _scene(kind)
     gb = gbuffers_for(s, views.single(s), 0, 64, 48)[0]

@@ -490,6 +490,7 @@ SCALES = {"x1e-3": (1e-3, (0, 0, 0)), "x1e3": (1e3, (0, 0, 0)), "1km-away": (1.0
           "10km-away": (1.0, (1e4, 0, -1e4))}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", sorted(SCALE_BOUNDS))
 @pytest.mark.parametrize("where", sorted(SCALES))
 def test_scene_scale_and_distance_from_origin(where, spec):
@@ -528,6 +529,7 @@ DEGENERATE_BOUNDS = {"rt16": (0.02, 0.33), "restir": (0.047, 0.123), "slc": (0.0
                      "adaptive": (0.02, 0.10), "osc-gi": (0.02, 0.073)}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", sorted(DEGENERATE_BOUNDS))
 def test_degenerate_triangles_and_zero_area_emitter(spec):
     """Zero-area triangles in the plane and the light, and an emitter of zero area: no
@@ -567,6 +569,7 @@ def camera_in_box():
     return b.build([CameraPath([([0, 0.8, 1.2], [0, 0, 0])], frames=8, fov=70)])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", INSIDE_METHODS)
 def test_camera_inside_a_solid(camera_in_box, spec):
     """Seen from inside a closed box, every pixel is the back of a one-sided diffuse face:
@@ -621,6 +624,7 @@ def sun():
     return sc, _sky_irradiance(sc)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", SUN_METHODS)
 def test_small_bright_hdr_sun(sun, spec):
     """A small, very bright sun in an HDR environment over an open plane: every plane

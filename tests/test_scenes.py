@@ -9,6 +9,8 @@ from slc import methods
 from slc.scene import camera, checks, scenes, views
 
 BUILTIN = scenes.builtin_names()
+# every built-in scene; the fast tier (make check) loads the Cornell box only
+CHECK_ONE = [n if n == "cornell" else pytest.param(n, marks=pytest.mark.slow) for n in BUILTIN]
 
 
 def _load(name):
@@ -27,7 +29,7 @@ def _methods():
     return out
 
 
-@pytest.mark.parametrize("name", BUILTIN)
+@pytest.mark.parametrize("name", CHECK_ONE)
 def test_scene_has_paths_and_materials(name):
     s = _load(name)
     assert len(s.camera_paths) >= 3
@@ -55,7 +57,7 @@ def _motion(path, frames, speed=1.0):
     return np.array(dist), np.array(turn)
 
 
-@pytest.mark.parametrize("name", BUILTIN)
+@pytest.mark.parametrize("name", CHECK_ONE)
 def test_paths_move_at_walking_speed(name):
     """Every path of every built-in scene: at most 1.4 m/s and 30 deg/s at
     60 Hz in every frame, walking speed (within 10%) wherever the view does
@@ -100,7 +102,7 @@ def test_paths_are_deterministic():
             assert np.array_equal(pa.at(f).target, pb.at(f).target)
 
 
-@pytest.mark.parametrize("name", [n if n == "cornell" else pytest.param(n, marks=pytest.mark.slow) for n in BUILTIN])
+@pytest.mark.parametrize("name", CHECK_ONE)
 def test_every_method_renders_finite_and_deterministic(name, monkeypatch):
     """Check mode on: every stage output finite, every returned image finite and
     >= 0 (raw values, nothing clamped), a lit image, the same images twice."""
@@ -119,6 +121,7 @@ def test_every_method_renders_finite_and_deterministic(name, monkeypatch):
         assert np.array_equal(imgs[0], imgs[1]), (name, spec, "not deterministic")
 
 
+@pytest.mark.slow
 @pytest.mark.fresh_process
 def test_animation_does_not_recompile_kernels():
     dyn = [n for n in BUILTIN if n in ("street", "hangar")]
@@ -201,6 +204,7 @@ def test_scene_without_shapes_raises():
         b.build([CameraPath([([0, 1, 3], [0, 0, 0])], fov=45)])
 
 
+@pytest.mark.slow
 def test_sponza_shape_order_is_the_same_in_every_process():
     """Mitsuba's XML loader returns sponza's merged meshes in an order that changes
     from run to run; the cache layout and its keys follow the shape order, so
@@ -237,6 +241,7 @@ def _sponza_orders_in_three_processes() -> list[list[str]]:
     return _SPONZA_ORDERS
 
 
+@pytest.mark.slow
 def test_xml_scene_shape_order_is_the_same_in_every_process():
     """The same problem for any user XML scene loaded with ``load_xml``
     (``slc render --scene my.xml``): three processes must see the same shapes

@@ -73,6 +73,7 @@ def test_settings_checked(cornell):
             methods.create(spec, sc)
 
 
+@pytest.mark.slow
 def test_cli_check_mode_kernels_and_bad_setting(tmp_path):
     """A fresh process (``slc --check render``, two moving viewers) finds no NaN/Inf or negative
     value and builds no kernel after the warm-up frames; a bad setting is one line, exit 2."""
