@@ -336,6 +336,7 @@ class Node:
                     dr.scatter(self.value, True, slots)
                     dr.scatter(self.boot, False, slots)
             outs = self._shade()
+            m.check_images(ctx, outs, self.gbs)       # check mode: as Method.render checks its images
         dr.eval(outs)
         res = {"node": self.id, "pid": self.pid, "rays": self.rays, "boot_rays": self.boot_rays,
                "missing": self.missing, "clock": self.clock, "memory": self.memory_bytes(),

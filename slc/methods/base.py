@@ -16,8 +16,10 @@ for every method:
    frame's bookkeeping (statistics, state kept for the next frame).
 
 In check mode (:mod:`slc.core.check`) every stage's outputs are checked as
-the stage ends; the frame loop (:mod:`slc.run.pipeline`) checks the images
-the method returns.
+the stage ends, and :meth:`Method.render` checks the images it returns (raw
+and composed as the method's ``output`` is compared: no NaN/Inf, no negative
+value), naming the method and the frame; a render node that runs the stages
+itself checks its images with :meth:`Method.check_images`.
 
 A method declares its settings once, as a tuple of :class:`Param`; the base
 class parses and validates them (one-line :class:`MethodError` for a bad
@@ -33,7 +35,9 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from slc.core import check
 from slc.core.errors import MethodError  # noqa: F401 (raised by Param.parse; re-exported)
+from slc.reference.references import image_of
 
 OUTPUTS = ("direct", "indirect", "full")
 
@@ -189,8 +193,18 @@ class Method(ABC):
     # ------------------------------------------------------------------ frame
     def render(self, ctx: FrameContext, gbuffers: list, timer) -> list:
         """Light per viewer (list of mi.Color3f, one per G-buffer), as ``output`` says:
-        :meth:`update_frame`, the shading stage, :meth:`finish` (module docstring). Every stage's
-        outputs are checked in check mode as the stage ends (:meth:`slc.core.timing.StageTimer.stage`)."""
+        :meth:`render_stages` under the method's and the frame's name, its images checked in
+        check mode (:meth:`check_images`). Every stage's outputs are checked in check mode as
+        the stage ends (:meth:`slc.core.timing.StageTimer.stage`)."""
+        with check.scope(self.label or self.name, ctx.frame, gbuffers):
+            outs = self.render_stages(ctx, gbuffers, timer)
+        self.check_images(ctx, outs, gbuffers)
+        return outs
+
+    def render_stages(self, ctx: FrameContext, gbuffers: list, timer) -> list:
+        """The frame's stages: :meth:`update_frame`, the shading stage, :meth:`finish` (module
+        docstring); a method that runs another one inside its frame calls this (its images are
+        checked as part of the frame's)."""
         # ------------------------------- the stages shared by every viewer
         fr = self.update_frame(ctx, gbuffers, timer)
 
@@ -204,6 +218,18 @@ class Method(ABC):
 
         # ------------------------------- after shading: further stages, statistics, state
         return self.finish(ctx, fr, gbuffers, outs, timer)
+
+    def check_images(self, ctx: FrameContext, outs: list, gbuffers: list) -> None:
+        """Check mode (:mod:`slc.core.check`): every viewer's light ``outs`` of frame
+        ``ctx.frame``, raw (stage "image") and composed as its ``output`` is compared (stage
+        "compose"), has no NaN/Inf and no negative value (else a :class:`~slc.core.check.CheckError`
+        naming the method, the frame and the pixel); nothing outside check mode."""
+        if not check.enabled():
+            return
+        with check.scope(self.label or self.name, ctx.frame, gbuffers):
+            check.images(outs, gbuffers)
+            check.images([image_of(self.output, gb, d) for gb, d in zip(gbuffers, outs)], gbuffers,
+                         stage="compose")
 
     def update_frame(self, ctx: FrameContext, gbuffers: list, timer):
         """The stages shared by every viewer before shading, each timed by ``timer.stage``;

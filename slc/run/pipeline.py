@@ -24,7 +24,7 @@ from typing import Callable
 
 import numpy as np
 
-from slc.core import check, freeze
+from slc.core import freeze
 from slc.scene import gbuffer as gbuf
 from slc.reference import references
 from slc.reference.groundtruth import GT_SAMPLES
@@ -127,12 +127,7 @@ def _run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress, kc: 
         kc.take()                 # kernels of the G-buffer and of the previous frame's evaluation
         recs = freeze.recordings()
         timer.begin_frame()
-        with check.scope(method.label or method.name, f, gbs):     # check mode: names method/frame
-            direct = method.render(ctx, gbs, timer)
-            if check.enabled():                                     # raw images: no NaN/Inf, >= 0
-                check.images(direct, gbs)
-                check.images([references.image_of(method.output, gb, d) for gb, d in zip(gbs, direct)], gbs,
-                             stage="compose")
+        direct = method.render(ctx, gbs, timer)      # in check mode its images are checked (Method.render)
         timer.end_frame()
         compiled.append(kc.take())
         recorded.append(freeze.recordings() - recs)

@@ -319,7 +319,7 @@ class OSCGI(PrimaryUpdate, PayloadMethod):
                     out = [o + Lv for o, Lv in zip(out, per_viewer(L, lay.sizes, lay.offsets))]
                 st.outputs(*out)
         elif self._sub is not None:
-            sub = self._sub.render(ctx, gbuffers, timer)
+            sub = self._sub.render_stages(ctx, gbuffers, timer)
             out = [a + b for a, b in zip(out, sub)]
         if self.cache is not None:
             self._cells = self.secondary.used_cells()
