@@ -24,7 +24,7 @@ from slc.distributed.records import codec_for
 from slc.distributed.seeds import ancestors
 from slc.distributed.state import Client, Subscriptions
 from slc.methods import FrameContext
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.scene import views
 from slc.scene.camera import Camera
 
@@ -35,7 +35,7 @@ def _plain(scene, spec, vs, frames):
     """The single-process shared cache's images of the last frame (the pipeline's method)."""
     m = methods.create(spec, scene, seed=0)
     for f in range(frames):
-        outs = m.render(FrameContext(frame=f), gbuffers_for(scene, vs, f, W, H), NullTimer())
+        outs = m.render(FrameContext(frame=f), frame_gbuffers(scene, vs, f, W, H), NullTimer())
     return {v: np.array(o) for v, o in enumerate(outs)}
 
 
@@ -146,7 +146,7 @@ def test_owners_move_only_the_regions_of_a_lost_node_and_a_region_holds_the_coar
     assert np.all(before[moved] == 1) and np.all(after[before == 1] != 1)
     s = scene("atrium")
     m = methods.create("slc", s, seed=0)
-    m.render(FrameContext(frame=0), gbuffers_for(s, views.overlap_rig(s, 2, 0.5, aspect=W / H), 0, W, H), NullTimer())
+    m.render(FrameContext(frame=0), frame_gbuffers(s, views.overlap_rig(s, 2, 0.5, aspect=W / H), 0, W, H), NullTimer())
     cache, level = m.cache, 6
     keys = np.array(cache.entry_address(m.requests.active), np.uint32)
     of = Regions(cache.layout, level)

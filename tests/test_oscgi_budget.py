@@ -13,7 +13,7 @@ from slc import methods
 
 from slc.scene import views
 from slc.methods import FrameContext
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.core.timing import NullTimer
 
 W, H, FRAMES = 32, 18, 24
@@ -32,7 +32,7 @@ def _run(scene, spec, viewers, frames, still=True, w=W, h=H, average=1):
     rows = []
     acc = None
     for f in range(frames):
-        gbs = gbuffers_for(scene, viewers, 0 if still else f, w, h)
+        gbs = frame_gbuffers(scene, viewers, 0 if still else f, w, h)
         out = m.render(FrameContext(f), gbs, NullTimer())
         if f >= frames - average:
             imgs = [np.array(x) for x in out]

@@ -80,8 +80,8 @@ def test_stratified_light_samples_are_unbiased_and_less_noisy(cornell):
     from slc.core.keys import stream_key
     from slc.scene.lights import diffuse_flags
     from slc.methods.oscgi.kernels import STREAM_PIXEL_DIRECT, pixel_direct_kernel
-    from slc.run.pipeline import gbuffers_for
-    gb = gbuffers_for(cornell, views.single(cornell), 0, 32, 18)[0]
+    from slc.scene.gbuffer import frame_gbuffers
+    gb = frame_gbuffers(cornell, views.single(cornell), 0, 32, 18)[0]
     sc = cornell.mi_scene
     gt = references.reference_for("direct", cornell, gb, 0, "test")
     valid = np.array(gb.valid).reshape(gt.shape[:2])

@@ -95,11 +95,6 @@ class RunResult:
         return r
 
 
-#: the G-buffers of one frame (:func:`slc.scene.gbuffer.frame_gbuffers`), by the name the frame loop's
-#: callers import
-gbuffers_for = gbuf.frame_gbuffers
-
-
 def run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress=None) -> RunResult:
     """Render ``cfg.frames`` frames with ``method`` for all ``viewers``.
 
