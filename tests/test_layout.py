@@ -14,7 +14,8 @@ Layers, bottom to top (a module may import from its own layer and the layers bel
     distributed  render nodes sharing one surface cache (owners, records, the Ray actors)
     run        the frame loop, experiments, jobs, the command line, benchmarks
 
-Method folders do not import each other: the algorithms they share or build on are in ``slc/lib``.
+Method folders do not import each other: the algorithms they share or build on are in ``slc/lib``;
+a class in slc/methods/ has one base at most (no mixins: a method holds its parts).
 """
 from __future__ import annotations
 
@@ -256,6 +257,17 @@ def test_loop_state_is_named():
 def test_each_method_folder_registers_by_convention(folder):
     assert (PKG / "methods" / folder / "method.py").is_file(), \
         f"slc/methods/{folder}/ has no method.py (methods are found as slc/methods/<folder>/method.py)"
+
+
+def test_no_mixins_in_methods():
+    """A class in slc/methods/ has at most one base: a method is one class that holds its parts
+    (composition: OSCGI its primary update, ReSTIR its target and reuse), not one class spread
+    over helper classes whose methods read attributes defined elsewhere."""
+    bad = [f"{p.relative_to(ROOT)}:{c.lineno} class {c.name}({', '.join(ast.unparse(b) for b in c.bases)})"
+           for p in sorted((PKG / "methods").rglob("*.py"))
+           for c in ast.walk(ast.parse(p.read_text()))
+           if isinstance(c, ast.ClassDef) and len(c.bases) >= 2]
+    assert not bad, "classes with two or more bases (mixins; hold the parts instead):\n" + "\n".join(bad)
 
 
 MAX_FN_IMPORTS = 40

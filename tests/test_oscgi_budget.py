@@ -41,8 +41,8 @@ def _run(scene, spec, viewers, frames, still=True, w=W, h=H, average=1):
         D, Wd = m.grid.n, m.words
         cnt = np.array(dr.gather(mi.Float, m.storage, fr.active * Wd + 3 * D + 3))
         stale = 0
-        if m._upd_frame is not None:
-            stale = int((f - np.array(dr.gather(mi.UInt32, m._upd_frame, fr.active), dtype=np.int64)).max())
+        if m.primary.upd_frame is not None:
+            stale = int((f - np.array(dr.gather(mi.UInt32, m.primary.upd_frame, fr.active), dtype=np.int64)).max())
         rows.append(dict(n=fr.n_active, new=int(dr.count(fr.is_new)[0]), updated=m.entries_updated,
                          limit=m.update_limit(fr), stale=stale, valued=bool(np.all(cnt > 0))))
     return rows, [a / average for a in acc]

@@ -31,7 +31,7 @@ def test_per_pixel_direct_light_is_unbiased_and_leaves_the_cache_alone(cornell):
     vs = views.single(cornell)
     mf, gbs, (full,) = _run(cornell, "osc-gi", vs, 4)
     mi_, _, (ind,) = _run(cornell, "osc-gi:output=indirect", vs, 4)
-    assert mf.direct == "rt" and not mf._cache_direct
+    assert mf.direct == "rt" and not mf.primary.cache_direct
     assert mf.secondary.used_cells() == mi_.secondary.used_cells()
     assert np.array_equal(np.array(mf.storage), np.array(mi_.storage))       # the same cache
     gt = references.reference_for("direct", cornell, gbs[0], 0, "test")

@@ -66,6 +66,6 @@ def test_new_coarser_entries_start_from_their_finer_entries():
         ref = references.reference_for("indirect", s, gbs[0], 0, "seed_finer", spp=256, bounces=2)
         errs[sf] = float(np.abs(img - ref).mean() / ref.mean())
         if sf:
-            seeded = int(dr.count(m._finer_seeded)[0])
+            seeded = int(dr.count(m.primary.finer_seeded)[0])
     assert seeded > 0, seeded
     assert errs[1] < errs[0], errs
