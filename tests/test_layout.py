@@ -8,11 +8,12 @@ Layers, bottom to top (a module may import from its own layer and the layers bel
     reference  the ground truth, path-traced references, metrics
     osc        the on-surface cache and its contract for cache methods (requests, capabilities)
     methods    the method contract (slc.methods: the registry; slc.methods.base: Method, Param;
-               slc.methods.cache_method: the cache-method base class)
+               slc.methods.cache_method: the cache-method base class; slc.methods.frames: the
+               frame loop)
     lib        algorithms the method folders build on (cone lobes, SH and YCoCg, light integrals)
     method     one folder per method under slc/methods/ (baselines included)
     distributed  render nodes sharing one surface cache (owners, records, the Ray actors)
-    run        the frame loop, experiments, jobs, the command line, benchmarks
+    run        a method's run over a sequence, experiments, jobs, the command line, benchmarks
 
 Method folders do not import each other: the algorithms they share or build on are in ``slc/lib``;
 a class in slc/methods/ has one base at most (no mixins: a method holds its parts).

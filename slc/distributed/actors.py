@@ -20,6 +20,7 @@ from slc.core import backend
 from slc.distributed.cluster import DEAD, Cluster
 from slc.distributed.node import Node
 from slc.distributed.rig import Strategy, ViewerPoses, assignment
+from slc.methods.frames import Frame, FrameLoop
 from slc.reference.references import image_of
 from slc.scene import gbuffer as gbuf
 from slc.scene import scenes
@@ -121,7 +122,9 @@ def render_on_nodes(scene, scene_name: str, spec: str, viewers: list, n_nodes: i
                     output: str = "direct") -> dict:
     """Render ``frames`` frames of ``viewers`` on ``n_nodes`` :class:`NodeActor` processes (viewer
     v on node v mod K) with sparse owner updates at ``threshold`` and delay 0 (``slc render
-    --nodes``): on a local Ray instance, or on the cluster at ``address``. Returns the last
+    --nodes``): on a local Ray instance, or on the cluster at ``address``. The frames are walked
+    by the frame loop (:class:`slc.methods.frames.FrameLoop`), a frame a :meth:`Cluster.step`.
+    Returns the last
     frame's images (viewer index -> HxWx3, composed as the pipeline composes the method's
     ``output``; ``scene`` is the driver's copy, for the G-buffers), the bytes sent per frame
     (the protocol's count and pickled) and the nodes' pids. Ray is shut down afterwards if this
@@ -134,16 +137,18 @@ def render_on_nodes(scene, scene_name: str, spec: str, viewers: list, n_nodes: i
         st = Strategy("sparse", 0, float(threshold), int(lease))
         pids = ray.get([actors[n].start.remote(n, live, spec, assign[n], width, height, st, seed) for n in live])
         cluster = Cluster(RayNodes(actors), live, 0)
-        sent, pickled, out = [], [], {}
-        for f in range(frames):
-            out = cluster.step(f, images=f == frames - 1)
+        sent, pickled, images = [], [], {}
+
+        def done(fr: Frame, out: dict) -> None:
             sent.append(out["bytes"])
             pickled.append(out["serialized"])
-        gbs = gbuf.frame_gbuffers(scene, viewers, frames - 1, width, height)
-        images = {}
-        for r in out["results"].values():
-            for v, img in r["images"].items():
-                images[v] = image_of(output, gbs[v], mi.Color3f(img))
+            if fr.evaluated:          # the last frame's images, composed on the driver's G-buffers
+                gbs = gbuf.frame_gbuffers(scene, viewers, fr.number, width, height)
+                for r in out["results"].values():
+                    for v, img in r["images"].items():
+                        images[v] = image_of(output, gbs[v], mi.Color3f(img))
+        FrameLoop(frames, evaluated=frozenset({frames - 1})).run(
+            lambda fr: cluster.step(fr.number, images=fr.evaluated), done)
         return {"images": images, "bytes_per_frame": sent, "serialized_bytes_per_frame": pickled,
                 "processes": len(set(pids))}
     finally:
