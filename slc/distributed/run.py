@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import mitsuba as mi
 import numpy as np
 
+from slc import methods
 from slc.distributed.cluster import Cluster, InProcess
 from slc.distributed.node import KINDS, Node
 from slc.distributed.rig import Strategy, ViewerPoses, assignment
@@ -57,15 +58,16 @@ class Processes:
         """(a :class:`Cluster` of the nodes of ``assign`` ({node: {viewer index: ViewerPoses}})
         under ``strategy``, the pids of their processes)."""
         live = sorted(assign)
+        method = methods.parse(run.spec)        # checked once; every node makes the method from this data
         if self.actors is None:
-            nodes = {n: Node(n, live, self.scene, run.spec, assign[n], run.width, run.height, strategy, run.seed)
+            nodes = {n: Node(n, live, self.scene, method, assign[n], run.width, run.height, strategy, run.seed)
                      for n in live}
             return Cluster(InProcess(nodes), live, strategy.delay), [nodes[n].pid for n in live]
         # Ray only when the nodes run in processes of their own
         import ray
         from slc.distributed.actors import RayNodes
         actors = {n: self.actors[i] for i, n in enumerate(live)}
-        pids = ray.get([actors[n].start.remote(n, live, run.spec, assign[n], run.width, run.height, strategy,
+        pids = ray.get([actors[n].start.remote(n, live, method, assign[n], run.width, run.height, strategy,
                                                run.seed) for n in live])
         return Cluster(RayNodes(actors), live, strategy.delay), pids
 

@@ -134,6 +134,18 @@ def param_table(params) -> str:
     return "\n".join(lines) + "\n"
 
 
+class _SettingsView:
+    """A method's parsed settings as its instance shows them (class attributes behind them), for
+    its cross-checks without an instance (:meth:`Method.check_settings`)."""
+
+    def __init__(self, cls: type, values: dict):
+        self.__dict__.update(values)
+        self._cls = cls
+
+    def __getattr__(self, name: str):
+        return getattr(self._cls, name)
+
+
 # -----------------------------------------------------------------------------
 # The method interface
 # -----------------------------------------------------------------------------
@@ -165,17 +177,33 @@ class Method(ABC):
     def __init__(self, scene, seed: int = 0, **kw):
         self.scene = scene
         self.seed = int(seed)
-        names = {p.name for p in self.params}
-        unknown = sorted(set(kw) - names)
-        if unknown:
-            raise MethodError(f"{self.name}: unknown setting{'s' if len(unknown) > 1 else ''} "
-                              f"{', '.join(unknown)} (known: {', '.join(sorted(names)) or 'none'})")
-        for p in self.params:
-            setattr(self, p.name, p.parse(self.name, kw.get(p.name, p.default)))
+        for k, v in self.parse_settings(kw).items():
+            setattr(self, k, v)
         self.validate()
 
+    @classmethod
+    def parse_settings(cls, kw: dict) -> dict:
+        """Every setting's value (``kw``'s, else its default) converted and checked by its
+        :class:`Param`; a one-line :class:`MethodError` for an unknown setting or a bad value."""
+        names = {p.name for p in cls.params}
+        unknown = sorted(set(kw) - names)
+        if unknown:
+            raise MethodError(f"{cls.name}: unknown setting{'s' if len(unknown) > 1 else ''} "
+                              f"{', '.join(unknown)} (known: {', '.join(sorted(names)) or 'none'})")
+        return {p.name: p.parse(cls.name, kw.get(p.name, p.default)) for p in cls.params}
+
+    @classmethod
+    def check_settings(cls, kw: dict) -> dict:
+        """:meth:`parse_settings` and the cross-checks of :meth:`validate`, without a scene and
+        without making the method (``validate`` reads the settings and class attributes only);
+        returns the parsed settings."""
+        values = cls.parse_settings(kw)
+        cls.validate(_SettingsView(cls, values))
+        return values
+
     def validate(self) -> None:
-        """Cross-checks of the parsed settings; raise :class:`MethodError`."""
+        """Cross-checks of the parsed settings (the settings and class attributes only: it also
+        runs without an instance, :meth:`check_settings`); raise :class:`MethodError`."""
 
     def seed_for(self, frame: int, viewer: int = 0) -> int:
         return (self.seed * 1_000_003 + frame * 7919 + viewer * 104729 + 1) & 0x7FFFFFFF
