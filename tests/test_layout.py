@@ -263,7 +263,7 @@ def test_each_method_folder_registers_by_convention(folder):
 def test_no_mixins_in_methods():
     """A class in slc/methods/ has at most one base: a method is one class that holds its parts
     (composition: OSCGI its primary update, ReSTIR its target and reuse), not one class spread
-    over helper classes whose methods read attributes defined elsewhere."""
+    over base classes whose methods read attributes defined elsewhere."""
     bad = [f"{p.relative_to(ROOT)}:{c.lineno} class {c.name}({', '.join(ast.unparse(b) for b in c.bases)})"
            for p in sorted((PKG / "methods").rglob("*.py"))
            for c in ast.walk(ast.parse(p.read_text()))

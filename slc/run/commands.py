@@ -74,10 +74,10 @@ def render_nodes(scene_name, ms, s, vs, nodes, threshold, address, size, frames,
     if nodes < 1 or nodes > len(vs):
         raise ExperimentError(f"--nodes must be between 1 and the number of viewers ({len(vs)}), got {nodes}")
     cls = ms.cls
-    name = cls.name if cls is not None else ms.name
     if cls is None or not issubclass(cls, PayloadMethod):
         raise ExperimentError(f"--nodes needs a cache method whose entries are records (slc, sh, adaptive); "
-                              f"'{name}' has none")
+                              f"'{ms.name}' has none")
+    name = cls.name                  # the method's name in the files written, as one process names them
     if gt:
         raise ExperimentError("--gt is not available with --nodes (slc run distributed compares the nodes' images)")
     t = DEFAULT_THRESHOLD if threshold is None else threshold
