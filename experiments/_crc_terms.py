@@ -15,7 +15,8 @@ from slc.methods import FrameContext
 from slc.methods.crc.quality import delta_e76
 from slc.reference.metrics import lab_rmse
 from slc.reference.references import image_of, reference_for
-from slc.run.pipeline import gbuffers_for, run_sequence
+from slc.run.pipeline import run_sequence
+from slc.scene.gbuffer import frame_gbuffers
 
 #: the error terms: sample multiplier of the low-noise runs
 TERMS_SAMPLES = 4
@@ -39,7 +40,7 @@ def last_image(c, scene, viewers, config: dict, W: int, H: int, frames: int, see
     ``config`` (:func:`make` of the experiment's module ``c``)."""
     m = c.make(scene, config, seed)
     res = run_sequence(scene, m, viewers, c.run_config(W, H, frames, 0))
-    gb = gbuffers_for(scene, viewers, frames - 1, W, H)[0]
+    gb = frame_gbuffers(scene, viewers, frames - 1, W, H)[0]
     return m, gb, res.last[gb.viewer]
 
 
@@ -123,7 +124,7 @@ def moving(c, scene, viewers, nb: int, common: dict, W: int, H: int, frames: int
     built = sum(x["compiled"] for k, x in enumerate(rc.frames_ms)
                 if first_move is not None and k > first_move and k >= warm)
     f = (frames - 1) * MOVING["step"]
-    gb = gbuffers_for(scene, viewers, f, W, H)[0]
+    gb = frame_gbuffers(scene, viewers, f, W, H)[0]
     direct = reference_for("direct", scene, gb, f, gb.viewer, spp=direct_spp)
     ind = reference_for("indirect", scene, gb, f, gb.viewer, spp=ref_spp, bounces=nb)
     a, b = rs.last[gb.viewer], rc.last[gb.viewer]
@@ -195,7 +196,7 @@ def attribution(c, scene, viewers, nb: int, common: dict, W: int, H: int, frame:
     ex, fin = scene.exposure, y333["final"]
     luma = np.asarray(LUMA)
     de2 = delta_e76(fin, y311["final"], ex) ** 2
-    gb = gbuffers_for(scene, viewers, frame, W, H)[0]
+    gb = frame_gbuffers(scene, viewers, frame, W, H)[0]
     valid = np.array(gb.valid).reshape(H, W)
     shape = np.array(gb.shape_index).reshape(H, W)
     lit_ind = valid & (y333["indirect"] @ luma >= INDIRECT_LIT * (fin @ luma))

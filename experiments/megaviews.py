@@ -53,7 +53,8 @@ from slc.methods.megaviews import vpl as vp  # noqa: E402
 from slc.methods.megaviews.hierarchy import sample_surface  # noqa: E402
 from slc.reference import metrics, references  # noqa: E402
 from slc.run import experiment  # noqa: E402
-from slc.run.pipeline import RunConfig, gbuffers_for, run_case  # noqa: E402
+from slc.run.pipeline import RunConfig, run_case  # noqa: E402
+from slc.scene.gbuffer import frame_gbuffers  # noqa: E402
 from slc.scene import views  # noqa: E402
 
 NAME = "megaviews"
@@ -173,7 +174,7 @@ class _SceneRun:
         for m in self.first.values():
             m.use_scene_hierarchy(sh)
         self.n_leaves = int(sh.size - sh.tree.level_start[sh.depth])
-        self.gb = gbuffers_for(s, views.single(s), 0, preset["gres"], preset["gres"])[0]
+        self.gb = frame_gbuffers(s, views.single(s), 0, preset["gres"], preset["gres"])[0]
         self.refs = {}
 
     def run(self) -> None:

@@ -20,7 +20,7 @@ if __name__ == "__main__" and __package__ is None:
 from slc.core.timing import stage_table  # noqa: E402 (after the path of a standalone run)
 from slc.run import experiment as ex  # noqa: E402
 from slc.run.experiment import add_viewer_arguments  # noqa: E402
-from slc.run.pipeline import gbuffers_for  # noqa: E402
+from slc.scene.gbuffer import frame_gbuffers  # noqa: E402
 from slc.scene import random_walks, views  # noqa: E402
 
 NAME = "random-viewers"
@@ -45,7 +45,7 @@ def run(opts):
         vs = random_walks.random_viewers(s, n, seed=opts.seed)
         if n > 1 and (s.name, n) not in overlaps:
             w, h = opts_res(opts)
-            m = [views.measure_overlap(gbuffers_for(s, vs, f, w, h)) for f in OVERLAP_FRAMES]
+            m = [views.measure_overlap(frame_gbuffers(s, vs, f, w, h)) for f in OVERLAP_FRAMES]
             overlaps[(s.name, n)] = (m[0], sum(m) / len(m))
         return vs
 

@@ -38,10 +38,10 @@ def render_frames(scene, method, viewers, frames, width, height, seed=0, start=0
     """Run ``frames`` frames; return the composed images of the last frame. In
     check mode (SLC_CHECK=1) stage outputs and returned images are checked."""
     from slc.core import check
-    from slc.run.pipeline import gbuffers_for
+    from slc.scene.gbuffer import frame_gbuffers
     out = None
     for f in range(start, start + frames):
-        gbs = gbuffers_for(scene, viewers, f, width, height)
+        gbs = frame_gbuffers(scene, viewers, f, width, height)
         with check.scope(method.label or method.name, f, gbs):
             d = method.render(FrameContext(f), gbs, NullTimer())
             if check.enabled():

@@ -145,7 +145,7 @@ def _assert_frozen_matches_unfrozen(scene, spec, tag, make):
     entry count changes after the warm-up (replays at other widths), the frozen
     update stays frozen with 1-2 recordings, and every frame is equal bit for bit."""
     from slc.methods import FrameContext
-    from slc.run.pipeline import gbuffers_for
+    from slc.scene.gbuffer import frame_gbuffers
     from slc.core.timing import NullTimer
     v = Viewer("v0", lambda f: scene.path(0).at(f))
     out = {}
@@ -155,7 +155,7 @@ def _assert_frozen_matches_unfrozen(scene, spec, tag, make):
         rep.update_fn = make(m, frozen)
         imgs, counts = [], []
         for f in range(10):
-            gbs = gbuffers_for(scene, [v], f, W, H)
+            gbs = frame_gbuffers(scene, [v], f, W, H)
             imgs.append(np.array(m.render(FrameContext(f), gbs, NullTimer())[0]))
             counts.append(m.stats()["active_entries"])
         out[frozen] = (imgs, counts, rep.update_fn.recordings, rep.update_fn.frozen)

@@ -11,7 +11,7 @@ from slc.core import check
 from slc.core.timing import NullTimer
 from slc.methods import FrameContext
 from slc.reference.groundtruth import ground_truth
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.scene import views
 
 W, H = 64, 36
@@ -23,7 +23,7 @@ def _run(scene, spec, frames, path=0):
     m = methods.create(spec, scene, seed=3)
     vs = views.single(scene, path)
     for f in range(frames):
-        gb = gbuffers_for(scene, vs, f, W, H)[0]
+        gb = frame_gbuffers(scene, vs, f, W, H)[0]
         with check.scope(spec, f, [gb]):
             d = m.render(FrameContext(f), [gb], NullTimer())
             check.images(d, [gb])

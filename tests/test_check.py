@@ -18,7 +18,8 @@ BAD_X, BAD_Y = 13, 9
 
 class Stub(Method):
     """Returns 0.25 everywhere except one value at (BAD_X, BAD_Y) of viewer ``bad_viewer``,
-    through a timed stage 'shade' (or raw, without stage outputs, when ``staged`` is False)."""
+    through a timed stage 'shade' (or raw, without stage outputs, when ``staged`` is False);
+    :meth:`Method.render` names it and checks its images."""
 
     name = "stub"
 
@@ -26,7 +27,7 @@ class Stub(Method):
         super().__init__(scene)
         self.value, self.bad_viewer, self.staged, self.channel = value, bad_viewer, staged, channel
 
-    def render(self, ctx, gbuffers, timer):
+    def render_stages(self, ctx, gbuffers, timer):
         outs = []
         for v, gb in enumerate(gbuffers):
             a = np.full((gb.size, 3), 0.25, np.float32)

@@ -278,11 +278,11 @@ def test_single_element_lists_keep_the_block_table_exact():
     from slc.scene import scenes, views
     from slc.core.keys import INVALID
     from slc.osc import OnSurfaceCache
-    from slc.run.pipeline import gbuffers_for
+    from slc.scene.gbuffer import frame_gbuffers
     s = scenes.load("cornell")
     cache = OnSurfaceCache(s)
     pool = cache.pool
-    cache.begin_frame(0, gbuffers_for(s, views.single(s), 0, 48, 27), None)
+    cache.begin_frame(0, frame_gbuffers(s, views.single(s), 0, 48, 27), None)
     _table_consistent(pool)
     blk_vb = np.array(pool.blk_vb)
     phys = int(np.nonzero(blk_vb != INVALID)[0][0])
@@ -299,7 +299,7 @@ def test_single_element_lists_keep_the_block_table_exact():
     assert int(np.array(pool.phys(mi.UInt32([vb])))[0]) == phys
     # and the cache keeps working: later frames with one or a few new blocks stay consistent
     for f in range(1, 6):
-        cache.begin_frame(f, gbuffers_for(s, views.single(s), f, 48, 27), None)
+        cache.begin_frame(f, frame_gbuffers(s, views.single(s), f, 48, 27), None)
         _table_consistent(pool)
     assert dr.width(pool.blk_vb) > 0
 

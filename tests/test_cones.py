@@ -20,7 +20,7 @@ from slc.lib.cones.update import (ConeParams, angle_between, c_reduction, end_cy
 from slc.reference.groundtruth import direct_mis
 from slc.methods import FrameContext, create
 from slc.reference.metrics import evaluate
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.scene.builder import SceneBuilder, diffuse, rough_conductor, translate
 from slc.scene.camera import FPS, CameraPath
 from slc.core.timing import NullTimer
@@ -303,7 +303,7 @@ def _run(scene, method, frames, start=0):
     viewers = single(scene)
     out = None
     for f in range(start, start + frames):
-        gbs = gbuffers_for(scene, viewers, f, W, H)
+        gbs = frame_gbuffers(scene, viewers, f, W, H)
         d = method.render(FrameContext(f), gbs, NullTimer())
         out = (gbs[0], d[0])
     return out
@@ -417,7 +417,7 @@ def test_moving_light_recovers_after_stop():
     viewers = single(sc)
     errs = {}
     for f in range(33):
-        gbs = gbuffers_for(sc, viewers, f, W, H)
+        gbs = frame_gbuffers(sc, viewers, f, W, H)
         d = m.render(FrameContext(f), gbs, NullTimer())[0]
         if f in (12, 22, 32):
             v = np.array(gbs[0].valid)
@@ -645,7 +645,7 @@ def test_shading_freeze_recordings_bounded():
             m = create(spec, sc, **kw)
             widths = []
             for f in range(8):
-                gbs = gbuffers_for(sc, single(sc), f, W, H)
+                gbs = frame_gbuffers(sc, single(sc), f, W, H)
                 d = m.render(FrameContext(f), gbs, NullTimer())
                 widths.append(dr.width(m.storage))
                 assert np.all(np.isfinite(np.array(d[0])))
@@ -656,7 +656,7 @@ def test_shading_freeze_recordings_bounded():
     sc = _moving_scene()
     m = create("slc", sc)
     for f in range(6):
-        d = m.render(FrameContext(f), gbuffers_for(sc, single(sc) * 4, f, W, H), NullTimer())
+        d = m.render(FrameContext(f), frame_gbuffers(sc, single(sc) * 4, f, W, H), NullTimer())
         assert all(np.all(np.isfinite(np.array(x))) for x in d)
     sh = m._cone_shading
     assert sh.frozen and 1 <= sh.n_recordings <= 2, (sh.n_recordings, sh.frozen)
@@ -691,7 +691,7 @@ def test_shading_compiles_nothing_after_warmup(n_viewers):
         for f in range(6):
             t = T()
             t.begin_frame()
-            m.render(FrameContext(f), gbuffers_for(sc, viewers, f, W, H), t)
+            m.render(FrameContext(f), frame_gbuffers(sc, viewers, f, W, H), t)
             t.end_frame()
             if f >= 3:
                 missed += [k for k in t.hist if k.get("type") == dr.KernelType.JIT and not k.get("cache_hit", False)]
@@ -841,7 +841,7 @@ def test_light_that_switches_off_fades():
     for mode in ("axis", "off"):
         m = SurfaceLightCones(sc, cache=PixelSlotCache(), gone_test=mode)
         for f in range(off + 9):
-            gbs = gbuffers_for(sc, single(sc), f, W, H)
+            gbs = frame_gbuffers(sc, single(sc), f, W, H)
             d = m.render(FrameContext(f), gbs, NullTimer())[0]
             if f in (off - 1, off + 8):
                 v = np.array(gbs[0].valid)
@@ -868,7 +868,7 @@ def test_stochastic_fetch_mean_and_determinism():
         m = create("slc", sc, fetch="stochastic")
         acc = []
         for f in range(24):
-            gbs = gbuffers_for(sc, single(sc), f, W, H)
+            gbs = frame_gbuffers(sc, single(sc), f, W, H)
             d = m.render(FrameContext(f), gbs, NullTimer())[0]
             if f >= 16:
                 acc.append(np.array(d).T.reshape(-1, 3))

@@ -8,7 +8,7 @@ from helpers import plane_under_rect_light, run_case
 from slc.methods.cones.update_kernel import ConeUpdate
 from slc.methods import FrameContext, create
 from slc.osc import OnSurfaceCache
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.scene.builder import SceneBuilder, diffuse, rough_conductor
 from slc.scene.camera import CameraPath
 from slc.core.timing import NullTimer
@@ -38,7 +38,7 @@ def _run(sc, viewers, frames, freeze, grow=False):
         m._cone_update = ConeUpdate(freeze=False)
     imgs, widths, active, recs = [], [], [], []
     for f in range(frames):
-        out = m.render(FrameContext(f), gbuffers_for(sc, viewers, f, W, H), NullTimer())
+        out = m.render(FrameContext(f), frame_gbuffers(sc, viewers, f, W, H), NullTimer())
         imgs.append([np.array(x) for x in out])
         widths.append(len(m.storage))
         active.append(m.requests.n_active)

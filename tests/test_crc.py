@@ -20,9 +20,9 @@ from slc.methods.crc.march import visible
 from slc.methods.crc.quality import de76_fraction, delta_e76, pdiff
 from slc.methods.crc.quality import _xyz_lab_yee
 from slc.scene.builder import diffuse_cornell
-from slc.scene.gbuffer import to_image
+from slc.scene.gbuffer import frame_gbuffers, to_image
 from slc.methods import FrameContext, MethodError
-from slc.run.pipeline import RunConfig, gbuffers_for, run_sequence
+from slc.run.pipeline import RunConfig, run_sequence
 from slc.core.timing import NullTimer
 
 from helpers import plane_under_rect_light, slc_cli
@@ -40,7 +40,7 @@ def _render(scene, frames=1, **kw):
     c = methods.create("crc", scene, **kw)
     v = views.single(scene)
     for f in range(frames):
-        gbs = gbuffers_for(scene, v, f, W, H)
+        gbs = frame_gbuffers(scene, v, f, W, H)
         out = c.render(FrameContext(f), gbs, NullTimer())
     return c, gbs, to_image(gbs[0], out[0])
 
@@ -193,7 +193,7 @@ def test_pdiff_on_images_with_known_differences():
 
 def test_reference_has_no_indirect_light_on_a_lone_plane():
     s = plane_under_rect_light()
-    gb = gbuffers_for(s, views.single(s), 0, 32, 18)[0]
+    gb = frame_gbuffers(s, views.single(s), 0, 32, 18)[0]
     ind = to_image(gb, references.indirect_light(s.mi_scene, gb, spp=16, bounces=2))
     assert np.all(ind == 0.0)
 
@@ -239,7 +239,7 @@ def test_pipeline_compares_crc_with_the_indirect_reference(cornell):
     cfg = RunConfig(width=32, height=18, frames=2, warmup=1, ref_spp=16)
     r = run_sequence(cornell, m, views.single(cornell), cfg)
     (im,) = r.images.values()
-    gb = gbuffers_for(cornell, views.single(cornell), 1, 32, 18)[0]
+    gb = frame_gbuffers(cornell, views.single(cornell), 1, 32, 18)[0]
     ind = references.reference_for("indirect", cornell, gb, 1, gb.viewer, spp=16, bounces=2)
     direct = references.reference_for("direct", cornell, gb, 1, gb.viewer, spp=16)
     assert np.array_equal(im["gt"], ind)
@@ -284,7 +284,7 @@ def test_stages_split_by_encoding_dependence(cornell):
     from slc.core.timing import StageTimer
     m = methods.create("crc:bounces=2,samples=8,secondary_rays=4,rsm_size=16", cornell)
     t = StageTimer()
-    gbs = gbuffers_for(cornell, views.single(cornell), 0, 32, 18)
+    gbs = frame_gbuffers(cornell, views.single(cornell), 0, 32, 18)
     t.begin_frame()
     m.render(FrameContext(0), gbs, t)
     t.end_frame()

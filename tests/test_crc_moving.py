@@ -13,7 +13,7 @@ from slc import methods
 
 from slc.scene import views
 from slc.methods import FrameContext
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.core.timing import KernelCounter, NullTimer
 
 W, H = 64, 36
@@ -61,7 +61,7 @@ def test_scrolled_window_equals_fresh_window(atrium, bounces, shift):
     probe = methods.create("crc", atrium, volume="camera", **kw)
     A = _centre(probe)
     B = A + np.array(shift)
-    gbs = gbuffers_for(atrium, v, 0, W, H)
+    gbs = frame_gbuffers(atrium, v, 0, W, H)
     a = _pinned(atrium, A, **kw)
     a.render(FrameContext(0), gbs, NullTimer())
     act_a = {tuple(x) for x in _cells(a, np.array(a.active))}
@@ -98,7 +98,7 @@ def test_moving_window_builds_no_kernels(atrium):
     dr.eval()
     dr.sync_thread()
     v = views.single(atrium)
-    gbs = gbuffers_for(atrium, v, 0, W, H)
+    gbs = frame_gbuffers(atrium, v, 0, W, H)
     m = methods.create("crc", atrium, volume="camera", window=8, resolution=16, bounces=2)
     c = _centre(m)
     offsets = [c, c + [1, 0, 0], c + [1, 1, 0], c + [0, 1, -1], c + [-1, 0, 1], c + [2, -1, 0]]
@@ -125,7 +125,7 @@ def test_window_follows_camera_and_shades_nothing_outside(atrium):
     m = methods.create("crc", atrium, volume="camera", window=8, resolution=16)
     offs = []
     for f in range(0, 160, 40):
-        gbs = gbuffers_for(atrium, v, f, W, H)
+        gbs = frame_gbuffers(atrium, v, f, W, H)
         out = m.render(FrameContext(f), gbs, NullTimer())
         cam = np.asarray(gbs[0].camera.origin, float)
         cell = np.floor((cam - m.world.lo) / m.world.h).astype(int)

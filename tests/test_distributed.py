@@ -24,7 +24,7 @@ from slc.distributed.records import codec_for
 from slc.distributed.seeds import ancestors
 from slc.distributed.state import Client, Subscriptions
 from slc.methods import FrameContext
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.scene import views
 from slc.scene.camera import Camera
 
@@ -35,7 +35,7 @@ def _plain(scene, spec, vs, frames):
     """The single-process shared cache's images of the last frame (the pipeline's method)."""
     m = methods.create(spec, scene, seed=0)
     for f in range(frames):
-        outs = m.render(FrameContext(frame=f), gbuffers_for(scene, vs, f, W, H), NullTimer())
+        outs = m.render(FrameContext(frame=f), frame_gbuffers(scene, vs, f, W, H), NullTimer())
     return {v: np.array(o) for v, o in enumerate(outs)}
 
 
@@ -149,7 +149,7 @@ def test_owners_move_only_the_regions_of_a_lost_node_and_a_region_holds_the_coar
     assert np.all(before[moved] == 1) and np.all(after[before == 1] != 1)
     s = scene("atrium")
     m = methods.create("slc", s, seed=0)
-    m.render(FrameContext(frame=0), gbuffers_for(s, views.overlap_rig(s, 2, 0.5, aspect=W / H), 0, W, H), NullTimer())
+    m.render(FrameContext(frame=0), frame_gbuffers(s, views.overlap_rig(s, 2, 0.5, aspect=W / H), 0, W, H), NullTimer())
     cache, level = m.cache, 6
     keys = np.array(cache.entry_address(m.requests.active), np.uint32)
     of = Regions(cache.layout, level)
@@ -279,6 +279,7 @@ def test_node_processes_give_the_single_process_images_and_survive_a_killed_proc
     (["--method", "rt16", "--viewers", "2", "--nodes", "2"], "has none"),
     (["--viewers", "2", "--nodes", "2", "--gt"], "--gt is not available"),
     (["--viewers", "2", "--nodes", "2", "--threshold", "-1"], "--threshold must be >= 0"),
+    (["--method", "slc:bias=abc", "--viewers", "2", "--nodes", "2"], "bias must be a number"),
 ])
 def test_render_on_nodes_refuses_bad_input(tmp_path, args, what):
     """``slc render --nodes``: bad input is one line and exit status 2, before Ray starts."""
@@ -286,6 +287,23 @@ def test_render_on_nodes_refuses_bad_input(tmp_path, args, what):
     base = ["render", "--scene", "atrium", "--method", "slc", "--res", "16x9", "--frames", "1", "--out", str(tmp_path)]
     p = slc_cli(base + args)
     assert p.returncode == 2 and what in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
+
+
+def test_a_method_spec_is_checked_without_a_scene_and_made_as_create_makes_it(scene):
+    """``slc.methods.parse``: a spec checked once without a scene or an instance (its settings and
+    cross-checks, with the one-line errors of making the method), as data a process ships to
+    another (pickled); the method a node makes from it is the one ``create`` makes of the spec."""
+    ms = methods.parse("slc:bias=2,block=4")
+    assert ms.settings == {"bias": 2.0, "block": 4} and ms.output == "direct" and ms.cls.name == "slc"
+    s = scene("cornell")
+    a = pickle.loads(pickle.dumps(ms)).create(s, seed=3)
+    b = methods.create("slc:bias=2,block=4", s, seed=3)
+    assert type(a) is type(b) and a.settings() == b.settings() and (a.label, a.seed) == (b.label, b.seed)
+    assert methods.parse("osc-gi:output=indirect").output == "indirect"
+    for bad, what in (("slc:bias=abc", "bias must be a number"), ("slc:nope=1", "unknown setting nope"),
+                      ("osc-gi:hemi=4,texel_rays=3", "texel_rays must divide"), ("nope", "unknown method")):
+        with pytest.raises(methods.MethodError, match=what):
+            methods.parse(bad)
 
 
 @pytest.mark.slow

@@ -14,7 +14,7 @@ from slc.scene import emitter_sampling, gbuffer, lights, scenes, views
 from slc.reference import groundtruth
 
 from slc import methods
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 
 from helpers import first_emitter_hit, plane_under_rect_light
 
@@ -276,7 +276,7 @@ def test_rt_with_table_matches_ground_truth_mean(name, choice, monkeypatch):
     monkeypatch.setattr(emitter_sampling, "DEFAULT_CHOICE", choice)
     s = scenes.load(name)
     assert emitter_sampling.for_scene(s.mi_scene).choice == choice
-    gb = gbuffers_for(s, views.single(s), 0, 64, 36)[0]
+    gb = frame_gbuffers(s, views.single(s), 0, 64, 36)[0]
     gt = groundtruth.ground_truth(s, gb, 0, "single")
     with lights.emitter_sampling_as("table"):
         assert lights.sampler(s.mi_scene) is not None

@@ -11,7 +11,7 @@ import pytest
 from slc.scene import emitter_sampling, emitter_table, lights, scenes, views
 from slc.methods import FrameContext
 from slc.methods.rt.method import RandomLightSampling
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 
 from test_emitter_sampling import _mixed_scene, _shading_point
 
@@ -156,7 +156,7 @@ def test_surface_bsdf_keeps_the_virtual_call_for_other_contexts():
 def test_rt_with_surface_bsdf_equals_plain_eval():
     """RT-N's shading (SurfaceBSDF) equals the same loop with bsdf.eval, bit for bit, on atrium."""
     s = scenes.load("atrium")
-    gb = gbuffers_for(s, views.single(s), 0, 48, 27)[0]
+    gb = frame_gbuffers(s, views.single(s), 0, 48, 27)[0]
     m = RandomLightSampling(s, n=4)
     got = _arr(m.shade(FrameContext(0), None, 0, gb))
     sc, si, active = s.mi_scene, gb.si, gb.valid

@@ -8,7 +8,7 @@ from slc.scene import gbuffer, views
 from slc.reference import groundtruth
 
 from slc import methods
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.scene.camera import CameraPath
 from slc.scene.scenes import SHARED_DIR, Scene
 
@@ -42,7 +42,7 @@ def _scene(kind):
                                                  for k in ("constant", "envmap", "directional")])
 def test_rt_matches_ground_truth_mean(kind):
     s = _scene(kind)
-    gb = gbuffers_for(s, views.single(s), 0, 64, 48)[0]
+    gb = frame_gbuffers(s, views.single(s), 0, 64, 48)[0]
     gt = groundtruth.ground_truth(s, gb, 0, kind)
     m = methods.create("rt256", s, seed=1)
     img = gbuffer.to_image(gb, gbuffer.compose(gb, m.shade(methods.FrameContext(0), None, 0, gb)))

@@ -26,7 +26,7 @@ sys.path.insert(0, "tests")
 import slc.core.backend  # noqa: F401
 import slc.core.freeze as SF
 from slc.methods import FrameContext, create
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.scene.scenes import load
 from slc.core.timing import NullTimer
 from slc.scene.views import single
@@ -44,7 +44,7 @@ for name in scenes:
     for spec in methods:
         m = create(spec, sc)
         for f in range(frames):
-            m.render(FrameContext(f), gbuffers_for(sc, single(sc), f, 40, 30), NullTimer())
+            m.render(FrameContext(f), frame_gbuffers(sc, single(sc), f, 40, 30), NullTimer())
         for i, ff in enumerate(made):
             out.append(dict(scene=name, method=spec, fn=f"{i}:{type(ff).__name__}:{ff.fn.__name__}",
                             calls=ff.calls, recs=ff.n_recordings, frozen=ff.frozen, max=ff.max_recordings))

@@ -7,13 +7,13 @@ from slc.scene import gbuffer, scenes, views
 from slc.reference import groundtruth
 from slc import methods
 from slc.reference.metrics import rel_mse
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 
 
 def test_ground_truth_matches_closed_form_irradiance():
     half, h, L, rho = 0.25, 1.0, 10.0, 0.5
     s = plane_under_rect_light(half, h, L, rho)
-    gb = gbuffers_for(s, views.single(s), 0, 48, 48)[0]
+    gb = frame_gbuffers(s, views.single(s), 0, 48, 48)[0]
     img = groundtruth.ground_truth(s, gb, 0, "v", use_cache=False)
     p = np.array(gb.si.p).T.reshape(48, 48, 3) if np.array(gb.si.p).shape[0] == 3 else np.array(gb.si.p).reshape(48, 48, 3)
     valid = np.array(gb.valid).reshape(48, 48) & (np.abs(p[..., 1]) < 1e-4)
@@ -31,7 +31,7 @@ def test_ground_truth_matches_closed_form_irradiance():
 @pytest.mark.slow
 def test_rt16_vs_rt64_relative_mse_ratio():
     s = scenes.load("cornell")
-    gb = gbuffers_for(s, views.single(s), 0, 64, 48)[0]
+    gb = frame_gbuffers(s, views.single(s), 0, 64, 48)[0]
     gt = groundtruth.ground_truth(s, gb, 0, "front")
     errs = {}
     for n in (16, 64):
@@ -48,7 +48,7 @@ def test_rt16_vs_rt64_relative_mse_ratio():
 def test_ground_truth_is_cached(tmp_path, monkeypatch):
     monkeypatch.setenv("SLC_CACHE", str(tmp_path))
     s = scenes.load("cornell")
-    gb = gbuffers_for(s, views.single(s), 0, 16, 16)[0]
+    gb = frame_gbuffers(s, views.single(s), 0, 16, 16)[0]
     a = groundtruth.ground_truth(s, gb, 0, "v", spp=64)
     files = list((tmp_path / "gt").glob("*.npy"))
     assert len(files) == 1 and "cornell" in files[0].name and "16x16" in files[0].name
@@ -63,7 +63,7 @@ def test_reference_of_an_older_scene_build_is_not_served(tmp_path, monkeypatch):
     from slc.reference import cache
     monkeypatch.setenv("SLC_CACHE", str(tmp_path))
     s = scenes.load("cornell")
-    gb = gbuffers_for(s, views.single(s), 0, 8, 8)[0]
+    gb = frame_gbuffers(s, views.single(s), 0, 8, 8)[0]
     groundtruth.ground_truth(s, gb, 0, "v", spp=16)
     before = cache.cache_path("gt", groundtruth._VERSION, s, gb, 0, "v", 16)
     monkeypatch.setattr(cache, "LOAD_VERSION", cache.LOAD_VERSION + 1)
@@ -81,7 +81,7 @@ def test_reference_of_another_light_or_material_is_not_served(tmp_path, monkeypa
     from slc.reference import cache
     monkeypatch.setenv("SLC_CACHE", str(tmp_path))
     s = scenes.load("cornell")
-    gb = gbuffers_for(s, views.single(s), 0, 8, 8)[0]
+    gb = frame_gbuffers(s, views.single(s), 0, 8, 8)[0]
     a = groundtruth.ground_truth(s, gb, 0, "v", spp=16)
     paths = {cache.cache_path("gt", groundtruth._VERSION, s, gb, 0, "v", 16)}
     params = mi.traverse(s.mi_scene)

@@ -31,7 +31,7 @@ from slc import methods
 from slc.scene import views
 from slc.reference.groundtruth import direct_mis
 from slc.methods import FrameContext
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.core.timing import StageTimer
 
 W, H = 48, 32
@@ -51,7 +51,7 @@ def case(kind):
     if kind in _CACHE:
         return _CACHE[kind]
     sc = hard_scene(kind)
-    gb = gbuffers_for(sc, views.single(sc), 0, W, H)[0]
+    gb = frame_gbuffers(sc, views.single(sc), 0, W, H)[0]
     p = np.array(gb.si.p).T
     mask = np.array(gb.valid) & (np.abs(p[:, 1]) < 1e-4)
     if kind == "hemisphere":
@@ -209,7 +209,7 @@ def _slc_frames(sc, frames, at=(), spec="slc", hook=None, **kw):
     for f in range(frames):
         if hook is not None:
             hook(f)
-        gb = gbuffers_for(sc, viewers, f, W, H)[0]
+        gb = frame_gbuffers(sc, viewers, f, W, H)[0]
         timer.begin_frame()
         with check.scope(spec, f, [gb]):
             d = m.render(FrameContext(f), [gb], timer)

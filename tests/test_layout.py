@@ -8,13 +8,15 @@ Layers, bottom to top (a module may import from its own layer and the layers bel
     reference  the ground truth, path-traced references, metrics
     osc        the on-surface cache and its contract for cache methods (requests, capabilities)
     methods    the method contract (slc.methods: the registry; slc.methods.base: Method, Param;
-               slc.methods.cache_method: the cache-method base class)
+               slc.methods.cache_method: the cache-method base class; slc.methods.frames: the
+               frame loop)
     lib        algorithms the method folders build on (cone lobes, SH and YCoCg, light integrals)
     method     one folder per method under slc/methods/ (baselines included)
     distributed  render nodes sharing one surface cache (owners, records, the Ray actors)
-    run        the frame loop, experiments, jobs, the command line, benchmarks
+    run        a method's run over a sequence, experiments, jobs, the command line, benchmarks
 
-Method folders do not import each other: the algorithms they share or build on are in ``slc/lib``.
+Method folders do not import each other: the algorithms they share or build on are in ``slc/lib``;
+a class in slc/methods/ has one base at most (no mixins: a method holds its parts).
 """
 from __future__ import annotations
 
@@ -256,6 +258,17 @@ def test_loop_state_is_named():
 def test_each_method_folder_registers_by_convention(folder):
     assert (PKG / "methods" / folder / "method.py").is_file(), \
         f"slc/methods/{folder}/ has no method.py (methods are found as slc/methods/<folder>/method.py)"
+
+
+def test_no_mixins_in_methods():
+    """A class in slc/methods/ has at most one base: a method is one class that holds its parts
+    (composition: OSCGI its primary update, ReSTIR its target and reuse), not one class spread
+    over base classes whose methods read attributes defined elsewhere."""
+    bad = [f"{p.relative_to(ROOT)}:{c.lineno} class {c.name}({', '.join(ast.unparse(b) for b in c.bases)})"
+           for p in sorted((PKG / "methods").rglob("*.py"))
+           for c in ast.walk(ast.parse(p.read_text()))
+           if isinstance(c, ast.ClassDef) and len(c.bases) >= 2]
+    assert not bad, "classes with two or more bases (mixins; hold the parts instead):\n" + "\n".join(bad)
 
 
 MAX_FN_IMPORTS = 40

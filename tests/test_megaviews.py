@@ -150,9 +150,9 @@ def test_fused_maps_match_brute_force(setup, kw):
 def small_frame():
     from slc.reference import references
     from slc.scene import views
-    from slc.run.pipeline import gbuffers_for
+    from slc.scene.gbuffer import frame_gbuffers
     s = scenes.load("cornell")
-    gb = gbuffers_for(s, views.single(s), 0, 32, 32)[0]
+    gb = frame_gbuffers(s, views.single(s), 0, 32, 32)[0]
     ref = references.reference_for("indirect", s, gb, 0, gb.viewer, spp=512, bounces=1, use_cache=False)
     return s, gb, ref
 

@@ -11,7 +11,8 @@ from slc import methods
 
 from slc.scene import random_walks, scenes, views
 from slc.methods import FrameContext
-from slc.run.pipeline import RunConfig, gbuffers_for
+from slc.run.pipeline import RunConfig
+from slc.scene.gbuffer import frame_gbuffers
 from slc.core.timing import StageTimer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,7 +37,7 @@ def test_entry_bytes_match_the_arrays():
     m = methods.create("slc", sc)
     vs = views.single(sc)
     for f in range(3):
-        m.render(FrameContext(f), gbuffers_for(sc, vs, f, 48, 27), StageTimer())
+        m.render(FrameContext(f), frame_gbuffers(sc, vs, f, 48, 27), StageTimer())
     cap = int(m.cache.capacity)
     arrays = (dr.width(m.storage) * 4 + dr.width(m.policy_state) * 4) / cap
     assert mem.entry_bytes_of(m) == pytest.approx(arrays + 16, rel=1e-9)

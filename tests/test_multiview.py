@@ -5,7 +5,7 @@ import pytest
 from helpers import render_frames
 from slc import methods
 from slc.scene import camera, scenes, views
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 
 W, H, FRAMES = 48, 27, 6
 
@@ -69,8 +69,8 @@ def test_second_viewer_bounded_change_when_moving():
 @pytest.mark.slow
 def test_measured_overlap_of_rigs():
     s = scenes.load("atrium")
-    same = gbuffers_for(s, views.overlap_rig(s, 3, 1.0), 4, W, H)
+    same = frame_gbuffers(s, views.overlap_rig(s, 3, 1.0), 4, W, H)
     assert views.measure_overlap(same) == 100.0
-    apart = gbuffers_for(s, views.overlap_rig(s, 2, 0.0, aspect=W / H), 4, W, H)
-    half = gbuffers_for(s, views.overlap_rig(s, 2, 0.5, aspect=W / H), 4, W, H)
+    apart = frame_gbuffers(s, views.overlap_rig(s, 2, 0.0, aspect=W / H), 4, W, H)
+    half = frame_gbuffers(s, views.overlap_rig(s, 2, 0.5, aspect=W / H), 4, W, H)
     assert views.measure_overlap(apart) < views.measure_overlap(half) < 100.0

@@ -15,11 +15,11 @@ from slc import methods
 from slc.reference import references
 
 from slc.scene import scenes, views
-from slc.scene.gbuffer import to_image
+from slc.scene.gbuffer import frame_gbuffers, to_image
 from slc.methods import FrameContext, MethodError
 from slc.methods.oscgi import HemiGrid, SecondaryCache
 from slc.methods.oscgi.method import OSCGI
-from slc.run.pipeline import RunConfig, gbuffers_for, run_sequence
+from slc.run.pipeline import RunConfig, run_sequence
 from slc.scene.builder import SceneBuilder, box_mesh, diffuse, diffuse_cornell
 from slc.scene.camera import CameraPath
 from slc.core.timing import NullTimer
@@ -41,7 +41,7 @@ def create(spec, scene, seed=0, **fixed):
 def _run(scene, spec, viewers, frames, w=W, h=H, seed=0, **fixed):
     m = create(spec, scene, seed, **fixed)
     for f in range(frames):
-        gbs = gbuffers_for(scene, viewers, 0, w, h)       # a still camera: frame 0's view every frame
+        gbs = frame_gbuffers(scene, viewers, 0, w, h)       # a still camera: frame 0's view every frame
         with check.scope(spec, f, gbs):
             out = m.render(FrameContext(f), gbs, NullTimer())
             if check.enabled():
@@ -198,7 +198,7 @@ def test_indirect_reference_matches_the_furnace_closed_form(bounces):
     is E sum_{k=2}^{B+1} rho^k."""
     rho, E = 0.5, 1.0
     s = furnace(rho, E)
-    gb = gbuffers_for(s, views.single(s), 0, 24, 16)[0]
+    gb = frame_gbuffers(s, views.single(s), 0, 24, 16)[0]
     ind = to_image(gb, references.indirect_light(s.mi_scene, gb, spp=32, bounces=bounces)).mean()
     expect = E * sum(rho ** k for k in range(2, bounces + 2))
     assert abs(ind - expect) < 0.01 * expect, (ind, expect)      # measured: within 0.1%
@@ -249,7 +249,7 @@ def test_frozen_kernels_give_the_traced_images():
         m = methods.create(f"osc-gi:freeze={fz}", s)
         imgs, recs = [], []
         for f in range(6):
-            gbs = gbuffers_for(s, vs, f, 32, 18)
+            gbs = frame_gbuffers(s, vs, f, 32, 18)
             imgs.append(np.array(m.render(FrameContext(f), gbs, NullTimer())[0]))
             recs.append(m.secondary._k_trace.n_recordings)
         out[fz] = (imgs, m, recs)
@@ -321,7 +321,7 @@ def test_pipeline_compares_with_the_full_reference_and_reports_caches(dcornell):
     cfg = RunConfig(width=32, height=18, frames=3, warmup=1, ref_spp=16)
     r = run_sequence(dcornell, m, views.single(dcornell), cfg)
     assert np.isfinite(r.metrics["flip"])
-    ref = references.reference_for("full", dcornell, gbuffers_for(dcornell, views.single(dcornell), 2, 32, 18)[0],
+    ref = references.reference_for("full", dcornell, frame_gbuffers(dcornell, views.single(dcornell), 2, 32, 18)[0],
                                    2, views.single(dcornell)[0].name, spp=16, bounces=2)
     assert np.array_equal(list(r.images.values())[0]["gt"], ref)
     for k in ("secondary_cells", "primary_mb", "secondary_mb", "secondary_reuse_mean"):
@@ -333,7 +333,7 @@ def test_pipeline_compares_with_the_full_reference_and_reports_caches(dcornell):
 # ----------------------------------------------------------------------------- pt baseline
 @pytest.mark.slow
 def test_pt_converges_to_the_reference(dcornell):
-    gb = gbuffers_for(dcornell, views.single(dcornell), 0, 32, 18)[0]
+    gb = frame_gbuffers(dcornell, views.single(dcornell), 0, 32, 18)[0]
     pt = methods.create("pt:spp=64,output=indirect", dcornell)
     img = references.image_of("indirect", gb, pt.render(FrameContext(0), [gb], NullTimer())[0])
     ref = references.reference_for("indirect", dcornell, gb, 0, "pt", spp=256, bounces=2)

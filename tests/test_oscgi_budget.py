@@ -13,7 +13,7 @@ from slc import methods
 
 from slc.scene import views
 from slc.methods import FrameContext
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.core.timing import NullTimer
 
 W, H, FRAMES = 32, 18, 24
@@ -32,7 +32,7 @@ def _run(scene, spec, viewers, frames, still=True, w=W, h=H, average=1):
     rows = []
     acc = None
     for f in range(frames):
-        gbs = gbuffers_for(scene, viewers, 0 if still else f, w, h)
+        gbs = frame_gbuffers(scene, viewers, 0 if still else f, w, h)
         out = m.render(FrameContext(f), gbs, NullTimer())
         if f >= frames - average:
             imgs = [np.array(x) for x in out]
@@ -41,8 +41,8 @@ def _run(scene, spec, viewers, frames, still=True, w=W, h=H, average=1):
         D, Wd = m.grid.n, m.words
         cnt = np.array(dr.gather(mi.Float, m.storage, fr.active * Wd + 3 * D + 3))
         stale = 0
-        if m._upd_frame is not None:
-            stale = int((f - np.array(dr.gather(mi.UInt32, m._upd_frame, fr.active), dtype=np.int64)).max())
+        if m.primary.upd_frame is not None:
+            stale = int((f - np.array(dr.gather(mi.UInt32, m.primary.upd_frame, fr.active), dtype=np.int64)).max())
         rows.append(dict(n=fr.n_active, new=int(dr.count(fr.is_new)[0]), updated=m.entries_updated,
                          limit=m.update_limit(fr), stale=stale, valued=bool(np.all(cnt > 0))))
     return rows, [a / average for a in acc]

@@ -31,7 +31,7 @@ def test_per_pixel_direct_light_is_unbiased_and_leaves_the_cache_alone(cornell):
     vs = views.single(cornell)
     mf, gbs, (full,) = _run(cornell, "osc-gi", vs, 4)
     mi_, _, (ind,) = _run(cornell, "osc-gi:output=indirect", vs, 4)
-    assert mf.direct == "rt" and not mf._cache_direct
+    assert mf.direct == "rt" and not mf.primary.cache_direct
     assert mf.secondary.used_cells() == mi_.secondary.used_cells()
     assert np.array_equal(np.array(mf.storage), np.array(mi_.storage))       # the same cache
     gt = references.reference_for("direct", cornell, gbs[0], 0, "test")
@@ -80,8 +80,8 @@ def test_stratified_light_samples_are_unbiased_and_less_noisy(cornell):
     from slc.core.keys import stream_key
     from slc.scene.lights import diffuse_flags
     from slc.methods.oscgi.kernels import STREAM_PIXEL_DIRECT, pixel_direct_kernel
-    from slc.run.pipeline import gbuffers_for
-    gb = gbuffers_for(cornell, views.single(cornell), 0, 32, 18)[0]
+    from slc.scene.gbuffer import frame_gbuffers
+    gb = frame_gbuffers(cornell, views.single(cornell), 0, 32, 18)[0]
     sc = cornell.mi_scene
     gt = references.reference_for("direct", cornell, gb, 0, "test")
     valid = np.array(gb.valid).reshape(gt.shape[:2])

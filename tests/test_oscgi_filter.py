@@ -50,7 +50,7 @@ def test_new_coarser_entries_start_from_their_finer_entries():
     from slc.core import check
     from slc.reference import references
     from slc.methods import FrameContext
-    from slc.run.pipeline import gbuffers_for
+    from slc.scene.gbuffer import frame_gbuffers
     from slc.core.timing import NullTimer
     from slc.scene.builder import diffuse_cornell
     s = diffuse_cornell()
@@ -59,13 +59,13 @@ def test_new_coarser_entries_start_from_their_finer_entries():
     for sf in (1, 0):
         m = create("osc-gi:output=indirect", s, 0, seed_finer=bool(sf))
         for f in range(8):
-            m.render(FrameContext(f), gbuffers_for(s, v, 0, 64, 36), NullTimer())
-        gbs = gbuffers_for(s, v, 0, 16, 9)
+            m.render(FrameContext(f), frame_gbuffers(s, v, 0, 64, 36), NullTimer())
+        gbs = frame_gbuffers(s, v, 0, 16, 9)
         out = m.render(FrameContext(8), gbs, NullTimer())
         img = references.image_of("indirect", gbs[0], out[0])
         ref = references.reference_for("indirect", s, gbs[0], 0, "seed_finer", spp=256, bounces=2)
         errs[sf] = float(np.abs(img - ref).mean() / ref.mean())
         if sf:
-            seeded = int(dr.count(m._finer_seeded)[0])
+            seeded = int(dr.count(m.primary.finer_seeded)[0])
     assert seeded > 0, seeded
     assert errs[1] < errs[0], errs

@@ -6,7 +6,7 @@ import numpy as np
 
 import slc.core.backend  # noqa: F401
 from slc.methods import FrameContext, create
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.core.timing import NullTimer
 from slc.scene.views import single
 from test_cones_update_freeze import _growing_scene
@@ -17,7 +17,7 @@ def test_metal_only_scene_renders():
     full = create("osc-gi", sc)
     indirect = create("osc-gi:output=indirect", sc)
     for f in range(6):
-        gbs = gbuffers_for(sc, single(sc), f, 40, 30)
+        gbs = frame_gbuffers(sc, single(sc), f, 40, 30)
         img = np.array(full.render(FrameContext(f), gbs, NullTimer())[0])
         ind = np.array(indirect.render(FrameContext(f), gbs, NullTimer())[0])
     assert np.isfinite(img).all() and np.isfinite(ind).all()

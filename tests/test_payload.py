@@ -120,11 +120,10 @@ def test_second_worked_example_reads_neighbours_through_the_entry_topology(tmp_p
     err = {k: np.abs(x[valid] - gt[valid]).mean() / b for k, x in imgs.items()}
     assert err["irradiance-blur"] < err["irradiance"], err     # measured 3.1% against 4.1%
     from slc.methods.cones.pixelcache import PixelSlotCache
-    from slc.run.pipeline import gbuffers_for
     from slc.core.timing import NullTimer
     m = methods.create("irradiance-blur", scene, cache=PixelSlotCache())
     with pytest.raises(MethodError, match="lacks entry_topology") as e:
-        m.render(methods.FrameContext(0), gbuffers_for(scene, [viewer], 0, 16, 8), NullTimer())
+        m.render(methods.FrameContext(0), frame_gbuffers(scene, [viewer], 0, 16, 8), NullTimer())
     assert "\n" not in str(e.value)
 
 
@@ -200,9 +199,8 @@ def test_stand_in_cache_needs_declared_capability(cornell):
     from slc.methods.cones.pixelcache import PixelSlotCache
     from slc.methods.cones.method import SurfaceLightCones
     m = SurfaceLightCones(cornell, cache=PixelSlotCache(), fetch="bilinear")
-    from slc.run.pipeline import gbuffers_for
     from slc.scene.views import make_rig
-    gbs = gbuffers_for(cornell, make_rig(cornell, "single", 1), 0, 16, 8)
+    gbs = frame_gbuffers(cornell, make_rig(cornell, "single", 1), 0, 16, 8)
     with pytest.raises(MethodError, match="bilinear_taps"):
         m.render(methods.FrameContext(0), gbs, __import__("slc.core.timing", fromlist=["NullTimer"]).NullTimer())
     dr.sync_thread()

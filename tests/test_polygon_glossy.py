@@ -12,7 +12,7 @@ from test_cones import _glossy_bsdf
 from slc.core.keys import mixed_rng
 from slc.lib.lights.polygon_glossy import glossy_term
 from slc.lib.lights.sphere_lights import SphereLights
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.scene.views import single
 
 RECT = ([0, 1.0, 0], [0.1, 0, 0], [0, 0, 0.1], 20.0)
@@ -36,14 +36,14 @@ def test_sampled_term_matches_quadrature(kind, alpha, c_scale):
     """Unbiased: the image mean within 0.5% of the quadrature and the per-pixel error within
     2% (256 sample pairs; measured 0.23% / 0.58% for the conductor at 512)."""
     sc = plane_under_rect_light(half=0.1, radiance=20.0, bsdf=_glossy_bsdf(kind, alpha), name=f"pg_{kind}_{alpha}")
-    gb = gbuffers_for(sc, single(sc), 0, 48, 27)[0]
+    gb = frame_gbuffers(sc, single(sc), 0, 48, 27)[0]
     ref = quadrature_direct(sc, gb, [RECT], [], n=64)
     g, used, m, c = _estimate(sc, gb, c_scale)
     assert used[m].all()
     if c_scale:
         # the control variate's integral c E: E of a Lambertian plane (albedo 1) under the light
         lam = plane_under_rect_light(half=0.1, radiance=20.0, albedo=1.0, name="pg_lambert")
-        gl = gbuffers_for(lam, single(lam), 0, 48, 27)[0]
+        gl = frame_gbuffers(lam, single(lam), 0, 48, 27)[0]
         E = quadrature_direct(lam, gl, [RECT], [], n=64) * np.pi
         g = g + np.array(c).T * E
     mean = g[m].mean() / ref[m].mean() - 1.0

@@ -14,7 +14,7 @@ from helpers import plane_under_rect_light, quadrature_direct
 from test_cones import _glossy_bsdf
 from slc.lib.lights.polygon_ltc import TABLE, LtcTable, ltc_term, narrow
 from slc.lib.lights.sphere_lights import SphereLights
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.scene import bsdf_table
 from slc.scene.views import single
 
@@ -110,7 +110,7 @@ def test_ltc_term_matches_quadrature(kind, alpha):
     """The shaded unshadowed term within its bound (LTC_QUADRATURE) of a quadrature of
     Mitsuba's BSDF over the light, at the plane's pixels under a 0.2 m light; finite, >= 0."""
     sc = plane_under_rect_light(half=0.1, radiance=20.0, bsdf=_glossy_bsdf(kind, alpha), name=f"ltc_{kind}_{alpha}")
-    gb = gbuffers_for(sc, single(sc), 0, 48, 27)[0]
+    gb = frame_gbuffers(sc, single(sc), 0, 48, 27)[0]
     ref = quadrature_direct(sc, gb, [RECT], [], n=96)
     img, m, nb = _ltc_image(sc, gb)
     mean = img[m].mean() / ref[m].mean() - 1.0

@@ -8,7 +8,7 @@ from slc import methods
 
 from slc.scene import scenes, views
 from slc.methods import FrameContext
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.core.timing import NullTimer
 
 
@@ -17,7 +17,7 @@ def _frames(spec, scene, frames=4):
     vs = views.single(scene)
     out = []
     for f in range(frames):
-        gbs = gbuffers_for(scene, vs, 0, 24, 14)        # a still camera: only the random numbers change
+        gbs = frame_gbuffers(scene, vs, 0, 24, 14)        # a still camera: only the random numbers change
         out.append([np.array(x) for x in m.render(FrameContext(f), gbs, NullTimer())])
     return m, out
 

@@ -3,6 +3,7 @@ taken within each repetition (the overlap experiment's target figure)."""
 from types import SimpleNamespace
 
 from slc.run import experiment, pipeline
+from slc.scene import gbuffer
 
 from slc import methods
 from slc.run.pipeline import RunConfig
@@ -33,7 +34,7 @@ def test_run_sequence_walks_the_camera_path_in_steps(monkeypatch):
     """``frame_step``: frame i of a run is ``start_frame + i * frame_step`` (the crc
     experiment's moving volume walks 20 path frames per rendered frame)."""
     seen = []
-    monkeypatch.setattr(pipeline.gbuf, "frame_gbuffers", lambda scene, viewers, f, w, h: seen.append(f) or [])
+    monkeypatch.setattr(gbuffer, "frame_gbuffers", lambda scene, viewers, f, w, h: seen.append(f) or [])
 
     class Fake:
         name, label, output = "fake", None, "direct"

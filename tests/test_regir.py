@@ -9,7 +9,7 @@ from slc import methods
 from slc.scene import scenes, views
 from slc.reference.groundtruth import direct_mis
 from slc.methods import FrameContext, MethodError
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.core.timing import NullTimer
 
 W, H = 64, 36
@@ -20,7 +20,7 @@ def cornell_ref():
     """Cornell's first camera; reference = mean of 32 ground-truth runs of 64 samples (the
     2048-sample ground truth, as 32 independent parts so that its variance is known)."""
     sc = scenes.load("cornell")
-    gbs = gbuffers_for(sc, views.single(sc), 0, W, H)
+    gbs = frame_gbuffers(sc, views.single(sc), 0, W, H)
     g = np.stack([np.array(direct_mis(sc.mi_scene, gbs[0], 64, seed=s), np.float64).T for s in range(300, 332)])
     return sc, gbs, g.mean(axis=0), g.var(axis=0, ddof=1) / len(g), np.array(gbs[0].valid)
 
@@ -70,7 +70,7 @@ def test_memory_bounded_and_deterministic(cornell_ref):
     assert cap == 1024
     imgs = [np.array(m.render(FrameContext(f), gbs, NullTimer())[0]) for f in range(3)]
     assert m.memory_bytes() == (16 + 24) * cap + 44 * 8 * cap + 4 * W * H
-    four = gbuffers_for(sc, views.independent(sc, 4), 0, W, H)
+    four = frame_gbuffers(sc, views.independent(sc, 4), 0, W, H)
     m.render(FrameContext(3), four, NullTimer())
     assert m.memory_bytes() == (16 + 24) * cap + 44 * 8 * cap + 4 * W * H * len(four)
     m2 = methods.create("regir:cells=1024,slots=8", sc, seed=7)
@@ -119,7 +119,7 @@ def test_environment_only_scene():
     per-pixel Z-test is not used here: uniform sampling of the sky gives ground pixels rare large
     values under rt8 as well.)"""
     sc = scenes.load("skylit", env="constant")
-    gbs = gbuffers_for(sc, views.single(sc), 0, 48, 27)
+    gbs = frame_gbuffers(sc, views.single(sc), 0, 48, 27)
     ref = np.array(direct_mis(sc.mi_scene, gbs[0], 2048, seed=300), np.float64).T
     mask = np.array(gbs[0].valid)
     runs = independent_runs("regir", sc, gbs, range(64))

@@ -6,11 +6,10 @@ import pytest
 from helpers import independent_runs
 from slc import methods
 from slc.scene import scenes, views
-from slc.scene.gbuffer import to_image
+from slc.scene.gbuffer import frame_gbuffers, to_image
 from slc.reference.groundtruth import direct_mis
 from slc.reference.metrics import rel_mse
 from slc.methods import FrameContext, MethodError
-from slc.run.pipeline import gbuffers_for
 from slc.scene.builder import SceneBuilder, diffuse, translate
 from slc.core.timing import NullTimer
 from slc.scene.camera import FPS, Camera, Viewer
@@ -27,7 +26,7 @@ def cornell(scene):
 def cornell_static(cornell):
     """G-buffer of the first camera of cornell (static camera) and its
     2048-sample direct-illumination reference."""
-    gbs = gbuffers_for(cornell, views.single(cornell), 0, W, H)
+    gbs = frame_gbuffers(cornell, views.single(cornell), 0, W, H)
     gt = to_image(gbs[0], direct_mis(cornell.mi_scene, gbs[0], 2048))
     return gbs, gt
 
@@ -36,7 +35,7 @@ def run_frames(method, scene, viewers, frames, width=W, height=H, gbs=None):
     """Render ``frames`` frames; returns the list of direct images of viewer 0."""
     out = []
     for f in range(frames):
-        g = gbs if gbs is not None else gbuffers_for(scene, viewers, f, width, height)
+        g = gbs if gbs is not None else frame_gbuffers(scene, viewers, f, width, height)
         d = method.render(FrameContext(f), g, NullTimer())
         out.append(to_image(g[0], d[0]))
     return out
@@ -122,7 +121,7 @@ def test_camera_cut_no_stale_samples():
     for spec in ("restir", "restir:depth=1e9,normal=-1"):
         m = methods.create(spec, sc, seed=2)
         imgs = run_frames(m, sc, [cut], 5)
-        gb = gbuffers_for(sc, [cut], 4, W, H)[0]
+        gb = frame_gbuffers(sc, [cut], 4, W, H)[0]
         valid = np.array(gb.valid)
         assert np.isfinite(imgs[-1]).all()
         counts[spec] = _stale_count(m, light_a, valid)
@@ -167,7 +166,7 @@ def test_point_and_environment_lights_unbiased():
     sc = b.build([])
     cam = Camera(np.array([2.5, 2.0, 3.0]), np.array([0.0, 0.3, 0.0]), fov=60)
     v = Viewer("v", lambda f: cam)
-    gbs = gbuffers_for(sc, [v], 0, W, H)
+    gbs = frame_gbuffers(sc, [v], 0, W, H)
     gt = to_image(gbs[0], direct_mis(sc.mi_scene, gbs[0], 2048))
     imgs = run_frames(methods.create("restir:visibility=0", sc, seed=1), sc, [v], 8, gbs=gbs)
     avg = np.mean(imgs, axis=0)
@@ -240,8 +239,8 @@ def test_no_kernel_recompilation_after_warmup(cornell):
     vs = views.single(cornell)
     m = methods.create("restir:spatial=5", cornell, seed=7)
     for f in range(3):
-        m.render(FrameContext(f), gbuffers_for(cornell, vs, f, W, H), NullTimer())
-    gbs = gbuffers_for(cornell, vs, 3, W, H)
+        m.render(FrameContext(f), frame_gbuffers(cornell, vs, f, W, H), NullTimer())
+    gbs = frame_gbuffers(cornell, vs, 3, W, H)
     dr.sync_thread()
     dr.kernel_history()                                  # drop older entries
     dr.set_flag(dr.JitFlag.KernelHistory, True)
@@ -262,7 +261,7 @@ def test_no_kernel_recompilation_after_warmup(cornell):
 @pytest.fixture(scope="module")
 def cornell_flat(cornell):
     """G-buffer of cornell's first camera and a 4096-sample reference, flattened (N x 3)."""
-    gbs = gbuffers_for(cornell, views.single(cornell), 0, W, H)
+    gbs = frame_gbuffers(cornell, views.single(cornell), 0, W, H)
     gt = np.array(direct_mis(cornell.mi_scene, gbs[0], 4096), np.float64).T
     return gbs, gt, np.array(gbs[0].valid)
 
@@ -334,7 +333,7 @@ def test_bias_off_darkens_next_to_zero_target_neighbours():
     within 5%; away from the seam (10+ pixels) both within 5%. Measured (64x36):
     near the seam bias=off 0.825, basic 1.002; away 0.997 for both."""
     sc, v = _half_black_plane()
-    gbs = gbuffers_for(sc, [v], 0, W, H)
+    gbs = frame_gbuffers(sc, [v], 0, W, H)
     gt = np.array(direct_mis(sc.mi_scene, gbs[0], 4096), np.float64).T
     p = np.array(gbs[0].si.p).T
     valid = np.array(gbs[0].valid)
@@ -363,7 +362,7 @@ def test_envmap_light_against_ground_truth():
     if not ENVMAP.exists():
         pytest.skip("envmap not present in ../shared")
     sc = _scene("envmap")
-    gbs = gbuffers_for(sc, views.single(sc), 0, 48, 27)
+    gbs = frame_gbuffers(sc, views.single(sc), 0, 48, 27)
     gt = np.array(direct_mis(sc.mi_scene, gbs[0], 1024), np.float64).T
     v = np.array(gbs[0].valid)
     avg = independent_runs("restir:temporal=0,spatial=0", sc, gbs, range(16)).mean(axis=0)
@@ -381,7 +380,7 @@ def spheres_static():
     1-1e4, over glossy plates), its first camera held still at 96x54, and
     the 2048-sample direct-illumination reference."""
     sc = scenes.load("spheres")
-    gbs = gbuffers_for(sc, views.single(sc), 0, 96, 54)
+    gbs = frame_gbuffers(sc, views.single(sc), 0, 96, 54)
     return sc, gbs, to_image(gbs[0], direct_mis(sc.mi_scene, gbs[0], 2048))
 
 

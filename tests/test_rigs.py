@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from slc.scene import random_walks, views
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 
 W, H = 80, 45                  # same aspect as the calibration, other resolution
 FRAMES = (30, 90)              # other frames than the calibration's (0, 60, 120)
@@ -26,7 +26,7 @@ def atrium(scene):
 @pytest.mark.parametrize("target", [0, 25, 50, 75, 100])
 def test_controlled_rig_reaches_its_target(atrium, n, target):
     rig = views.overlap_rig(atrium, n, target / 100.0, aspect=W / H)
-    got = np.mean([views.measure_overlap(gbuffers_for(atrium, rig, f, W, H)) for f in FRAMES])
+    got = np.mean([views.measure_overlap(frame_gbuffers(atrium, rig, f, W, H)) for f in FRAMES])
     assert abs(got - target) <= TOLERANCE, f"{n} viewers, target {target}%: measured {got:.1f}%"
 
 
@@ -54,7 +54,7 @@ def test_random_rig_overlap_start_and_average(atrium, seed):
     15-25%), measured every 0.5 s at 64x36 (measured: seed 0 48% and 20%,
     seed 1 43% and 22%; the rig before the fix: 52% and 30%)."""
     rig = random_walks.random_viewers(atrium, 16, seed=seed)
-    m = [views.measure_overlap(gbuffers_for(atrium, rig, f, 64, 36)) for f in range(0, 241, 30)]
+    m = [views.measure_overlap(frame_gbuffers(atrium, rig, f, 64, 36)) for f in range(0, 241, 30)]
     assert 40.0 <= m[0] <= 60.0, m
     assert 15.0 <= np.mean(m) <= 25.0, m
     assert np.mean(m[2:]) < m[0] - 20.0, "the viewers do not drift apart"
@@ -73,7 +73,7 @@ def test_random_rig_keeps_clear_of_surfaces(atrium):
         assert random_walks._clear(atrium, o[:-1], o[1:], 0.0).all(), v.name
         assert random_walks._clear(atrium, o[:1], o[:1] + [0.0, 1e-3, 0.0], 0.3).all(), v.name
     for f in (0, 45, 150, 239):
-        for v, gb in zip(rig, gbuffers_for(atrium, rig, f, 32, 18)):
+        for v, gb in zip(rig, frame_gbuffers(atrium, rig, f, 32, 18)):
             valid = np.array(gb.valid, bool)
             p = np.array(gb.si.p, np.float64).reshape(3, -1).T[valid]
             n = np.array(gb.si.n, np.float64).reshape(3, -1).T[valid]

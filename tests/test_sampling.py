@@ -38,7 +38,7 @@ from slc.lib.cones.quadrature import GOLDEN, cone_samples
 from slc.reference.groundtruth import direct_mis
 from slc.scene.lights import sample_light, sample_light_reference
 from slc.methods import FrameContext
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.core.timing import NullTimer
 
 W, H = 32, 24
@@ -93,7 +93,7 @@ def _zoom_on(points, origin, margin=1.1):
 
 def _pixel_si(scene, pixel_frac):
     """(G-buffer of the first camera, index of the valid pixel nearest to (fx, fy))."""
-    gb = gbuffers_for(scene, views.single(scene), 0, 64, 48)[0]
+    gb = frame_gbuffers(scene, views.single(scene), 0, 64, 48)[0]
     valid = np.array(gb.valid)
     fx, fy = pixel_frac
     want = int(fy * 48) * 64 + int(fx * 64)
@@ -411,7 +411,7 @@ def _z(runs, var_runs, ref, ref_var, mask, significance=0.01):
 def plane():
     """The small-light plane and the closed-form direct light at its pixels."""
     sc = plane_under_rect_light(half=0.2, radiance=10.0)
-    gbs = gbuffers_for(sc, views.single(sc), 0, W, H)
+    gbs = frame_gbuffers(sc, views.single(sc), 0, W, H)
     gb = gbs[0]
     p = np.array(gb.si.p).T
     mask = np.array(gb.valid) & (np.abs(p[:, 1]) < 1e-4)
@@ -447,7 +447,7 @@ def cornell_ref():
     """Cornell's first camera; reference = mean of 32 ground-truth runs of 256
     samples (8192 in all), with the variance of that mean."""
     sc = scenes.load("cornell")
-    gbs = gbuffers_for(sc, views.single(sc), 0, W, H)
+    gbs = frame_gbuffers(sc, views.single(sc), 0, W, H)
     g = _gt_runs(sc, gbs[0], range(200, 232), 256)
     mask = np.array(gbs[0].valid)
     return sc, gbs, g.mean(axis=0), g.var(axis=0, ddof=1) / len(g), mask

@@ -12,7 +12,7 @@ import pytest
 from slc import methods
 from slc.scene import scenes, views
 from slc.methods import FrameContext, MethodError
-from slc.run.pipeline import gbuffers_for
+from slc.scene.gbuffer import frame_gbuffers
 from slc.reference.references import image_of, reference_for
 from slc.core.timing import NullTimer
 
@@ -22,7 +22,7 @@ W, H = 64, 36
 @pytest.fixture(scope="module")
 def cornell():
     sc = scenes.load("cornell")
-    return sc, gbuffers_for(sc, views.single(sc), 0, W, H)
+    return sc, frame_gbuffers(sc, views.single(sc), 0, W, H)
 
 
 def test_mean_close_to_indirect_reference(cornell):
@@ -56,7 +56,7 @@ def test_memory_bounded_and_deterministic(cornell):
     assert cap == 4096
     imgs = [np.array(m.render(FrameContext(f), gbs, NullTimer())[0]) for f in range(3)]
     assert m.memory_bytes() == 64 * cap
-    four = gbuffers_for(sc, views.independent(sc, 4), 0, W, H)
+    four = frame_gbuffers(sc, views.independent(sc, 4), 0, W, H)
     m.render(FrameContext(3), four, NullTimer())
     assert m.memory_bytes() == 64 * cap and m.stats()["cell_load"] < 1.0
     again = methods.create("sharc:cells=4096", sc, seed=7)

@@ -33,7 +33,8 @@ def main() -> int:
     from slc import methods
     from slc.reference.metrics import lab_rmse
     from slc.reference.references import reference_for
-    from slc.run.pipeline import RunConfig, gbuffers_for, run_sequence
+    from slc.run.pipeline import RunConfig, run_sequence
+    from slc.scene.gbuffer import frame_gbuffers
     from slc.scene import views
     P = crc.QUICK
     W, H, f = P["width"], P["height"], P["frames"] - 1
@@ -42,7 +43,7 @@ def main() -> int:
     rows = []
     for sc in ex.each_scene(names):
         v = views.single(sc)
-        gb = gbuffers_for(sc, v, f, W, H)[0]
+        gb = frame_gbuffers(sc, v, f, W, H)[0]
         direct = reference_for("direct", sc, gb, f, gb.viewer, spp=P["direct_spp"])
 
         done = {}

@@ -20,6 +20,8 @@ from slc.core import backend
 from slc.distributed.cluster import DEAD, Cluster
 from slc.distributed.node import Node
 from slc.distributed.rig import Strategy, ViewerPoses, assignment
+from slc.methods import MethodSpec
+from slc.methods.frames import Frame, FrameLoop
 from slc.reference.references import image_of
 from slc.scene import gbuffer as gbuf
 from slc.scene import scenes
@@ -40,11 +42,13 @@ class NodeActor:
     def pid(self) -> int:
         return os.getpid()
 
-    def start(self, node: int, live: list, spec: str, viewers: dict, width: int, height: int, strategy,
+    def start(self, node: int, live: list, method, viewers: dict, width: int, height: int, strategy,
               seed: int = 0) -> int:
-        """A new :class:`~slc.distributed.node.Node` (the last one's state dropped); its pid."""
+        """A new :class:`~slc.distributed.node.Node` of the cache method ``method`` (a spec, or the
+        driver's :class:`~slc.methods.MethodSpec`: the node makes the method from its data); the
+        last node's state dropped; its pid."""
         self.node = None
-        self.node = Node(node, live, self.scene, spec, viewers, width, height, strategy, seed)
+        self.node = Node(node, live, self.scene, method, viewers, width, height, strategy, seed)
         return os.getpid()
 
     def call(self, phase: str, *args):
@@ -116,12 +120,15 @@ def node_actors(scene: str, n: int, threads: int | None = None) -> list:
     return actors
 
 
-def render_on_nodes(scene, scene_name: str, spec: str, viewers: list, n_nodes: int, width: int, height: int,
-                    frames: int, threshold: float, lease: int, seed: int = 0, address: str | None = None,
-                    output: str = "direct") -> dict:
+def render_on_nodes(scene, scene_name: str, method: MethodSpec, viewers: list, n_nodes: int, width: int,
+                    height: int, frames: int, threshold: float, lease: int, seed: int = 0,
+                    address: str | None = None) -> dict:
     """Render ``frames`` frames of ``viewers`` on ``n_nodes`` :class:`NodeActor` processes (viewer
     v on node v mod K) with sparse owner updates at ``threshold`` and delay 0 (``slc render
-    --nodes``): on a local Ray instance, or on the cluster at ``address``. Returns the last
+    --nodes``): on a local Ray instance, or on the cluster at ``address``. ``method``: the cache
+    method's spec checked by the caller (:func:`slc.methods.parse`), shipped to every node, which
+    makes the method from it. The frames are walked by the frame loop
+    (:class:`slc.methods.frames.FrameLoop`), a frame a :meth:`Cluster.step`. Returns the last
     frame's images (viewer index -> HxWx3, composed as the pipeline composes the method's
     ``output``; ``scene`` is the driver's copy, for the G-buffers), the bytes sent per frame
     (the protocol's count and pickled) and the nodes' pids. Ray is shut down afterwards if this
@@ -132,18 +139,20 @@ def render_on_nodes(scene, scene_name: str, spec: str, viewers: list, n_nodes: i
         assign = assignment([ViewerPoses.of(v, frames) for v in viewers], n_nodes)
         live = sorted(assign)
         st = Strategy("sparse", 0, float(threshold), int(lease))
-        pids = ray.get([actors[n].start.remote(n, live, spec, assign[n], width, height, st, seed) for n in live])
+        pids = ray.get([actors[n].start.remote(n, live, method, assign[n], width, height, st, seed) for n in live])
         cluster = Cluster(RayNodes(actors), live, 0)
-        sent, pickled, out = [], [], {}
-        for f in range(frames):
-            out = cluster.step(f, images=f == frames - 1)
+        sent, pickled, images = [], [], {}
+
+        def done(fr: Frame, out: dict) -> None:
             sent.append(out["bytes"])
             pickled.append(out["serialized"])
-        gbs = gbuf.frame_gbuffers(scene, viewers, frames - 1, width, height)
-        images = {}
-        for r in out["results"].values():
-            for v, img in r["images"].items():
-                images[v] = image_of(output, gbs[v], mi.Color3f(img))
+            if fr.evaluated:          # the last frame's images, composed on the driver's G-buffers
+                gbs = gbuf.frame_gbuffers(scene, viewers, fr.number, width, height)
+                for r in out["results"].values():
+                    for v, img in r["images"].items():
+                        images[v] = image_of(method.output, gbs[v], mi.Color3f(img))
+        FrameLoop(frames, evaluated=frozenset({frames - 1})).run(
+            lambda fr: cluster.step(fr.number, images=fr.evaluated), done)
         return {"images": images, "bytes_per_frame": sent, "serialized_bytes_per_frame": pickled,
                 "processes": len(set(pids))}
     finally:

@@ -93,14 +93,15 @@ def _timed(phase):
 class Node:
     """One render node (see the module): node ``node`` of the ``live`` nodes, rendering
     ``viewers`` ({viewer index: :class:`ViewerPoses`}) at ``width`` x ``height`` with the cache
-    method ``spec`` under ``strategy`` (:class:`Strategy`)."""
+    method ``method`` (a spec, or a :class:`~slc.methods.MethodSpec`: :func:`make_method`) under
+    ``strategy`` (:class:`Strategy`)."""
 
-    def __init__(self, node: int, live: list, scene, spec: str, viewers: dict, width: int, height: int,
+    def __init__(self, node: int, live: list, scene, method, viewers: dict, width: int, height: int,
                  strategy: Strategy, seed: int = 0):
         self.id, self.live, self.scene = int(node), [int(n) for n in live], scene
         self.viewers = dict(sorted(viewers.items()))
         self.width, self.height, self.s = int(width), int(height), strategy
-        self.m, self.cache = make_method(spec, scene, seed)
+        self.m, self.cache = make_method(method, scene, seed)
         self.codec = codec_for(self.m)            # its entries as records (slc.distributed.records)
         self.regions = Regions(self.cache.layout, strategy.region_level)
         self.dir = Directory(self)
@@ -336,6 +337,7 @@ class Node:
                     dr.scatter(self.value, True, slots)
                     dr.scatter(self.boot, False, slots)
             outs = self._shade()
+            m.check_images(ctx, outs, self.gbs)       # check mode: as Method.render checks its images
         dr.eval(outs)
         res = {"node": self.id, "pid": self.pid, "rays": self.rays, "boot_rays": self.boot_rays,
                "missing": self.missing, "clock": self.clock, "memory": self.memory_bytes(),

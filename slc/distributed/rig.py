@@ -11,7 +11,7 @@ import drjit as dr
 import numpy as np
 
 from slc import methods
-from slc.methods import MethodError
+from slc.methods import MethodError, MethodSpec
 from slc.osc.cache import OnSurfaceCache
 from slc.methods.cache_method import PayloadMethod
 from slc.scene.camera import Camera
@@ -113,12 +113,16 @@ class Clock:
             self.cpu[name] = self.cpu.get(name, 0.0) + 1e3 * (time.process_time() - c0)
 
 
-def make_method(spec: str, scene, seed: int = 0) -> tuple:
-    """(the cache method of a node, its cache): ``spec`` with a pool of :data:`INITIAL_BLOCKS` that
-    doubles on demand (the same slots as the default pool: blocks are mapped lowest free first).
-    The method is made once; its cache, built from its settings, is given to it before its first
-    frame."""
-    m = methods.create(spec, scene, seed=seed)
+def make_method(method: str | MethodSpec, scene, seed: int = 0) -> tuple:
+    """(the cache method of a node, its cache): ``method`` (a spec, or the
+    :class:`~slc.methods.MethodSpec` the driver checked and shipped: the method made from its data)
+    with a pool of :data:`INITIAL_BLOCKS` that doubles on demand (the same slots as the default
+    pool: blocks are mapped lowest free first). The method is made once; its cache, built from its
+    settings, is given to it before its first frame."""
+    if isinstance(method, MethodSpec):
+        m, spec = method.create(scene, seed), method.spec
+    else:
+        m, spec = methods.create(method, scene, seed=seed), method
     if not isinstance(m, PayloadMethod):
         raise MethodError(f"'{spec}' keeps no cache entries to share between nodes (slc, sh, adaptive do)")
     if type(m).make_cache is PayloadMethod.make_cache:

@@ -17,9 +17,11 @@ from dataclasses import dataclass
 import mitsuba as mi
 import numpy as np
 
+from slc import methods
 from slc.distributed.cluster import Cluster, InProcess
 from slc.distributed.node import KINDS, Node
 from slc.distributed.rig import Strategy, ViewerPoses, assignment
+from slc.methods.frames import Frame, FrameLoop
 from slc.reference import references
 from slc.reference.metrics import evaluate
 from slc.scene import gbuffer as gbuf
@@ -56,33 +58,35 @@ class Processes:
         """(a :class:`Cluster` of the nodes of ``assign`` ({node: {viewer index: ViewerPoses}})
         under ``strategy``, the pids of their processes)."""
         live = sorted(assign)
+        method = methods.parse(run.spec)        # checked once; every node makes the method from this data
         if self.actors is None:
-            nodes = {n: Node(n, live, self.scene, run.spec, assign[n], run.width, run.height, strategy, run.seed)
+            nodes = {n: Node(n, live, self.scene, method, assign[n], run.width, run.height, strategy, run.seed)
                      for n in live}
             return Cluster(InProcess(nodes), live, strategy.delay), [nodes[n].pid for n in live]
         # Ray only when the nodes run in processes of their own
         import ray
         from slc.distributed.actors import RayNodes
         actors = {n: self.actors[i] for i, n in enumerate(live)}
-        pids = ray.get([actors[n].start.remote(n, live, run.spec, assign[n], run.width, run.height, strategy,
+        pids = ray.get([actors[n].start.remote(n, live, method, assign[n], run.width, run.height, strategy,
                                                run.seed) for n in live])
         return Cluster(RayNodes(actors), live, strategy.delay), pids
 
 
 def run_strategy(procs: Processes, strategy: Strategy, poses: list, n_nodes: int, run: RigRun) -> dict:
     """The frames of one rig (``poses``: :class:`ViewerPoses` of every viewer) on ``n_nodes``
-    nodes under ``strategy``. Returns the per-frame figures (after the warm-up), the last
+    nodes under ``strategy``, walked by the frame loop (:class:`slc.methods.frames.FrameLoop`), a
+    frame a :meth:`Cluster.step`. Returns the per-frame figures (after the warm-up), the last
     frame's images (viewer -> (3, pixels) numpy), the processes' pids."""
     cluster, pids = procs.cluster(strategy, assignment(poses, n_nodes), run)
     frames, images = [], {}
-    for f in range(run.frames):
-        out = cluster.step(f, images=f == run.frames - 1)
+
+    def done(fr: Frame, out: dict) -> None:
         res = out["results"]
-        if f == run.frames - 1:
+        if fr.evaluated:
             for r in res.values():
                 images.update(r["images"])
-        if f < run.warmup:
-            continue
+        if fr.warm:
+            return
         live = max(len(res), 1)
         frames.append({
             "bytes": out["bytes"] / live, "serialized": out["serialized"] / live,
@@ -94,6 +98,10 @@ def run_strategy(procs: Processes, strategy: Strategy, poses: list, n_nodes: int
             "cpu": {n: r["clock"].cpu.get("work", 0.0) for n, r in res.items()},
             "gbuffer": {n: r["clock"].wall.get("gbuffer", 0.0) for n, r in res.items()},
             "memory": {n: r["memory"] for n, r in res.items()}})
+
+    # the nodes make their own G-buffers; the images of the last frame are evaluated (flips)
+    FrameLoop(run.frames, run.warmup, evaluated=frozenset({run.frames - 1})).run(
+        lambda fr: cluster.step(fr.number, images=fr.evaluated), done)
     return {"frames": frames, "images": images, "pids": pids, "lost": list(cluster.lost),
             "viewers_per_node": max(len(v) for v in assignment(poses, n_nodes).values())}
 

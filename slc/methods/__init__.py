@@ -16,6 +16,9 @@ every ``slc/methods/<package>/method.py``, every
 and every module or file named in the environment variable ``SLC_METHODS``
 (``os.pathsep``-separated) registers its methods with :func:`register` when
 imported. See ``docs/adding-a-method.md``.
+
+:func:`parse` checks a spec without a scene or making the method and returns it as data
+(:class:`MethodSpec`), which another process (a render node) makes the method from.
 """
 from __future__ import annotations
 
@@ -23,7 +26,7 @@ import importlib
 import importlib.util
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -118,21 +121,68 @@ def available() -> dict[str, str]:
     return out
 
 
+def _entry(name: str) -> tuple[_Entry, list[int]]:
+    """The registry entry whose pattern ``name`` (no settings) matches, and the pattern's groups."""
+    _load_all()
+    for entry in _REGISTRY.values():
+        m = entry.pattern.fullmatch(name)
+        if m:
+            return entry, [int(g) for g in m.groups()]
+    raise MethodError(f"unknown method '{name}' (available: {', '.join(sorted(_REGISTRY))}; rtN for any N)")
+
+
 def create(spec: str, scene, **settings) -> Method:
     """Instantiate a method by name (``rt16``, ``rt48``, ``slc``, ``restir``...),
     optionally with settings in the name: ``slc:max_cones=2``."""
     _load_all()
     name, extra = parse_spec(spec, "method setting", MethodError)
     settings = {**extra, **settings}
-    for entry in _REGISTRY.values():
-        m = entry.pattern.fullmatch(name)
-        if m:
-            args = [int(g) for g in m.groups()]
-            try:
-                method = entry.factory(scene, *args, **settings)
-            except TypeError as e:
-                raise MethodError(f"bad settings for method '{spec}': {e}") from None
-            if extra:
-                method.label = spec
-            return method
-    raise MethodError(f"unknown method '{name}' (available: {', '.join(sorted(_REGISTRY))}; rtN for any N)")
+    entry, args = _entry(name)
+    try:
+        method = entry.factory(scene, *args, **settings)
+    except TypeError as e:
+        raise MethodError(f"bad settings for method '{spec}': {e}") from None
+    if extra:
+        method.label = spec
+    return method
+
+
+# -----------------------------------------------------------------------------
+# A method as data
+# -----------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """A method spec checked without a scene (:func:`parse`), as data one process ships to
+    another: ``spec`` as written, its ``name`` (``rt48``, ``slc``...), the ``settings`` it gives
+    (converted and checked by the method's :class:`Param`, or as written for a method registered
+    without a class), the method's ``output``. :meth:`create` makes the method, as
+    :func:`create` makes it from ``spec``."""
+    spec: str
+    name: str
+    settings: dict = field(default_factory=dict)
+    output: str = "direct"
+
+    @property
+    def cls(self) -> type | None:
+        """The method's class (the registry's; ``None`` for a factory registered without one)."""
+        return _entry(self.name)[0].cls
+
+    def create(self, scene, seed: int = 0) -> Method:
+        """The method on ``scene`` with ``seed``, as :func:`create` makes it from ``spec``."""
+        method = create(self.name, scene, seed=seed, **self.settings)
+        if self.settings:
+            method.label = self.spec
+        return method
+
+
+def parse(spec: str) -> MethodSpec:
+    """``spec`` checked once, without a scene and without making the method: its name, its
+    settings (unknown ones, each value, the method's cross-checks: the one-line
+    :class:`MethodError` of making it) -> :class:`MethodSpec`."""
+    name, extra = parse_spec(spec, "method setting", MethodError)
+    cls = _entry(name)[0].cls
+    if cls is None:
+        return MethodSpec(spec, name, extra)
+    values = cls.check_settings(extra)
+    return MethodSpec(spec, name, {k: values[k] for k in extra}, values.get("output", cls.output))

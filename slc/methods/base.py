@@ -16,8 +16,10 @@ for every method:
    frame's bookkeeping (statistics, state kept for the next frame).
 
 In check mode (:mod:`slc.core.check`) every stage's outputs are checked as
-the stage ends; the frame loop (:mod:`slc.run.pipeline`) checks the images
-the method returns.
+the stage ends, and :meth:`Method.render` checks the images it returns (raw
+and composed as the method's ``output`` is compared: no NaN/Inf, no negative
+value), naming the method and the frame; a render node that runs the stages
+itself checks its images with :meth:`Method.check_images`.
 
 A method declares its settings once, as a tuple of :class:`Param`; the base
 class parses and validates them (one-line :class:`MethodError` for a bad
@@ -33,7 +35,9 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from slc.core import check
 from slc.core.errors import MethodError  # noqa: F401 (raised by Param.parse; re-exported)
+from slc.reference.references import image_of
 
 OUTPUTS = ("direct", "indirect", "full")
 
@@ -130,6 +134,18 @@ def param_table(params) -> str:
     return "\n".join(lines) + "\n"
 
 
+class _SettingsView:
+    """A method's parsed settings as its instance shows them (class attributes behind them), for
+    its cross-checks without an instance (:meth:`Method.check_settings`)."""
+
+    def __init__(self, cls: type, values: dict):
+        self.__dict__.update(values)
+        self._cls = cls
+
+    def __getattr__(self, name: str):
+        return getattr(self._cls, name)
+
+
 # -----------------------------------------------------------------------------
 # The method interface
 # -----------------------------------------------------------------------------
@@ -161,17 +177,33 @@ class Method(ABC):
     def __init__(self, scene, seed: int = 0, **kw):
         self.scene = scene
         self.seed = int(seed)
-        names = {p.name for p in self.params}
-        unknown = sorted(set(kw) - names)
-        if unknown:
-            raise MethodError(f"{self.name}: unknown setting{'s' if len(unknown) > 1 else ''} "
-                              f"{', '.join(unknown)} (known: {', '.join(sorted(names)) or 'none'})")
-        for p in self.params:
-            setattr(self, p.name, p.parse(self.name, kw.get(p.name, p.default)))
+        for k, v in self.parse_settings(kw).items():
+            setattr(self, k, v)
         self.validate()
 
+    @classmethod
+    def parse_settings(cls, kw: dict) -> dict:
+        """Every setting's value (``kw``'s, else its default) converted and checked by its
+        :class:`Param`; a one-line :class:`MethodError` for an unknown setting or a bad value."""
+        names = {p.name for p in cls.params}
+        unknown = sorted(set(kw) - names)
+        if unknown:
+            raise MethodError(f"{cls.name}: unknown setting{'s' if len(unknown) > 1 else ''} "
+                              f"{', '.join(unknown)} (known: {', '.join(sorted(names)) or 'none'})")
+        return {p.name: p.parse(cls.name, kw.get(p.name, p.default)) for p in cls.params}
+
+    @classmethod
+    def check_settings(cls, kw: dict) -> dict:
+        """:meth:`parse_settings` and the cross-checks of :meth:`validate`, without a scene and
+        without making the method (``validate`` reads the settings and class attributes only);
+        returns the parsed settings."""
+        values = cls.parse_settings(kw)
+        cls.validate(_SettingsView(cls, values))
+        return values
+
     def validate(self) -> None:
-        """Cross-checks of the parsed settings; raise :class:`MethodError`."""
+        """Cross-checks of the parsed settings (the settings and class attributes only: it also
+        runs without an instance, :meth:`check_settings`); raise :class:`MethodError`."""
 
     def seed_for(self, frame: int, viewer: int = 0) -> int:
         return (self.seed * 1_000_003 + frame * 7919 + viewer * 104729 + 1) & 0x7FFFFFFF
@@ -189,8 +221,18 @@ class Method(ABC):
     # ------------------------------------------------------------------ frame
     def render(self, ctx: FrameContext, gbuffers: list, timer) -> list:
         """Light per viewer (list of mi.Color3f, one per G-buffer), as ``output`` says:
-        :meth:`update_frame`, the shading stage, :meth:`finish` (module docstring). Every stage's
-        outputs are checked in check mode as the stage ends (:meth:`slc.core.timing.StageTimer.stage`)."""
+        :meth:`render_stages` under the method's and the frame's name, its images checked in
+        check mode (:meth:`check_images`). Every stage's outputs are checked in check mode as
+        the stage ends (:meth:`slc.core.timing.StageTimer.stage`)."""
+        with check.scope(self.label or self.name, ctx.frame, gbuffers):
+            outs = self.render_stages(ctx, gbuffers, timer)
+        self.check_images(ctx, outs, gbuffers)
+        return outs
+
+    def render_stages(self, ctx: FrameContext, gbuffers: list, timer) -> list:
+        """The frame's stages: :meth:`update_frame`, the shading stage, :meth:`finish` (module
+        docstring); a method that runs another one inside its frame calls this (its images are
+        checked as part of the frame's)."""
         # ------------------------------- the stages shared by every viewer
         fr = self.update_frame(ctx, gbuffers, timer)
 
@@ -204,6 +246,18 @@ class Method(ABC):
 
         # ------------------------------- after shading: further stages, statistics, state
         return self.finish(ctx, fr, gbuffers, outs, timer)
+
+    def check_images(self, ctx: FrameContext, outs: list, gbuffers: list) -> None:
+        """Check mode (:mod:`slc.core.check`): every viewer's light ``outs`` of frame
+        ``ctx.frame``, raw (stage "image") and composed as its ``output`` is compared (stage
+        "compose"), has no NaN/Inf and no negative value (else a :class:`~slc.core.check.CheckError`
+        naming the method, the frame and the pixel); nothing outside check mode."""
+        if not check.enabled():
+            return
+        with check.scope(self.label or self.name, ctx.frame, gbuffers):
+            check.images(outs, gbuffers)
+            check.images([image_of(self.output, gb, d) for gb, d in zip(gbuffers, outs)], gbuffers,
+                         stage="compose")
 
     def update_frame(self, ctx: FrameContext, gbuffers: list, timer):
         """The stages shared by every viewer before shading, each timed by ``timer.stage``;

@@ -12,7 +12,6 @@ from slc.core.timing import NullTimer
 from slc.methods import FrameContext
 from slc.methods.adaptive.choice import CONES, NONE, SH, VIS, NAMES
 from slc.run.experiment import each_scene
-from slc.run.pipeline import gbuffers_for
 from slc.scene import gbuffer, views
 
 #: display colours (linear RGB in [0, 1]) of the representations
@@ -34,7 +33,7 @@ def run_choice(scene, spec: str = "adaptive", width: int = 160, height: int = 90
     m = methods.create(spec, scene, seed=seed)
     vs = viewers or views.single(scene)
     for f in range(frames):
-        gbs = gbuffers_for(scene, vs, f, width, height)
+        gbs = gbuffer.frame_gbuffers(scene, vs, f, width, height)
         d = m.render(FrameContext(f), gbs, NullTimer())
     tags = np.array(m.pixel_tags(m.requests, 0, gbs[0]), np.uint32).reshape(height, width)
     img = gbuffer.to_image(gbs[0], gbuffer.compose(gbs[0], d[0]))

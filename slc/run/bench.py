@@ -30,7 +30,8 @@ from slc.lib.cones.cycle import shrink_test_plan
 from slc.lib.cones.update import frame_rng, frame_u32
 from slc.methods.rt.method import RandomLightSampling
 from slc.run.experiment import runs_in_turn
-from slc.run.pipeline import RunConfig, gbuffers_for, run_sequence
+from slc.run.pipeline import RunConfig, run_sequence
+from slc.scene.gbuffer import frame_gbuffers
 from slc.scene import scenes, views
 from slc.scene.lights import emitter_sampling_as, rng, sample_light, sampler, visible
 
@@ -75,7 +76,7 @@ def _partial_loop(sc, gb, n: int, stage: str) -> mi.Color3f:
 def bench_rays(scene_name: str = "atrium", width: int = 320, height: int = 180, n: int = 16,
                repeats: int = 5) -> dict:
     s = scenes.load(scene_name)
-    gb = gbuffers_for(s, views.single(s), 0, width, height)[0]
+    gb = frame_gbuffers(s, views.single(s), 0, width, height)[0]
     sc = s.mi_scene
 
     # --------------- per-ray shading points: n rays per pixel ---------------

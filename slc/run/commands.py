@@ -38,13 +38,14 @@ def render(scene_name, method, viewers, rig, overlap, size, frames, warmup, seed
     if viewers < 1 or frames < 1:
         raise ExperimentError("--viewers and --frames must be at least 1")
     s = scenes.load(scene_name)
-    m = methods.create(method, s, seed=seed)
+    # on nodes the spec is checked here once, without making the method: the nodes make it from its data
+    m = methods.parse(method) if nodes else methods.create(method, s, seed=seed)
     try:
         vs = views.make_rig(s, rig, viewers, overlap)
     except ValueError as e:
         raise ExperimentError(str(e)) from None
     if nodes:
-        render_nodes(scene_name, method, s, m, vs, nodes, threshold, address, size, frames, seed, gt, out)
+        render_nodes(scene_name, m, s, vs, nodes, threshold, address, size, frames, seed, gt, out)
         return
     w, h = size
     cfg = RunConfig(width=w, height=h, frames=frames, warmup=min(warmup, frames - 1), seed=seed,
@@ -65,31 +66,33 @@ def render(scene_name, method, viewers, rig, overlap, size, frames, warmup, seed
     click.echo(f"wrote {outd}")
 
 
-def render_nodes(scene_name, spec, s, m, vs, nodes, threshold, address, size, frames, seed, gt, out) -> None:
+def render_nodes(scene_name, ms, s, vs, nodes, threshold, address, size, frames, seed, gt, out) -> None:
     """``slc render --nodes K``: the viewers ``vs`` on K Ray render nodes, one process each
-    (:func:`slc.distributed.actors.render_on_nodes`); ``s``, ``m``: the scene and method loaded
-    here to check the input before Ray starts."""
+    (:func:`slc.distributed.actors.render_on_nodes`); ``s``: the scene loaded here (the rig, the
+    images' composition), ``ms``: the method spec checked here (:class:`slc.methods.MethodSpec`),
+    before Ray starts, and shipped to the nodes as data."""
     if nodes < 1 or nodes > len(vs):
         raise ExperimentError(f"--nodes must be between 1 and the number of viewers ({len(vs)}), got {nodes}")
-    if not isinstance(m, PayloadMethod):
+    cls = ms.cls
+    if cls is None or not issubclass(cls, PayloadMethod):
         raise ExperimentError(f"--nodes needs a cache method whose entries are records (slc, sh, adaptive); "
-                              f"'{m.name}' has none")
+                              f"'{ms.name}' has none")
+    name = cls.name                  # the method's name in the files written, as one process names them
     if gt:
         raise ExperimentError("--gt is not available with --nodes (slc run distributed compares the nodes' images)")
     t = DEFAULT_THRESHOLD if threshold is None else threshold
     if t < 0:
         raise ExperimentError(f"--threshold must be >= 0, got {t}")
     from slc.distributed.actors import render_on_nodes  # imports Ray: only when nodes are asked for
-    res = render_on_nodes(s, scene_name, spec, vs, nodes, *size, frames, t, DEFAULT_LEASE, seed=seed,
-                          address=address, output=m.output)
+    res = render_on_nodes(s, scene_name, ms, vs, nodes, *size, frames, t, DEFAULT_LEASE, seed=seed, address=address)
     outd = Path(out)
     for v, img in sorted(res["images"].items()):
-        io.write_hdr_and_png(outd / f"{s.name}_{m.name}_node{v % nodes}_{vs[v].name}", img, s.exposure)
+        io.write_hdr_and_png(outd / f"{s.name}_{name}_node{v % nodes}_{vs[v].name}", img, s.exposure)
     sent = res["bytes_per_frame"]
-    io.write_json(outd / "nodes.json", {"scene": s.name, "method": spec, "nodes": nodes, "threshold": t,
+    io.write_json(outd / "nodes.json", {"scene": s.name, "method": ms.spec, "nodes": nodes, "threshold": t,
                                         "processes": res["processes"], "bytes_per_frame": sent,
                                         "serialized_bytes_per_frame": res["serialized_bytes_per_frame"]})
-    click.echo(f"{s.name} {m.name} on {nodes} nodes, viewers={len(vs)}: {sum(sent) / max(len(sent), 1):.0f} bytes "
+    click.echo(f"{s.name} {name} on {nodes} nodes, viewers={len(vs)}: {sum(sent) / max(len(sent), 1):.0f} bytes "
                f"per frame sent (mean over {len(sent)} frames), threshold {t:g}")
     click.echo(f"wrote {outd}")
 

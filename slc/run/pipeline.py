@@ -1,7 +1,8 @@
-"""The frame loop shared by the CLI, the experiments and the notebooks.
+"""A method's run over a sequence, shared by the CLI, the experiments and the notebooks.
 
-For each frame: pose the scene (:meth:`Scene.set_frame`), build one G-buffer
-per viewer, hand all of them to the method (timed by stage; G-buffer
+The frames are walked by the frame loop (:class:`slc.methods.frames.FrameLoop`, the one the
+render nodes' driver walks too). For each frame: pose the scene (:meth:`Scene.set_frame`),
+build one G-buffer per viewer, hand all of them to the method (timed by stage; G-buffer
 generation and tone mapping are not timed, as in the papers), compose with
 directly seen emission, and on evaluation frames compare every viewer's
 image with the reference of the method's own ``output`` kind at the same
@@ -24,14 +25,13 @@ from typing import Callable
 
 import numpy as np
 
-from slc.core import check, freeze
-from slc.scene import gbuffer as gbuf
 from slc.reference import references
 from slc.reference.groundtruth import GT_SAMPLES
 from slc import methods
 from slc.methods import FrameContext, Method
+from slc.methods.frames import Frame, FrameLoop
 from slc.reference.metrics import evaluate
-from slc.core.timing import KernelCounter, StageTimer
+from slc.core.timing import StageTimer
 from slc.scene.views import measure_overlap
 
 
@@ -95,92 +95,90 @@ class RunResult:
         return r
 
 
-#: the G-buffers of one frame (:func:`slc.scene.gbuffer.frame_gbuffers`), by the name the frame loop's
-#: callers import
-gbuffers_for = gbuf.frame_gbuffers
-
-
 def run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress=None) -> RunResult:
-    """Render ``cfg.frames`` frames with ``method`` for all ``viewers``.
+    """Render ``cfg.frames`` frames with ``method`` for all ``viewers`` (the frame loop
+    :class:`slc.methods.frames.FrameLoop`).
 
     Kernels built (compiled, loaded from the disk cache, or recorded into a
     frozen function) inside ``method.render`` are counted per frame with Dr.Jit's kernel history
     (the flag's previous state is restored afterwards)."""
-    with KernelCounter() as kc:
-        return _run_sequence(scene, method, viewers, cfg, progress, kc)
-
-
-def _run_sequence(scene, method: Method, viewers, cfg: RunConfig, progress, kc: KernelCounter) -> RunResult:
     timer = StageTimer()
-    compiled: list[int] = []
-    recorded: list[int] = []
     method.reset()
-    evals = set(cfg.evaluated())
-    acc: dict[str, list] = {}
-    images = {}
-    stats_acc: dict[str, list] = {}
-    last = {}
-    for i in range(cfg.frames):
-        f = cfg.start_frame + i * cfg.frame_step
-        gbs = gbuf.frame_gbuffers(scene, viewers, f, cfg.width, cfg.height)
-        ctx = FrameContext(frame=f)
-        kc.take()                 # kernels of the G-buffer and of the previous frame's evaluation
-        recs = freeze.recordings()
-        timer.begin_frame()
-        with check.scope(method.label or method.name, f, gbs):     # check mode: names method/frame
-            direct = method.render(ctx, gbs, timer)
-            if check.enabled():                                     # raw images: no NaN/Inf, >= 0
-                check.images(direct, gbs)
-                check.images([references.image_of(method.output, gb, d) for gb, d in zip(gbs, direct)], gbs,
-                             stage="compose")
-        timer.end_frame()
-        compiled.append(kc.take())
-        recorded.append(freeze.recordings() - recs)
-        for k, v in method.stats().items():
+    loop = FrameLoop(cfg.frames, cfg.warmup, cfg.start_frame, cfg.frame_step, frozenset(cfg.evaluated()),
+                     scene, viewers, cfg.width, cfg.height, timer, count_kernels=True)
+    figures = _Figures(scene, method, cfg, progress)
+    frames = loop.run(lambda fr: method.render(FrameContext(frame=fr.number), fr.gbuffers, timer), figures.add)
+    return figures.result(len(viewers), timer, frames)
+
+
+class _Figures:
+    """What :func:`run_sequence` gathers after every frame: the method's statistics, the
+    viewers' measured overlap, the metrics (and images) of evaluated frames, the last frame's
+    composed images; then the run's :class:`RunResult`."""
+
+    def __init__(self, scene, method: Method, cfg: RunConfig, progress):
+        self.scene, self.method, self.cfg, self.progress = scene, method, cfg, progress
+        self.acc: dict[str, list] = {}          # metric -> values over evaluated images
+        self.stats: dict[str, list] = {}        # statistic -> per-frame values
+        self.images, self.last = {}, {}
+
+    def add(self, fr: Frame, direct: list) -> None:
+        """One frame's figures (``direct``: the light per viewer the method returned)."""
+        cfg, gbs = self.cfg, fr.gbuffers
+        for k, v in self.method.stats().items():
             if isinstance(v, (int, float)):
                 # a cache's own overlap of entries is kept apart from the pipeline's measure
-                stats_acc.setdefault("cache_overlap" if k == "measured_overlap" else k, []).append(float(v))
-        if cfg.measure_overlap and len(gbs) > 1 and i >= cfg.warmup:
-            stats_acc.setdefault("measured_overlap", []).append(measure_overlap(gbs))
-        if i in evals:
-            k = len(gbs) if cfg.eval_viewers is None else min(cfg.eval_viewers, len(gbs))
-            for v, (gb, d) in enumerate(zip(gbs[:k], direct[:k])):
-                # the reference of the method's own output kind (direct, indirect or full)
-                img = references.image_of(method.output, gb, d)
-                gt = references.reference_for(method.output, scene, gb, f, gb.viewer,
-                                              spp=cfg.gt_spp if method.output == "direct" else cfg.ref_spp,
-                                              bounces=references.reference_bounces(method))
-                exposure = references.exposure_for(method.output, scene, gt)
-                m = evaluate(gt, img, exposure, with_map=True)
-                fmap = m.pop("flip_map")
-                for k, val in m.items():
-                    acc.setdefault(k, []).append(val)
-                if cfg.on_eval is not None:
-                    cfg.on_eval(f, v, gb, img, gt)
-                if cfg.keep_images:
-                    images[gb.viewer or f"v{v}"] = {"gt": gt, "img": img, "flip_map": fmap, "frame": f,
-                                                    "exposure": exposure}
-        if cfg.keep_images and i == cfg.frames - 1:
-            last = {gb.viewer: references.image_of(method.output, gb, d) for gb, d in zip(gbs, direct)}
-        if progress is not None:
-            progress.update(1)
-    summ = timer.summary(cfg.warmup)
-    ksumm = timer.kernel_summary(cfg.warmup)
-    metrics = {k: _mean(v) for k, v in acc.items()}
-    stats = {k: float(np.mean(v if k == "measured_overlap" else (v[cfg.warmup:] if len(v) > cfg.warmup else v)))
-             for k, v in stats_acc.items()}
-    return RunResult(method=method.name, viewers=len(viewers), time_ms=summ.get("total", 0.0),
-                     stages={k: v for k, v in summ.items() if k != "total"}, metrics=metrics,
-                     memory_mb=method.memory_bytes() / 2 ** 20,
-                     stages_kernel={k: v for k, v in ksumm.items() if k != "total"},
-                     frames_ms=[dict(f, kernel=k.get("total", 0.0), compiled=c, recordings=n)
-                                for f, k, c, n in zip(timer.frames, timer.kernel_frames, compiled, recorded)],
-                     compiled_after_warmup=sum(compiled[cfg.warmup:] if len(compiled) > cfg.warmup
-                                               else compiled[-1:]),
-                     recordings_after_warmup=sum(recorded[cfg.warmup:] if len(recorded) > cfg.warmup
-                                                 else recorded[-1:]),
-                     images=images, last=last,
-                     stats=stats)
+                self.stats.setdefault("cache_overlap" if k == "measured_overlap" else k, []).append(float(v))
+        if cfg.measure_overlap and len(gbs) > 1 and not fr.warm:
+            self.stats.setdefault("measured_overlap", []).append(measure_overlap(gbs))
+        if fr.evaluated:
+            self._evaluate(fr, direct)
+        if cfg.keep_images and fr.last:
+            self.last = {gb.viewer: references.image_of(self.method.output, gb, d) for gb, d in zip(gbs, direct)}
+        if self.progress is not None:
+            self.progress.update(1)
+
+    def _evaluate(self, fr: Frame, direct: list) -> None:
+        """Every compared viewer's image against the reference of the method's own output kind
+        (direct, indirect or full) at the same points."""
+        cfg, m, gbs, f = self.cfg, self.method, fr.gbuffers, fr.number
+        n = len(gbs) if cfg.eval_viewers is None else min(cfg.eval_viewers, len(gbs))
+        for v, (gb, d) in enumerate(zip(gbs[:n], direct[:n])):
+            img = references.image_of(m.output, gb, d)
+            gt = references.reference_for(m.output, self.scene, gb, f, gb.viewer,
+                                          spp=cfg.gt_spp if m.output == "direct" else cfg.ref_spp,
+                                          bounces=references.reference_bounces(m))
+            exposure = references.exposure_for(m.output, self.scene, gt)
+            metrics = evaluate(gt, img, exposure, with_map=True)
+            fmap = metrics.pop("flip_map")
+            for k, val in metrics.items():
+                self.acc.setdefault(k, []).append(val)
+            if cfg.on_eval is not None:
+                cfg.on_eval(f, v, gb, img, gt)
+            if cfg.keep_images:
+                self.images[gb.viewer or f"v{v}"] = {"gt": gt, "img": img, "flip_map": fmap, "frame": f,
+                                                     "exposure": exposure}
+
+    def result(self, viewers: int, timer: StageTimer, frames: list[Frame]) -> RunResult:
+        """The run's result: medians after the warm-up, mean metrics and statistics."""
+        cfg, m = self.cfg, self.method
+        compiled, recorded = [fr.compiled for fr in frames], [fr.recordings for fr in frames]
+        summ = timer.summary(cfg.warmup)
+        ksumm = timer.kernel_summary(cfg.warmup)
+        stats = {k: float(np.mean(v if k == "measured_overlap" else (v[cfg.warmup:] if len(v) > cfg.warmup else v)))
+                 for k, v in self.stats.items()}
+        return RunResult(method=m.name, viewers=viewers, time_ms=summ.get("total", 0.0),
+                         stages={k: v for k, v in summ.items() if k != "total"},
+                         metrics={k: _mean(v) for k, v in self.acc.items()},
+                         memory_mb=m.memory_bytes() / 2 ** 20,
+                         stages_kernel={k: v for k, v in ksumm.items() if k != "total"},
+                         frames_ms=[dict(f, kernel=k.get("total", 0.0), compiled=c, recordings=n)
+                                    for f, k, c, n in zip(timer.frames, timer.kernel_frames, compiled, recorded)],
+                         compiled_after_warmup=sum(compiled[cfg.warmup:] if len(compiled) > cfg.warmup
+                                                   else compiled[-1:]),
+                         recordings_after_warmup=sum(recorded[cfg.warmup:] if len(recorded) > cfg.warmup
+                                                     else recorded[-1:]),
+                         images=self.images, last=self.last, stats=stats)
 
 
 def _mean(vals):

@@ -17,7 +17,7 @@ from slc.methods.cache_method import PayloadMethod, RayPolicy
 from slc.osc.protocol import ENTRY_TOPOLOGY
 from slc.lib.sh.shading import diffuse_only, shade_radiance
 from slc.methods.oscgi.hemisphere import HemiGrid
-from slc.methods.oscgi.kernels import STREAM_PIXEL_DIRECT, STREAM_SHADE, pixel_direct_kernel, primary_direct_kernel, primary_ray_kernel
+from slc.methods.oscgi.kernels import STREAM_PIXEL_DIRECT, STREAM_SHADE, pixel_direct_kernel
 from slc.methods.oscgi.laps import Laps
 from slc.methods.oscgi.primary import PrimaryUpdate
 from slc.methods.oscgi.secondary import SecondaryCache
@@ -41,7 +41,7 @@ def _cache_params():
     return tuple(out)
 
 
-class OSCGI(PrimaryUpdate, PayloadMethod):
+class OSCGI(PayloadMethod):
     r"""Radiance caching with on-surface caches (``osc-gi``, Tatzgern et al. 2024).
 
     *Primary caches*: every requested on-surface cache entry x (its own surface point, rays offset
@@ -93,7 +93,7 @@ class OSCGI(PrimaryUpdate, PayloadMethod):
     *Many viewers*: ``update_budget`` (2) caps the entries updated per frame at
     ``update_budget`` x (pixels of the largest viewer) / bias^2, about twice one viewer's entries
     (never reached by one viewer): every new entry, then the most due (fewest samples, oldest
-    update); the others keep their value (:meth:`_budgeted`). Only pixels facing the viewer
+    update); the others keep their value (:meth:`PrimaryUpdate._budgeted`). Only pixels facing the viewer
     request entries (back faces are shaded black). Several viewers are shaded in one launch
     (:meth:`shade_all`).
 
@@ -171,11 +171,8 @@ class OSCGI(PrimaryUpdate, PayloadMethod):
         self.label = None if self.output == "full" else "osc-gi:output=indirect"
         # traced once and replayed (FrozenFunction): a new width of the inputs needs no recording;
         # a call narrower than 2 lanes is traced (narrow: the argument whose width decides)
-        self._k_ray = FrozenFunction(primary_ray_kernel, bool(self.freeze), max_recordings=6, narrow=(2,))
-        self._k_direct = FrozenFunction(primary_direct_kernel, bool(self.freeze), max_recordings=6, narrow=(3,))
         self._k_pixel = FrozenFunction(pixel_direct_kernel, bool(self.freeze), max_recordings=6, narrow=(5,))
-        # direct light in the entries only with output=full, direct=cache; else per pixel (render)
-        self._cache_direct = self.output == "full" and self.direct == "cache"
+        self.primary = PrimaryUpdate(self)      # the primary caches' update, stage by stage (primary.py)
         self._sub = None
         if self.output == "full" and self.direct in DIRECT_METHODS:
             self._sub = create(DIRECT_METHODS[self.direct], scene, seed=self.seed)
@@ -194,16 +191,24 @@ class OSCGI(PrimaryUpdate, PayloadMethod):
         D = self.hemi * self.hemi
         return RayPolicy(new=D, new_updates=1, settled=self.texel_rays, moving=D, motion_updates=1)
 
+    def update(self, ctx, fr, policy):
+        """The primary caches' update, by the part :class:`PrimaryUpdate` (no entry reports motion)."""
+        return self.primary.update(ctx, fr, policy)
+
+    def update_limit(self, fr) -> int:
+        """The most entries one frame's update may take (:meth:`PrimaryUpdate.update_limit`)."""
+        return self.primary.update_limit(fr)
+
     def reset(self):
         super().reset()
         self.secondary = None
         # sub-stage clock of update (off unless an experiment sets _profile: no host syncs)
         self.laps = Laps(getattr(self, "_profile", False), getattr(self, "_profile_skip", 0))
         self.memory_log = []          # per frame: (primary bytes, secondary bytes in use)
-        self._upd_frame = None        # per slot: frame of the entry's last update (update_budget)
         self.entries_updated = 0      # entries the last update took
-        if getattr(self, "_sub", None) is not None:
-            self._sub.reset()
+        for part in (getattr(self, "primary", None), getattr(self, "_sub", None)):
+            if part is not None:
+                part.reset()
 
     def _cell_edge(self) -> float:
         """The secondary cells' edge (scene units): max(``secondary_cm``, ``secondary_scene`` x the
@@ -319,7 +324,7 @@ class OSCGI(PrimaryUpdate, PayloadMethod):
                     out = [o + Lv for o, Lv in zip(out, per_viewer(L, lay.sizes, lay.offsets))]
                 st.outputs(*out)
         elif self._sub is not None:
-            sub = self._sub.render(ctx, gbuffers, timer)
+            sub = self._sub.render_stages(ctx, gbuffers, timer)
             out = [a + b for a, b in zip(out, sub)]
         if self.cache is not None:
             self._cells = self.secondary.used_cells()

@@ -13,17 +13,19 @@ import numpy as np
 
 from slc.core.backend import aligned
 from slc.scene.lights import light_inputs
+from slc.core.freeze import FrozenFunction
 from slc.core.keys import INVALID, stream_key
 from slc.osc.blocks import extend_array
 from slc.osc.protocol import EntryStart, entry_start
-from slc.methods.oscgi.kernels import STREAM_GLOSSY, STREAM_PRIMARY, STREAM_PRIMARY_DIRECT
+from slc.methods.oscgi.kernels import (STREAM_GLOSSY, STREAM_PRIMARY, STREAM_PRIMARY_DIRECT, primary_direct_kernel,
+                                       primary_ray_kernel)
 from slc.methods.oscgi.origins import backface_share
 
 
 @dataclass
 class TexelLanes:
     """An update's lanes: one per (entry e, texel k) of its N entries (N x D lanes), and which
-    of them are traced this update (:meth:`OSCGI._texel_lanes`)."""
+    of them are traced this update (:meth:`PrimaryUpdate._texel_lanes`)."""
     e: mi.UInt32                  # the lane's entry (index into the update's entries)
     k: mi.UInt32                  # the lane's texel
     slot: mi.UInt32               # the entry's slot
@@ -40,7 +42,7 @@ class TexelLanes:
 
 @dataclass
 class TexelSamples:
-    """The new samples of an update's N x D texel lanes (:meth:`OSCGI._texel_samples`)."""
+    """The new samples of an update's N x D texel lanes (:meth:`PrimaryUpdate._texel_samples`)."""
     value: list                   # radiance sample (3 channels; 0 where not traced)
     empty: mi.Bool                # the sample's cell holds no value yet (the texel keeps its own)
     inv_t: mi.Float               # 1 / hit distance of the texel's ray (0: a miss or not traced)
@@ -48,16 +50,34 @@ class TexelSamples:
 
 
 class PrimaryUpdate:
-    """The ``update`` of :class:`~slc.methods.oscgi.method.OSCGI` (see its docstring for the estimator);
-    a base of that class, reading its settings, storage and secondary cache."""
+    """The ``update`` of :class:`~slc.methods.oscgi.method.OSCGI` (see its docstring for the estimator),
+    a part the method holds and calls: it reads the method ``gi``'s settings, storage and secondary
+    cache, writes the entries' storage and the figures the method reports (``entries_updated``,
+    ``origin_probe``), and keeps the state of its own stages (``upd_frame``, ``finer_seeded``)."""
+
+    def __init__(self, gi):
+        self.gi = gi
+        # traced once and replayed (FrozenFunction): a new width of the inputs needs no recording;
+        # a call narrower than 2 lanes is traced (narrow: the argument whose width decides)
+        self.k_ray = FrozenFunction(primary_ray_kernel, bool(gi.freeze), max_recordings=6, narrow=(2,))
+        self.k_direct = FrozenFunction(primary_direct_kernel, bool(gi.freeze), max_recordings=6, narrow=(3,))
+        # direct light in the entries only with output=full, direct=cache; else per pixel (OSCGI.finish)
+        self.cache_direct = gi.output == "full" and gi.direct == "cache"
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the state kept across frames."""
+        self.upd_frame = None          # per slot: frame of the entry's last update (update_budget)
+        self.finer_seeded = None       # per entry of the last update: seeded from its finer entries (tests)
 
     def update(self, ctx, fr, policy):
         """The stages of an update: the budget's choice of entries (:meth:`_budgeted`), the
         texels each traces (:meth:`_texel_lanes`), their new samples from the secondary cells
         (:meth:`_texel_samples`), the temporal blend written back (:meth:`_blend`)."""
+        gi = self.gi
         n_requested = fr.n_active
         fr, policy = self._budgeted(ctx, fr, policy)
-        self.laps.start()
+        gi.laps.start()
         # in a frame without new entries the cache's seed slots are a literal (all INVALID), which
         # would give the kernels reading them another IR (built in a timed frame): an array in memory
         dr.make_opaque(fr.seed_slot)
@@ -71,10 +91,11 @@ class PrimaryUpdate:
         texels this update traces: texel k of an entry is traced in its first update and,
         afterwards, in update c when k = c (mod S), S = hemi^2 / texel_rays: every texel once per
         S updates."""
-        D, N = self.grid.n, fr.n_active
+        gi = self.gi
+        D, N = gi.grid.n, fr.n_active
         lane = dr.arange(mi.UInt32, N * D)
         e, k = lane // D, lane % D
-        S = D // self.texel_rays
+        S = D // gi.texel_rays
         is_new = dr.gather(mi.Bool, fr.is_new, e)
         slot = dr.gather(mi.UInt32, fr.active, e)
         start = entry_start(is_new, dr.gather(mi.UInt32, fr.seed_slot, e), slot)
@@ -83,7 +104,7 @@ class PrimaryUpdate:
         # per entry (N lanes), then spread to the entry's texels
         n_kids_e = sum(dr.select(kd != INVALID, 1.0, 0.0) for kd in kids)
         fine_e = fr.is_new & (fr.seed_slot == INVALID) & (n_kids_e > 0.0)
-        self._finer_seeded = fine_e                                     # per entry (tests)
+        self.finer_seeded = fine_e                                      # per entry (tests)
         n_kids = dr.gather(mi.Float, n_kids_e, e) if kids else 0.0
         fine = dr.gather(mi.Bool, fine_e, e)
         fine_old = []
@@ -91,12 +112,12 @@ class PrimaryUpdate:
             acc = mi.Float(0.0)
             for kd in kids:
                 ks = dr.gather(mi.UInt32, kd, e)
-                acc += self.read(ks, k * 3 + ch, fine & (ks != INVALID))
+                acc += gi.read(ks, k * 3 + ch, fine & (ks != INVALID))
             fine_old.append(acc * dr.rcp(dr.maximum(n_kids, 1.0)))
         # fine_old is read (masked) in the blend's kernel: not evaluated here over every texel
         dr.eval(fine_e)
-        self.laps.lap("primary_seeds")
-        c_old = dr.select(is_new, dr.select(start.seeded | fine, 1.0, 0.0), self.read(slot, self.count_word))
+        gi.laps.lap("primary_seeds")
+        c_old = dr.select(is_new, dr.select(start.seeded | fine, 1.0, 0.0), gi.read(slot, gi.count_word))
         c = mi.UInt32(c_old) + 1                                     # this update's number
         full = dr.gather(mi.UInt32, policy.rays, e) >= D
         traced = full | ((k % S) == (c % S))
@@ -110,11 +131,12 @@ class PrimaryUpdate:
         requested, then updated, shared by every entry), or at a glossy hit its own estimate
         (:meth:`SecondaryCache.sample`); with ``direct=cache`` the entry's light samples binned
         into the texels. Spread back to all N x D lanes (0 where not traced)."""
-        sc, sec, laps = self.scene.mi_scene, self.secondary, self.laps
-        D, N, tl = self.grid.n, fr.n_active, lanes.tl
+        gi = self.gi
+        sc, sec, laps = gi.scene.mi_scene, gi.secondary, gi.laps
+        D, N, tl = gi.grid.n, fr.n_active, lanes.tl
         et, kt = tl // D, tl % D
-        ray, ok = self._k_ray((fr.si.p, fr.si.n, fr.si.sh_frame.n), fr.keys, tl,
-                              stream_key(self.seed, ctx.frame, STREAM_PRIMARY), D, self.hemi)
+        ray, ok = self.k_ray((fr.si.p, fr.si.n, fr.si.sh_frame.n), fr.keys, tl,
+                             stream_key(gi.seed, ctx.frame, STREAM_PRIMARY), D, gi.hemi)
         laps.lap("primary_raygen", ray, ok)
 
         # ------------- secondary caches: cells of the hits, requests, update (all shared) -------------
@@ -122,10 +144,10 @@ class PrimaryUpdate:
         laps.lap("secondary_evict", req)
         # non-diffuse hits: NEE + one BSDF ray into a cell (ring 2) per lane
         h = sec.sample(ray, ok, dr.gather(mi.UInt32, fr.keys, et) * D + kt,
-                       stream_key(self.seed, ctx.frame, STREAM_GLOSSY), "primary_rays", bounce=True)
-        if self.probe_origins:                      # (measurements, tests: back-face hits of the cache rays)
+                       stream_key(gi.seed, ctx.frame, STREAM_GLOSSY), "primary_rays", bounce=True)
+        if gi.probe_origins:                      # (measurements, tests: back-face hits of the cache rays)
             b, v = backface_share(h.hits.n, ray.d, h.hits.valid)
-            self.origin_probe = (self.origin_probe[0] + b, self.origin_probe[1] + v)
+            gi.origin_probe = (gi.origin_probe[0] + b, gi.origin_probe[1] + v)
         sec.request(req, h.slots, h.ok, 1)
         sec.record_reuse(h.slots, h.ok)
         g = h.glossy
@@ -138,7 +160,7 @@ class PrimaryUpdate:
         # (it keeps its value) rather than pulled towards 0, unless it has no value yet either
         Lg = None
         if g is not None:
-            Lg = g.Ld if g.slots is None else g.Ld + g.bw * sec.radiance(g.slots, g.hit, layer=self.bounces - 1)
+            Lg = g.Ld if g.slots is None else g.Ld + g.bw * sec.radiance(g.slots, g.hit, layer=gi.bounces - 1)
         Lc = sec.hit_radiance(h, Lg)                   # outgoing radiance of the hit's cell
         em = h.ok & ~sec.updated_once(h.slots, h.ok)
         if g is not None:
@@ -164,12 +186,12 @@ class PrimaryUpdate:
         laps.lap("primary_samples")
 
         # ----------------- direct light (output=full): light samples binned into texels -----------------
-        if self._cache_direct:
+        if self.cache_direct:
             scratch = dr.zeros(mi.Float, N * D * 3)
-            scratch = self._k_direct(sc, light_inputs(sc), fr.si, fr.keys, scratch,
-                                     stream_key(self.seed, ctx.frame, STREAM_PRIMARY_DIRECT),
-                                     dr.opaque(mi.UInt32, self.direct_rays),
-                                     1.0 / (self.direct_rays * self.grid.texel_weight), self.hemi)
+            scratch = self.k_direct(sc, light_inputs(sc), fr.si, fr.keys, scratch,
+                                    stream_key(gi.seed, ctx.frame, STREAM_PRIMARY_DIRECT),
+                                    dr.opaque(mi.UInt32, gi.direct_rays),
+                                    1.0 / (gi.direct_rays * gi.grid.texel_weight), gi.hemi)
             lane = dr.arange(mi.UInt32, N * D)
             out.value = [out.value[c] + dr.gather(mi.Float, scratch, lane * 3 + c) for c in range(3)]
             laps.lap("primary_direct")
@@ -180,44 +202,46 @@ class PrimaryUpdate:
         / \min(c_k, N_{max})`, c_k the texel's own sample count (c for full updates, about
         1 + ceil((c - 1) / S) in rotation); a new entry starts from its seed. The irradiance and
         the mean inverse hit distance follow; everything is written back to the storage."""
-        D, N, G = self.grid.n, fr.n_active, self.grid
+        gi = self.gi
+        D, N, G = gi.grid.n, fr.n_active, gi.grid
         st, traced, k = lanes.start, lanes.traced, lanes.k
         cnt = lanes.c_old + 1.0
         c_k = dr.select(lanes.full, cnt, 1.0 + mi.Float((lanes.c - 1 + lanes.S - 1) // lanes.S))
-        a = dr.select(traced & ~(samples.empty & (c_k > 1.0)), dr.rcp(dr.minimum(c_k, float(self.n_max))), 0.0)
+        a = dr.select(traced & ~(samples.empty & (c_k > 1.0)), dr.rcp(dr.minimum(c_k, float(gi.n_max))), 0.0)
         new = []
         for ch in range(3):
-            old = dr.select(lanes.fine, lanes.fine_old[ch], self.read(st.src, k * 3 + ch, st.keep))
+            old = dr.select(lanes.fine, lanes.fine_old[ch], gi.read(st.src, k * 3 + ch, st.keep))
             new.append(dr.fma(a, dr.select(traced, samples.value[ch], old) - old, old))
         E = [dr.block_sum(x, D) * G.texel_weight for x in new]      # per entry: (pi/R^2) sum_k L_k
         # the mean inverse hit distance, EMA over updates (the seed's value for a seeded entry)
         n_e, s_e = dr.block_sum(samples.n_t, D), dr.block_sum(samples.inv_t, D)
         c_e = dr.gather(mi.Float, lanes.c_old, dr.arange(mi.UInt32, N) * D) + 1.0
         st_e = entry_start(fr.is_new, fr.seed_slot, fr.active)
-        d_old = self.read(st_e.src, self.inv_t_word, st_e.keep)
-        a_e = dr.select(n_e > 0.0, dr.select(st_e.keep, dr.rcp(dr.minimum(c_e, float(self.n_max))), 1.0), 0.0)
+        d_old = gi.read(st_e.src, gi.inv_t_word, st_e.keep)
+        a_e = dr.select(n_e > 0.0, dr.select(st_e.keep, dr.rcp(dr.minimum(c_e, float(gi.n_max))), 1.0), 0.0)
         d_new = dr.fma(a_e, s_e * dr.rcp(dr.maximum(n_e, 1.0)) - d_old, d_old)
         dr.eval(*new, *E, cnt, d_new)
-        self.laps.lap("primary_blend")
+        gi.laps.lap("primary_blend")
         # no live reader of the storage (unevaluated gathers) may survive the scatters below: Dr.Jit
         # would copy the whole storage (12.9 MB at 16k entries) before writing into it
         del old, d_old
         lanes.fine_old = None
         for ch in range(3):
-            self.write(new[ch], lanes.slot, k * 3 + ch)
-        self.write(E, fr.active, self.irr_word)
-        self.write(cnt, lanes.slot, self.count_word, k == 0)
-        self.write(d_new, fr.active, self.inv_t_word)
-        self.laps.lap("primary_ema", self.storage)
+            gi.write(new[ch], lanes.slot, k * 3 + ch)
+        gi.write(E, fr.active, gi.irr_word)
+        gi.write(cnt, lanes.slot, gi.count_word, k == 0)
+        gi.write(d_new, fr.active, gi.inv_t_word)
+        gi.laps.lap("primary_ema", gi.storage)
 
     def update_limit(self, fr) -> int:
         """The most entries one frame's update may take (``update_budget`` x the largest
         viewer's pixels / bias^2; 0 when off): about ``update_budget`` times the entries one
         viewer requests (one entry per bias x bias pixels at the footprint's level)."""
-        if self.update_budget <= 0.0 or not fr.pixel_slot:
+        gi = self.gi
+        if gi.update_budget <= 0.0 or not fr.pixel_slot:
             return 0
         px = max(dr.width(ps) for ps in fr.pixel_slot)
-        return max(1, int(math.ceil(self.update_budget * px / max(float(self.bias), 1e-3) ** 2)))
+        return max(1, int(math.ceil(gi.update_budget * px / max(float(gi.bias), 1e-3) ** 2)))
 
     def _budgeted(self, ctx, fr, policy):
         """(fr, policy) of the entries this frame's update takes. Under the limit
@@ -228,30 +252,31 @@ class PrimaryUpdate:
         keeps its value (it holds one: every entry is updated in its first frame); once every
         entry has ``n_max`` updates the order is a round robin, so each of N entries is updated
         at least once every ceil(N / limit) frames while no new ones arrive (tested). The last
-        update's frame per slot is kept beside the storage (``_upd_frame``). With several
+        update's frame per slot is kept beside the storage (``upd_frame``). With several
         viewers the update always reads the entries through the selection (all of them when
         under the limit), so that its kernels are the same whether or not the budget bites in
         a frame (a first frame under the limit after the warm-up would build kernels); one viewer
         under the limit reads the cache's arrays directly (the same kernels and images)."""
+        gi = self.gi
         N, B = fr.n_active, self.update_limit(fr)
-        cap = dr.width(self.storage) // self.words
-        if B > 0 and (self._upd_frame is None or dr.width(self._upd_frame) < cap):
-            self._upd_frame = (dr.zeros(mi.UInt32, cap) if self._upd_frame is None
-                               else extend_array(self._upd_frame, 0, cap, mi.UInt32))
-        self.entries_updated = N
+        cap = dr.width(gi.storage) // gi.words
+        if B > 0 and (self.upd_frame is None or dr.width(self.upd_frame) < cap):
+            self.upd_frame = (dr.zeros(mi.UInt32, cap) if self.upd_frame is None
+                              else extend_array(self.upd_frame, 0, cap, mi.UInt32))
+        gi.entries_updated = N
         if B <= 0:
             return fr, policy
         now = dr.opaque(mi.UInt32, ctx.frame)
         if N <= B and len(fr.pixel_slot) < 2:
-            dr.scatter(self._upd_frame, now, fr.active)
-            dr.eval(self._upd_frame)
+            dr.scatter(self.upd_frame, now, fr.active)
+            dr.eval(self.upd_frame)
             return fr, policy
         take = N
         if N > B:
             slot = np.array(fr.active, dtype=np.int64)
-            cnt = np.array(self.read(fr.active, self.count_word))
-            last = np.array(dr.gather(mi.UInt32, self._upd_frame, fr.active), dtype=np.int64)
-            due = last + np.minimum(cnt, float(self.n_max)).astype(np.int64)
+            cnt = np.array(gi.read(fr.active, gi.count_word))
+            last = np.array(dr.gather(mi.UInt32, self.upd_frame, fr.active), dtype=np.int64)
+            due = last + np.minimum(cnt, float(gi.n_max)).astype(np.int64)
             due[np.array(fr.is_new, dtype=bool)] = -1                  # new entries: always
             order = np.lexsort((slot, due))
             take = min(max(B, int(np.count_nonzero(due < 0))), N)
@@ -267,9 +292,9 @@ class PrimaryUpdate:
         # arrays in memory: a gather from a literal (the cache's is_new / seed_slot in a frame without
         # new entries) stays a literal, and the update's kernels would get another IR (a kernel build)
         dr.make_opaque(sub.active, sub.si, sub.is_new, sub.seed_slot, sub.keys, policy.rays, policy.unsettled)
-        dr.scatter(self._upd_frame, now, sub.active)
-        dr.eval(self._upd_frame)      # now: a pending scatter would fuse into whichever kernel comes next
-        self.entries_updated = take
+        dr.scatter(self.upd_frame, now, sub.active)
+        dr.eval(self.upd_frame)      # now: a pending scatter would fuse into whichever kernel comes next
+        gi.entries_updated = take
         return sub, policy
 
     def _finer_seeds(self, fr) -> list:
@@ -278,10 +303,11 @@ class PrimaryUpdate:
         not new, has a coarser seed or is at level 0): the slides seed new entries from the
         adjacent levels, coarser and finer; the on-surface cache gives the coarser one. Asked of
         the cache's entry topology (:class:`slc.osc.protocol.EntryTopology`)."""
-        if not self.seed_finer:
+        gi = self.gi
+        if not gi.seed_finer:
             return []
-        topo = self.cache
-        new_now = dr.zeros(mi.Bool, dr.width(self.storage) // self.words)     # entries new this frame
+        topo = gi.cache
+        new_now = dr.zeros(mi.Bool, dr.width(gi.storage) // gi.words)     # entries new this frame
         dr.scatter(new_now, True, fr.active, fr.is_new)
         isl, lvl, tx, ty = topo.entry_texels(fr.active)
         need = fr.is_new & (fr.seed_slot == INVALID) & (lvl > 0)
@@ -291,7 +317,7 @@ class PrimaryUpdate:
             sl = topo.slot_at(isl, finer, tx * 2 + dx, ty * 2 + dy, need)
             m = need & (sl != INVALID)
             m &= ~dr.gather(mi.Bool, new_now, sl, m)
-            m &= self.read(sl, self.count_word, m) > 0.0
+            m &= gi.read(sl, gi.count_word, m) > 0.0
             kids.append(dr.select(m, sl, INVALID))
         dr.eval(*kids)
         return kids
