@@ -63,6 +63,28 @@ def test_voxelization_covers_plane_and_nothing_else():
     assert flags[(v[:, 2] * ny + v[:, 1]) * nx + v[:, 0]].all()
 
 
+def test_scene_triangles_of_rectangles_by_matrix_and_analytic_shapes():
+    """Shapes as exported scenes write them: a rectangle placed by a mirroring, non-uniformly
+    scaling matrix (a mesh whose positions are not among its traversed parameters), a sphere
+    and a disk (analytic). Every one gives triangles on its surface with its closed-form area."""
+    M = mi.ScalarTransform4f([[-2.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.5, 2.0], [0.0, -3.0, 0.0, -1.0], [0, 0, 0, 1]])
+    sc = mi.load_dict({"type": "scene",
+                       "rect": {"type": "rectangle", "to_world": M},
+                       "ball": {"type": "sphere", "center": [0.0, 5.0, 0.0], "radius": 0.5},
+                       "disk": {"type": "disk", "to_world": mi.ScalarTransform4f().translate([0.0, -3.0, 0.0])
+                                .rotate([1.0, 0.0, 0.0], 90.0).scale(0.25)}})
+    tris = volume.scene_triangles(sc)
+    area = 0.5 * np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1)
+    c = tris.mean(axis=1)
+    rect, ball, disk = np.abs(c[:, 1] - 2.0) < 1e-6, np.abs(c[:, 1] - 5.0) < 0.6, np.abs(c[:, 1] + 3.0) < 1e-5
+    assert (rect | ball | disk).all() and rect.any() and ball.any() and disk.any()
+    assert np.isclose(area[rect].sum(), 4.0 * 6.0, rtol=1e-5)      # edges 2 x 2, scaled by 2 and 3
+    assert abs(area[ball].sum() / (4 * np.pi * 0.25) - 1.0) < 0.01
+    assert abs(area[disk].sum() / (np.pi * 0.0625) - 1.0) < 0.01
+    r = np.linalg.norm(tris[ball].reshape(-1, 3) - [0.0, 5.0, 0.0], axis=1)
+    assert np.allclose(r, 0.5, rtol=1e-4)
+
+
 def test_dilation_of_one_cell():
     grid = Grid(lo=np.zeros(3), h=1.0, dims=(5, 6, 7))
     occ = dr.zeros(mi.UInt32, grid.n_cells)

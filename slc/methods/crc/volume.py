@@ -15,17 +15,25 @@ import mitsuba as mi
 import numpy as np
 
 from slc.methods.crc.grid import GEOMETRY_FACTOR, Grid
+from slc.osc.analytic import tessellate_analytic
 
 
 def scene_triangles(mi_scene: mi.Scene) -> np.ndarray:
-    """(T, 3, 3) triangle vertices of every mesh of the scene."""
+    """(T, 3, 3) world-space triangle vertices of every shape of the scene: a mesh's own
+    triangles (Mitsuba's ``rectangle`` and ``cube`` are meshes, whose positions are not among
+    their traversed parameters), an analytic ``sphere``, ``cylinder`` or ``disk`` through the
+    grid of its parameter square (:func:`slc.osc.analytic.tessellate_analytic`). A shape of
+    another type has no triangles (its voxels stay empty)."""
     tris = []
     for sh in mi_scene.shapes():
-        if not isinstance(sh, mi.Mesh):
-            continue
-        p = mi.traverse(sh)
-        V = np.array(p["vertex_positions"], dtype=np.float64).reshape(-1, 3)
-        F = np.array(p["faces"], dtype=np.int64).reshape(-1, 3)
+        if sh.is_mesh():
+            V = np.array(sh.vertex_positions_buffer(), dtype=np.float64).reshape(-1, 3)
+            F = np.array(sh.faces_buffer(), dtype=np.int64).reshape(-1, 3)
+        else:
+            grid = tessellate_analytic(sh)
+            if grid is None:
+                continue
+            V, F = grid.V, grid.F.astype(np.int64)
         if len(F):
             tris.append(V[F])
     return np.concatenate(tris, 0) if tris else np.zeros((0, 3, 3))
