@@ -42,10 +42,6 @@ class RecordCodec:
         """The per-entry arrays shading reads (name -> Dr.Jit array): the storage."""
         return {"storage": self.m.storage}
 
-    def set_entry_state(self, state: dict) -> None:
-        """Shade from ``state`` (arrays shaped as :meth:`entry_state`'s) from now on."""
-        self.m.storage = state["storage"]
-
     def pack(self, slots: mi.UInt32) -> list:
         """The records of the entries ``slots``: a list of ``mi.UInt32`` words, one lane per entry."""
         m = self.m
@@ -117,13 +113,6 @@ class PooledCodec(RecordCodec):
         if m.pools is not None:
             out.update({f"pool{r}": m.pools[r].data for r in REPS})
         return out
-
-    def set_entry_state(self, state: dict) -> None:
-        m = self.m
-        m.storage = state["storage"]
-        if m.pools is not None:
-            for r in REPS:
-                m.pools[r].data = state[f"pool{r}"]
 
     def pack(self, slots: mi.UInt32) -> list:
         """The header words followed by each entry's pool record."""

@@ -33,12 +33,11 @@ R3 = 1.2207440846057596     # plastic constant of the 3-D Roberts sequence (as t
 class AlbedoLoop:
     """The state of :func:`albedo`'s sample loop (one lane per pixel): ``i`` the BSDF samples
     drawn, ``A`` the sum of their weights, ``Ls`` the sum of their weights times the sky's
-    radiance, ``rng`` the pixel's random numbers."""
+    radiance."""
     i: mi.UInt32 = field(default_factory=mi.UInt32)
     A: mi.Color3f = field(default_factory=mi.Color3f)
     Ls: mi.Color3f = field(default_factory=mi.Color3f)
-    rng: mi.PCG32 = field(default_factory=mi.PCG32)
-    DRJIT_STRUCT = {"i": mi.UInt32, "A": mi.Color3f, "Ls": mi.Color3f, "rng": mi.PCG32}
+    DRJIT_STRUCT = {"i": mi.UInt32, "A": mi.Color3f, "Ls": mi.Color3f}
 
 
 @dataclass
@@ -81,7 +80,7 @@ def albedo(bsdf, si, ctx, active, rng, n: int, sky=None):
         return (st,)
 
     z = dr.zeros(mi.Color3f, dr.width(active))
-    st, = dr.while_loop(state=(AlbedoLoop(mi.UInt32(0), z, mi.Color3f(z), rng),), cond=cond, body=body,
+    st, = dr.while_loop(state=(AlbedoLoop(mi.UInt32(0), z, mi.Color3f(z)),), cond=cond, body=body,
                         labels=("albedo",))
     return st.A * (1.0 / n), st.Ls * (1.0 / n)
 
