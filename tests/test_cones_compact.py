@@ -110,6 +110,7 @@ def test_compact_frozen_one_recording(captured):
     assert sh.n_recordings == 1
 
 
+@pytest.mark.slow
 def test_compact_frozen_after_a_call_without_quadrature_pixels(captured):
     """Frozen: a first call in which no active pixel takes the quadrature (the packed launch
     holds only the always-taken pixels, masked off; the adaptive cache's warm-up frames

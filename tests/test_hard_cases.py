@@ -637,6 +637,7 @@ def test_small_bright_hdr_sun(sun, spec):
     _bounded(f"sun {spec}", img, ref, mask, SUN_BOUNDS[spec])
 
 
+@pytest.mark.slow
 def test_small_bright_hdr_sun_ground_truth(sun):
     """The ground truth (256 samples) on the sun scene against the same quadrature."""
     sc, E = sun
