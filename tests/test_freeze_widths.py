@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 import slc.core.backend  # noqa: F401
-from slc.core.freeze import FrozenFunction, _input_widths
+from slc.core.freeze import FrozenFunction
+from slc.core.leaves import input_widths as _input_widths
 
 
 def _scene():
@@ -167,3 +168,44 @@ def test_literal_and_shared_lane_inputs_record_once():
     assert plain.n_recordings > 1, plain.n_recordings
     for a, b in zip(outs, calls(FrozenFunction(_kernel_pair, freeze=False))):
         assert np.array_equal(a, b)
+
+
+def _kernel_table(shape, table, k):
+    # per lane: a lookup into a table whose length changes from call to call (the entries'
+    # frames of the cones' shading); the shapes bring the scene's arrays in through the registry
+    return dr.gather(mi.Float, table, k) + dr.select(shape != None, 1.0, 0.0)  # noqa: E711
+
+
+@pytest.mark.fresh_process
+def test_table_of_a_colliding_length_is_not_recorded_again():
+    """A table argument whose length equals the width of an array of the scene (the ball's
+    index buffer, reached through the shapes) is padded to a free width when declared in
+    ``tables``: one recording, values as traced; undeclared, Dr.Jit records again."""
+    scene = _scene()
+    w = 3 * 144                                              # the ball's index buffer
+    assert w in _input_widths(scene)
+    shapes = dr.gather(mi.ShapePtr, scene.shapes_dr(), dr.arange(mi.UInt32, 500) % len(scene.shapes()))
+    k = dr.arange(mi.UInt32, 500) % 300
+
+    def calls(ff):
+        return [np.array(ff(shapes, dr.arange(mi.Float, m) * 0.5, k)) for m in (400, 401, w, 403, w, 405)]
+
+    plain = FrozenFunction(_kernel_table)
+    calls(plain)
+    guarded = FrozenFunction(_kernel_table, tables=("table",), scene=scene)
+    outs = calls(guarded)
+    assert plain.n_recordings > 1, plain.n_recordings
+    assert guarded.n_recordings == 1 and guarded.frozen, guarded.n_recordings
+    assert guarded.padded_calls == 2                         # both calls with a table of w elements
+    for a, b in zip(outs, calls(FrozenFunction(_kernel_table, freeze=False))):
+        assert np.array_equal(a, b)
+
+
+def test_cone_shading_declares_its_table():
+    """The cones' shading reads the entries' frames through each pixel's index: that argument,
+    and only that one, is its table."""
+    import inspect
+
+    from slc.lib.cones.shading import ConeShading, shade_kernel
+    names = list(inspect.signature(shade_kernel).parameters)
+    assert [names[i] for i in ConeShading(3).tables] == ["entry_frames"]

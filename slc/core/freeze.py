@@ -45,6 +45,15 @@ that width are cut back to the call's. Only for functions whose extra lanes
 change nothing: pure functions and plain scatters of equal values (a copy of
 the last lane computes and writes what the last lane does).
 
+Tables whose length changes from call to call collide in the same way: the
+cones' shading gathers each pixel's entry frame from the frame's entries, 4,224
+of them in frame 31 of the street at 160x90, the width of one of the street's
+vertex buffers, and the shading was recorded again in a timed frame. A function
+made with ``tables`` (the arguments it reads only through indices) gets such an
+argument padded to the next free width (copies of its last element appended,
+never read), with the widths of ``scene`` (the scene its inputs reach through
+the registry) counted as taken.
+
 Host data that changes between calls. An array made from a numpy array
 (``mi.Float(a)``) maps the numpy memory (no copy), and that breaks a recording
 twice over. Dr.Jit keys a recording on whether each input is aligned to the
@@ -72,13 +81,14 @@ value).
 """
 from __future__ import annotations
 
-import dataclasses
 import gc
 import inspect
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+
+from slc.core import leaves
 
 
 _RECORDINGS = [0]      # recordings made by every FrozenFunction of the process
@@ -101,13 +111,18 @@ class FrozenFunction:
     structure, a Dr.Jit struct or a dataclass, whose every array is per lane), ``narrow=()``
     (the arguments, by name or position, whose width decides whether a call is replayed: a call
     where one of them has fewer than 2 lanes runs ``fn`` traced, since a width-1 input is loaded
-    as a scalar and would need a recording of its own). ``calls`` counts the calls made while frozen,
+    as a scalar and would need a recording of its own), ``tables=()`` (the arguments, by name or
+    position, read only through indices: padded to a free width where theirs collides, see the module),
+    ``scene=None`` (with ``tables``: the ``mi.Scene`` whose array widths count as taken; its widths
+    are read once, no reference is kept). ``calls`` counts the calls made while frozen,
     ``n_recordings`` the recordings made (including those of a dropped
     function), ``frozen`` whether calls are still replayed."""
 
-    def __init__(self, fn, freeze: bool = True, max_recordings: int = 4, lanes: tuple = (), narrow: tuple = ()):
+    def __init__(self, fn, freeze: bool = True, max_recordings: int = 4, lanes: tuple = (), narrow: tuple = (),
+                 tables: tuple = (), scene=None):
         self.fn = fn
-        self.lanes, self.narrow = _positions(fn, lanes), _positions(fn, narrow)
+        self.lanes, self.narrow, self.tables = _positions(fn, lanes), _positions(fn, narrow), _positions(fn, tables)
+        self._table_taken = leaves.scene_widths(scene) if (tables and scene is not None) else set()
         self.padded_calls = 0           # calls run on a free width
         self._scene_key, self._scene_ws = None, set()
         self.max_recordings = int(max_recordings)
@@ -120,7 +135,7 @@ class FrozenFunction:
         self.calls = 0
 
     def __call__(self, *args):
-        if self.narrow and any(_width(args[i]) < 2 for i in self.narrow):
+        if self.narrow and any(leaves.width(args[i]) < 2 for i in self.narrow):
             return self.fn(*args)          # too narrow to replay (see the class)
         # no garbage collection while a function records or replays: the collector freed
         # cyclic garbage holding Dr.Jit state (an earlier test's objects) in the middle of
@@ -129,8 +144,8 @@ class FrozenFunction:
         if self.frozen and self.lanes:
             # the inputs evaluated here, together, as the frozen function would: the
             # per-leaf copies below then read evaluated arrays on every call
-            dr.eval(*[a for a in args if _is_tree(a)])
-            n = _width(args[self.lanes[0]])
+            dr.eval(*[a for a in args if leaves.is_tree(a)])
+            n = leaves.width(args[self.lanes[0]])
             args = self._distinct(args, n)
             w = self.free_width(n, args)
             if self.calls == 0 or w != n:
@@ -141,6 +156,8 @@ class FrozenFunction:
                     args = padded
                     self.padded_calls += 1
                 del padded
+        if self.frozen and self.tables:
+            args = self._free_tables(args)
         gc_on = gc.isenabled()
         gc.disable()
         try:
@@ -149,9 +166,9 @@ class FrozenFunction:
             if gc_on:
                 gc.enable()
         if n is not None and w != n:
-            out = _cut(out, w, n)
+            out = leaves.cut(out, w, n)
         elif n is not None and self.calls == 0:
-            _cut(out, n, n)             # the cut's kernels made now (see above), result unused
+            leaves.cut(out, n, n)             # the cut's kernels made now (see above), result unused
         if self.frozen:
             self.calls += 1
             recs = int(self.kernel.n_recordings)
@@ -185,19 +202,44 @@ class FrozenFunction:
         for i, a in enumerate(args):
             if i in self.lanes:
                 continue
-            if _is_scene(a):
+            if leaves.is_scene(a):
                 # a scene's widths once per instance (a Mitsuba scene is not weakly
                 # referenceable, and a strong reference would keep a freed scene in
                 # the registry that every frozen function traverses)
                 if self._scene_key != id(a):
-                    self._scene_key, self._scene_ws = id(a), _input_widths(a)
+                    self._scene_key, self._scene_ws = id(a), leaves.input_widths(a)
                 taken |= self._scene_ws
             else:
-                taken |= _input_widths(a)
+                taken |= leaves.input_widths(a)
         w = n
         while w in taken:
             w += 1
         return w
+
+    def _free_tables(self, args):
+        """``args`` with each argument of ``tables`` padded to the next free width where its
+        width is one of the other inputs' or the scene's (copies of its last element: indices
+        never reach them). The first call pads each table by one element, result unused, so
+        that the copy kernels exist before a collision needs them in a timed frame."""
+        taken = {0, 1} | self._table_taken
+        for i, a in enumerate(args):
+            if i not in self.tables and (leaves.is_tree(a) or leaves.is_scene(a)):
+                taken |= leaves.input_widths(a)
+        out = list(args)
+        for i in self.tables:
+            n = leaves.width(args[i])
+            if n < 2:
+                continue
+            if self.calls == 0:
+                leaves.pad_leaves(args[i], n, n + 1)
+            w = n
+            while w in taken:
+                w += 1
+            if w != n:
+                out[i] = leaves.pad_leaves(args[i], n, w)
+                self.padded_calls += 1
+            taken.add(w)
+        return tuple(out)
 
     def _distinct(self, args, n: int):
         """``args`` with every per-lane leaf an evaluated variable of its own: a literal
@@ -216,17 +258,15 @@ class FrozenFunction:
                 x = type(x)(x)
                 dr.make_opaque(x)
             elif x.index in seen:
-                x = _gather_leaf(x, _lane_index(dr.width(x), dr.width(x)), dr.width(x))
+                x = leaves.gather_leaf(x, leaves.lane_index(dr.width(x), dr.width(x)), dr.width(x))
             seen.add(x.index)
             return x
-        return tuple(_map_leaves(a, own) if i in self.lanes else a for i, a in enumerate(args))
+        return tuple(leaves.map_leaves(a, own) if i in self.lanes else a for i, a in enumerate(args))
 
     def _pad(self, args, n: int, w: int):
         """``args`` with the per-lane ones widened from ``n`` to ``w`` lanes
         (copies of lane ``n - 1``; the index opaque: one kernel for all widths)."""
-        idx = _lane_index(n, w)
-        return tuple(_map_leaves(a, lambda x: _gather_leaf(x, idx, n)) if i in self.lanes else a
-                     for i, a in enumerate(args))
+        return tuple(leaves.pad_leaves(a, n, w) if i in self.lanes else a for i, a in enumerate(args))
 
     @property
     def n_recordings(self) -> int:
@@ -261,122 +301,6 @@ def device_array(tp, a):
     return out
 
 
-# ----------------------------------------------------------------------------- widths
-
-def _leaves(x):
-    """The 1-D Dr.Jit arrays of a (nested) array, Dr.Jit struct, dataclass, or a
-    list / tuple of them."""
-    if isinstance(x, (list, tuple)):
-        for v in x:
-            yield from _leaves(v)
-    elif _is_dataclass(x):
-        for f in dataclasses.fields(x):
-            yield from _leaves(getattr(x, f.name))
-    elif dr.is_struct_v(x) and not dr.is_array_v(x):
-        for k in type(x).DRJIT_STRUCT:
-            yield from _leaves(getattr(x, k))
-    elif dr.is_array_v(x) and dr.depth_v(x) > 1:
-        for i in range(len(x)):
-            yield from _leaves(x[i])
-    elif dr.is_jit_v(x):
-        yield x
-
-
-def _map_leaves(x, f):
-    """``x`` (an array, a Dr.Jit struct, a dataclass, or a tuple / list of them)
-    with ``f`` applied to each 1-D leaf (structs and nested arrays rebuilt)."""
-    if isinstance(x, (list, tuple)):
-        return type(x)(_map_leaves(v, f) for v in x)
-    if _is_dataclass(x):
-        return dataclasses.replace(x, **{k.name: _map_leaves(getattr(x, k.name), f) for k in dataclasses.fields(x)
-                                         if k.init})
-    if dr.is_struct_v(x) and not dr.is_array_v(x):
-        out = type(x)()
-        for k in type(x).DRJIT_STRUCT:
-            setattr(out, k, _map_leaves(getattr(x, k), f))
-        return out
-    if dr.is_array_v(x) and dr.depth_v(x) > 1:
-        return type(x)(*[_map_leaves(x[i], f) for i in range(len(x))])
-    if dr.is_jit_v(x):
-        return f(x)
-    return x
-
-
-def _is_tree(x) -> bool:
-    """Whether ``x`` is a Dr.Jit array or struct, a dataclass, or a list / tuple of them."""
-    if isinstance(x, (list, tuple)):
-        return all(_is_tree(v) for v in x)
-    if _is_dataclass(x):
-        return True
-    return dr.is_array_v(x) or dr.is_struct_v(x)
-
-
-def _is_dataclass(x) -> bool:
-    return dataclasses.is_dataclass(x) and not isinstance(x, type)
-
-
-def _width(x) -> int:
-    return max((dr.width(v) for v in _leaves(x)), default=0)
-
-
-def _gather_leaf(x, idx, n: int):
-    """Leaf ``x`` of width ``n`` gathered at ``idx`` and evaluated on its own
-    (other widths: unchanged). One kernel per leaf: its code depends only on
-    the leaf's type, so the kernels made at a first call serve every later
-    call, whichever of its inputs happen to be literals."""
-    if dr.width(x) != n:
-        return x
-    y = dr.gather(type(x), x, idx)
-    dr.eval(y)
-    return y
-
-
-def _cut(out, w: int, n: int):
-    """A padded call's output with its leaves of width ``w`` cut to ``n``
-    lanes (each leaf on its own, as :func:`_gather_leaf`)."""
-    idx = _lane_index(n, n)
-    return _map_leaves(out, lambda x: _gather_leaf(x, idx, w))
-
-
-def _lane_index(n: int, w: int):
-    """Lanes 0 .. w-1 reading lane min(i, n - 1): the padding's and the cut's
-    index (``n`` opaque: the same kernel for every width)."""
-    return dr.minimum(dr.arange(mi.UInt32, w), dr.opaque(mi.UInt32, n - 1))
-
-
-def _is_scene(a) -> bool:
-    return isinstance(a, mi.Scene)
-
-
-def _input_widths(a) -> set:
-    """Widths of the Dr.Jit arrays an argument brings into a frozen function:
-    its leaves, or for a Mitsuba scene every traversed parameter and the
-    per-mesh arrays Mitsuba keeps beside them (face, vertex counts and their
-    multiples, area distributions)."""
-    return _scene_widths(a) if _is_scene(a) else {dr.width(v) for v in _leaves(a)}
-
-
-def _scene_widths(scene) -> set:
-    ws = set()
-    params = mi.traverse(scene)
-    for k in params.keys():
-        try:
-            v = params[k]
-        except Exception:        # pragma: no cover (a parameter that cannot be read)
-            continue
-        if dr.is_array_v(v) or dr.is_tensor_v(v):
-            ws.add(dr.width(v))
-            ws.add(len(dr.ravel(v)) if dr.is_array_v(v) else int(dr.prod(v.shape)))
-            if dr.is_tensor_v(v) and len(v.shape) >= 2:
-                h, w = int(v.shape[0]), int(v.shape[1])
-                ws |= {h, w, h * w, h + 1, w + 1, (h + 1) * w, h * (w + 1)}
-    for sh in scene.shapes():
-        if sh.is_mesh():
-            F, V = int(sh.face_count()), int(sh.vertex_count())
-            ws |= {F, V, F + 1, V + 1, 2 * F, 3 * F, 2 * V, 3 * V}
-    return ws
-
-
 # ----------------------------------------------------------------------------- literal outputs
 
 def _fit_one(out):
@@ -384,8 +308,8 @@ def _fit_one(out):
     width of its evaluated leaves) rebuilt at that width; ``out`` itself when
     there is none (the usual case: nothing rebuilt)."""
     lit = dr.VarState.Literal
-    leaves = list(_leaves(out))
-    widths = {dr.width(v) for v in leaves if v.state != lit}
+    lv = list(leaves.leaves(out))
+    widths = {dr.width(v) for v in lv if v.state != lit}
     if len(widths) != 1:
         return out
     (w,) = widths
@@ -403,7 +327,7 @@ def _fit_one(out):
             return dr.full(type(v), val, w)
         except TypeError:                           # a non-null literal pointer: left as it is
             return v
-    return _map_leaves(out, refit) if any(stale(v) for v in leaves) else out
+    return leaves.map_leaves(out, refit) if any(stale(v) for v in lv) else out
 
 
 def fit_literals(out):

@@ -245,7 +245,7 @@ class ConeShading(FrozenFunction):
     def __init__(self, max_cones: int, adaptive: bool = True, rotate: bool = True, freeze: bool = True,
                  max_recordings: int = 4, horizon: bool = True,
                  principled: str = "sg", conductor: str = "sample", table=None, glossy: str = "full",
-                 compact: bool = True, front_only: bool = False):
+                 compact: bool = True, front_only: bool = False, scene=None):
         self.table = table
         self.compact = bool(compact)
         if glossy not in ("half", "full"):
@@ -262,7 +262,9 @@ class ConeShading(FrozenFunction):
         self.opts = ShadeOptions(self.max_cones, adaptive=bool(adaptive), rotate=bool(rotate), horizon=bool(horizon),
                                  principled=principled == "sg", conductor=conductor == "sg",
                                  glossy_half=glossy == "half", compact=bool(compact), front_only=bool(front_only))
-        super().__init__(shade_kernel, freeze, max_recordings)
+        # the entries' frames (``entry_frames``) are read through each pixel's index: a table whose
+        # length changes every frame (slc.core.freeze: tables)
+        super().__init__(shade_kernel, freeze, max_recordings, tables=("entry_frames",), scene=scene)
 
     def __call__(self, storage, slot, active, si, texel_frame, n_samples: int = 16, key: int = 0,
                  pid: mi.UInt32 | None = None, entry_frames=None) -> mi.Color3f:
@@ -291,7 +293,8 @@ def shader_for(owner, max_cones: int) -> ConeShading:
                          principled=getattr(owner, "principled", "sg"), conductor=conductor,
                          glossy=getattr(owner, "glossy", "full"), compact=getattr(owner, "compact", "on") == "on",
                          front_only=getattr(getattr(owner, "cone_params", None), "front_only", False),
-                         table=bsdf_table(scene) if scene is not None else None)
+                         table=bsdf_table(scene) if scene is not None else None,
+                         scene=getattr(scene, "mi_scene", scene))
         owner._cone_shading = sh
     return sh
 
