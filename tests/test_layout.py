@@ -286,3 +286,20 @@ def test_few_function_level_imports():
                  for n in ast.walk(fn) if isinstance(n, (ast.Import, ast.ImportFrom))}
         found += [f"{p.relative_to(ROOT)}:{n.lineno}" for n in inner.values()]
     assert len(found) <= MAX_FN_IMPORTS, f"{len(found)} function-level imports:\n" + "\n".join(sorted(found))
+
+
+def test_dataclass_structs_declare_their_fields_once():
+    """A dataclass used as a Dr.Jit struct (loop state, kernel inputs) gets ``DRJIT_STRUCT`` from
+    its fields (``@drjit_struct``, slc/core/structs.py), not from a second list of them."""
+    def names(decorators):
+        return {d.id if isinstance(d, ast.Name) else getattr(d, "attr", getattr(getattr(d, "func", None), "id", None))
+                for d in decorators}
+    bad = []
+    for path in _sources():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ClassDef) and "dataclass" in names(node.decorator_list):
+                for stmt in node.body:
+                    targets = stmt.targets if isinstance(stmt, ast.Assign) else []
+                    if any(isinstance(t, ast.Name) and t.id == "DRJIT_STRUCT" for t in targets):
+                        bad.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name}")
+    assert not bad, "dataclasses listing their fields again in DRJIT_STRUCT (use @drjit_struct):\n" + "\n".join(bad)

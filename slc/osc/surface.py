@@ -24,6 +24,7 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.core.freeze import FrozenFunction
+from slc.core.structs import drjit_struct
 from slc.osc.blocks import extend_array
 from slc.osc.layout import CacheLayout
 
@@ -35,6 +36,7 @@ EDGE_INSET = 1e-4     # border entries of analytic shapes stay this far (in u, v
 BORDER_INSET = 1e-3   # clamped border entries move this fraction of the way to the triangle's centroid
 
 
+@drjit_struct
 @dataclass
 class ClosestLoop:
     """The state of :meth:`TexelPoints.lookup`'s search over an island's triangles (one lane per
@@ -46,7 +48,6 @@ class ClosestLoop:
     best_j: mi.UInt32 = field(default_factory=mi.UInt32)
     bu: mi.Float = field(default_factory=mi.Float)
     bv: mi.Float = field(default_factory=mi.Float)
-    DRJIT_STRUCT = {"i": mi.UInt32, "best_d": mi.Float, "best_j": mi.UInt32, "bu": mi.Float, "bv": mi.Float}
 
 
 class TexelPoints:

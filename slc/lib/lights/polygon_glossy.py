@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 import drjit as dr
 import mitsuba as mi
 
+from slc.core.structs import drjit_struct
 from slc.scene.emitter_table import RECT, ROW, ROW_E0, ROW_E1, ROW_L, ROW_P0
 from slc.scene.spherical import OMEGA_MAX, OMEGA_MIN, sample_triangle, solid_angle
 
@@ -134,6 +135,7 @@ class LightWalk:
         return _tri(self.table, self.x, self.off, self.rect, t, m)
 
 
+@drjit_struct
 @dataclass
 class PickLoop:
     """The state of the walk that picks the light sample's triangle (one lane per pixel): ``t``
@@ -143,9 +145,9 @@ class PickLoop:
     run: mi.Float = field(default_factory=mi.Float)
     k: mi.UInt32 = field(default_factory=mi.UInt32)
     u: mi.Float = field(default_factory=mi.Float)
-    DRJIT_STRUCT = {"t": mi.UInt32, "run": mi.Float, "k": mi.UInt32, "u": mi.Float}
 
 
+@drjit_struct
 @dataclass
 class HitLoop:
     """The state of the walk that meets the BSDF sample's ray with the light (one lane per pixel):
@@ -155,7 +157,6 @@ class HitLoop:
     h: mi.Bool = field(default_factory=mi.Bool)
     y: mi.Point3f = field(default_factory=mi.Point3f)
     k: mi.UInt32 = field(default_factory=mi.UInt32)
-    DRJIT_STRUCT = {"t": mi.UInt32, "h": mi.Bool, "y": mi.Point3f, "k": mi.UInt32}
 
 
 def glossy_term(table, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, idx: mi.UInt32, active: mi.Bool,

@@ -11,6 +11,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from slc.core.structs import drjit_struct
 from slc.methods.megaviews import paraboloid as pb
 from slc.methods.megaviews.hierarchy import ViewHierarchy
 
@@ -122,6 +123,7 @@ def fuse(maps: Maps) -> None:
 # Queries
 # -----------------------------------------------------------------------------
 
+@drjit_struct
 @dataclass
 class AncestorLoop:
     """The state of the walk up the view hierarchy in :func:`lookup` (one lane per query): ``i``
@@ -131,7 +133,6 @@ class AncestorLoop:
     node: mi.UInt32 = field(default_factory=mi.UInt32)
     vis: mi.Bool = field(default_factory=mi.Bool)
     alive: mi.Bool = field(default_factory=mi.Bool)
-    DRJIT_STRUCT = {"i": mi.UInt32, "node": mi.UInt32, "vis": mi.Bool, "alive": mi.Bool}
 
 
 def lookup(maps: Maps, view: mi.UInt32, x: mi.Point3f, active, bias: mi.Float, fused: bool = True):

@@ -42,6 +42,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from slc.core.structs import drjit_struct
 from slc.scene.gbuffer import to_image  # noqa: F401  (callers use vpl.to_image)
 from slc.scene.lights import rng
 from slc.methods.megaviews import traversal as tv
@@ -224,6 +225,7 @@ class CullNodes:
         return C
 
 
+@drjit_struct
 @dataclass
 class SampleWalk:
     """The state of :func:`gather`'s pass 2 (one lane per pixel): ``i`` the DFS position, ``s``
@@ -232,7 +234,6 @@ class SampleWalk:
     s: mi.UInt32 = field(default_factory=mi.UInt32)
     cum: mi.UInt32 = field(default_factory=mi.UInt32)
     L: mi.Color3f = field(default_factory=mi.Color3f)
-    DRJIT_STRUCT = {"i": mi.UInt32, "s": mi.UInt32, "cum": mi.UInt32, "L": mi.Color3f}
 
 
 def gather(scene_h, vpls: VPLSet, maps, gb, samples: int = 64, seed: int = 0, cull_level: int = 6,

@@ -8,6 +8,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from slc.core.structs import drjit_struct
 from slc.scene import emitter_table as et
 from slc.scene.gbuffer import per_viewer
 from slc.core.keys import INVALID, mixed_rng, stream_key
@@ -21,6 +22,7 @@ SLOT_BYTES = 4 * 11              # y (3), n (3), L_e (3), W, M
 REP_BYTES = 4 * 6                # a cell's representative point and normal
 
 
+@drjit_struct
 @dataclass
 class Slots:
     """Light reservoirs of the grid, ``slots`` per cell (index ``cell * slots + j``): a point
@@ -32,9 +34,9 @@ class Slots:
     Le: mi.Color3f = field(default_factory=mi.Color3f)
     W: mi.Float = field(default_factory=mi.Float)
     M: mi.Float = field(default_factory=mi.Float)
-    DRJIT_STRUCT = {"y": mi.Point3f, "n": mi.Vector3f, "Le": mi.Color3f, "W": mi.Float, "M": mi.Float}
 
 
+@drjit_struct
 @dataclass
 class BuildLoop:
     """The state of a reservoir's build (one lane per reservoir): ``i`` the candidates drawn, the
@@ -47,10 +49,9 @@ class BuildLoop:
     p_sel: mi.Float = field(default_factory=mi.Float)
     w_sum: mi.Float = field(default_factory=mi.Float)
     smp: mi.PCG32 = field(default_factory=mi.PCG32)
-    DRJIT_STRUCT = {"i": mi.UInt32, "y": mi.Point3f, "n": mi.Vector3f, "Le": mi.Color3f, "p_sel": mi.Float,
-                    "w_sum": mi.Float, "smp": mi.PCG32}
 
 
+@drjit_struct
 @dataclass
 class TapLoop:
     """The state of a pixel sample's slot taps (one lane per pixel): ``i`` the taps drawn, the
@@ -61,7 +62,6 @@ class TapLoop:
     r_sel: mi.Color3f = field(default_factory=mi.Color3f)
     w_sum: mi.Float = field(default_factory=mi.Float)
     smp: mi.PCG32 = field(default_factory=mi.PCG32)
-    DRJIT_STRUCT = {"i": mi.UInt32, "y_sel": mi.Point3f, "r_sel": mi.Color3f, "w_sum": mi.Float, "smp": mi.PCG32}
 
 
 def light_term(x: mi.Point3f, y: mi.Point3f, n: mi.Vector3f, Le: mi.Color3f, active: mi.Bool):

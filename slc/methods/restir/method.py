@@ -18,6 +18,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from slc.core.structs import drjit_struct
 from slc.scene.lights import rng
 from slc.methods import Method, MethodError, Param, register
 from slc.methods.restir.reservoir import Reservoir, Stream
@@ -38,6 +39,7 @@ PRESETS = {
 }
 
 
+@drjit_struct
 @dataclass
 class CandidateLoop:
     """The state of the local-light candidate loop (one lane per pixel): ``i`` the candidates
@@ -45,7 +47,6 @@ class CandidateLoop:
     i: mi.UInt32 = field(default_factory=mi.UInt32)
     res: Stream = field(default_factory=Stream)
     smp: mi.PCG32 = field(default_factory=mi.PCG32)
-    DRJIT_STRUCT = {"i": mi.UInt32, "res": Stream, "smp": mi.PCG32}
 
 
 @dataclass

@@ -7,10 +7,12 @@ from dataclasses import dataclass, field
 import drjit as dr
 import mitsuba as mi
 
+from slc.core.structs import drjit_struct
 from slc.methods.restir.reservoir import Reservoir, Stream, share
 from slc.scene.lights import rng
 
 
+@drjit_struct
 @dataclass
 class AcceptLoop:
     """The state of pass 1 (one lane per pixel): ``i`` the neighbours drawn, ``smp`` the
@@ -21,9 +23,9 @@ class AcceptLoop:
     K: mi.Float = field(default_factory=mi.Float)
     M_n: mi.Float = field(default_factory=mi.Float)
     used: mi.UInt32 = field(default_factory=mi.UInt32)
-    DRJIT_STRUCT = {"i": mi.UInt32, "smp": mi.PCG32, "K": mi.Float, "M_n": mi.Float, "used": mi.UInt32}
 
 
+@drjit_struct
 @dataclass
 class PairwiseLoop:
     """The state of pass 2 (one lane per pixel): ``i`` the neighbours replayed, ``smp`` and
@@ -34,7 +36,6 @@ class PairwiseLoop:
     sel: mi.PCG32 = field(default_factory=mi.PCG32)
     st: Stream = field(default_factory=Stream)
     m_c: mi.Float = field(default_factory=mi.Float)
-    DRJIT_STRUCT = {"i": mi.UInt32, "smp": mi.PCG32, "sel": mi.PCG32, "st": Stream, "m_c": mi.Float}
 
 
 def spatial_pairwise(reuse, gb, r: Reservoir, p_cur, k, R: float, seed: int):

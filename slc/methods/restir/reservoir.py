@@ -8,7 +8,10 @@ from dataclasses import dataclass, field
 import drjit as dr
 import mitsuba as mi
 
+from slc.core.structs import drjit_struct
 
+
+@drjit_struct
 @dataclass
 class Reservoir:
     """Per-pixel reservoirs (structure of arrays).
@@ -23,7 +26,6 @@ class Reservoir:
     light: mi.UInt32 = field(default_factory=mi.UInt32)
     W: mi.Float = field(default_factory=mi.Float)
     M: mi.Float = field(default_factory=mi.Float)
-    DRJIT_STRUCT = {"y": mi.Point3f, "n": mi.Vector3f, "light": mi.UInt32, "W": mi.Float, "M": mi.Float}
 
 
 class Stream:

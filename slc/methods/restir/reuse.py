@@ -11,12 +11,14 @@ from dataclasses import dataclass, field
 import drjit as dr
 import mitsuba as mi
 
+from slc.core.structs import drjit_struct
 from slc.scene.lights import rng
 from slc.methods.restir.pairwise import spatial_pairwise
 from slc.methods.restir.reservoir import Reservoir, Stream, share
 from slc.methods.restir.target import AREA
 
 
+@drjit_struct
 @dataclass
 class NeighbourLoop:
     """The state of the spatial resampling loop (one lane per pixel): ``i`` the neighbours
@@ -29,8 +31,6 @@ class NeighbourLoop:
     st: Stream = field(default_factory=Stream)
     M: mi.Float = field(default_factory=mi.Float)
     used: mi.UInt32 = field(default_factory=mi.UInt32)
-    DRJIT_STRUCT = {"i": mi.UInt32, "smp": mi.PCG32, "sel": mi.PCG32, "st": Stream, "M": mi.Float,
-                    "used": mi.UInt32}
 
 
 class Reuse:

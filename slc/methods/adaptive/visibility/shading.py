@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import drjit as dr
 import mitsuba as mi
 
+from slc.core.structs import drjit_struct
 from slc.lib.lights.polygon_glossy import GLOSSY, VIS_WHOLE, polygon_term
 from slc.lib.lights.polygon_ltc import ltc_term
 from slc.methods.adaptive.visibility.lights import has_delta, light_at
@@ -29,6 +30,7 @@ ALBEDO_SAMPLES = 16     # BSDF samples of a non-diffuse pixel's directional albe
 R3 = 1.2207440846057596     # plastic constant of the 3-D Roberts sequence (as the cones' quadrature)
 
 
+@drjit_struct
 @dataclass
 class AlbedoLoop:
     """The state of :func:`albedo`'s sample loop (one lane per pixel): ``i`` the BSDF samples
@@ -37,9 +39,9 @@ class AlbedoLoop:
     i: mi.UInt32 = field(default_factory=mi.UInt32)
     A: mi.Color3f = field(default_factory=mi.Color3f)
     Ls: mi.Color3f = field(default_factory=mi.Color3f)
-    DRJIT_STRUCT = {"i": mi.UInt32, "A": mi.Color3f, "Ls": mi.Color3f}
 
 
+@drjit_struct
 @dataclass
 class SlotLoop:
     """The state of :func:`shade`'s loop over a record's slots (one lane per pixel): ``i`` the
@@ -48,7 +50,6 @@ class SlotLoop:
     i: mi.UInt32 = field(default_factory=mi.UInt32)
     L: mi.Color3f = field(default_factory=mi.Color3f)
     rng: mi.PCG32 | None = None
-    DRJIT_STRUCT = {"i": mi.UInt32, "L": mi.Color3f, "rng": mi.PCG32}
 
 
 def albedo(bsdf, si, ctx, active, rng, n: int, sky=None):
