@@ -198,9 +198,14 @@ class FrozenFunction:
         next call of the same width."""
         if n == 0:
             return n
-        taken = {0, 1}
+        return _next_free(n, self._taken(args, self.lanes))
+
+    def _taken(self, args, skip) -> set:
+        """Widths 0 and 1 and the widths of every argument not in ``skip`` (a Mitsuba scene's
+        read once per scene instance), with those of the ``scene`` given at construction."""
+        taken = {0, 1} | self._table_taken
         for i, a in enumerate(args):
-            if i in self.lanes:
+            if i in skip:
                 continue
             if leaves.is_scene(a):
                 # a scene's widths once per instance (a Mitsuba scene is not weakly
@@ -211,20 +216,14 @@ class FrozenFunction:
                 taken |= self._scene_ws
             else:
                 taken |= leaves.input_widths(a)
-        w = n
-        while w in taken:
-            w += 1
-        return w
+        return taken
 
     def _free_tables(self, args):
         """``args`` with each argument of ``tables`` padded to the next free width where its
         width is one of the other inputs' or the scene's (copies of its last element: indices
         never reach them). The first call pads each table by one element, result unused, so
         that the copy kernels exist before a collision needs them in a timed frame."""
-        taken = {0, 1} | self._table_taken
-        for i, a in enumerate(args):
-            if i not in self.tables and (leaves.is_tree(a) or leaves.is_scene(a)):
-                taken |= leaves.input_widths(a)
+        taken = self._taken(args, self.tables)
         out = list(args)
         for i in self.tables:
             n = leaves.width(args[i])
@@ -232,9 +231,7 @@ class FrozenFunction:
                 continue
             if self.calls == 0:
                 leaves.pad_leaves(args[i], n, n + 1)
-            w = n
-            while w in taken:
-                w += 1
+            w = _next_free(n, taken)
             if w != n:
                 out[i] = leaves.pad_leaves(args[i], n, w)
                 self.padded_calls += 1
@@ -277,6 +274,13 @@ class FrozenFunction:
     def n_cached_recordings(self) -> int:
         """Recordings the frozen function holds now (0 once dropped)."""
         return int(self.kernel.n_cached_recordings) if self.frozen else 0
+
+
+def _next_free(n: int, taken: set) -> int:
+    """The first width from ``n`` up that is not in ``taken``."""
+    while n in taken:
+        n += 1
+    return n
 
 
 def _positions(fn, lanes) -> tuple:
