@@ -8,7 +8,7 @@ stages), :mod:`.shading`, :mod:`.frozen` (both as frozen functions); here the
 
 Record (``K + 2`` words, ``K = vis_lights``, default 12)::
 
-    K x [ light index (16) | visibility v (unorm 8) | count (4) | spare (4) ]
+    K x [ light index (16) | visibility v (unorm 10, stochastically rounded) | count (6) ]
     residual irradiance E_r (3 x 18-bit e6m12) | its count C_r (8) | converted (1) | spare (1)
     with an environment: [ v_u (unorm 16) | its count n_u (8) | spare (8) ],
                          [ v_s (unorm 16) | its weight sum W_s (16, units of 1/16) ]

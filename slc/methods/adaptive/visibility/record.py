@@ -10,7 +10,9 @@ import mitsuba as mi
 from slc.lib.cones.packing import WordReader, WordWriter, decode_radiance, encode_radiance
 
 EMPTY = 0xFFFF              # an empty slot's light index
-VIS_WINDOW = 16             # samples in a listed light's visible fraction's running mean
+VIS_WINDOW = 64             # samples in a listed light's visible fraction's running mean
+VIS_BITS = 10               # bits of a listed light's visible fraction (stochastically rounded)
+VIS_COUNT_MAX = 63          # a listed light's sample count cap (6 bits)
 ENV_WINDOW = 64             # samples in the running means of the unlisted regions' and the sky's visible fractions
 RES_MAX_COUNT = 255         # the residual's count cap, in samples (as the cones' C, 8 bits)
 MOVED_COUNT = 1             # visibility count of a listed light that moved (its next sample weighs 1/2)
@@ -44,8 +46,9 @@ class Record:
 
 def unpack(w, K: int, env: bool = False, back: bool = False) -> Record:
     idx = [w[i] & 0xFFFF for i in range(K)]
-    vis = [mi.Float((w[i] >> 16) & 0xFF) * (1.0 / 255.0) for i in range(K)]
-    cnt = [(w[i] >> 24) & 0xF for i in range(K)]
+    q = (1 << VIS_BITS) - 1
+    vis = [mi.Float((w[i] >> 16) & q) * (1.0 / q) for i in range(K)]
+    cnt = [(w[i] >> (16 + VIS_BITS)) & VIS_COUNT_MAX for i in range(K)]
     rd = WordReader([w[K], w[K + 1]])
     E = mi.Color3f(*[decode_radiance(rd.get(18)) for _ in range(3)])
     C = mi.Float(rd.get(8))
@@ -75,11 +78,27 @@ def _fraction_word(v, n):
     return mi.UInt32(dr.clip(dr.round(v * 65535.0), 0.0, 65535.0)) | (dr.minimum(mi.UInt32(n), 255) << 16)
 
 
-def pack(r: Record, K: int, env: bool = False, back: bool = False):
+def quantized_fraction(v, u=None) -> mi.UInt32:
+    """A visible fraction in ``VIS_BITS`` bits: rounded up with probability equal to its
+    remainder where ``u`` (uniform in [0, 1), drawn anew at every update) is given, to the
+    nearest quantum otherwise. The running mean's step ``(V - v)/n`` is below half a quantum
+    near 0 and 1 (for ``n = 64`` within 3% of either end at 10 bits): rounded to nearest, a
+    lit entry's fraction stays where one occluded sample put it; rounded stochastically, it
+    returns in expectation."""
+    q = float((1 << VIS_BITS) - 1)
+    return mi.UInt32(dr.clip(dr.floor(dr.fma(mi.Float(v), q, 0.5 if u is None else u)), 0.0, q))
+
+
+def pack(r: Record, K: int, env: bool = False, back: bool = False, dither=None):
+    """The record's words. ``dither``: one random 32-bit word per lane (the update's), from
+    which every slot's visible fraction is rounded stochastically (:func:`quantized_fraction`);
+    None: rounded to nearest."""
     out = []
     for i in range(K):
-        v = mi.UInt32(dr.clip(dr.round(r.vis[i] * 255.0), 0.0, 255.0))
-        out.append((mi.UInt32(r.idx[i]) & 0xFFFF) | (v << 16) | (dr.minimum(mi.UInt32(r.cnt[i]), 15) << 24))
+        u = None if dither is None else mi.sample_tea_float32(mi.UInt32(dither), mi.UInt32(i), 4)
+        v = quantized_fraction(r.vis[i], u)
+        out.append((mi.UInt32(r.idx[i]) & 0xFFFF) | (v << 16)
+                   | (dr.minimum(mi.UInt32(r.cnt[i]), VIS_COUNT_MAX) << (16 + VIS_BITS)))
     wr = WordWriter(2)
     for ch in range(3):
         wr.put(encode_radiance(r.E[ch]), 18)

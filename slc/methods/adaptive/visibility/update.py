@@ -18,8 +18,8 @@ from slc.core.keys import mixed_rng, stream_key
 from slc.methods.adaptive.sampling import LightStats, SampleStats, lum, sampler_of
 from slc.methods.adaptive.visibility.lights import SMALL_SIN, footprint_ray, has_delta, light_irradiance
 from slc.methods.adaptive.visibility.record import (EMPTY, ENV_WINDOW, MOVED_COUNT, RES_MAX_COUNT,
-                                                    UNSETTLED_COUNT, VIS_WINDOW, Record, empty, listed, pack,
-                                                    slot, unpack, used_slots)
+                                                    UNSETTLED_COUNT, VIS_COUNT_MAX, VIS_WINDOW, Record, empty,
+                                                    listed, pack, slot, unpack, used_slots)
 from slc.scene.bsdf_table import facing, two_sided
 
 STREAM_VIS = 0x3C6EF372
@@ -249,7 +249,7 @@ def take(site: Site, ls: ListLoop, s: Sample, conv: mi.Bool, sky_cap: mi.Float) 
         if s.step is not None:
             a = dr.minimum(a * s.step, 1.0)
         vis[i] = dr.select(h, dr.fma(a, Vf - vis[i], vis[i]), vis[i])
-        cnt[i] = dr.select(h, dr.minimum(cnt[i] + 1, 15), cnt[i])
+        cnt[i] = dr.select(h, dr.minimum(cnt[i] + 1, VIS_COUNT_MAX), cnt[i])
     # least important listed light
     jmin, imin = mi.UInt32(0), mi.Float(imp[0])
     for i in range(1, K):
@@ -359,7 +359,7 @@ def update(scene: mi.Scene, e: VisLanes, p: VisParams, mix: mi.UInt32):
     adj, adjb = dr.zeros(mi.Color3f, N), dr.zeros(mi.Color3f, N)
     ls, = dr.while_loop(state=(ListLoop(mi.UInt32(0), r.idx, r.vis, r.cnt, wl, imp, S, Sb, adj, adjb, r.vu, r.nu,
                                         r.vs, r.ns, stats.init(N), mixed_rng(e.key, mix)),), cond=cond, body=body)
-    out = pack(residual_mean(site, e, r, ls, gone), p.K, site.hx, site.back)
+    out = pack(residual_mean(site, e, r, ls, gone), p.K, site.hx, site.back, dither=ls.rng.next_uint32())
     return out, gone, ls.stats
 
 
