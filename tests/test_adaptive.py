@@ -392,3 +392,20 @@ def test_visibility_entries_whose_lights_are_listed_trace_a_share_of_the_rays():
     assert traced_rays(rays, s, fresh, False, 0.5).numpy().tolist() == [16, 32, 32, 1, 4, 8]
     assert traced_rays(rays, s, fresh, True, 1.0).numpy().tolist() == [32, 32, 32, 1, 8, 8]
     dr.eval()
+
+
+def test_new_entries_start_in_the_representation_most_entries_hold():
+    """A point light and a square light that is not listed: the scene's prior is cones (mixed
+    emitters), but under the point light alone every entry chooses VISIBILITY, so new entries
+    start there (``start=majority``, the default); ``start=prior`` keeps the prior."""
+    scene = _point_then_area()
+    _set_lights(scene, 2.0, 0.0)
+    m = methods.create("adaptive:polygon_lights=off", scene, seed=3)
+    assert m.prior == ch.CONES
+    assert m._representation_of_new() == ch.CONES        # before the first update: the prior
+    render_frames(scene, m, [_still(scene)], 8, W, H)
+    assert m.stats()["share_visibility"] > 0.95
+    assert m._representation_of_new() == ch.VIS
+    p = methods.create("adaptive:polygon_lights=off,start=prior", scene, seed=3)
+    render_frames(scene, p, [_still(scene)], 8, W, H)
+    assert p._representation_of_new() == ch.CONES

@@ -194,16 +194,29 @@ class AdaptiveCache(PayloadMethod):
         return motion
 
     def _representation_of_new(self) -> int:
+        """``force``, else ``start``: a fixed representation, the scene's prior, or (``majority``)
+        the representation that held the most active entries at the last update (the prior in
+        the first frame and on a tie)."""
         forced = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.force)
-        start = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.start, self.prior)
-        return forced if forced is not None else start
+        if forced is not None:
+            return forced
+        if self.start != "majority":
+            return {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.start, self.prior)
+        if self._counts is None and self._count_hist is not None:
+            self._counts = dict(zip(REPS, tally(REPS, self._count_hist)))    # the last update's (done)
+        counts = self._counts or {}
+        best = max(counts.values(), default=0)
+        if best == 0 or counts.get(self.prior, 0) == best:
+            return self.prior
+        return max(counts, key=counts.get)
 
     def _hand_over(self, h: Header, is_new: mi.Bool, N: int):
         """Reused slots give back their old records; new ones get a record of the
         representation new entries start in (all lane counts read back at once; a pool with
         no lane is skipped once warm). Returns (header, fresh: a new record)."""
         fresh = is_new | (h.tag == NONE)
-        tag = dr.select(fresh, mi.UInt32(self._representation_of_new()), h.tag)
+        # opaque: the representation of new entries may change between frames (start=majority)
+        tag = dr.select(fresh, dr.opaque(mi.UInt32, self._representation_of_new()), h.tag)
         slot = dr.select(fresh, mi.UInt32(INVALID), h.slot)
         dr.eval(fresh, tag, slot)     # and after the hand-over: the same kernels in a frame without one
         rel = [is_new & (h.tag == r.tag) for r in self.reps]

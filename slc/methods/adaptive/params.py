@@ -57,8 +57,9 @@ PARAMS = (
           "(infinite, non-delta) emitter, always, or never", choices=("environment", "always", "never")),
     Param("min_share", 0.02, "a representation fewer than this share of the active entries ask for "
           "is not used (its entries take the scene's prior; 0: no limit)", lo=0.0, hi=1.0),
-    Param("start", "prior", "representation of new entries (prior: from the scene's emitters)",
-          choices=("prior", "visibility", "cones", "sh")),
+    Param("start", "majority", "representation of new entries (majority: the one that held the most "
+          "active entries at the last update, the scene's prior before; prior: from the scene's emitters)",
+          choices=("majority", "prior", "visibility", "cones", "sh")),
     Param("force", "auto", "representation of every entry (auto: the choice rule)",
           choices=("auto", "visibility", "cones", "sh")),
     Param("freeze", True, "the representations' updates and shadings and the cache's entry interactions traced "
