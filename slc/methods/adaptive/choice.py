@@ -37,6 +37,7 @@ from slc.lib.cones.packing import decode_radiance, encode_radiance
 
 NONE, VIS, CONES, SH = 0, 1, 2, 3
 NAMES = {NONE: "none", VIS: "visibility", CONES: "cones", SH: "sh"}
+TAG_OF = {NAMES[t]: t for t in (VIS, CONES, SH)}     # a setting's representation name -> its tag
 HEADER_WORDS = 3
 
 

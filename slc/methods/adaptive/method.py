@@ -12,7 +12,7 @@ from slc.methods import register
 from slc.methods.cache_method import PayloadMethod, RayPolicy
 from slc.lib.sh.ycocg import encoding as get_encoding
 from slc.methods.adaptive import choice as ch
-from slc.methods.adaptive.choice import CONES, NONE, SH, VIS, ChoiceParams, Header
+from slc.methods.adaptive.choice import CONES, NONE, SH, TAG_OF, VIS, ChoiceParams, Header
 from slc.methods.adaptive.cones_rep import ConesRep
 from slc.lib.lights.env_lights import EnvLights
 from slc.methods.adaptive.lanes import count_hist, means, opaque_header, subset, tally
@@ -197,18 +197,22 @@ class AdaptiveCache(PayloadMethod):
         """``force``, else ``start``: a fixed representation, the scene's prior, or (``majority``)
         the representation that held the most active entries at the last update (the prior in
         the first frame and on a tie)."""
-        forced = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.force)
+        forced = TAG_OF.get(self.force)
         if forced is not None:
             return forced
         if self.start != "majority":
-            return {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.start, self.prior)
-        if self._counts is None and self._count_hist is not None:
-            self._counts = dict(zip(REPS, tally(REPS, self._count_hist)))    # the last update's (done)
-        counts = self._counts or {}
+            return TAG_OF.get(self.start, self.prior)
+        counts = self._last_counts()
         best = max(counts.values(), default=0)
         if best == 0 or counts.get(self.prior, 0) == best:
             return self.prior
         return max(counts, key=counts.get)
+
+    def _last_counts(self) -> dict:
+        """{tag: active entries} of the last update ({} before the first), read back once."""
+        if self._counts is None and self._count_hist is not None:
+            self._counts = dict(zip(REPS, tally(REPS, self._count_hist)))
+        return self._counts or {}
 
     def _hand_over(self, h: Header, is_new: mi.Bool, N: int):
         """Reused slots give back their old records; new ones get a record of the
@@ -295,7 +299,7 @@ class AdaptiveCache(PayloadMethod):
         opaque_header(h)
         if allowed or not self._warm:
             if not forced and self.min_share > 0.0:
-                start = {"visibility": VIS, "cones": CONES, "sh": SH}.get(self.start, self.prior)
+                start = TAG_OF.get(self.start, self.prior)
                 switch, target = self._sparse(h, switch, target, start, allowed, N)
             dr.make_opaque(switch, target)
             h = self._switch(fr, h, switch, target)
@@ -394,9 +398,7 @@ class AdaptiveCache(PayloadMethod):
         ps = dr.gather(mi.UInt32, self.storage, slot * W + 1, ok)
         tf = dr.gather(mi.Frame3f, fr.si.sh_frame, index, ok)
         # a representation no active entry uses is not traced (no pixel can need it)
-        if self._counts is None and getattr(self, "_count_hist", None) is not None:
-            self._counts = dict(zip(REPS, tally(REPS, self._count_hist)))
-        used = (self._counts or {}) if self._warm else {}
+        used = self._last_counts() if self._warm else {}
         # each representation's shading is its own kernel, added into an evaluated sum (the same
         # kernels whichever representations are present)
         L = dr.zeros(mi.Color3f, dr.width(slot))

@@ -10,9 +10,9 @@ import mitsuba as mi
 from slc.lib.cones.packing import WordReader, WordWriter, decode_radiance, encode_radiance
 
 EMPTY = 0xFFFF              # an empty slot's light index
-VIS_WINDOW = 64             # samples in a listed light's visible fraction's running mean
 VIS_BITS = 10               # bits of a listed light's visible fraction (stochastically rounded)
-VIS_COUNT_MAX = 63          # a listed light's sample count cap (6 bits)
+VIS_COUNT_MAX = (1 << (16 - VIS_BITS)) - 1      # a listed light's sample count cap (the slot word's last 6 bits)
+VIS_WINDOW = VIS_COUNT_MAX + 1                  # samples in a listed light's visible fraction's running mean
 ENV_WINDOW = 64             # samples in the running means of the unlisted regions' and the sky's visible fractions
 RES_MAX_COUNT = 255         # the residual's count cap, in samples (as the cones' C, 8 bits)
 MOVED_COUNT = 1             # visibility count of a listed light that moved (its next sample weighs 1/2)
