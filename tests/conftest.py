@@ -24,19 +24,35 @@ def root():
     return ROOT
 
 
+# the scenes of the `scene` fixture, kept while one test file runs
+_LOADED: dict = {}
+
+
 @pytest.fixture(scope="session")
 def scene():
-    """``scene(name)``: a built-in scene (or scene file) loaded once per pytest session
-    and shared by every test that asks for it. Tests must not modify it (moving a light,
-    mi.traverse updates); load a private copy with ``slc.scenes.load`` for that."""
+    """``scene(name)``: a built-in scene (or scene file) loaded once per test file and shared
+    by its tests. Tests must not modify it (moving a light, mi.traverse updates); load a private
+    copy with ``slc.scenes.load`` for that."""
     from slc.scene import scenes
-    loaded = {}
 
     def load(name: str):
-        if name not in loaded:
-            loaded[name] = scenes.load(name)
-        return loaded[name]
+        if name not in _LOADED:
+            _LOADED[name] = scenes.load(name)
+        return _LOADED[name]
     return load
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _release_scenes_after_each_file():
+    """Every live Mitsuba object joins Dr.Jit's virtual call tables: a scene kept alive after
+    its file would be traced and dispatched over in every later kernel of the process (its
+    kernels larger and other than a fresh process's, slower to build and to run; the osc-gi
+    budget tests took 98 s after the built-in scenes were loaded, 11 s without). So the scenes
+    of a file are released when it ends (slc.run.experiment.release_scenes)."""
+    yield
+    _LOADED.clear()
+    from slc.run.experiment import release_scenes
+    release_scenes()
 
 
 @pytest.fixture(scope="session")

@@ -46,6 +46,13 @@ def check_mode(monkeypatch):
 _CACHE = {}
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _release_cases():
+    """The cases' scenes go with the file (tests/conftest.py: a live scene joins later kernels)."""
+    yield
+    _CACHE.clear()
+
+
 def case(kind):
     """(scene, G-buffer, reference N x 3, mask of tested pixels)."""
     if kind in _CACHE:
