@@ -56,6 +56,18 @@ def test_point_light_chooses_visibility_and_matches_ground_truth():
     assert err < 0.01, err                                   # measured 4e-6
 
 
+@pytest.mark.parametrize("early,share", [(4, 1.0), (0, 0.0)])
+def test_early_frames_switch_in_every_frame(early, share):
+    """In the cache's first ``switch_early`` frames every frame is a switch frame: entries started
+    as cones under a point light reach VISIBILITY in frame 2 (their third update asking for it),
+    not in the next ``switch_period``-th frame (4); without early frames none has switched after
+    frames 0-3 (frame 0 is a switch frame, but its entries have one update of statistics)."""
+    scene = _plane("adaptive_early", lambda b: b.add_point_light([0.2, 1.0, 0.1], [3.0] * 3))
+    m = methods.create(f"adaptive:start=cones,switch_early={early}", scene, seed=1)
+    render_frames(scene, m, [_still(scene)], 4, W, H)
+    assert m.stats()["share_visibility"] == share, m.stats()
+
+
 def test_large_area_light_chooses_cones():
     """Without polygon lights, the choice rule's statistics move a large square light's entries
     from SH to cones."""

@@ -288,11 +288,11 @@ class AdaptiveCache(PayloadMethod):
     # ------------------------------------------------------------------ the choice
     def _choose(self, ctx, fr, h: Header, stats) -> Header:
         """The statistics' running means, the choice rule, and the switches it asks for (in
-        every ``switch_period``-th frame)."""
+        every frame of the cache's first ``switch_early``, then in every ``switch_period``-th)."""
         N = fr.n_active
         forced = self.force != "auto"
         h = ch.update_stats(h, *stats, self.choice)
-        allowed = ctx.frame % self.switch_period == 0
+        allowed = self._frames_seen < self.switch_early or ctx.frame % self.switch_period == 0
         h, switch, target = ch.decide(h, self.choice, allowed=allowed)
         if forced:
             switch = dr.zeros(mi.Bool, N)

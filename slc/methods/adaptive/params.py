@@ -51,6 +51,8 @@ PARAMS = (
     Param("switch_after", 3, "updates in a row asking for another representation before a switch", lo=1, hi=63),
     Param("switch_period", 4, "switches are carried out in every k-th frame only (their conversion "
           "kernels are traced in those frames)", lo=1, hi=64),
+    Param("switch_early", 4, "frames from the cache's start in which switches are carried out in every "
+          "frame (young records hold little to lose; new entries start in the majority sooner)", lo=0, hi=64),
     Param("theta_delta", 0.5, "delta-light energy share above which VISIBILITY is chosen", lo=0.0, hi=1.0),
     Param("theta_r", 0.75, "mean resultant length below which SH is chosen", lo=0.0, hi=1.0),
     Param("sh_when", "never", "SH is a candidate of the choice only in scenes with an environment "
