@@ -130,9 +130,9 @@ def decide(h: Header, p: ChoiceParams, allowed: bool = True):
     t = target_of(h, p)
     differs = (t != h.tag) & (h.tag != NONE)
     streak = dr.select(differs, dr.minimum(h.streak + 1, 63), 0)
-    switch = differs & (streak >= p.switch_after) & (h.count >= p.min_count)
-    if not allowed:
-        switch = dr.zeros(mi.Bool, dr.width(switch))
+    # ``allowed`` opaque: the same kernel in switch frames and between them (the first frame
+    # between switch frames may come after a run's warm-up)
+    switch = differs & (streak >= p.switch_after) & (h.count >= p.min_count) & dr.opaque(mi.Bool, bool(allowed))
     h2 = Header(tag=h.tag, streak=dr.select(switch, 0, streak), count=h.count, e=h.e, slot=h.slot,
                 s_delta=h.s_delta, m=h.m)
     return h2, switch, t

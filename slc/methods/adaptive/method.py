@@ -50,12 +50,15 @@ class AdaptiveCache(PayloadMethod):
     length :math:`R` of the other light's directions. Choice: VISIBILITY
     when :math:`s_\delta > 0.5`, else SH when :math:`R < 0.75`, else CONES,
     with hysteresis bands and ``switch_after`` updates in a row before a
-    switch; a switch converts the old record into the new one through lobes
-    (direction, half-angle, integrated radiance), keeping the energy.
-    New entries start in the scene's prior (VISIBILITY when every emitter
-    is a delta light or the environment's regions hold most of its power, SH
-    when every emitter is at infinity, else CONES). A representation fewer
-    than ``min_share`` of the entries ask for is not used.
+    switch, carried out in every ``switch_period``-th frame (in every frame of
+    the cache's first ``switch_early``); a switch converts the old record into
+    the new one through lobes (direction, half-angle, integrated radiance),
+    keeping the energy. New entries start in the representation that held the
+    most active entries at the last update (``start=majority``), in the
+    scene's prior before (VISIBILITY when every emitter is a delta light or
+    the environment's regions hold most of its power, SH when every emitter
+    is at infinity, else CONES). A representation fewer than ``min_share`` of
+    the entries ask for is not used.
     Ray policy as ``slc``. See docs/adaptive.md.
     """
 
