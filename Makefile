@@ -36,7 +36,8 @@ run: install
 # processes on two cores (pytest-xdist; a test file stays on one worker, so its module fixtures
 # are built once): most of the suite's time is Dr.Jit compiling kernels, one thread per process,
 # and a third worker fills what tracing and waiting leave idle (whole suite on an empty kernel
-# cache: 9 min 19 s against 10 min 42 s with two). TEST_WORKERS=0 runs everything in this process.
+# cache: 10 min 20 s with three, 10 min 12 s with two, in two runs one after the other).
+# TEST_WORKERS=0 runs everything in this process.
 # PYTEST = pytest with bytecode written even where PYTHONDONTWRITEBYTECODE is set: the suite starts
 # about 80 Python processes (workers, fresh interpreters, command-line runs), each importing slc
 # (0.3-0.4 s of CPU less from bytecode) and its test modules (assertions rewritten once).
