@@ -155,7 +155,7 @@ def pytest_report_header(config):
     return None if seed is None else f"test order shuffled with seed {seed} (--shuffle)"
 
 
-# ----------------------------------------------------------------------------- one Ray cluster per work unit
+# ----------------------------------------------------------------------------- a Ray cluster while tests use it
 
 _RAY: dict = {}       # the running cluster, if any
 
@@ -163,11 +163,10 @@ _RAY: dict = {}       # the running cluster, if any
 @pytest.fixture
 def ray_cluster():
     """A local Ray cluster of two nodes of one CPU each (``ray.cluster_utils.Cluster``), started
-    when a test first asks for it and shared by the tests after it; tests connect to it by
-    ``cluster.address`` and disconnect again (``ray.shutdown()``), leaving it as they found it.
-    It is shut down after the last test of its work unit (:func:`pytest_runtest_teardown`): an
-    idle cluster of two nodes takes about 2.5 s of CPU a minute, which the rest of the suite
-    would lose."""
+    when a test asks for it and shared with the tests right after it that ask for it too; tests
+    connect to it by ``cluster.address`` and disconnect again (``ray.shutdown()``). It is shut
+    down after the last of them (:func:`pytest_runtest_teardown`): an idle cluster of two nodes
+    takes about 2.5 s of CPU a minute, which the rest of the suite would lose."""
     ray = pytest.importorskip("ray")
     if "cluster" not in _RAY:
         from ray.cluster_utils import Cluster
@@ -189,10 +188,10 @@ def _stop_ray_cluster() -> None:
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_teardown(item, nextitem):
-    """After a test's fixtures are torn down: the Ray cluster stops when the next test of this
-    process is not in its work unit (:data:`SHARED_UNITS`) or there is none."""
+    """After a test's fixtures are torn down: the Ray cluster stops unless the next test of this
+    process asks for it too."""
     yield
-    if "cluster" in _RAY and (nextitem is None or _unit_of(nextitem.nodeid) != "ray"):
+    if "cluster" in _RAY and (nextitem is None or "ray_cluster" not in nextitem.fixturenames):
         _stop_ray_cluster()
 
 
@@ -202,8 +201,8 @@ def pytest_sessionfinish(session):
 
 # ----------------------------------------------------------------------------- xdist: work units and their order
 
-# Files whose tests share a fixture that is expensive to build (the Ray cluster): one work unit,
-# so that one worker builds it once.
+# Files that start Ray clusters (tests/test_jobs.py, the fresh processes of tests/test_distributed.py):
+# one work unit, which one worker runs test after test, so that at most one of their Ray instances is up.
 SHARED_UNITS = {"tests/test_jobs.py": "ray", "tests/test_distributed.py": "ray"}
 
 # Seconds of the longest files in make test (2 cores, empty kernel cache, --durations), so that
