@@ -1,3 +1,4 @@
+import gc
 import os
 import sys
 from pathlib import Path
@@ -81,7 +82,6 @@ def _release_private_scenes_after_each_test():
     yield
     if _MADE[0]:
         _MADE[0] = False
-        import gc
         gc.collect()
 
 
