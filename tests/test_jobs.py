@@ -271,6 +271,27 @@ def test_serial_runs_do_not_import_ray(tmp_path):
     assert r.stdout.split() == ["False", "False"]
 
 
+def test_one_thread_runner_loads_exr_scenes_and_writes_exr(tmp_path):
+    """A job runner of one Dr.Jit thread (a cluster's default on 2-core nodes) loads a scene whose
+    environment map is an EXR file and writes and reads an EXR: Mitsuba's EXR reader and writer
+    wait forever on a one-thread pool, so slc runs them with two (backend.exr_pool)."""
+    code = ("import drjit as dr, numpy as np\n"
+            "from slc.core import backend, io\n"
+            "backend.init()\n"
+            "from slc.run.jobs import Runner\n"
+            "r = Runner(threads=1)\n"
+            "s = r.scene('preview_export')\n"
+            f"io.write_exr({str(tmp_path / 'a.exr')!r}, np.full((4, 6, 3), 0.5, np.float32))\n"
+            f"a = io.read_exr({str(tmp_path / 'a.exr')!r})\n"
+            "print(r.threads, dr.thread_count(), s.name, a.shape, float(a.mean()))\n")
+    try:
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    except subprocess.TimeoutExpired:
+        pytest.fail("a one-thread runner did not load preview_export and write an EXR within 120 s")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split() == ["1", "1", "preview_export", "(4,", "6,", "3)", "0.5"]
+
+
 def test_check_mode_error_stops_the_run_without_retries(tmp_path, monkeypatch):
     from slc.scene import scenes
     from slc.core.check import CheckError

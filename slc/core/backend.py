@@ -23,6 +23,7 @@ import platform
 import re
 import subprocess
 import sys
+from contextlib import contextmanager
 from importlib import metadata
 from pathlib import Path
 
@@ -152,6 +153,27 @@ def ensure() -> str:
 
 def variant() -> str:
     return init()
+
+
+@contextmanager
+def exr_pool():
+    """Dr.Jit's thread pool with at least two threads while the block runs, its thread count
+    before the block after it.
+
+    Mitsuba's OpenEXR reader and writer wait for tasks that never run when the pool has fewer
+    than two threads (``dr.set_thread_count(1)``, which a job runner or render node of one thread
+    sets: loading a scene with an EXR environment map never returned). Scene loads, which read
+    EXR textures and environment maps, and the EXR files of :mod:`slc.core.io` run inside it."""
+    dr, _ = _jit()
+    n = int(dr.thread_count())
+    if n >= 2:
+        yield
+        return
+    dr.set_thread_count(2)
+    try:
+        yield
+    finally:
+        dr.set_thread_count(n)
 
 
 def env_info() -> dict:

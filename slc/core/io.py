@@ -23,6 +23,8 @@ import mitsuba as mi
 import numpy as np
 import OpenEXR
 
+from slc.core.backend import exr_pool
+
 
 def tonemap(hdr: np.ndarray, exposure: float = 1.0) -> np.ndarray:
     """HDR linear RGB -> display sRGB in [0, 1] (float32)."""
@@ -53,11 +55,13 @@ def _atomic(path: Path, write):
 def write_exr(path, img: np.ndarray) -> None:
     # raw HDR values: NaN/Inf/negative are written as they are (clamping is for display only)
     a = np.ascontiguousarray(img, dtype=np.float32)
-    _atomic(path, lambda p: mi.Bitmap(a, pixel_format=mi.Bitmap.PixelFormat.RGB).write(p))
+    with exr_pool():
+        _atomic(path, lambda p: mi.Bitmap(a, pixel_format=mi.Bitmap.PixelFormat.RGB).write(p))
 
 
 def read_exr(path) -> np.ndarray:
-    return np.array(mi.Bitmap(str(path)), dtype=np.float32)
+    with exr_pool():
+        return np.array(mi.Bitmap(str(path)), dtype=np.float32)
 
 
 def layer_name(name: str) -> str:

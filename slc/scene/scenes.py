@@ -239,6 +239,11 @@ def load(name_or_path: str, **options) -> Scene:
     of two variants never mix).
 
     Raises :class:`SceneError` with a one-line message on any problem."""
+    with backend.exr_pool():     # EXR textures and environment maps (and files a builder writes)
+        return _load(name_or_path, **options)
+
+
+def _load(name_or_path: str, **options) -> Scene:
     if ":" in str(name_or_path) and Path(str(name_or_path)).suffix not in (".xml", ".py"):
         name, opts = parse_spec(name_or_path, "scene option", SceneError)  # values stay strings
         if name not in builtin_names():
