@@ -250,7 +250,7 @@ def _preset(opts) -> dict:
             raise experiment.ExperimentError(f"bad resolution '{opts.res}' (expected WxH, e.g. 320x180)") from None
         if preset["width"] < 8 or preset["height"] < 8:
             raise experiment.ExperimentError(f"resolution '{opts.res}' is too small (at least 8x8)")
-    if opts.frames:
+    if opts.frames is not None:
         if opts.frames < 1:
             raise experiment.ExperimentError("--frames must be at least 1")
         preset["frames"] = opts.frames

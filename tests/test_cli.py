@@ -143,6 +143,21 @@ def test_unknown_scene_method_experiment(tmp_path):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("args,words", [
+    (["single-viewer", "--res", "0x10"], ["resolution", "0x10"]),
+    (["single-viewer", "--res", "32x-2"], ["resolution", "32x-2"]),
+    (["single-viewer", "--frames", "0"], ["--frames", "at least 1"]),
+    (["overlap", "--viewers", "0", "4"], ["--viewers", "at least 1"]),
+    (["crc", "--frames", "0"], ["--frames", "at least 1"])])
+def test_bad_run_settings(tmp_path, args, words):
+    """A size, frame count or viewer count below 1 stops the run with one line before anything is
+    written (unchecked, a zero size fails inside every job's kernels and zero viewers make rows
+    of nothing)."""
+    out = tmp_path / "o"
+    _one_line_error(run(["run", args[0], "--quick", *args[1:], "--out", str(out)]), *words)
+    assert not out.exists()
+
+
 def test_good_xml_scene_renders(xmls, tmp_path):
     """A plain Mitsuba XML scene renders: a diffuse (0.5) 2 x 2 m plane 2 m under a sphere
     light (radius 0.2 m, radiance 20). The plane's brightest pixel is within 3% of the

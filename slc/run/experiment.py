@@ -164,9 +164,9 @@ def add_common_arguments(p, default_out: str = "out") -> None:
     p.add_argument("--scene", action="append", help="scene name or .xml path (repeatable)")
     p.add_argument("--methods", nargs="+", help="methods to compare (default: the experiment's)")
     p.add_argument("--out", default=default_out, help="output folder (results go to OUT/EXPERIMENT)")
-    p.add_argument("--res", help="WxH")
-    p.add_argument("--frames", type=int, help="frames per sequence")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--res", help="image size WxH in pixels (default: the experiment's preset)")
+    p.add_argument("--frames", type=int, help="frames per sequence, at least 1 (default: the experiment's preset)")
+    p.add_argument("--seed", type=int, default=0, help="seed of every method's random numbers (default 0)")
     g = p.add_argument_group("jobs (docs/cluster.md)")
     g.add_argument("--workers", type=int, help="run the jobs on N Ray workers (a local Ray instance unless --address)")
     g.add_argument("--address", help="run the jobs on a running Ray cluster: 'auto' or HOST:PORT")
@@ -186,7 +186,12 @@ def apply_common(opts, preset: dict) -> dict:
             preset["width"], preset["height"] = int(w), int(h)
         except ValueError:
             raise ExperimentError(f"bad resolution '{opts.res}' (expected WxH, e.g. 320x180)") from None
-    if getattr(opts, "frames", None):
+        if preset["width"] < 1 or preset["height"] < 1:
+            raise ExperimentError(f"bad resolution '{opts.res}' (width and height at least 1)")
+    viewers = getattr(opts, "viewers", None)
+    if viewers is not None and min(viewers if isinstance(viewers, list) else [viewers]) < 1:
+        raise ExperimentError("--viewers must be at least 1")
+    if getattr(opts, "frames", None) is not None:
         f = opts.frames
         if f < 1:
             raise ExperimentError("--frames must be at least 1")
@@ -313,7 +318,7 @@ def setup(opts, quick: dict, full: dict, methods: list[str]):
 def add_viewer_arguments(p) -> None:
     """Common options plus --viewers (viewer counts)."""
     add_common_arguments(p)
-    p.add_argument("--viewers", type=int, nargs="+", help="viewer counts")
+    p.add_argument("--viewers", type=int, nargs="+", help="viewer counts, each at least 1 (default: the experiment's preset)")
 
 
 def viewer_count_experiment(opts, name: str, quick: dict, full: dict, methods: list[str], rig: str,
