@@ -79,6 +79,10 @@ def _ring_slab(y0, y1, inner_x, inner_z):
     ]
 
 
+# the options a scene name may carry (``atrium:exposure=...``); scenes.load refuses others
+OPTIONS = ('exposure',)
+
+
 def build(**options):
     b = SceneBuilder("atrium")
     stone = diffuse([0.62, 0.56, 0.47])

@@ -60,6 +60,10 @@ def _concat(meshes):
     return np.concatenate(Vs), np.concatenate(Fs)
 
 
+# the options a scene name may carry (``garden:exposure=...``); scenes.load refuses others
+OPTIONS = ('exposure',)
+
+
 def build(**options):
     b = SceneBuilder("garden")
     rng = np.random.default_rng(1234)

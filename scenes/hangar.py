@@ -38,6 +38,10 @@ def _orbit(center, rx, rz, y, omega, phase, bob):
     return T
 
 
+# the options a scene name may carry (``hangar:lights=...``); scenes.load refuses others
+OPTIONS = ('lights', 'exposure')
+
+
 def build(**options):
     b = SceneBuilder("hangar")
     rng = np.random.default_rng(99)

@@ -21,6 +21,10 @@ HX, HZ, HH = 16.0, 5.0, 6.0
 N_LIGHTS = 32
 
 
+# the options a scene name may carry (``lamps:lights=...``); scenes.load refuses others
+OPTIONS = ('lights', 'exposure')
+
+
 def build(**options):
     n = int(options.get("lights", N_LIGHTS))
     if not 1 <= n <= 256:

@@ -48,6 +48,10 @@ def spots_map(width=512, height=256, n=48, seed=5) -> np.ndarray:
     return img.astype(np.float32)
 
 
+# the options a scene name may carry (``skylit:env=...``); scenes.load refuses others
+OPTIONS = ('env', 'exposure')
+
+
 def build(**options):
     env = str(options.get("env", "venice"))
     b = SceneBuilder("skylit")

@@ -95,6 +95,10 @@ def _camera_paths():
     ]
 
 
+# the options a scene name may carry (``sponza:exposure=...``); scenes.load refuses others
+OPTIONS = ('exposure',)
+
+
 def build(**options):
     if not SPONZA_XML.exists():
         raise SceneError("sponza needs ../shared/scenes/sponza/sponza.xml, which is not present")

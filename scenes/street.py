@@ -89,6 +89,10 @@ def _wheel():
     return tyre, hub
 
 
+# the options a scene name may carry (``street:exposure=...``); scenes.load refuses others
+OPTIONS = ('exposure',)
+
+
 def build(**options):
     b = SceneBuilder("street")
     rng = np.random.default_rng(7)

@@ -31,6 +31,10 @@ def _room(b, x0, x1, white, wall, shared_floor):
     b.add_quad([x1, HEIGHT / 2, 0], [0, 0, HALF_Z], [0, HEIGHT / 2, 0], bsdf=white, name="right")
 
 
+# the options a scene name may carry (``two_rooms:shared_floor=...``); scenes.load refuses others
+OPTIONS = ('shared_floor',)
+
+
 def build(**options):
     shared = str(options.get("shared_floor", "0")).lower() in ("1", "true", "yes")
     b = SceneBuilder("two_rooms" + ("_shared_floor" if shared else ""))

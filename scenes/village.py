@@ -90,6 +90,10 @@ HUTS = [  # x, z, yaw, length, width, wall height, ridge
 TORCHES = [(-3.0, -2.0), (3.0, 1.0), (-4.0, 4.0), (4.0, -4.0), (1.0, 7.0), (-7.0, 0.0), (7.0, -1.0)]
 
 
+# the options a scene name may carry (``village:sun=...``); scenes.load refuses others
+OPTIONS = ('sun', 'exposure')
+
+
 def build(**options):
     sun = str(options.get("sun", "0")).lower()
     if sun not in ("0", "1", "false", "true", "no", "yes"):

@@ -304,3 +304,20 @@ def test_signed_bump_map_heights_load(tmp_path):
     xml = tmp_path / "bump.xml"
     xml.write_text(_VALUE_XML.format(bsdf=bump, radiance="5", emitter=""))
     assert scenes.load(str(xml)).mi_scene is not None
+
+
+def test_scene_options_are_declared_and_unknown_ones_refused():
+    """A built-in scene's name carries only the options its build reads (``OPTIONS`` or named
+    parameters): a misspelt option is a one-line error, not a scene rendered with the default."""
+    import re
+    for name in scenes.builtin_names():
+        definition = scenes._import_definition(scenes.SCENES_DIR / f"{name}.py")
+        src = (scenes.SCENES_DIR / f"{name}.py").read_text()
+        read = set(re.findall(r"options(?:\.get\(|\[)\"(\w+)\"", src))
+        assert read <= set(scenes.scene_options(definition)), (name, read)
+    with pytest.raises(checks.SceneError, match=r"unknown option 'light' for scene 'hangar' \(its options: lights, "):
+        scenes.load("hangar:light=3")
+    with pytest.raises(checks.SceneError, match=r"unknown option 'exposure' for scene 'box_export' \(its options: none"):
+        scenes.load("box_export:exposure=2")
+    with pytest.raises(checks.SceneError, match=r"unknown option 'foo' for scene 'cornell' \(its options: variant\)"):
+        scenes.load("cornell:foo=1")

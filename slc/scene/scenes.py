@@ -18,6 +18,7 @@ from memory), never transforms baked into a kernel.
 from __future__ import annotations
 
 import importlib.util
+import inspect
 import math
 import shutil
 import tempfile
@@ -232,6 +233,14 @@ def _import_definition(path: Path):
     return mod
 
 
+def scene_options(definition) -> tuple:
+    """The options a built-in scene's name may carry: its ``build``'s named parameters and its
+    module's ``OPTIONS`` (the options its ``build`` reads from ``**options``)."""
+    params = inspect.signature(definition.build).parameters.values()
+    named = tuple(p.name for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY))
+    return named + tuple(o for o in getattr(definition, "OPTIONS", ()) if o not in named)
+
+
 def load(name_or_path: str, **options) -> Scene:
     """Load a built-in scene by name, a ``.py`` definition or a ``.xml`` file.
     Built-in scenes take options in the name, like methods take settings:
@@ -248,8 +257,14 @@ def _load(name_or_path: str, **options) -> Scene:
         name, opts = parse_spec(name_or_path, "scene option", SceneError)  # values stay strings
         if name not in builtin_names():
             raise SceneError(f"unknown scene '{name}' (built-in scenes: {', '.join(builtin_names())})")
+        definition = _import_definition(SCENES_DIR / f"{name}.py")
+        known = scene_options(definition)
+        unknown = [k for k in opts if k not in known]
+        if unknown:
+            raise SceneError(f"unknown option '{unknown[0]}' for scene '{name}' "
+                             f"(its options: {', '.join(known) if known else 'none'})")
         try:
-            scene = _import_definition(SCENES_DIR / f"{name}.py").build(**{**opts, **options})
+            scene = definition.build(**{**opts, **options})
         except (TypeError, ValueError) as e:
             raise SceneError(f"bad options for scene '{name_or_path}': {e}") from None
         scene.name = str(name_or_path)
