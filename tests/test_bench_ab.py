@@ -34,3 +34,19 @@ def test_bench_ab_bad_input(args, words, capsys):
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("slc: error:") and words in err[0]
+
+
+@pytest.mark.parametrize("args, words", [
+    (["update", "--method", "rt4"], "no cone update"),
+    (["update", "--repeats", "0"], "--repeats"),
+    (["update", "--frames", "5", "--warmup", "5"], "--warmup"),
+    (["update", "--warmup", "-1"], "--warmup"),
+    (["rays", "--repeats", "0"], "--repeats"),
+    (["rays", "--n", "0"], "--n")])
+def test_bench_bad_input(args, words, capsys):
+    """Bad settings of `slc bench update` and `slc bench rays` stop with one line before any frame."""
+    with pytest.raises(SystemExit) as e:
+        cli.main(["bench", *args, "--scene", "cornell", "--res", "16x9"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("slc: error:") and words in err[0]

@@ -24,6 +24,7 @@ import mitsuba as mi
 import numpy as np
 
 from slc import methods
+from slc.core.errors import MethodError
 from slc.core.keys import STREAM_CONE_UPDATE
 from slc.lib.cones.packing import gather_words, unpack
 from slc.lib.cones.cycle import shrink_test_plan
@@ -236,7 +237,7 @@ def bench_update(scene_name: str = "atrium", width: int = 320, height: int = 180
     s = scenes.load(scene_name)
     m = methods.create(method, s, seed=0)
     if not hasattr(m, "cone_params"):
-        raise ValueError(f"bench update: method {method!r} has no cone update (use slc or slc:...)")
+        raise MethodError(f"bench update: method {method!r} has no cone update (use slc or slc:...)")
     cap: dict = {}
     own_update = m.update
     last = frames - 1

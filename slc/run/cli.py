@@ -132,24 +132,29 @@ def bench_grp():
 @click.option("--scene", "scene_name", default="atrium", show_default=True)
 @click.option("--res", default="320x180", show_default=True)
 @click.option("--n", default=16, show_default=True, type=int, help="samples (rays) per pixel")
-@click.option("--repeats", default=5, show_default=True, type=int)
+@click.option("--repeats", default=5, show_default=True, type=int, help="timed rounds, medians reported")
 def bench_rays(scene_name, res, n, repeats):
     """RT-N throughput next to Mitsuba's raw scene.ray_test on the same rays, with Mitsuba's light sampler and the emitter table."""
-    _commands().bench_rays(scene_name, _parse_res(res), n, repeats)
+    size = _parse_res(res)
+    if n < 1 or repeats < 1:
+        _fail("--n and --repeats must be at least 1")
+    _commands().bench_rays(scene_name, size, n, repeats)
 
 
 @bench_grp.command("update")
 @click.option("--scene", "scene_name", default="atrium", show_default=True)
 @click.option("--res", default="320x180", show_default=True)
-@click.option("--frames", default=24, show_default=True, type=int)
-@click.option("--warmup", default=10, show_default=True, type=int)
-@click.option("--repeats", default=5, show_default=True, type=int)
+@click.option("--frames", default=24, show_default=True, type=int, help="frames rendered")
+@click.option("--warmup", default=10, show_default=True, type=int, help="first frames not timed")
+@click.option("--repeats", default=5, show_default=True, type=int, help="timed rounds of the rays alone, medians reported")
 @click.option("--method", default="slc", show_default=True, help="slc, with settings (slc:max_cones=2)")
 def bench_update(scene_name, res, frames, warmup, repeats, method):
     """slc's frame time next to the rays its update traces, traced alone."""
     size = _parse_res(res)
-    if frames <= warmup:
-        raise click.BadParameter(f"--frames ({frames}) must exceed --warmup ({warmup})")
+    if frames <= warmup or warmup < 0:
+        _fail(f"--warmup ({warmup}) must be at least 0 and below --frames ({frames})")
+    if repeats < 1:
+        _fail("--repeats must be at least 1")
     _commands().bench_update(scene_name, size, frames, warmup, repeats, method)
 
 
