@@ -158,6 +158,17 @@ def test_bad_run_settings(tmp_path, args, words):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("cmd", [["run", "single-viewer", "--quick", "--methods", "rt4"],
+                                 ["render", "--scene", "cornell", "--method", "rt4"]])
+@pytest.mark.parametrize("under", ["", "sub"])
+def test_out_on_a_file_is_bad_input(tmp_path, cmd, under):
+    """``--out`` at a file, or below one, stops with one line before anything renders."""
+    f = tmp_path / "afile"
+    f.write_text("kept")
+    _one_line_error(run([*cmd, "--res", "16x9", "--out", str(f / under if under else f)]), "is a file, not a folder")
+    assert f.read_text() == "kept" and sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+
+
 def test_good_xml_scene_renders(xmls, tmp_path):
     """A plain Mitsuba XML scene renders: a diffuse (0.5) 2 x 2 m plane 2 m under a sphere
     light (radius 0.2 m, radiance 20). The plane's brightest pixel is within 3% of the

@@ -32,11 +32,23 @@ def list_methods() -> None:
         click.echo(f"{name:10s} {desc}")
 
 
+def check_out(out) -> None:
+    """``--out``: a folder, or a path where one can be made; a file there or on the way to it is
+    bad input, reported before anything runs."""
+    p = Path(out)
+    for q in (p, *p.parents):
+        if q.exists():
+            if not q.is_dir():
+                raise ExperimentError(f"--out {out}: {q} is a file, not a folder")
+            return
+
+
 def render(scene_name, method, viewers, rig, overlap, size, frames, warmup, seed, gt, out, nodes, threshold,
            address) -> None:
     """``slc render``: a sequence of one method, its images and timings written to ``out``."""
     if viewers < 1 or frames < 1:
         raise ExperimentError("--viewers and --frames must be at least 1")
+    check_out(out)
     s = scenes.load(scene_name)
     # on nodes the spec is checked here once, without making the method: the nodes make it from its data
     m = methods.parse(method) if nodes else methods.create(method, s, seed=seed)
@@ -107,6 +119,8 @@ def run_experiment(name: str, argv: list, prog: str) -> None:
     p.add_argument("--check", action="store_true",
                    help="check mode (= SLC_CHECK=1): stop at the first NaN/Inf or negative value")
     opts = p.parse_args(argv)
+    if getattr(opts, "out", None):
+        check_out(opts.out)
     if opts.check:
         check.enable()
     with session_for(getattr(mod, "NAME", prog.split()[-1]), opts):
