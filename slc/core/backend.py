@@ -162,8 +162,9 @@ def exr_pool():
 
     Mitsuba's OpenEXR reader and writer wait for tasks that never run when the pool has fewer
     than two threads (``dr.set_thread_count(1)``, which a job runner or render node of one thread
-    sets: loading a scene with an EXR environment map never returned). Scene loads, which read
-    EXR textures and environment maps, and the EXR files of :mod:`slc.core.io` run inside it."""
+    sets; there, loading a scene with an EXR environment map would never return). Scene loads,
+    which read EXR textures and environment maps, and the EXR files of :mod:`slc.core.io` run
+    inside it."""
     dr, _ = _jit()
     n = int(dr.thread_count())
     if n >= 2:
