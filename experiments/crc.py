@@ -257,7 +257,7 @@ def _preset(opts) -> dict:
         preset["eval_frames"] = [f for f in preset["eval_frames"] if f < opts.frames] or [opts.frames - 1]
         preset["warmup"] = min(preset["warmup"], max(opts.frames - 1, 0))
         preset["profile_frames"] = max(min(preset["profile_frames"], opts.frames), 2)
-    if opts.grid:
+    if opts.grid is not None:
         if opts.grid < 2:
             raise experiment.ExperimentError("--grid must be at least 2")
         preset["resolution"] = opts.grid

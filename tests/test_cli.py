@@ -148,11 +148,12 @@ def test_unknown_scene_method_experiment(tmp_path):
     (["single-viewer", "--res", "32x-2"], ["resolution", "32x-2"]),
     (["single-viewer", "--frames", "0"], ["--frames", "at least 1"]),
     (["overlap", "--viewers", "0", "4"], ["--viewers", "at least 1"]),
-    (["crc", "--frames", "0"], ["--frames", "at least 1"])])
+    (["crc", "--frames", "0"], ["--frames", "at least 1"]),
+    (["crc", "--grid", "0"], ["--grid", "at least 2"])])
 def test_bad_run_settings(tmp_path, args, words):
-    """A size, frame count or viewer count below 1 stops the run with one line before anything is
-    written (unchecked, a zero size fails inside every job's kernels and zero viewers make rows
-    of nothing)."""
+    """A size, frame count, viewer count or CRC grid below its least value stops the run with one
+    line before anything is written (unchecked, a zero size fails inside every job's kernels and
+    zero viewers make rows of nothing)."""
     out = tmp_path / "o"
     _one_line_error(run(["run", args[0], "--quick", *args[1:], "--out", str(out)]), *words)
     assert not out.exists()
