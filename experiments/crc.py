@@ -241,21 +241,10 @@ def _sweep(scene, viewers, resolutions, W: int, H: int, seed: int) -> list[dict]
 # ---------------------------------------------------------------------------
 
 def _preset(opts) -> dict:
-    preset = dict(QUICK if opts.quick else FULL)
-    if opts.res:
-        w, _, h = opts.res.lower().partition("x")
-        try:
-            preset["width"], preset["height"] = int(w), int(h)
-        except ValueError:
-            raise experiment.ExperimentError(f"bad resolution '{opts.res}' (expected WxH, e.g. 320x180)") from None
-        if preset["width"] < 8 or preset["height"] < 8:
-            raise experiment.ExperimentError(f"resolution '{opts.res}' is too small (at least 8x8)")
+    preset = experiment.apply_common(opts, QUICK if opts.quick else FULL)     # --res, --frames
+    if preset["width"] < 8 or preset["height"] < 8:
+        raise experiment.ExperimentError(f"resolution '{opts.res}' is too small (at least 8x8)")
     if opts.frames is not None:
-        if opts.frames < 1:
-            raise experiment.ExperimentError("--frames must be at least 1")
-        preset["frames"] = opts.frames
-        preset["eval_frames"] = [f for f in preset["eval_frames"] if f < opts.frames] or [opts.frames - 1]
-        preset["warmup"] = min(preset["warmup"], max(opts.frames - 1, 0))
         preset["profile_frames"] = max(min(preset["profile_frames"], opts.frames), 2)
     if opts.grid is not None:
         if opts.grid < 2:

@@ -215,12 +215,6 @@ UNIT_SECONDS = {
 }
 
 
-def _unit_of(nodeid: str) -> str:
-    """The work unit of a test: its file, or the shared unit of :data:`SHARED_UNITS`."""
-    f = nodeid.split("::", 1)[0]
-    return SHARED_UNITS.get(f, f)
-
-
 def _unit_weight(nodeids) -> float:
     """Expected seconds of a work unit: the measured ones of the files in UNIT_SECONDS, else one
     second a test."""
@@ -240,7 +234,8 @@ def pytest_xdist_make_scheduler(config, log):
 
     class Scheduling(LoadFileScheduling):
         def _split_scope(self, nodeid):
-            return _unit_of(nodeid)
+            f = nodeid.split("::", 1)[0]       # a test's work unit: its file, or its shared unit
+            return SHARED_UNITS.get(f, f)
 
         def _assign_work_unit(self, node):
             longest = max(self.workqueue, key=lambda scope: _unit_weight(self.workqueue[scope]))
