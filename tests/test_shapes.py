@@ -217,17 +217,21 @@ def test_analytic_scene_renders_like_its_meshed_twin(twins, spec):
         assert ba[k][0] > 200 and ba[k][1] <= 2 * bm[k][1] + 5, (k, ba, bm)
 
 
+# a curve (Mitsuba's ``linearcurve``: control points and radii), a shape the cache gives no entries
+_CURVE = "-0.3 -0.8 0 0.25\n0 0 0 0.3\n0.3 0.8 0 0.25\n"
+
+
 def test_unsupported_shape_is_named_in_one_warning(tmp_path):
-    p = tmp_path / "inst.xml"
-    p.write_text(HEAD + """  <shape type="shapegroup" id="grp"><shape type="sphere"/></shape>
-  <shape type="instance" id="copy"><ref id="grp"/></shape>
+    p = tmp_path / "hair.xml"
+    (tmp_path / "hair.txt").write_text(_CURVE)
+    p.write_text(HEAD + """  <shape type="linearcurve" id="hair"><string name="filename" value="hair.txt"/></shape>
 </scene>""")
     sc = load_xml(p)
     with warnings.catch_warnings(record=True) as w:
         warnings.simplefilter("always")
         OnSurfaceCache(sc)
     msgs = [str(x.message) for x in w if "on-surface cache" in str(x.message)]
-    assert len(msgs) == 1 and "copy" in msgs[0] and "Instance" in msgs[0], msgs
+    assert len(msgs) == 1 and "hair" in msgs[0] and "LinearCurve" in msgs[0], msgs
 
 
 @pytest.mark.slow
@@ -247,18 +251,18 @@ def test_scene_of_only_analytic_shapes_does_not_crash(tmp_path):
 
 
 def test_scene_with_nothing_cacheable_renders(tmp_path):
-    """Only an instance (no entries, one warning): the cache methods render the
+    """Only a curve (no entries, one warning): the cache methods render the
     environment seen around it, no crash (the layout's tables are never empty)."""
-    p = tmp_path / "inst.xml"
+    p = tmp_path / "hair.xml"
+    (tmp_path / "hair.txt").write_text(_CURVE)
     p.write_text("""<scene version="3.0.0">
   <sensor type="perspective"><transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform></sensor>
-  <shape type="shapegroup" id="grp"><shape type="sphere"><bsdf type="diffuse"/></shape></shape>
-  <shape type="instance" id="copy"><ref id="grp"/></shape>
+  <shape type="linearcurve" id="hair"><string name="filename" value="hair.txt"/><bsdf type="diffuse"/></shape>
   <emitter type="constant"/>
 </scene>""")
     sc = load_xml(p)
     for spec in ("slc", "slc:fetch=nearest", "sh"):
-        with pytest.warns(UserWarning, match="copy"):
+        with pytest.warns(UserWarning, match="hair"):
             img, gt, gb, _ = _render(sc, spec, frames=2)
         valid = np.array(gb.valid).reshape(H, W)
         assert np.isfinite(img).all() and valid.any()

@@ -26,7 +26,8 @@ The table is built once per scene, outside symbolic loops (:func:`for_scene`), a
 with the scene's last :class:`slc.scene.scenes.Scene` (a ``mi.Scene`` takes neither attributes nor
 weak references, so the table is found by the scene's address and its first shape, held
 alive by the entry: a new scene at a recycled address is never mistaken for an old one).
-Scenes with instances have no table (their BSDFs are not listed by ``scene.shapes()``).
+Scenes with instances have no table (their BSDFs are not listed by ``scene.shapes()``); XML
+scenes load with theirs expanded (:mod:`slc.scene.instances`), scenes built in Python may keep them.
 """
 from __future__ import annotations
 
@@ -169,7 +170,7 @@ def two_sided(scene, bsdf: mi.BSDFPtr, active: mi.Bool) -> mi.Bool | None:
     if t is None:
         F = mi.BSDFFlags
         back = int(F.BackSide) | int(F.Transmission) | int(F.Null)
-        return active & ((mi.UInt32(bsdf.flags(active)) & back) != 0)
+        return active & ((mi.UInt32(bsdf.flags()) & back) != 0)
     rid = dr.reinterpret_array(mi.UInt32, bsdf)
     ok = active & (rid < t.width)
     return ok & dr.gather(mi.Bool, t.two_sided, rid, ok)

@@ -37,6 +37,7 @@ import mitsuba as mi  # noqa: E402
 
 from slc.core.freeze import device_array  # noqa: E402
 
+from slc.scene import instances  # noqa: E402
 from slc.scene.camera import FPS, CameraPath, random_path  # noqa: E402
 from slc.scene.checks import SceneError, check_emitters, check_values  # noqa: E402
 from slc.scene.emitter_sampling import for_scene  # noqa: E402
@@ -293,7 +294,7 @@ def load_xml_text(name: str, text: str, camera_paths: list[CameraPath], files: d
     try:
         for fname, write in (files or {}).items():
             write(tmp / fname)
-        (tmp / f"{name}.xml").write_text(text)
+        (tmp / f"{name}.xml").write_text(instances.expand(text) if instances.has_instances(text) else text)
         sc = mi.load_file(str(tmp / f"{name}.xml"), optimize=False)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -303,6 +304,16 @@ def load_xml_text(name: str, text: str, camera_paths: list[CameraPath], files: d
 def xml_matrix(M) -> str:
     """A 4x4 matrix as the ``value`` of an XML ``<matrix>`` (row-major)."""
     return " ".join(f"{float(v):.9g}" for v in np.asarray(M, float).reshape(16))
+
+
+def _load_file(path: Path) -> mi.Scene:
+    """``path`` loaded by Mitsuba, its instances expanded (:mod:`slc.scene.instances`; the
+    expanded text is loaded with relative file names resolved from the file's folder)."""
+    text = path.read_text(errors="replace")
+    if not instances.has_instances(text):
+        return mi.load_file(str(path), optimize=False)
+    with instances.resolving_from(path.parent.resolve()):
+        return mi.load_string(instances.expand(text), optimize=False)
 
 
 def load_xml(path: Path, exposure: float = 1.0, unit: float = 1.0) -> Scene:
@@ -318,7 +329,9 @@ def load_xml(path: Path, exposure: float = 1.0, unit: float = 1.0) -> Scene:
         # run to run (seen on Sponza); the cache layout, its keys and the
         # emitter table follow the shape order, so two runs with the same seed
         # gave different images. Unmerged, the shapes keep the file's order.
-        sc = mi.load_file(str(path), optimize=False)
+        sc = _load_file(path)
+    except instances.InstanceError as e:
+        raise SceneError(f"cannot expand the instances of scene {path}: {e}") from None
     except Exception as e:  # Mitsuba raises RuntimeError with a long message
         msg = str(e).strip().splitlines()
         last = msg[-1] if msg else type(e).__name__
