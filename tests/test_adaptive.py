@@ -376,6 +376,15 @@ def test_hysteresis():
     assert ch.target_of(hdr(ch.SH, 0.0, 0.78), p)[0] == ch.SH
     assert ch.target_of(hdr(ch.CONES, 0.0, 0.72), p)[0] == ch.CONES
     assert ch.target_of(hdr(ch.CONES, 0.0, 0.6), p)[0] == ch.SH
+    # a glossy entry whose other light is narrow (R = 1 here) needs theta_glossy +- h_glossy:
+    # 0.99 to enter VISIBILITY, 0.95 to stay; with wide other light (R = 0.6) theta_delta
+    g = mi.Bool(True)
+    assert ch.target_of(hdr(ch.CONES, 0.9, 1.0), p, g)[0] == ch.CONES
+    assert ch.target_of(hdr(ch.CONES, 0.9, 1.0), p, mi.Bool(False))[0] == ch.VIS
+    assert ch.target_of(hdr(ch.CONES, 0.995, 1.0), p, g)[0] == ch.VIS
+    assert ch.target_of(hdr(ch.VIS, 0.96, 1.0), p, g)[0] == ch.VIS
+    assert ch.target_of(hdr(ch.VIS, 0.9, 1.0), p, g)[0] == ch.CONES
+    assert ch.target_of(hdr(ch.CONES, 0.9, 0.6), p, g)[0] == ch.VIS
     # a switch needs switch_after updates in a row
     h = hdr(ch.CONES, 0.9, 1.0)
     for k in range(p.switch_after):

@@ -59,6 +59,7 @@ SCENES = {
     "lamp_export": "room lit by a small bright rectangle inside a lamp shade and a second rectangle",
     "preview_export": "smooth plastic, glass and metal on a checkered plane under an environment map with a sun",
     "sun_export": "one directional light: hard shadows only",
+    "gallery_export": "objects by instances on a rough aluminium floor under a spot, a point and a disk light",
 }
 
 # the VPL methods with 1024 VPLs and depth-5 hierarchies (the defaults, 4096 VPLs and depth 7,
@@ -72,7 +73,7 @@ METHODS = ("rt16", "rt48", "restir", "regir", "slc", "slc:fetch=bilinear", "sh",
 # scenes measured with some methods only (the others: every method of METHODS): the exported
 # scenes hold the direct-light cache methods a user picks, and their partner
 SCENE_METHODS = {name: ("rt48", "slc", "adaptive")
-                 for name in ("box_export", "lamp_export", "preview_export", "sun_export")}
+                 for name in ("box_export", "lamp_export", "preview_export", "sun_export", "gallery_export")}
 
 # methods whose frame depends on nothing carried from earlier frames (rtN: any N): only the
 # evaluated (last) frame is rendered, the very image a run of every frame ends with

@@ -31,6 +31,8 @@ scenes load with theirs expanded (:mod:`slc.scene.instances`), scenes built in P
 """
 from __future__ import annotations
 
+import math
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -47,7 +49,9 @@ class BSDFTable:
     ``roughness``, ``metallic``, ``alpha`` (Float), ``two_sided`` (Bool); on the host ``n`` (the width as an int),
     ``all_diffuse`` (every shape's BSDF is smooth diffuse), ``front_only`` (every shape's
     BSDF reflects light from its front side only, :func:`front_side_only`) and
-    ``alpha_textured`` (some BSDF's GGX roughness is a texture)."""
+    ``alpha_textured`` (some BSDF's GGX roughness is a texture). ``glossy_share`` (Float, not
+    a kernel input of the table's users): the share of each BSDF's reflected light that its
+    glossy and delta lobes carry (:func:`_glossy_share`)."""
     DRJIT_STRUCT = {"width": mi.UInt32, "diffuse": mi.Bool, "kind": mi.UInt32, "colour": mi.Color3f,
                     "roughness": mi.Float, "metallic": mi.Float, "alpha": mi.Float, "two_sided": mi.Bool}
 
@@ -57,6 +61,7 @@ class BSDFTable:
         self.colour, self.roughness, self.metallic, self.alpha = colour, roughness, metallic, alpha
         self.two_sided = two_sided
         self.n, self.all_diffuse, self.front_only, self.alpha_textured = 0, False, False, False
+        self.glossy_share = None
 
 
 _TABLES: dict[int, tuple] = {}
@@ -103,6 +108,7 @@ def _build(shapes) -> BSDFTable | None:
     metal = np.zeros(W, np.float32)
     alpha = np.zeros(W, np.float32)
     two = np.zeros(W, bool)
+    gshare = np.zeros(W, np.float32)
     si = dr.zeros(mi.SurfaceInteraction3f, 1)
     si.wi = mi.Vector3f(0.0, 0.0, 1.0)
     for rid, b in bsdfs.items():
@@ -127,12 +133,41 @@ def _build(shapes) -> BSDFTable | None:
             kind[rid] = KIND_NOT_PRINCIPLED
         alpha[rid] = _ggx_alpha(b, keys, si)
         two[rid] = not _front_side(b)
+        gshare[rid] = 0.0 if diffuse[rid] else _glossy_share(b)
     t = BSDFTable(dr.opaque(mi.UInt32, W), mi.Bool(diffuse), mi.UInt32(kind), mi.Color3f(col), mi.Float(rough),
                   mi.Float(metal), mi.Float(alpha), mi.Bool(two))
     t.n, t.all_diffuse = W, bool(all(diffuse[i] for i in bsdfs))
     t.alpha_textured = bool((alpha == ALPHA_TEXTURED).any())
     t.front_only = all(_front_side(b) for b in bsdfs.values())
+    t.glossy_share = mi.Float(gshare)
     return t
+
+
+GLOSSY_SAMPLES = 256
+
+
+def _glossy_share(b) -> float:
+    """The share of BSDF ``b``'s reflected light that its glossy and delta lobes carry: over
+    ``GLOSSY_SAMPLES`` of its samples for light leaving at 45 degrees (at texture coordinates
+    (0.5, 0.5)), the luminance of the weights of samples from such a lobe over the luminance of
+    all weights. 0 for a Lambertian lobe, 1 for a conductor; a principled dielectric's specular
+    layer or a blend's glossy component carry a share between."""
+    n = GLOSSY_SAMPLES
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
+    si.n = mi.Vector3f(0.0, 0.0, 1.0)
+    si.wi = mi.Vector3f(math.sqrt(0.5), 0.0, math.sqrt(0.5))
+    si.uv = mi.Point2f(0.5, 0.5)
+    k = mi.Float(dr.arange(mi.UInt32, n)) + 0.5
+    u1 = k * (1.0 / n)                                   # stratified lobe choice
+    a, c = k * 0.7548776662466927, k * 0.5698402909980532    # an R2 sequence (Roberts)
+    u2 = mi.Point2f(a - dr.floor(a), c - dr.floor(c))
+    bs, w = b.sample(mi.BSDFContext(), si, u1, u2)
+    ok = (bs.pdf > 0.0) & (mi.Frame3f.cos_theta(bs.wo) > 0.0) & dr.all(dr.isfinite(w))
+    y = dr.select(ok, 0.212671 * w[0] + 0.715160 * w[1] + 0.072169 * w[2], 0.0)
+    g = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Glossy) | mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+    total, glossy = float(dr.sum(y)[0]), float(dr.sum(dr.select(g, y, 0.0))[0])
+    return glossy / total if total > 0.0 else 0.0
 
 
 def _ggx_alpha(b, keys: list, si) -> float:
@@ -174,6 +209,20 @@ def two_sided(scene, bsdf: mi.BSDFPtr, active: mi.Bool) -> mi.Bool | None:
     rid = dr.reinterpret_array(mi.UInt32, bsdf)
     ok = active & (rid < t.width)
     return ok & dr.gather(mi.Bool, t.two_sided, rid, ok)
+
+
+def glossy_lobes(scene, bsdf: mi.BSDFPtr, active: mi.Bool) -> mi.Float:
+    """The share of the lanes' reflected light that their BSDF's glossy and delta lobes carry
+    (the table's ``glossy_share``; in scenes without a table 1 for a BSDF with such a lobe)."""
+    t = for_scene(scene)
+    active = mi.Bool(active)
+    if t is None:
+        f = mi.UInt32(bsdf.flags())
+        g = ((f & (int(mi.BSDFFlags.Glossy) | int(mi.BSDFFlags.Delta))) != 0) & active
+        return dr.select(g, 1.0, 0.0)
+    rid = dr.reinterpret_array(mi.UInt32, bsdf)
+    ok = active & (rid < t.width)
+    return dr.gather(mi.Float, t.glossy_share, rid, ok)
 
 
 def side_inputs(scene) -> list:

@@ -20,7 +20,11 @@ weighted by their local direction :math:`\omega_k`. Stored as
 
 Choice with hysteresis: the target is VISIBILITY when :math:`s_\delta` exceeds
 :math:`\theta_\delta + h_\delta` (or, for an entry already in VISIBILITY, stays
-above :math:`\theta_\delta - h_\delta`); otherwise SH when :math:`R < \theta_R - h_R`
+above :math:`\theta_\delta - h_\delta`), with :math:`\theta_g \pm h_g` in place of
+:math:`\theta_\delta \pm h_\delta` at a glossy entry (its BSDF's glossy and delta lobes
+carry most of its light) whose other light is narrow (:math:`R \ge \theta_R`): there the
+record's residual, light of unknown direction, shaded as uniform radiance, spreads a light's
+highlight over the whole surface; otherwise SH when :math:`R < \theta_R - h_R`
 (kept while :math:`R < \theta_R + h_R`); otherwise CONES. An entry switches
 once the target differed from its tag for ``switch_after`` updates in a row
 and it has at least ``min_count`` updates of statistics; a dark entry
@@ -34,6 +38,7 @@ import drjit as dr
 import mitsuba as mi
 
 from slc.lib.cones.packing import decode_radiance, encode_radiance
+from slc.scene.bsdf_table import glossy_lobes
 
 NONE, VIS, CONES, SH = 0, 1, 2, 3
 NAMES = {NONE: "none", VIS: "visibility", CONES: "cones", SH: "sh"}
@@ -45,6 +50,8 @@ HEADER_WORDS = 3
 class ChoiceParams:
     window: int = 32              # statistics' running-mean window (updates)
     theta_delta: float = 0.5      # delta-light energy share for VISIBILITY
+    theta_glossy: float = 0.97    # the same at glossy entries with a narrow residual
+    h_glossy: float = 0.02
     h_delta: float = 0.15
     theta_r: float = 0.75         # mean resultant length below which light is "wide" (SH)
     h_r: float = 0.06
@@ -110,12 +117,17 @@ def resultant(h: Header) -> mi.Float:
     return dr.minimum(dr.norm(h.m), 1.0)
 
 
-def target_of(h: Header, p: ChoiceParams) -> mi.UInt32:
+def target_of(h: Header, p: ChoiceParams, glossy=None) -> mi.UInt32:
     """The representation the statistics ask for, with the hysteresis bands
-    around the thresholds (see the module)."""
+    around the thresholds (see the module); ``glossy``: the entries on BSDFs with a
+    glossy or delta lobe (None: none)."""
     is_vis, is_sh = h.tag == VIS, h.tag == SH
-    vis = h.s_delta > dr.select(is_vis, p.theta_delta - p.h_delta, p.theta_delta + p.h_delta)
     R = resultant(h)
+    theta, band = mi.Float(p.theta_delta), mi.Float(p.h_delta)
+    if glossy is not None:      # a narrow residual on a glossy lobe: its highlight would be misplaced
+        gl = mi.Bool(glossy) & (R >= p.theta_r)
+        theta, band = dr.select(gl, p.theta_glossy, theta), dr.select(gl, p.h_glossy, band)
+    vis = h.s_delta > dr.select(is_vis, theta - band, theta + band)
     wide = R < dr.select(is_sh, p.theta_r + p.h_r, p.theta_r - p.h_r)
     if not p.allow_sh:
         wide = dr.zeros(mi.Bool, dr.width(R))
@@ -123,11 +135,11 @@ def target_of(h: Header, p: ChoiceParams) -> mi.UInt32:
     return dr.select(h.e > 0.0, t, h.tag)
 
 
-def decide(h: Header, p: ChoiceParams, allowed: bool = True):
+def decide(h: Header, p: ChoiceParams, allowed: bool = True, glossy=None):
     """(header with the streak advanced, switch mask, target tag). With
     ``allowed`` false (a frame between switch frames) nothing switches and the
-    streaks keep counting."""
-    t = target_of(h, p)
+    streaks keep counting; ``glossy`` as :func:`target_of`."""
+    t = target_of(h, p, glossy)
     differs = (t != h.tag) & (h.tag != NONE)
     streak = dr.select(differs, dr.minimum(h.streak + 1, 63), 0)
     # ``allowed`` opaque: the same kernel in switch frames and between them (the first frame
@@ -136,3 +148,17 @@ def decide(h: Header, p: ChoiceParams, allowed: bool = True):
     h2 = Header(tag=h.tag, streak=dr.select(switch, 0, streak), count=h.count, e=h.e, slot=h.slot,
                 s_delta=h.s_delta, m=h.m)
     return h2, switch, t
+
+
+GLOSSY_SHARE = 0.5      # an entry whose BSDF's glossy and delta lobes carry at least this share of its light
+
+
+def glossy_entries(scene, si, env=None) -> mi.Bool | None:
+    """The entries whose BSDF's glossy and delta lobes carry at least ``GLOSSY_SHARE`` of its
+    reflected light (:func:`slc.scene.bsdf_table.glossy_lobes`): their VISIBILITY residual, shaded
+    as uniform radiance, would misplace a light's highlight (the choice rule's ``theta_glossy``,
+    the start of new entries). None in a scene whose sky is listed (``env.has_sky``): a glossy
+    pixel there takes the residual's sky from the map's radiance along BSDF samples."""
+    if env is not None and env.has_sky:
+        return None
+    return glossy_lobes(scene, si.bsdf(), si.is_valid()) >= GLOSSY_SHARE

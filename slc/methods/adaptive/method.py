@@ -12,7 +12,7 @@ from slc.methods import register
 from slc.methods.cache_method import PayloadMethod, RayPolicy
 from slc.lib.sh.ycocg import encoding as get_encoding
 from slc.methods.adaptive import choice as ch
-from slc.methods.adaptive.choice import CONES, NONE, SH, TAG_OF, VIS, ChoiceParams, Header
+from slc.methods.adaptive.choice import CONES, NONE, SH, TAG_OF, VIS, ChoiceParams, Header, glossy_entries
 from slc.methods.adaptive.cones_rep import ConesRep
 from slc.lib.lights.env_lights import EnvLights
 from slc.methods.adaptive.lanes import count_hist, means, opaque_header, subset, tally
@@ -73,7 +73,8 @@ class AdaptiveCache(PayloadMethod):
         self._back = not front_side_only(scene)     # two-sided BSDFs: VISIBILITY keeps a residual behind
         self.cone_params = ConeParams(max_cones=self.max_cones, front_only=not self._back)
         self.enc = get_encoding(self.encoding)
-        self.choice = ChoiceParams(window=self.window, theta_delta=self.theta_delta, theta_r=self.theta_r,
+        self.choice = ChoiceParams(window=self.window, theta_delta=self.theta_delta, theta_glossy=self.theta_glossy,
+                                   theta_r=self.theta_r,
                                    switch_after=self.switch_after,
                                    allow_sh=self.sh_when == "always" or (self.sh_when == "environment"
                                                                          and self._has_environment(scene)))
@@ -175,7 +176,7 @@ class AdaptiveCache(PayloadMethod):
         # leave the stratified sequence; the others continue it after the samples they drew)
         moving, first_sample = policy.moving, policy.first_sample
         dr.make_opaque(is_new, rays, unsettled, moving, first_sample)
-        h, fresh = self._hand_over(h, is_new, fr.n_active)
+        h, fresh = self._hand_over(h, is_new, fr.n_active, fr.si)
         motion, vis_motion, stats = self._update_representations(ctx, fr, h, fresh, rays, unsettled, moving,
                                                                  first_sample)
         # a listed delta light went dark: the statistics restart from a short window
@@ -189,8 +190,7 @@ class AdaptiveCache(PayloadMethod):
         for k, w in enumerate(ch.pack_header(h)):
             dr.scatter(self.storage, w, base + k)
         self._tags = h.tag
-        # the tags' counts are read back only in shade (a read-back here waited for this
-        # update's kernels before the host could trace the policy update that follows)
+        # the tags' counts are read back only in shade (here the read-back waited for this update)
         self._counts = None
         self._count_hist = count_hist([h.tag == r for r in REPS])
         dr.eval(self.storage, self._tags, self._count_hist)
@@ -201,10 +201,8 @@ class AdaptiveCache(PayloadMethod):
         the representation that held the most active entries at the last update (the prior in
         the first frame and on a tie)."""
         forced = TAG_OF.get(self.force)
-        if forced is not None:
-            return forced
-        if self.start != "majority":
-            return TAG_OF.get(self.start, self.prior)
+        if forced is not None or self.start != "majority":
+            return forced or TAG_OF.get(self.start, self.prior)
         counts = self._last_counts()
         best = max(counts.values(), default=0)
         if best == 0 or counts.get(self.prior, 0) == best:
@@ -217,13 +215,18 @@ class AdaptiveCache(PayloadMethod):
             self._counts = dict(zip(REPS, tally(REPS, self._count_hist)))
         return self._counts or {}
 
-    def _hand_over(self, h: Header, is_new: mi.Bool, N: int):
-        """Reused slots give back their old records; new ones get a record of the
-        representation new entries start in (all lane counts read back at once; a pool with
-        no lane is skipped once warm). Returns (header, fresh: a new record)."""
+    def _hand_over(self, h: Header, is_new: mi.Bool, N: int, si):
+        """Reused slots give back their old records; new ones get a record of the representation
+        new entries start in (lane counts read back at once; a pool with no lane is skipped once
+        warm); with ``start=majority`` a glossy one (``si``, :func:`glossy_entries`) starts in cones
+        where the majority is VISIBILITY but the prior is not. Returns (header, fresh: a new record)."""
         fresh = is_new | (h.tag == NONE)
         # opaque: the representation of new entries may change between frames (start=majority)
-        tag = dr.select(fresh, dr.opaque(mi.UInt32, self._representation_of_new()), h.tag)
+        start = dr.opaque(mi.UInt32, self._representation_of_new())
+        glossy = glossy_entries(self.scene, si, self.env)
+        if self.start == "majority" and self.force == "auto" and self.prior != VIS and glossy is not None:
+            start = dr.select((start == VIS) & glossy, mi.UInt32(CONES), start)
+        tag = dr.select(fresh, start, h.tag)
         slot = dr.select(fresh, mi.UInt32(INVALID), h.slot)
         dr.eval(fresh, tag, slot)     # and after the hand-over: the same kernels in a frame without one
         rel = [is_new & (h.tag == r.tag) for r in self.reps]
@@ -260,8 +263,7 @@ class AdaptiveCache(PayloadMethod):
             idx, on, n_r = subsets[rep.tag]
             if n_r == 0 and self._warm:
                 continue        # no lane: no kernel traced (tracing costs as much as a small frame)
-            # entries with many rays side by side (as slc's update): a SIMD packet's loop runs as many
-            # iterations as its largest ray count
+            # entries with many rays side by side (a SIMD packet's loop runs its largest ray count)
             order = dr.argsort(dr.gather(mi.UInt32, rays, idx), descending=True)
             idx, on = dr.gather(mi.UInt32, idx, order), dr.gather(mi.Bool, on, order)
             ps = dr.gather(mi.UInt32, h.slot, idx)
@@ -282,9 +284,8 @@ class AdaptiveCache(PayloadMethod):
             dr.eval(up.words, up.stats)
             del e
             rep.pool.scatter(up.words, ps, on)
-            dr.scatter(ed, up.stats.ed, idx, on)
-            dr.scatter(en, up.stats.en, idx, on)
-            dr.scatter(mv, up.stats.m, idx, on)
+            for total, x in ((ed, up.stats.ed), (en, up.stats.en), (mv, up.stats.m)):
+                dr.scatter(total, x, idx, on)
             dr.eval(rep.pool.data, ed, en, mv, motion, vis_motion)
         return motion, vis_motion, means(ed, en, mv, traced)
 
@@ -296,7 +297,8 @@ class AdaptiveCache(PayloadMethod):
         forced = self.force != "auto"
         h = ch.update_stats(h, *stats, self.choice)
         allowed = self._frames_seen < self.switch_early or ctx.frame % self.switch_period == 0
-        h, switch, target = ch.decide(h, self.choice, allowed=allowed)
+        glossy = glossy_entries(self.scene, fr.si, self.env)     # their own threshold (theta_glossy)
+        h, switch, target = ch.decide(h, self.choice, allowed=allowed, glossy=glossy)
         if forced:
             switch = dr.zeros(mi.Bool, N)
         opaque_header(h)

@@ -54,6 +54,9 @@ PARAMS = (
     Param("switch_early", 4, "frames from the cache's start in which switches are carried out in every "
           "frame (young records hold little to lose; new entries start in the majority sooner)", lo=0, hi=64),
     Param("theta_delta", 0.5, "delta-light energy share above which VISIBILITY is chosen", lo=0.0, hi=1.0),
+    Param("theta_glossy", 0.97, "theta_delta at glossy entries (their BSDF's glossy and delta lobes carry at "
+          "least half of their light) whose other light is narrow (R >= theta_r): a VISIBILITY residual, light of "
+          "unknown direction, is shaded as uniform radiance", lo=0.0, hi=1.0),
     Param("theta_r", 0.75, "mean resultant length below which SH is chosen", lo=0.0, hi=1.0),
     Param("sh_when", "never", "SH is a candidate of the choice only in scenes with an environment "
           "(infinite, non-delta) emitter, always, or never", choices=("environment", "always", "never")),
