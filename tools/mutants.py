@@ -74,6 +74,11 @@ FAULTS = (
           "t = dr.full(mi.UInt32, CONES, dr.width(R))",
           ("tests/test_error_bounds.py::test_error_within_recorded_bound[adaptive-cornell]",),
           "the adaptive cache's choice rule asks for cones for every entry"),
+    Fault("adaptive-glossy-rules-dropped", "slc/methods/adaptive/choice.py",
+          "return glossy_lobes(scene, si.bsdf(), si.is_valid()) >= GLOSSY_SHARE", "return None",
+          ("tests/test_error_bounds.py::test_error_within_recorded_bound[adaptive-gallery_export]",),
+          "no entry counts as glossy: a light in a glossy entry's VISIBILITY residual is shaded as uniform "
+          "radiance"),
     Fault("new-entry-rays-halved", "slc/methods/cache_method.py",
           "r_new = mi.UInt32(self.new)", "r_new = mi.UInt32(self.new // 2)",
           ("tests/test_error_bounds.py::test_error_within_recorded_bound[slc-atrium]",),

@@ -119,8 +119,8 @@ def resultant(h: Header) -> mi.Float:
 
 def target_of(h: Header, p: ChoiceParams, glossy=None) -> mi.UInt32:
     """The representation the statistics ask for, with the hysteresis bands
-    around the thresholds (see the module); ``glossy``: the entries on BSDFs with a
-    glossy or delta lobe (None: none)."""
+    around the thresholds (see the module); ``glossy``: the glossy entries
+    (:func:`glossy_entries`; None: none)."""
     is_vis, is_sh = h.tag == VIS, h.tag == SH
     R = resultant(h)
     theta, band = mi.Float(p.theta_delta), mi.Float(p.h_delta)
