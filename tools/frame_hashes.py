@@ -42,6 +42,7 @@ def main(argv=None) -> int:
     from slc import methods
 
     from slc.scene import scenes, views
+    from slc.run.experiment import release_scenes
     from slc.run.pipeline import RunConfig, run_sequence
     import numpy as np
 
@@ -55,7 +56,8 @@ def main(argv=None) -> int:
         if opts.only and method not in opts.only:
             continue
         if scene_name not in loaded:
-            loaded.clear()               # one scene alive at a time
+            loaded.clear()               # one scene alive at a time: the scene before is freed, so
+            release_scenes()             # that its objects leave Dr.Jit's virtual call tables
             loaded[scene_name] = scenes.load(scene_name)
         s = loaded[scene_name]
         m = methods.create(method, s, seed=0)
@@ -67,6 +69,7 @@ def main(argv=None) -> int:
         for vname in sorted(r.last):
             md5.update(np.ascontiguousarray(np.asarray(r.last[vname], dtype=np.float32)).tobytes())
         print(f"{scene_name:8s} {rig:8s} {n:2d} {method:22s} {md5.hexdigest()}", flush=True)
+        del m, r                         # the method holds its scene
     return 0
 
 

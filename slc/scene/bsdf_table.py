@@ -164,7 +164,7 @@ def _glossy_share(b) -> float:
     u2 = mi.Point2f(a - dr.floor(a), c - dr.floor(c))
     bs, w = b.sample(mi.BSDFContext(), si, u1, u2)
     ok = (bs.pdf > 0.0) & (mi.Frame3f.cos_theta(bs.wo) > 0.0) & dr.all(dr.isfinite(w))
-    y = dr.select(ok, 0.212671 * w[0] + 0.715160 * w[1] + 0.072169 * w[2], 0.0)
+    y = dr.select(ok, mi.luminance(mi.Color3f(w)), 0.0)
     g = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Glossy) | mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
     total, glossy = float(dr.sum(y)[0]), float(dr.sum(dr.select(g, y, 0.0))[0])
     return glossy / total if total > 0.0 else 0.0

@@ -44,8 +44,10 @@ def has_instances(text: str) -> bool:
 
 def expand(text: str) -> str:
     """The XML scene ``text`` with every ``instance`` replaced by its group's shapes (see the
-    module) and the ``shapegroup`` elements removed. Raises :class:`InstanceError` for an
-    instance of an unknown group and for nested instances."""
+    module) and the ``shapegroup`` elements removed; ``text`` itself where it holds none. Raises
+    :class:`InstanceError` for an instance of an unknown group and for nested instances."""
+    if not has_instances(text):
+        return text
     root = ET.fromstring(text)
     parents = [(p, el) for p in root.iter() for el in p]
     groups = {}

@@ -294,7 +294,7 @@ def load_xml_text(name: str, text: str, camera_paths: list[CameraPath], files: d
     try:
         for fname, write in (files or {}).items():
             write(tmp / fname)
-        (tmp / f"{name}.xml").write_text(instances.expand(text) if instances.has_instances(text) else text)
+        (tmp / f"{name}.xml").write_text(instances.expand(text))
         sc = mi.load_file(str(tmp / f"{name}.xml"), optimize=False)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -176,13 +176,14 @@ class AdaptiveCache(PayloadMethod):
         # leave the stratified sequence; the others continue it after the samples they drew)
         moving, first_sample = policy.moving, policy.first_sample
         dr.make_opaque(is_new, rays, unsettled, moving, first_sample)
-        h, fresh = self._hand_over(h, is_new, fr.n_active, fr.si)
+        glossy = glossy_entries(self.scene, fr.si, self.env)    # their own start and threshold
+        h, fresh = self._hand_over(h, is_new, fr.n_active, glossy)
         motion, vis_motion, stats = self._update_representations(ctx, fr, h, fresh, rays, unsettled, moving,
                                                                  first_sample)
         # a listed delta light went dark: the statistics restart from a short window
         h.count = dr.select(vis_motion, dr.minimum(h.count, RESTART_COUNT), h.count)
         tag_before = h.tag
-        h = self._choose(ctx, fr, h, stats)
+        h = self._choose(ctx, fr, h, stats, glossy)
         # an entry that switched learns its new record with the rays of a moving entry (its record
         # converted from another representation holds a rough estimate, which the residual's
         # count would otherwise keep for hundreds of samples)
@@ -215,15 +216,14 @@ class AdaptiveCache(PayloadMethod):
             self._counts = dict(zip(REPS, tally(REPS, self._count_hist)))
         return self._counts or {}
 
-    def _hand_over(self, h: Header, is_new: mi.Bool, N: int, si):
+    def _hand_over(self, h: Header, is_new: mi.Bool, N: int, glossy):
         """Reused slots give back their old records; new ones get a record of the representation
         new entries start in (lane counts read back at once; a pool with no lane is skipped once
-        warm); with ``start=majority`` a glossy one (``si``, :func:`glossy_entries`) starts in cones
+        warm); with ``start=majority`` a ``glossy`` one (:func:`glossy_entries`) starts in cones
         where the majority is VISIBILITY but the prior is not. Returns (header, fresh: a new record)."""
         fresh = is_new | (h.tag == NONE)
         # opaque: the representation of new entries may change between frames (start=majority)
         start = dr.opaque(mi.UInt32, self._representation_of_new())
-        glossy = glossy_entries(self.scene, si, self.env)
         if self.start == "majority" and self.force == "auto" and self.prior != VIS and glossy is not None:
             start = dr.select((start == VIS) & glossy, mi.UInt32(CONES), start)
         tag = dr.select(fresh, start, h.tag)
@@ -290,14 +290,14 @@ class AdaptiveCache(PayloadMethod):
         return motion, vis_motion, means(ed, en, mv, traced)
 
     # ------------------------------------------------------------------ the choice
-    def _choose(self, ctx, fr, h: Header, stats) -> Header:
-        """The statistics' running means, the choice rule, and the switches it asks for (in
-        every frame of the cache's first ``switch_early``, then in every ``switch_period``-th)."""
+    def _choose(self, ctx, fr, h: Header, stats, glossy=None) -> Header:
+        """The statistics' running means, the choice rule (``glossy``: the glossy entries, their
+        own threshold), and the switches it asks for (in every frame of the cache's first
+        ``switch_early``, then in every ``switch_period``-th)."""
         N = fr.n_active
         forced = self.force != "auto"
         h = ch.update_stats(h, *stats, self.choice)
         allowed = self._frames_seen < self.switch_early or ctx.frame % self.switch_period == 0
-        glossy = glossy_entries(self.scene, fr.si, self.env)     # their own threshold (theta_glossy)
         h, switch, target = ch.decide(h, self.choice, allowed=allowed, glossy=glossy)
         if forced:
             switch = dr.zeros(mi.Bool, N)
